@@ -1,0 +1,28 @@
+# radaredge — the two commands of a fresh machine are `make demo` and `make test`.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+MODEL   ?= tdfanet
+
+.PHONY: setup test demo bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --upgrade --quiet pip
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+# The main job on built-in defaults: export the model, prove parity, measure speed.
+demo: $(STAMP)
+	$(BIN)/radaredge export --model $(MODEL)
+	$(BIN)/radaredge parity-check --model $(MODEL) --onnx export/$(MODEL).onnx
+	$(BIN)/radaredge bench --model $(MODEL) --onnx export/$(MODEL).onnx
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

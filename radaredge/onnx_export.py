@@ -1,0 +1,77 @@
+"""Trace a torch module to ONNX with named, optionally dynamic, axes.
+
+This is the one place radaredge calls ``torch.onnx.export``; ops tests and the full-model
+exporter (``radaredge.export``) both go through it, so every graph is built the same way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import warnings
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import torch
+
+from .errors import ExportError
+
+DEFAULT_OPSET = 18
+
+
+def export_onnx(
+    module: torch.nn.Module,
+    args: tuple,
+    path: str | Path,
+    input_names: Sequence[str],
+    output_names: Sequence[str],
+    dynamic_axes: Mapping[str, Mapping[int, str]] | None = None,
+    opset: int = DEFAULT_OPSET,
+    verbose: bool = False,
+) -> Path:
+    """Export ``module(*args)`` to ``path`` with torch's dynamo exporter.
+
+    ``dynamic_axes`` maps an input name to ``{axis: symbolic_name}``; inputs sharing a symbolic
+    name share one dimension. The exporter refuses code whose control flow depends on a dynamic
+    size, which is what we want: a data-dependent branch must not be silently baked in.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    dims: dict[str, torch.export.Dim] = {}
+    dynamic_shapes = None
+    if dynamic_axes:
+        dynamic_shapes = []
+        for name in input_names:
+            axes = dynamic_axes.get(name)
+            if not axes:
+                dynamic_shapes.append(None)
+                continue
+            dynamic_shapes.append({
+                ax: dims.setdefault(sym, torch.export.Dim.DYNAMIC) for ax, sym in axes.items()
+            })
+        dynamic_shapes = tuple(dynamic_shapes)
+    module = module.eval()
+    sink = io.StringIO()
+    quiet = contextlib.nullcontext() if verbose else contextlib.redirect_stdout(sink)
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    try:
+        with quiet, warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(
+                module,
+                args,
+                input_names=list(input_names),
+                output_names=list(output_names),
+                dynamic_shapes=dynamic_shapes,
+                opset_version=opset,
+                dynamo=True,
+                external_data=False,
+                verbose=False,
+            )
+            program.save(str(path))
+    except Exception as exc:  # torch raises many types; wrap them with context
+        raise ExportError(
+            f"exporting {type(module).__name__} to ONNX failed: {type(exc).__name__}: {exc}"
+        ) from exc
+    return path

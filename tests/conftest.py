@@ -1,0 +1,55 @@
+"""Shared test helpers: export a module alone and run it in onnxruntime."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import pytest
+import torch
+
+from radaredge.onnx_export import export_onnx
+from radaredge.ort import make_session, run_session
+
+
+class OnnxRoundTrip:
+    """Export ``module`` once, then run any number of input sets through torch and onnxruntime."""
+
+    def __init__(self, tmp_path: Path, module: torch.nn.Module, example: Mapping[str, torch.Tensor],
+                 output_names: Sequence[str], dynamic_axes: Mapping[str, Mapping[int, str]] | None = None):
+        self.module = module.eval()
+        self.input_names = list(example)
+        self.output_names = list(output_names)
+        path = export_onnx(module, tuple(example.values()), tmp_path / f"{type(module).__name__}.onnx",
+                           self.input_names, self.output_names, dynamic_axes)
+        self.session = make_session(path, threads=1)
+
+    def __call__(self, inputs: Mapping[str, torch.Tensor]):
+        """Return (torch outputs, onnxruntime outputs), both as OrderedDicts of numpy arrays."""
+        with torch.no_grad():
+            out = self.module(*[inputs[n] for n in self.input_names])
+        if not isinstance(out, (tuple, list)):
+            out = (out,)
+        ref = OrderedDict((n, o.detach().numpy()) for n, o in zip(self.output_names, out))
+        got = run_session(self.session, {n: inputs[n].numpy() for n in self.input_names})
+        return ref, OrderedDict((n, got[n]) for n in self.output_names)
+
+
+@pytest.fixture
+def onnx_roundtrip(tmp_path):
+    def make(module, example, output_names, dynamic_axes=None):
+        return OnnxRoundTrip(tmp_path, module, example, output_names, dynamic_axes)
+    return make
+
+
+def assert_close(a: np.ndarray, b: np.ndarray, atol: float = 1e-5, what: str = "") -> None:
+    """Max-abs comparison with a message that says how far apart the arrays are."""
+    a = np.asarray(a)
+    b = np.asarray(b)
+    assert a.shape == b.shape, f"{what}: shape {a.shape} != {b.shape}"
+    if a.size == 0:
+        return
+    err = np.abs(a.astype(np.float64) - b.astype(np.float64)).max()
+    assert err <= atol, f"{what}: max abs error {err:.3g} > {atol:g}"
