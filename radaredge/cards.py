@@ -1,0 +1,118 @@
+"""Model cards: YAML files in ``models/`` that hold every range, size, channel and threshold.
+
+A card is the single source of truth for a model: code reads its sections through
+:meth:`ModelCard.section`, and the exported ONNX carries the card in its metadata.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Type, TypeVar
+
+import yaml
+
+from .config import config_from_dict
+from .errors import ConfigError
+
+T = TypeVar("T")
+REQUIRED = ("name", "description", "model", "features")
+
+
+def cards_dir() -> Path:
+    """Directory of the shipped cards: $RADAREDGE_CARDS, else ``models/`` beside the package."""
+    env = os.environ.get("RADAREDGE_CARDS")
+    return Path(env) if env else Path(__file__).resolve().parent.parent / "models"
+
+
+@dataclass
+class ModelCard:
+    """A parsed model card. ``data`` is the whole YAML mapping."""
+
+    data: dict[str, Any]
+    path: Path | None = None
+    _sections: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def name(self) -> str:
+        return self.data["name"]
+
+    @property
+    def model(self) -> str:
+        return self.data["model"]
+
+    @property
+    def description(self) -> str:
+        return self.data["description"]
+
+    @property
+    def features(self) -> list[str]:
+        return list(self.data["features"])
+
+    def get(self, dotted: str, default: Any = None) -> Any:
+        """Value at ``a.b.c`` or ``default``."""
+        node: Any = self.data
+        for part in dotted.split("."):
+            if not isinstance(node, dict) or part not in node:
+                return default
+            node = node[part]
+        return node
+
+    def section(self, dotted: str, cls: Type[T]) -> T:
+        """The section at ``dotted`` as dataclass ``cls`` (defaults fill missing fields)."""
+        raw = self.get(dotted, {})
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{self.where}: {dotted} must be a mapping, got {type(raw).__name__}")
+        return config_from_dict(cls, raw, f"{self.where}: {dotted}")
+
+    @property
+    def where(self) -> str:
+        return str(self.path.name) if self.path else self.data.get("name", "<card>")
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.data, sort_keys=False)
+
+
+def parse_card(data: Any, path: Path | None = None) -> ModelCard:
+    """Validate the top level of a card mapping."""
+    where = path.name if path else "<card>"
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: a model card must be a YAML mapping")
+    missing = [k for k in REQUIRED if k not in data]
+    if missing:
+        raise ConfigError(f"{where}: missing required field(s) {missing}")
+    feats = data["features"]
+    if not isinstance(feats, list) or not feats or not all(isinstance(f, str) for f in feats):
+        raise ConfigError(f"{where}: features must be a non-empty list of column names, e.g. [x, y, z, v_r, rcs]")
+    if feats[:3] != ["x", "y", "z"]:
+        raise ConfigError(f"{where}: features must start with x, y, z (radar frame, metres); got {feats[:3]}")
+    if len(set(feats)) != len(feats):
+        raise ConfigError(f"{where}: duplicate feature names in {feats}")
+    return ModelCard(data=data, path=path)
+
+
+def load_card(name_or_path: str | Path) -> ModelCard:
+    """Load a card by name (``tdfanet`` -> models/tdfanet.yaml) or by file path."""
+    p = Path(name_or_path)
+    if p.suffix not in (".yaml", ".yml"):
+        p = cards_dir() / f"{name_or_path}.yaml"
+    if not p.is_file():
+        raise ConfigError(f"no model card {str(name_or_path)!r}: {p} does not exist; "
+                          f"available: {', '.join(available_cards()) or 'none'}")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p.name}: invalid YAML: {exc}") from exc
+    return parse_card(data, p)
+
+
+def card_from_yaml(text: str) -> ModelCard:
+    """Parse a card from YAML text (used when the card travels inside ONNX metadata)."""
+    return parse_card(yaml.safe_load(text))
+
+
+def available_cards() -> list[str]:
+    """Names of the shipped cards, sorted."""
+    d = cards_dir()
+    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []

@@ -1,0 +1,199 @@
+"""PointPillars feature net + scatter to a BEV canvas, as OpenPCDet's PillarVFE computes it.
+
+Per point (columns as the model card names them, x, y, z first, radar frame, metres) the net
+builds the raw features plus 6 offsets: to the mean xyz of its pillar's points (f_cluster) and
+to the centre of its pillar (f_center, z relative to the single vertical voxel's centre), then
+Linear (no bias) -> BatchNorm1d -> ReLU, and takes the max over the pillar's point slots. As
+upstream, a pillar holding fewer than ``max_points_per_pillar`` points also takes the max with
+the value of an all-zero padding slot, relu(BN(0)).
+
+Canvas layout (OpenPCDet's PointPillarScatter): [C, ny, nx], row = y cell, column = x cell, cell
+(iy, ix) covering x in [x_min + ix*vx, x_min + (ix+1)*vx), likewise y.
+
+Point policy, identical in both formulations:
+- a point is kept when its voxel coordinate floor((p - min) / voxel) lies inside the grid on
+  all three axes (half-open range [min, max)); points outside are dropped, never wrapped;
+- non-finite points and points with ``valid`` False are dropped;
+- within a pillar the first ``max_points_per_pillar`` points in input order are kept, later
+  ones are dropped (the spconv/OpenPCDet voxel generator's rule);
+- the export formulation never drops whole pillars: its canvas holds every cell. The reference
+  keeps OpenPCDet's ``max_pillars`` cap, which defaults to the number of grid cells, so the two
+  agree; a smaller cap is reported by :func:`voxelize_reference` as a CapacityError.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import CapacityError
+
+
+@dataclass(frozen=True)
+class PillarConfig:
+    """Model-card section ``pillars`` (metres)."""
+
+    point_cloud_range: tuple = (0.0, -39.68, -3.0, 69.12, 39.68, 10.0)  # x_min y_min z_min x_max y_max z_max
+    voxel_size: tuple = (0.32, 0.32, 13.0)
+    max_points_per_pillar: int = 32
+    max_pillars: int = 0          # reference only; 0 = one per grid cell (no cap)
+    out_channels: int = 64
+    bn_eps: float = 1e-3          # OpenPCDet PFNLayer BatchNorm1d(eps=1e-3, momentum=0.01)
+
+    def __post_init__(self):
+        if len(self.point_cloud_range) != 6 or len(self.voxel_size) != 3:
+            raise ValueError("point_cloud_range needs 6 values and voxel_size 3")
+        if any(v <= 0 for v in self.voxel_size):
+            raise ValueError("voxel_size entries must be > 0")
+        if self.max_points_per_pillar < 1:
+            raise ValueError("max_points_per_pillar must be >= 1")
+
+    @property
+    def grid_size(self) -> tuple[int, int, int]:
+        """(nx, ny, nz) cells."""
+        r, v = self.point_cloud_range, self.voxel_size
+        return tuple(int(round((r[i + 3] - r[i]) / v[i])) for i in range(3))
+
+
+class PFNLayer(nn.Module):
+    """Linear (no bias) + BatchNorm1d + ReLU; names match OpenPCDet (``linear``, ``norm``)."""
+
+    def __init__(self, in_channels: int, out_channels: int, eps: float):
+        super().__init__()
+        self.linear = nn.Linear(in_channels, out_channels, bias=False)
+        self.norm = nn.BatchNorm1d(out_channels, eps=eps, momentum=0.01)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x [..., in] -> [..., out]."""
+        shape = x.shape
+        y = self.linear(x.reshape(-1, shape[-1]))
+        return torch.relu(self.norm(y)).reshape(*shape[:-1], y.shape[-1])
+
+
+def _voxel_coords(xyz: torch.Tensor, config: PillarConfig) -> torch.Tensor:
+    """Integer voxel coordinates (ix, iy, iz) [N, 3] in float32 arithmetic (shared by both paths)."""
+    lo = torch.tensor(config.point_cloud_range[:3], dtype=torch.float32)
+    size = torch.tensor(config.voxel_size, dtype=torch.float32)
+    return torch.floor((xyz - lo) / size).to(torch.int64)
+
+
+def _centre_offsets(xyz: torch.Tensor, coords: torch.Tensor, config: PillarConfig) -> torch.Tensor:
+    """Offset of each point to the centre of its voxel, [N, 3] metres."""
+    lo = torch.tensor(config.point_cloud_range[:3], dtype=torch.float32)
+    size = torch.tensor(config.voxel_size, dtype=torch.float32)
+    return xyz - (coords.to(torch.float32) * size + (size / 2 + lo))
+
+
+class PillarFeatureNet(nn.Module):
+    """Export formulation: fixed-shape pillar encoding of one scan for any N (dynamic axis).
+
+    forward(points [N, F] float32, valid [N] bool) -> canvas [C, ny, nx]. ``pfn_layers.0`` holds
+    the weights under OpenPCDet's names so ``vfe.pfn_layers.0.linear.weight`` loads directly.
+    """
+
+    def __init__(self, num_point_features: int, config: PillarConfig):
+        super().__init__()
+        self.config = config
+        self.num_point_features = num_point_features
+        self.pfn_layers = nn.ModuleList([PFNLayer(num_point_features + 6, config.out_channels, config.bn_eps)])
+
+    def encode(self, feats: torch.Tensor) -> torch.Tensor:
+        """Point-wise PFN: [..., F + 6] -> [..., C]."""
+        return self.pfn_layers[0](feats)
+
+    def forward(self, points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        cfg = self.config
+        nx, ny, nz = cfg.grid_size
+        ncell = nx * ny
+        n = points.shape[0]
+        finite = torch.isfinite(points).all(1)
+        points = torch.where(finite.unsqueeze(1), points, torch.zeros_like(points))
+        xyz = points[:, :3]
+        coords = _voxel_coords(xyz, cfg)
+        size = torch.tensor([nx, ny, nz], dtype=torch.int64)
+        inside = valid & finite & ((coords >= 0) & (coords < size)).all(1)
+        cell = torch.where(inside, coords[:, 1] * nx + coords[:, 0], torch.full_like(coords[:, 0], ncell))
+
+        # Rank of each point inside its pillar in input order: sort by (cell, index).
+        pos = torch.arange(n, dtype=torch.int64)
+        order = torch.topk(cell * n + pos, n, largest=False, sorted=True).indices
+        sorted_cell = cell[order]
+        first = torch.full((ncell + 1,), n, dtype=torch.int64).scatter_reduce(
+            0, sorted_cell, pos, reduce="amin", include_self=True)
+        rank = torch.zeros_like(pos).scatter(0, order, pos - first[sorted_cell])
+        keep = inside & (rank < cfg.max_points_per_pillar)
+        cell = torch.where(keep, cell, torch.full_like(cell, ncell))
+
+        w = keep.to(points.dtype)
+        count = torch.zeros(ncell + 1, dtype=points.dtype).index_add(0, cell, w)
+        sums = torch.zeros(ncell + 1, 3, dtype=points.dtype).index_add(0, cell, xyz * w.unsqueeze(1))
+        mean = sums / torch.clamp(count, min=1.0).unsqueeze(1)
+        feats = torch.cat([points, xyz - mean[cell], _centre_offsets(xyz, coords, cfg)], 1)
+        feats = self.encode(feats) * w.unsqueeze(1)
+
+        c = feats.shape[1]
+        canvas = torch.zeros(ncell + 1, c, dtype=feats.dtype).scatter_reduce(
+            0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
+        pad_value = self.encode(torch.zeros(1, self.num_point_features + 6, dtype=feats.dtype))
+        padded = ((count > 0) & (count < cfg.max_points_per_pillar)).unsqueeze(1)
+        canvas = torch.where(padded, torch.maximum(canvas, pad_value), canvas)
+        return canvas[:ncell].T.reshape(c, ny, nx)
+
+
+# ----------------------------------------------------------------------------- reference
+
+
+def voxelize_reference(points: np.ndarray, config: PillarConfig, valid: np.ndarray | None = None):
+    """Dynamic voxelization as OpenPCDet's voxel generator does it (numpy, loops).
+
+    Returns (voxels [P, max_points, F] zero-padded, num_points [P], coords [P, 3] as (ix, iy, iz))
+    with pillars in order of first appearance and points in input order. Raises CapacityError
+    when ``max_pillars`` (> 0) would be exceeded.
+    """
+    points = np.asarray(points, np.float32)
+    nx, ny, nz = config.grid_size
+    keep = np.isfinite(points).all(1) if valid is None else (np.asarray(valid, bool) & np.isfinite(points).all(1))
+    coords = _voxel_coords(torch.from_numpy(np.where(keep[:, None], points, 0)[:, :3]), config).numpy()
+    slots: dict[tuple[int, int, int], list[int]] = {}
+    for i in range(len(points)):
+        ix, iy, iz = coords[i]
+        if not keep[i] or not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+            continue
+        key = (int(ix), int(iy), int(iz))
+        if key not in slots:
+            if config.max_pillars and len(slots) >= config.max_pillars:
+                raise CapacityError(f"scan needs more than max_pillars={config.max_pillars} pillars")
+            slots[key] = []
+        if len(slots[key]) < config.max_points_per_pillar:
+            slots[key].append(i)
+    p, f = len(slots), points.shape[1]
+    voxels = np.zeros((p, config.max_points_per_pillar, f), np.float32)
+    num = np.zeros(p, np.int64)
+    vcoords = np.zeros((p, 3), np.int64)
+    for k, (key, idx) in enumerate(slots.items()):
+        voxels[k, : len(idx)] = points[idx]
+        num[k] = len(idx)
+        vcoords[k] = key
+    return voxels, num, vcoords
+
+
+def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None) -> torch.Tensor:
+    """Reference formulation: voxelize, PillarVFE on padded pillars as OpenPCDet, scatter. [C, ny, nx]."""
+    cfg = net.config
+    nx, ny, _ = cfg.grid_size
+    voxels, num, coords = voxelize_reference(points, cfg, valid)
+    v = torch.from_numpy(voxels)
+    n = torch.from_numpy(num).float().clamp(min=1).view(-1, 1, 1)
+    mask = (torch.arange(cfg.max_points_per_pillar).view(1, -1) < torch.from_numpy(num).view(-1, 1)).float()
+    xyz = v[:, :, :3]
+    f_cluster = xyz - xyz.sum(1, keepdim=True) / n
+    c = torch.from_numpy(coords).unsqueeze(1).expand(-1, cfg.max_points_per_pillar, -1)
+    f_center = _centre_offsets(xyz.reshape(-1, 3), c.reshape(-1, 3), cfg).reshape(xyz.shape)
+    feats = torch.cat([v, f_cluster, f_center], -1) * mask.unsqueeze(-1)
+    pillar = net.encode(feats).max(1).values                             # [P, C]
+    canvas = torch.zeros(cfg.out_channels, ny * nx)
+    canvas[:, torch.from_numpy(coords[:, 1] * nx + coords[:, 0])] = pillar.T
+    return canvas.reshape(cfg.out_channels, ny, nx)

@@ -1,0 +1,112 @@
+"""Ego-velocity RANSAC: export formulation == numpy reference, accuracy, degenerate input, ONNX."""
+
+import numpy as np
+import pytest
+import torch
+
+from radaredge.errors import InputError
+from radaredge.ops.ego_velocity import (
+    EgoVelocityRansac, RansacConfig, estimate_ego_velocity, estimate_ego_velocity_reference, sample_ranks,
+    hypothesis_table,
+)
+
+
+def doppler_scan(n, dynamic_fraction, seed, v_ego=(8.0, 0.6, 0.1), noise=0.05):
+    """Points on a forward FOV with v_r = -r.v_ego + noise; a fraction gets object motion."""
+    rng = np.random.default_rng(seed)
+    az, el, r = rng.uniform(-1.0, 1.0, n), rng.uniform(-0.25, 0.25, n), rng.uniform(2, 60, n)
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
+    v_r = -d @ np.asarray(v_ego) + rng.normal(0, noise, n)
+    dyn = rng.random(n) < dynamic_fraction
+    v_obj = rng.uniform(2, 12, (n, 1)) * np.array([[1.0, 0.3, 0.0]]) * rng.choice([-1, 1], (n, 1))
+    v_r[dyn] += (d[dyn] * v_obj[dyn]).sum(1)
+    return (d * r[:, None]).astype(np.float32), v_r.astype(np.float32), dyn
+
+
+def test_sample_ranks_are_distinct_and_in_range():
+    table = hypothesis_table(500, 3)
+    for n in (3, 4, 7, 100):
+        r = sample_ranks(table, n)
+        assert r.min() >= 0 and r.max() < n
+        assert all(len(set(row)) == 3 for row in r.tolist())
+
+
+@pytest.mark.parametrize("dyn", [0.0, 0.2, 0.4])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_export_formulation_matches_reference(dyn, seed):
+    xyz, v_r, _ = doppler_scan(300, dyn, seed)
+    ref_v, ref_mask, ref_ok = estimate_ego_velocity_reference(xyz, v_r)
+    v, mask, ok = estimate_ego_velocity(xyz, v_r)
+    assert ok and ref_ok
+    np.testing.assert_allclose(v, ref_v, atol=1e-4)
+    assert (mask == ref_mask).mean() >= 0.995  # float32 vs float64 at the threshold edge only
+
+
+def test_accuracy_on_doppler_scans():
+    xyz, v_r, dyn = doppler_scan(400, 0.4, 7)
+    v, static, ok = estimate_ego_velocity(xyz, v_r)
+    assert ok
+    assert np.abs(v - np.array([8.0, 0.6, 0.1])).max() < 0.1
+    assert ((~static) == dyn).mean() >= 0.95
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 4])
+def test_tiny_scans_are_flagged_invalid_not_nan(n):
+    xyz, v_r, _ = doppler_scan(n, 0.0, 0)
+    for fn in (estimate_ego_velocity, estimate_ego_velocity_reference):
+        v, static, ok = fn(xyz, v_r)
+        assert not ok and np.all(v == 0) and static.shape == (n,) and static.all()
+
+
+def test_zero_velocity_scan_is_a_regular_result():
+    xyz, _, _ = doppler_scan(100, 0.0, 0)
+    v, static, ok = estimate_ego_velocity(xyz, np.zeros(100, np.float32))
+    assert ok and np.abs(v).max() < 1e-6 and static.all()
+
+
+def test_non_finite_points_are_masked_out():
+    xyz, v_r, _ = doppler_scan(200, 0.1, 4)
+    xyz[5, 0] = np.nan
+    v_r[9] = np.inf
+    v, static, ok = estimate_ego_velocity(xyz, v_r)
+    ref_v, ref_static, _ = estimate_ego_velocity_reference(xyz, v_r)
+    assert ok and np.isfinite(v).all()
+    assert not static[5] and not static[9] and not ref_static[5] and not ref_static[9]
+    np.testing.assert_allclose(v, ref_v, atol=1e-4)
+
+
+def test_valid_mask_excludes_padding():
+    xyz, v_r, _ = doppler_scan(150, 0.0, 5)
+    padded_xyz = np.concatenate([xyz, np.full((20, 3), 3.0, np.float32)])
+    padded_vr = np.concatenate([v_r, np.full(20, 50.0, np.float32)])
+    valid = np.arange(170) < 150
+    v, static, ok = estimate_ego_velocity(padded_xyz, padded_vr, valid=valid)
+    v0, _, _ = estimate_ego_velocity(xyz, v_r)
+    np.testing.assert_allclose(v, v0, atol=1e-6)
+    assert not static[150:].any()
+
+
+def test_bad_shapes_raise_input_error():
+    with pytest.raises(InputError, match=r"\[N, 3\]"):
+        estimate_ego_velocity(np.zeros((10, 4)), np.zeros(10))
+    with pytest.raises(InputError, match="v_r"):
+        estimate_ego_velocity_reference(np.zeros((10, 3)), np.zeros(9))
+
+
+def test_config_rejects_nonsense():
+    with pytest.raises(ValueError):
+        RansacConfig(inlier_threshold=0)
+
+
+def test_onnx_export_matches_torch(onnx_roundtrip):
+    xyz, v_r, _ = doppler_scan(120, 0.3, 9)
+    example = {"xyz": torch.from_numpy(xyz), "v_r": torch.from_numpy(v_r), "valid": torch.ones(120, dtype=torch.bool)}
+    rt = onnx_roundtrip(EgoVelocityRansac(), example, ["v_ego", "static_mask", "valid_estimate"],
+                        {"xyz": {0: "N"}, "v_r": {0: "N"}, "valid": {0: "N"}})
+    for n, dyn, seed in [(300, 0.4, 1), (57, 0.1, 2), (2, 0.0, 3), (0, 0.0, 4)]:
+        xyz, v_r, _ = doppler_scan(n, dyn, seed)
+        ref, got = rt({"xyz": torch.from_numpy(xyz), "v_r": torch.from_numpy(v_r),
+                       "valid": torch.ones(n, dtype=torch.bool)})
+        np.testing.assert_allclose(got["v_ego"], ref["v_ego"], atol=1e-5)
+        assert np.array_equal(got["static_mask"], ref["static_mask"])
+        assert bool(got["valid_estimate"]) == bool(ref["valid_estimate"])

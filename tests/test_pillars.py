@@ -1,0 +1,114 @@
+"""Pillar scatter: fixed-shape export formulation == dynamic-voxelization reference; ONNX."""
+
+import numpy as np
+import pytest
+import torch
+
+from radaredge.errors import CapacityError
+from radaredge.ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference, voxelize_reference
+
+SMALL = PillarConfig(point_cloud_range=(0.0, -8.0, -3.0, 16.0, 8.0, 5.0), voxel_size=(0.5, 0.5, 8.0),
+                     max_points_per_pillar=4, out_channels=16)
+
+
+def make_net(cfg=SMALL, f=5, seed=0):
+    torch.manual_seed(seed)
+    net = PillarFeatureNet(f, cfg).eval()
+    with torch.no_grad():  # non-trivial BN statistics so relu(BN(0)) padding matters
+        bn = net.pfn_layers[0].norm
+        bn.running_mean.uniform_(-0.5, 0.5)
+        bn.running_var.uniform_(0.5, 2.0)
+        bn.bias.uniform_(-0.5, 0.5)
+    return net
+
+
+def scan(n, seed, cfg=SMALL):
+    """Uniform points over and beyond the range, plus a crowded pillar that exceeds the cap."""
+    rng = np.random.default_rng(seed)
+    r = cfg.point_cloud_range
+    lo = [r[0] - 2, r[1] - 2, r[2] - 1, -5, -10]
+    hi = [r[3] + 2, r[4] + 2, r[5] + 1, 5, 20]
+    pts = rng.uniform(lo, hi, (n, 5))
+    crowd = np.array([[3.1, 0.2, 0.0, 1.0, 5.0]]) + rng.normal(0, 0.05, (9, 5))
+    return np.concatenate([pts, crowd]).astype(np.float32)
+
+
+def run(net, pts, valid=None):
+    valid = np.ones(len(pts), bool) if valid is None else valid
+    with torch.no_grad():
+        return net(torch.from_numpy(pts), torch.from_numpy(valid)).numpy()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matches_dynamic_voxelization_reference(seed):
+    net = make_net(seed=seed)
+    pts = scan(300, seed)
+    with torch.no_grad():
+        ref = pillar_scatter_reference(net, pts).numpy()
+    np.testing.assert_allclose(run(net, pts), ref, atol=1e-5)
+
+
+def test_cap_keeps_first_points_in_input_order():
+    cfg = SMALL
+    pts = scan(0, 0)  # only the crowded pillar: 9 points, cap 4
+    voxels, num, _ = voxelize_reference(pts, cfg)
+    assert num.tolist() == [4]
+    np.testing.assert_array_equal(voxels[0], pts[:4])
+    # Changing a dropped point changes nothing; changing a kept one does.
+    net = make_net()
+    base = run(net, pts)
+    moved = pts.copy()
+    moved[6, 3] += 3.0
+    np.testing.assert_array_equal(run(net, moved), base)
+    moved[1, 3] += 3.0
+    assert np.abs(run(net, moved) - base).max() > 0
+
+
+def test_out_of_range_points_are_dropped_not_wrapped():
+    net = make_net()
+    r = SMALL.point_cloud_range
+    outside = np.array([[r[3] + 0.1, 0, 0, 1, 1], [r[0] - 0.1, 0, 0, 1, 1], [1, r[4], 0, 1, 1],
+                        [1, 0, r[5] + 0.5, 1, 1], [r[3], 0, 0, 1, 1]], np.float32)
+    assert np.abs(run(net, outside)).max() == 0
+
+
+def test_non_finite_and_invalid_points_are_dropped():
+    net = make_net()
+    pts = scan(100, 3)
+    bad = pts.copy()
+    bad[0, 0] = np.nan
+    bad[1, 4] = np.inf
+    valid = np.ones(len(pts), bool)
+    valid[2] = False
+    keep = np.ones(len(pts), bool)
+    keep[:3] = False
+    np.testing.assert_allclose(run(net, bad, valid), run(net, pts[keep]), atol=1e-6)
+
+
+def test_empty_scan_gives_empty_canvas():
+    net = make_net()
+    out = run(net, np.zeros((0, 5), np.float32))
+    nx, ny, _ = SMALL.grid_size
+    assert out.shape == (16, ny, nx) and not out.any()
+
+
+def test_reference_reports_pillar_capacity():
+    cfg = PillarConfig(**{**SMALL.__dict__, "max_pillars": 3})
+    with pytest.raises(CapacityError, match="max_pillars=3"):
+        voxelize_reference(scan(200, 0), cfg)
+
+
+def test_openpcdet_parameter_names():
+    names = set(make_net().state_dict())
+    assert {"pfn_layers.0.linear.weight", "pfn_layers.0.norm.weight", "pfn_layers.0.norm.running_mean"} <= names
+
+
+def test_onnx_export_matches_torch(onnx_roundtrip):
+    net = make_net()
+    pts = scan(50, 0)
+    example = {"points": torch.from_numpy(pts), "valid": torch.ones(len(pts), dtype=torch.bool)}
+    rt = onnx_roundtrip(net, example, ["canvas"], {"points": {0: "N"}, "valid": {0: "N"}})
+    for n, seed in [(400, 1), (3, 2), (0, 3)]:
+        p = scan(n, seed)[:n] if n == 0 else scan(n, seed)
+        ref, got = rt({"points": torch.from_numpy(p), "valid": torch.ones(len(p), dtype=torch.bool)})
+        np.testing.assert_allclose(got["canvas"], ref["canvas"], atol=1e-5)
