@@ -7,12 +7,14 @@ exporter (``radaredge.export``) both go through it, so every graph is built the 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import io
 import logging
 import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import onnxscript.optimizer
 import torch
 
 from .errors import ExportError
@@ -29,6 +31,7 @@ def export_onnx(
     dynamic_axes: Mapping[str, Mapping[int, str]] | None = None,
     opset: int = DEFAULT_OPSET,
     verbose: bool = False,
+    full_optimize: bool = False,
 ) -> Path:
     """Export ``module(*args)`` to ``path`` with torch's dynamo exporter.
 
@@ -51,6 +54,9 @@ def export_onnx(
                 ax: dims.setdefault(sym, torch.export.Dim.DYNAMIC) for ax, sym in axes.items()
             })
         dynamic_shapes = tuple(dynamic_shapes)
+        params = inspect.signature(module.forward).parameters.values()
+        if any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in params):
+            dynamic_shapes = (dynamic_shapes,)      # forward(*inputs): one nested entry
     module = module.eval()
     sink = io.StringIO()
     quiet = contextlib.nullcontext() if verbose else contextlib.redirect_stdout(sink)
@@ -68,7 +74,11 @@ def export_onnx(
                 dynamo=True,
                 external_data=False,
                 verbose=False,
+                optimize=full_optimize,
             )
+            if not full_optimize:
+                onnxscript.optimizer.fold_constants(program.model)
+                onnxscript.optimizer.remove_unused_nodes(program.model)
             program.save(str(path))
     except Exception as exc:  # torch raises many types; wrap them with context
         raise ExportError(
