@@ -22,6 +22,12 @@ from .errors import ExportError
 DEFAULT_OPSET = 18
 
 
+@contextlib.contextmanager
+def _redirect_both(sink):
+    with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+        yield
+
+
 def export_onnx(
     module: torch.nn.Module,
     args: tuple,
@@ -59,7 +65,8 @@ def export_onnx(
             dynamic_shapes = (dynamic_shapes,)      # forward(*inputs): one nested entry
     module = module.eval()
     sink = io.StringIO()
-    quiet = contextlib.nullcontext() if verbose else contextlib.redirect_stdout(sink)
+    # The exporter and onnx_ir print progress and notes on stdout/stderr; failures still raise.
+    quiet = contextlib.nullcontext() if verbose else _redirect_both(sink)
     logging.getLogger("torch.onnx").setLevel(logging.ERROR)
     try:
         with quiet, warnings.catch_warnings():

@@ -10,7 +10,9 @@ moving objects violate it and are RANSAC outliers.
 
 Algorithm (both formulations, step for step):
 1. Eligible points: finite, ``valid``, range within [min_range, max_range], |azimuth| and
-   |elevation| within the FOV limits (detections at the FOV border have biased Doppler).
+   |elevation| within the FOV limits (detections at the FOV border have biased Doppler). The
+   gates are evaluated as x > 0, |y| <= tan(az_max) x and |z| <= tan(el_max) sqrt(x^2 + y^2),
+   exact equivalents of the angle limits for limits below 90 degrees.
 2. ``num_hypotheses`` minimal samples of 3 distinct eligible points, drawn from a fixed seeded
    integer table (:func:`hypothesis_table`) by modular arithmetic, so any N works without
    data-dependent control flow and the reference sees exactly the same samples.
@@ -30,6 +32,10 @@ Defined results for bad input (never NaN, never an exception inside the graph):
 - An all-zero-velocity scan (ego standing still, static world) is a regular case: v_ego = 0,
   every point static, ``valid`` True.
 
+Both formulations compute in float64 (the export graph casts its inputs): with a narrow
+elevation FOV the vertical velocity is poorly conditioned, and float32 normal equations would
+leave ~1e-4 m/s between the two.
+
 Default parameters follow the public radar ego-velocity estimator REVE / RIO (Doer & Trommer,
 christopherdoer/reve: ``inlier_thresh: 0.15``, 3-point samples, ``outlier_prob: 0.4`` with
 ``success_prob: 0.9999`` giving 38 iterations, azimuth/elevation and min/max distance gates).
@@ -38,6 +44,7 @@ We draw 64 hypotheses, above REVE's 38, to cover samples lost to degeneracy.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,7 +65,7 @@ class RansacConfig:
     min_inliers: int = 5                # fewer inliers -> estimate flagged invalid
     min_range: float = 1.0              # m, REVE min_dist (near-field clutter)
     max_range: float = 400.0            # m, REVE max_dist
-    max_azimuth_deg: float = 60.0       # |atan2(y, x)| limit for eligible points
+    max_azimuth_deg: float = 60.0       # |atan2(y, x)| limit for eligible points (< 90)
     max_elevation_deg: float = 22.5     # |elevation| limit (REVE elevation_thresh_deg)
     min_det: float = 1e-3               # |det| of a 3-point sample below this is degenerate
     seed: int = 0                       # seed of the hypothesis table
@@ -72,6 +79,8 @@ class RansacConfig:
             raise ValueError("min_inliers must be >= 3")
         if not 0 <= self.min_range < self.max_range:
             raise ValueError("need 0 <= min_range < max_range")
+        if not (0 < self.max_azimuth_deg < 90 and 0 < self.max_elevation_deg < 90):
+            raise ValueError("max_azimuth_deg and max_elevation_deg must lie in (0, 90)")
 
 
 def hypothesis_table(num_hypotheses: int, seed: int) -> np.ndarray:
@@ -123,10 +132,10 @@ def estimate_ego_velocity_reference(xyz, v_r, config: RansacConfig = RansacConfi
     safe_xyz = np.where(usable[:, None], xyz, 0.0)
     rng = np.linalg.norm(safe_xyz, axis=1)
     dirs = safe_xyz / np.maximum(rng, 1e-9)[:, None]
-    az = np.degrees(np.abs(np.arctan2(safe_xyz[:, 1], safe_xyz[:, 0])))
-    el = np.degrees(np.abs(np.arctan2(safe_xyz[:, 2], np.hypot(safe_xyz[:, 0], safe_xyz[:, 1]))))
-    eligible = (usable & (rng >= config.min_range) & (rng <= config.max_range)
-                & (az <= config.max_azimuth_deg) & (el <= config.max_elevation_deg))
+    x, y, z = safe_xyz.T
+    in_fov = ((x > 0) & (np.abs(y) <= np.tan(np.radians(config.max_azimuth_deg)) * x)
+              & (np.abs(z) <= np.tan(np.radians(config.max_elevation_deg)) * np.sqrt(x * x + y * y)))
+    eligible = usable & (rng >= config.min_range) & (rng <= config.max_range) & in_fov
     fallback = (np.zeros(3), usable, False)
     elig_idx = np.flatnonzero(eligible)
     if len(elig_idx) < 3:
@@ -204,9 +213,10 @@ class EgoVelocityRansac(nn.Module):
     def forward(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor):
         cfg = self.config
         n_in = xyz.shape[0]
+        out_dtype = xyz.dtype
         # Three padding points keep every reduction non-empty for N = 0; they are never eligible.
-        xyz = torch.cat([xyz, torch.zeros(3, 3, dtype=xyz.dtype)], 0)
-        v_r = torch.cat([v_r, torch.zeros(3, dtype=v_r.dtype)], 0)
+        xyz = torch.cat([xyz.double(), torch.zeros(3, 3, dtype=torch.float64)], 0)
+        v_r = torch.cat([v_r.double(), torch.zeros(3, dtype=torch.float64)], 0)
         usable = torch.cat([valid, torch.zeros(3, dtype=torch.bool)], 0)
         usable = usable & torch.isfinite(xyz).all(1) & torch.isfinite(v_r)
         xyz = torch.where(usable.unsqueeze(1), xyz, torch.zeros_like(xyz))
@@ -214,10 +224,10 @@ class EgoVelocityRansac(nn.Module):
 
         rng = torch.linalg.vector_norm(xyz, dim=1)
         dirs = xyz / torch.clamp(rng, min=1e-9).unsqueeze(1)
-        az = torch.rad2deg(torch.atan2(xyz[:, 1], xyz[:, 0]).abs())
-        el = torch.rad2deg(torch.atan2(xyz[:, 2], torch.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2)).abs())
-        eligible = (usable & (rng >= cfg.min_range) & (rng <= cfg.max_range)
-                    & (az <= cfg.max_azimuth_deg) & (el <= cfg.max_elevation_deg))
+        x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        in_fov = ((x > 0) & (y.abs() <= math.tan(math.radians(cfg.max_azimuth_deg)) * x)
+                  & (z.abs() <= math.tan(math.radians(cfg.max_elevation_deg)) * torch.sqrt(x * x + y * y)))
+        eligible = usable & (rng >= cfg.min_range) & (rng <= cfg.max_range) & in_fov
 
         # Indices of eligible points in input order: sort key puts them first, stably.
         n = xyz.shape[0]
@@ -242,7 +252,7 @@ class EgoVelocityRansac(nn.Module):
         ok = (n_elig >= 3) & (best_count >= cfg.min_inliers) & (det_n.abs() >= cfg.min_det)
         v_ego = torch.where(ok, v_ego, torch.zeros_like(v_ego))
         static = usable & (~ok | ((v_r + dirs @ v_ego).abs() < cfg.inlier_threshold))
-        return v_ego, static[:n_in], ok
+        return v_ego.to(out_dtype), static[:n_in], ok
 
 
 def estimate_ego_velocity(xyz, v_r, config: RansacConfig = RansacConfig(), valid=None):
@@ -263,7 +273,7 @@ def estimate_ego_velocity(xyz, v_r, config: RansacConfig = RansacConfig(), valid
     elif not isinstance(valid, torch.Tensor):
         valid = torch.from_numpy(np.asarray(valid, bool))
     with torch.no_grad():
-        v_ego, static, ok = EgoVelocityRansac(config)(xyz.float(), v_r.float(), valid)
+        v_ego, static, ok = EgoVelocityRansac(config)(xyz.double(), v_r.double(), valid)
     if as_numpy:
-        return v_ego.numpy().astype(np.float64), static.numpy(), bool(ok)
+        return v_ego.numpy(), static.numpy(), bool(ok)
     return v_ego, static, ok

@@ -1,0 +1,125 @@
+"""The 2-core benchmark harness: torch reference, torch export formulation and onnxruntime,
+timed in one run, alternating backends every iteration so machine drift hits all alike.
+
+Numbers: warm-up runs are discarded; latency percentiles (ms) over the timed runs; FPS is
+1000 / median latency. Threads are fixed (torch.set_num_threads, onnxruntime intra-op threads)
+and the process is pinned to ``threads`` cores where the OS allows it.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class BackendResult:
+    backend: str
+    runs: int
+    p50_ms: float
+    p90_ms: float
+    p99_ms: float
+    mean_ms: float
+    fps: float
+
+
+def pin_threads(threads: int) -> list[int] | None:
+    """Pin this process to the first ``threads`` allowed cores and set torch's thread count."""
+    torch.set_num_threads(threads)
+    try:
+        cores = sorted(os.sched_getaffinity(0))[:threads]
+        os.sched_setaffinity(0, cores)
+        return cores
+    except (AttributeError, OSError):
+        return None
+
+
+def cpu_name() -> str:
+    """The CPU model string (Linux /proc/cpuinfo, else platform)."""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def summarise(name: str, times_s: list[float]) -> BackendResult:
+    ms = np.asarray(times_s) * 1e3
+    p50 = float(np.percentile(ms, 50))
+    return BackendResult(name, len(ms), p50, float(np.percentile(ms, 90)), float(np.percentile(ms, 99)),
+                         float(ms.mean()), 1e3 / p50)
+
+
+def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, progress=None) -> list[BackendResult]:
+    """Time each callable in ``backends`` (name -> fn(feeds)) on ``cases``, interleaved per run."""
+    for fn in backends.values():
+        for i in range(warmup):
+            fn(cases[i % len(cases)])
+    times: dict[str, list[float]] = {n: [] for n in backends}
+    order = list(backends)
+    it = range(runs)
+    for i in (progress(it) if progress else it):
+        feeds = cases[i % len(cases)]
+        for name in order[i % len(order):] + order[: i % len(order)]:   # rotate who goes first
+            t0 = time.perf_counter()
+            backends[name](feeds)
+            times[name].append(time.perf_counter() - t0)
+    return [summarise(n, times[n]) for n in backends]
+
+
+def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, profile: bool = False):
+    """name -> callable(feeds) for the torch reference, torch export formulation and onnxruntime."""
+    from .ort import make_session, run_session
+    from .registry import model_spec
+
+    spec = model_spec(card)
+    session = make_session(onnx_path, threads=threads, profile=profile)
+
+    def torch_export(feeds):
+        with torch.no_grad():
+            spec.run_export(model, {k: torch.from_numpy(v) for k, v in feeds.items()}, None)
+
+    def torch_reference(feeds):
+        with torch.no_grad():
+            spec.run_reference(model, feeds)
+
+    backends = {}
+    if include_reference:
+        backends["torch reference"] = torch_reference
+    backends["torch export"] = torch_export
+    backends["onnxruntime"] = lambda feeds: run_session(session, feeds)
+    return backends, session
+
+
+def results_table(results: list[BackendResult], baseline: str = "torch reference") -> str:
+    """A Markdown table with a speed-up column relative to ``baseline``."""
+    base = next((r for r in results if r.backend == baseline), results[0])
+    lines = ["| backend | p50 ms | p90 ms | p99 ms | FPS | x vs " + base.backend + " |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for r in results:
+        lines.append(f"| {r.backend} | {r.p50_ms:.1f} | {r.p90_ms:.1f} | {r.p99_ms:.1f} | {r.fps:.2f} | "
+                     f"{base.p50_ms / r.p50_ms:.2f} |")
+    return "\n".join(lines)
+
+
+def top_ops(profile_file: str, k: int = 10) -> list[tuple[str, float]]:
+    """Top ``k`` op types by total time (ms) from an onnxruntime profile JSON."""
+    import json
+    events = json.load(open(profile_file))
+    tot: dict[str, float] = {}
+    for e in events:
+        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
+            op = e.get("args", {}).get("op_name", "?")
+            tot[op] = tot.get(op, 0.0) + e.get("dur", 0) / 1e3
+    return sorted(tot.items(), key=lambda kv: -kv[1])[:k]
+
+
+def as_dicts(results: list[BackendResult]) -> list[dict]:
+    return [asdict(r) for r in results]

@@ -1,0 +1,228 @@
+"""The ``radaredge`` command line: list, inspect, export, parity-check, bench."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import functools
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from .errors import RadarEdgeError
+
+
+def _friendly_errors(fn):
+    """Turn radaredge errors into one clear line on stderr and exit code 2."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except RadarEdgeError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+    return wrapper
+
+
+def _progress(desc):
+    from tqdm import tqdm
+    return lambda it: tqdm(it, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
+
+
+def _card(model: str, config: str | None):
+    from .cards import load_card
+    return load_card(config or model)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="radaredge")
+def main():
+    """radaredge: export 4D-radar perception models to one self-contained ONNX, prove parity
+    against the PyTorch reference, and measure speed on 2 CPU cores."""
+
+
+@main.command("list")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@_friendly_errors
+def list_cmd(as_json):
+    """The available model cards, one line each."""
+    from .cards import available_cards, load_card
+    cards = [load_card(n) for n in available_cards()]
+    if as_json:
+        click.echo(json.dumps([{"name": c.name, "model": c.model, "description": c.description} for c in cards], indent=2))
+        return
+    width = max((len(c.name) for c in cards), default=0)
+    for c in cards:
+        click.echo(f"{c.name:<{width}}  {c.description}")
+
+
+@main.command()
+@click.argument("onnx_path", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def inspect(onnx_path, as_json):
+    """Show an exported graph's inputs, outputs, card and versions."""
+    from . import runtime
+    m = runtime.load(onnx_path)
+    info = {
+        "model": m.card.name, "features": m.features, "frames": m.frames,
+        "inputs": {i.name: i.shape for i in m.session.get_inputs()},
+        "outputs": {o.name: o.shape for o in m.session.get_outputs()},
+        "weights_sha256": m.metadata.get("radaredge.weights_sha256"),
+        "versions": json.loads(m.metadata.get("radaredge.versions", "{}")),
+    }
+    if as_json:
+        click.echo(json.dumps(info, indent=2))
+        return
+    for k, v in info.items():
+        click.echo(f"{k:>15}: {v}")
+
+
+@main.command()
+@click.option("--model", required=True, help="Model card name (see `radaredge list`).")
+@click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of models/<model>.yaml.")
+@click.option("--checkpoint", type=click.Path(dir_okay=False), help="state_dict .pth; default: seeded initialisation.")
+@click.option("--output", type=click.Path(dir_okay=False), help="Where to write the .onnx (default export/<model>.onnx).")
+@click.option("--opset", default=18, show_default=True, type=int)
+@click.option("--debug", is_flag=True, help="Also write <output>.debug.onnx with intermediate tensors as outputs.")
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def export(model, config, checkpoint, output, opset, debug, as_json):
+    """Export the whole pipeline (raw points in, result out) to one .onnx and a JSON sidecar."""
+    from .export import build_model, export_model
+    card = _card(model, config)
+    output = Path(output or f"export/{card.name}.onnx")
+    net = build_model(card, checkpoint)
+    click.echo(f"exporting {card.name} ...", err=True)
+    res = export_model(card, output, opset=opset, model=net)
+    debug_path = None
+    if debug:
+        debug_path = output.with_suffix(".debug.onnx")
+        export_model(card, debug_path, opset=opset, debug=True, model=net)
+    if as_json:
+        click.echo(json.dumps({"onnx": str(res.path), "sidecar": str(res.sidecar), "size_bytes": res.size_bytes,
+                               "op_histogram": res.op_histogram, "debug_onnx": str(debug_path) if debug_path else None}, indent=2))
+        return
+    top = ", ".join(f"{k} {v}" for k, v in list(res.op_histogram.items())[:12])
+    click.echo(f"wrote {res.path} ({res.size_bytes / 1e6:.2f} MB, {sum(res.op_histogram.values())} nodes) "
+               f"and {res.sidecar}")
+    click.echo(f"ops: {top}")
+    if debug_path:
+        click.echo(f"debug graph: {debug_path}")
+
+
+@main.command("parity-check")
+@click.option("--model", required=True)
+@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False))
+@click.option("--config", type=click.Path(dir_okay=False))
+@click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
+@click.option("--cases", default=20, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def parity_check(model, onnx_path, config, checkpoint, cases, seed, as_json):
+    """Run the ONNX in onnxruntime and the reference formulation in torch on the same synthetic
+    cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
+    from . import runtime
+    from .export import build_model, export_model, weights_hash
+    from .parity import run_parity
+    card = _card(model, config)
+    net = build_model(card, checkpoint)
+    exported = runtime.load(onnx_path)
+    if exported.metadata.get("radaredge.weights_sha256") != weights_hash(net):
+        raise _mismatch(onnx_path, checkpoint)
+    report = run_parity(card, onnx_path, net, cases, seed, progress=_progress("parity"))
+    if not report.passed:
+        debug_path = Path(onnx_path).with_suffix(".debug.onnx")
+        if not debug_path.exists():
+            export_model(card, debug_path, debug=True, model=net)
+        from .parity import locate_divergence
+        from .registry import model_spec
+        spec = model_spec(card)
+        report.divergence = locate_divergence(card, spec, net, debug_path, report, spec.make_cases(card, cases, seed))
+    if as_json:
+        click.echo(json.dumps(report.to_dict(), indent=2))
+    else:
+        _print_parity(report)
+    sys.exit(0 if report.passed else 1)
+
+
+def _mismatch(onnx_path, checkpoint):
+    from .errors import ConfigError
+    return ConfigError(f"{onnx_path} was exported with other weights than "
+                       f"{'checkpoint ' + str(checkpoint) if checkpoint else 'the seeded initialisation of this card'}; "
+                       f"pass the same --checkpoint/--config as at export")
+
+
+def _print_parity(report):
+    click.echo(f"parity {report.model}: {Path(report.onnx).name} (onnxruntime) vs reference (torch), "
+               f"{len(report.cases)} cases")
+    click.echo(f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos':>11}  verdict")
+    for name, s in report.summary.items():
+        cos = f"{s['min_cosine']:.7f}" if s["min_cosine"] is not None else "-"
+        click.echo(f"{name:<24}{s['kind']:<12}{s['max_abs']:>11.3g}{s['max_rel']:>11.3g}{s['p99_abs']:>11.3g}"
+                   f"{cos:>11}  {'PASSED' if s['passed'] else 'FAILED'}  tol {s['tolerance']}")
+    if report.retrieval_top1 is not None:
+        click.echo(f"retrieval top-1 agreement over the case set: {report.retrieval_top1 * 100:.1f}%")
+    if report.divergence:
+        d = report.divergence
+        if d["tensor"]:
+            click.echo(f"first diverging intermediate (case {d['case']}): {d['tensor']} (max abs {d['max_abs']:.3g})")
+        else:
+            click.echo(f"no intermediate diverges beyond tolerance in case {d['case']}: "
+                       "the difference arises in the final outputs")
+    click.echo("PASSED" if report.passed else "FAILED")
+
+
+@main.command()
+@click.option("--model", required=True)
+@click.option("--onnx", "onnx_path", type=click.Path(dir_okay=False), help="Default export/<model>.onnx (exported if missing).")
+@click.option("--config", type=click.Path(dir_okay=False))
+@click.option("--checkpoint", type=click.Path(dir_okay=False))
+@click.option("--threads", default=2, show_default=True, type=int)
+@click.option("--runs", default=50, show_default=True, type=int)
+@click.option("--warmup", default=3, show_default=True, type=int)
+@click.option("--no-reference", is_flag=True, help="Skip the (slow) torch reference backend.")
+@click.option("--profile", is_flag=True, help="Print onnxruntime's top ops by time.")
+@click.option("--json", "as_json", is_flag=True, help="Also write benchmarks/results/<model>-<date>.json.")
+@_friendly_errors
+def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, profile, as_json):
+    """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
+    from .bench import as_dicts, benchmark, cpu_name, model_backends, pin_threads, results_table, top_ops
+    from .export import build_model, export_model
+    from .registry import model_spec
+    card = _card(model, config)
+    cores = pin_threads(threads)
+    net = build_model(card, checkpoint)
+    onnx_path = Path(onnx_path or f"export/{card.name}.onnx")
+    if not onnx_path.exists():
+        click.echo(f"{onnx_path} missing: exporting it first", err=True)
+        export_model(card, onnx_path, model=net)
+    cases = [feeds for _, feeds in model_spec(card).make_cases(card, 4, 1)]
+    backends, session = model_backends(card, net, onnx_path, threads, not no_reference, profile)
+    results = benchmark(backends, cases, runs, warmup, progress=_progress("bench"))
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    click.echo(f"{card.name} on {threads} thread(s), cores {cores}, {cpu_name()}, {runs} runs, {stamp}")
+    click.echo(results_table(results, "torch reference" if not no_reference else "torch export"))
+    ort_r = next(r for r in results if r.backend == "onnxruntime")
+    ratios = {r.backend: r.p50_ms / ort_r.p50_ms for r in results if r.backend != "onnxruntime"}
+    click.echo("onnxruntime speed-up: " + ", ".join(f"{v:.2f}x vs {k}" for k, v in ratios.items()))
+    prof = None
+    if profile:
+        prof = top_ops(session.end_profiling())
+        click.echo("onnxruntime top ops (total ms over the profiled runs):")
+        for op, ms in prof:
+            click.echo(f"  {op:<24}{ms:10.1f}")
+    if as_json:
+        out = Path("benchmarks/results")
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / f"{card.name}-{_dt.date.today().isoformat()}.json"
+        path.write_text(json.dumps({"model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(),
+                                    "runs": runs, "date": stamp, "results": as_dicts(results),
+                                    "onnxruntime_speedup": ratios, "top_ops": prof}, indent=2))
+        click.echo(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,168 @@
+"""Whole-pipeline export: raw points in, result out, one self-contained ``.onnx`` + JSON sidecar.
+
+The card, the feature columns, the input signature, the package versions and a hash of the
+weights travel inside the ONNX ``metadata_props``, so an embedded app needs nothing else.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from . import __version__
+from .cards import ModelCard
+from .errors import ConfigError, ExportError
+from .onnx_export import DEFAULT_OPSET, export_onnx
+from .registry import model_spec
+
+META_PREFIX = "radaredge."
+DEBUG_PREFIX = "debug."   # debug-export outputs are named debug.<intermediate>
+
+
+def weights_hash(model: torch.nn.Module) -> str:
+    """SHA-256 over the state dict (names, shapes and bytes, in key order)."""
+    h = hashlib.sha256()
+    for name, t in model.state_dict().items():
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def load_checkpoint(model: torch.nn.Module, path: str | Path) -> None:
+    """Load a state_dict ``.pth`` (optionally under a ``model_state``/``state_dict`` key).
+
+    Missing, unexpected and shape-mismatched keys are reported by name as a ConfigError.
+    """
+    try:
+        obj = torch.load(str(path), map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ConfigError(f"checkpoint {path} does not exist") from None
+    except Exception as exc:
+        raise ConfigError(f"checkpoint {path} is not a readable torch state_dict: {exc}") from exc
+    for key in ("model_state", "state_dict", "model"):
+        if isinstance(obj, dict) and isinstance(obj.get(key), dict):
+            obj = obj[key]
+    if not isinstance(obj, dict):
+        raise ConfigError(f"checkpoint {path}: expected a state_dict mapping, got {type(obj).__name__}")
+    own = model.state_dict()
+    missing = sorted(set(own) - set(obj))
+    unexpected = sorted(set(obj) - set(own))
+    shapes = sorted(f"{k}: checkpoint {tuple(obj[k].shape)} vs model {tuple(own[k].shape)}"
+                    for k in set(own) & set(obj) if tuple(obj[k].shape) != tuple(own[k].shape))
+    if missing or unexpected or shapes:
+        lines = []
+        if missing:
+            lines.append(f"missing keys ({len(missing)}): {', '.join(missing[:20])}")
+        if unexpected:
+            lines.append(f"unexpected keys ({len(unexpected)}): {', '.join(unexpected[:20])}")
+        if shapes:
+            lines.append(f"shape mismatches ({len(shapes)}): {'; '.join(shapes[:20])}")
+        raise ConfigError(f"checkpoint {path} does not fit this card's model:\n  " + "\n  ".join(lines))
+    model.load_state_dict(obj)
+
+
+def build_model(card: ModelCard, checkpoint: str | Path | None = None) -> torch.nn.Module:
+    """The card's model, seeded, with ``checkpoint`` loaded when given."""
+    model = model_spec(card).build(card)
+    if checkpoint:
+        load_checkpoint(model, checkpoint)
+    return model.eval()
+
+
+class _PipelineWrapper(torch.nn.Module):
+    """Positional-input wrapper of the export formulation; ``debug`` also returns the traced
+    intermediates named in ``spec.trace_order`` (for divergence reports)."""
+
+    def __init__(self, model, spec, card, debug: bool):
+        super().__init__()
+        self.model, self.spec, self.names, self.debug = model, spec, spec.input_names(card), debug
+
+    def forward(self, *inputs):
+        trace: dict | None = {} if self.debug else None
+        out = self.spec.run_export(self.model, dict(zip(self.names, inputs)), trace)
+        extra = tuple(trace[n] for n in self.spec.trace_order) if self.debug else ()
+        return tuple(out[n] for n in self.spec.output_names) + extra
+
+
+@dataclass
+class ExportResult:
+    path: Path
+    sidecar: Path
+    size_bytes: int
+    op_histogram: dict[str, int]
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+def metadata_for(card: ModelCard, model: torch.nn.Module, spec, opset: int) -> dict[str, str]:
+    """The ``metadata_props`` written into the graph."""
+    import onnxruntime
+    return {
+        META_PREFIX + "model": card.name,
+        META_PREFIX + "card": card.to_yaml(),
+        META_PREFIX + "features": json.dumps(card.features),
+        META_PREFIX + "inputs": json.dumps({
+            "names": spec.input_names(card),
+            "dynamic_axes": {k: {str(a): s for a, s in v.items()} for k, v in spec.dynamic_axes(card).items()},
+        }),
+        META_PREFIX + "outputs": json.dumps(spec.output_names),
+        META_PREFIX + "weights_sha256": weights_hash(model),
+        META_PREFIX + "versions": json.dumps({"radaredge": __version__, "torch": torch.__version__,
+                                              "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
+                                              "opset": opset}),
+    }
+
+
+def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | None = None,
+                 opset: int = DEFAULT_OPSET, debug: bool = False, model: torch.nn.Module | None = None) -> ExportResult:
+    """Export the card's whole pipeline to ``output`` and write ``output`` with suffix .json.
+
+    ``debug`` adds the intermediate tensors of ``spec.trace_order`` as extra graph outputs.
+    """
+    spec = model_spec(card)
+    model = model if model is not None else build_model(card, checkpoint)
+    names = spec.input_names(card)
+    _, example = spec.make_cases(card, 1, 0)[0]
+    args = tuple(torch.from_numpy(example[n]) for n in names)
+    module = _PipelineWrapper(model, spec, card, debug)
+    out_names = spec.output_names + ([DEBUG_PREFIX + n for n in spec.trace_order] if debug else [])
+    path = Path(output)
+    export_onnx(module, args, path, names, out_names, spec.dynamic_axes(card), opset=opset)
+    proto = onnx.load(str(path))
+    meta = metadata_for(card, model, spec, opset)
+    del proto.metadata_props[:]
+    for k, v in meta.items():
+        proto.metadata_props.add(key=k, value=v)
+    proto.doc_string = f"radaredge export of {card.name}: {card.description}"
+    try:
+        onnx.checker.check_model(proto, full_check=True)
+    except onnx.checker.ValidationError as exc:
+        raise ExportError(f"onnx.checker rejected the exported graph: {exc}") from exc
+    onnx.save(proto, str(path))
+    hist = dict(sorted(collections.Counter(n.op_type for n in proto.graph.node).items(), key=lambda kv: -kv[1]))
+    custom = sorted({n.domain for n in proto.graph.node if n.domain not in ("", "ai.onnx")})
+    if custom:
+        raise ExportError(f"exported graph uses custom op domains {custom}; radaredge graphs must not")
+    sidecar = path.with_suffix(".json")
+    result = ExportResult(path, sidecar, path.stat().st_size, hist, meta)
+    sidecar.write_text(json.dumps({
+        "model": card.name, "onnx": path.name, "size_bytes": result.size_bytes, "opset": opset,
+        "debug_outputs": list(spec.trace_order) if debug else [],
+        "inputs": [{"name": i.name, "shape": _shape(i)} for i in proto.graph.input],
+        "outputs": [{"name": o.name, "shape": _shape(o)} for o in proto.graph.output],
+        "op_histogram": hist, "weights_sha256": meta[META_PREFIX + "weights_sha256"],
+        "versions": json.loads(meta[META_PREFIX + "versions"]),
+    }, indent=2))
+    return result
+
+
+def _shape(value_info) -> list:
+    dims = value_info.type.tensor_type.shape.dim
+    return [d.dim_param or d.dim_value for d in dims]

@@ -1,0 +1,209 @@
+"""TDFANet: sequential 4D-radar place recognition (Lu et al., TDFANet paper, sections III-A to III-D).
+
+Pipeline for the latest K scans (oldest first, the last one is the current scan t):
+1. per frame: RANSAC ego velocity and dynamic-point removal (eq. 1-3), pillar BEV encoding;
+2. trajectory-guided alignment (eq. 4-5): each past map is warped into frame t by the grid
+   displacement integrated from the estimated ego velocities and the frame timestamps;
+3. spatio-temporal pyramid: 3 residual stages with stride 2, channels doubling (shared by all
+   frames), levels l = 0..3;
+4. spatio-temporal pyramid deformable transformer (eq. 6-9): Q_3 = F_t,3; for l < 3,
+   Q_l = Linear([F_t,l, Upsample(A_l+1)]); per past frame D = Linear([Q_l, F^a_l]) drives a
+   deformable attention over that frame's map; A_l = FFN(LN(Dropout(sum_k M_k) + Q_l));
+5. MLP to 256 channels and GeM pooling -> descriptor (and its L2-normalised copy).
+
+Both formulations share one set of weights: ``forward`` is the export formulation (fixed-shape
+ops only); ``run(..., reference=True)`` computes the same function with the reference ops
+(numpy RANSAC, dynamic voxelization, explicit bilinear alignment, gather-based deformable
+attention).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..cards import ModelCard
+from ..errors import ConfigError
+from ..ops.alignment import BevGrid, align_bev, align_bev_reference, grid_displacement
+from ..ops.deform_attn import MSDeformAttn
+from ..ops.ego_velocity import EgoVelocityRansac, RansacConfig, estimate_ego_velocity_reference
+from ..ops.gem import GeM
+from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference
+
+
+@dataclass(frozen=True)
+class TDFANetConfig:
+    """Model-card section ``network``. Values the paper leaves open are justified in the card."""
+
+    pyramid_stages: int = 3       # stride-2 residual stages -> levels 0..3 (paper: 3)
+    heads: int = 8                # deformable attention heads (Deformable DETR: 8)
+    points: int = 4               # sampling points per head (Deformable DETR: 4)
+    ffn_ratio: int = 4            # FFN hidden width = ffn_ratio * level channels (Transformer: 4)
+    dropout: float = 0.1          # eq. 9 dropout (identity at inference)
+    descriptor_dim: int = 256     # paper: 256-d descriptor
+    gem_p: float = 3.0            # GeM initial p (Radenovic et al.: 3)
+    gem_eps: float = 1e-6
+
+    def __post_init__(self):
+        if self.pyramid_stages < 1:
+            raise ValueError("pyramid_stages must be >= 1")
+
+
+class ResidualStage(nn.Module):
+    """A ResNet basic block with a stride-2 3x3 conv; channels in -> out, resolution halved (ceil)."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride=2, padding=1, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride=2, bias=False), nn.BatchNorm2d(cout))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = torch.relu(self.bn1(self.conv1(x)))
+        return torch.relu(self.bn2(self.conv2(y)) + self.down(x))
+
+
+class DeformableAggregationLayer(nn.Module):
+    """One DFA layer of the pyramid transformer at level l (eq. 6-9), channels d."""
+
+    def __init__(self, d: int, d_coarser: int | None, heads: int, points: int, ffn_ratio: int, dropout: float):
+        super().__init__()
+        self.query_fuse = nn.Linear(d + d_coarser, d) if d_coarser else None      # eq. 6
+        self.advanced_query = nn.Linear(2 * d, d)                                 # eq. 7
+        self.attn = MSDeformAttn(d, n_levels=1, n_heads=heads, n_points=points)   # eq. 8
+        self.dropout = nn.Dropout(dropout)
+        self.norm = nn.LayerNorm(d)
+        self.ffn = nn.Sequential(nn.Linear(d, ffn_ratio * d), nn.ReLU(), nn.Dropout(dropout),
+                                 nn.Linear(ffn_ratio * d, d))
+
+    def forward(self, current: torch.Tensor, past: torch.Tensor, coarser: torch.Tensor | None,
+                reference: bool = False) -> torch.Tensor:
+        """current [1, d, H, W], past [K-1, d, H, W], coarser A_l+1 [1, d', H', W'] -> A_l [1, d, H, W]."""
+        _, d, h, w = current.shape
+        q = current.flatten(2).transpose(1, 2)                                     # [1, HW, d]
+        if self.query_fuse is not None:
+            up = F.interpolate(coarser, size=(h, w), mode="bilinear", align_corners=False)
+            q = self.query_fuse(torch.cat([q, up.flatten(2).transpose(1, 2)], -1))
+        value = past.flatten(2).transpose(1, 2)                                    # [K-1, HW, d]
+        k = value.shape[0]
+        adv = self.advanced_query(torch.cat([q.expand(k, -1, -1), value], -1))    # [K-1, HW, d]
+        ref = _pixel_centres(h, w).expand(k, -1, -1, -1)                           # [K-1, HW, 1, 2]
+        m = self.attn(adv, ref, value, [(h, w)], reference=reference).sum(0, keepdim=True)
+        x = self.norm(self.dropout(m) + q)
+        a = x + self.ffn(x)                                                        # Transformer FFN sublayer
+        return a.transpose(1, 2).reshape(1, d, h, w)
+
+
+def _pixel_centres(h: int, w: int) -> torch.Tensor:
+    """Normalised (x, y) reference points of every cell centre of an h x w map, [1, h*w, 1, 2]."""
+    ys = (torch.arange(h, dtype=torch.float32) + 0.5) / h
+    xs = (torch.arange(w, dtype=torch.float32) + 0.5) / w
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([gx, gy], -1).reshape(1, h * w, 1, 2)
+
+
+class TDFANet(nn.Module):
+    """TDFANet with both formulations. Build it with :func:`build_tdfanet` from a model card."""
+
+    def __init__(self, num_features: int, frames: int, frame_rate: float, ransac: RansacConfig,
+                 pillars: PillarConfig, net: TDFANetConfig):
+        super().__init__()
+        if frames < 2:
+            raise ConfigError("TDFANet needs frames >= 2 (the paper uses K = 3)")
+        self.frames, self.frame_rate, self.net_config = frames, frame_rate, net
+        self.ransac = EgoVelocityRansac(ransac)
+        self.vfe = PillarFeatureNet(num_features, pillars)
+        self.grid = BevGrid.from_range(pillars.point_cloud_range, pillars.voxel_size)
+        c = pillars.out_channels
+        if c % net.heads:
+            raise ConfigError(f"pillars.out_channels ({c}) must be divisible by network.heads ({net.heads})")
+        chans = [c * 2**i for i in range(net.pyramid_stages + 1)]
+        self.pyramid = nn.ModuleList(ResidualStage(chans[i], chans[i + 1]) for i in range(net.pyramid_stages))
+        self.dfa = nn.ModuleList(
+            DeformableAggregationLayer(chans[l], chans[l + 1] if l < net.pyramid_stages else None,
+                                       net.heads, net.points, net.ffn_ratio, net.dropout)
+            for l in range(net.pyramid_stages + 1))
+        self.mlp = nn.Sequential(nn.Conv2d(c, net.descriptor_dim, 1), nn.ReLU(),
+                                 nn.Conv2d(net.descriptor_dim, net.descriptor_dim, 1))
+        self.gem = GeM(p=net.gem_p, eps=net.gem_eps)
+
+    # -- shared stages ---------------------------------------------------------------
+    def aggregate(self, bev: torch.Tensor, cells: torch.Tensor, reference: bool, trace: dict | None) -> torch.Tensor:
+        """bev [K, C, ny, nx] (oldest first), cells [K, 2] grid displacement of each frame to the
+        current one (eq. 5) -> descriptor [D] (before L2 normalisation)."""
+        k = self.frames
+        align = align_bev_reference if reference else align_bev
+        past = align(bev[: k - 1], cells[: k - 1], grid=self.grid)
+        maps = torch.cat([past, bev[k - 1:]], 0)
+        levels = [maps]
+        for stage in self.pyramid:
+            levels.append(stage(levels[-1]))
+        a = None
+        for l in range(len(levels) - 1, -1, -1):
+            feats = levels[l]
+            a = self.dfa[l](feats[k - 1:], feats[: k - 1], a, reference=reference)
+            if trace is not None:
+                trace[f"aggregated_l{l}"] = a
+        if trace is not None:
+            trace["aligned_bev"] = maps
+        return self.gem(self.mlp(a))[0]
+
+    # -- the two formulations --------------------------------------------------------------
+    def forward(self, *inputs: torch.Tensor):
+        """Export formulation: (points_0 [N0, F], ..., points_{K-1} [N, F], timestamps [K] s) ->
+        (descriptor [D], descriptor_normalized [D], ego_velocity [K, 3] m/s, ego_valid [K] bool)."""
+        out = self.run(list(inputs[: self.frames]), inputs[self.frames])
+        return out["descriptor"], out["descriptor_normalized"], out["ego_velocity"], out["ego_valid"]
+
+    def run(self, frames: list[torch.Tensor], timestamps: torch.Tensor, reference: bool = False,
+            trace: dict | None = None) -> dict[str, torch.Tensor]:
+        """Both formulations: ``reference=True`` uses the reference ops. Returns named outputs;
+        ``trace`` (a dict) receives intermediate tensors for divergence reports."""
+        vels, valids, bevs = [], [], []
+        for pts in frames:
+            if reference:
+                v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, 3].numpy(),
+                                                                self.ransac.config)
+                v = torch.tensor(v, dtype=torch.float32)
+                ok = torch.tensor(ok)
+                bev = pillar_scatter_reference(self.vfe, pts.numpy(), static)
+            else:
+                valid = torch.ones(pts.shape[0], dtype=torch.bool)
+                v, static, ok = self.ransac(pts[:, :3], pts[:, 3], valid)
+                bev = self.vfe(pts, static)
+            vels.append(v)
+            valids.append(ok)
+            bevs.append(bev)
+        v_ego = torch.stack(vels)
+        bev = torch.stack(bevs)
+        if trace is not None:
+            trace["ego_velocity"] = v_ego
+            trace["bev"] = bev
+        cells = grid_displacement(v_ego, self.vfe.config.voxel_size, timestamps=timestamps)
+        desc = self.aggregate(bev, cells, reference, trace)
+        return {
+            "descriptor": desc,
+            "descriptor_normalized": desc / torch.clamp(torch.linalg.vector_norm(desc), min=1e-12),
+            "ego_velocity": v_ego,
+            "ego_valid": torch.stack(valids),
+        }
+
+
+def build_tdfanet(card: ModelCard) -> TDFANet:
+    """TDFANet from a model card, with a seeded initialisation (card ``seed``, default 0)."""
+    torch.manual_seed(int(card.get("seed", 0)))
+    model = TDFANet(
+        num_features=len(card.features),
+        frames=int(card.get("frames", 3)),
+        frame_rate=float(card.get("frame_rate", 10.0)),
+        ransac=card.section("preprocess.ransac", RansacConfig),
+        pillars=card.section("pillars", PillarConfig),
+        net=card.section("network", TDFANetConfig),
+    )
+    return model.eval()

@@ -1,0 +1,63 @@
+"""The radaredge CLI end to end, including the full cards (export + parity on each)."""
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from radaredge.cli import main
+
+TINY = str(Path(__file__).parent / "cards" / "tdfanet-tiny.yaml")
+
+
+def invoke(*args):
+    return CliRunner().invoke(main, list(args), catch_exceptions=False)
+
+
+def test_help_lists_the_commands():
+    res = invoke("--help")
+    assert res.exit_code == 0
+    for cmd in ("export", "parity-check", "bench", "list", "inspect"):
+        assert cmd in res.output
+
+
+def test_list_shows_the_shipped_cards():
+    res = invoke("list", "--json")
+    names = {c["name"] for c in json.loads(res.output)}
+    assert {"tdfanet", "tdfanet-edge"} <= names
+
+
+def test_unknown_model_is_a_clear_error():
+    res = CliRunner().invoke(main, ["export", "--model", "nope"])
+    assert res.exit_code == 2 and "no model card 'nope'" in res.output
+
+
+@pytest.mark.parametrize("model", ["tdfanet", "tdfanet-edge"])
+def test_full_card_export_and_parity(model, tmp_path):
+    onnx = tmp_path / f"{model}.onnx"
+    res = invoke("export", "--model", model, "--output", str(onnx))
+    assert res.exit_code == 0, res.output
+    side = json.loads(onnx.with_suffix(".json").read_text())
+    assert side["model"] == model and side["op_histogram"]
+    res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", "4", "--json")
+    report = json.loads(res.output)
+    assert res.exit_code == 0 and report["passed"], res.output
+    assert report["summary"]["descriptor_normalized"]["min_cosine"] >= 0.9999
+    assert report["summary"]["ego_velocity"]["max_abs"] <= 1e-4
+
+
+def test_parity_refuses_an_onnx_with_other_weights(tmp_path):
+    onnx = tmp_path / "tiny.onnx"
+    assert invoke("export", "--model", "tdfanet-tiny", "--config", TINY, "--output", str(onnx)).exit_code == 0
+    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet", "--onnx", str(onnx), "--cases", "1"])
+    assert res.exit_code == 2 and "other weights" in res.output
+
+
+def test_bench_json_reports_every_backend(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--runs", "3", "--warmup", "1", "--json")
+    assert res.exit_code == 0, res.output
+    out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
+    assert [r["backend"] for r in out["results"]] == ["torch reference", "torch export", "onnxruntime"]
+    assert all(r["fps"] > 0 for r in out["results"])

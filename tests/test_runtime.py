@@ -1,0 +1,97 @@
+"""The torch-free runtime: loads an export, validates input with clear errors, never imports torch."""
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from radaredge import runtime
+from radaredge.cards import load_card
+from radaredge.errors import InputError
+from radaredge.export import build_model, export_model
+from radaredge.registry import model_spec
+
+TINY = Path(__file__).parent / "cards" / "tdfanet-tiny.yaml"
+
+
+@pytest.fixture(scope="module")
+def onnx_path(tmp_path_factory):
+    card = load_card(TINY)
+    path = tmp_path_factory.mktemp("rt") / "tiny.onnx"
+    export_model(card, path, model=build_model(card))
+    return path
+
+
+@pytest.fixture(scope="module")
+def frames():
+    card = load_card(TINY)
+    _, feeds = model_spec(card).make_cases(card, 1, 2)[0]
+    return [feeds[f"points_{k}"] for k in range(3)], feeds["timestamps"]
+
+
+def test_runtime_runs_without_torch(onnx_path, frames, tmp_path):
+    np.save(tmp_path / "f0.npy", frames[0][0])
+    np.save(tmp_path / "f1.npy", frames[0][1])
+    np.save(tmp_path / "f2.npy", frames[0][2])
+    script = textwrap.dedent(f"""
+        import sys
+        sys.modules["torch"] = None          # any `import torch` now raises ImportError
+        import numpy as np
+        from radaredge import runtime
+        m = runtime.load({str(onnx_path)!r})
+        frames = [np.load({str(tmp_path)!r} + f"/f{{k}}.npy") for k in range(3)]
+        out = m.run(frames)
+        assert "torch" not in [k for k, v in sys.modules.items() if v is not None]
+        print(m.card.name, out["descriptor_normalized"].shape, round(float(np.linalg.norm(out["descriptor_normalized"])), 4))
+    """)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["tdfanet-tiny", "(32,)", "1.0"]
+
+
+def test_runtime_matches_session_outputs(onnx_path, frames):
+    m = runtime.load(onnx_path)
+    out = m.run(frames[0], frames[1])
+    assert set(out) == {"descriptor", "descriptor_normalized", "ego_velocity", "ego_valid"}
+    assert m.card.name == "tdfanet-tiny" and m.features == ["x", "y", "z", "v_r", "rcs"]
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda f: f[:2], "takes 3 frame"),
+    (lambda f: [f[0], f[1][:, :4], f[2]], r"frame 1: expected shape \[N, 5\]"),
+    (lambda f: [f[0], f[1], f[2].astype(str)], "frame 2: expected a numeric array"),
+])
+def test_bad_frames_get_specific_errors(onnx_path, frames, mutate, message):
+    m = runtime.load(onnx_path)
+    with pytest.raises(InputError, match=message):
+        m.run(mutate(list(frames[0])))
+
+
+def test_non_finite_value_names_frame_point_and_column(onnx_path, frames):
+    m = runtime.load(onnx_path)
+    f = [a.copy() for a in frames[0]]
+    f[2][4, 3] = np.nan
+    with pytest.raises(InputError, match=r"frame 2: non-finite value nan at point 4, column 'v_r'"):
+        m.run(f)
+
+
+def test_timestamps_are_checked(onnx_path, frames):
+    m = runtime.load(onnx_path)
+    with pytest.raises(InputError, match="increase strictly"):
+        m.run(frames[0], [0.0, 0.2, 0.1])
+    with pytest.raises(InputError, match="3 finite values"):
+        m.run(frames[0], [0.0, 0.1])
+
+
+def test_empty_frames_are_valid_input(onnx_path, frames):
+    m = runtime.load(onnx_path)
+    out = m.run([np.zeros((0, 5), np.float32), frames[0][1], np.zeros((0, 5), np.float32)])
+    assert np.isfinite(out["descriptor"]).all()
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        runtime.load(tmp_path / "missing.onnx")
