@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Mapping
 
@@ -28,6 +29,7 @@ def make_session(path: str | Path, threads: int = 2, profile: bool = False,
     }[graph_level]
     if profile:
         opts.enable_profiling = True
+        opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "radaredge_ort_profile")
     return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
 
 
