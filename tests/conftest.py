@@ -53,3 +53,20 @@ def assert_close(a: np.ndarray, b: np.ndarray, atol: float = 1e-5, what: str = "
         return
     err = np.abs(a.astype(np.float64) - b.astype(np.float64)).max()
     assert err <= atol, f"{what}: max abs error {err:.3g} > {atol:g}"
+
+
+TINY_CARD = Path(__file__).parent / "cards" / "tdfanet-tiny.yaml"
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory):
+    """The tiny TDFANet card exported once per session: (card, model, onnx path, debug onnx path)."""
+    from radaredge.cards import load_card
+    from radaredge.export import build_model, export_model
+
+    card = load_card(TINY_CARD)
+    model = build_model(card)
+    d = tmp_path_factory.mktemp("tiny-export")
+    export_model(card, d / "tdfanet-tiny.onnx", model=model)
+    export_model(card, d / "tdfanet-tiny.debug.onnx", model=model, debug=True)
+    return card, model, d / "tdfanet-tiny.onnx", d / "tdfanet-tiny.debug.onnx"

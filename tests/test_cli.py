@@ -1,14 +1,15 @@
 """The radaredge CLI end to end, including the full cards (export + parity on each)."""
 
 import json
-from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
 from radaredge.cli import main
 
-TINY = str(Path(__file__).parent / "cards" / "tdfanet-tiny.yaml")
+from conftest import TINY_CARD
+
+TINY = str(TINY_CARD)
 
 
 def invoke(*args):
@@ -54,9 +55,10 @@ def test_parity_refuses_an_onnx_with_other_weights(tmp_path):
     assert res.exit_code == 2 and "other weights" in res.output
 
 
-def test_bench_json_reports_every_backend(tmp_path, monkeypatch):
+def test_bench_json_reports_every_backend(tmp_path, monkeypatch, tiny_export):
     monkeypatch.chdir(tmp_path)
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--runs", "3", "--warmup", "1", "--json")
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
+                 "--runs", "3", "--warmup", "1", "--json")
     assert res.exit_code == 0, res.output
     out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
     assert [r["backend"] for r in out["results"]] == ["torch reference", "torch export", "onnxruntime"]

@@ -3,7 +3,6 @@
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,18 +10,14 @@ import pytest
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import InputError
-from radaredge.export import build_model, export_model
 from radaredge.registry import model_spec
 
-TINY = Path(__file__).parent / "cards" / "tdfanet-tiny.yaml"
+from conftest import TINY_CARD as TINY
 
 
 @pytest.fixture(scope="module")
-def onnx_path(tmp_path_factory):
-    card = load_card(TINY)
-    path = tmp_path_factory.mktemp("rt") / "tiny.onnx"
-    export_model(card, path, model=build_model(card))
-    return path
+def onnx_path(tiny_export):
+    return tiny_export[2]
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,6 @@
 """TDFANet end to end on the tiny card: export formulation == reference, ONNX parity, checkpoints,
 divergence localisation. The full cards are exported and parity-checked in test_cli.py."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,11 +8,11 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
-from radaredge.export import build_model, export_model, load_checkpoint
+from radaredge.export import build_model, load_checkpoint
 from radaredge.parity import run_parity
 from radaredge.registry import model_spec
 
-TINY = Path(__file__).parent / "cards" / "tdfanet-tiny.yaml"
+from conftest import TINY_CARD as TINY
 
 
 @pytest.fixture(scope="module")
@@ -22,12 +21,9 @@ def card():
 
 
 @pytest.fixture(scope="module")
-def exported(card, tmp_path_factory):
-    d = tmp_path_factory.mktemp("tdfanet")
-    model = build_model(card)
-    export_model(card, d / "tiny.onnx", model=model)
-    export_model(card, d / "tiny.debug.onnx", model=model, debug=True)
-    return model, d / "tiny.onnx", d / "tiny.debug.onnx"
+def exported(tiny_export):
+    _, model, onnx_path, debug_path = tiny_export
+    return model, onnx_path, debug_path
 
 
 def test_export_formulation_equals_reference(card):
