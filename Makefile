@@ -4,12 +4,12 @@ VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 MODEL   ?= tdfanet
+RUNS    ?= 20
 
-.PHONY: setup test demo bench clean
+.PHONY: setup test demo clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
-	$(BIN)/pip install --upgrade --quiet pip
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
@@ -22,7 +22,7 @@ test: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/radaredge export --model $(MODEL)
 	$(BIN)/radaredge parity-check --model $(MODEL) --onnx export/$(MODEL).onnx
-	$(BIN)/radaredge bench --model $(MODEL) --onnx export/$(MODEL).onnx
+	$(BIN)/radaredge bench --model $(MODEL) --onnx export/$(MODEL).onnx --runs $(RUNS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
