@@ -14,6 +14,7 @@ import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import onnx
 import onnxscript.optimizer
 import torch
 
@@ -91,4 +92,23 @@ def export_onnx(
         raise ExportError(
             f"exporting {type(module).__name__} to ONNX failed: {type(exc).__name__}: {exc}"
         ) from exc
+    if dynamic_axes:
+        _name_dynamic_dims(path, dynamic_axes)
     return path
+
+
+def _name_dynamic_dims(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:
+    """Replace the exporter's generic symbols (s0, s1, ...) by our names (num_points_0, ...)
+    everywhere in the graph, so the signature reads as the card documents it."""
+    proto = onnx.load(str(path))
+    rename: dict[str, str] = {}
+    for inp in proto.graph.input:
+        dims = inp.type.tensor_type.shape.dim
+        for axis, name in dynamic_axes.get(inp.name, {}).items():
+            if dims[axis].dim_param:
+                rename[dims[axis].dim_param] = name
+    for info in list(proto.graph.input) + list(proto.graph.output) + list(proto.graph.value_info):
+        for dim in info.type.tensor_type.shape.dim:
+            if dim.dim_param in rename:
+                dim.dim_param = rename[dim.dim_param]
+    onnx.save(proto, str(path))

@@ -41,6 +41,8 @@ def test_full_card_export_and_parity(model, tmp_path):
     assert res.exit_code == 0, res.output
     side = json.loads(onnx.with_suffix(".json").read_text())
     assert side["model"] == model and side["op_histogram"]
+    assert side["inputs"][0] == {"name": "points_0", "shape": ["num_points_0", 5]}
+    assert side["inputs"][-1] == {"name": "timestamps", "shape": [3]}
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", "4", "--json")
     report = json.loads(res.output)
     assert res.exit_code == 0 and report["passed"], res.output
