@@ -74,8 +74,10 @@ def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, pro
     return [summarise(n, times[n]) for n in backends]
 
 
-def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, profile: bool = False):
-    """name -> callable(feeds) for the torch reference, torch export formulation and onnxruntime."""
+def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, profile: bool = False,
+                   int8_path=None):
+    """name -> callable(feeds) for the torch reference, torch export formulation, onnxruntime fp32
+    and, when ``int8_path`` is given, onnxruntime on the int8 graph."""
     from .ort import make_session, run_session
     from .registry import model_spec
 
@@ -95,6 +97,9 @@ def model_backends(card, model, onnx_path, threads: int, include_reference: bool
         backends["torch reference"] = torch_reference
     backends["torch export"] = torch_export
     backends["onnxruntime"] = lambda feeds: run_session(session, feeds)
+    if int8_path is not None:
+        int8_session = make_session(int8_path, threads=threads)
+        backends["onnxruntime int8"] = lambda feeds: run_session(int8_session, feeds)
     return backends, session
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -16,7 +16,12 @@ class OutputSpec:
     """One graph output and how parity compares it.
 
     ``kind``: ``dense`` (max abs / max rel / p99 against ``atol``), ``descriptor`` (cosine
-    >= ``min_cosine`` plus dense statistics), ``exact`` (bit-equal labels, flags, masks).
+    >= ``min_cosine`` plus dense statistics), ``exact`` (bit-equal labels, flags, masks),
+    ``info`` (statistics reported, no verdict).
+
+    For an int8 graph (:meth:`quantized`) descriptors are held to ``quantized_min_cosine``,
+    outputs marked ``quantized_info`` are reported only, and the rest keep their tolerances
+    (they come from the fp32 preprocessing that quantisation does not touch).
     """
 
     name: str
@@ -25,6 +30,16 @@ class OutputSpec:
     rtol: float = 1e-3
     min_cosine: float = 0.9999
     unit: str = ""
+    quantized_min_cosine: float = 0.99
+    quantized_info: bool = False
+
+    def quantized(self) -> "OutputSpec":
+        """The budget this output is held to when the graph is int8-quantised."""
+        if self.kind == "descriptor":
+            return replace(self, min_cosine=self.quantized_min_cosine)
+        if self.quantized_info:
+            return replace(self, kind="info")
+        return self
 
 
 @dataclass(frozen=True)

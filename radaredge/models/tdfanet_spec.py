@@ -90,7 +90,7 @@ TDFANET_SPEC = ModelSpec(
     input_names=input_names,
     dynamic_axes=dynamic_axes,
     outputs=(
-        OutputSpec("descriptor", "dense", atol=1e-4, rtol=1e-3),
+        OutputSpec("descriptor", "dense", atol=1e-4, rtol=1e-3, quantized_info=True),
         OutputSpec("descriptor_normalized", "descriptor", min_cosine=0.9999),
         OutputSpec("ego_velocity", "dense", atol=1e-4, rtol=0.0, unit="m/s"),
         OutputSpec("ego_valid", "exact"),

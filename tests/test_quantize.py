@@ -1,0 +1,64 @@
+"""INT8 QDQ quantisation: network ops quantised, preprocessing untouched, parity budget met."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+
+from radaredge import runtime
+from radaredge.parity import run_parity
+from radaredge.quantize import quantize_int8
+
+
+@pytest.fixture(scope="module")
+def int8(tiny_export, tmp_path_factory):
+    card, model, fp32, _ = tiny_export
+    path = quantize_int8(card, fp32, tmp_path_factory.mktemp("q") / "tiny.int8.onnx", calibration_cases=6)
+    return card, model, fp32, path
+
+
+def test_only_network_ops_are_quantised(int8):
+    _, _, fp32, path = int8
+    graph = onnx.load(str(path)).graph
+    ops = [n.op_type for n in graph.node]
+    assert ops.count("QuantizeLinear") > 0 and ops.count("DequantizeLinear") > 0
+    producers = {o: n for n in graph.node for o in n.output}
+    for node in graph.node:
+        if node.op_type in ("GridSample", "ScatterElements", "TopK"):   # sampling / scatter / sort stay fp32
+            assert all(producers.get(i) is None or producers[i].op_type != "DequantizeLinear" for i in node.input[1:])
+
+
+def test_metadata_travels_and_runtime_loads_it(int8):
+    card, _, fp32, path = int8
+    m = runtime.load(path)
+    assert m.card.name == card.name
+    q = json.loads(m.metadata["radaredge.quantization"])
+    assert q["format"] == "QDQ" and q["calibration"]["cases"] == 6
+    src = runtime.load(fp32)
+    assert m.metadata["radaredge.weights_sha256"] == src.metadata["radaredge.weights_sha256"]
+
+
+def test_quantised_parity_budget(int8):
+    card, model, _, path = int8
+    report = run_parity(card, path, model, cases_n=8, seed=4, quantized=True)
+    assert report.passed, report.summary
+    s = report.summary
+    assert s["descriptor_normalized"]["min_cosine"] >= 0.99
+    assert s["ego_velocity"]["max_abs"] <= 1e-4          # preprocessing is fp32: unchanged
+    assert s["ego_valid"]["mismatches"] == 0
+    assert s["descriptor"]["tolerance"] == "reported only"
+    assert report.retrieval_top1 >= 0.98
+
+
+def test_quantised_graph_is_not_the_fp32_graph(int8):
+    card, _, fp32, path = int8
+    a, b = runtime.load(fp32), runtime.load(path)
+    from radaredge.registry import model_spec
+    _, feeds = model_spec(card).make_cases(card, 1, 9)[0]
+    frames = [feeds[f"points_{k}"] for k in range(3)]
+    da = a.run(frames, feeds["timestamps"])["descriptor_normalized"]
+    db = b.run(frames, feeds["timestamps"])["descriptor_normalized"]
+    assert 0.99 <= float(da @ db) < 1.0 - 1e-7
+    np.testing.assert_array_equal(a.run(frames, feeds["timestamps"])["ego_velocity"],
+                                  b.run(frames, feeds["timestamps"])["ego_velocity"])
