@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 MODEL   ?= tdfanet
 RUNS    ?= 20
 
-.PHONY: setup test demo clean
+.PHONY: setup test demo bench clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -23,6 +23,11 @@ demo: $(STAMP)
 	$(BIN)/radaredge export --model $(MODEL)
 	$(BIN)/radaredge parity-check --model $(MODEL) --onnx export/$(MODEL).onnx
 	$(BIN)/radaredge bench --model $(MODEL) --onnx export/$(MODEL).onnx --runs $(RUNS)
+
+# The speed suite: every card x {torch reference, torch export, onnxruntime fp32, int8} on 2 cores;
+# writes benchmarks/README.md, benchmarks/suite.png and benchmarks/results/suite-<date>.json.
+bench: $(STAMP)
+	$(BIN)/python benchmarks/run.py --runs $(RUNS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

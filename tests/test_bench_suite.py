@@ -1,0 +1,42 @@
+"""The benchmark suite script end to end on the tiny card (few runs: this checks the plumbing,
+the table and the chart, not speed), and the MAC counter's extra formulas."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import torch
+
+from radaredge.macs import count_macs
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_mac_counter_counts_grid_sample_and_scatter():
+    value = torch.rand(2, 3, 8, 8)
+    grid = torch.rand(2, 5, 7, 2) * 2 - 1
+    macs = count_macs(lambda: torch.nn.functional.grid_sample(value, grid, align_corners=False))
+    assert macs["grid_sampler_2d"] == 4 * 2 * 3 * 5 * 7
+    src = torch.rand(10, 4)
+    idx = torch.randint(0, 6, (10,))
+    macs = count_macs(lambda: torch.zeros(6, 4).index_add(0, idx, src))
+    assert macs["index_add"] == 40
+    macs = count_macs(lambda: torch.nn.functional.linear(torch.rand(3, 4), torch.rand(5, 4)))
+    assert macs["total"] == 3 * 4 * 5
+
+
+def test_suite_writes_table_json_and_chart(tmp_path, monkeypatch, tiny_export):
+    monkeypatch.setenv("RADAREDGE_CARDS", str(ROOT / "tests" / "cards"))
+    spec = importlib.util.spec_from_file_location("bench_suite", ROOT / "benchmarks" / "run.py")
+    suite = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(suite)
+    assert suite.main(["--models", "tdfanet-tiny", "--runs", "2", "--export-dir", str(tiny_export[2].parent),
+                       "--out", str(tmp_path / "bench")]) == 0
+    table = (tmp_path / "bench" / "README.md").read_text()
+    for backend in ("torch reference", "torch export", "onnxruntime", "onnxruntime int8"):
+        assert f"| tdfanet-tiny | {backend} |" in table
+    assert (tmp_path / "bench" / "suite.png").stat().st_size > 1000
+    data = json.loads(next((tmp_path / "bench" / "results").glob("suite-*.json")).read_text())
+    row = data["models"][0]
+    assert row["rows"][0]["gmacs"] > 0 and 0 < row["quantised_op_time_share"] < 1
+    assert data["gemm_peak_gflops"] > 0
