@@ -44,6 +44,7 @@ class TDFANetConfig:
     ffn_ratio: int = 4            # FFN hidden width = ffn_ratio * level channels (Transformer: 4)
     dropout: float = 0.1          # eq. 9 dropout (identity at inference)
     descriptor_dim: int = 256     # paper: 256-d descriptor
+    mlp_hidden: int = 0           # hidden width of the channel MLP to 256; 0 = descriptor_dim
     gem_p: float = 3.0            # GeM initial p (Radenovic et al.: 3)
     gem_eps: float = 1e-6
 
@@ -128,8 +129,8 @@ class TDFANet(nn.Module):
             DeformableAggregationLayer(chans[l], chans[l + 1] if l < net.pyramid_stages else None,
                                        net.heads, net.points, net.ffn_ratio, net.dropout)
             for l in range(net.pyramid_stages + 1))
-        self.mlp = nn.Sequential(nn.Conv2d(c, net.descriptor_dim, 1), nn.ReLU(),
-                                 nn.Conv2d(net.descriptor_dim, net.descriptor_dim, 1))
+        hidden = net.mlp_hidden or net.descriptor_dim
+        self.mlp = nn.Sequential(nn.Conv2d(c, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, net.descriptor_dim, 1))
         self.gem = GeM(p=net.gem_p, eps=net.gem_eps)
 
     # -- shared stages ---------------------------------------------------------------
