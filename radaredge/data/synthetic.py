@@ -18,6 +18,11 @@ The scene
   building facades, guard rails, poles, parked cars, bushes and tree crowns, and road-surface
   clutter, each a set of candidate reflector points with a fixed RCS and an outward surface
   normal (zero for scatterers that reflect in every direction).
+* **Revisits.** ``world_seed`` seeds the static world alone, so several ``seed`` values with
+  one ``world_seed`` are drives through one town on different days: other traffic, ego motion
+  and measurement noise, and, with ``parked_change``, some parked cars gone or shifted. The road's
+  curvature and grade are otherwise drawn with the ego motion (from ``seed``); give them all one
+  ``road_curvature`` and ``ego_vertical_max`` = 0 (a flat road) to share one world frame.
 * **Traffic.** Cars, pedestrians and cyclists move parallel to the road at constant speed in
   their lanes. They live in a window from 30 m behind to 90 m ahead of the ego, both ends
   outside the field of view (FOV), and wrap around in it, so traffic keeps flowing through
@@ -63,12 +68,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import ConfigError, InputError
+from .readers import TJ4D_COLUMNS, VOD_COLUMNS, read_tj4d_bin, read_vod_bin  # noqa: F401  (re-exported)
 
 COLUMNS = ("x", "y", "z", "v_r", "rcs")
 CLASS_NAMES = ("car", "pedestrian", "cyclist")
 RCS_CLASSES = CLASS_NAMES + ("wall", "pole", "guard_rail", "vegetation", "ground")
-VOD_COLUMNS = ("x", "y", "z", "rcs", "v_r", "v_r_compensated", "time")
-TJ4D_COLUMNS = ("X", "Y", "Z", "V_r", "Range", "Power", "Alpha", "Beta")
 
 _DEFAULT_RCS_DBSM = {  # (mean, std) of one reflector point, dBsm
     "car": (8.0, 6.0),
@@ -102,7 +106,8 @@ _DIMS = {  # (low, high) of length, width, height in m
     "cyclist": ((1.6, 1.9), (0.5, 0.7), (1.6, 1.9)),
 }
 _FACE_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], dtype=float)
-_STREAM_EGO, _STREAM_WORLD, _STREAM_TRAFFIC, _STREAM_FRAME = range(4)
+_STREAM_EGO, _STREAM_WORLD, _STREAM_TRAFFIC, _STREAM_FRAME, _STREAM_PARKING = range(5)
+_PARKED_SHIFT = (0.3, 0.8)         # m, |shift| of a moved parked car along its axis (slot gaps are >= 1.6 m)
 
 _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself allowed)
     "seed": (0, None, True),
@@ -125,6 +130,7 @@ _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself 
     "doppler_noise": (0.0, None, True),
     "position_noise": (0.0, None, True),
     "ghost_fraction": (0.0, 0.5, True),
+    "parked_change": (0.0, 1.0, True),
 }
 
 
@@ -137,13 +143,15 @@ class SceneConfig:
     only some classes; the others keep their defaults.
     """
 
-    seed: int = 0                     # seeds the world, the traffic, the ego motion and every frame
+    seed: int = 0                     # seeds the traffic, the ego motion, every frame, and the world
+    world_seed: int | None = None     # seeds the static world instead of ``seed`` (revisits of one town)
     frame_rate: float = 10.0          # Hz; frame k is at t = k / frame_rate s
     ego_speed_min: float = 3.0        # m/s along the road
     ego_speed_max: float = 15.0       # m/s along the road
     ego_lateral_max: float = 0.3      # m/s, |v_y| of the radar (radar frame), at most half the speed
     ego_vertical_max: float = 0.15    # m/s, |v_z| of the radar from the road grade (grade <= 10 %)
     max_yaw_rate: float = 0.05        # rad/s; 0 gives a straight road
+    road_curvature: float | None = None  # 1/m (> 0 turns left, |.| <= 1/60) instead of the drawn yaw rate
     mount_height: float = 0.8         # m, radar above the road surface
     min_range: float = 1.0            # m
     max_range: float = 70.0           # m
@@ -157,8 +165,15 @@ class SceneConfig:
     doppler_noise: float = 0.05       # m/s, std of the Gaussian noise on v_r
     position_noise: float = 0.1       # m, std of the isotropic Gaussian noise on x, y, z
     ghost_fraction: float = 0.03      # expected fraction of multipath ghosts among all points, [0, 0.5]
+    parked_change: float = 0.0        # chance per parked car to be gone (half) or shifted 0.3-0.8 m
+                                      # along its axis (half) in this drive, drawn from ``seed``, [0, 1]
     rcs_dbsm: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(_DEFAULT_RCS_DBSM))
     # (mean, std) in dBsm of one reflector point per class of RCS_CLASSES
+
+    @property
+    def static_seed(self) -> int:
+        """The seed of the static world: ``world_seed``, or ``seed`` when it is None."""
+        return self.seed if self.world_seed is None else self.world_seed
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -166,6 +181,13 @@ class SceneConfig:
                 integer = isinstance(f.default, int)
                 value = _check_number(f.name, getattr(self, f.name), integer, *_LIMITS[f.name])
                 object.__setattr__(self, f.name, int(value) if integer else float(value))
+        if self.world_seed is not None:
+            world_seed = _check_number("world_seed", self.world_seed, True, 0, None, True)
+            object.__setattr__(self, "world_seed", int(world_seed))
+        if self.road_curvature is not None:
+            curvature = _check_number("road_curvature", self.road_curvature, False, -1 / _MIN_CURVE_RADIUS,
+                                      1 / _MIN_CURVE_RADIUS, True)
+            object.__setattr__(self, "road_curvature", float(curvature))
         if self.ego_speed_min > self.ego_speed_max:
             raise ConfigError(f"SceneConfig.ego_speed_min ({self.ego_speed_min} m/s) must be <= "
                               f"ego_speed_max ({self.ego_speed_max} m/s)")
@@ -370,7 +392,12 @@ def _draw_ego(config: SceneConfig) -> _Ego:
     lateral = rng.uniform(-1, 1) * min(config.ego_lateral_max, 0.5 * speed)
     vertical = rng.uniform(-1, 1) * min(config.ego_vertical_max, 0.1 * speed)
     yaw_rate = rng.uniform(-1, 1) * config.max_yaw_rate
-    curvature = float(np.clip(yaw_rate / speed, -1 / _MIN_CURVE_RADIUS, 1 / _MIN_CURVE_RADIUS)) if speed > 0 else 0.0
+    if config.road_curvature is not None:
+        curvature = config.road_curvature
+    elif speed > 0:
+        curvature = float(np.clip(yaw_rate / speed, -1 / _MIN_CURVE_RADIUS, 1 / _MIN_CURVE_RADIUS))
+    else:
+        curvature = 0.0
     grade = vertical / speed if speed > 0 else 0.0
     return _Ego(_Road(curvature, grade), float(speed), float(lateral), config.mount_height)
 
@@ -538,9 +565,29 @@ def _box_reflectors(rng: np.random.Generator, config: SceneConfig, boxes: _Boxes
     return _Reflectors.concat(parts, [0] * len(parts))
 
 
+def _change_parking(rng: np.random.Generator, cars: _Boxes, reflectors: _Reflectors,
+                    change: float) -> tuple[_Boxes, _Reflectors]:
+    """This drive's parked cars: each with chance ``change`` gone (half of them) or shifted by
+    0.3-0.8 m along its own horizontal axis, forwards or backwards (the other half), together
+    with its reflectors (``owner`` = row of ``cars``). Rows are renumbered after removals."""
+    n = len(cars)
+    changed = rng.random(n) < change
+    kept = ~(changed & (rng.random(n) < 0.5))
+    shift = np.where(changed & kept, rng.choice([-1.0, 1.0], n) * rng.uniform(*_PARKED_SHIFT, n), 0.0)
+    offset = shift[:, None] * np.column_stack([np.cos(cars.yaw), np.sin(cars.yaw), np.zeros(n)])
+    on_kept = kept[reflectors.owner]
+    owner = reflectors.owner[on_kept]
+    row = np.cumsum(kept) - 1
+    return (_Boxes(cars.centre[kept] + offset[kept], cars.dims[kept], cars.yaw[kept], cars.label[kept],
+                   cars.velocity[kept]),
+            _Reflectors(reflectors.xyz[on_kept] + offset[owner], reflectors.normal[on_kept], reflectors.rcs[on_kept],
+                        row[owner]))
+
+
 def _build_segment(config: SceneConfig, road: _Road, index: int) -> tuple[_Reflectors, _Boxes]:
-    """Static reflectors and parked cars of road segment ``index`` (s in [20 index, 20 index + 20) m)."""
-    rng = _rng(config.seed, _STREAM_WORLD, index)
+    """Static reflectors and parked cars of road segment ``index`` (s in [20 index, 20 index + 20) m);
+    the parking of this drive (``parked_change``) from the stream of ``seed``."""
+    rng = _rng(config.static_seed, _STREAM_WORLD, index)
     s0 = index * _SEGMENT
     surfaces, parked = [_road_clutter(rng, s0)], []
     for side in (-1.0, 1.0):
@@ -556,8 +603,11 @@ def _build_segment(config: SceneConfig, road: _Road, index: int) -> tuple[_Refle
         surfaces.append(_vegetation(rng, s0, side, _VEGETATION[1] if facade is None else facade - 0.5))
     cars = _Boxes.concat(parked)
     parts = [_surface_reflectors(rng, config, road, s) for s in surfaces]
-    parts.append(_box_reflectors(rng, config, cars, density=3.0))
-    return _Reflectors.concat(parts, [0] * len(parts)), cars
+    car_reflectors = _box_reflectors(rng, config, cars, density=3.0)
+    if config.parked_change > 0:
+        cars, car_reflectors = _change_parking(_rng(config.seed, _STREAM_PARKING, index), cars, car_reflectors,
+                                               config.parked_change)
+    return _Reflectors.concat(parts + [car_reflectors], [0] * (len(parts) + 1)), cars
 
 
 class _StaticWorld:
@@ -804,17 +854,6 @@ def _write_table(path: str | os.PathLike, table: np.ndarray) -> Path:
     return path
 
 
-def _read_table(path: str | os.PathLike, columns: Sequence[str], layout: str) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such {layout} file")
-    data = np.fromfile(path, dtype="<f4")
-    if data.size % len(columns):
-        raise InputError(f"{path}: {data.size * 4} bytes is not a whole number of {layout} rows of "
-                         f"{len(columns)} float32 columns {tuple(columns)}")
-    return data.reshape(-1, len(columns)).astype(np.float32)
-
-
 def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
     """Write ``scan`` as a View-of-Delft radar ``.bin``: float32 little-endian, N rows of
     ``VOD_COLUMNS`` = x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (s).
@@ -827,11 +866,6 @@ def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
     v_r_compensated = v_r + _unit(xyz) @ np.asarray(scan.ego_velocity, dtype=np.float64)
     table = np.column_stack([xyz, scan.column("rcs"), v_r, v_r_compensated, np.zeros(len(xyz))])
     return _write_table(path, table)
-
-
-def read_vod_bin(path: str | os.PathLike) -> np.ndarray:
-    """Read a View-of-Delft radar ``.bin``: float32 [N, 7], columns ``VOD_COLUMNS``."""
-    return _read_table(path, VOD_COLUMNS, "View-of-Delft radar")
 
 
 def write_tj4d_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
@@ -847,8 +881,3 @@ def write_tj4d_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
     table = np.column_stack([xyz, scan.column("v_r"), np.linalg.norm(xyz, axis=1), scan.column("rcs"),
                              np.arctan2(y, x), np.arctan2(z, np.hypot(x, y))])
     return _write_table(path, table)
-
-
-def read_tj4d_bin(path: str | os.PathLike) -> np.ndarray:
-    """Read a TJ4DRadSet radar ``.bin``: float32 [N, 8], columns ``TJ4D_COLUMNS``."""
-    return _read_table(path, TJ4D_COLUMNS, "TJ4DRadSet radar")
