@@ -224,5 +224,80 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
         click.echo(f"wrote {path}")
 
 
+@main.command("make-benchmark")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Writes OUT/database/drive-00 and OUT/queries/drive-01 ...")
+@click.option("--drives", default=3, show_default=True, type=int, help="Drive 0 is the database, the rest queries.")
+@click.option("--frames", default=60, show_default=True, type=int, help="Scans per drive (10 Hz).")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def make_benchmark(out_dir, drives, frames, seed, as_json):
+    """Write a synthetic place-recognition benchmark: one town (static world) driven on several
+    days with other traffic, ego speed and heading offset, and some parked cars moved."""
+    from .data.pr_benchmark import make_pr_benchmark
+    plan = make_pr_benchmark(out_dir, drives, frames, seed, progress=_progress("drives"))
+    rows = [{"drive": str(Path(out_dir) / d.subdir), "role": d.role, "frames": d.frames,
+             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change} for d in plan]
+    if as_json:
+        click.echo(json.dumps({"out": str(out_dir), "seed": seed, "drives": rows}, indent=2))
+        return
+    click.echo(f"wrote {len(plan)} drives of {frames} scans (seed {seed}) to {out_dir}:")
+    for r in rows:
+        click.echo(f"  {r['drive']:<32}{r['role']:<10}{r['speed_m_s']:5.1f} m/s, parked cars changed "
+                   f"{r['parked_change'] * 100:.0f} %")
+
+
+@main.command("eval")
+@click.option("--model", required=True, help="Model card name (see `radaredge list`).")
+@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False))
+@click.option("--database", required=True, type=click.Path(file_okay=False),
+              help="A drive (scans/ + gps.csv) or a directory of drives.")
+@click.option("--queries", required=True, type=click.Path(file_okay=False),
+              help="A drive (scans/ + gps.csv) or a directory of drives.")
+@click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of models/<model>.yaml.")
+@click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
+@click.option("--radius", default=5.0, show_default=True, type=float,
+              help="m; a retrieved window this close to the query is a true positive (TDFANet: 5 m).")
+@click.option("--no-reference", is_flag=True, help="Skip the torch reference formulation.")
+@click.option("--report", "report_path", type=click.Path(dir_okay=False), help="Write the JSON report here.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Write the PNG (trajectory, Recall@N).")
+@click.option("--json", "as_json", is_flag=True, help="Print the whole report as JSON.")
+@_friendly_errors
+def eval_cmd(model, onnx_path, database, queries, config, checkpoint, radius, no_reference, report_path, plot_path,
+             as_json):
+    """Place-recognition Recall@1/5/10 of the ONNX (onnxruntime) and the torch reference over the
+    K-frame windows of query drives against database drives, and their top-1 agreement."""
+    from .evaluation import evaluate
+    card = _card(model, config)
+    report = evaluate(card, onnx_path, database, queries, checkpoint, radius, not no_reference, _progress)
+    written = []
+    if report_path:
+        written.append(str(report.write_json(report_path)))
+    if plot_path:
+        written.append(str(report.plot(plot_path)))
+    if as_json:
+        click.echo(json.dumps(report.to_dict(), indent=2))
+        return
+    _print_eval(report)
+    if written:
+        click.echo(f"wrote {', '.join(written)}")
+
+
+def _print_eval(report):
+    from .evaluation import BACKEND_LABELS, ONNX, RECALL_NS, REFERENCE
+    q, db = report.queries, report.database
+    click.echo(f"eval {report.model}: {len(q)} query windows from {len(q.sequences)} drive(s) vs {len(db)} database "
+               f"windows from {len(db.sequences)} drive(s), K = {db.k}, true positive within {report.radius:g} m")
+    click.echo(f"{report.evaluated} queries evaluated, {report.skipped} skipped (no database window within "
+               f"{report.radius:g} m)")
+    click.echo(f"{'backend':<18}" + "".join(f"{f'R@{n}':>9}" for n in RECALL_NS))
+    for name in report.results:
+        click.echo(f"{BACKEND_LABELS[name]:<18}" + "".join(f"{r:>9.2f}" for r in report.recall(name).values()))
+    if report.agreement is not None:
+        click.echo(f"top-1 agreement {BACKEND_LABELS[ONNX]} vs {BACKEND_LABELS[REFERENCE]}: "
+                   f"{report.agreement * 100:.1f} % of {len(q)} queries")
+
+
 if __name__ == "__main__":
     main()

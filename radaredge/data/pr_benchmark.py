@@ -1,0 +1,114 @@
+"""A synthetic place-recognition benchmark: one town driven on several days.
+
+The town is one static world (``SceneConfig.world_seed`` = the benchmark ``seed``) along a
+flat street that bends gently (``SceneConfig.road_curvature``, a radius of 80-150 m, drawn from
+``seed``): facades, poles, parked cars, vegetation and road clutter, the same on every day. Each drive is another day (its own ``SceneConfig.seed``) through that street, from
+the same start, with its own ego speed, lateral velocity (a small heading offset of the radar,
+at most ``SceneConfig.ego_lateral_max``), traffic, share of points on moving objects and
+measurement noise. On the query days a fraction ``parked_change`` of the parked cars is gone or
+shifted along its axis (``SceneConfig.parked_change``); the database day shows the town's
+canonical parking.
+
+Drive 0 is the database and drives at the top of the speed range, so the query drives (slower
+or as fast, over the same number of frames) stay on the road it covers. Files, written with
+:func:`radaredge.data.sequences.write_sequence` in the TransLoc4D ``.npy`` layout::
+
+    out_dir/database/drive-00/{scans/000000.npy ..., gps.csv}
+    out_dir/queries/drive-01/...
+    out_dir/queries/drive-02/...
+
+Scans are [N, 5] x, y, z (m, radar frame: x forward, y left, z up), v (radial velocity, m/s)
+and intensity (the synthetic RCS, dBsm). gps.csv holds per scan the timestamp (s; drive d starts
+d days, 86400 d s, after drive 0) and the radar's position in the world frame of
+:mod:`radaredge.data.synthetic` as a local planar east-north frame: **easting = world x** (the
+direction the street starts in, m) and **northing = world y** (m, to its left).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from .sequences import write_sequence
+from .synthetic import RadarScan, SceneConfig, generate_sequence
+
+DATABASE_DIR = "database"
+QUERIES_DIR = "queries"
+DAY_S = 86400.0                   # s between the starts of consecutive drives
+DYNAMIC_FRACTION = (0.1, 0.3)     # range of the per-day share of points on moving objects
+CURVE_RADIUS = (80.0, 150.0)      # m, range of the street's radius of curvature
+
+
+@dataclass(frozen=True)
+class BenchmarkDrive:
+    """One drive of the benchmark: its directory ``name``, ``role`` ("database" or "query"),
+    ``start`` time (s), number of ``frames`` and the scene ``config`` that generates it."""
+
+    name: str
+    role: str
+    start: float
+    frames: int
+    config: SceneConfig
+
+    @property
+    def subdir(self) -> str:
+        """The drive's directory relative to the benchmark root, e.g. ``queries/drive-01``."""
+        return f"{DATABASE_DIR if self.role == 'database' else QUERIES_DIR}/{self.name}"
+
+    def scans(self) -> list[RadarScan]:
+        """The drive's scans with their ground truth (poses, dynamic flags, boxes)."""
+        return generate_sequence(self.frames, self.config)
+
+
+def _check_options(drives: int, frames_per_drive: int, seed: int, speed: tuple[float, float]) -> None:
+    for name, value, low in (("drives", drives, 2), ("frames_per_drive", frames_per_drive, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+    if len(speed) != 2 or not 0 < speed[0] <= speed[1]:
+        raise ConfigError(f"speed must be (low, high) m/s with 0 < low <= high, got {speed!r}")
+
+
+def plan_drives(drives: int = 3, frames_per_drive: int = 60, seed: int = 0, speed: tuple[float, float] = (7.0, 10.0),
+                parked_change: float = 0.3) -> list[BenchmarkDrive]:
+    """The benchmark's drives, without generating them: drive 0 (database) at ``speed[1]`` m/s
+    with the canonical parking, drives 1.. (queries) at speeds uniform in ``speed`` m/s with
+    ``parked_change`` of the parked cars changed. The street's curvature, and for every day its
+    scene seed and share of moving-object points (in ``DYNAMIC_FRACTION``), are drawn from ``seed``."""
+    _check_options(drives, frames_per_drive, seed, speed)
+    rng = np.random.default_rng(seed)
+    curvature = rng.choice([-1.0, 1.0]) / rng.uniform(*CURVE_RADIUS)
+    day_seeds = rng.integers(0, 2**31, drives)
+    plan = []
+    for d in range(drives):
+        v = speed[1] if d == 0 else rng.uniform(*speed)
+        config = SceneConfig(seed=int(day_seeds[d]), world_seed=seed, road_curvature=curvature, ego_vertical_max=0.0,
+                             ego_speed_min=v, ego_speed_max=v, dynamic_fraction=rng.uniform(*DYNAMIC_FRACTION),
+                             parked_change=0.0 if d == 0 else parked_change)
+        plan.append(BenchmarkDrive(f"drive-{d:02d}", "database" if d == 0 else "query", DAY_S * d,
+                                   frames_per_drive, config))
+    return plan
+
+
+def drive_track(scans: list[RadarScan], start: float) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps [T] s = ``start`` + scan time, positions [T, 2] (northing = world y, easting =
+    world x) m of the radar) of a generated drive."""
+    xy = np.array([scan.pose[:2, 3] for scan in scans])
+    return start + np.array([scan.timestamp for scan in scans]), xy[:, ::-1].copy()
+
+
+def make_pr_benchmark(out_dir: str | os.PathLike, drives: int = 3, frames_per_drive: int = 60, seed: int = 0,
+                      speed: tuple[float, float] = (7.0, 10.0), parked_change: float = 0.3,
+                      progress=None) -> list[BenchmarkDrive]:
+    """Generate the drives of :func:`plan_drives` and write them under ``out_dir`` (layout in
+    the module docstring). ``progress`` optionally wraps the iteration over drives (a progress
+    bar). Returns the plan; drive ``d`` is in ``out_dir / d.subdir``."""
+    plan = plan_drives(drives, frames_per_drive, seed, speed, parked_change)
+    for drive in (progress or iter)(plan):
+        scans = drive.scans()
+        timestamps, positions = drive_track(scans, drive.start)
+        write_sequence(Path(out_dir) / drive.subdir, [scan.points for scan in scans], timestamps, positions)
+    return plan
