@@ -86,9 +86,11 @@ def inspect(onnx_path, as_json):
 @click.option("--output", type=click.Path(dir_okay=False), help="Where to write the .onnx (default export/<model>.onnx).")
 @click.option("--opset", default=18, show_default=True, type=int)
 @click.option("--debug", is_flag=True, help="Also write <output>.debug.onnx with intermediate tensors as outputs.")
+@click.option("--quantize", type=click.Choice(["int8"]),
+              help="Also write <output>.int8.onnx: static QDQ int8 of Conv/MatMul/Gemm, calibrated on synthetic scenes.")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def export(model, config, checkpoint, output, opset, debug, as_json):
+def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
     """Export the whole pipeline (raw points in, result out) to one .onnx and a JSON sidecar."""
     from .export import build_model, export_model
     card = _card(model, config)
@@ -96,13 +98,18 @@ def export(model, config, checkpoint, output, opset, debug, as_json):
     net = build_model(card, checkpoint)
     click.echo(f"exporting {card.name} ...", err=True)
     res = export_model(card, output, opset=opset, model=net)
-    debug_path = None
+    debug_path = int8_path = None
     if debug:
         debug_path = output.with_suffix(".debug.onnx")
         export_model(card, debug_path, opset=opset, debug=True, model=net)
+    if quantize:
+        from .quantize import quantize_int8
+        click.echo(f"quantising {card.name} to int8 ...", err=True)
+        int8_path = quantize_int8(card, res.path, output.with_suffix(".int8.onnx"))
     if as_json:
         click.echo(json.dumps({"onnx": str(res.path), "sidecar": str(res.sidecar), "size_bytes": res.size_bytes,
-                               "op_histogram": res.op_histogram, "debug_onnx": str(debug_path) if debug_path else None}, indent=2))
+                               "op_histogram": res.op_histogram, "debug_onnx": str(debug_path) if debug_path else None,
+                               "int8_onnx": str(int8_path) if int8_path else None}, indent=2))
         return
     top = ", ".join(f"{k} {v}" for k, v in list(res.op_histogram.items())[:12])
     click.echo(f"wrote {res.path} ({res.size_bytes / 1e6:.2f} MB, {sum(res.op_histogram.values())} nodes) "
@@ -110,6 +117,9 @@ def export(model, config, checkpoint, output, opset, debug, as_json):
     click.echo(f"ops: {top}")
     if debug_path:
         click.echo(f"debug graph: {debug_path}")
+    if int8_path:
+        click.echo(f"int8 graph: {int8_path} ({int8_path.stat().st_size / 1e6:.2f} MB); "
+                   f"check it with `radaredge parity-check --quantized --onnx {int8_path}`")
 
 
 @main.command("parity-check")
@@ -119,9 +129,12 @@ def export(model, config, checkpoint, output, opset, debug, as_json):
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
 @click.option("--cases", default=20, show_default=True, type=int)
 @click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--quantized", is_flag=True,
+              help="The .onnx is int8: descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; "
+                   "preprocessing outputs keep their fp32 tolerances.")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def parity_check(model, onnx_path, config, checkpoint, cases, seed, as_json):
+def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, as_json):
     """Run the ONNX in onnxruntime and the reference formulation in torch on the same synthetic
     cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
     from . import runtime
@@ -132,8 +145,11 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, as_json):
     exported = runtime.load(onnx_path)
     if exported.metadata.get("radaredge.weights_sha256") != weights_hash(net):
         raise _mismatch(onnx_path, checkpoint)
-    report = run_parity(card, onnx_path, net, cases, seed, progress=_progress("parity"))
-    if not report.passed:
+    if quantized and "radaredge.quantization" not in exported.metadata:
+        from .errors import ConfigError
+        raise ConfigError(f"{onnx_path} is not an int8 export; drop --quantized or pass the .int8.onnx")
+    report = run_parity(card, onnx_path, net, cases, seed, progress=_progress("parity"), quantized=quantized)
+    if not report.passed and not quantized:
         debug_path = Path(onnx_path).with_suffix(".debug.onnx")
         if not debug_path.exists():
             export_model(card, debug_path, debug=True, model=net)
@@ -156,15 +172,17 @@ def _mismatch(onnx_path, checkpoint):
 
 
 def _print_parity(report):
+    budget = " [int8 budget]" if report.quantized else ""
     click.echo(f"parity {report.model}: {Path(report.onnx).name} (onnxruntime) vs reference (torch), "
-               f"{len(report.cases)} cases")
+               f"{len(report.cases)} cases{budget}")
     click.echo(f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos':>11}  verdict")
     for name, s in report.summary.items():
         cos = f"{s['min_cosine']:.7f}" if s["min_cosine"] is not None else "-"
         click.echo(f"{name:<24}{s['kind']:<12}{s['max_abs']:>11.3g}{s['max_rel']:>11.3g}{s['p99_abs']:>11.3g}"
                    f"{cos:>11}  {'PASSED' if s['passed'] else 'FAILED'}  tol {s['tolerance']}")
     if report.retrieval_top1 is not None:
-        click.echo(f"retrieval top-1 agreement over the case set: {report.retrieval_top1 * 100:.1f}%")
+        click.echo(f"retrieval top-1 agreement over the case set: {report.retrieval_top1 * 100:.1f}% "
+                   f"(needs >= {report.min_retrieval_top1 * 100:.0f}%)")
     if report.divergence:
         d = report.divergence
         if d["tensor"]:
@@ -184,10 +202,12 @@ def _print_parity(report):
 @click.option("--runs", default=50, show_default=True, type=int)
 @click.option("--warmup", default=3, show_default=True, type=int)
 @click.option("--no-reference", is_flag=True, help="Skip the (slow) torch reference backend.")
+@click.option("--int8", "int8_path", type=click.Path(dir_okay=False),
+              help="Also time this int8 graph (default: <onnx>.int8.onnx when it exists).")
 @click.option("--profile", is_flag=True, help="Print onnxruntime's top ops by time.")
 @click.option("--json", "as_json", is_flag=True, help="Also write benchmarks/results/<model>-<date>.json.")
 @_friendly_errors
-def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, profile, as_json):
+def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
     from .bench import as_dicts, benchmark, cpu_name, model_backends, pin_threads, results_table, top_ops
     from .export import build_model, export_model
@@ -200,14 +220,20 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
         click.echo(f"{onnx_path} missing: exporting it first", err=True)
         export_model(card, onnx_path, model=net)
     cases = [feeds for _, feeds in model_spec(card).make_cases(card, 4, 1)]
-    backends, session = model_backends(card, net, onnx_path, threads, not no_reference, profile)
+    default_int8 = onnx_path.with_suffix(".int8.onnx")
+    int8_path = int8_path or (default_int8 if default_int8.exists() else None)
+    backends, session = model_backends(card, net, onnx_path, threads, not no_reference, profile, int8_path)
     results = benchmark(backends, cases, runs, warmup, progress=_progress("bench"))
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     click.echo(f"{card.name} on {threads} thread(s), cores {cores}, {cpu_name()}, {runs} runs, {stamp}")
     click.echo(results_table(results, "torch reference" if not no_reference else "torch export"))
     ort_r = next(r for r in results if r.backend == "onnxruntime")
-    ratios = {r.backend: r.p50_ms / ort_r.p50_ms for r in results if r.backend != "onnxruntime"}
+    ratios = {r.backend: r.p50_ms / ort_r.p50_ms for r in results if r.backend.startswith("torch")}
     click.echo("onnxruntime speed-up: " + ", ".join(f"{v:.2f}x vs {k}" for k, v in ratios.items()))
+    int8_r = next((r for r in results if r.backend == "onnxruntime int8"), None)
+    if int8_r is not None:
+        gain = ort_r.p50_ms / int8_r.p50_ms
+        click.echo(f"int8 vs fp32: {gain:.2f}x" + ("  (int8 is SLOWER than fp32 on this CPU)" if gain < 1 else ""))
     prof = None
     if profile:
         prof = top_ops(session.end_profiling())
@@ -260,8 +286,10 @@ def make_benchmark(out_dir, drives, frames, seed, as_json):
 @click.option("--radius", default=5.0, show_default=True, type=float,
               help="m; a retrieved window this close to the query is a true positive (TDFANet: 5 m).")
 @click.option("--no-reference", is_flag=True, help="Skip the torch reference formulation.")
-@click.option("--report", "report_path", type=click.Path(dir_okay=False), help="Write the JSON report here.")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Write the PNG (trajectory, Recall@N).")
+@click.option("--report", "report_path", type=click.Path(dir_okay=False),
+              help="JSON report path (default: <onnx>.eval.json beside the .onnx).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
+              help="PNG with the trajectory and Recall@N curve (default: <onnx>.eval.png).")
 @click.option("--json", "as_json", is_flag=True, help="Print the whole report as JSON.")
 @_friendly_errors
 def eval_cmd(model, onnx_path, database, queries, config, checkpoint, radius, no_reference, report_path, plot_path,
@@ -271,17 +299,14 @@ def eval_cmd(model, onnx_path, database, queries, config, checkpoint, radius, no
     from .evaluation import evaluate
     card = _card(model, config)
     report = evaluate(card, onnx_path, database, queries, checkpoint, radius, not no_reference, _progress)
-    written = []
-    if report_path:
-        written.append(str(report.write_json(report_path)))
-    if plot_path:
-        written.append(str(report.plot(plot_path)))
+    report_path = report_path or Path(onnx_path).with_suffix(".eval.json")
+    plot_path = plot_path or Path(onnx_path).with_suffix(".eval.png")
+    written = [str(report.write_json(report_path)), str(report.plot(plot_path))]
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
         return
     _print_eval(report)
-    if written:
-        click.echo(f"wrote {', '.join(written)}")
+    click.echo(f"wrote {', '.join(written)}")
 
 
 def _print_eval(report):

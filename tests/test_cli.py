@@ -65,3 +65,20 @@ def test_bench_json_reports_every_backend(tmp_path, monkeypatch, tiny_export):
     out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
     assert [r["backend"] for r in out["results"]] == ["torch reference", "torch export", "onnxruntime"]
     assert all(r["fps"] > 0 for r in out["results"])
+
+
+def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    onnx = tmp_path / "tiny.onnx"
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY, "--output", str(onnx), "--quantize", "int8")
+    assert res.exit_code == 0 and "int8 graph" in res.output
+    int8 = tmp_path / "tiny.int8.onnx"
+    res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(int8),
+                 "--cases", "4", "--quantized")
+    assert res.exit_code == 0 and "[int8 budget]" in res.output and "PASSED" in res.output
+    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx),
+                                    "--cases", "1", "--quantized"])
+    assert res.exit_code == 2 and "not an int8 export" in res.output
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx), "--runs", "2",
+                 "--warmup", "1", "--no-reference")
+    assert res.exit_code == 0 and "| onnxruntime int8 |" in res.output and "int8 vs fp32" in res.output
