@@ -134,6 +134,8 @@ def summarise(outputs, cases: list[dict]) -> dict:
 
 
 # An int8 graph must still retrieve the same case as the reference for this share of the cases.
+# The parity cases are distinct scenes, so this is a weak retrieval test; accept a quantised
+# place-recognition model with `radaredge eval` on a benchmark of nearby places as well.
 QUANTIZED_MIN_TOP1 = 0.98
 
 
