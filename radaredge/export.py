@@ -78,16 +78,17 @@ def build_model(card: ModelCard, checkpoint: str | Path | None = None) -> torch.
 
 class _PipelineWrapper(torch.nn.Module):
     """Positional-input wrapper of the export formulation; ``debug`` also returns the traced
-    intermediates named in ``spec.trace_order`` (for divergence reports)."""
+    intermediates named in ``spec.trace_order(card)`` (for divergence reports)."""
 
     def __init__(self, model, spec, card, debug: bool):
         super().__init__()
         self.model, self.spec, self.names, self.debug = model, spec, spec.input_names(card), debug
+        self.trace_names = spec.trace_order(card)
 
     def forward(self, *inputs):
         trace: dict | None = {} if self.debug else None
         out = self.spec.run_export(self.model, dict(zip(self.names, inputs)), trace)
-        extra = tuple(trace[n] for n in self.spec.trace_order) if self.debug else ()
+        extra = tuple(trace[n] for n in self.trace_names) if self.debug else ()
         return tuple(out[n] for n in self.spec.output_names) + extra
 
 
@@ -123,7 +124,7 @@ def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | N
                  opset: int = DEFAULT_OPSET, debug: bool = False, model: torch.nn.Module | None = None) -> ExportResult:
     """Export the card's whole pipeline to ``output`` and write ``output`` with suffix .json.
 
-    ``debug`` adds the intermediate tensors of ``spec.trace_order`` as extra graph outputs.
+    ``debug`` adds the intermediate tensors of ``spec.trace_order(card)`` as extra graph outputs.
     """
     spec = model_spec(card)
     model = model if model is not None else build_model(card, checkpoint)
@@ -131,7 +132,7 @@ def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | N
     _, example = spec.make_cases(card, 1, 0)[0]
     args = tuple(torch.from_numpy(example[n]) for n in names)
     module = _PipelineWrapper(model, spec, card, debug)
-    out_names = spec.output_names + ([DEBUG_PREFIX + n for n in spec.trace_order] if debug else [])
+    out_names = spec.output_names + ([DEBUG_PREFIX + n for n in spec.trace_order(card)] if debug else [])
     path = Path(output)
     export_onnx(module, args, path, names, out_names, spec.dynamic_axes(card), opset=opset)
     proto = onnx.load(str(path))
@@ -153,7 +154,7 @@ def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | N
     result = ExportResult(path, sidecar, path.stat().st_size, hist, meta)
     sidecar.write_text(json.dumps({
         "model": card.name, "onnx": path.name, "size_bytes": result.size_bytes, "opset": opset,
-        "debug_outputs": list(spec.trace_order) if debug else [],
+        "debug_outputs": list(spec.trace_order(card)) if debug else [],
         "inputs": [{"name": i.name, "shape": _shape(i)} for i in proto.graph.input],
         "outputs": [{"name": o.name, "shape": _shape(o)} for o in proto.graph.output],
         "op_histogram": hist, "weights_sha256": meta[META_PREFIX + "weights_sha256"],

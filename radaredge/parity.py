@@ -187,5 +187,5 @@ def locate_divergence(card, spec, model, debug_onnx, report: ParityReport, cases
     with torch.no_grad():
         spec.run_reference(model, feeds, ref_trace)
     ref_trace = {k: v.detach().numpy() for k, v in ref_trace.items()}
-    hit = first_divergence(spec.trace_order, got, ref_trace)
+    hit = first_divergence(spec.trace_order(card), got, ref_trace)
     return {"case": failing, "tensor": hit[0], "max_abs": hit[1]} if hit else {"case": failing, "tensor": None}

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from radaredge.config import config_from_dict
+from radaredge.data.readers import TJ4D_COLUMNS, VOD_COLUMNS, read_tj4d_bin, read_vod_bin
 from radaredge.data.synthetic import (
-    CLASS_NAMES, COLUMNS, TJ4D_COLUMNS, VOD_COLUMNS, RadarScan, SceneConfig, generate_scan, generate_sequence,
-    read_tj4d_bin, read_vod_bin, write_tj4d_bin, write_vod_bin,
+    CLASS_NAMES, COLUMNS, RadarScan, SceneConfig, generate_scan, generate_sequence, write_tj4d_bin, write_vod_bin,
 )
 from radaredge.errors import ConfigError, InputError
 

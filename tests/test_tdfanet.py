@@ -102,3 +102,14 @@ def test_card_errors_name_the_field(tmp_path):
     bad.write_text(TINY.read_text().replace("num_hypotheses: 32", "num_hypothesis: 32"))
     with pytest.raises(ConfigError, match="num_hypothesis"):
         build_model(load_card(bad))
+
+
+def test_debug_export_follows_the_pyramid_depth(tmp_path):
+    from radaredge.export import export_model
+    card_path = tmp_path / "two-stage.yaml"
+    card_path.write_text(TINY.read_text().replace("pyramid_stages: 3", "pyramid_stages: 2"))
+    card = load_card(card_path)
+    res = export_model(card, tmp_path / "two.debug.onnx", model=build_model(card), debug=True)
+    import json
+    outputs = json.loads(res.sidecar.read_text())["debug_outputs"]
+    assert outputs == ["ego_velocity", "bev", "aligned_bev", "aggregated_l2", "aggregated_l1", "aggregated_l0"]

@@ -68,7 +68,6 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import ConfigError, InputError
-from .readers import TJ4D_COLUMNS, VOD_COLUMNS, read_tj4d_bin, read_vod_bin  # noqa: F401  (re-exported)
 
 COLUMNS = ("x", "y", "z", "v_r", "rcs")
 CLASS_NAMES = ("car", "pedestrian", "cyclist")
@@ -856,7 +855,7 @@ def _write_table(path: str | os.PathLike, table: np.ndarray) -> Path:
 
 def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
     """Write ``scan`` as a View-of-Delft radar ``.bin``: float32 little-endian, N rows of
-    ``VOD_COLUMNS`` = x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (s).
+    ``radaredge.data.readers.VOD_COLUMNS`` = x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (s).
 
     v_r_compensated = v_r + r̂·v_ego (about 0 on static points); time = 0, the current scan, as
     in VoD single-scan files. Returns the path.
@@ -870,7 +869,7 @@ def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
 
 def write_tj4d_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
     """Write ``scan`` as a TJ4DRadSet radar ``.bin``: float32 little-endian, N rows of
-    ``TJ4D_COLUMNS`` = X, Y, Z (m), V_r (m/s), Range (m), Power, Alpha, Beta.
+    ``radaredge.data.readers.TJ4D_COLUMNS`` = X, Y, Z (m), V_r (m/s), Range (m), Power, Alpha, Beta.
 
     Our choices where the layout leaves room: Power is the point's RCS in dB; Alpha is the
     azimuth atan2(Y, X) and Beta the elevation atan2(Z, hypot(X, Y)), both in radians.

@@ -52,7 +52,7 @@ class ModelSpec:
     - ``make_cases(card, n, seed)`` -> list of (case name, {input name: numpy array});
     - ``run_reference(model, feeds)`` -> {output name: tensor}, the reference formulation;
     - ``run_export(model, feeds, trace)`` -> outputs of the export formulation, filling ``trace``;
-    - ``trace_order``: intermediate tensor names in pipeline order (for divergence reports).
+    - ``trace_order(card)``: intermediate tensor names in pipeline order (divergence reports).
     """
 
     build: Callable[[ModelCard], torch.nn.Module]
@@ -62,7 +62,7 @@ class ModelSpec:
     make_cases: Callable[[ModelCard, int, int], list[tuple[str, dict[str, np.ndarray]]]]
     run_reference: Callable
     run_export: Callable
-    trace_order: tuple[str, ...]
+    trace_order: Callable[[ModelCard], tuple[str, ...]]
 
     @property
     def output_names(self) -> list[str]:

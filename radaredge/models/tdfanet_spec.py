@@ -71,6 +71,13 @@ def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, 
     return cases
 
 
+def trace_order(card: ModelCard) -> tuple[str, ...]:
+    """Intermediates in pipeline order: ego velocity, BEV maps, aligned maps, then the
+    aggregated map of every pyramid level from the coarsest down to level 0."""
+    levels = int(card.get("network.pyramid_stages", 3))
+    return ("ego_velocity", "bev", "aligned_bev") + tuple(f"aggregated_l{l}" for l in range(levels, -1, -1))
+
+
 def _frames(feeds, card_frames: int):
     return [torch.as_tensor(feeds[f"points_{k}"]) for k in range(card_frames)], torch.as_tensor(feeds["timestamps"])
 
@@ -98,6 +105,5 @@ TDFANET_SPEC = ModelSpec(
     make_cases=make_cases,
     run_reference=run_reference,
     run_export=run_export,
-    trace_order=("ego_velocity", "bev", "aligned_bev", "aggregated_l3", "aggregated_l2", "aggregated_l1",
-                 "aggregated_l0"),
+    trace_order=trace_order,
 )
