@@ -38,7 +38,7 @@ def ensure_exports(card, model, export_dir: Path) -> tuple[Path, Path]:
     from radaredge import runtime
     fp32 = export_dir / f"{card.name}.onnx"
     int8 = export_dir / f"{card.name}.int8.onnx"
-    stale = not fp32.exists() or runtime.load(fp32).metadata.get("radaredge.weights_sha256") != weights_hash(model)
+    stale = not fp32.exists() or runtime.load(fp32).weights_sha256 != weights_hash(model)
     if stale:
         print(f"  exporting {fp32}", flush=True)
         export_model(card, fp32, model=model)

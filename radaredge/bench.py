@@ -8,6 +8,7 @@ and the process is pinned to ``threads`` cores where the OS allows it.
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import time
@@ -116,7 +117,6 @@ def results_table(results: list[BackendResult], baseline: str = "torch reference
 
 def top_ops(profile_file: str, k: int = 10) -> list[tuple[str, float]]:
     """Top ``k`` op types by total time (ms) from an onnxruntime profile JSON."""
-    import json
     events = json.load(open(profile_file))
     tot: dict[str, float] = {}
     for e in events:

@@ -138,37 +138,30 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, a
     """Run the ONNX in onnxruntime and the reference formulation in torch on the same synthetic
     cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
     from . import runtime
-    from .export import build_model, export_model, weights_hash
+    from .errors import ConfigError
+    from .export import build_model, export_model, require_same_weights
     from .parity import run_parity
     card = _card(model, config)
     net = build_model(card, checkpoint)
     exported = runtime.load(onnx_path)
-    if exported.metadata.get("radaredge.weights_sha256") != weights_hash(net):
-        raise _mismatch(onnx_path, checkpoint)
+    require_same_weights(exported, net, checkpoint)
     if quantized and "radaredge.quantization" not in exported.metadata:
-        from .errors import ConfigError
         raise ConfigError(f"{onnx_path} is not an int8 export; drop --quantized or pass the .int8.onnx")
-    report = run_parity(card, onnx_path, net, cases, seed, progress=_progress("parity"), quantized=quantized)
-    if not report.passed and not quantized:
-        debug_path = Path(onnx_path).with_suffix(".debug.onnx")
-        if not debug_path.exists():
-            export_model(card, debug_path, debug=True, model=net)
-        from .parity import locate_divergence
-        from .registry import model_spec
-        spec = model_spec(card)
-        report.divergence = locate_divergence(card, spec, net, debug_path, report, spec.make_cases(card, cases, seed))
+
+    def debug_graph():
+        """The debug export beside the .onnx, (re)written unless it holds these weights."""
+        path = Path(onnx_path).with_suffix(".debug.onnx")
+        if not path.exists() or runtime.load(path).weights_sha256 != exported.weights_sha256:
+            export_model(card, path, debug=True, model=net)
+        return path
+
+    report = run_parity(card, onnx_path, net, cases, seed, progress=_progress("parity"), quantized=quantized,
+                        debug_onnx=None if quantized else debug_graph)
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:
         _print_parity(report)
     sys.exit(0 if report.passed else 1)
-
-
-def _mismatch(onnx_path, checkpoint):
-    from .errors import ConfigError
-    return ConfigError(f"{onnx_path} was exported with other weights than "
-                       f"{'checkpoint ' + str(checkpoint) if checkpoint else 'the seeded initialisation of this card'}; "
-                       f"pass the same --checkpoint/--config as at export")
 
 
 def _print_parity(report):

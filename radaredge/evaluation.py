@@ -256,14 +256,6 @@ def check_export(card: ModelCard, exported) -> None:
                           f"{card.name!r} declares {card.get('frames', 1)} of {card.features}; re-export it")
 
 
-def check_weights(exported, net) -> None:
-    """ConfigError unless the exported graph carries the weights hash of the torch model ``net``."""
-    from .export import weights_hash
-    if exported.metadata.get("radaredge.weights_sha256") != weights_hash(net):
-        raise ConfigError(f"{exported.path} was exported with other weights than this card's model (seeded "
-                          f"initialisation or --checkpoint); pass the same --checkpoint/--config as at export")
-
-
 @dataclass
 class EvalReport:
     """Result of :func:`evaluate`: per backend the :func:`recall_at_n` result over ``CURVE_NS``."""
@@ -375,9 +367,9 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
     answerable(query_windows.positions, db_windows.positions, radius)
     backends = {ONNX: onnx_backend(exported)}
     if reference:
-        from .export import build_model
+        from .export import build_model, require_same_weights
         net = build_model(card, checkpoint)
-        check_weights(exported, net)
+        require_same_weights(exported, net, checkpoint)
         backends[REFERENCE] = reference_backend(net)
     wrap = progress or (lambda desc: iter)
     results = {}

@@ -20,8 +20,8 @@ from .cards import ModelCard
 from .errors import ConfigError, ExportError
 from .onnx_export import DEFAULT_OPSET, export_onnx
 from .registry import model_spec
+from .runtime import META_PREFIX, RadarModel
 
-META_PREFIX = "radaredge."
 DEBUG_PREFIX = "debug."   # debug-export outputs are named debug.<intermediate>
 
 
@@ -33,6 +33,14 @@ def weights_hash(model: torch.nn.Module) -> str:
         h.update(str(tuple(t.shape)).encode())
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()
+
+
+def require_same_weights(exported: RadarModel, model: torch.nn.Module, checkpoint=None) -> None:
+    """ConfigError unless ``exported`` was exported from exactly ``model``'s weights."""
+    if exported.weights_sha256 != weights_hash(model):
+        source = f"checkpoint {checkpoint}" if checkpoint else "the seeded initialisation of this card"
+        raise ConfigError(f"{exported.path} was exported with other weights than {source}; "
+                          f"pass the same --checkpoint/--config as at export")
 
 
 def load_checkpoint(model: torch.nn.Module, path: str | Path) -> None:

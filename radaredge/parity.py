@@ -144,7 +144,9 @@ def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_o
     """Run onnxruntime on ``onnx_path`` and the reference formulation on the same cases.
 
     ``quantized`` applies the int8 budget of each output (:meth:`OutputSpec.quantized`) and
-    requires retrieval top-1 agreement >= QUANTIZED_MIN_TOP1 instead of 100 %.
+    requires retrieval top-1 agreement >= QUANTIZED_MIN_TOP1 instead of 100 %. ``debug_onnx``
+    (a path, or a callable returning one, called only on failure) names the debug export used
+    to locate the first diverging intermediate.
     """
     from .ort import make_session, run_session
     from .registry import model_spec
@@ -170,7 +172,8 @@ def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_o
     if desc_specs:
         report.retrieval_top1 = retrieval_top1_agreement(np.stack(got_desc), np.stack(ref_desc))
     if not report.passed and debug_onnx is not None:
-        report.divergence = locate_divergence(card, spec, model, debug_onnx, report, cases)
+        path = debug_onnx() if callable(debug_onnx) else debug_onnx
+        report.divergence = locate_divergence(card, spec, model, path, report, cases)
     return report
 
 

@@ -39,6 +39,7 @@ class RadarModel:
         self.features: list[str] = json.loads(meta[META_PREFIX + "features"])
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
+        self.weights_sha256: str | None = meta.get(META_PREFIX + "weights_sha256")
         self.frames = int(self.card.get("frames", 1))
         self.frame_rate = float(self.card.get("frame_rate", 10.0))
 

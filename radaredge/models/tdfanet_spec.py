@@ -7,6 +7,7 @@ import torch
 
 from ..cards import ModelCard
 from ..data.synthetic import generate_sequence
+from ..errors import ConfigError
 from .spec import ModelSpec, OutputSpec
 from .tdfanet import TDFANet, build_tdfanet
 
@@ -26,8 +27,9 @@ def _select(points: np.ndarray, card: ModelCard) -> np.ndarray:
     cols = ("x", "y", "z", "v_r", "rcs")
     try:
         idx = [cols.index(f) for f in card.features]
-    except ValueError as exc:
-        raise ValueError(f"synthetic scans provide {cols}; card asks for {card.features}") from exc
+    except ValueError:
+        raise ConfigError(f"{card.where}: synthetic scans provide {cols}; card features {card.features} "
+                          f"name a column they lack") from None
     return np.ascontiguousarray(points[:, idx], np.float32)
 
 
