@@ -19,7 +19,7 @@ import numpy as np
 import onnxruntime as ort
 
 from .cards import ModelCard, card_from_yaml
-from .errors import InputError
+from .errors import CapacityError, InputError
 from .ort import make_session, run_session
 
 META_PREFIX = "radaredge."
@@ -80,7 +80,12 @@ class RadarModel:
                 if (np.diff(ts) <= 0).any():
                     raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
             feeds["timestamps"] = ts
-        return run_session(self.session, feeds)
+        out = run_session(self.session, feeds)
+        if "spa_overflow" in out and bool(out["spa_overflow"]):
+            raise CapacityError(f"the scan has {int(out['num_pillars'])} non-empty pillars but {self.card.name}'s "
+                                f"sparse pillar attention holds spa.capacity = {self.card.get('spa.capacity')}; "
+                                "export with a larger spa.capacity (--config) or crop the scan")
+        return out
 
 
 def load(path: str | Path, threads: int = 2) -> RadarModel:

@@ -853,30 +853,39 @@ def _write_table(path: str | os.PathLike, table: np.ndarray) -> Path:
     return path
 
 
-def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
-    """Write ``scan`` as a View-of-Delft radar ``.bin``: float32 little-endian, N rows of
-    ``radaredge.data.readers.VOD_COLUMNS`` = x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (s).
+def vod_table(scan: RadarScan) -> np.ndarray:
+    """``scan`` as View-of-Delft radar rows, float32 [N, 7] of ``radaredge.data.readers.VOD_COLUMNS`` =
+    x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (s).
 
     v_r_compensated = v_r + r̂·v_ego (about 0 on static points); time = 0, the current scan, as
-    in VoD single-scan files. Returns the path.
+    in VoD single-scan files.
     """
     xyz = scan.points[:, :3].astype(np.float64)
     v_r = scan.column("v_r").astype(np.float64)
     v_r_compensated = v_r + _unit(xyz) @ np.asarray(scan.ego_velocity, dtype=np.float64)
-    table = np.column_stack([xyz, scan.column("rcs"), v_r, v_r_compensated, np.zeros(len(xyz))])
-    return _write_table(path, table)
+    return np.column_stack([xyz, scan.column("rcs"), v_r, v_r_compensated, np.zeros(len(xyz))]).astype(np.float32)
 
 
-def write_tj4d_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
-    """Write ``scan`` as a TJ4DRadSet radar ``.bin``: float32 little-endian, N rows of
-    ``radaredge.data.readers.TJ4D_COLUMNS`` = X, Y, Z (m), V_r (m/s), Range (m), Power, Alpha, Beta.
+def tj4d_table(scan: RadarScan) -> np.ndarray:
+    """``scan`` as TJ4DRadSet radar rows, float32 [N, 8] of ``radaredge.data.readers.TJ4D_COLUMNS`` =
+    X, Y, Z (m), V_r (m/s), Range (m), Power, Alpha, Beta.
 
     Our choices where the layout leaves room: Power is the point's RCS in dB; Alpha is the
     azimuth atan2(Y, X) and Beta the elevation atan2(Z, hypot(X, Y)), both in radians.
-    Returns the path.
     """
     xyz = scan.points[:, :3].astype(np.float64)
     x, y, z = xyz.T
-    table = np.column_stack([xyz, scan.column("v_r"), np.linalg.norm(xyz, axis=1), scan.column("rcs"),
-                             np.arctan2(y, x), np.arctan2(z, np.hypot(x, y))])
-    return _write_table(path, table)
+    return np.column_stack([xyz, scan.column("v_r"), np.linalg.norm(xyz, axis=1), scan.column("rcs"),
+                            np.arctan2(y, x), np.arctan2(z, np.hypot(x, y))]).astype(np.float32)
+
+
+def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
+    """Write ``scan`` as a View-of-Delft radar ``.bin`` (float32 little-endian rows of
+    :func:`vod_table`). Returns the path."""
+    return _write_table(path, vod_table(scan))
+
+
+def write_tj4d_bin(path: str | os.PathLike, scan: RadarScan) -> Path:
+    """Write ``scan`` as a TJ4DRadSet radar ``.bin`` (float32 little-endian rows of
+    :func:`tj4d_table`). Returns the path."""
+    return _write_table(path, tj4d_table(scan))

@@ -105,6 +105,10 @@ class PillarFeatureNet(nn.Module):
         return self.pfn_layers[0](feats)
 
     def forward(self, points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        return self.scatter(points, valid)[0]
+
+    def scatter(self, points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(canvas [C, ny, nx], occupied [ny * nx] bool: the pillar holds at least one kept point)."""
         cfg = self.config
         nx, ny, nz = cfg.grid_size
         ncell = nx * ny
@@ -140,7 +144,7 @@ class PillarFeatureNet(nn.Module):
         pad_value = self.encode(torch.zeros(1, self.num_point_features + 6, dtype=feats.dtype))
         padded = ((count > 0) & (count < cfg.max_points_per_pillar)).unsqueeze(1)
         canvas = torch.where(padded, torch.maximum(canvas, pad_value), canvas)
-        return canvas[:ncell].T.reshape(c, ny, nx)
+        return canvas[:ncell].T.reshape(c, ny, nx), count[:ncell] > 0
 
 
 # ----------------------------------------------------------------------------- reference
@@ -180,10 +184,10 @@ def voxelize_reference(points: np.ndarray, config: PillarConfig, valid: np.ndarr
     return voxels, num, vcoords
 
 
-def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None) -> torch.Tensor:
-    """Reference formulation: voxelize, PillarVFE on padded pillars as OpenPCDet, scatter. [C, ny, nx]."""
+def pillar_features_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None):
+    """Reference formulation of the PillarVFE: (pillar features [P, C], coords [P, 3] as (ix, iy, iz))
+    for the pillars of :func:`voxelize_reference`, computed on zero-padded pillars as OpenPCDet."""
     cfg = net.config
-    nx, ny, _ = cfg.grid_size
     voxels, num, coords = voxelize_reference(points, cfg, valid)
     v = torch.from_numpy(voxels)
     n = torch.from_numpy(num).float().clamp(min=1).view(-1, 1, 1)
@@ -193,7 +197,14 @@ def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray, valid: n
     c = torch.from_numpy(coords).unsqueeze(1).expand(-1, cfg.max_points_per_pillar, -1)
     f_center = _centre_offsets(xyz.reshape(-1, 3), c.reshape(-1, 3), cfg).reshape(xyz.shape)
     feats = torch.cat([v, f_cluster, f_center], -1) * mask.unsqueeze(-1)
-    pillar = net.encode(feats).max(1).values                             # [P, C]
+    return net.encode(feats).max(1).values, coords
+
+
+def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None) -> torch.Tensor:
+    """Reference formulation: voxelize, PillarVFE on padded pillars as OpenPCDet, scatter. [C, ny, nx]."""
+    cfg = net.config
+    nx, ny, _ = cfg.grid_size
+    pillar, coords = pillar_features_reference(net, points, valid)
     canvas = torch.zeros(cfg.out_channels, ny * nx)
     canvas[:, torch.from_numpy(coords[:, 1] * nx + coords[:, 0])] = pillar.T
     return canvas.reshape(cfg.out_channels, ny, nx)

@@ -1,0 +1,451 @@
+"""MAFF-Net stage one (Bi et al., RA-L 2025; upstream TRV-Lab/MAFF-Net, an OpenPCDet fork).
+
+Pipeline for one radar scan (points [N, F], columns as the card names them, radar frame, metres):
+1. vfe: RadarPillarVFE = OpenPCDet's PillarVFE on the raw features + 6 offsets (Linear 64, BN,
+   ReLU, max over the pillar's points) scattered to the canvas [64, ny, nx];
+2. map_to_bev_module: sparse pillar attention (SPA) with the 2-D rotary term
+   (:mod:`radaredge.ops.pillar_attention`);
+3. image_backbone: clustering-feature assistance (CFA) = GridDensityBEV map (velocity, density,
+   cluster label; :mod:`radaredge.ops.grid_density`) -> 3x3 convs 3 -> 16 -> 32 -> 64;
+4. fuser: cross-attention fusion (CAF), the CFA map queries the pillar map (:class:`CrossAttentionFusion`);
+5. backbone_2d: OpenPCDet's BaseBEVBackbone; dense_head: AnchorHeadSingle (class, box and
+   direction 1x1 convs), residual box decoding with the direction bin;
+6. post-processing: sigmoid scores, best class per anchor, score threshold and class-agnostic
+   rotated NMS (:mod:`radaredge.ops.nms`).
+
+Module names follow upstream's state-dict keys (``vfe.pfn_layers.0.linear.weight``,
+``map_to_bev_module.pillar_attention_rope.q_mlp.weight``, ``image_backbone.conv.0.weight``,
+``backbone_2d.blocks.0.1.weight``, ``dense_head.conv_cls.weight``...). The fuser's source is
+not public in the upstream repository; its layout and key names (``fuser.*``) are ours, built
+from the paper's description and the config's channel counts (IN_CHANNEL_CROSS 64, IN_CHANNEL
+128, OUT_CHANNEL 64); the card says so.
+
+``forward`` is the export formulation; ``run(..., reference=True)`` computes the same function
+with the reference ops (dynamic voxelization, NonZero-based SPA, GridDensityBEV with Python
+loops, plain-Python greedy NMS).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..cards import ModelCard
+from ..errors import CapacityError, ConfigError
+from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
+from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
+from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
+from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_features_reference
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class SpaConfig:
+    """Card section ``spa``."""
+
+    enabled: bool = True          # upstream IS_SPA
+    capacity: int = 1024          # pillar slots of the exported attention; more pillars are reported
+
+
+@dataclass(frozen=True)
+class CfaConfig:
+    """Card section ``cfa`` (the grid itself is ``cfa.grid``, a GridDensityConfig)."""
+
+    velocity_feature: str = "v_r_comp"   # card feature column used as the map's velocity (upstream DBSCAN_V)
+
+
+@dataclass(frozen=True)
+class CafConfig:
+    """Card section ``caf``: the cross-attention fusion's shape (values the paper leaves open)."""
+
+    pool_size: int = 16           # both maps are average-pooled to pool_size x pool_size tokens (paper: 16)
+    heads: int = 4
+    ffn_ratio: int = 4
+    se_reduction: int = 16        # squeeze-and-excitation (Hu et al.) default
+    out_channels: int = 64        # upstream OUT_CHANNEL
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    """Card section ``backbone_2d`` (OpenPCDet BaseBEVBackbone)."""
+
+    layer_nums: tuple = (3, 5, 5)
+    layer_strides: tuple = (2, 2, 2)
+    num_filters: tuple = (64, 128, 512)
+    upsample_strides: tuple = (1, 2, 4)
+    num_upsample_filters: tuple = (128, 128, 128)
+
+    def __post_init__(self):
+        n = len(self.layer_nums)
+        if not (len(self.layer_strides) == len(self.num_filters) == len(self.upsample_strides)
+                == len(self.num_upsample_filters) == n):
+            raise ValueError("backbone_2d lists must all have the same length")
+
+
+@dataclass(frozen=True)
+class AnchorClass:
+    """One entry of ``dense_head.anchors`` (OpenPCDet ANCHOR_GENERATOR_CONFIG)."""
+
+    class_name: str
+    anchor_sizes: tuple            # ((dx, dy, dz),) metres
+    anchor_rotations: tuple = (0.0, 1.57)
+    anchor_bottom_heights: tuple = (0.0,)
+    align_center: bool = False
+    feature_map_stride: int = 2
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    """Card section ``dense_head`` scalars (the anchors are read separately)."""
+
+    dir_offset: float = 0.78539
+    dir_limit_offset: float = 0.0
+    num_dir_bins: int = 2
+    cls_prior: float = 0.01        # OpenPCDet AnchorHeadSingle.init_weights: bias = -log((1 - pi) / pi)
+
+
+# ----------------------------------------------------------------------------- modules
+
+
+def _conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1, padding: int = 1) -> list[nn.Module]:
+    return [nn.Conv2d(cin, cout, k, stride=stride, padding=padding, bias=False),
+            nn.BatchNorm2d(cout, eps=1e-3, momentum=0.01), nn.ReLU()]
+
+
+class ClusteringFeatureAssist(nn.Module):
+    """CFA (upstream ``image_backbone``): GridDensityBEV map [3, H, W] -> CNN -> [64, H, W]."""
+
+    def __init__(self, grid: GridDensityConfig):
+        super().__init__()
+        self.grid_density = GridDensityBEV(grid)
+        self.conv = nn.Sequential(*_conv_bn_relu(3, 16), *_conv_bn_relu(16, 32), *_conv_bn_relu(32, 64))
+
+
+class SELayer(nn.Module):
+    """Squeeze-and-excitation: x * sigmoid(FC(ReLU(FC(mean over H, W))))."""
+
+    def __init__(self, channels: int, reduction: int):
+        super().__init__()
+        hidden = max(channels // reduction, 1)
+        self.fc = nn.Sequential(nn.Linear(channels, hidden, bias=False), nn.ReLU(),
+                                nn.Linear(hidden, channels, bias=False), nn.Sigmoid())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.fc(x.mean((2, 3))).unsqueeze(-1).unsqueeze(-1)
+
+
+class CrossAttentionFusion(nn.Module):
+    """CAF (upstream ``fuser``, CQCA_caf) for pillar features P [1, C, H, W] and CFA features Q [1, C', H', W']:
+
+    tokens: adaptive average pooling of both maps to s x s, plus a learnable position embedding;
+    one pre-norm cross-transformer layer, queries from the CFA tokens (the clustering query),
+    keys/values from the pillar tokens, then an FFN; tokens -> s x s map -> bilinear upsampling
+    to H x W -> SE -> concat with P -> 3x3 conv + BN + ReLU -> [1, out, H, W].
+    """
+
+    def __init__(self, pillar_channels: int, cfa_channels: int, cfg: CafConfig):
+        super().__init__()
+        c = pillar_channels
+        if c % cfg.heads:
+            raise ConfigError(f"caf.heads ({cfg.heads}) must divide the pillar channels ({c})")
+        self.pool_size, self.heads = cfg.pool_size, cfg.heads
+        self.pos_embed = nn.Parameter(torch.randn(1, cfg.pool_size ** 2, c) * 0.02)
+        self.query_proj = nn.Linear(cfa_channels, c)
+        self.query_norm = nn.LayerNorm(c)
+        self.key_norm = nn.LayerNorm(c)
+        self.q = nn.Linear(c, c)
+        self.k = nn.Linear(c, c)
+        self.v = nn.Linear(c, c)
+        self.out = nn.Linear(c, c)
+        self.ffn_norm = nn.LayerNorm(c)
+        self.ffn = nn.Sequential(nn.Linear(c, cfg.ffn_ratio * c), nn.GELU(), nn.Linear(cfg.ffn_ratio * c, c))
+        self.se = SELayer(c, cfg.se_reduction)
+        self.fuse = nn.Sequential(*_conv_bn_relu(2 * c, cfg.out_channels))
+
+    def _tokens(self, x: torch.Tensor) -> torch.Tensor:
+        return F.adaptive_avg_pool2d(x, self.pool_size).flatten(2).transpose(1, 2)     # [1, s*s, C]
+
+    def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = pillar.shape
+        q = self.query_proj(self._tokens(cfa)) + self.pos_embed
+        kv = self._tokens(pillar) + self.pos_embed
+        qn, kn = self.query_norm(q), self.key_norm(kv)
+        d = c // self.heads
+
+        def split(t):
+            return t.reshape(b, -1, self.heads, d).transpose(1, 2)                     # [1, heads, s*s, d]
+
+        att = torch.softmax(split(self.q(qn)) @ split(self.k(kn)).transpose(-1, -2) / math.sqrt(d), -1)
+        x = q + self.out((att @ split(self.v(kn))).transpose(1, 2).reshape(b, -1, c))
+        x = x + self.ffn(self.ffn_norm(x))
+        s = self.pool_size
+        grid = x.transpose(1, 2).reshape(b, c, s, s)
+        up = F.interpolate(grid, size=(h, w), mode="bilinear", align_corners=False)
+        return self.fuse(torch.cat([pillar, self.se(up)], 1))
+
+
+class BaseBEVBackbone(nn.Module):
+    """OpenPCDet's BaseBEVBackbone: strided conv blocks, transposed-conv upsampling, concat."""
+
+    def __init__(self, cin: int, cfg: BackboneConfig):
+        super().__init__()
+        self.blocks, self.deblocks = nn.ModuleList(), nn.ModuleList()
+        chans = [cin, *cfg.num_filters[:-1]]
+        for i, (n, stride, f) in enumerate(zip(cfg.layer_nums, cfg.layer_strides, cfg.num_filters)):
+            layers = [nn.ZeroPad2d(1), *_conv_bn_relu(chans[i], f, stride=stride, padding=0)]
+            for _ in range(n):
+                layers += _conv_bn_relu(f, f)
+            self.blocks.append(nn.Sequential(*layers))
+            up, uf = cfg.upsample_strides[i], cfg.num_upsample_filters[i]
+            if up >= 1:
+                self.deblocks.append(nn.Sequential(nn.ConvTranspose2d(f, uf, up, stride=up, bias=False),
+                                                   nn.BatchNorm2d(uf, eps=1e-3, momentum=0.01), nn.ReLU()))
+            else:
+                k = round(1 / up)
+                self.deblocks.append(nn.Sequential(nn.Conv2d(f, uf, k, stride=k, bias=False),
+                                                   nn.BatchNorm2d(uf, eps=1e-3, momentum=0.01), nn.ReLU()))
+        self.num_bev_features = sum(cfg.num_upsample_filters)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        ups = []
+        for block, deblock in zip(self.blocks, self.deblocks):
+            x = block(x)
+            ups.append(deblock(x))
+        return torch.cat(ups, 1) if len(ups) > 1 else ups[0]
+
+
+class AnchorHeadSingle(nn.Module):
+    """OpenPCDet's AnchorHeadSingle: 1x1 convs for class scores, box residuals and direction bins."""
+
+    def __init__(self, cin: int, anchors_per_location: int, num_classes: int, cfg: HeadConfig):
+        super().__init__()
+        self.num_classes, self.num_dir_bins = num_classes, cfg.num_dir_bins
+        self.conv_cls = nn.Conv2d(cin, anchors_per_location * num_classes, 1)
+        self.conv_box = nn.Conv2d(cin, anchors_per_location * 7, 1)
+        self.conv_dir_cls = nn.Conv2d(cin, anchors_per_location * cfg.num_dir_bins, 1)
+        nn.init.constant_(self.conv_cls.bias, -math.log((1 - cfg.cls_prior) / cfg.cls_prior))
+        nn.init.normal_(self.conv_box.weight, mean=0.0, std=0.001)
+
+    def forward(self, x: torch.Tensor):
+        """x [1, C, H, W] -> (cls [A, classes] logits, box [A, 7] residuals, dir [A, bins]) per anchor."""
+        def flat(t, k):
+            return t[0].permute(1, 2, 0).reshape(-1, k)
+        return (flat(self.conv_cls(x), self.num_classes), flat(self.conv_box(x), 7),
+                flat(self.conv_dir_cls(x), self.num_dir_bins))
+
+
+def generate_anchors(classes: list[AnchorClass], point_cloud_range, grid_xy: tuple[int, int]) -> torch.Tensor:
+    """OpenPCDet's AnchorGenerator for a single-stride head: anchors [A, 7] in the order the head's
+    channels use (row y, column x, class, size, rotation), z at the box centre."""
+    r = point_cloud_range
+    per_class = []
+    strides = {c.feature_map_stride for c in classes}
+    if len(strides) != 1:
+        raise ConfigError("dense_head.anchors: every class needs the same feature_map_stride (single head)")
+    for c in classes:
+        fx, fy = grid_xy[0] // c.feature_map_stride, grid_xy[1] // c.feature_map_stride
+        if c.align_center:
+            sx, sy = (r[3] - r[0]) / fx, (r[4] - r[1]) / fy
+            ox, oy = sx / 2, sy / 2
+        else:
+            sx, sy = (r[3] - r[0]) / (fx - 1), (r[4] - r[1]) / (fy - 1)
+            ox = oy = 0.0
+        xs = torch.arange(r[0] + ox, r[3] + 1e-5, step=sx, dtype=torch.float32)[:fx]
+        ys = torch.arange(r[1] + oy, r[4] + 1e-5, step=sy, dtype=torch.float32)[:fy]
+        sizes = torch.tensor(c.anchor_sizes, dtype=torch.float32).reshape(-1, 3)
+        rots = torch.tensor(c.anchor_rotations, dtype=torch.float32)
+        if len(c.anchor_bottom_heights) != 1:
+            raise ConfigError(f"dense_head.anchors[{c.class_name}]: one anchor_bottom_height expected")
+        z = float(c.anchor_bottom_heights[0])
+        ns, nr = len(sizes), len(rots)
+        a = torch.zeros(fy, fx, ns, nr, 7)
+        a[..., 0] = xs.view(1, fx, 1, 1)
+        a[..., 1] = ys.view(fy, 1, 1, 1)
+        a[..., 3:6] = sizes.view(1, 1, ns, 1, 3)
+        a[..., 2] = z + a[..., 5] / 2
+        a[..., 6] = rots.view(1, 1, 1, nr)
+        per_class.append(a)
+    return torch.cat(per_class, 2).reshape(-1, 7)
+
+
+def decode_boxes(residuals: torch.Tensor, anchors: torch.Tensor, dir_logits: torch.Tensor, cfg: HeadConfig) -> torch.Tensor:
+    """OpenPCDet ResidualCoder.decode_torch plus the direction-bin heading fix: boxes [A, 7]."""
+    xa, ya, za, dxa, dya, dza, ra = anchors.unbind(-1)
+    xt, yt, zt, dxt, dyt, dzt, rt = residuals.unbind(-1)
+    diagonal = torch.sqrt(dxa ** 2 + dya ** 2)
+    heading = rt + ra
+    period = 2 * math.pi / cfg.num_dir_bins
+    dir_label = torch.argmax(dir_logits, -1).to(residuals.dtype)
+    val = heading - cfg.dir_offset
+    rot = val - torch.floor(val / period + cfg.dir_limit_offset) * period
+    heading = rot + cfg.dir_offset + period * dir_label
+    return torch.stack([xt * diagonal + xa, yt * diagonal + ya, zt * dza + za,
+                        torch.exp(dxt) * dxa, torch.exp(dyt) * dya, torch.exp(dzt) * dza, heading], -1)
+
+
+# ----------------------------------------------------------------------------- the detector
+
+
+class MAFFNet(nn.Module):
+    """MAFF-Net stage one with both formulations. Build it with :func:`build_maffnet`."""
+
+    def __init__(self, features: list[str], classes: list[str], pillars: PillarConfig, spa: SpaConfig,
+                 cfa: CfaConfig, grid: GridDensityConfig, caf: CafConfig, backbone: BackboneConfig,
+                 head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig):
+        super().__init__()
+        if features[:3] != ["x", "y", "z"]:
+            raise ConfigError(f"features must start with x, y, z; got {features}")
+        if cfa.velocity_feature not in features:
+            raise ConfigError(f"cfa.velocity_feature {cfa.velocity_feature!r} is not a card feature {features}")
+        if [a.class_name for a in anchors] != list(classes):
+            raise ConfigError(f"dense_head.anchors classes {[a.class_name for a in anchors]} != classes {classes}")
+        nx, ny, nz = pillars.grid_size
+        if nz != 1:
+            raise ConfigError(f"pillars: the z range must be one voxel (got {nz})")
+        if (grid.map_h, grid.map_w) != (ny, nx):
+            raise ConfigError(f"cfa.grid is {grid.map_h} x {grid.map_w} cells but the pillar grid is {ny} x {nx}")
+        self.features, self.classes = list(features), list(classes)
+        self.velocity_index = features.index(cfa.velocity_feature)
+        self.spa_config, self.head_config, self.nms_config = spa, head, nms
+        self.vfe = PillarFeatureNet(len(features), pillars)
+        self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
+        self.image_backbone = ClusteringFeatureAssist(grid)
+        self.fuser = CrossAttentionFusion(pillars.out_channels, 64, caf)
+        self.backbone_2d = BaseBEVBackbone(caf.out_channels, backbone)
+        per_loc = sum(len(a.anchor_sizes) * len(a.anchor_rotations) for a in anchors)
+        self.dense_head = AnchorHeadSingle(self.backbone_2d.num_bev_features, per_loc, len(classes), head)
+        self.register_buffer("anchors", generate_anchors(anchors, pillars.point_cloud_range, (nx, ny)),
+                             persistent=False)
+
+    def init_kaiming(self) -> None:
+        """He-normal (fan_out, ReLU) weights for every conv before the head, so an untrained
+        model keeps unit-scale activations through the 13-layer backbone (torch's default init
+        shrinks them layer by layer, which leaves every anchor score within 1e-3 of the prior)."""
+        for name, m in self.named_modules():
+            if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)) and not name.startswith("dense_head"):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+
+    # -- stages ---------------------------------------------------------------------
+    def pillar_stage(self, points: torch.Tensor, reference: bool):
+        """VFE + SPA: (canvas [C, ny, nx], num_pillars [] int64, overflow [] bool)."""
+        if not reference:
+            canvas, occupied = self.vfe.scatter(points, torch.ones(points.shape[0], dtype=torch.bool))
+            if self.map_to_bev_module is None:
+                num = occupied.sum()
+                return canvas, num, torch.zeros((), dtype=torch.bool)
+            return self.map_to_bev_module(canvas, occupied, points.shape[0])
+        cfg = self.vfe.config
+        nx, ny, _ = cfg.grid_size
+        feats, coords = pillar_features_reference(self.vfe, points.numpy())
+        cells = torch.from_numpy(coords[:, 1] * nx + coords[:, 0])
+        canvas = torch.zeros(cfg.out_channels, ny * nx)
+        canvas[:, cells] = feats.T
+        canvas = canvas.reshape(cfg.out_channels, ny, nx)
+        num = torch.tensor(len(coords), dtype=torch.int64)
+        if self.map_to_bev_module is not None:
+            if len(coords) > self.spa_config.capacity:
+                raise CapacityError(f"scan has {len(coords)} non-empty pillars; spa.capacity is "
+                                    f"{self.spa_config.capacity}")
+            occupied = torch.zeros(ny * nx, dtype=torch.bool)
+            occupied[cells] = True
+            canvas = sparse_pillar_attention_reference(self.map_to_bev_module.pillar_attention_rope, canvas, occupied)
+        return canvas, num, torch.zeros((), dtype=torch.bool)
+
+    def cfa_stage(self, points: torch.Tensor, reference: bool):
+        """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool)."""
+        xyv = torch.stack([points[:, 0], points[:, 1], points[:, self.velocity_index]], 1)
+        gd = self.image_backbone.grid_density
+        if reference:
+            bev, _, converged = grid_density_bev_reference(xyv.numpy(), np.ones(len(xyv), bool), gd.config)
+            bev, converged = torch.from_numpy(bev), torch.tensor(converged)
+        else:
+            bev, _, converged = gd(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))
+        return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged
+
+    def head_stage(self, fused: torch.Tensor):
+        """Backbone + head + decoding: (scores [A, classes] after sigmoid, boxes [A, 7])."""
+        cls, box, direction = self.dense_head(self.backbone_2d(fused))
+        return torch.sigmoid(cls), decode_boxes(box, self.anchors, direction, self.head_config)
+
+    def postprocess(self, scores: torch.Tensor, boxes: torch.Tensor, reference: bool):
+        """Best class per anchor, threshold, NMS: (boxes [M, 7], scores [M], labels [M] 1-based)."""
+        best, label = scores.max(-1)
+        if reference:
+            sel = torch.from_numpy(class_agnostic_nms_reference(boxes.numpy(), best.numpy(), self.nms_config))
+        else:
+            sel = class_agnostic_nms(boxes, best, self.nms_config)
+        return boxes[sel], best[sel], label[sel] + 1
+
+    # -- the two formulations -----------------------------------------------------------
+    def forward(self, points: torch.Tensor):
+        """Export formulation: points [N, F] -> (boxes [M, 7], scores [M], labels [M] int64 1-based,
+        anchor_scores [A, classes], anchor_boxes [A, 7], num_pillars [] int64, spa_overflow [] bool,
+        cfa_converged [] bool)."""
+        out = self.run(points)
+        return tuple(out[k] for k in OUTPUT_NAMES)
+
+    def run(self, points: torch.Tensor, reference: bool = False, trace: dict | None = None) -> dict[str, torch.Tensor]:
+        """Both formulations; ``trace`` (a dict) receives intermediates for divergence reports."""
+        pillar, num_pillars, overflow = self.pillar_stage(points, reference)
+        cfa, cfa_map, converged = self.cfa_stage(points, reference)
+        fused = self.fuser(pillar.unsqueeze(0), cfa)
+        scores, boxes = self.head_stage(fused)
+        final_boxes, final_scores, labels = self.postprocess(scores, boxes, reference)
+        if trace is not None:
+            trace.update(pillar_bev=pillar, cfa_map=cfa_map, cfa_features=cfa, fused=fused)
+        return {"boxes": final_boxes, "scores": final_scores, "labels": labels, "anchor_scores": scores,
+                "anchor_boxes": boxes, "num_pillars": num_pillars, "spa_overflow": overflow,
+                "cfa_converged": converged}
+
+
+OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "num_pillars", "spa_overflow",
+                "cfa_converged")
+
+
+def read_anchors(card: ModelCard) -> list[AnchorClass]:
+    """``dense_head.anchors`` as AnchorClass entries, with errors naming the entry."""
+    from ..config import config_from_dict
+    raw = card.get("dense_head.anchors")
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{card.where}: dense_head.anchors must be a non-empty list")
+    out = []
+    for i, entry in enumerate(raw):
+        a = config_from_dict(AnchorClass, entry, f"{card.where}: dense_head.anchors[{i}]")
+        out.append(AnchorClass(a.class_name, tuple(tuple(s) for s in a.anchor_sizes), a.anchor_rotations,
+                               a.anchor_bottom_heights, a.align_center, a.feature_map_stride))
+    return out
+
+
+def build_maffnet(card: ModelCard) -> MAFFNet:
+    """MAFF-Net from a model card, with a seeded initialisation (card ``seed``, default 0)."""
+    torch.manual_seed(int(card.get("seed", 0)))
+    head = dict(card.get("dense_head", {}) or {})
+    head.pop("anchors", None)
+    from ..config import config_from_dict
+    model = MAFFNet(
+        features=card.features,
+        classes=list(card.get("classes", [])),
+        pillars=card.section("pillars", PillarConfig),
+        spa=card.section("spa", SpaConfig),
+        cfa=config_from_dict(CfaConfig, {k: v for k, v in (card.get("cfa", {}) or {}).items() if k != "grid"},
+                             f"{card.where}: cfa"),
+        grid=card.section("cfa.grid", GridDensityConfig),
+        caf=card.section("caf", CafConfig),
+        backbone=card.section("backbone_2d", BackboneConfig),
+        head=config_from_dict(HeadConfig, head, f"{card.where}: dense_head"),
+        anchors=read_anchors(card),
+        nms=card.section("post_processing", NmsConfig),
+    )
+    init = card.get("init", "torch")
+    if init == "kaiming":
+        model.init_kaiming()
+    elif init != "torch":
+        raise ConfigError(f"{card.where}: init must be 'torch' or 'kaiming', got {init!r}")
+    return model.eval()

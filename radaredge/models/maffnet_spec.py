@@ -1,0 +1,119 @@
+"""MAFF-Net's graph signature, parity cases and tolerances (see radaredge.models.spec)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..cards import ModelCard
+from ..data.synthetic import generate_scan, tj4d_table, vod_table
+from ..errors import ConfigError
+from .maffnet import OUTPUT_NAMES, MAFFNet, build_maffnet
+from .spec import ModelSpec, OutputSpec
+
+
+def input_names(card: ModelCard) -> list[str]:
+    """One scan: points [N, F], columns as the card's ``features``."""
+    return ["points"]
+
+
+def dynamic_axes(card: ModelCard) -> dict:
+    return {"points": {0: "num_points"}}
+
+
+def synthetic_columns(scan) -> dict[str, np.ndarray]:
+    """Every feature name a MAFF-Net card may use, from a synthetic scan: the VoD columns under
+    upstream's names (x, y, z, rcs, v_r, v_r_comp, time) and TJ4D's SNR (the Power column) and range."""
+    vod, tj4d = vod_table(scan), tj4d_table(scan)
+    cols = dict(zip(("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"), vod.T))
+    cols.update(snr=tj4d[:, 5], range=tj4d[:, 4])
+    return cols
+
+
+def _select(cols: dict[str, np.ndarray], card: ModelCard) -> np.ndarray:
+    missing = [f for f in card.features if f not in cols]
+    if missing:
+        raise ConfigError(f"{card.where}: synthetic scans provide {sorted(cols)}; card features {missing} are not among them")
+    return np.ascontiguousarray(np.stack([cols[f] for f in card.features], 1), np.float32)
+
+
+def _out_of_range(rng: np.random.Generator, card: ModelCard, width: int, n: int = 30) -> np.ndarray:
+    """Points beyond the faces of the pillar range (dropped by the pillars, x/y outside the CFA grid too)."""
+    r = card.get("pillars.point_cloud_range")
+    pts = rng.normal(0, 1, (n, width)).astype(np.float32)
+    pts[:, 0] = rng.choice([r[0] - 2.0, r[3] + 3.0, (r[0] + r[3]) / 2], n)
+    pts[:, 1] = rng.choice([r[1] - 3.0, r[4] + 3.0], n)
+    pts[:, 2] = rng.choice([r[2] - 2.0, r[5] + 2.0, 0.0], n)
+    return pts
+
+
+def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, np.ndarray]]]:
+    """``n`` synthetic scans in rotation: urban drives, 40 % dynamic points, dense traffic (more
+    clusters for the CFA), and drives with points outside the range; one in ten has 3 points."""
+    kinds = ("drive", "dynamic-40%", "dense-traffic", "out-of-range")
+    cases = []
+    for i in range(n):
+        kind = kinds[i % len(kinds)]
+        s = seed * 1000 + i
+        overrides = {"dynamic_fraction": 0.4} if kind == "dynamic-40%" else {}
+        if kind == "dense-traffic":
+            overrides = {"num_cars": 10, "num_pedestrians": 8, "num_cyclists": 6, "static_points": 600}
+        pts = _select(synthetic_columns(generate_scan(seed=s, **overrides)), card)
+        rng = np.random.default_rng(s)
+        if kind == "out-of-range":
+            pts = np.concatenate([pts, _out_of_range(rng, card, pts.shape[1])])
+            pts = pts[rng.permutation(len(pts))]
+        if i % 10 == 9:
+            pts, kind = pts[:3], "3-points"
+        cases.append((f"{i:02d}-{kind}", {"points": pts}))
+    return cases
+
+
+def trace_order(card: ModelCard) -> tuple[str, ...]:
+    return ("pillar_bev", "cfa_map", "cfa_features", "fused")
+
+
+def run_reference(model: MAFFNet, feeds, trace=None):
+    return model.run(torch.as_tensor(feeds["points"]), reference=True, trace=trace)
+
+
+def run_export(model: MAFFNet, feeds, trace=None):
+    return model.run(torch.as_tensor(feeds["points"]), reference=False, trace=trace)
+
+
+def postprocess_reference(model: MAFFNet, got: dict) -> dict:
+    """The reference NMS on the graph's own per-anchor scores and boxes."""
+    boxes, scores, labels = model.postprocess(torch.as_tensor(got["anchor_scores"]),
+                                              torch.as_tensor(got["anchor_boxes"]), reference=True)
+    return {"boxes": boxes, "scores": scores, "labels": labels}
+
+
+def _outputs() -> tuple[OutputSpec, ...]:
+    specs = {
+        "boxes": OutputSpec("boxes", "boxes", unit="m, rad", group=("scores", "labels")),
+        "scores": OutputSpec("scores", "grouped"),
+        "labels": OutputSpec("labels", "grouped"),
+        "anchor_scores": OutputSpec("anchor_scores", "dense", atol=1e-4, rtol=1e-3, quantized_info=True),
+        # heading compared modulo pi: a direction-bin logit pair within float noise may pick the other bin
+        "anchor_boxes": OutputSpec("anchor_boxes", "dense", atol=1e-3, rtol=1e-3, unit="m, rad", quantized_info=True,
+                                   angle_column=6, angle_period=math.pi),
+        "num_pillars": OutputSpec("num_pillars", "exact"),
+        "spa_overflow": OutputSpec("spa_overflow", "exact"),
+        "cfa_converged": OutputSpec("cfa_converged", "exact"),
+    }
+    return tuple(specs[n] for n in OUTPUT_NAMES)
+
+
+MAFFNET_SPEC = ModelSpec(
+    build=build_maffnet,
+    input_names=input_names,
+    dynamic_axes=dynamic_axes,
+    outputs=_outputs(),
+    make_cases=make_cases,
+    run_reference=run_reference,
+    run_export=run_export,
+    trace_order=trace_order,
+    postprocess_reference=postprocess_reference,
+)

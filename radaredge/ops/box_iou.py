@@ -1,0 +1,145 @@
+"""Rotated bird's-eye-view IoU of 3-D boxes, as OpenPCDet's ``boxes_iou_bev`` defines it.
+
+Boxes are OpenPCDet's 7-vectors (x, y, z, dx, dy, dz, heading): centre in metres (radar/lidar
+frame, x forward, y left, z up), size along the box's own x / y / z axes in metres, heading in
+radians about z from the x axis. The BEV footprint is the rectangle of (x, y, dx, dy, heading);
+IoU = overlap / max(area_a + area_b - overlap, 1e-8) (the CUDA kernel's EPS).
+
+Export formulation (:func:`bev_iou_paired`): fixed-shape tensor ops, no sorting of polygon
+vertices. The overlap area of two convex polygons is the boundary integral of A∩B, whose
+boundary is made of the parts of A's edges inside B and the parts of B's edges inside A. Each
+edge is clipped to the other rectangle with the Cyrus-Beck parameter test (4 half-planes) and
+contributes cross(start, end) / 2 (shoelace). An edge parallel to a side of the other box and
+within ``tol`` of its line (1e-5 m for float32, 1e-9 m for float64) lies on that side: it counts
+as inside, except that B's copy of a side shared in the same direction (a side of A∩B that both
+boxes have) is dropped so it counts once; sides shared in opposite directions (boxes touching
+from outside) both count and cancel.
+
+Reference formulation (:func:`bev_iou_reference`): Sutherland-Hodgman clipping of A by B's four
+edges, then the shoelace formula, in float64 with plain Python loops.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+EPS_UNION = 1e-8      # OpenPCDet iou3d_nms kernel: overlap / max(union, EPS)
+EDGE_TOL = 1e-5       # m, float32 inputs; see the module docstring
+EDGE_TOL_F64 = 1e-9   # m, float64 inputs
+
+
+def bev_corners(boxes: torch.Tensor) -> torch.Tensor:
+    """Counter-clockwise BEV corners [..., 4, 2] (m) of boxes [..., 7]."""
+    half = boxes[..., 3:5] / 2
+    sx = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=boxes.dtype)
+    sy = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=boxes.dtype)
+    lx = half[..., :1] * sx                                               # [..., 4]
+    ly = half[..., 1:2] * sy
+    c, s = torch.cos(boxes[..., 6:7]), torch.sin(boxes[..., 6:7])
+    return torch.stack([c * lx - s * ly + boxes[..., 0:1], s * lx + c * ly + boxes[..., 1:2]], -1)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _clipped_boundary_area(poly: torch.Tensor, poly_len: torch.Tensor, clip: torch.Tensor, clip_len: torch.Tensor,
+                           tol: float, skip_shared: bool) -> torch.Tensor:
+    """Sum over the edges of ``poly`` [P, 4, 2] of cross(start, end)/2 of the part of the edge
+    inside ``clip`` [P, 4, 2] (both counter-clockwise; ``*_len`` [P, 4] the edge lengths). An edge parallel to a side of ``clip`` and
+    within ``tol`` of its line lies on it: inside, unless ``skip_shared`` and the two run the same way."""
+    nxt = [1, 2, 3, 0]
+    p0 = poly                                                            # edge k: p0[k] -> p0[k+1]
+    d = poly[:, nxt] - poly                                              # [P, 4, 2]
+    e = clip[:, nxt] - clip                                              # clip side l
+    e_len = clip_len.unsqueeze(1)                                        # [P, 1, 4l]
+    d_len = poly_len.unsqueeze(2)                                        # [P, 4k, 1]
+    # inside side l: cross(e_l, x - c_l) >= 0 for x = p0_k + t d_k, i.e. num + t den >= 0
+    num = _cross(e.unsqueeze(1), p0.unsqueeze(2) - clip.unsqueeze(1))   # [P, 4k, 4l]
+    den = _cross(e.unsqueeze(1), d.unsqueeze(2))
+    parallel = den.abs() <= (1e-5 if poly.dtype == torch.float32 else 1e-12) * e_len * d_len
+    on_line = parallel & (num.abs() <= tol * e_len)
+    outside = parallel & ~on_line & (num < 0)
+    if skip_shared:
+        outside = outside | (on_line & ((e.unsqueeze(1) * d.unsqueeze(2)).sum(-1) > 0))
+    den = torch.where(parallel, torch.zeros_like(den), den)
+    t = -num / torch.where(parallel, torch.ones_like(den), den)
+    inf = torch.full_like(t, math.inf)
+    t_lo = torch.clamp(torch.where(den > 0, t, -inf).amax(-1), min=0.0)  # [P, 4]
+    t_hi = torch.clamp(torch.where(den < 0, t, inf).amin(-1), max=1.0)
+    ok = (t_hi > t_lo) & ~outside.any(-1)
+    a = p0 + t_lo.unsqueeze(-1) * d
+    b = p0 + t_hi.unsqueeze(-1) * d
+    return torch.where(ok, _cross(a, b), torch.zeros_like(t_lo)).sum(-1) / 2
+
+
+def bev_overlap_paired(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
+    """Export formulation: BEV overlap area (m^2) of row i of boxes_a [P, 7] with row i of boxes_b.
+    float64 boxes are computed in float64 with a 1e-9 m edge tolerance."""
+    tol = EDGE_TOL_F64 if boxes_a.dtype == torch.float64 else EDGE_TOL
+    origin = boxes_a[:, None, 0:2]                                       # cross products about A's centre
+    ca = bev_corners(boxes_a) - origin
+    cb = bev_corners(boxes_b) - origin
+    la, lb = boxes_a[:, [3, 4, 3, 4]], boxes_b[:, [3, 4, 3, 4]]         # edge lengths in corner order
+    area = _clipped_boundary_area(ca, la, cb, lb, tol, False) + _clipped_boundary_area(cb, lb, ca, la, tol, True)
+    return torch.clamp(area, min=0.0)
+
+
+def bev_iou_paired(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
+    """Export formulation: rotated BEV IoU [P] of row i of boxes_a [P, 7] with row i of boxes_b."""
+    overlap = bev_overlap_paired(boxes_a, boxes_b)
+    union = boxes_a[:, 3] * boxes_a[:, 4] + boxes_b[:, 3] * boxes_b[:, 4] - overlap
+    return overlap / torch.clamp(union, min=EPS_UNION)
+
+
+# ----------------------------------------------------------------------------- reference
+
+
+def _corners_reference(box) -> list[tuple[float, float]]:
+    x, y, _, dx, dy, _, h = (float(v) for v in box[:7])
+    c, s = math.cos(h), math.sin(h)
+    local = [(dx / 2, dy / 2), (-dx / 2, dy / 2), (-dx / 2, -dy / 2), (dx / 2, -dy / 2)]
+    return [(x + c * u - s * v, y + s * u + c * v) for u, v in local]
+
+
+def _clip(polygon, a, b):
+    """Part of ``polygon`` left of the directed line a -> b (Sutherland-Hodgman step)."""
+    def side(p):
+        return (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
+
+    out = []
+    for i, p in enumerate(polygon):
+        q = polygon[(i + 1) % len(polygon)]
+        sp, sq = side(p), side(q)
+        if sp >= 0:
+            out.append(p)
+        if (sp >= 0) != (sq >= 0):
+            t = sp / (sp - sq)
+            out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    return out
+
+
+def _shoelace(polygon) -> float:
+    return 0.5 * sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(polygon, polygon[1:] + polygon[:1]))
+
+
+def bev_iou_reference(box_a, box_b) -> float:
+    """Reference formulation: rotated BEV IoU of two boxes (7-vectors), float64, plain Python."""
+    poly = _corners_reference(box_a)
+    clip = _corners_reference(box_b)
+    for i in range(4):
+        if not poly:
+            break
+        poly = _clip(poly, clip[i], clip[(i + 1) % 4])
+    overlap = max(_shoelace(poly), 0.0) if len(poly) >= 3 else 0.0
+    union = float(box_a[3]) * float(box_a[4]) + float(box_b[3]) * float(box_b[4]) - overlap
+    return overlap / max(union, EPS_UNION)
+
+
+def bev_iou_matrix_reference(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """Reference IoU of every box of boxes_a [N, 7] with every box of boxes_b [M, 7] -> [N, M]."""
+    return np.array([[bev_iou_reference(a, b) for b in boxes_b] for a in boxes_a], np.float64).reshape(
+        len(boxes_a), len(boxes_b))

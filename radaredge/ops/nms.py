@@ -1,0 +1,134 @@
+"""Class-agnostic rotated-box NMS, as OpenPCDet's ``class_agnostic_nms`` with ``nms_gpu`` runs it.
+
+What it computes for per-anchor boxes [A, 7] (OpenPCDet layout, metres / radians) and scores [A]:
+1. keep the boxes with score >= ``score_thresh``;
+2. of those, the ``pre_max`` highest scores, in descending score order (equal scores: lower
+   anchor index first);
+3. greedy NMS: walk that list; a box is kept unless a box kept before it overlaps it with
+   rotated BEV IoU > ``iou_thresh`` (:mod:`radaredge.ops.box_iou`);
+4. the first ``post_max`` kept boxes.
+Returns the selected anchor indices in that order.
+
+Export formulation (:func:`class_agnostic_nms`): fixed-shape top-k; IoU only for the pairs
+whose circumscribed circles overlap (the others have IoU 0), gathered with NonZero; the greedy
+walk as its fixed point: keep[j] = valid[j] and no kept i < j suppresses j. Iterating that map
+from "all valid" settles index j after at most j + 1 rounds and stops at the first round that
+changes nothing, which is exactly the greedy result (entry j depends only on entries before
+it, so the fixed point is unique). The loop is a ``torch.while_loop`` (an ONNX ``Loop``); its
+round count is the length of the longest suppression chain, a handful in practice.
+
+Reference formulation (:func:`class_agnostic_nms_reference`): the same steps written plainly
+in Python with :func:`radaredge.ops.box_iou.bev_iou_reference`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch._higher_order_ops.while_loop import while_loop
+
+from .box_iou import bev_iou_paired, bev_iou_reference
+
+
+@dataclass(frozen=True)
+class NmsConfig:
+    """OpenPCDet POST_PROCESSING values (SCORE_THRESH, NMS_CONFIG)."""
+
+    score_thresh: float = 0.1
+    iou_thresh: float = 0.1         # NMS_THRESH
+    pre_max: int = 4096             # NMS_PRE_MAXSIZE
+    post_max: int = 500             # NMS_POST_MAXSIZE
+
+    def __post_init__(self):
+        if self.pre_max < 1 or self.post_max < 1:
+            raise ValueError("pre_max and post_max must be >= 1")
+        if not 0.0 <= self.iou_thresh <= 1.0:
+            raise ValueError("iou_thresh must be in [0, 1]")
+
+
+def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: float) -> torch.Tensor:
+    """S [K, K] float: S[i, j] = 1 when i < j, both valid and IoU(i, j) > iou_thresh."""
+    k = boxes.shape[0]
+    centre = boxes[:, :2]
+    radius = 0.5 * torch.linalg.vector_norm(boxes[:, 3:5], dim=1)
+    d2 = ((centre.unsqueeze(1) - centre.unsqueeze(0)) ** 2).sum(-1)
+    reach = (radius.unsqueeze(1) + radius.unsqueeze(0)) ** 2
+    idx = torch.arange(k)
+    candidate = (d2 <= reach) & (idx.unsqueeze(1) < idx.unsqueeze(0)) & valid.unsqueeze(1) & valid.unsqueeze(0)
+    # P candidate pairs (data-dependent) plus 8 dummy pairs (0, 0) written to a spare slot: the
+    # exported graph never sees fewer than 8 pairs (torch.export assumes a data-dependent size
+    # is not 0 or 1 when it decides broadcasts, which broke scans with almost no candidates).
+    # float64: the reference computes IoU in float64, and a float32 IoU can sit on the other
+    # side of iou_thresh when the true value is within ~3e-5 of it.
+    found = torch.nonzero(candidate)                                          # [P, 2]
+    pairs = torch.cat([found, torch.zeros(8, 2, dtype=torch.int64)])
+    target = torch.cat([found[:, 0] * k + found[:, 1], torch.full((8,), k * k, dtype=torch.int64)])
+    both = boxes.to(torch.float64)[pairs.reshape(-1)].reshape(-1, 2, 7)     # one gather: one pair count
+    iou = bev_iou_paired(both[:, 0], both[:, 1])
+    flat = torch.zeros(k * k + 1, dtype=boxes.dtype)
+    flat = flat.index_put((target,), (iou > iou_thresh).to(boxes.dtype))
+    return flat[: k * k].reshape(k, k)
+
+
+def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Greedy NMS over a score-sorted list as a fixed point: keep [K] bool (see module docstring)."""
+    def not_done(keep, changed):
+        return changed.clone()
+
+    def step(keep, changed):
+        hit = (keep.to(suppress.dtype).unsqueeze(0) @ suppress).squeeze(0) > 0
+        new = valid & ~hit
+        return new, (new != keep).any()
+
+    keep, _ = while_loop(not_done, step, (valid.clone(), torch.ones((), dtype=torch.bool)))
+    return keep
+
+
+def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsConfig) -> torch.Tensor:
+    """Export formulation: selected anchor indices [M] (int64, M <= post_max), best first."""
+    a = scores.shape[0]
+    above = scores >= config.score_thresh
+    # Equal scores: lower anchor index first. A float64 key with a per-index step smaller than
+    # any float32 spacing at or above the threshold gives that order through one TopK.
+    step = 2.0 ** -26 * max(config.score_thresh, 1e-3) / max(a, 1)
+    key = torch.where(above, scores.to(torch.float64), torch.full_like(scores, -1.0, dtype=torch.float64))
+    key = key - torch.arange(a, dtype=torch.float64) * step
+    order = torch.topk(key, min(config.pre_max, a)).indices
+    valid = above[order]
+    cand = boxes[order]
+    keep = greedy_keep(suppression_matrix(cand, valid, config.iou_thresh), valid)
+    rank = torch.nonzero(keep).squeeze(1)[: config.post_max]
+    return order[rank]
+
+
+# ----------------------------------------------------------------------------- reference
+
+
+def greedy_nms_reference(boxes: np.ndarray, iou_thresh: float) -> list[int]:
+    """Plain greedy NMS over boxes [K, 7] already in score order: indices of the kept boxes.
+
+    A kept box whose circumscribed circle misses box j's cannot overlap it, so only the kept
+    boxes within reach are clipped polygon by polygon.
+    """
+    boxes = np.asarray(boxes, np.float64)
+    centre, radius = boxes[:, :2], 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])
+    kept: list[int] = []
+    for j in range(len(boxes)):
+        near = [i for i, d2 in zip(kept, ((centre[kept] - centre[j]) ** 2).sum(1))
+                if d2 <= (radius[i] + radius[j]) ** 2]
+        if all(bev_iou_reference(boxes[i], boxes[j]) <= iou_thresh for i in near):
+            kept.append(j)
+    return kept
+
+
+def class_agnostic_nms_reference(boxes: np.ndarray, scores: np.ndarray, config: NmsConfig) -> np.ndarray:
+    """Reference formulation of :func:`class_agnostic_nms` (numpy in, int64 indices out)."""
+    boxes = np.asarray(boxes, np.float64)
+    scores = np.asarray(scores, np.float32)
+    above = [i for i in range(len(scores)) if scores[i] >= np.float32(config.score_thresh)]
+    above.sort(key=lambda i: (-float(scores[i]), i))
+    order = above[: config.pre_max]
+    kept = greedy_nms_reference(boxes[order], config.iou_thresh) if order else []
+    return np.array([order[j] for j in kept[: config.post_max]], np.int64)
