@@ -94,6 +94,10 @@ def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
     """Export the whole pipeline (raw points in, result out) to one .onnx and a JSON sidecar."""
     from .export import build_model, export_model
     card = _card(model, config)
+    from .registry import is_bundle
+    if is_bundle(card):                 # several graphs: --output is a directory (default export/<model>/)
+        from .bundle import export_cmd
+        return export_cmd(card, checkpoint, output, opset, quantize, as_json, _progress)
     output = Path(output or f"export/{card.name}.onnx")
     net = build_model(card, checkpoint)
     click.echo(f"exporting {card.name} ...", err=True)
@@ -124,7 +128,8 @@ def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
 
 @main.command("parity-check")
 @click.option("--model", required=True)
-@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False))
+@click.option("--onnx", "onnx_path", required=True, type=click.Path(),
+              help="The .onnx; for a multi-graph model (des4pos) the bundle directory.")
 @click.option("--config", type=click.Path(dir_okay=False))
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
 @click.option("--cases", default=20, show_default=True, type=int)
@@ -142,6 +147,10 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, a
     from .export import build_model, export_model, require_same_weights
     from .parity import run_parity
     card = _card(model, config)
+    from .registry import is_bundle
+    if is_bundle(card):
+        from .bundle import parity_cmd
+        sys.exit(parity_cmd(card, onnx_path, checkpoint, cases, seed, as_json, _print_parity, _progress))
     net = build_model(card, checkpoint)
     exported = runtime.load(onnx_path)
     require_same_weights(exported, net, checkpoint)
@@ -168,11 +177,19 @@ def _print_parity(report):
     budget = " [int8 budget]" if report.quantized else ""
     click.echo(f"parity {report.model}: {Path(report.onnx).name} (onnxruntime) vs reference (torch), "
                f"{len(report.cases)} cases{budget}")
-    click.echo(f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos':>11}  verdict")
+    click.echo(f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos/IoU':>12}  verdict")
     for name, s in report.summary.items():
-        cos = f"{s['min_cosine']:.7f}" if s["min_cosine"] is not None else "-"
+        cos = (f"{s['min_cosine']:.7f}" if s["min_cosine"] is not None else
+               f"{s['min_iou']:.7f}" if s.get("min_iou") is not None else "-")
         click.echo(f"{name:<24}{s['kind']:<12}{s['max_abs']:>11.3g}{s['max_rel']:>11.3g}{s['p99_abs']:>11.3g}"
-                   f"{cos:>11}  {'PASSED' if s['passed'] else 'FAILED'}  tol {s['tolerance']}")
+                   f"{cos:>12}  {'PASSED' if s['passed'] else 'FAILED'}  tol {s['tolerance']}")
+        if s["kind"] == "boxes":
+            e = s.get("end_to_end")
+            click.echo(f"{'':<24}boxes: the graph's NMS vs the reference NMS on the graph's anchor outputs; "
+                       f"max abs = score diff, max rel = box coordinate diff, {s['mismatches']} unmatched")
+            if e:
+                click.echo(f"{'':<24}end to end vs the full reference: {e['boxes']} vs {e['reference_boxes']} boxes, "
+                           f"{e['unmatched']} unmatched" + (" (decisions within float noise of a threshold)" if e["unmatched"] else ""))
     if report.retrieval_top1 is not None:
         click.echo(f"retrieval top-1 agreement over the case set: {report.retrieval_top1 * 100:.1f}% "
                    f"(needs >= {report.min_retrieval_top1 * 100:.0f}%)")
@@ -188,7 +205,8 @@ def _print_parity(report):
 
 @main.command()
 @click.option("--model", required=True)
-@click.option("--onnx", "onnx_path", type=click.Path(dir_okay=False), help="Default export/<model>.onnx (exported if missing).")
+@click.option("--onnx", "onnx_path", type=click.Path(),
+              help="Default export/<model>.onnx (exported if missing); des4pos: the bundle directory.")
 @click.option("--config", type=click.Path(dir_okay=False))
 @click.option("--checkpoint", type=click.Path(dir_okay=False))
 @click.option("--threads", default=2, show_default=True, type=int)
@@ -206,6 +224,10 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     from .export import build_model, export_model
     from .registry import model_spec
     card = _card(model, config)
+    from .registry import is_bundle
+    if is_bundle(card):
+        from .models.des4pos_bench import bench_cmd
+        return bench_cmd(card, onnx_path, checkpoint, threads, runs, warmup, no_reference, as_json, _progress)
     cores = pin_threads(threads)
     net = build_model(card, checkpoint)
     onnx_path = Path(onnx_path or f"export/{card.name}.onnx")
@@ -315,6 +337,80 @@ def _print_eval(report):
     if report.agreement is not None:
         click.echo(f"top-1 agreement {BACKEND_LABELS[ONNX]} vs {BACKEND_LABELS[REFERENCE]}: "
                    f"{report.agreement * 100:.1f} % of {len(q)} queries")
+
+
+@main.command("make-city")
+@click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False), help="The map to write (.npz).")
+@click.option("--model", default="des4pos", show_default=True, help="Card whose object slots / points the map uses.")
+@click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of models/<model>.yaml.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--world", default=90.0, show_default=True, type=float, help="m, edge of the square city.")
+@click.option("--objects", default=70, show_default=True, type=int)
+@click.option("--poses", default=40, show_default=True, type=int, help="Query poses with descriptions.")
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def make_city_cmd(out_path, model, config, seed, world, objects, poses, as_json):
+    """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
+    query poses with template descriptions ("The pose is north of a red car.")."""
+    from .data.text_city import make_city
+    card = _card(model, config)
+    c = card.get("cell", {})
+    m = make_city(int(c.get("max_objects", 28)), int(c.get("points_per_object", 256)), seed=seed, world=world,
+                  size=float(c.get("size", 30.0)), stride=float(c.get("stride", 10.0)), objects=objects, poses=poses)
+    m.save(out_path)
+    info = {"map": str(out_path), "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
+            "example": str(m.pose_text[0]) if len(m.pose_text) else None}
+    if as_json:
+        click.echo(json.dumps(info, indent=2))
+        return
+    click.echo(f"wrote {out_path}: {info['cells']} cells, {info['objects']} objects, {info['poses']} described poses")
+    if info["example"]:
+        click.echo(f"e.g. pose 0 at {m.pose_w[0].round(1).tolist()} m: {info['example']}")
+
+
+@main.command()
+@click.option("--model", default="des4pos", show_default=True)
+@click.option("--onnx-dir", "onnx_dir", required=True, type=click.Path(file_okay=False),
+              help="The bundle `radaredge export --model des4pos` wrote.")
+@click.option("--map", "map_path", required=True, type=click.Path(dir_okay=False),
+              help="Cell map: .npz from `radaredge make-city`, or a KITTI360Pose cells/<scene>.pkl.")
+@click.option("--text", required=True, help='The description, e.g. "The pose is north of a red car."')
+@click.option("--top-k", default=3, show_default=True, type=int, help="Candidate cells for the fine stage.")
+@click.option("--threads", default=2, show_default=True, type=int)
+@click.option("--int8-text", is_flag=True, help="Use the dynamically quantised text_encoder.int8.onnx of the bundle.")
+@click.option("--no-cache", is_flag=True, help="Re-encode the map's cells instead of reading the cached descriptors.")
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def locate(model, onnx_dir, map_path, text, top_k, threads, int8_text, no_cache, as_json):
+    """Locate a described pose: encode the map's cells once (cached), retrieve the top-k cells for the
+    text (FAISS), run the fine stage in each and print the position estimates with their scores.
+    Needs numpy, onnxruntime, faiss and tokenizers only (no torch, no network)."""
+    import time
+    from .errors import ConfigError
+    from .locate import Des4PosBundle, MapIndex
+    int8 = Path(onnx_dir) / "text_encoder.int8.onnx" if int8_text else None
+    if int8 is not None and not int8.is_file():
+        raise ConfigError(f"{int8} does not exist; export with `radaredge export --model {model} --quantize int8`")
+    bundle = Des4PosBundle(onnx_dir, threads=threads, text_encoder=int8)
+    if bundle.card.model != "des4pos" or (model != bundle.card.name and model != "des4pos"):
+        raise ConfigError(f"{onnx_dir} holds {bundle.card.name}, not {model}")
+    t0 = time.perf_counter()
+    index = MapIndex.build(bundle, map_path, cache=not no_cache, progress=_progress("cells"))
+    t1 = time.perf_counter()
+    hits = bundle.locate(text, index, top_k)
+    t2 = time.perf_counter()
+    hints = bundle.tokenize(text)[0]
+    if as_json:
+        click.echo(json.dumps({"text": text, "hints": hints, "cells": len(index), "from_cache": index.from_cache,
+                               "map_ms": (t1 - t0) * 1e3, "query_ms": (t2 - t1) * 1e3, "results": hits}, indent=2))
+        return
+    how = f"read from {index.cache.name}" if index.from_cache else "encoded" + (f", cached in {index.cache.name}"
+                                                                               if index.cache else "")
+    click.echo(f"map {map_path}: {len(index)} cells ({how}) in {(t1 - t0) * 1e3:.0f} ms")
+    click.echo(f"query: {len(hints)} hint(s), text encode + search + fine stage in {(t2 - t1) * 1e3:.1f} ms")
+    click.echo(f"{'rank':>4}  {'cell':<32}{'score':>8}  {'x (m)':>11}{'y (m)':>11}")
+    for h in hits:
+        click.echo(f"{h['rank']:>4}  {h['cell']:<32}{h['score']:>8.4f}  {h['position'][0]:>11.2f}{h['position'][1]:>11.2f}")
 
 
 if __name__ == "__main__":

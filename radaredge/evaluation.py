@@ -383,3 +383,39 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
     agreement = top1_agreement(results[ONNX]["top1"], results[REFERENCE]["top1"]) if reference else None
     return EvalReport(card.name, str(onnx_path), str(checkpoint) if checkpoint else None, radius, db_windows,
                       query_windows, results, agreement)
+
+
+# ----------------------------------------------------------------------------- text-to-point-cloud localisation
+
+LOCALIZATION_KS = (1, 5, 10)
+LOCALIZATION_THRESHOLDS = (5.0, 10.0, 15.0)
+
+
+def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
+                        thresholds: Sequence[float] = LOCALIZATION_THRESHOLDS, same_scene=None) -> dict:
+    """Top-k localisation recall as Text2Loc / Des4Pos report it (``calc_sample_accuracies``).
+
+    ``pred_w`` [Q, K, 2]: the position predicted in each of a query's K retrieved cells, best
+    first (world x, y m); ``pose_w`` [Q, 2]: the ground-truth pose. A query counts at (k, t) when
+    one of its first k predictions lies within t m of the pose (planar Euclidean, boundary
+    included). Predictions in cells of another scene than the query's (``same_scene`` [Q, K]
+    False) never count, however close. Returns {k: {t: fraction of queries in [0, 1]}}; k larger
+    than K uses all K predictions.
+    """
+    pred = np.asarray(pred_w, np.float64)
+    pose = np.asarray(pose_w, np.float64)
+    if pred.ndim != 3 or pred.shape[2] != 2 or pose.shape != (pred.shape[0], 2) or pred.shape[0] == 0:
+        raise InputError(f"expected predictions [Q, K, 2] and poses [Q, 2] (m) with Q >= 1, got {pred.shape} and {pose.shape}")
+    if not (np.isfinite(pred).all() and np.isfinite(pose).all()):
+        raise InputError("predicted and ground-truth positions must be finite")
+    ks = _check_ns(ks)
+    if not thresholds or any(not np.isfinite(t) or t <= 0 for t in thresholds):
+        raise ConfigError(f"thresholds must be positive distances in metres, got {thresholds!r}")
+    dist = np.linalg.norm(pred - pose[:, None, :], axis=2)                 # [Q, K]
+    if same_scene is not None:
+        same = np.asarray(same_scene, bool)
+        if same.shape != dist.shape:
+            raise InputError(f"same_scene must be [Q, K] = {dist.shape}, got {same.shape}")
+        dist = np.where(same, dist, np.inf)
+    best = np.minimum.accumulate(dist, axis=1)                             # min over the first k
+    return {k: {float(t): float((best[:, min(k, dist.shape[1]) - 1] <= t).mean()) for t in thresholds} for k in ks}

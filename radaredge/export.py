@@ -129,12 +129,15 @@ def metadata_for(card: ModelCard, model: torch.nn.Module, spec, opset: int) -> d
 
 
 def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | None = None,
-                 opset: int = DEFAULT_OPSET, debug: bool = False, model: torch.nn.Module | None = None) -> ExportResult:
+                 opset: int = DEFAULT_OPSET, debug: bool = False, model: torch.nn.Module | None = None,
+                 spec=None, extra_metadata: dict | None = None) -> ExportResult:
     """Export the card's whole pipeline to ``output`` and write ``output`` with suffix .json.
 
     ``debug`` adds the intermediate tensors of ``spec.trace_order(card)`` as extra graph outputs.
+    ``spec`` (default: the card's) and ``extra_metadata`` serve the parts of a bundle
+    (:func:`export_bundle`).
     """
-    spec = model_spec(card)
+    spec = spec or model_spec(card)
     model = model if model is not None else build_model(card, checkpoint)
     names = spec.input_names(card)
     _, example = spec.make_cases(card, 1, 0)[0]
@@ -144,7 +147,7 @@ def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | N
     path = Path(output)
     export_onnx(module, args, path, names, out_names, spec.dynamic_axes(card), opset=opset)
     proto = onnx.load(str(path))
-    meta = metadata_for(card, model, spec, opset)
+    meta = {**metadata_for(card, model, spec, opset), **(extra_metadata or {})}
     del proto.metadata_props[:]
     for k, v in meta.items():
         proto.metadata_props.add(key=k, value=v)
@@ -174,3 +177,42 @@ def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | N
 def _shape(value_info) -> list:
     dims = value_info.type.tensor_type.shape.dim
     return [d.dim_param or d.dim_value for d in dims]
+
+
+@dataclass
+class BundleResult:
+    directory: Path
+    manifest: Path
+    parts: dict[str, ExportResult]
+
+
+def export_bundle(card: ModelCard, out_dir: str | Path, model: torch.nn.Module, opset: int = DEFAULT_OPSET,
+                  progress=None) -> BundleResult:
+    """Export every part of a multi-graph card (a BundleSpec) to ``out_dir/<part>.onnx`` + sidecar,
+    copy the bundle's extra files (e.g. tokenizer.json) and write ``out_dir/bundle.json``.
+
+    Each graph carries its part name and the hash of its own weights and of the whole bundle.
+    """
+    import shutil
+    spec = model_spec(card)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bundle_hash = weights_hash(model)
+    parts = {}
+    items = list(spec.parts.items())
+    for name, pspec in (progress(items) if progress else items):
+        parts[name] = export_model(card, out_dir / f"{name}.onnx", opset=opset, model=spec.part_module(model, name),
+                                   spec=pspec, extra_metadata={META_PREFIX + "part": name,
+                                                               META_PREFIX + "bundle_weights_sha256": bundle_hash})
+    files = {}
+    for fname, src in spec.files(card).items():
+        shutil.copyfile(src, out_dir / fname)
+        files[fname] = str(fname)
+    manifest = out_dir / "bundle.json"
+    manifest.write_text(json.dumps({
+        "model": card.name, "family": card.model, "opset": opset, "weights_sha256": bundle_hash,
+        "parts": {n: {"onnx": r.path.name, "sidecar": r.sidecar.name, "size_bytes": r.size_bytes,
+                      "weights_sha256": r.metadata[META_PREFIX + "weights_sha256"]} for n, r in parts.items()},
+        "files": files, "card": card.data,
+    }, indent=2))
+    return BundleResult(out_dir, manifest, parts)

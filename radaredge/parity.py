@@ -27,12 +27,63 @@ class Comparison:
     max_rel: float = 0.0
     p99_abs: float = 0.0
     cosine: float | None = None
+    min_iou: float | None = None
     mismatches: int = 0
     reason: str = ""
 
 
+def match_boxes(got_boxes, got_scores, got_labels, ref_boxes, ref_scores, ref_labels, min_iou: float):
+    """Greedy one-to-one matching of detections by rotated BEV IoU (best pairs first, same label,
+    IoU >= min_iou). Returns (pairs [(i_got, j_ref, iou)], unmatched got indices, unmatched ref indices)."""
+    from .ops.box_iou import bev_iou_matrix_reference
+
+    iou = bev_iou_matrix_reference(got_boxes, ref_boxes) if len(got_boxes) and len(ref_boxes) else \
+        np.zeros((len(got_boxes), len(ref_boxes)))
+    iou = np.where(np.asarray(got_labels)[:, None] == np.asarray(ref_labels)[None, :], iou, -1.0)
+    pairs, used_g, used_r = [], set(), set()
+    for flat in np.argsort(-iou, axis=None, kind="stable"):
+        i, j = divmod(int(flat), iou.shape[1])
+        if iou[i, j] < min_iou:
+            break
+        if i in used_g or j in used_r:
+            continue
+        pairs.append((i, j, float(iou[i, j])))
+        used_g.add(i)
+        used_r.add(j)
+    return (pairs, [i for i in range(len(got_boxes)) if i not in used_g],
+            [j for j in range(len(ref_boxes)) if j not in used_r])
+
+
+def compare_boxes(spec: OutputSpec, got: tuple, ref: tuple) -> Comparison:
+    """Detections (boxes, scores, labels) against the reference's: counts, matched IoU, score diff."""
+    gb, gs, gl = (np.asarray(a) for a in got)
+    rb, rs, rl = (np.asarray(a) for a in ref)
+    if not (np.isfinite(gb).all() and np.isfinite(gs).all()):
+        return Comparison(spec.name, spec.kind, False, reason="non-finite boxes or scores")
+    pairs, lone_g, lone_r = match_boxes(gb, gs, gl, rb, rs, rl, spec.min_iou)
+    c = Comparison(spec.name, spec.kind, True, mismatches=len(lone_g) + len(lone_r))
+    if pairs:
+        c.max_abs = max(abs(float(gs[i]) - float(rs[j])) for i, j, _ in pairs)
+        c.min_iou = min(iou for _, _, iou in pairs)
+        c.max_rel = max(float(np.abs(gb[i] - rb[j]).max()) for i, j, _ in pairs)
+    reasons = []
+    if lone_g or lone_r:
+        reasons.append(f"{len(gb)} boxes vs {len(rb)} in the reference; {len(lone_g) + len(lone_r)} unmatched "
+                       f"at IoU >= {spec.min_iou}")
+    if c.max_abs > spec.max_score_diff:
+        reasons.append(f"score diff {c.max_abs:.3g} > {spec.max_score_diff:g}")
+    c.passed = not reasons
+    c.reason = "; ".join(reasons)
+    return c
+
+
 def compare(spec: OutputSpec, got: np.ndarray, ref: np.ndarray) -> Comparison:
-    """Compare one output of onnxruntime (``got``) with the reference (``ref``)."""
+    """Compare one output of onnxruntime (``got``) with the reference (``ref``). For ``boxes``,
+    ``got`` and ``ref`` are (boxes, scores, labels) tuples; ``grouped`` outputs are judged there."""
+    if spec.kind == "boxes":
+        return compare_boxes(spec, got, ref)
+    if spec.kind == "grouped":
+        return Comparison(spec.name, spec.kind, True, reason="compared with the boxes")
     got, ref = np.asarray(got), np.asarray(ref)
     if got.shape != ref.shape:
         return Comparison(spec.name, spec.kind, False, reason=f"shape {got.shape} != reference {ref.shape}")
@@ -44,6 +95,11 @@ def compare(spec: OutputSpec, got: np.ndarray, ref: np.ndarray) -> Comparison:
     if not (np.isfinite(g).all() and np.isfinite(r).all()):
         return Comparison(spec.name, spec.kind, False, reason="non-finite values")
     diff = np.abs(g - r)
+    if spec.angle_period > 0 and got.ndim:
+        # e.g. a heading whose direction bin is a near-tie: equal modulo the bin period
+        d = diff.reshape(got.shape)[..., spec.angle_column]
+        diff.reshape(got.shape)[..., spec.angle_column] = np.abs(
+            (d + spec.angle_period / 2) % spec.angle_period - spec.angle_period / 2)
     c = Comparison(spec.name, spec.kind, True)
     if diff.size:
         c.max_abs = float(diff.max())
@@ -117,6 +173,7 @@ def summarise(outputs, cases: list[dict]) -> dict:
     for spec in outputs:
         rows = [c["outputs"][spec.name] for c in cases]
         cos = [r["cosine"] for r in rows if r["cosine"] is not None]
+        ious = [r["min_iou"] for r in rows if r.get("min_iou") is not None]
         out[spec.name] = {
             "kind": spec.kind,
             "passed": all(r["passed"] for r in rows),
@@ -124,12 +181,21 @@ def summarise(outputs, cases: list[dict]) -> dict:
             "max_rel": max((r["max_rel"] for r in rows), default=0.0),
             "p99_abs": max((r["p99_abs"] for r in rows), default=0.0),
             "min_cosine": min(cos) if cos else None,
+            "min_iou": min(ious) if ious else None,
             "mismatches": sum(r["mismatches"] for r in rows),
             "tolerance": ({"min_cosine": spec.min_cosine} if spec.kind == "descriptor" else
+                          {"min_iou": spec.min_iou, "max_score_diff": spec.max_score_diff} if spec.kind == "boxes" else
+                          "with " + next((o.name for o in outputs if spec.name in o.group), "?")
+                          if spec.kind == "grouped" else
                           {"atol": spec.atol, "rtol": spec.rtol} if spec.kind == "dense" else
                           "reported only" if spec.kind == "info" else "exact"),
             "failed_cases": [c["case"] for c, r in zip(cases, rows) if not r["passed"]],
         }
+        e2e = [r["end_to_end"] for r in rows if "end_to_end" in r]
+        if e2e:
+            out[spec.name]["end_to_end"] = {"unmatched": sum(e["unmatched"] for e in e2e),
+                                            "boxes": sum(e["boxes"] for e in e2e),
+                                            "reference_boxes": sum(e["reference_boxes"] for e in e2e)}
     return out
 
 
@@ -140,18 +206,19 @@ QUANTIZED_MIN_TOP1 = 0.98
 
 
 def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_onnx=None, progress=None,
-               quantized: bool = False) -> ParityReport:
+               quantized: bool = False, spec=None) -> ParityReport:
     """Run onnxruntime on ``onnx_path`` and the reference formulation on the same cases.
 
     ``quantized`` applies the int8 budget of each output (:meth:`OutputSpec.quantized`) and
     requires retrieval top-1 agreement >= QUANTIZED_MIN_TOP1 instead of 100 %. ``debug_onnx``
     (a path, or a callable returning one, called only on failure) names the debug export used
-    to locate the first diverging intermediate.
+    to locate the first diverging intermediate. ``spec`` (default: the card's) is the part's
+    ModelSpec when ``onnx_path`` is one graph of a bundle.
     """
     from .ort import make_session, run_session
     from .registry import model_spec
 
-    spec = model_spec(card)
+    spec = spec or model_spec(card)
     session = make_session(onnx_path, threads=2)
     report = ParityReport(card.name, str(onnx_path), quantized=quantized,
                           min_retrieval_top1=QUANTIZED_MIN_TOP1 if quantized else 1.0)
@@ -163,11 +230,21 @@ def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_o
         got = run_session(session, feeds)
         with torch.no_grad():
             ref = {k: v.detach().numpy() for k, v in spec.run_reference(model, feeds).items()}
-        comps = {o.name: asdict(compare(o, got[o.name], ref[o.name])) for o in outputs}
+        comps = {}
+        for o in outputs:
+            if o.kind == "boxes" and spec.postprocess_reference is not None:
+                with torch.no_grad():
+                    post = {k: v.detach().numpy() for k, v in spec.postprocess_reference(model, got).items()}
+                comps[o.name] = asdict(compare(o, *_operands(o, got, post)))
+                e2e = compare(o, *_operands(o, got, ref))
+                comps[o.name]["end_to_end"] = {"unmatched": e2e.mismatches, "boxes": int(len(got[o.name])),
+                                               "reference_boxes": int(len(ref[o.name])), "max_score_diff": e2e.max_abs}
+            else:
+                comps[o.name] = asdict(compare(o, *_operands(o, got, ref)))
         report.cases.append({"case": name, "outputs": comps})
         if desc_specs:
-            got_desc.append(got[desc_specs[0].name])
-            ref_desc.append(ref[desc_specs[0].name])
+            got_desc.append(np.ravel(got[desc_specs[0].name]))     # [D], or [1, D] from a batched graph
+            ref_desc.append(np.ravel(ref[desc_specs[0].name]))
     report.summary = summarise(outputs, report.cases)
     if desc_specs:
         report.retrieval_top1 = retrieval_top1_agreement(np.stack(got_desc), np.stack(ref_desc))
@@ -175,6 +252,14 @@ def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_o
         path = debug_onnx() if callable(debug_onnx) else debug_onnx
         report.divergence = locate_divergence(card, spec, model, path, report, cases)
     return report
+
+
+def _operands(spec: OutputSpec, got: dict, ref: dict):
+    """What :func:`compare` takes for ``spec``: the output itself, or (boxes, scores, labels)."""
+    if spec.kind == "boxes":
+        names = (spec.name, *spec.group)
+        return tuple(got[n] for n in names), tuple(ref[n] for n in names)
+    return got[spec.name], ref[spec.name]
 
 
 def locate_divergence(card, spec, model, debug_onnx, report: ParityReport, cases) -> dict | None:

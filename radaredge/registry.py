@@ -13,14 +13,33 @@ def _tdfanet():
     return TDFANET_SPEC
 
 
+def _maffnet():
+    from .models.maffnet_spec import MAFFNET_SPEC
+    return MAFFNET_SPEC
+
+
+def _des4pos():
+    from .models.des4pos_spec import DES4POS_SPEC
+    return DES4POS_SPEC
+
+
 MODELS: dict[str, Callable] = {
     "tdfanet": _tdfanet,
+    "maffnet": _maffnet,
+    "des4pos": _des4pos,       # a BundleSpec: three graphs (submap encoder, text encoder, fine stage)
 }
 
 
 def model_spec(card: ModelCard):
-    """The :class:`radaredge.models.spec.ModelSpec` that builds, feeds and compares ``card``'s model."""
+    """The :class:`radaredge.models.spec.ModelSpec` (one graph) or
+    :class:`radaredge.models.spec.BundleSpec` (several graphs) of ``card``'s model."""
     try:
         return MODELS[card.model]()
     except KeyError:
         raise ConfigError(f"{card.where}: unknown model {card.model!r}; known: {sorted(MODELS)}") from None
+
+
+def is_bundle(card: ModelCard) -> bool:
+    """True when ``card``'s model exports as several graphs (a BundleSpec)."""
+    from .models.spec import BundleSpec
+    return isinstance(model_spec(card), BundleSpec)

@@ -17,7 +17,10 @@ class OutputSpec:
 
     ``kind``: ``dense`` (max abs / max rel / p99 against ``atol``), ``descriptor`` (cosine
     >= ``min_cosine`` plus dense statistics), ``exact`` (bit-equal labels, flags, masks),
-    ``info`` (statistics reported, no verdict).
+    ``info`` (statistics reported, no verdict), ``boxes`` (detections [M, 7] matched one to one
+    with the reference by rotated BEV IoU >= ``min_iou``, same label, score within
+    ``max_score_diff``; its scores and labels outputs, named in ``group``, are of kind
+    ``grouped`` and judged with it).
 
     For an int8 graph (:meth:`quantized`) descriptors are held to ``quantized_min_cosine``,
     outputs marked ``quantized_info`` are reported only, and the rest keep their tolerances
@@ -32,6 +35,11 @@ class OutputSpec:
     unit: str = ""
     quantized_min_cosine: float = 0.99
     quantized_info: bool = False
+    group: tuple = ()            # ``boxes``: the names of its scores and labels outputs
+    min_iou: float = 0.99        # ``boxes``: matched rotated BEV IoU
+    max_score_diff: float = 1e-4  # ``boxes``: |score - matched reference score|
+    angle_column: int = -1       # ``dense``: last-axis column holding an angle compared modulo angle_period
+    angle_period: float = 0.0
 
     def quantized(self) -> "OutputSpec":
         """The budget this output is held to when the graph is int8-quantised."""
@@ -63,7 +71,30 @@ class ModelSpec:
     run_reference: Callable
     run_export: Callable
     trace_order: Callable[[ModelCard], tuple[str, ...]]
+    # Optional: (model, onnxruntime outputs) -> reference post-processing (NMS) of the graph's
+    # own dense outputs. ``boxes`` outputs are then judged against it, so a score or IoU that
+    # sits within float noise of a threshold cannot flip the verdict; the end-to-end match
+    # against the full reference is still reported.
+    postprocess_reference: Callable | None = None
 
     @property
     def output_names(self) -> list[str]:
         return [o.name for o in self.outputs]
+
+
+@dataclass(frozen=True)
+class BundleSpec:
+    """A model family exported as several graphs ("parts") that share one set of weights.
+
+    - ``build(card)`` -> the whole nn.Module (seeded, eval mode);
+    - ``parts``: part name -> the :class:`ModelSpec` of that graph, in export order;
+    - ``part_module(model, name)`` -> the sub-module the part's spec runs and exports.
+
+    ``radaredge export`` writes ``<dir>/<part>.onnx`` + sidecar per part and ``<dir>/bundle.json``;
+    ``radaredge parity-check`` checks every part against its reference.
+    """
+
+    build: Callable[[ModelCard], torch.nn.Module]
+    parts: dict
+    part_module: Callable[[torch.nn.Module, str], torch.nn.Module]
+    files: Callable[[ModelCard], dict] = lambda card: {}     # extra files copied into the bundle: name -> path

@@ -1,0 +1,157 @@
+"""Torch-free Des4Pos query path: numpy + onnxruntime + faiss + tokenizers only.
+
+    from radaredge.locate import Des4PosBundle, MapIndex
+    bundle = Des4PosBundle("export/des4pos")            # three graphs + tokenizer.json + bundle.json
+    index = MapIndex.build(bundle, "city.npz")          # encodes every cell once (cached beside the map)
+    for hit in bundle.locate("The pose is north of a red car.", index, top_k=3):
+        print(hit["cell"], hit["score"], hit["position"])
+
+Coarse stage: the text descriptor's inner product with the L2-normalised cell descriptors (a FAISS
+``IndexFlatIP``; the cosine similarity, which ranks as L2 distance does on unit vectors) picks
+the top-k cells. Fine stage: one ``fine_stage`` call on those k cells gives a position in each
+(world m, float64), reported with the retrieval score.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cards import card_from_yaml
+from .data.cellmap import CellMap, load_map, validate_map
+from .errors import ConfigError, InputError
+from .runtime import META_PREFIX, RadarModel
+from .runtime import load as load_graph
+from .text_tokens import encode_hints, load_tokenizer, split_hints
+
+PARTS = ("submap_encoder", "text_encoder", "fine_stage")
+
+
+class Des4PosBundle:
+    """An exported Des4Pos bundle directory. ``text_encoder`` may name another text graph (e.g. the
+    dynamically quantised ``text_encoder.int8.onnx``) with the same interface."""
+
+    def __init__(self, directory: str | Path, threads: int = 2, text_encoder: str | Path | None = None):
+        self.directory = d = Path(directory)
+        manifest = d / "bundle.json"
+        if not manifest.is_file():
+            raise InputError(f"{d} is not a Des4Pos bundle (no bundle.json); export one with "
+                             f"`radaredge export --model des4pos`")
+        self.manifest = json.loads(manifest.read_text())
+        self.graphs: dict[str, RadarModel] = {}
+        for part in PARTS:
+            info = self.manifest["parts"].get(part)
+            if info is None:
+                raise InputError(f"{manifest} lists no {part} graph")
+            path = Path(text_encoder) if (part == "text_encoder" and text_encoder) else d / info["onnx"]
+            g = load_graph(path, threads=threads)
+            if g.metadata.get(META_PREFIX + "bundle_weights_sha256") != self.manifest["weights_sha256"]:
+                raise InputError(f"{path} belongs to another export than {manifest} (bundle weights differ); "
+                                 f"re-export the bundle")
+            self.graphs[part] = g
+        self.card = card_from_yaml(self.graphs["submap_encoder"].metadata[META_PREFIX + "card"])
+        self.weights_sha256: str = self.manifest["weights_sha256"]
+        self.tokenizer = load_tokenizer(d / "tokenizer.json")
+        self.slots = int(self.card.get("cell.max_objects", 28))
+        self.points = int(self.card.get("cell.points_per_object", 256))
+        self.max_tokens = int(self.card.get("text.max_tokens", 32))
+        self.max_hints = int(self.card.get("text.max_hints", 8))
+
+    # -- the three graphs -------------------------------------------------------------------
+    def encode_cells(self, cells: CellMap, batch: int = 8, progress=None) -> tuple[np.ndarray, np.ndarray]:
+        """(descriptors [C, D], object features [C, T, D]) of every cell, ``batch`` cells per call."""
+        validate_map(cells, "map", (self.slots, self.points))
+        sess = self.graphs["submap_encoder"].session
+        out_d, out_o = [], []
+        starts = range(0, len(cells), batch)
+        for s in (progress(starts) if progress else starts):
+            sl = slice(s, s + batch)
+            d, o = sess.run(["descriptor", "object_features"], {
+                "points": np.ascontiguousarray(cells.points[sl], np.float32),
+                "num_points": np.ascontiguousarray(cells.num_points[sl], np.float32),
+                "object_mask": np.ascontiguousarray(cells.object_mask[sl], bool)})
+            out_d.append(d)
+            out_o.append(o)
+        return np.concatenate(out_d), np.concatenate(out_o)
+
+    def tokenize(self, text: str) -> tuple[list[str], np.ndarray, np.ndarray]:
+        hints = split_hints(text)
+        ids, mask = encode_hints(self.tokenizer, hints, self.max_tokens, self.max_hints)
+        return hints, ids, mask
+
+    def encode_text(self, text: str) -> tuple[np.ndarray, np.ndarray]:
+        """(descriptor [D], hint features [H, D]) of a description."""
+        _, ids, mask = self.tokenize(text)
+        d, h = self.graphs["text_encoder"].session.run(["descriptor", "hint_features"],
+                                                       {"input_ids": ids, "attention_mask": mask})
+        return d, h
+
+    def fine(self, index: "MapIndex", cells: np.ndarray, hint_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(offset [k, 2] cell units from the centre, position [k, 2] world m) in ``cells``."""
+        return self.graphs["fine_stage"].session.run(["offset", "position"], {
+            "object_features": index.object_features[cells], "object_mask": index.object_mask[cells],
+            "hint_features": hint_features, "cell_origin": index.origins[cells].astype(np.float64),
+            "cell_size": index.sizes[cells].astype(np.float64)})
+
+    def locate(self, text: str, index: "MapIndex", top_k: int = 3) -> list[dict]:
+        """The top-k cells for ``text`` with a position estimate in each, best first."""
+        if top_k < 1:
+            raise ConfigError(f"top_k must be >= 1, got {top_k}")
+        desc, hints = self.encode_text(text)
+        scores, cells = index.search(desc[None], min(top_k, len(index)))
+        cells, scores = cells[0], scores[0]
+        offset, position = self.fine(index, cells, hints)
+        return [{"rank": r + 1, "cell": str(index.ids[c]), "score": float(s), "position": position[r].tolist(),
+                 "offset": offset[r].tolist()} for r, (c, s) in enumerate(zip(cells, scores))]
+
+
+@dataclass
+class MapIndex:
+    """The encoded cells of one map and a FAISS inner-product index over their descriptors."""
+
+    ids: np.ndarray
+    origins: np.ndarray
+    sizes: np.ndarray
+    object_mask: np.ndarray
+    descriptors: np.ndarray
+    object_features: np.ndarray
+    cache: Path | None = None
+    from_cache: bool = False
+
+    def __post_init__(self):
+        import faiss
+        self.index = faiss.IndexFlatIP(self.descriptors.shape[1])
+        self.index.add(np.ascontiguousarray(self.descriptors, np.float32))
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def search(self, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(scores [Q, k] cosine similarity, cell rows [Q, k]), best first."""
+        return self.index.search(np.ascontiguousarray(query, np.float32), k)
+
+    @classmethod
+    def build(cls, bundle: Des4PosBundle, map_path: str | Path, cache: bool = True, progress=None,
+              cells: CellMap | None = None) -> "MapIndex":
+        """Encode the map's cells with the bundle, or read them from the cache written beside the map
+        (``<map>.des4pos-<key>.npz``; the key hashes the map file and the bundle's weights)."""
+        map_path = Path(map_path)
+        cells = cells if cells is not None else load_map(map_path, bundle.slots, bundle.points)
+        h = hashlib.sha256(bundle.weights_sha256.encode())
+        with open(map_path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        path = map_path.with_name(f"{map_path.name}.des4pos-{h.hexdigest()[:16]}.npz")
+        common = dict(ids=cells.ids, origins=cells.origins, sizes=cells.sizes, object_mask=cells.object_mask)
+        if cache and path.is_file():
+            with np.load(path, allow_pickle=False) as z:
+                return cls(**common, descriptors=z["descriptors"], object_features=z["object_features"],
+                           cache=path, from_cache=True)
+        desc, objs = bundle.encode_cells(cells, progress=progress)
+        if cache:
+            np.savez(path, descriptors=desc, object_features=objs)
+        return cls(**common, descriptors=desc, object_features=objs, cache=path if cache else None)

