@@ -203,6 +203,24 @@ def _print_parity(report):
     click.echo("PASSED" if report.passed else "FAILED")
 
 
+def _stage_table(spec, net, cases, runs: int, no_reference: bool) -> dict | None:
+    """Median seconds per pipeline stage in torch (export and reference formulations), printed."""
+    if spec.stage_times is None:
+        return None
+    import statistics
+    out = {}
+    for label, ref in (("torch export", False), ("torch reference", True)):
+        if ref and no_reference:
+            continue
+        laps = [spec.stage_times(net, cases[i % len(cases)], ref) for i in range(max(3, min(runs, 10)))]
+        out[label] = {k: statistics.median(l[k] for l in laps) * 1e3 for k in laps[0]}
+    names = list(next(iter(out.values())))
+    click.echo("per-stage p50 ms (torch): " + " | ".join(names))
+    for label, row in out.items():
+        click.echo(f"  {label:<16}" + "".join(f"{row[n]:>14.1f}" for n in names))
+    return out
+
+
 @main.command()
 @click.option("--model", required=True)
 @click.option("--onnx", "onnx_path", type=click.Path(),
@@ -249,6 +267,7 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     if int8_r is not None:
         gain = ort_r.p50_ms / int8_r.p50_ms
         click.echo(f"int8 vs fp32: {gain:.2f}x" + ("  (int8 is SLOWER than fp32 on this CPU)" if gain < 1 else ""))
+    stages = _stage_table(model_spec(card), net, cases, runs, no_reference)
     prof = None
     if profile:
         prof = top_ops(session.end_profiling())
@@ -261,7 +280,8 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
         path = out / f"{card.name}-{_dt.date.today().isoformat()}.json"
         path.write_text(json.dumps({"model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(),
                                     "runs": runs, "date": stamp, "results": as_dicts(results),
-                                    "onnxruntime_speedup": ratios, "top_ops": prof}, indent=2))
+                                    "onnxruntime_speedup": ratios, "top_ops": prof,
+                                    "stage_ms": stages}, indent=2))
         click.echo(f"wrote {path}")
 
 

@@ -161,3 +161,15 @@ def test_full_card_export_and_parity(model, tmp_path):
     report = json.loads(res.output)
     assert res.exit_code == 0 and report["passed"], res.output
     assert report["summary"]["boxes"]["mismatches"] == 0
+
+
+def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    res = invoke("bench", "--model", "maffnet-tiny", "--config", str(TINY), "--onnx", str(tiny_onnx),
+                 "--runs", "3", "--warmup", "1", "--json")
+    assert res.exit_code == 0, res.output
+    saved = json.loads(next((tmp_path / "benchmarks" / "results").glob("maffnet-tiny-*.json")).read_text())
+    assert {r["backend"] for r in saved["results"]} == {"torch reference", "torch export", "onnxruntime"}
+    for formulation in ("torch export", "torch reference"):
+        assert list(saved["stage_ms"][formulation]) == ["VFE+SPA", "CFA", "CAF", "backbone+head", "NMS"]
+        assert all(v > 0 for v in saved["stage_ms"][formulation].values())

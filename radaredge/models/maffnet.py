@@ -405,6 +405,31 @@ class MAFFNet(nn.Module):
                 "cfa_converged": converged}
 
 
+def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[str, float]:
+    """Seconds per stage of one scan in torch: VFE+SPA, CFA, CAF, backbone+head, NMS."""
+    import time
+    out, t = {}, time.perf_counter()
+
+    def lap(name):
+        nonlocal t
+        now = time.perf_counter()
+        out[name] = now - t
+        t = now
+
+    with torch.no_grad():
+        pillar, _, _ = model.pillar_stage(points, reference)
+        lap("VFE+SPA")
+        cfa, _, _ = model.cfa_stage(points, reference)
+        lap("CFA")
+        fused = model.fuser(pillar.unsqueeze(0), cfa)
+        lap("CAF")
+        scores, boxes = model.head_stage(fused)
+        lap("backbone+head")
+        model.postprocess(scores, boxes, reference)
+        lap("NMS")
+    return out
+
+
 OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "num_pillars", "spa_overflow",
                 "cfa_converged")
 

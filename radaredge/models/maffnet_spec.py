@@ -10,7 +10,7 @@ import torch
 from ..cards import ModelCard
 from ..data.synthetic import generate_scan, tj4d_table, vod_table
 from ..errors import ConfigError
-from .maffnet import OUTPUT_NAMES, MAFFNet, build_maffnet
+from .maffnet import OUTPUT_NAMES, MAFFNet, build_maffnet, stage_times
 from .spec import ModelSpec, OutputSpec
 
 
@@ -116,4 +116,5 @@ MAFFNET_SPEC = ModelSpec(
     run_export=run_export,
     trace_order=trace_order,
     postprocess_reference=postprocess_reference,
+    stage_times=lambda model, feeds, reference: stage_times(model, torch.as_tensor(feeds["points"]), reference),
 )

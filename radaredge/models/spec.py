@@ -76,6 +76,8 @@ class ModelSpec:
     # sits within float noise of a threshold cannot flip the verdict; the end-to-end match
     # against the full reference is still reported.
     postprocess_reference: Callable | None = None
+    # Optional: (model, feeds, reference) -> {stage name: seconds} for one run in torch.
+    stage_times: Callable | None = None
 
     @property
     def output_names(self) -> list[str]:
