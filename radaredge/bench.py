@@ -13,6 +13,7 @@ import os
 import platform
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -128,3 +129,13 @@ def top_ops(profile_file: str, k: int = 10) -> list[tuple[str, float]]:
 
 def as_dicts(results: list[BackendResult]) -> list[dict]:
     return [asdict(r) for r in results]
+
+
+def write_results_json(model: str, payload: dict) -> Path:
+    """Write ``payload`` to benchmarks/results/<model>-<date>.json (cwd-relative); return the path."""
+    import datetime
+    out = Path("benchmarks/results")
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{model}-{datetime.date.today().isoformat()}.json"
+    path.write_text(json.dumps(payload, indent=2))
+    return path

@@ -34,14 +34,9 @@ def quantize_dynamic_int8(fp32_path: str | Path, out_path: str | Path) -> Path:
                              op_types_to_quantize=["MatMul", "Gemm"])
     except Exception as exc:
         raise ExportError(f"dynamic int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
-    src = onnx.load(str(fp32_path), load_external_data=False)
-    q = onnx.load(str(out_path))
-    del q.metadata_props[:]
-    for prop in src.metadata_props:
-        q.metadata_props.add(key=prop.key, value=prop.value)
-    q.metadata_props.add(key="radaredge.quantization", value=json.dumps(
-        {"format": "dynamic", "weights": "int8", "activations": "uint8 at run time", "ops": ["MatMul", "Gemm"]}))
-    onnx.save(q, str(out_path))
+    from .quantize import carry_metadata
+    carry_metadata(fp32_path, out_path, {"format": "dynamic", "weights": "int8", "activations": "uint8 at run time",
+                                         "ops": ["MatMul", "Gemm"]})
     return out_path
 
 

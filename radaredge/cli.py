@@ -238,7 +238,8 @@ def _stage_table(spec, net, cases, runs: int, no_reference: bool) -> dict | None
 @_friendly_errors
 def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
-    from .bench import as_dicts, benchmark, cpu_name, model_backends, pin_threads, results_table, top_ops
+    from .bench import (as_dicts, benchmark, cpu_name, model_backends, pin_threads, results_table, top_ops,
+                        write_results_json)
     from .export import build_model, export_model
     from .registry import model_spec
     card = _card(model, config)
@@ -275,13 +276,9 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
         for op, ms in prof:
             click.echo(f"  {op:<24}{ms:10.1f}")
     if as_json:
-        out = Path("benchmarks/results")
-        out.mkdir(parents=True, exist_ok=True)
-        path = out / f"{card.name}-{_dt.date.today().isoformat()}.json"
-        path.write_text(json.dumps({"model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(),
-                                    "runs": runs, "date": stamp, "results": as_dicts(results),
-                                    "onnxruntime_speedup": ratios, "top_ops": prof,
-                                    "stage_ms": stages}, indent=2))
+        path = write_results_json(card.name, {
+            "model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": stamp,
+            "results": as_dicts(results), "onnxruntime_speedup": ratios, "top_ops": prof, "stage_ms": stages})
         click.echo(f"wrote {path}")
 
 

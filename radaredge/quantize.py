@@ -35,6 +35,18 @@ class _SyntheticWindows(CalibrationDataReader):
         return next(self._feeds, None)
 
 
+def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: dict) -> None:
+    """Give the quantised graph at ``out_path`` the fp32 graph's ``metadata_props`` (card, weights
+    hash, ...) plus ``radaredge.quantization`` = ``quantization`` (JSON)."""
+    src = onnx.load(str(fp32_path), load_external_data=False)
+    q = onnx.load(str(out_path))
+    del q.metadata_props[:]
+    for prop in src.metadata_props:
+        q.metadata_props.add(key=prop.key, value=prop.value)
+    q.metadata_props.add(key="radaredge.quantization", value=json.dumps(quantization))
+    onnx.save(q, str(out_path))
+
+
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
                   calibration_cases: int = 16, seed: int = 12345, method: str = "minmax") -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
@@ -58,13 +70,7 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
                             calibrate_method=methods[method])
         except Exception as exc:
             raise ExportError(f"int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
-    src = onnx.load(str(fp32_path), load_external_data=False)
-    q = onnx.load(str(out_path))
-    del q.metadata_props[:]
-    for prop in src.metadata_props:
-        q.metadata_props.add(key=prop.key, value=prop.value)
-    q.metadata_props.add(key="radaredge.quantization", value=json.dumps({
+    carry_metadata(fp32_path, out_path, {
         "format": "QDQ", "weights": "int8 per-channel", "activations": "int8", "ops": list(QUANTIZED_OPS),
-        "calibration": {"cases": calibration_cases, "seed": seed, "method": method}}))
-    onnx.save(q, str(out_path))
+        "calibration": {"cases": calibration_cases, "seed": seed, "method": method}})
     return out_path

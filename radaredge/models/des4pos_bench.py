@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import datetime as _dt
-import json
 from pathlib import Path
 
 import click
@@ -107,12 +106,9 @@ def bench_cmd(card: ModelCard, bundle_dir, checkpoint, threads: int, runs: int, 
     for r in cells:
         click.echo(f"| {r.backend} | {r.p50_ms:.1f} | {batch * 1e3 / r.p50_ms:.1f} |")
     if as_json:
-        from ..bench import as_dicts
-        out = Path("benchmarks/results")
-        out.mkdir(parents=True, exist_ok=True)
-        path = out / f"{card.name}-{_dt.date.today().isoformat()}.json"
-        path.write_text(json.dumps({"model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(),
-                                    "date": stamp, "query": as_dicts(query), "top_k": top_k, "map_cells": len(index),
-                                    "cell_batches": as_dicts(cells), "cell_batch": batch,
-                                    "cells_per_s": {r.backend: batch * 1e3 / r.p50_ms for r in cells}}, indent=2))
+        from ..bench import as_dicts, write_results_json
+        path = write_results_json(card.name, {
+            "model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(), "date": stamp,
+            "query": as_dicts(query), "top_k": top_k, "map_cells": len(index), "cell_batches": as_dicts(cells),
+            "cell_batch": batch, "cells_per_s": {r.backend: batch * 1e3 / r.p50_ms for r in cells}})
         click.echo(f"wrote {path}")

@@ -36,11 +36,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..cards import ModelCard
+from ..config import config_from_dict
 from ..errors import CapacityError, ConfigError
 from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
 from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
-from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_features_reference
+from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_features_reference, scatter_pillars_reference
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -344,17 +345,14 @@ class MAFFNet(nn.Module):
         cfg = self.vfe.config
         nx, ny, _ = cfg.grid_size
         feats, coords = pillar_features_reference(self.vfe, points.numpy())
-        cells = torch.from_numpy(coords[:, 1] * nx + coords[:, 0])
-        canvas = torch.zeros(cfg.out_channels, ny * nx)
-        canvas[:, cells] = feats.T
-        canvas = canvas.reshape(cfg.out_channels, ny, nx)
+        canvas = scatter_pillars_reference(feats, coords, cfg)
         num = torch.tensor(len(coords), dtype=torch.int64)
         if self.map_to_bev_module is not None:
             if len(coords) > self.spa_config.capacity:
                 raise CapacityError(f"scan has {len(coords)} non-empty pillars; spa.capacity is "
                                     f"{self.spa_config.capacity}")
             occupied = torch.zeros(ny * nx, dtype=torch.bool)
-            occupied[cells] = True
+            occupied[torch.from_numpy(coords[:, 1] * nx + coords[:, 0])] = True
             canvas = sparse_pillar_attention_reference(self.map_to_bev_module.pillar_attention_rope, canvas, occupied)
         return canvas, num, torch.zeros((), dtype=torch.bool)
 
@@ -436,7 +434,6 @@ OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "n
 
 def read_anchors(card: ModelCard) -> list[AnchorClass]:
     """``dense_head.anchors`` as AnchorClass entries, with errors naming the entry."""
-    from ..config import config_from_dict
     raw = card.get("dense_head.anchors")
     if not isinstance(raw, list) or not raw:
         raise ConfigError(f"{card.where}: dense_head.anchors must be a non-empty list")
@@ -453,7 +450,6 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
     torch.manual_seed(int(card.get("seed", 0)))
     head = dict(card.get("dense_head", {}) or {})
     head.pop("anchors", None)
-    from ..config import config_from_dict
     model = MAFFNet(
         features=card.features,
         classes=list(card.get("classes", [])),

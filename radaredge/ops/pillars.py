@@ -200,11 +200,15 @@ def pillar_features_reference(net: PillarFeatureNet, points: np.ndarray, valid: 
     return net.encode(feats).max(1).values, coords
 
 
+def scatter_pillars_reference(features: torch.Tensor, coords: np.ndarray, config: PillarConfig) -> torch.Tensor:
+    """OpenPCDet's PointPillarScatter: pillar features [P, C] at coords (ix, iy, iz) -> canvas [C, ny, nx]."""
+    nx, ny, _ = config.grid_size
+    canvas = torch.zeros(features.shape[1], ny * nx)
+    canvas[:, torch.from_numpy(coords[:, 1] * nx + coords[:, 0])] = features.T
+    return canvas.reshape(features.shape[1], ny, nx)
+
+
 def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None) -> torch.Tensor:
     """Reference formulation: voxelize, PillarVFE on padded pillars as OpenPCDet, scatter. [C, ny, nx]."""
-    cfg = net.config
-    nx, ny, _ = cfg.grid_size
     pillar, coords = pillar_features_reference(net, points, valid)
-    canvas = torch.zeros(cfg.out_channels, ny * nx)
-    canvas[:, torch.from_numpy(coords[:, 1] * nx + coords[:, 0])] = pillar.T
-    return canvas.reshape(cfg.out_channels, ny, nx)
+    return scatter_pillars_reference(pillar, coords, net.config)
