@@ -203,21 +203,35 @@ def _print_parity(report):
     click.echo("PASSED" if report.passed else "FAILED")
 
 
-def _stage_table(spec, net, cases, runs: int, no_reference: bool) -> dict | None:
-    """Median seconds per pipeline stage in torch (export and reference formulations), printed."""
+def _stage_table(spec, net, cases, runs: int, no_reference: bool, onnx_path=None, threads: int = 2) -> dict | None:
+    """Median ms per pipeline stage in torch (export and reference formulations) and, when the
+    spec names its graph's stages, the mean ms per stage inside onnxruntime from its node
+    profile (a separate profiled session, so the timed runs above are not profiled); printed."""
     if spec.stage_times is None:
         return None
     import statistics
+    n = max(3, min(runs, 10))
     out = {}
     for label, ref in (("torch export", False), ("torch reference", True)):
         if ref and no_reference:
             continue
-        laps = [spec.stage_times(net, cases[i % len(cases)], ref) for i in range(max(3, min(runs, 10)))]
+        laps = [spec.stage_times(net, cases[i % len(cases)], ref) for i in range(n)]
         out[label] = {k: statistics.median(l[k] for l in laps) * 1e3 for k in laps[0]}
-    names = list(next(iter(out.values())))
-    click.echo("per-stage p50 ms (torch): " + " | ".join(names))
+    if spec.onnx_stages and onnx_path is not None:
+        import onnx
+
+        from .ort import make_session, run_session
+        from .ort_stages import stage_times_from_profile
+        session = make_session(onnx_path, threads=threads, profile=True)
+        for i in range(n):
+            run_session(session, cases[i % len(cases)])
+        out["onnxruntime"] = stage_times_from_profile(
+            session.end_profiling(), onnx.load(str(onnx_path), load_external_data=False),
+            list(spec.onnx_stages), spec.onnx_post_outputs, n)
+    names = list(dict.fromkeys(k for row in out.values() for k in row))
+    click.echo("per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names))
     for label, row in out.items():
-        click.echo(f"  {label:<16}" + "".join(f"{row[n]:>14.1f}" for n in names))
+        click.echo(f"  {label:<16}" + "".join(f"{row[k]:>14.1f}" if k in row else f"{'-':>14}" for k in names))
     return out
 
 
@@ -268,7 +282,7 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     if int8_r is not None:
         gain = ort_r.p50_ms / int8_r.p50_ms
         click.echo(f"int8 vs fp32: {gain:.2f}x" + ("  (int8 is SLOWER than fp32 on this CPU)" if gain < 1 else ""))
-    stages = _stage_table(model_spec(card), net, cases, runs, no_reference)
+    stages = _stage_table(model_spec(card), net, cases, runs, no_reference, onnx_path, threads)
     prof = None
     if profile:
         prof = top_ops(session.end_profiling())

@@ -170,6 +170,31 @@ def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     saved = json.loads(next((tmp_path / "benchmarks" / "results").glob("maffnet-tiny-*.json")).read_text())
     assert {r["backend"] for r in saved["results"]} == {"torch reference", "torch export", "onnxruntime"}
+    stages = ["VFE+SPA", "CFA", "CAF", "backbone+head", "NMS"]
     for formulation in ("torch export", "torch reference"):
-        assert list(saved["stage_ms"][formulation]) == ["VFE+SPA", "CFA", "CAF", "backbone+head", "NMS"]
+        assert list(saved["stage_ms"][formulation]) == stages
         assert all(v > 0 for v in saved["stage_ms"][formulation].values())
+    ort_stages = saved["stage_ms"]["onnxruntime"]
+    assert list(ort_stages)[:5] == stages and all(ort_stages[s] > 0 for s in stages)
+    assert set(ort_stages) - set(stages) <= {"layout reorders (onnxruntime)", "other (unmapped)"}
+    assert ort_stages.get("other (unmapped)", 0.0) < 0.05 * sum(ort_stages.values())
+    assert "onnxruntime" in res.output
+
+
+def test_onnx_nodes_attributed_to_stages(tiny_onnx):
+    """Every graph node lands in one MAFF-Net stage, by module scope or by graph position."""
+    import onnx
+    from radaredge.ort_stages import node_stages
+    model = onnx.load(str(tiny_onnx), load_external_data=False)
+    stage = node_stages(model, list(MAFFNET_SPEC.onnx_stages), MAFFNET_SPEC.onnx_post_outputs)
+    nodes = {n.name: n for n in model.graph.node}
+    assert set(stage) == set(nodes)
+    by_op = {}
+    for name, s in stage.items():
+        by_op.setdefault(nodes[name].op_type, set()).add(s)
+    assert by_op["Loop"] == {"NMS"}                               # the greedy fixed point
+    assert by_op["ConvTranspose"] == {"backbone+head"}             # the deblocks
+    assert "CFA" in by_op["MaxPool"]                               # GridDensityBEV's components
+    producers = {o: nodes[n] for n in nodes for o in nodes[n].output}
+    assert stage[producers["anchor_scores"].name] == "backbone+head"
+    assert stage[producers["boxes"].name] == "NMS"

@@ -117,4 +117,7 @@ MAFFNET_SPEC = ModelSpec(
     trace_order=trace_order,
     postprocess_reference=postprocess_reference,
     stage_times=lambda model, feeds, reference: stage_times(model, torch.as_tensor(feeds["points"]), reference),
+    onnx_stages=(("VFE+SPA", ("vfe", "map_to_bev_module")), ("CFA", ("image_backbone",)), ("CAF", ("fuser",)),
+                 ("backbone+head", ("backbone_2d", "dense_head")), ("NMS", ())),
+    onnx_post_outputs=("anchor_scores", "anchor_boxes"),
 )

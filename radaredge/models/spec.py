@@ -78,6 +78,10 @@ class ModelSpec:
     postprocess_reference: Callable | None = None
     # Optional: (model, feeds, reference) -> {stage name: seconds} for one run in torch.
     stage_times: Callable | None = None
+    # Optional: the same stages inside onnxruntime, as (stage name, module prefixes) in pipeline
+    # order, plus the graph outputs after which everything is the last stage (see ort_stages).
+    onnx_stages: tuple = ()
+    onnx_post_outputs: tuple = ()
 
     @property
     def output_names(self) -> list[str]:

@@ -1,0 +1,156 @@
+"""MAFF-Net's clustering-feature stage (upstream IMAGE_BACKBONE): GridDensityBEV vs the DBSCAN path.
+
+Times, on 2 pinned cores and interleaved per run (radaredge.bench.benchmark), the map that feeds
+the 3 -> 16 -> 32 -> 64 CNN and the whole stage (map + CNN), for:
+- CQCA_cfa as upstream runs it: sklearn DBSCAN on (x, y, v_r_comp), a per-point cluster-size
+  loop, a last-write-wins map (tests/references/dbscan_cfa.cqca_cfa_map), then the CNN in torch;
+- the same with the cluster sizes counted by np.unique (DBSCAN's best case);
+- GridDensityBEV in torch (radaredge's export formulation);
+- GridDensityBEV in onnxruntime (the map, and the stage, exported alone).
+Scans are synthetic VoD scans (one radar scan, and five scans merged as VoD's 5-frame clouds),
+restricted to the card's grid so the upstream indexing is valid.
+
+    .venv/bin/python benchmarks/cfa_speedup.py --runs 20     # prints a Markdown table, writes JSON
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from radaredge.bench import benchmark, cpu_name, pin_threads  # noqa: E402
+from radaredge.cards import load_card  # noqa: E402
+from radaredge.data.synthetic import generate_scan  # noqa: E402
+from radaredge.export import build_model  # noqa: E402
+from radaredge.models.maffnet_spec import synthetic_columns  # noqa: E402
+from radaredge.onnx_export import export_onnx  # noqa: E402
+from radaredge.ops.grid_density import GridDensityConfig  # noqa: E402
+from radaredge.ort import make_session  # noqa: E402
+from tests.references.dbscan_cfa import cqca_cfa_map  # noqa: E402
+
+
+class _MapOnly(torch.nn.Module):
+    def __init__(self, grid_density):
+        super().__init__()
+        self.gd = grid_density
+
+    def forward(self, xyv):
+        return self.gd(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))[0]
+
+
+class _Stage(torch.nn.Module):
+    def __init__(self, cfa):
+        super().__init__()
+        self.cfa = cfa
+
+    def forward(self, xyv):
+        bev = self.cfa.grid_density(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))[0]
+        return self.cfa.conv(bev.unsqueeze(0))
+
+
+def scans(g: GridDensityConfig, merged: int, count: int, seed: int) -> list[np.ndarray]:
+    """``count`` synthetic (x, y, v_r_comp) clouds inside grid ``g``, each ``merged`` scans concatenated."""
+    out = []
+    for i in range(count):
+        parts = []
+        for j in range(merged):
+            cols = synthetic_columns(generate_scan(seed=seed + 100 * i + j, num_cars=6, num_pedestrians=4,
+                                                   num_cyclists=3))
+            parts.append(np.stack([cols["x"], cols["y"], cols["v_r_comp"]], 1))
+        xyv = np.concatenate(parts).astype(np.float32)
+        inside = ((xyv[:, 0] >= g.x_min + 2 * g.resolution) & (xyv[:, 0] < g.x_min + g.map_w * g.resolution)
+                  & (xyv[:, 1] >= g.y_min + 2 * g.resolution) & (xyv[:, 1] < g.y_min + g.map_h * g.resolution))
+        out.append(np.ascontiguousarray(xyv[inside]))
+    return out
+
+
+def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", count: int = 4,
+        merges=(1, 5)) -> dict:
+    cores = pin_threads(threads)
+    card = load_card(card_name)
+    model = build_model(card)
+    cfa = model.image_backbone
+    g = cfa.grid_density.config
+    kw = dict(eps=g.eps, min_samples=g.min_density, max_cluster_size=g.max_density, map_h=g.map_h,
+              map_w=g.map_w, resolution=g.resolution, y_offset=-g.y_min)
+    tmp = Path(tempfile.mkdtemp())
+    example = torch.zeros(50, 3)
+    export_onnx(_MapOnly(cfa.grid_density), (example,), tmp / "map.onnx", ["xyv"], ["map"], {"xyv": {0: "n"}})
+    export_onnx(_Stage(cfa), (example,), tmp / "stage.onnx", ["xyv"], ["features"], {"xyv": {0: "n"}})
+    map_session = make_session(tmp / "map.onnx", threads=threads)
+    stage_session = make_session(tmp / "stage.onnx", threads=threads)
+
+    def cnn(bev):
+        return cfa.conv(bev.unsqueeze(0))
+
+    def gd(xyv):
+        return cfa.grid_density(torch.from_numpy(xyv), torch.ones(len(xyv), dtype=torch.bool))[0]
+
+    map_backends = {
+        "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cqca_cfa_map(f["xyv"], **kw),
+        "CQCA_cfa: DBSCAN + np.unique counts": lambda f: cqca_cfa_map(f["xyv"], vectorised=True, **kw),
+        "GridDensityBEV, torch": lambda f: gd(f["xyv"]),
+        "GridDensityBEV, onnxruntime": lambda f: map_session.run(None, {"xyv": f["xyv"]}),
+    }
+    stage_backends = {
+        "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cnn(cqca_cfa_map(f["xyv"], **kw)[0]),
+        "CQCA_cfa: DBSCAN + np.unique counts": lambda f: cnn(cqca_cfa_map(f["xyv"], vectorised=True, **kw)[0]),
+        "GridDensityBEV, torch": lambda f: cnn(gd(f["xyv"])),
+        "GridDensityBEV, onnxruntime": lambda f: stage_session.run(None, {"xyv": f["xyv"]}),
+    }
+    rows = []
+    with torch.no_grad():
+        for merged in merges:
+            clouds = [{"xyv": c} for c in scans(g, merged, count, seed=7)]
+            points = int(np.median([len(c["xyv"]) for c in clouds]))
+            for part, backends in (("map", map_backends), ("map + CNN", stage_backends)):
+                for r in benchmark(backends, clouds, runs, warmup):
+                    rows.append({"scans": merged, "points": points, "part": part, "backend": r.backend,
+                                 "p50_ms": r.p50_ms, "p90_ms": r.p90_ms})
+    base = {(r["scans"], r["part"]): r["p50_ms"] for r in rows if r["backend"].endswith("(upstream)")}
+    for r in rows:
+        r["speedup_vs_upstream"] = base[(r["scans"], r["part"])] / r["p50_ms"]
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": stamp,
+            "rows": rows}
+
+
+def table(result: dict) -> str:
+    lines = ["| cloud | part | backend | p50 ms | x vs upstream |", "|---|---|---|---:|---:|"]
+    for r in result["rows"]:
+        cloud = f"{r['scans']} scan{'s' if r['scans'] > 1 else ''}, {r['points']} pts"
+        lines.append(f"| {cloud} | {r['part']} | {r['backend']} | {r['p50_ms']:.2f} | {r['speedup_vs_upstream']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--card", default="maffnet-vod")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = ap.parse_args(argv)
+    result = run(args.runs, args.warmup, args.threads, args.card)
+    print(f"{args.card}: clustering-feature stage on {args.threads} thread(s), cores {result['cores']}, "
+          f"{result['cpu']}, {args.runs} runs, {result['date']}")
+    print(table(result))
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / f"cfa-speedup-{datetime.date.today().isoformat()}.json"
+    path.write_text(json.dumps(result, indent=2))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
