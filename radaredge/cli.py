@@ -183,7 +183,11 @@ def _print_parity(report):
                f"{s['min_iou']:.7f}" if s.get("min_iou") is not None else "-")
         click.echo(f"{name:<24}{s['kind']:<12}{s['max_abs']:>11.3g}{s['max_rel']:>11.3g}{s['p99_abs']:>11.3g}"
                    f"{cos:>12}  {'PASSED' if s['passed'] else 'FAILED'}  tol {s['tolerance']}")
-        if s["kind"] == "boxes":
+        if s["kind"] == "boxes" and s.get("recall") is not None:
+            click.echo(f"{'':<24}boxes: end to end vs the full reference; matched-box recall {s['recall'] * 100:.1f} % "
+                       f"(needs >= {s['tolerance']['min_recall'] * 100:.0f} % at IoU >= {s['tolerance']['min_iou']}); "
+                       f"max abs = score diff, max rel = box coordinate diff")
+        elif s["kind"] == "boxes":
             e = s.get("end_to_end")
             click.echo(f"{'':<24}boxes: the graph's NMS vs the reference NMS on the graph's anchor outputs; "
                        f"max abs = score diff, max rel = box coordinate diff, {s['mismatches']} unmatched")

@@ -112,6 +112,13 @@ def test_nms_onnx_matches_reference(onnx_roundtrip):
     boxes, scores = next(_nms_cases(rng))
     rt = onnx_roundtrip(_Nms(config), {"boxes": torch.tensor(boxes), "scores": torch.tensor(scores)}, ["selected"],
                         {"boxes": {0: "anchors"}, "scores": {0: "anchors"}})
-    for boxes, scores in list(_nms_cases(rng)) + [(random_boxes(rng, 50), np.full(50, 0.05, np.float32))]:
+    few = []                                        # 0, 1 and 2 boxes above the threshold: the data-dependent
+    for n_above in (0, 1, 2):                       # candidate count may not break the graph's shapes
+        sc = np.full(60, 0.05, np.float32)
+        sc[rng.choice(60, n_above, replace=False)] = 0.9
+        few.append((random_boxes(rng, 60), sc))
+    cluster = random_boxes(rng, 300, spread=1.0)    # a dense head: hundreds of overlapping boxes
+    few.append((cluster, rng.random(300).astype(np.float32)))
+    for boxes, scores in list(_nms_cases(rng)) + few:
         _, got = rt({"boxes": torch.tensor(boxes), "scores": torch.tensor(scores)})
         assert got["selected"].tolist() == class_agnostic_nms_reference(boxes, scores, config).tolist()

@@ -62,3 +62,30 @@ def test_quantised_graph_is_not_the_fp32_graph(int8):
     assert 0.99 <= float(da @ db) < 1.0 - 1e-7
     np.testing.assert_array_equal(a.run(frames, feeds["timestamps"])["ego_velocity"],
                                   b.run(frames, feeds["timestamps"])["ego_velocity"])
+
+
+def _boxes(n, shift=0.0):
+    b = np.zeros((n, 7), np.float32)
+    b[:, 0] = np.arange(n) * 10.0 + shift
+    b[:, 3:6] = (3.9, 1.6, 1.56)
+    return b
+
+
+@pytest.mark.parametrize("found, passed", [(19, True), (18, False)])
+def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
+    """The int8 budget for detections: >= 95 % of the reference boxes matched (IoU >= 0.5, same
+    label) over all cases together; a moved box (IoU < 0.5) and a missing box both count as missed."""
+    from radaredge.models.spec import OutputSpec
+    from radaredge.parity import compare, summarise
+    spec = OutputSpec("boxes", "boxes", group=("scores", "labels")).quantized()
+    assert spec.min_recall == 0.95 and spec.min_iou == 0.5
+    ref = _boxes(10)
+    cases = []
+    for k, n in enumerate((10, found - 10)):         # case 0 finds all 10, case 1 finds n of 10
+        got = ref.copy()
+        got[:, 0] += 0.2                              # a small shift still matches
+        got[n:, 0] += 3.0                             # moved beyond IoU 0.5: missed
+        c = compare(spec, (got, np.full(10, 0.3), np.ones(10)), (ref, np.full(10, 0.5), np.ones(10)))
+        cases.append({"case": str(k), "outputs": {"boxes": c.__dict__}})
+    s = summarise([spec], cases)["boxes"]
+    assert s["recall"] == pytest.approx(found / 20) and s["passed"] is passed

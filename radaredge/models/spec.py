@@ -23,8 +23,10 @@ class OutputSpec:
     ``grouped`` and judged with it).
 
     For an int8 graph (:meth:`quantized`) descriptors are held to ``quantized_min_cosine``,
-    outputs marked ``quantized_info`` are reported only, and the rest keep their tolerances
-    (they come from the fp32 preprocessing that quantisation does not touch).
+    detections to a matched-box recall of ``quantized_min_recall`` against the full reference at
+    IoU >= ``quantized_min_iou`` (same label; scores reported, not judged), outputs marked
+    ``quantized_info`` are reported only, and the rest keep their tolerances (they come from the
+    fp32 preprocessing that quantisation does not touch).
     """
 
     name: str
@@ -38,6 +40,10 @@ class OutputSpec:
     group: tuple = ()            # ``boxes``: the names of its scores and labels outputs
     min_iou: float = 0.99        # ``boxes``: matched rotated BEV IoU
     max_score_diff: float = 1e-4  # ``boxes``: |score - matched reference score|
+    min_recall: float | None = None  # ``boxes``: if set, judge the share of reference boxes matched over
+    #                                  the case set (end to end) instead of requiring every box matched
+    quantized_min_recall: float = 0.95   # ``boxes`` int8 budget: matched-box recall over the case set
+    quantized_min_iou: float = 0.5       # ``boxes`` int8 budget: IoU (same label) that counts as a match
     angle_column: int = -1       # ``dense``: last-axis column holding an angle compared modulo angle_period
     angle_period: float = 0.0
 
@@ -45,6 +51,9 @@ class OutputSpec:
         """The budget this output is held to when the graph is int8-quantised."""
         if self.kind == "descriptor":
             return replace(self, min_cosine=self.quantized_min_cosine)
+        if self.kind == "boxes":
+            return replace(self, min_iou=self.quantized_min_iou, min_recall=self.quantized_min_recall,
+                           max_score_diff=float("inf"))
         if self.quantized_info:
             return replace(self, kind="info")
         return self

@@ -9,9 +9,11 @@ What it computes for per-anchor boxes [A, 7] (OpenPCDet layout, metres / radians
 4. the first ``post_max`` kept boxes.
 Returns the selected anchor indices in that order.
 
-Export formulation (:func:`class_agnostic_nms`): fixed-shape top-k; IoU only for the pairs
-whose circumscribed circles overlap (the others have IoU 0), gathered with NonZero; the greedy
-walk as its fixed point: keep[j] = valid[j] and no kept i < j suppresses j. Iterating that map
+Export formulation (:func:`class_agnostic_nms`): fixed-shape top-k, then only the candidates
+above the threshold (a prefix of the top-k list, taken with NonZero, plus 8 invalid padding
+rows so no size is ever 0 or 1), so the pairwise work follows the number of boxes that pass the
+threshold, not ``pre_max``; IoU only for the pairs whose axis-aligned bounding rectangles
+overlap (the others have IoU 0), gathered with NonZero; the greedy walk as its fixed point: keep[j] = valid[j] and no kept i < j suppresses j. Iterating that map
 from "all valid" settles index j after at most j + 1 rounds and stops at the first round that
 changes nothing, which is exactly the greedy result (entry j depends only on entries before
 it, so the fixed point is unique). The loop is a ``torch.while_loop`` (an ONNX ``Loop``); its
@@ -49,14 +51,21 @@ class NmsConfig:
 
 
 def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: float) -> torch.Tensor:
-    """S [K, K] float: S[i, j] = 1 when i < j, both valid and IoU(i, j) > iou_thresh."""
+    """S [K, K] float: S[i, j] = 1 when i < j, both valid and IoU(i, j) > iou_thresh.
+
+    Only pairs whose axis-aligned bounding rectangles overlap (half extents grown by 1 mm, so
+    float32 rounding cannot drop a touching pair) get an IoU; a rotated box lies inside its
+    bounding rectangle, so every other pair has IoU 0.
+    """
     k = boxes.shape[0]
-    centre = boxes[:, :2]
-    radius = 0.5 * torch.linalg.vector_norm(boxes[:, 3:5], dim=1)
-    d2 = ((centre.unsqueeze(1) - centre.unsqueeze(0)) ** 2).sum(-1)
-    reach = (radius.unsqueeze(1) + radius.unsqueeze(0)) ** 2
+    c, s = torch.cos(boxes[:, 6]).abs(), torch.sin(boxes[:, 6]).abs()
+    ex = 0.5 * (boxes[:, 3] * c + boxes[:, 4] * s) + 1e-3                    # half extents along x, y (m)
+    ey = 0.5 * (boxes[:, 3] * s + boxes[:, 4] * c) + 1e-3
+    x, y = boxes[:, 0], boxes[:, 1]
     idx = torch.arange(k)
-    candidate = (d2 <= reach) & (idx.unsqueeze(1) < idx.unsqueeze(0)) & valid.unsqueeze(1) & valid.unsqueeze(0)
+    candidate = ((x.unsqueeze(1) - x.unsqueeze(0)).abs() <= ex.unsqueeze(1) + ex.unsqueeze(0))
+    candidate &= (y.unsqueeze(1) - y.unsqueeze(0)).abs() <= ey.unsqueeze(1) + ey.unsqueeze(0)
+    candidate &= (idx.unsqueeze(1) < idx.unsqueeze(0)) & valid.unsqueeze(1) & valid.unsqueeze(0)
     # P candidate pairs (data-dependent) plus 8 dummy pairs (0, 0) written to a spare slot: the
     # exported graph never sees fewer than 8 pairs (torch.export assumes a data-dependent size
     # is not 0 or 1 when it decides broadcasts, which broke scans with almost no candidates).
@@ -96,8 +105,11 @@ def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsCon
     key = torch.where(above, scores.to(torch.float64), torch.full_like(scores, -1.0, dtype=torch.float64))
     key = key - torch.arange(a, dtype=torch.float64) * step
     order = torch.topk(key, min(config.pre_max, a)).indices
-    valid = above[order]
-    cand = boxes[order]
+    # The boxes above the threshold come first in ``order``; keep only them (n, data-dependent)
+    # plus 8 invalid padding rows, so the K x K work is (n + 8)^2 rather than pre_max^2.
+    order = order[torch.nonzero(above[order]).squeeze(1)]                      # [n]
+    cand = torch.cat([boxes[order], torch.zeros(8, 7, dtype=boxes.dtype)])
+    valid = torch.cat([torch.ones_like(order, dtype=torch.bool), torch.zeros(8, dtype=torch.bool)])
     keep = greedy_keep(suppression_matrix(cand, valid, config.iou_thresh), valid)
     rank = torch.nonzero(keep).squeeze(1)[: config.post_max]
     return order[rank]
