@@ -34,11 +34,12 @@ def test_suite_writes_table_json_and_chart(tmp_path, monkeypatch, tiny_export):
     export_dir = tmp_path / "export"          # a copy: the suite adds an int8 graph beside it
     export_dir.mkdir()
     shutil.copy(tiny_export[2], export_dir / "tdfanet-tiny.onnx")
-    assert suite.main(["--models", "tdfanet-tiny", "--runs", "2", "--export-dir", str(export_dir),
+    assert suite.main(["--models", "tdfanet-tiny", "maffnet-tiny", "--runs", "2", "--export-dir", str(export_dir),
                        "--out", str(tmp_path / "bench")]) == 0
     table = (tmp_path / "bench" / "README.md").read_text()
-    for backend in ("torch reference", "torch export", "onnxruntime", "onnxruntime int8"):
-        assert f"| tdfanet-tiny | {backend} |" in table
+    for model in ("tdfanet-tiny", "maffnet-tiny"):             # maffnet-tiny is exported and quantised by the suite
+        for backend in ("torch reference", "torch export", "onnxruntime", "onnxruntime int8"):
+            assert f"| {model} | {backend} |" in table
     assert (tmp_path / "bench" / "suite.png").stat().st_size > 1000
     data = json.loads(next((tmp_path / "bench" / "results").glob("suite-*.json")).read_text())
     row = data["models"][0]

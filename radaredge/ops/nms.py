@@ -82,7 +82,11 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
 
 
 def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """Greedy NMS over a score-sorted list as a fixed point: keep [K] bool (see module docstring)."""
+    """Greedy NMS over a score-sorted list as a fixed point: keep [K] bool (see module docstring).
+
+    While exporting, the iteration is a ``torch.while_loop`` (an ONNX ``Loop``); in eager torch
+    the same rounds run as a plain loop (an eager ``while_loop`` would go through torch.compile,
+    which recompiles as the candidate count changes from scan to scan)."""
     def not_done(keep, changed):
         return changed.clone()
 
@@ -91,8 +95,12 @@ def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         new = valid & ~hit
         return new, (new != keep).any()
 
-    keep, _ = while_loop(not_done, step, (valid.clone(), torch.ones((), dtype=torch.bool)))
-    return keep
+    state = (valid.clone(), torch.ones((), dtype=torch.bool))
+    if torch.compiler.is_exporting():
+        return while_loop(not_done, step, state)[0]
+    while bool(not_done(*state)):
+        state = step(*state)
+    return state[0]
 
 
 def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsConfig) -> torch.Tensor:
