@@ -65,9 +65,15 @@ def _weighted_sum(samples: list[torch.Tensor], attention_weights: torch.Tensor) 
 def ms_deform_attn(value: torch.Tensor, spatial_shapes, sampling_locations: torch.Tensor,
                    attention_weights: torch.Tensor) -> torch.Tensor:
     """Export formulation of multi-scale deformable attention -> [N, Lq, M*D] (module docstring)."""
-    shapes = _level_shapes(spatial_shapes, value, sampling_locations)
-    n, lq, m, _, p, _ = sampling_locations.shape
-    grids = 2.0 * sampling_locations - 1.0                                           # grid_sample's [-1, 1]
+    return ms_deform_attn_grid(value, spatial_shapes, 2.0 * sampling_locations - 1.0, attention_weights)
+
+
+def ms_deform_attn_grid(value: torch.Tensor, spatial_shapes, grids: torch.Tensor,
+                        attention_weights: torch.Tensor) -> torch.Tensor:
+    """:func:`ms_deform_attn` with the locations already in grid_sample's [-1, 1] coordinates
+    (grid = 2 * location - 1), shaped like ``sampling_locations``."""
+    shapes = _level_shapes(spatial_shapes, value, grids)
+    n, lq, m, _, p, _ = grids.shape
     samples = []
     for level, image in enumerate(_level_maps(value, shapes)):
         grid = grids[:, :, :, level].transpose(1, 2).reshape(n * m, lq, p, 2)
@@ -136,10 +142,20 @@ class MSDeformAttn(nn.Module):
         if padding_mask is not None:
             value = value.masked_fill(padding_mask[..., None], 0.0)
         value = value.reshape(n, value.shape[1], m, self.d_model // m)
-        offsets = self.sampling_offsets(query).reshape(n, lq, m, levels, p, 2)
         weights = self.attention_weights(query).reshape(n, lq, m, levels * p).softmax(-1)
         weights = weights.reshape(n, lq, m, levels, p)
         size_xy = torch.tensor([[w, h] for h, w in _shape_list(spatial_shapes)], dtype=query.dtype)  # [L, 2]
-        locations = reference_points[:, :, None, :, None, :] + offsets / size_xy[:, None, :]
-        sample = ms_deform_attn_reference if reference else ms_deform_attn
-        return self.output_proj(sample(value, spatial_shapes, locations, weights))
+        if reference:
+            offsets = self.sampling_offsets(query).reshape(n, lq, m, levels, p, 2)
+            locations = reference_points[:, :, None, :, None, :] + offsets / size_xy[:, None, :]
+            return self.output_proj(ms_deform_attn_reference(value, spatial_shapes, locations, weights))
+        # The same locations in grid_sample coordinates, 2 * (ref + offset / size) - 1: the factor
+        # 2 / size per output column folds into the offset projection's weights (constants at
+        # export), so the graph has no broadcast divide over every sample.
+        scale = (2.0 / size_xy).view(1, levels, 1, 2).expand(m, levels, p, 2).reshape(-1)
+        offsets = F.linear(query, self.sampling_offsets.weight * scale[:, None], self.sampling_offsets.bias * scale)
+        # reference grid laid out like the offset columns, [N or 1, Lq, M*L*P*2], so the add
+        # broadcasts over whole rows only (a broadcast over an inner axis of 2 is slow in onnxruntime)
+        ref_grid = (2.0 * reference_points - 1.0)[:, :, None, :, None, :].expand(-1, -1, m, -1, p, -1)
+        grids = (ref_grid.reshape(ref_grid.shape[0], lq, -1) + offsets).reshape(n, lq, m, levels, p, 2)
+        return self.output_proj(ms_deform_attn_grid(value, spatial_shapes, grids, weights))
