@@ -42,7 +42,7 @@ def test_iou_known_values():
     # unit square vs the same square rotated 45 deg: overlap = regular octagon of area 2(sqrt(2)-1)
     octagon = 2 * (math.sqrt(2) - 1)
     assert bev_iou_reference(unit, diamond) == pytest.approx(octagon / (2 - octagon))
-    got = bev_iou_paired(torch.tensor([unit, unit]), torch.tensor([half, diamond])).numpy()
+    got = bev_iou_paired(torch.from_numpy(np.stack([unit, unit])), torch.from_numpy(np.stack([half, diamond]))).numpy()
     np.testing.assert_allclose(got, [1 / 3, octagon / (2 - octagon)], atol=1e-4)    # float32: tol x perimeter
 
 

@@ -29,9 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch._higher_order_ops.while_loop import while_loop
 
 from .box_iou import bev_iou_paired, bev_iou_reference
+from .loops import fixed_point_loop
 
 
 @dataclass(frozen=True)
@@ -84,9 +84,7 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
 def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Greedy NMS over a score-sorted list as a fixed point: keep [K] bool (see module docstring).
 
-    While exporting, the iteration is a ``torch.while_loop`` (an ONNX ``Loop``); in eager torch
-    the same rounds run as a plain loop (an eager ``while_loop`` would go through torch.compile,
-    which recompiles as the candidate count changes from scan to scan)."""
+    The rounds run in :func:`radaredge.ops.loops.fixed_point_loop` (an ONNX ``Loop`` once exported)."""
     def not_done(keep, changed):
         return changed.clone()
 
@@ -95,12 +93,7 @@ def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         new = valid & ~hit
         return new, (new != keep).any()
 
-    state = (valid.clone(), torch.ones((), dtype=torch.bool))
-    if torch.compiler.is_exporting():
-        return while_loop(not_done, step, state)[0]
-    while bool(not_done(*state)):
-        state = step(*state)
-    return state[0]
+    return fixed_point_loop(not_done, step, (valid.clone(), torch.ones((), dtype=torch.bool)))[0]
 
 
 def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsConfig) -> torch.Tensor:
