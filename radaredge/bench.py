@@ -116,6 +116,38 @@ def results_table(results: list[BackendResult], baseline: str = "torch reference
     return "\n".join(lines)
 
 
+_RSS_CHILD = """
+import resource, sys
+import numpy as np
+from radaredge.ort import make_session, run_session
+session = make_session(sys.argv[1], threads=int(sys.argv[3]))
+cases = np.load(sys.argv[2])
+names = sorted({k.split("/", 1)[1] for k in cases.files})
+count = len({k.split("/", 1)[0] for k in cases.files})
+for i in range(count):
+    run_session(session, {n: cases[f"{i}/{n}"] for n in names})
+try:      # this process's own high-water mark; ru_maxrss can carry the parent's size across fork + exec
+    print(next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:")))
+except OSError:
+    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+def onnxruntime_peak_rss_mb(onnx_path, cases: list[dict], threads: int) -> float:
+    """Peak resident memory (MiB) of a fresh process that only loads ``onnx_path`` in onnxruntime
+    (numpy + onnxruntime, no torch) and runs every case once: what an embedded app would need."""
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = Path(tmp) / "cases.npz"
+        np.savez(npz, **{f"{i}/{k}": v for i, feeds in enumerate(cases) for k, v in feeds.items()})
+        done = subprocess.run([sys.executable, "-c", _RSS_CHILD, str(onnx_path), str(npz), str(threads)],
+                              capture_output=True, text=True, check=True)
+    return int(done.stdout.split()[-1]) / 1024.0          # VmHWM and Linux ru_maxrss are in KiB
+
+
 def top_ops(profile_file: str, k: int = 10) -> list[tuple[str, float]]:
     """Top ``k`` op types by total time (ms) from an onnxruntime profile JSON."""
     events = json.load(open(profile_file))

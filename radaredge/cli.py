@@ -256,8 +256,8 @@ def _stage_table(spec, net, cases, runs: int, no_reference: bool, onnx_path=None
 @_friendly_errors
 def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
-    from .bench import (as_dicts, benchmark, cpu_name, model_backends, pin_threads, results_table, top_ops,
-                        write_results_json)
+    from .bench import (as_dicts, benchmark, cpu_name, model_backends, onnxruntime_peak_rss_mb, pin_threads,
+                        results_table, top_ops, write_results_json)
     from .export import build_model, export_model
     from .registry import model_spec
     card = _card(model, config)
@@ -287,6 +287,9 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
         gain = ort_r.p50_ms / int8_r.p50_ms
         click.echo(f"int8 vs fp32: {gain:.2f}x" + ("  (int8 is SLOWER than fp32 on this CPU)" if gain < 1 else ""))
     stages = _stage_table(model_spec(card), net, cases, runs, no_reference, onnx_path, threads)
+    peak_rss = onnxruntime_peak_rss_mb(onnx_path, cases, threads)
+    click.echo(f"onnxruntime peak RSS: {peak_rss:.0f} MiB (a separate numpy + onnxruntime process running "
+               f"the {len(cases)} bench inputs once)")
     prof = None
     if profile:
         prof = top_ops(session.end_profiling())
@@ -296,7 +299,8 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     if as_json:
         path = write_results_json(card.name, {
             "model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": stamp,
-            "results": as_dicts(results), "onnxruntime_speedup": ratios, "top_ops": prof, "stage_ms": stages})
+            "results": as_dicts(results), "onnxruntime_speedup": ratios, "top_ops": prof, "stage_ms": stages,
+            "onnxruntime_peak_rss_mib": peak_rss})
         click.echo(f"wrote {path}")
 
 
