@@ -8,17 +8,17 @@ from .cards import ModelCard
 from .errors import ConfigError
 
 
-def _tdfanet():
+def _tdfanet(card=None):
     from .models.tdfanet_spec import TDFANET_SPEC
     return TDFANET_SPEC
 
 
-def _maffnet():
-    from .models.maffnet_spec import MAFFNET_SPEC
-    return MAFFNET_SPEC
+def _maffnet(card=None):
+    from .models.maffnet_spec import spec_for
+    return spec_for(card)          # a card with stage_two gets the two-stage graph's spec
 
 
-def _des4pos():
+def _des4pos(card=None):
     from .models.des4pos_spec import DES4POS_SPEC
     return DES4POS_SPEC
 
@@ -34,9 +34,10 @@ def model_spec(card: ModelCard):
     """The :class:`radaredge.models.spec.ModelSpec` (one graph) or
     :class:`radaredge.models.spec.BundleSpec` (several graphs) of ``card``'s model."""
     try:
-        return MODELS[card.model]()
+        entry = MODELS[card.model]
     except KeyError:
         raise ConfigError(f"{card.where}: unknown model {card.model!r}; known: {sorted(MODELS)}") from None
+    return entry(card)
 
 
 def is_bundle(card: ModelCard) -> bool:

@@ -70,3 +70,19 @@ def tiny_export(tmp_path_factory):
     export_model(card, d / "tdfanet-tiny.onnx", model=model)
     export_model(card, d / "tdfanet-tiny.debug.onnx", model=model, debug=True)
     return card, model, d / "tdfanet-tiny.onnx", d / "tdfanet-tiny.debug.onnx"
+
+
+def invoke(*args):
+    """Run the radaredge CLI in-process (click's runner); exceptions propagate."""
+    from click.testing import CliRunner
+
+    from radaredge.cli import main
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+def export_with_cli(out_dir: Path, model: str, config: Path) -> Path:
+    """``radaredge export --model MODEL --config CONFIG`` into out_dir/MODEL.onnx; the path."""
+    path = Path(out_dir) / f"{model}.onnx"
+    res = invoke("export", "--model", model, "--config", config, "--output", path)
+    assert res.exit_code == 0, res.output
+    return path

@@ -9,16 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
 from radaredge import runtime
 from radaredge.cards import load_card
-from radaredge.cli import main
 from radaredge.errors import CapacityError, ConfigError
 from radaredge.export import build_model, load_checkpoint
 from radaredge.models.maffnet import HeadConfig, decode_boxes
 from radaredge.models.maffnet_spec import MAFFNET_SPEC
-from conftest import assert_close
+from conftest import assert_close, export_with_cli, invoke
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
@@ -108,16 +106,9 @@ def test_tiny_export_formulation_equals_reference():
         assert int(e["num_pillars"]) == int(r["num_pillars"]) > 0 or name.endswith("3-points")
 
 
-def invoke(*args):
-    return CliRunner().invoke(main, list(args), catch_exceptions=False)
-
-
 @pytest.fixture(scope="module")
 def tiny_onnx(tmp_path_factory):
-    path = tmp_path_factory.mktemp("maffnet") / "maffnet-tiny.onnx"
-    res = invoke("export", "--model", "maffnet-tiny", "--config", str(TINY), "--output", str(path))
-    assert res.exit_code == 0, res.output
-    return path
+    return export_with_cli(tmp_path_factory.mktemp("maffnet"), "maffnet-tiny", TINY)
 
 
 def test_tiny_parity_and_runtime(tiny_onnx):

@@ -11,7 +11,10 @@ Pipeline for one radar scan (points [N, F], columns as the card names them, rada
 5. backbone_2d: OpenPCDet's BaseBEVBackbone; dense_head: AnchorHeadSingle (class, box and
    direction 1x1 convs), residual box decoding with the direction bin;
 6. post-processing: sigmoid scores, best class per anchor, score threshold and class-agnostic
-   rotated NMS (:mod:`radaredge.ops.nms`).
+   rotated NMS (:mod:`radaredge.ops.nms`);
+   or, for a card with ``stage_two``, the PV-RCNN-style second stage instead
+   (:mod:`radaredge.models.maffnet_rcnn`: proposals, CDA keypoints, VSA, point head, ROI head,
+   final NMS), whose refined detections are then ``boxes``/``scores``/``labels``.
 
 Module names follow upstream's state-dict keys (``vfe.pfn_layers.0.linear.weight``,
 ``map_to_bev_module.pillar_attention_rope.q_mlp.weight``, ``image_backbone.conv.0.weight``,
@@ -42,6 +45,7 @@ from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_b
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
 from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
 from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_features_reference, scatter_pillars_reference
+from . import maffnet_rcnn as two
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -299,7 +303,7 @@ class MAFFNet(nn.Module):
 
     def __init__(self, features: list[str], classes: list[str], pillars: PillarConfig, spa: SpaConfig,
                  cfa: CfaConfig, grid: GridDensityConfig, caf: CafConfig, backbone: BackboneConfig,
-                 head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig):
+                 head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig, stage_two=None):
         super().__init__()
         if features[:3] != ["x", "y", "z"]:
             raise ConfigError(f"features must start with x, y, z; got {features}")
@@ -324,6 +328,10 @@ class MAFFNet(nn.Module):
         self.dense_head = AnchorHeadSingle(self.backbone_2d.num_bev_features, per_loc, len(classes), head)
         self.register_buffer("anchors", generate_anchors(anchors, pillars.point_cloud_range, (nx, ny)),
                              persistent=False)
+        self.stage_two_config = stage_two          # StageTwoConfig or None (stage one only)
+        if stage_two is not None:
+            r, v = pillars.point_cloud_range, pillars.voxel_size
+            two.build_stage_two(self, stage_two, len(features) - 3, pillars.out_channels, (r[0], r[1]), (v[0], v[1]))
 
     def init_kaiming(self) -> None:
         """He-normal (fan_out, ReLU) weights for every conv before the head, so an untrained
@@ -357,20 +365,21 @@ class MAFFNet(nn.Module):
         return canvas, num, torch.zeros((), dtype=torch.bool)
 
     def cfa_stage(self, points: torch.Tensor, reference: bool):
-        """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool)."""
+        """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool, cluster_points [N] bool
+        = GridDensityBEV's point mask, the points of non-noise cells)."""
         xyv = torch.stack([points[:, 0], points[:, 1], points[:, self.velocity_index]], 1)
         gd = self.image_backbone.grid_density
         if reference:
-            bev, _, converged = grid_density_bev_reference(xyv.numpy(), np.ones(len(xyv), bool), gd.config)
-            bev, converged = torch.from_numpy(bev), torch.tensor(converged)
+            bev, mask, converged = grid_density_bev_reference(xyv.numpy(), np.ones(len(xyv), bool), gd.config)
+            bev, mask, converged = torch.from_numpy(bev), torch.from_numpy(mask), torch.tensor(converged)
         else:
-            bev, _, converged = gd(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))
-        return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged
+            bev, mask, converged = gd(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))
+        return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged, mask
 
     def head_stage(self, fused: torch.Tensor):
-        """Backbone + head + decoding: (scores [A, classes] after sigmoid, boxes [A, 7])."""
+        """Backbone + head + decoding: (class logits [A, classes], boxes [A, 7])."""
         cls, box, direction = self.dense_head(self.backbone_2d(fused))
-        return torch.sigmoid(cls), decode_boxes(box, self.anchors, direction, self.head_config)
+        return cls, decode_boxes(box, self.anchors, direction, self.head_config)
 
     def postprocess(self, scores: torch.Tensor, boxes: torch.Tensor, reference: bool):
         """Best class per anchor, threshold, NMS: (boxes [M, 7], scores [M], labels [M] 1-based)."""
@@ -385,26 +394,32 @@ class MAFFNet(nn.Module):
     def forward(self, points: torch.Tensor):
         """Export formulation: points [N, F] -> (boxes [M, 7], scores [M], labels [M] int64 1-based,
         anchor_scores [A, classes], anchor_boxes [A, 7], num_pillars [] int64, spa_overflow [] bool,
-        cfa_converged [] bool)."""
+        cfa_converged [] bool), then with stage two the STAGE_TWO_OUTPUTS; boxes, scores and labels
+        are then the refined detections."""
         out = self.run(points)
-        return tuple(out[k] for k in OUTPUT_NAMES)
+        return tuple(out[k] for k in output_names(self.stage_two_config is not None))
 
     def run(self, points: torch.Tensor, reference: bool = False, trace: dict | None = None) -> dict[str, torch.Tensor]:
         """Both formulations; ``trace`` (a dict) receives intermediates for divergence reports."""
         pillar, num_pillars, overflow = self.pillar_stage(points, reference)
-        cfa, cfa_map, converged = self.cfa_stage(points, reference)
+        cfa, cfa_map, converged, cluster = self.cfa_stage(points, reference)
         fused = self.fuser(pillar.unsqueeze(0), cfa)
-        scores, boxes = self.head_stage(fused)
-        final_boxes, final_scores, labels = self.postprocess(scores, boxes, reference)
+        logits, boxes = self.head_stage(fused)
+        scores = torch.sigmoid(logits)
         if trace is not None:
             trace.update(pillar_bev=pillar, cfa_map=cfa_map, cfa_features=cfa, fused=fused)
-        return {"boxes": final_boxes, "scores": final_scores, "labels": labels, "anchor_scores": scores,
-                "anchor_boxes": boxes, "num_pillars": num_pillars, "spa_overflow": overflow,
-                "cfa_converged": converged}
+        out = {"anchor_scores": scores, "anchor_boxes": boxes, "num_pillars": num_pillars, "spa_overflow": overflow,
+               "cfa_converged": converged}
+        if self.stage_two_config is None:
+            out["boxes"], out["scores"], out["labels"] = self.postprocess(scores, boxes, reference)
+        else:
+            out.update(two.run_stage_two(self, points, pillar, cluster, logits, boxes, reference, trace))
+        return out
 
 
 def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[str, float]:
-    """Seconds per stage of one scan in torch: VFE+SPA, CFA, CAF, backbone+head, NMS."""
+    """Seconds per stage of one scan in torch: VFE+SPA, CFA, CAF, backbone+head, then NMS, or with
+    stage two: proposals+CDA, VSA+point head, ROI head, final NMS."""
     import time
     out, t = {}, time.perf_counter()
 
@@ -417,19 +432,37 @@ def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[s
     with torch.no_grad():
         pillar, _, _ = model.pillar_stage(points, reference)
         lap("VFE+SPA")
-        cfa, _, _ = model.cfa_stage(points, reference)
+        cfa, _, _, cluster = model.cfa_stage(points, reference)
         lap("CFA")
         fused = model.fuser(pillar.unsqueeze(0), cfa)
         lap("CAF")
-        scores, boxes = model.head_stage(fused)
+        logits, boxes = model.head_stage(fused)
+        scores = torch.sigmoid(logits)
         lap("backbone+head")
-        model.postprocess(scores, boxes, reference)
-        lap("NMS")
+        if model.stage_two_config is None:
+            model.postprocess(scores, boxes, reference)
+            lap("NMS")
+            return out
+        xyz, feats, in_range = two.scan_points(points, model.vfe.config.point_cloud_range)
+        cluster = cluster & torch.isfinite(points).all(1)
+        s = two.proposals_and_keypoints(model, logits, boxes, xyz, cluster, in_range, reference)
+        lap("proposals+CDA")
+        point_features, point_scores = two.keypoint_features(model, pillar, s, xyz, feats, cluster, reference)
+        lap("VSA+point head")
+        rcnn_scores, rcnn_boxes = two.refine(model, s, point_features, point_scores, reference)
+        lap("ROI head")
+        two.final_nms(model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"], reference)
+        lap("final NMS")
     return out
 
 
 OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "num_pillars", "spa_overflow",
                 "cfa_converged")
+
+
+def output_names(stage_two: bool) -> tuple[str, ...]:
+    """Graph outputs: stage one's, plus the stage-two outputs (maffnet_rcnn.STAGE_TWO_OUTPUTS)."""
+    return OUTPUT_NAMES + two.STAGE_TWO_OUTPUTS if stage_two else OUTPUT_NAMES
 
 
 def read_anchors(card: ModelCard) -> list[AnchorClass]:
@@ -463,6 +496,7 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
         head=config_from_dict(HeadConfig, head, f"{card.where}: dense_head"),
         anchors=read_anchors(card),
         nms=card.section("post_processing", NmsConfig),
+        stage_two=two.read_stage_two(card),
     )
     init = card.get("init", "torch")
     if init == "kaiming":

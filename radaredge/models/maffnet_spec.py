@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -10,7 +11,7 @@ import torch
 from ..cards import ModelCard
 from ..data.synthetic import generate_scan, tj4d_table, vod_table
 from ..errors import ConfigError
-from .maffnet import OUTPUT_NAMES, MAFFNet, build_maffnet, stage_times
+from .maffnet import MAFFNet, build_maffnet, output_names, stage_times
 from .spec import ModelSpec, OutputSpec
 
 
@@ -72,7 +73,8 @@ def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, 
 
 
 def trace_order(card: ModelCard) -> tuple[str, ...]:
-    return ("pillar_bev", "cfa_map", "cfa_features", "fused")
+    stage_one = ("pillar_bev", "cfa_map", "cfa_features", "fused")
+    return stage_one + ("point_features", "point_cls_scores") if card.get("stage_two") else stage_one
 
 
 def run_reference(model: MAFFNet, feeds, trace=None):
@@ -90,7 +92,16 @@ def postprocess_reference(model: MAFFNet, got: dict) -> dict:
     return {"boxes": boxes, "scores": scores, "labels": labels}
 
 
-def _outputs() -> tuple[OutputSpec, ...]:
+def postprocess_reference_two(model: MAFFNet, got: dict) -> dict:
+    """The reference final NMS on the graph's own refined boxes, scores, labels and roi mask."""
+    from .maffnet_rcnn import final_nms
+    boxes, scores, labels = final_nms(model, *(torch.as_tensor(got[k]) for k in
+                                               ("rcnn_boxes", "rcnn_scores", "roi_labels", "roi_valid")),
+                                      reference=True)
+    return {"boxes": boxes, "scores": scores, "labels": labels}
+
+
+def _outputs(stage_two: bool = False) -> tuple[OutputSpec, ...]:
     specs = {
         "boxes": OutputSpec("boxes", "boxes", unit="m, rad", group=("scores", "labels")),
         "scores": OutputSpec("scores", "grouped"),
@@ -102,8 +113,18 @@ def _outputs() -> tuple[OutputSpec, ...]:
         "num_pillars": OutputSpec("num_pillars", "exact"),
         "spa_overflow": OutputSpec("spa_overflow", "exact"),
         "cfa_converged": OutputSpec("cfa_converged", "exact"),
+        # stage two (cards with ``stage_two``): rois as decoded by stage one, hence its tolerance
+        "rois": OutputSpec("rois", "dense", atol=1e-3, rtol=1e-3, unit="m, rad", quantized_info=True,
+                           angle_column=6, angle_period=math.pi),
+        "roi_labels": OutputSpec("roi_labels", "exact"),
+        "roi_valid": OutputSpec("roi_valid", "exact"),
+        "keypoints": OutputSpec("keypoints", "dense", atol=1e-6, rtol=0.0, unit="m"),
+        "keypoint_valid": OutputSpec("keypoint_valid", "exact"),
+        "rcnn_scores": OutputSpec("rcnn_scores", "dense", atol=1e-4, rtol=1e-3, quantized_info=True),
+        "rcnn_boxes": OutputSpec("rcnn_boxes", "dense", atol=1e-3, rtol=1e-3, unit="m, rad", quantized_info=True,
+                                 angle_column=6, angle_period=math.pi),
     }
-    return tuple(specs[n] for n in OUTPUT_NAMES)
+    return tuple(specs[n] for n in output_names(stage_two))
 
 
 MAFFNET_SPEC = ModelSpec(
@@ -121,3 +142,19 @@ MAFFNET_SPEC = ModelSpec(
                  ("backbone+head", ("backbone_2d", "dense_head")), ("NMS", ())),
     onnx_post_outputs=("anchor_scores", "anchor_boxes"),
 )
+
+# Cards with ``stage_two``: the stage-one NMS is replaced by the proposal layer, and the graph
+# continues with CDA keypoints, VSA, point head, ROI head and the final NMS.
+MAFFNET_FULL_SPEC = replace(
+    MAFFNET_SPEC,
+    outputs=_outputs(stage_two=True),
+    postprocess_reference=postprocess_reference_two,
+    onnx_stages=(*MAFFNET_SPEC.onnx_stages[:4], ("proposals+CDA", ("proposal_layer", "keypoint_sampler")),
+                 ("VSA+point head", ("pfe", "point_head")), ("ROI head", ("roi_head",)), ("final NMS", ())),
+    onnx_post_outputs=("rcnn_scores", "rcnn_boxes"),
+)
+
+
+def spec_for(card: ModelCard | None = None) -> ModelSpec:
+    """MAFFNET_FULL_SPEC for a card with ``stage_two``, else MAFFNET_SPEC."""
+    return MAFFNET_FULL_SPEC if card is not None and card.get("stage_two") is not None else MAFFNET_SPEC

@@ -1,0 +1,467 @@
+"""MAFF-Net stage two (test time): upstream TRV-Lab/MAFF-Net's PV-RCNN-style refinement.
+
+For one scan, after stage one's anchor head (radar frame: x forward, y left, z up; metres,
+radians; boxes in OpenPCDet's (x, y, z, dx, dy, dz, heading) layout):
+
+1. proposals (``roi_head.proposal_layer``, :class:`ProposalLayer`): per anchor the best class
+   logit and its 1-based label; class-agnostic: the ``pre_max`` best, rotated BEV NMS at
+   ``iou_thresh``, the first ``post_max`` -> rois [R, 7] zero-padded, roi_labels [R] (0 when
+   padded) and roi_valid [R]. No score threshold (upstream has none here).
+2. CDA keypoints (:class:`CDAKeypointSampler`, upstream ``VoxelSetAbstraction_cda`` with
+   POINT_SOURCE cluster_points): the CFA's cluster points (GridDensityBEV's point mask) near a
+   valid roi, then farthest point sampling to ``num_keypoints`` slots + keypoint_valid.
+3. VSA (``pfe``, :class:`VoxelSetAbstractionCDA`): per keypoint [BEV features bilinearly
+   interpolated from stage one's pillar map, multi-scale set abstraction over the cluster
+   points] = point_features_before_fusion, then Linear + BN + ReLU -> point_features.
+4. ``point_head`` (PointHeadSimple, class agnostic): point_cls_scores = sigmoid(MLP(before fusion)).
+5. ``roi_head`` (:class:`PVRCNNHead`): a grid_size^3 grid per roi, set abstraction of the
+   valid keypoints' point_features * point_cls_scores around each grid point, shared FCs, a class
+   logit and 7 residuals per roi, decoded against the roi (ResidualCoder, centre-free, then
+   rotated by the roi heading and moved to the roi centre).
+6. final class-agnostic NMS on the refined boxes (score = sigmoid(rcnn logit), label = roi
+   label); padded rois are never emitted (ours: upstream can emit the zero-size boxes of padding).
+
+Choices that are ours (MAFF-Net's CDA source is not public), stated in the card too: the CDA
+selection rule (a cluster point is kept when, for at least one valid roi, its horizontal distance
+to the roi centre is <= ``cda_radius`` and |z - roi z| <= ``cda_height`` / 2), the fall-back when
+nothing is kept (the first kept-candidate as upstream's ``points[:1]``: the first cluster point, or
+the first point in the pillar range when there is no cluster point, or no keypoint at all), the BEV
+source (stage one's SPA pillar map, stride 1) and the ``pfe.SA_rawpoints`` key name.
+
+Every module has the export formulation (``forward``: fixed shapes; the only data-dependent
+parts are the NMS's candidate pairs and Loop and the FPS Loop) and a ``reference`` (Python loops
+over proposals, points, rois and grid points; variable-size sets; the plain greedy NMS).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..cards import ModelCard
+from ..config import config_from_dict
+from ..errors import ConfigError
+from ..ops.bev_interp import bev_interpolate, bev_interpolate_reference
+from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
+from ..ops.point_sampling import farthest_point_sample_masked, farthest_point_sample_masked_reference
+from ..ops.set_abstraction import SAModuleMSG
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class ProposalConfig:
+    """``stage_two.proposals`` (ROI_HEAD.NMS_CONFIG.TEST)."""
+
+    pre_max: int = 1024           # NMS_PRE_MAXSIZE
+    iou_thresh: float = 0.7       # NMS_THRESH
+    post_max: int = 100           # NMS_POST_MAXSIZE = number of roi slots
+
+    def nms(self) -> NmsConfig:
+        """No score threshold: every anchor competes (scores are logits, any sign)."""
+        return NmsConfig(score_thresh=-math.inf, iou_thresh=self.iou_thresh, pre_max=self.pre_max,
+                         post_max=self.post_max)
+
+
+@dataclass(frozen=True)
+class KeypointConfig:
+    """``stage_two.keypoints`` (PFE NUM_KEYPOINTS, CDAM_SAMPLING)."""
+
+    num_keypoints: int = 1024     # NUM_KEYPOINTS
+    cda_radius: float = 2.5       # m, SAMPLE_RADIUS_R: horizontal distance to a roi centre
+    cda_height: float = 3.0       # m, SAMPLE_RADIUS_H: full height of the band around the roi's z
+
+
+@dataclass(frozen=True)
+class SAConfig:
+    """A StackSAModuleMSG: radii (m), nsample and MLP widths per scale."""
+
+    radii: tuple = (0.4, 0.8)
+    nsample: tuple = (16, 16)
+    mlps: tuple = ((16, 16), (16, 16))
+
+
+@dataclass(frozen=True)
+class VsaConfig:
+    """``stage_two.vsa`` scalars (the SA branch is ``stage_two.vsa.sa_rawpoints``)."""
+
+    bev_stride: int = 1           # stride of the BEV source relative to the pillar grid
+    num_output_features: int = 128  # NUM_OUTPUT_FEATURES
+
+
+@dataclass(frozen=True)
+class RoiHeadConfig:
+    """``stage_two.roi_head`` scalars (the pooling is ``stage_two.roi_head.roi_grid_pool``)."""
+
+    shared_fc: tuple = (256, 256)   # SHARED_FC
+    cls_fc: tuple = (256, 256)      # CLS_FC
+    reg_fc: tuple = (256, 256)      # REG_FC
+    dropout: float = 0.3            # DP_RATIO (identity at test time)
+    grid_size: int = 6              # ROI_GRID_POOL.GRID_SIZE
+
+
+@dataclass(frozen=True)
+class StageTwoConfig:
+    """The whole ``stage_two`` card section."""
+
+    proposals: ProposalConfig = field(default_factory=ProposalConfig)
+    keypoints: KeypointConfig = field(default_factory=KeypointConfig)
+    vsa: VsaConfig = field(default_factory=VsaConfig)
+    sa_rawpoints: SAConfig = field(default_factory=SAConfig)
+    point_head_fc: tuple = (256, 256)
+    roi_head: RoiHeadConfig = field(default_factory=RoiHeadConfig)
+    roi_grid_pool: SAConfig = field(default_factory=lambda: SAConfig((0.8, 1.6), (16, 16), ((64, 64), (64, 64))))
+    post_processing: NmsConfig = field(default_factory=NmsConfig)
+
+
+def read_stage_two(card: ModelCard) -> StageTwoConfig | None:
+    """``stage_two`` of the card, or None for a stage-one card."""
+    raw = card.get("stage_two")
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{card.where}: stage_two must be a mapping")
+    known = {"proposals", "keypoints", "vsa", "point_head", "roi_head", "post_processing"}
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise ConfigError(f"{card.where}: stage_two: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    vsa = dict(raw.get("vsa") or {})
+    roi = dict(raw.get("roi_head") or {})
+    where = f"{card.where}: stage_two"
+    return StageTwoConfig(
+        proposals=card.section("stage_two.proposals", ProposalConfig),
+        keypoints=card.section("stage_two.keypoints", KeypointConfig),
+        vsa=config_from_dict(VsaConfig, {k: v for k, v in vsa.items() if k != "sa_rawpoints"}, where + ".vsa"),
+        sa_rawpoints=card.section("stage_two.vsa.sa_rawpoints", SAConfig),
+        point_head_fc=tuple(card.get("stage_two.point_head.cls_fc", (256, 256))),
+        roi_head=config_from_dict(RoiHeadConfig, {k: v for k, v in roi.items() if k != "roi_grid_pool"},
+                                  where + ".roi_head"),
+        roi_grid_pool=card.section("stage_two.roi_head.roi_grid_pool", SAConfig),
+        post_processing=card.section("stage_two.post_processing", NmsConfig),
+    )
+
+
+# ----------------------------------------------------------------------------- proposals
+
+
+def _pad(rows: torch.Tensor, slots: int) -> torch.Tensor:
+    """The first ``slots`` rows of ``rows`` followed by zero rows: [slots, ...]."""
+    return torch.cat([rows, torch.zeros((slots, *rows.shape[1:]), dtype=rows.dtype)])[:slots]
+
+
+class ProposalLayer(nn.Module):
+    """Stage one's anchors -> rois (no parameters; a module so its ONNX nodes carry its scope)."""
+
+    def __init__(self, cfg: ProposalConfig):
+        super().__init__()
+        self.cfg, self.nms = cfg, cfg.nms()
+
+    def _finish(self, boxes, label, sel):
+        r = self.cfg.post_max
+        return _pad(boxes[sel], r), _pad(label[sel] + 1, r), torch.arange(r) < sel.shape[0]
+
+    def forward(self, cls_logits: torch.Tensor, boxes: torch.Tensor):
+        """Export formulation: cls_logits [A, classes], boxes [A, 7] -> (rois [R, 7], roi_labels [R]
+        int64, roi_valid [R] bool)."""
+        score, label = cls_logits.max(-1)
+        return self._finish(boxes, label, class_agnostic_nms(boxes, score, self.nms))
+
+    def reference(self, cls_logits: torch.Tensor, boxes: torch.Tensor):
+        """Reference: the plain greedy NMS (Python loop) on the best logit per anchor."""
+        score, label = cls_logits.max(-1)
+        sel = torch.from_numpy(class_agnostic_nms_reference(boxes.numpy(), score.numpy(), self.nms))
+        return self._finish(boxes, label, sel)
+
+
+# ----------------------------------------------------------------------------- CDA keypoints
+
+
+class CDAKeypointSampler(nn.Module):
+    """Cluster points near the rois -> ``num_keypoints`` keypoint slots (no parameters).
+
+    Inputs: xyz [N, 3] (finite; m), cluster [N] bool (GridDensityBEV's point mask), in_range [N]
+    bool (finite and inside the pillar range), rois [R, 7], roi_valid [R]. Outputs keypoints
+    [K, 3], keypoint_valid [K] (slot < number of selected points, at most K) and the selection
+    mask [N]. Selection: cluster and, for some valid roi, (x - xr)^2 + (y - yr)^2 <= radius^2
+    and |z - zr| <= height / 2 (float32, in that order); when nothing is selected, the first
+    cluster point, else the first in-range point, else nothing (all slots invalid). FPS as
+    :func:`radaredge.ops.point_sampling.farthest_point_sample_masked`.
+    """
+
+    def __init__(self, cfg: KeypointConfig):
+        super().__init__()
+        self.cfg = cfg
+
+    def forward(self, xyz, cluster, in_range, rois, roi_valid):
+        c = self.cfg
+        d = xyz[:, None, :] - rois[None, :, :3]                                   # [N, R, 3]
+        near = ((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] <= c.cda_radius ** 2)
+                & (d[..., 2].abs() <= c.cda_height / 2) & roi_valid[None, :])
+        selected = cluster & near.any(1)
+        source = (cluster & cluster.any()) | (in_range & ~cluster.any())           # bool Where: no ORT kernel
+        first = (torch.arange(xyz.shape[0]) == torch.argmax(source.to(torch.int64))) & source
+        mask = selected | (first & ~selected.any())
+        idx = farthest_point_sample_masked(xyz, mask, c.num_keypoints)
+        valid = torch.arange(c.num_keypoints) < mask.sum()
+        return xyz[idx], valid, mask
+
+    def reference(self, xyz: np.ndarray, cluster: np.ndarray, in_range: np.ndarray, rois: np.ndarray,
+                  roi_valid: np.ndarray):
+        """Python loops over points and rois; FPS on the compacted selection."""
+        c = self.cfg
+        r2, half = np.float32(c.cda_radius ** 2), np.float32(c.cda_height / 2)
+        selected = np.zeros(len(xyz), bool)
+        for i, p in enumerate(xyz):
+            if not cluster[i]:
+                continue
+            for roi, ok in zip(rois, roi_valid):
+                dx, dy, dz = p[0] - roi[0], p[1] - roi[1], p[2] - roi[2]
+                if ok and dx * dx + dy * dy <= r2 and abs(dz) <= half:
+                    selected[i] = True
+                    break
+        if not selected.any():                       # upstream: points[:1]
+            source = cluster if cluster.any() else in_range
+            selected[np.flatnonzero(source)[:1]] = True
+        idx = farthest_point_sample_masked_reference(xyz, selected, c.num_keypoints)
+        valid = np.arange(c.num_keypoints) < min(int(selected.sum()), c.num_keypoints)
+        return torch.from_numpy(xyz[idx]), torch.from_numpy(valid), torch.from_numpy(selected)
+
+
+# ----------------------------------------------------------------------------- VSA and point head
+
+
+class VoxelSetAbstractionCDA(nn.Module):
+    """Upstream ``pfe``: [BEV(bev_channels), SA over cluster points] -> fusion Linear/BN/ReLU.
+
+    ``origin`` (x_min, y_min) and ``cell`` (vx, vy) in metres place the BEV map (the pillar grid).
+    """
+
+    def __init__(self, point_channels: int, bev_channels: int, vsa: VsaConfig, sa: SAConfig, origin, cell):
+        super().__init__()
+        self.origin, self.cell, self.stride = tuple(origin), tuple(cell), vsa.bev_stride
+        self.SA_rawpoints = SAModuleMSG(point_channels, sa.radii, sa.nsample, sa.mlps)
+        self.num_before_fusion = bev_channels + self.SA_rawpoints.out_channels
+        self.vsa_point_feature_fusion = nn.Sequential(
+            nn.Linear(self.num_before_fusion, vsa.num_output_features, bias=False),
+            nn.BatchNorm1d(vsa.num_output_features), nn.ReLU())
+
+    def forward(self, bev, keypoints, xyz, feats, cluster):
+        """Export formulation: bev [C, H, W], keypoints [K, 3], cluster points xyz [N, 3], feats
+        [N, F], cluster [N] -> (before_fusion [K, C + SA], point_features [K, out])."""
+        before = torch.cat([bev_interpolate(bev, keypoints[:, :2], self.origin, self.cell, self.stride),
+                            self.SA_rawpoints(xyz, cluster, feats, keypoints)], 1)
+        return before, self.vsa_point_feature_fusion(before)
+
+    def reference(self, bev, keypoints, xyz, feats, cluster):
+        kp = keypoints.numpy()
+        before = torch.cat([torch.from_numpy(bev_interpolate_reference(bev.numpy(), kp[:, :2], self.origin,
+                                                                       self.cell, self.stride)),
+                            self.SA_rawpoints.reference(xyz.numpy(), cluster.numpy(), feats.numpy(), kp)], 1)
+        return before, self.vsa_point_feature_fusion(before)
+
+
+def _fc_stack(cin: int, widths, linear: bool, dropout: float | None = None) -> list[nn.Module]:
+    """[Linear/Conv1d (no bias), BatchNorm1d, ReLU] per width; a Dropout after the first when given."""
+    layers: list[nn.Module] = []
+    for k, w in enumerate(widths):
+        layers += [nn.Linear(cin, w, bias=False) if linear else nn.Conv1d(cin, w, 1, bias=False),
+                   nn.BatchNorm1d(w), nn.ReLU()]
+        if dropout is not None and dropout >= 0 and k == 0:
+            layers.append(nn.Dropout(dropout))
+        cin = w
+    return layers
+
+
+class PointHeadSimple(nn.Module):
+    """Upstream ``point_head`` (class agnostic): keypoint foreground score sigmoid(MLP(x)) [K]."""
+
+    def __init__(self, cin: int, fc):
+        super().__init__()
+        self.cls_layers = nn.Sequential(*_fc_stack(cin, fc, linear=True), nn.Linear(fc[-1], 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.cls_layers(x)[:, 0])
+
+
+# ----------------------------------------------------------------------------- ROI head
+
+
+def roi_trig(rois: torch.Tensor):
+    """cos and sin of the roi headings [R] (computed once; both formulations share them)."""
+    return torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
+
+
+def decode_roi_residuals(reg: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
+    """Refined boxes [R, 7]: ResidualCoder.decode against the roi with its centre zeroed, then the
+    centre rotated by the roi heading (x' = x cos - y sin, y' = x sin + y cos) plus the roi centre."""
+    xt, yt, zt, dxt, dyt, dzt, rt = reg.unbind(-1)
+    dxa, dya, dza, ra = rois[:, 3], rois[:, 4], rois[:, 5], rois[:, 6]
+    diag = torch.sqrt(dxa ** 2 + dya ** 2)
+    x, y = xt * diag, yt * diag
+    c, s = roi_trig(rois)
+    return torch.stack([x * c - y * s + rois[:, 0], x * s + y * c + rois[:, 1], zt * dza + rois[:, 2],
+                        torch.exp(dxt) * dxa, torch.exp(dyt) * dya, torch.exp(dzt) * dza, rt + ra], -1)
+
+
+class PVRCNNHead(nn.Module):
+    """Upstream ``roi_head`` (PVRCNNHead): ROI-grid pooling, shared FCs, cls and reg layers.
+
+    The grid point g = ix * G^2 + iy * G + iz of a roi sits at local (i + 0.5) / G * size - size / 2
+    (per axis, m), rotated by the roi heading about z and moved to the roi centre. Pooled features
+    [R, G^3, C] are flattened channel-major (c * G^3 + g) as upstream's view/permute does.
+    """
+
+    def __init__(self, point_channels: int, cfg: RoiHeadConfig, pool: SAConfig):
+        super().__init__()
+        self.grid_size = cfg.grid_size
+        self.roi_grid_pool_layer = SAModuleMSG(point_channels, pool.radii, pool.nsample, pool.mlps)
+        pre = cfg.grid_size ** 3 * self.roi_grid_pool_layer.out_channels
+        self.shared_fc_layer = nn.Sequential(*_fc_stack(pre, cfg.shared_fc, False, cfg.dropout))
+        c = cfg.shared_fc[-1]
+        self.cls_layers = nn.Sequential(*_fc_stack(c, cfg.cls_fc, False, cfg.dropout), nn.Conv1d(cfg.cls_fc[-1], 1, 1))
+        self.reg_layers = nn.Sequential(*_fc_stack(c, cfg.reg_fc, False, cfg.dropout), nn.Conv1d(cfg.reg_fc[-1], 7, 1))
+        g = torch.arange(cfg.grid_size, dtype=torch.float32)
+        dense = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)   # [G^3, 3] (ix, iy, iz)
+        self.register_buffer("dense_idx", dense, persistent=False)
+
+    def init_upstream(self) -> None:
+        """Upstream init_weights('xavier'): Xavier-normal convs, zero biases, reg output N(0, 0.001)."""
+        for m in [*self.shared_fc_layer, *self.cls_layers, *self.reg_layers]:
+            if isinstance(m, nn.Conv1d):
+                nn.init.xavier_normal_(m.weight)
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+        nn.init.normal_(self.reg_layers[-1].weight, mean=0.0, std=0.001)
+
+    def grid_points(self, rois: torch.Tensor) -> torch.Tensor:
+        """Export formulation: grid points [R, G^3, 3] of rois [R, 7]."""
+        size = rois[:, None, 3:6]
+        local = (self.dense_idx + 0.5) / self.grid_size * size - size / 2                 # [R, G^3, 3]
+        c, s = (t[:, None] for t in roi_trig(rois))
+        lx, ly = local[..., 0], local[..., 1]
+        return torch.stack([lx * c - ly * s, lx * s + ly * c, local[..., 2]], -1) + rois[:, None, :3]
+
+    def grid_points_reference(self, rois: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+        """Reference: the grid of one roi at a time, grid point by grid point (float32)."""
+        f32, n = np.float32, self.grid_size
+        out = np.zeros((len(rois), n ** 3, 3), np.float32)
+        for r, roi in enumerate(rois):
+            for ix in range(n):
+                for iy in range(n):
+                    for iz in range(n):
+                        local = [(f32(i) + f32(0.5)) / f32(n) * roi[3 + a] - roi[3 + a] / f32(2)
+                                 for a, i in enumerate((ix, iy, iz))]
+                        g = ix * n * n + iy * n + iz
+                        out[r, g] = [local[0] * cos[r] - local[1] * sin[r] + roi[0],
+                                     local[0] * sin[r] + local[1] * cos[r] + roi[1], local[2] + roi[2]]
+        return out
+
+    def _head(self, pooled: torch.Tensor):
+        """pooled [R, C * G^3] channel-major -> (cls logit [R], residuals [R, 7])."""
+        shared = self.shared_fc_layer(pooled.unsqueeze(-1))
+        return self.cls_layers(shared)[:, 0, 0], self.reg_layers(shared)[:, :, 0]
+
+    def forward(self, rois, keypoints, keypoint_valid, features):
+        """Export formulation: rois [R, 7], keypoints [K, 3], keypoint_valid [K], features [K, C]
+        (point_features * point_cls_scores) -> (cls logit [R], residuals [R, 7])."""
+        r = rois.shape[0]
+        grid = self.grid_points(rois).reshape(-1, 3)
+        pooled = self.roi_grid_pool_layer(keypoints, keypoint_valid, features, grid)        # [R*G^3, C]
+        return self._head(pooled.reshape(r, self.grid_size ** 3, -1).transpose(1, 2).reshape(r, -1))
+
+    def reference(self, rois, keypoints, keypoint_valid, features):
+        cos, sin = (t.numpy() for t in roi_trig(rois))
+        grids = self.grid_points_reference(rois.numpy(), cos, sin)
+        pooled = []
+        for grid in grids:                                                                  # one roi at a time
+            p = self.roi_grid_pool_layer.reference(keypoints.numpy(), keypoint_valid.numpy(),
+                                                   features.numpy(), grid)                   # [G^3, C]
+            pooled.append(p.t().reshape(-1))
+        return self._head(torch.stack(pooled))
+
+
+# ----------------------------------------------------------------------------- composition
+
+
+def build_stage_two(model: nn.Module, cfg: StageTwoConfig, num_point_features: int, bev_channels: int,
+                    origin, cell) -> None:
+    """Attach stage two's modules to ``model`` under upstream's names (pfe, point_head, roi_head)
+    plus our parameter-free proposal_layer and keypoint_sampler."""
+    model.proposal_layer = ProposalLayer(cfg.proposals)
+    model.keypoint_sampler = CDAKeypointSampler(cfg.keypoints)
+    model.pfe = VoxelSetAbstractionCDA(num_point_features, bev_channels, cfg.vsa, cfg.sa_rawpoints, origin, cell)
+    model.point_head = PointHeadSimple(model.pfe.num_before_fusion, cfg.point_head_fc)
+    model.roi_head = PVRCNNHead(cfg.vsa.num_output_features, cfg.roi_head, cfg.roi_grid_pool)
+    model.roi_head.init_upstream()
+
+
+def scan_points(points: torch.Tensor, point_cloud_range) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(xyz [N, 3], features [N, F - 3], in_range [N]): rows with a non-finite value are zeroed
+    and out of range; in range = inside the pillar range [min, max) on x, y, z."""
+    finite = torch.isfinite(points).all(1)
+    clean = torch.where(finite[:, None], points, torch.zeros_like(points))
+    lo = torch.tensor(point_cloud_range[:3], dtype=torch.float32)
+    hi = torch.tensor(point_cloud_range[3:], dtype=torch.float32)
+    in_range = finite & ((clean[:, :3] >= lo) & (clean[:, :3] < hi)).all(1)
+    return clean[:, :3], clean[:, 3:], in_range
+
+
+def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, in_range, reference: bool) -> dict:
+    """Stage "proposals+CDA": rois, roi_labels, roi_valid, keypoints, keypoint_valid."""
+    if reference:
+        rois, labels, valid = model.proposal_layer.reference(cls_logits, boxes)
+        kp, kp_valid, _ = model.keypoint_sampler.reference(xyz.numpy(), cluster.numpy(), in_range.numpy(),
+                                                           rois.numpy(), valid.numpy())
+    else:
+        rois, labels, valid = model.proposal_layer(cls_logits, boxes)
+        kp, kp_valid, _ = model.keypoint_sampler(xyz, cluster, in_range, rois, valid)
+    return {"rois": rois, "roi_labels": labels, "roi_valid": valid, "keypoints": kp, "keypoint_valid": kp_valid}
+
+
+def keypoint_features(model, bev, s: dict, xyz, feats, cluster, reference: bool):
+    """Stage "VSA+point head": (point_features [K, C], point_cls_scores [K])."""
+    run = model.pfe.reference if reference else model.pfe
+    before, point_features = run(bev, s["keypoints"], xyz, feats, cluster)
+    return point_features, model.point_head(before)
+
+
+def refine(model, s: dict, point_features, point_scores, reference: bool):
+    """Stage "ROI head": (rcnn_scores [R] = sigmoid(logit), rcnn_boxes [R, 7])."""
+    run = model.roi_head.reference if reference else model.roi_head
+    cls, reg = run(s["rois"], s["keypoints"], s["keypoint_valid"], point_features * point_scores[:, None])
+    return torch.sigmoid(cls), decode_roi_residuals(reg, s["rois"])
+
+
+def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: bool):
+    """Stage "final NMS": (boxes [M, 7], scores [M], labels [M]); padded rois score -inf, never kept."""
+    cfg = model.stage_two_config.post_processing
+    scores = torch.where(roi_valid, rcnn_scores, torch.full_like(rcnn_scores, -math.inf))
+    if reference:
+        sel = torch.from_numpy(class_agnostic_nms_reference(rcnn_boxes.numpy(), scores.numpy(), cfg))
+    else:
+        sel = class_agnostic_nms(rcnn_boxes, scores, cfg)
+    return rcnn_boxes[sel], scores[sel], roi_labels[sel]
+
+
+def run_stage_two(model, points, pillar_bev, cluster, cls_logits, boxes, reference: bool,
+                  trace: dict | None = None) -> dict:
+    """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs."""
+    xyz, feats, in_range = scan_points(points, model.vfe.config.point_cloud_range)
+    cluster = cluster & torch.isfinite(points).all(1)
+    s = proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, in_range, reference)
+    point_features, point_scores = keypoint_features(model, pillar_bev, s, xyz, feats, cluster, reference)
+    rcnn_scores, rcnn_boxes = refine(model, s, point_features, point_scores, reference)
+    out_boxes, out_scores, out_labels = final_nms(model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"],
+                                                  reference)
+    if trace is not None:
+        trace.update(point_features=point_features, point_cls_scores=point_scores)
+    return {"boxes": out_boxes, "scores": out_scores, "labels": out_labels, **s,
+            "rcnn_scores": rcnn_scores, "rcnn_boxes": rcnn_boxes}
+
+
+STAGE_TWO_OUTPUTS = ("rois", "roi_labels", "roi_valid", "keypoints", "keypoint_valid", "rcnn_scores", "rcnn_boxes")
