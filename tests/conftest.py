@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -12,6 +13,9 @@ import torch
 
 from radaredge.onnx_export import export_onnx
 from radaredge.ort import make_session, run_session
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)      # `make test` runs two workers on two cores: one torch thread each
 
 
 class OnnxRoundTrip:
