@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.export import build_model
 from radaredge.models.maffnet_rcnn import (CDAKeypointSampler, KeypointConfig, ProposalConfig, ProposalLayer,
@@ -236,6 +237,12 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
     assert res.exit_code == 0 and report["passed"], res.output
     assert report["summary"]["boxes"]["mismatches"] == 0
     assert report["summary"]["rcnn_scores"]["max_abs"] <= 1e-4
+    # the torch-free runtime loads the two-stage detector like stage one
+    model = runtime.load(tiny_full_onnx)
+    card = load_card(TINY_FULL)
+    out = model.run(model_spec(card).make_cases(card, 1, 3)[0][1]["points"])
+    assert out["boxes"].shape[1] == 7 and len(out["boxes"]) == len(out["scores"]) == len(out["labels"])
+    assert out["keypoints"].shape == (64, 3) and set(out["labels"].tolist()) <= {1, 2, 3}
 
 
 def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):
