@@ -443,16 +443,7 @@ def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[s
             model.postprocess(scores, boxes, reference)
             lap("NMS")
             return out
-        xyz, feats, in_range = two.scan_points(points, model.vfe.config.point_cloud_range)
-        cluster = cluster & torch.isfinite(points).all(1)
-        s = two.proposals_and_keypoints(model, logits, boxes, xyz, cluster, in_range, reference)
-        lap("proposals+CDA")
-        point_features, point_scores = two.keypoint_features(model, pillar, s, xyz, feats, cluster, reference)
-        lap("VSA+point head")
-        rcnn_scores, rcnn_boxes = two.refine(model, s, point_features, point_scores, reference)
-        lap("ROI head")
-        two.final_nms(model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"], reference)
-        lap("final NMS")
+        two.run_stage_two(model, points, pillar, cluster, logits, boxes, reference, lap=lap)
     return out
 
 

@@ -449,15 +449,21 @@ def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: 
 
 
 def run_stage_two(model, points, pillar_bev, cluster, cls_logits, boxes, reference: bool,
-                  trace: dict | None = None) -> dict:
-    """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs."""
+                  trace: dict | None = None, lap=None) -> dict:
+    """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs.
+    ``lap(stage)``, if given, is called as each bench stage ends (see maffnet.stage_times)."""
+    lap = lap or (lambda stage: None)
     xyz, feats, in_range = scan_points(points, model.vfe.config.point_cloud_range)
     cluster = cluster & torch.isfinite(points).all(1)
     s = proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, in_range, reference)
+    lap("proposals+CDA")
     point_features, point_scores = keypoint_features(model, pillar_bev, s, xyz, feats, cluster, reference)
+    lap("VSA+point head")
     rcnn_scores, rcnn_boxes = refine(model, s, point_features, point_scores, reference)
+    lap("ROI head")
     out_boxes, out_scores, out_labels = final_nms(model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"],
                                                   reference)
+    lap("final NMS")
     if trace is not None:
         trace.update(point_features=point_features, point_cls_scores=point_scores)
     return {"boxes": out_boxes, "scores": out_scores, "labels": out_labels, **s,
