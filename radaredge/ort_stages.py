@@ -32,22 +32,25 @@ REORDER = "layout reorders (onnxruntime)"
 UNMAPPED = "other (unmapped)"
 
 
-def _scopes(node: onnx.NodeProto) -> list[str]:
+def module_names(node: onnx.NodeProto) -> list[str]:
+    """The torch modules a node of an exported graph was traced in, outermost first, as
+    qualified names relative to the exported model (``backbone_2d.blocks.2``): the exporter's
+    ``pkg.torch.onnx.name_scopes`` metadata without its ``model.`` root and without the op's own
+    name. Empty for nodes traced outside every submodule (index math, scatters) and for graphs
+    an optimiser rewrote (the metadata does not survive)."""
     for p in node.metadata_props:
         if p.key == "pkg.torch.onnx.name_scopes":
             try:
-                return list(ast.literal_eval(p.value))
+                scopes = list(ast.literal_eval(p.value))
             except (ValueError, SyntaxError):
                 return []
+            return [s.split(".", 1)[1] for s in scopes if s.startswith("model.")]
     return []
 
 
-def _module_stage(scopes: list[str], stages: list[tuple[str, tuple[str, ...]]]) -> str | None:
-    """The stage whose module prefix the node's outermost module scope starts with, if any."""
-    for scope in scopes:
-        if not scope:
-            continue
-        name = scope.split(".", 1)[1] if scope.startswith("model.") else scope
+def _module_stage(names: list[str], stages: list[tuple[str, tuple[str, ...]]]) -> str | None:
+    """The stage whose module prefix the node's outermost module name starts with, if any."""
+    for name in names:
         for stage, prefixes in stages:
             if any(name == p or name.startswith(p + ".") for p in prefixes):
                 return stage
@@ -61,7 +64,7 @@ def node_stages(model: onnx.ModelProto, stages: list[tuple[str, tuple[str, ...]]
     rank = {s: i for i, s in enumerate(order)}
     nodes = list(model.graph.node)               # topologically sorted (ONNX requires it)
     producer = {out: n.name for n in nodes for out in n.output}
-    stage: dict[str, str | None] = {n.name: _module_stage(_scopes(n), stages) for n in nodes}
+    stage: dict[str, str | None] = {n.name: _module_stage(module_names(n), stages) for n in nodes}
 
     def parents(n):
         return [producer[i] for i in n.input if i in producer]

@@ -2,7 +2,9 @@
 
 Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
 weights and int8 activations calibrated on synthetic radar windows. Everything else stays
-fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
+fp32, and so do the layers of the modules a card lists under ``quantization.keep_fp32``
+(module names as in the state dict, ``*`` matching any run of characters, a module's
+submodules included): the layers whose int8 error a model cannot absorb. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
 (float64 in the graph, never touched), alignment and deformable-attention sampling
 (GridSample) and the index math. The radaredge metadata (card, features, weights hash) is
 copied over, and the quantisation settings are added under ``radaredge.quantization``.
@@ -10,6 +12,7 @@ copied over, and the quantisation settings are added under ``radaredge.quantizat
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import tempfile
 from pathlib import Path
@@ -19,7 +22,8 @@ from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, Q
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from .cards import ModelCard
-from .errors import ExportError
+from .errors import ConfigError, ExportError
+from .ort_stages import module_names
 from .registry import model_spec
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
@@ -47,30 +51,69 @@ def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: di
     onnx.save(q, str(out_path))
 
 
+def keep_fp32_patterns(card: ModelCard) -> list[str]:
+    """The card's ``quantization.keep_fp32`` module-name patterns (default none)."""
+    patterns = card.get("quantization.keep_fp32", []) or []
+    if not isinstance(patterns, list) or not all(isinstance(p, str) and p for p in patterns):
+        raise ConfigError(f"card {card.name!r}: quantization.keep_fp32 must be a list of module names "
+                          f"(fnmatch patterns such as 'dfa.*.attn.value_proj'), got {patterns!r}")
+    return patterns
+
+
+def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name: str = "") -> set[str]:
+    """Names of the Conv/MatMul/Gemm nodes of ``fp32_model`` (an export that still carries its
+    module-scope metadata) traced inside a module matching one of ``patterns``. ConfigError
+    for a pattern that matches no quantisable node (a typo would silently quantise the layer)."""
+    hits = {p: set() for p in patterns}
+    for node in fp32_model.graph.node:
+        if node.op_type not in QUANTIZED_OPS:
+            continue
+        for name in module_names(node):
+            for p in patterns:
+                if fnmatch.fnmatchcase(name, p):
+                    hits[p].add(node.name)
+    missing = [p for p, names in hits.items() if not names]
+    if missing:
+        raise ConfigError(f"card {card_name!r}: quantization.keep_fp32 pattern(s) {missing} match no "
+                          f"Conv/MatMul/Gemm of the exported graph; module names look like "
+                          f"'backbone_2d.blocks.0' (the state dict's prefixes)")
+    return set().union(*hits.values())
+
+
+def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
+    """The nodes of the pre-processed graph that came from ``names``: the optimiser keeps a
+    node's name or extends it (``node_MatMul_12/MatMulAddFusion``)."""
+    return [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and n.name.split("/", 1)[0] in names]
+
+
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
-                  calibration_cases: int = 16, seed: int = 12345, method: str = "minmax") -> Path:
+                  calibration_cases: int = 16, seed: int = 12345) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
     Calibration uses ``calibration_cases`` synthetic windows drawn with ``seed``. That seed
     differs from the parity and bench seeds, so parity is checked on data the calibration did
-    not see. ``method`` is ``minmax`` or ``percentile``.
+    not see. Activation ranges are min/max calibrated: onnxruntime's histogram calibrators
+    (percentile, entropy) need activations of one shape in every case, and the point-count
+    dependent tensors here are not. The layers of the card's ``quantization.keep_fp32`` modules
+    stay fp32.
     """
     fp32_path, out_path = Path(fp32_path), Path(out_path)
-    methods = {"minmax": CalibrationMethod.MinMax, "percentile": CalibrationMethod.Percentile}
-    if method not in methods:
-        raise ExportError(f"unknown calibration method {method!r}; use one of {sorted(methods)}")
+    patterns = keep_fp32_patterns(card)
+    keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
         try:
             quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
+            excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
             quantize_static(str(pre), str(out_path), _SyntheticWindows(card, calibration_cases, seed),
                             quant_format=QuantFormat.QDQ, per_channel=True,
                             op_types_to_quantize=list(QUANTIZED_OPS),
                             weight_type=QuantType.QInt8, activation_type=QuantType.QInt8,
-                            calibrate_method=methods[method])
+                            calibrate_method=CalibrationMethod.MinMax, nodes_to_exclude=excluded)
         except Exception as exc:
             raise ExportError(f"int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
     carry_metadata(fp32_path, out_path, {
         "format": "QDQ", "weights": "int8 per-channel", "activations": "int8", "ops": list(QUANTIZED_OPS),
-        "calibration": {"cases": calibration_cases, "seed": seed, "method": method}})
+        "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
+        "calibration": {"cases": calibration_cases, "seed": seed, "method": "minmax"}})
     return out_path

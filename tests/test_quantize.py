@@ -7,6 +7,9 @@ import onnx
 import pytest
 
 from radaredge import runtime
+from radaredge.cards import parse_card
+from radaredge.errors import ConfigError
+from radaredge.ort_stages import module_names
 from radaredge.parity import run_parity
 from radaredge.quantize import quantize_int8
 
@@ -37,6 +40,37 @@ def test_metadata_travels_and_runtime_loads_it(int8):
     assert q["format"] == "QDQ" and q["calibration"]["cases"] == 6
     src = runtime.load(fp32)
     assert m.metadata["radaredge.weights_sha256"] == src.metadata["radaredge.weights_sha256"]
+
+
+def _float_weight_convs(graph) -> list[str]:
+    """Conv/Gemm nodes whose weight is a plain float initializer (not behind a DequantizeLinear)."""
+    inits = {i.name for i in graph.initializer}
+    return [n.name for n in graph.node if n.op_type in ("Conv", "Gemm") and n.input[1] in inits]
+
+
+def test_keep_fp32_modules_stay_float(tiny_export, tmp_path):
+    """quantization.keep_fp32 keeps exactly the named modules' layers in fp32 (the descriptor MLP:
+    two 1x1 convs); every other Conv/Gemm still reads dequantised int8 weights."""
+    card, model, fp32, _ = tiny_export
+    assert _float_weight_convs(onnx.load(str(quantize_int8(card, fp32, tmp_path / "all.onnx",
+                                                         calibration_cases=2))).graph) == []
+    kept = parse_card({**card.data, "quantization": {"keep_fp32": ["mlp"]}})
+    path = quantize_int8(kept, fp32, tmp_path / "kept.onnx", calibration_cases=2)
+    floats = _float_weight_convs(onnx.load(str(path)).graph)
+    mlp = [n.name for n in onnx.load(str(fp32)).graph.node
+           if n.op_type in ("Conv", "Gemm") and "mlp" in module_names(n)]
+    assert len(mlp) == 2 and sorted(floats) == sorted(mlp)
+    q = json.loads(runtime.load(path).metadata["radaredge.quantization"])
+    assert q["keep_fp32"] == {"modules": ["mlp"], "nodes": 2}
+
+
+@pytest.mark.parametrize("patterns, message", [(["mlpp"], "match no Conv/MatMul/Gemm"),
+                                               ("mlp", "must be a list of module names")])
+def test_keep_fp32_rejects_bad_patterns(tiny_export, tmp_path, patterns, message):
+    card, _, fp32, _ = tiny_export
+    bad = parse_card({**card.data, "quantization": {"keep_fp32": patterns}})
+    with pytest.raises(ConfigError, match=message):
+        quantize_int8(bad, fp32, tmp_path / "bad.onnx", calibration_cases=2)
 
 
 def test_quantised_parity_budget(int8):
