@@ -9,13 +9,19 @@ from typing import Mapping
 import numpy as np
 import onnxruntime as ort
 
+from .errors import InputError
+
 
 def make_session(path: str | Path, threads: int = 2, profile: bool = False,
                  graph_level: str = "all") -> ort.InferenceSession:
     """An onnxruntime CPU session with a fixed number of intra-op threads.
 
-    ``graph_level`` is one of ``disable``, ``basic``, ``extended``, ``all``.
+    ``graph_level`` is one of ``disable``, ``basic``, ``extended``, ``all``. InputError when
+    ``path`` is missing or onnxruntime cannot load it (not an ONNX model, truncated, an
+    operator this onnxruntime lacks), with onnxruntime's reason.
     """
+    if not Path(path).is_file():
+        raise InputError(f"{path} does not exist; export one with `radaredge export --model NAME`")
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
@@ -30,7 +36,12 @@ def make_session(path: str | Path, threads: int = 2, profile: bool = False,
     if profile:
         opts.enable_profiling = True
         opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "radaredge_ort_profile")
-    return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+    try:
+        return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:      # onnxruntime's own error types (InvalidArgument, Fail, ...)
+        reason = str(exc).split(" : ")[-1].strip()
+        raise InputError(f"{path}: onnxruntime cannot load it as a model ({type(exc).__name__}: {reason}); "
+                         f"pass an .onnx written by `radaredge export`") from None
 
 
 def run_session(session: ort.InferenceSession, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

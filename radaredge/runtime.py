@@ -91,6 +91,4 @@ class RadarModel:
 def load(path: str | Path, threads: int = 2) -> RadarModel:
     """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path} does not exist; export one with `radaredge export --model NAME`")
     return RadarModel(make_session(path, threads=threads), path)

@@ -90,3 +90,7 @@ def test_empty_frames_are_valid_input(onnx_path, frames):
 def test_load_errors(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         runtime.load(tmp_path / "missing.onnx")
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes(b"not a protobuf")
+    with pytest.raises(InputError, match=r"truncated.onnx: onnxruntime cannot load it as a model \(.*Protobuf"):
+        runtime.load(truncated)
