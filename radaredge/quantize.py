@@ -2,12 +2,13 @@
 
 Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
 weights and int8 activations calibrated on synthetic radar windows. Everything else stays
-fp32, and so do the layers of the modules a card lists under ``quantization.keep_fp32``
-(module names as in the state dict, ``*`` matching any run of characters, a module's
-submodules included): the layers whose int8 error a model cannot absorb. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
+fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
 (float64 in the graph, never touched), alignment and deformable-attention sampling
-(GridSample) and the index math. The radaredge metadata (card, features, weights hash) is
-copied over, and the quantisation settings are added under ``radaredge.quantization``.
+(GridSample) and the index math. A card can keep more in fp32: the Conv/MatMul/Gemm layers of
+the modules it lists under ``quantization.keep_fp32`` (module names as in the state dict, ``*``
+matching any run of characters, submodules included), for layers whose int8 error the model
+cannot absorb. The radaredge metadata (card, features, weights hash) is copied over, and the
+quantisation settings are added under ``radaredge.quantization``.
 """
 
 from __future__ import annotations
@@ -82,8 +83,14 @@ def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name:
 
 def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
     """The nodes of the pre-processed graph that came from ``names``: the optimiser keeps a
-    node's name or extends it (``node_MatMul_12/MatMulAddFusion``)."""
-    return [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and n.name.split("/", 1)[0] in names]
+    node's name or extends it (``node_MatMul_12/MatMulAddFusion``). ExportError when one of
+    ``names`` has no such node, since it would be quantised against the card's wish."""
+    found = [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and n.name.split("/", 1)[0] in names]
+    lost = sorted(names - {n.split("/", 1)[0] for n in found})
+    if lost:
+        raise ExportError(f"quantization.keep_fp32: onnxruntime's pre-processing renamed or fused {lost}; "
+                          f"they cannot be kept in fp32")
+    return found
 
 
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
