@@ -3,7 +3,8 @@ onnxruntime int8} on 2 cores, in one run, backends alternating every iteration.
 
 Every card is exported and quantised afresh into export/ first, so the run times the current
 code. Writes benchmarks/results/suite-<date>.json, the Markdown table in benchmarks/README.md and
-a bar chart benchmarks/suite.png (log scale). Run it with ``make bench`` (or ``python benchmarks/run.py --help``).
+a bar chart benchmarks/suite.png (log scale). Run it with ``make bench`` (or
+``python benchmarks/run.py --help``).
 
 Per row: median latency, FPS (1000 / median), GMACs per inference (radaredge.macs: matrix,
 convolution, bilinear sampling and scatter work) and the achieved share of the machine's fp32

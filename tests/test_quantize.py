@@ -51,7 +51,7 @@ def _float_weight_convs(graph) -> list[str]:
 def test_keep_fp32_modules_stay_float(tiny_export, tmp_path):
     """quantization.keep_fp32 keeps exactly the named modules' layers in fp32 (the descriptor MLP:
     two 1x1 convs); every other Conv/Gemm still reads dequantised int8 weights."""
-    card, model, fp32, _ = tiny_export
+    card, _, fp32, _ = tiny_export
     assert _float_weight_convs(onnx.load(str(quantize_int8(card, fp32, tmp_path / "all.onnx",
                                                          calibration_cases=2))).graph) == []
     kept = parse_card({**card.data, "quantization": {"keep_fp32": ["mlp"]}})
