@@ -48,6 +48,12 @@ def module_names(node: onnx.NodeProto) -> list[str]:
     return []
 
 
+def fused_from(node_name: str) -> str:
+    """The exported node an onnxruntime-optimised node was made from: onnxruntime keeps the
+    name and appends its rewrite (``node_MatMul_12/MatMulAddFusion`` came from ``node_MatMul_12``)."""
+    return node_name.split("/", 1)[0]
+
+
 def _module_stage(names: list[str], stages: list[tuple[str, tuple[str, ...]]]) -> str | None:
     """The stage whose module prefix the node's outermost module name starts with, if any."""
     for name in names:
@@ -100,7 +106,7 @@ def _resolve(event_node: str, stage: dict[str, str], by_output: dict[str, str]) 
         return stage[event_node]
     if event_node.startswith(("ReorderInput", "ReorderOutput")):
         return REORDER
-    base = event_node.split("/", 1)[0]
+    base = fused_from(event_node)
     if base in stage:
         return stage[base]
     for suffix in ("_nchwc",):

@@ -24,7 +24,7 @@ from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
-from .ort_stages import module_names
+from .ort_stages import fused_from, module_names
 from .registry import model_spec
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
@@ -83,10 +83,10 @@ def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name:
 
 def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
     """The nodes of the pre-processed graph that came from ``names``: the optimiser keeps a
-    node's name or extends it (``node_MatMul_12/MatMulAddFusion``). ExportError when one of
+    node's name or extends it (:func:`radaredge.ort_stages.fused_from`). ExportError when one of
     ``names`` has no such node, since it would be quantised against the card's wish."""
-    found = [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and n.name.split("/", 1)[0] in names]
-    lost = sorted(names - {n.split("/", 1)[0] for n in found})
+    found = [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and fused_from(n.name) in names]
+    lost = sorted(names - {fused_from(n) for n in found})
     if lost:
         raise ExportError(f"quantization.keep_fp32: onnxruntime's pre-processing renamed or fused {lost}; "
                           f"they cannot be kept in fp32")
