@@ -131,19 +131,25 @@ class PillarFeatureNet(nn.Module):
         keep = inside & (rank < cfg.max_points_per_pillar)
         cell = torch.where(keep, cell, torch.full_like(cell, ncell))
 
+        # Per-pillar statistics are gathered back to the points and everything after runs per
+        # point: the graph touches the N points, not the ny * nx cells (dropped points sit in
+        # the spare cell ncell, with count 0 and zero features).
         w = keep.to(points.dtype)
         count = torch.zeros(ncell + 1, dtype=points.dtype).index_add(0, cell, w)
         sums = torch.zeros(ncell + 1, 3, dtype=points.dtype).index_add(0, cell, xyz * w.unsqueeze(1))
-        mean = sums / torch.clamp(count, min=1.0).unsqueeze(1)
-        feats = torch.cat([points, xyz - mean[cell], _centre_offsets(xyz, coords, cfg)], 1)
+        count_at_point = count[cell]
+        mean = sums[cell] / torch.clamp(count_at_point, min=1.0).unsqueeze(1)
+        feats = torch.cat([points, xyz - mean, _centre_offsets(xyz, coords, cfg)], 1)
         feats = self.encode(feats) * w.unsqueeze(1)
+        # A pillar with free slots also takes the max with the padding slot's value; max is
+        # associative, so each of its points carries that value into the scatter.
+        pad_value = self.encode(torch.zeros(1, self.num_point_features + 6, dtype=feats.dtype))
+        has_free_slots = (count_at_point < cfg.max_points_per_pillar).unsqueeze(1)
+        feats = torch.where(has_free_slots, torch.maximum(feats, pad_value), feats)
 
         c = feats.shape[1]
         canvas = torch.zeros(ncell + 1, c, dtype=feats.dtype).scatter_reduce(
             0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
-        pad_value = self.encode(torch.zeros(1, self.num_point_features + 6, dtype=feats.dtype))
-        padded = ((count > 0) & (count < cfg.max_points_per_pillar)).unsqueeze(1)
-        canvas = torch.where(padded, torch.maximum(canvas, pad_value), canvas)
         return canvas[:ncell].T.reshape(c, ny, nx), count[:ncell] > 0
 
 
