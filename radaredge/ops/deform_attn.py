@@ -54,29 +54,33 @@ def _level_maps(value: torch.Tensor, shapes: list[tuple[int, int]]) -> list[torc
 
 
 def _weighted_sum(samples: list[torch.Tensor], attention_weights: torch.Tensor) -> torch.Tensor:
-    """Per-level samples [N*M, D, Lq, P] and weights [N, Lq, M, L, P] -> output [N, Lq, M*D]."""
-    n, lq, m, levels, p = attention_weights.shape
+    """Per-level samples [N*M, D, Lq, P] and head-major weights [N, M, Lq, L, P] -> output
+    [N, M*D, Lq], channels first (channel m*D + d is head m's channel d)."""
+    n, m, lq, levels, p = attention_weights.shape
     stacked = torch.stack(samples, -2).flatten(-2)                                  # [N*M, D, Lq, L*P]
-    w = attention_weights.transpose(1, 2).reshape(n * m, 1, lq, levels * p)
-    out = (stacked * w).sum(-1)                                                      # [N*M, D, Lq]
-    return out.reshape(n, m * out.shape[1], lq).transpose(1, 2)
+    out = (stacked * attention_weights.reshape(n * m, 1, lq, levels * p)).sum(-1)  # [N*M, D, Lq]
+    return out.reshape(n, m * out.shape[1], lq)
 
 
 def ms_deform_attn(value: torch.Tensor, spatial_shapes, sampling_locations: torch.Tensor,
                    attention_weights: torch.Tensor) -> torch.Tensor:
     """Export formulation of multi-scale deformable attention -> [N, Lq, M*D] (module docstring)."""
-    return ms_deform_attn_grid(value, spatial_shapes, 2.0 * sampling_locations - 1.0, attention_weights)
+    grids = (2.0 * sampling_locations - 1.0).transpose(1, 2)
+    return ms_deform_attn_heads(value, spatial_shapes, grids, attention_weights.transpose(1, 2)).transpose(1, 2)
 
 
-def ms_deform_attn_grid(value: torch.Tensor, spatial_shapes, grids: torch.Tensor,
-                        attention_weights: torch.Tensor) -> torch.Tensor:
-    """:func:`ms_deform_attn` with the locations already in grid_sample's [-1, 1] coordinates
-    (grid = 2 * location - 1), shaped like ``sampling_locations``."""
+def ms_deform_attn_heads(value: torch.Tensor, spatial_shapes, grids: torch.Tensor,
+                         attention_weights: torch.Tensor) -> torch.Tensor:
+    """:func:`ms_deform_attn` in the layout grid_sample works in: locations already in its [-1, 1]
+    coordinates (grid = 2 * location - 1), heads before queries (grids [N, M, Lq, L, P, 2],
+    weights [N, M, Lq, L, P]), output channels first, [N, M*D, Lq]."""
+    n, m, lq, levels, p, _ = grids.shape
     shapes = _level_shapes(spatial_shapes, value, grids)
-    n, lq, m, _, p, _ = grids.shape
     samples = []
-    for level, image in enumerate(_level_maps(value, shapes)):
-        grid = grids[:, :, :, level].transpose(1, 2).reshape(n * m, lq, p, 2)
+    # one level needs no slice (a slice copies every sample location)
+    per_level = grids.unbind(3) if levels > 1 else [grids]
+    for level_grid, image in zip(per_level, _level_maps(value, shapes)):
+        grid = level_grid.reshape(n * m, lq, p, 2)
         samples.append(F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False))
     return _weighted_sum(samples, attention_weights)
 
@@ -91,7 +95,7 @@ def ms_deform_attn_reference(value: torch.Tensor, spatial_shapes, sampling_locat
         loc = sampling_locations[:, :, :, level].transpose(1, 2).reshape(n * m, lq * p, 2)
         got = bilinear_sample_reference(image, loc[..., 1] * h - 0.5, loc[..., 0] * w - 0.5)
         samples.append(got.reshape(n * m, -1, lq, p))
-    return _weighted_sum(samples, attention_weights)
+    return _weighted_sum(samples, attention_weights.transpose(1, 2)).transpose(1, 2)
 
 
 class MSDeformAttn(nn.Module):
@@ -142,20 +146,35 @@ class MSDeformAttn(nn.Module):
         if padding_mask is not None:
             value = value.masked_fill(padding_mask[..., None], 0.0)
         value = value.reshape(n, value.shape[1], m, self.d_model // m)
-        weights = self.attention_weights(query).reshape(n, lq, m, levels * p).softmax(-1)
-        weights = weights.reshape(n, lq, m, levels, p)
         size_xy = torch.tensor([[w, h] for h, w in _shape_list(spatial_shapes)], dtype=query.dtype)  # [L, 2]
         if reference:
+            weights = self.attention_weights(query).reshape(n, lq, m, levels * p).softmax(-1)
+            weights = weights.reshape(n, lq, m, levels, p)
             offsets = self.sampling_offsets(query).reshape(n, lq, m, levels, p, 2)
             locations = reference_points[:, :, None, :, None, :] + offsets / size_xy[:, None, :]
             return self.output_proj(ms_deform_attn_reference(value, spatial_shapes, locations, weights))
-        # The same locations in grid_sample coordinates, 2 * (ref + offset / size) - 1: the factor
-        # 2 / size per output column folds into the offset projection's weights (constants at
-        # export), so the graph has no broadcast divide over every sample.
+        # The same locations in grid_sample coordinates, 2 * (ref + offset / size) - 1. The factor
+        # 2 / size per offset column folds into the projection's weights (constants at export), so
+        # the graph has no broadcast divide over every sample. Both projections run head-major,
+        # [N, 1, Lq, C] @ [M, C, K] -> [N, M, Lq, K]: grids and weights come out in grid_sample's
+        # layout, and the graph transposes none of these per-sample tensors.
+        c = self.d_model
         scale = (2.0 / size_xy).view(1, levels, 1, 2).expand(m, levels, p, 2).reshape(-1)
-        offsets = F.linear(query, self.sampling_offsets.weight * scale[:, None], self.sampling_offsets.bias * scale)
-        # reference grid laid out like the offset columns, [N or 1, Lq, M*L*P*2], so the add
-        # broadcasts over whole rows only (a broadcast over an inner axis of 2 is slow in onnxruntime)
-        ref_grid = (2.0 * reference_points - 1.0)[:, :, None, :, None, :].expand(-1, -1, m, -1, p, -1)
-        grids = (ref_grid.reshape(ref_grid.shape[0], lq, -1) + offsets).reshape(n, lq, m, levels, p, 2)
-        return self.output_proj(ms_deform_attn_grid(value, spatial_shapes, grids, weights))
+        w_off = (self.sampling_offsets.weight * scale[:, None]).reshape(m, levels * p * 2, c).transpose(1, 2)
+        b_off = (self.sampling_offsets.bias * scale).reshape(m, 1, levels * p * 2)
+        w_att = self.attention_weights.weight.reshape(m, levels * p, c).transpose(1, 2)
+        b_att = self.attention_weights.bias.reshape(m, 1, levels * p)
+        rows = query.unsqueeze(1)                                                  # [N, 1, Lq, C]
+        # The biases are expanded over the queries and the offset bias joins the reference grid
+        # (laid out like the offset columns), so each sum is one add of [1, M, Lq, K] operands
+        # broadcast over N only: a broadcast over an inner axis of 2 or P is slow in onnxruntime.
+        # With reference points that are constants (the DFA layers' cell centres) onnxruntime
+        # folds both at session start.
+        ref_grid = (2.0 * reference_points - 1.0)[:, None, :, :, None, :].expand(-1, -1, -1, -1, p, -1)
+        grid_base = ref_grid.reshape(ref_grid.shape[0], 1, lq, -1) + b_off.unsqueeze(0)
+        grids = grid_base + torch.matmul(rows, w_off)
+        logits = b_att.unsqueeze(0).expand(-1, -1, lq, -1) + torch.matmul(rows, w_att)
+        head_weights = logits.softmax(-1)                                          # [N, M, Lq, L*P]
+        out = ms_deform_attn_heads(value, spatial_shapes, grids.reshape(n, m, lq, levels, p, 2),
+                                   head_weights.reshape(n, m, lq, levels, p))
+        return self.output_proj(out.transpose(1, 2))
