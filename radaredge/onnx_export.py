@@ -38,7 +38,6 @@ def export_onnx(
     dynamic_axes: Mapping[str, Mapping[int, str]] | None = None,
     opset: int = DEFAULT_OPSET,
     verbose: bool = False,
-    full_optimize: bool = False,
 ) -> Path:
     """Export ``module(*args)`` to ``path`` with torch's dynamo exporter.
 
@@ -82,11 +81,10 @@ def export_onnx(
                 dynamo=True,
                 external_data=False,
                 verbose=False,
-                optimize=full_optimize,
+                optimize=False,
             )
-            if not full_optimize:
-                onnxscript.optimizer.fold_constants(program.model)
-                onnxscript.optimizer.remove_unused_nodes(program.model)
+            onnxscript.optimizer.fold_constants(program.model, should_fold=_fold_unless_generator)
+            onnxscript.optimizer.remove_unused_nodes(program.model)
             program.save(str(path))
     except Exception as exc:  # torch raises many types; wrap them with context
         raise ExportError(
@@ -95,6 +93,17 @@ def export_onnx(
     if dynamic_axes:
         _name_dynamic_dims(path, dynamic_axes)
     return path
+
+
+_GENERATORS = frozenset({"ConstantOfShape", "Expand", "Tile"})
+
+
+def _fold_unless_generator(node) -> bool | None:
+    """Constant-folding policy: ops that build a large tensor from a small one (the zero canvas
+    of a pillar scatter, a bias spread over every query) stay in the graph, and onnxruntime
+    folds them when the session starts; folded here, the file would store their whole output
+    (up to the optimiser's 262144 elements each). Everything else folds as the optimiser decides."""
+    return False if node.op_type in _GENERATORS else None
 
 
 def _name_dynamic_dims(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:
