@@ -3,6 +3,7 @@
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -99,7 +100,6 @@ def test_load_errors(tmp_path):
 def test_worker_threads_stop_spinning_when_a_run_returns(onnx_path, frames):
     """Between scans the cores belong to the app: onnxruntime's default keeps its worker threads
     spinning after a run (tens of ms of CPU on 2 threads); radaredge's sessions stop them."""
-    import time
     model = runtime.load(onnx_path, threads=2)
     model.run(*frames)
     before = time.process_time()
