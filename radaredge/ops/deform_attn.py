@@ -168,8 +168,8 @@ class MSDeformAttn(nn.Module):
         # The biases are expanded over the queries and the offset bias joins the reference grid
         # (laid out like the offset columns), so each sum is one add of [1, M, Lq, K] operands
         # broadcast over N only: a broadcast over an inner axis of 2 or P is slow in onnxruntime.
-        # With reference points that are constants (the DFA layers' cell centres) onnxruntime
-        # folds both at session start.
+        # onnxruntime folds the expanded bias at session start, and the grid base too when the
+        # reference points are constants (the DFA layers' cell centres).
         ref_grid = (2.0 * reference_points - 1.0)[:, None, :, :, None, :].expand(-1, -1, -1, -1, p, -1)
         grid_base = ref_grid.reshape(ref_grid.shape[0], 1, lq, -1) + b_off.unsqueeze(0)
         grids = grid_base + torch.matmul(rows, w_off)
