@@ -131,3 +131,57 @@ def test_accuracy_on_synthetic_radar_scenes(dynamic_fraction):
         assert np.linalg.norm(err[:2]) < 0.05, (seed, err)
         assert np.linalg.norm(err) < 0.1, (seed, err)
         assert ((~static) == (scan.dynamic | scan.ghost)).mean() >= 0.95, seed
+
+
+class _ScansAtOnce(torch.nn.Module):
+    """EgoVelocityRansac.frames over scans given as separate inputs, for export."""
+
+    def __init__(self, count):
+        super().__init__()
+        self.ransac, self.count = EgoVelocityRansac(), count
+
+    def forward(self, *xyz_vr):
+        xyz = torch.cat(xyz_vr[0::2])
+        v_r = torch.cat(xyz_vr[1::2])
+        frame = torch.cat([torch.full((x.shape[0],), k, dtype=torch.int64) for k, x in enumerate(xyz_vr[0::2])])
+        return self.ransac.frames(xyz, v_r, torch.ones(xyz.shape[0], dtype=torch.bool), frame, self.count)
+
+
+# Scans of different sizes and kinds: a plain one, an empty one, one too small to estimate, a
+# static one with the ego standing still, one with 40 % dynamic points.
+_MIXED = [(150, 0.1, 11), (0, 0.0, 12), (2, 0.0, 13), (80, 0.0, 14), (300, 0.4, 15)]
+
+
+def _mixed_scans():
+    scans = [doppler_scan(n, d, s)[:2] for n, d, s in _MIXED]
+    scans[3] = (scans[3][0], np.zeros(len(scans[3][1]), np.float32))
+    return scans
+
+
+def test_scans_at_once_equal_scans_alone():
+    """frames(): each scan's ego velocity, static mask and validity are those of the scan alone."""
+    scans = _mixed_scans()
+    with torch.no_grad():
+        v, static, ok = _ScansAtOnce(len(scans))(*[torch.from_numpy(a) for s in scans for a in s])
+    start = 0
+    for k, (xyz, v_r) in enumerate(scans):
+        v1, s1, ok1 = estimate_ego_velocity(xyz, v_r)
+        np.testing.assert_allclose(v[k].numpy(), v1, atol=1e-6, err_msg=f"scan {k}")
+        assert np.array_equal(static[start:start + len(xyz)].numpy(), s1), f"scan {k}"
+        assert bool(ok[k]) == ok1, f"scan {k}"
+        start += len(xyz)
+    assert [bool(o) for o in ok] == [True, False, False, True, True]
+
+
+def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
+    scans = _mixed_scans()[:3]
+    names = [f"{a}_{k}" for k in range(3) for a in ("xyz", "v_r")]
+    example = dict(zip(names, [torch.from_numpy(a) for s in scans for a in s]))
+    rt = onnx_roundtrip(_ScansAtOnce(3), example, ["v_ego", "static_mask", "valid_estimate"],
+                        {n: {0: f"N_{n}"} for n in names})
+    for sizes in [(300, 57, 120), (0, 4, 200), (90, 0, 0)]:
+        scans = [doppler_scan(n, 0.3, n + 1)[:2] for n in sizes]
+        ref, got = rt(dict(zip(names, [torch.from_numpy(a) for s in scans for a in s])))
+        np.testing.assert_allclose(got["v_ego"], ref["v_ego"], atol=1e-5)
+        assert np.array_equal(got["static_mask"], ref["static_mask"])
+        assert np.array_equal(got["valid_estimate"], ref["valid_estimate"])

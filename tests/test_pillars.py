@@ -112,3 +112,41 @@ def test_onnx_export_matches_torch(onnx_roundtrip):
         p = scan(n, seed)[:n] if n == 0 else scan(n, seed)
         ref, got = rt({"points": torch.from_numpy(p), "valid": torch.ones(len(p), dtype=torch.bool)})
         np.testing.assert_allclose(got["canvas"], ref["canvas"], atol=1e-5)
+
+
+class _ScansAtOnce(torch.nn.Module):
+    """PillarFeatureNet.scatter_frames over scans given as separate inputs, for export."""
+
+    def __init__(self, net, count):
+        super().__init__()
+        self.net, self.count = net, count
+
+    def forward(self, *scans):
+        pts = torch.cat(scans)
+        frame = torch.cat([torch.full((s.shape[0],), k, dtype=torch.int64) for k, s in enumerate(scans)])
+        return self.net.scatter_frames(pts, torch.ones(pts.shape[0], dtype=torch.bool), frame, self.count)
+
+
+def test_scans_at_once_equal_scans_alone():
+    """scatter_frames(): each scan's canvas and occupancy are those of the scan alone, also when
+    a crowded pillar of one scan sits in the same cell as another scan's points."""
+    net = make_net()
+    scans = [scan(200, 5), scan(0, 6)[:0], scan(0, 7), scan(300, 8)]
+    with torch.no_grad():
+        canvas, occupied = _ScansAtOnce(net, len(scans))(*[torch.from_numpy(s) for s in scans])
+        for k, s in enumerate(scans):
+            alone, occ = net.scatter(torch.from_numpy(s), torch.ones(len(s), dtype=torch.bool))
+            np.testing.assert_array_equal(canvas[k].numpy(), alone.numpy(), err_msg=f"scan {k}")
+            np.testing.assert_array_equal(occupied[k].numpy(), occ.numpy(), err_msg=f"scan {k}")
+
+
+def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
+    net = make_net()
+    example = {f"points_{k}": torch.from_numpy(scan(40, k)) for k in range(3)}
+    rt = onnx_roundtrip(_ScansAtOnce(net, 3), example, ["canvas", "occupied"],
+                        {n: {0: f"N{k}"} for k, n in enumerate(example)})
+    for sizes in [(400, 3, 90), (0, 120, 0)]:
+        inputs = {f"points_{k}": torch.from_numpy(scan(n, 10 + k)[: n if n == 0 else None]) for k, n in enumerate(sizes)}
+        ref, got = rt(inputs)
+        np.testing.assert_allclose(got["canvas"], ref["canvas"], atol=1e-5)
+        assert np.array_equal(got["occupied"], ref["occupied"])

@@ -165,23 +165,23 @@ class TDFANet(nn.Module):
             trace: dict | None = None) -> dict[str, torch.Tensor]:
         """Both formulations: ``reference=True`` uses the reference ops. Returns named outputs;
         ``trace`` (a dict) receives intermediate tensors for divergence reports."""
-        vels, valids, bevs = [], [], []
-        for pts in frames:
-            if reference:
+        if reference:
+            vels, valids, bevs = [], [], []
+            for pts in frames:
                 v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, 3].numpy(),
                                                                 self.ransac.config)
-                v = torch.tensor(v, dtype=torch.float32)
-                ok = torch.tensor(ok)
-                bev = pillar_scatter_reference(self.vfe, pts.numpy(), static)
-            else:
-                valid = torch.ones(pts.shape[0], dtype=torch.bool)
-                v, static, ok = self.ransac(pts[:, :3], pts[:, 3], valid)
-                bev = self.vfe(pts, static)
-            vels.append(v)
-            valids.append(ok)
-            bevs.append(bev)
-        v_ego = torch.stack(vels)
-        bev = torch.stack(bevs)
+                vels.append(torch.tensor(v, dtype=torch.float32))
+                valids.append(torch.tensor(ok))
+                bevs.append(pillar_scatter_reference(self.vfe, pts.numpy(), static))
+            v_ego, ok, bev = torch.stack(vels), torch.stack(valids), torch.stack(bevs)
+        else:
+            # The K scans run through one RANSAC and one pillar scatter, concatenated: the same
+            # per-scan results as K separate passes with a third of the graph's nodes.
+            pts = torch.cat(frames, 0)
+            frame = torch.cat([torch.full((f.shape[0],), k, dtype=torch.int64) for k, f in enumerate(frames)])
+            valid = torch.ones(pts.shape[0], dtype=torch.bool)
+            v_ego, static, ok = self.ransac.frames(pts[:, :3], pts[:, 3], valid, frame, len(frames))
+            bev = self.vfe.scatter_frames(pts, static, frame, len(frames))[0]
         if trace is not None:
             trace["ego_velocity"] = v_ego
             trace["bev"] = bev
@@ -191,7 +191,7 @@ class TDFANet(nn.Module):
             "descriptor": desc,
             "descriptor_normalized": desc / torch.clamp(torch.linalg.vector_norm(desc), min=1e-12),
             "ego_velocity": v_ego,
-            "ego_valid": torch.stack(valids),
+            "ego_valid": ok,
         }
 
 

@@ -187,8 +187,8 @@ class EgoVelocityRansac(nn.Module):
     """Export formulation: fixed-shape RANSAC for any N (dynamic axis).
 
     forward(xyz [N, 3] m, v_r [N] m/s, valid [N] bool) -> (v_ego [3] m/s, static_mask [N] bool,
-    valid_estimate [] bool). See the module docstring for the algorithm and the defined results
-    for degenerate input.
+    valid_estimate [] bool). :meth:`frames` runs K scans at once, concatenated. See the module
+    docstring for the algorithm and the defined results for degenerate input.
     """
 
     def __init__(self, config: RansacConfig = RansacConfig()):
@@ -198,7 +198,8 @@ class EgoVelocityRansac(nn.Module):
                              persistent=False)
 
     def _ranks(self, n: torch.Tensor) -> torch.Tensor:
-        """Tensor version of :func:`sample_ranks` (n is a 0-d int64 tensor)."""
+        """Tensor version of :func:`sample_ranks` for each scan's count ``n`` [K] (int64) -> [K, H, 3]."""
+        n = n.unsqueeze(1)                                             # [K, 1]
         one = torch.ones_like(n)
         t = self.table
         r0 = torch.remainder(t[:, 0], torch.maximum(n, one))
@@ -208,9 +209,20 @@ class EgoVelocityRansac(nn.Module):
         s2 = torch.remainder(t[:, 2], torch.maximum(n - 2, one))
         s2 = s2 + (s2 >= lo).long()
         r2 = s2 + (s2 >= hi).long()
-        return torch.minimum(torch.stack([r0, r1, r2], 1), torch.clamp(n - 1, min=0))
+        return torch.minimum(torch.stack([r0, r1, r2], 2), torch.clamp(n - 1, min=0).unsqueeze(2))
 
     def forward(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor):
+        v_ego, static, ok = self.frames(xyz, v_r, valid, None, 1)
+        return v_ego[0], static, ok[0]
+
+    def frames(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
+               count: int):
+        """``count`` scans concatenated along N: xyz [N, 3] m, v_r [N] m/s, valid [N] bool, and
+        ``frame`` [N] int64, the scan (0 .. count-1) each point belongs to (None: all scan 0).
+        Returns (v_ego [count, 3] m/s, static_mask [N] bool, valid_estimate [count] bool), each
+        scan's result exactly as if it ran alone: samples, inliers and refit see only its points.
+        One graph for all scans instead of one per scan: the RANSAC is hundreds of small ops,
+        whose per-op overhead, not their arithmetic, sets its time on a CPU."""
         cfg = self.config
         n_in = xyz.shape[0]
         out_dtype = xyz.dtype
@@ -228,30 +240,43 @@ class EgoVelocityRansac(nn.Module):
         in_fov = ((x > 0) & (y.abs() <= math.tan(math.radians(cfg.max_azimuth_deg)) * x)
                   & (z.abs() <= math.tan(math.radians(cfg.max_elevation_deg)) * torch.sqrt(x * x + y * y)))
         eligible = usable & (rng >= cfg.min_range) & (rng <= cfg.max_range) & in_fov
+        if frame is None:
+            member = torch.ones(1, xyz.shape[0], dtype=torch.bool)               # [1, N]
+        else:
+            frame = torch.cat([frame, torch.zeros(3, dtype=torch.int64)], 0)
+            member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64).unsqueeze(1)   # [K, N]
+        own_eligible = eligible.unsqueeze(0) & member                          # [K, N]
 
-        # Indices of eligible points in input order: sort key puts them first, stably.
+        # Indices of eligible points in input order: the sort key puts them first, stably, so
+        # scan k's eligible points (scans are concatenated in order) start at the number of
+        # eligible points of the scans before it.
         n = xyz.shape[0]
         pos = torch.arange(n, dtype=torch.int64)
         key = torch.where(eligible, pos, pos + n)
         order = torch.topk(key, n, largest=False, sorted=True).indices
-        n_elig = eligible.long().sum()
-        sample = order[self._ranks(n_elig)]                          # [H, 3]
+        n_elig = own_eligible.long().sum(1)                                    # [K]
+        first = torch.cumsum(n_elig, 0) - n_elig                               # [K]
+        sample = order[first.view(-1, 1, 1) + self._ranks(n_elig)]             # [K, H, 3]
 
-        rows = dirs[sample]                                            # [H, 3, 3]
-        v_hyp, det = _solve3(rows, -v_r[sample])                       # [H, 3], [H]
-        resid = (v_r.unsqueeze(0) + v_hyp @ dirs.T).abs()              # [H, N]
-        inl = (resid < cfg.inlier_threshold) & eligible.unsqueeze(0)
-        counts = torch.where(det.abs() >= cfg.min_det, inl.long().sum(1), torch.full_like(det, -1, dtype=torch.int64))
-        best = torch.argmax(counts)
-        best_count = counts[best]
-        w = inl[best].to(xyz.dtype)
+        rows = dirs[sample]                                                    # [K, H, 3, 3]
+        v_hyp, det = _solve3(rows, -v_r[sample])                               # [K, H, 3], [K, H]
+        resid = (v_r + v_hyp @ dirs.T).abs()                                   # [K, H, N]
+        inl = (resid < cfg.inlier_threshold) & own_eligible.unsqueeze(1)
+        counts = torch.where(det.abs() >= cfg.min_det, inl.long().sum(2), torch.full_like(det, -1, dtype=torch.int64))
+        best = torch.argmax(counts, 1, keepdim=True)                           # [K, 1], first on ties
+        best_count = counts.gather(1, best).squeeze(1)
+        w = inl.gather(1, best.unsqueeze(2).expand(-1, -1, n)).squeeze(1).to(xyz.dtype)   # [K, N]
 
-        normal = (dirs * w.unsqueeze(1)).T @ dirs                      # [3, 3]
-        rhs = -(dirs * (w * v_r).unsqueeze(1)).sum(0)                  # [3]
+        normal = (dirs.unsqueeze(0) * w.unsqueeze(2)).transpose(1, 2) @ dirs   # [K, 3, 3]
+        rhs = -(dirs.unsqueeze(0) * (w * v_r).unsqueeze(2)).sum(1)             # [K, 3]
         v_ego, det_n = _solve3(normal, rhs)
         ok = (n_elig >= 3) & (best_count >= cfg.min_inliers) & (det_n.abs() >= cfg.min_det)
-        v_ego = torch.where(ok, v_ego, torch.zeros_like(v_ego))
-        static = usable & (~ok | ((v_r + dirs @ v_ego).abs() < cfg.inlier_threshold))
+        v_ego = torch.where(ok.unsqueeze(1), v_ego, torch.zeros_like(v_ego))
+        if frame is None:
+            v_point, ok_point = v_ego.expand(n, -1), ok.expand(n)
+        else:
+            v_point, ok_point = v_ego[frame], ok[frame]
+        static = usable & (~ok_point | ((v_r + (dirs * v_point).sum(1)).abs() < cfg.inlier_threshold))
         return v_ego.to(out_dtype), static[:n_in], ok
 
 

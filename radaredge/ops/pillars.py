@@ -109,9 +109,19 @@ class PillarFeatureNet(nn.Module):
 
     def scatter(self, points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(canvas [C, ny, nx], occupied [ny * nx] bool: the pillar holds at least one kept point)."""
+        canvas, occupied = self.scatter_frames(points, valid, None, 1)
+        return canvas[0], occupied[0]
+
+    def scatter_frames(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
+                       count: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``count`` scans concatenated along N (``frame`` [N] int64: the scan of each point, None:
+        all scan 0) -> (canvases [count, C, ny, nx], occupied [count, ny * nx] bool), each scan's
+        canvas exactly as if it were encoded alone. Scan k's pillars are cells k * ny * nx + cell
+        of one canvas, so all scans share one sort and one scatter instead of a graph each."""
         cfg = self.config
         nx, ny, nz = cfg.grid_size
         ncell = nx * ny
+        spare = count * ncell                                     # the cell of dropped points
         n = points.shape[0]
         finite = torch.isfinite(points).all(1)
         points = torch.where(finite.unsqueeze(1), points, torch.zeros_like(points))
@@ -119,25 +129,28 @@ class PillarFeatureNet(nn.Module):
         coords = _voxel_coords(xyz, cfg)
         size = torch.tensor([nx, ny, nz], dtype=torch.int64)
         inside = valid & finite & ((coords >= 0) & (coords < size)).all(1)
-        cell = torch.where(inside, coords[:, 1] * nx + coords[:, 0], torch.full_like(coords[:, 0], ncell))
+        cell = coords[:, 1] * nx + coords[:, 0]
+        if frame is not None:
+            cell = cell + frame * ncell
+        cell = torch.where(inside, cell, torch.full_like(coords[:, 0], spare))
 
         # Rank of each point inside its pillar in input order: sort by (cell, index).
         pos = torch.arange(n, dtype=torch.int64)
         order = torch.topk(cell * n + pos, n, largest=False, sorted=True).indices
         sorted_cell = cell[order]
-        first = torch.full((ncell + 1,), n, dtype=torch.int64).scatter_reduce(
+        first = torch.full((spare + 1,), n, dtype=torch.int64).scatter_reduce(
             0, sorted_cell, pos, reduce="amin", include_self=True)
         rank = torch.zeros_like(pos).scatter(0, order, pos - first[sorted_cell])
         keep = inside & (rank < cfg.max_points_per_pillar)
-        cell = torch.where(keep, cell, torch.full_like(cell, ncell))
+        cell = torch.where(keep, cell, torch.full_like(cell, spare))
 
         # Per-pillar statistics are gathered back to the points and everything after runs per
         # point: the graph touches the N points, not the ny * nx cells (dropped points sit in
-        # the spare cell ncell, with count 0 and zero features).
+        # the spare cell, with count 0 and zero features).
         w = keep.to(points.dtype)
-        count = torch.zeros(ncell + 1, dtype=points.dtype).index_add(0, cell, w)
-        sums = torch.zeros(ncell + 1, 3, dtype=points.dtype).index_add(0, cell, xyz * w.unsqueeze(1))
-        count_at_point = count[cell]
+        count_per_cell = torch.zeros(spare + 1, dtype=points.dtype).index_add(0, cell, w)
+        sums = torch.zeros(spare + 1, 3, dtype=points.dtype).index_add(0, cell, xyz * w.unsqueeze(1))
+        count_at_point = count_per_cell[cell]
         mean = sums[cell] / torch.clamp(count_at_point, min=1.0).unsqueeze(1)
         feats = torch.cat([points, xyz - mean, _centre_offsets(xyz, coords, cfg)], 1)
         feats = self.encode(feats) * w.unsqueeze(1)
@@ -148,9 +161,10 @@ class PillarFeatureNet(nn.Module):
         feats = torch.where(has_free_slots, torch.maximum(feats, pad_value), feats)
 
         c = feats.shape[1]
-        canvas = torch.zeros(ncell + 1, c, dtype=feats.dtype).scatter_reduce(
+        canvas = torch.zeros(spare + 1, c, dtype=feats.dtype).scatter_reduce(
             0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
-        return canvas[:ncell].T.reshape(c, ny, nx), count[:ncell] > 0
+        canvas = canvas[:spare].reshape(count, ncell, c).transpose(1, 2).reshape(count, c, ny, nx)
+        return canvas, (count_per_cell[:spare] > 0).reshape(count, ncell)
 
 
 # ----------------------------------------------------------------------------- reference
