@@ -23,11 +23,10 @@ from pathlib import Path
 
 import torch
 
-from radaredge.bench import benchmark, cpu_name, model_backends, pin_threads, top_ops
+from radaredge.bench import benchmark, cpu_name, model_backends, pin_threads, profile_runs, top_ops
 from radaredge.cards import load_card
 from radaredge.export import build_model, export_model
 from radaredge.macs import count_macs, gemm_peak_gflops
-from radaredge.ort import make_session, run_session
 from radaredge.quantize import QUANTIZED_OPS, quantize_int8
 from radaredge.registry import model_spec
 
@@ -52,10 +51,7 @@ def export_both(card, model, export_dir: Path) -> tuple[Path, Path]:
 
 def quantised_time_share(onnx_path: Path, cases: list[dict], threads: int, runs: int = 5) -> float:
     """Share of onnxruntime fp32 kernel time spent in the op types int8 quantises."""
-    session = make_session(onnx_path, threads=threads, profile=True)
-    for i in range(runs):
-        run_session(session, cases[i % len(cases)])
-    ops = dict(top_ops(session.end_profiling(), k=1000))
+    ops = dict(top_ops(profile_runs(onnx_path, cases, threads, runs), k=1000))
     total = sum(ops.values())
     return sum(v for k, v in ops.items() if k in QUANTIZED_OPS) / total if total else 0.0
 
@@ -67,7 +63,7 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
     fp32, int8 = export_both(card, model, export_dir)
     cases = [feeds for _, feeds in spec.make_cases(card, 4, 1)]
     macs = count_macs(spec.run_export, model, {k: torch.from_numpy(v) for k, v in cases[0].items()})
-    backends, _ = model_backends(card, model, fp32, threads, True, False, int8_path=int8)
+    backends = model_backends(card, model, fp32, threads, True, int8_path=int8)
     results = benchmark(backends, cases, runs, warmup=3)
     rows = []
     for r in results:

@@ -76,15 +76,16 @@ def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, pro
     return [summarise(n, times[n]) for n in backends]
 
 
-def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, profile: bool = False,
-                   int8_path=None):
+def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, int8_path=None) -> dict:
     """name -> callable(feeds) for the torch reference, torch export formulation, onnxruntime fp32
-    and, when ``int8_path`` is given, onnxruntime on the int8 graph."""
+    and, when ``int8_path`` is given, onnxruntime on the int8 graph. The sessions are never
+    profiled: onnxruntime's profiler costs time in every node (tdfanet-edge: 1.2x the latency),
+    so profiles come from a session of their own (:func:`profile_runs`)."""
     from .ort import make_session, run_session
     from .registry import model_spec
 
     spec = model_spec(card)
-    session = make_session(onnx_path, threads=threads, profile=profile)
+    session = make_session(onnx_path, threads=threads)
 
     def torch_export(feeds):
         with torch.no_grad():
@@ -102,7 +103,18 @@ def model_backends(card, model, onnx_path, threads: int, include_reference: bool
     if int8_path is not None:
         int8_session = make_session(int8_path, threads=threads)
         backends["onnxruntime int8"] = lambda feeds: run_session(int8_session, feeds)
-    return backends, session
+    return backends
+
+
+def profile_runs(onnx_path, cases: list[dict], threads: int, runs: int) -> str:
+    """Run ``onnx_path`` ``runs`` times over ``cases`` in a profiled onnxruntime session of its
+    own; return the path of onnxruntime's profile JSON."""
+    from .ort import make_session, run_session
+
+    session = make_session(onnx_path, threads=threads, profile=True)
+    for i in range(runs):
+        run_session(session, cases[i % len(cases)])
+    return session.end_profiling()
 
 
 def results_table(results: list[BackendResult], baseline: str = "torch reference") -> str:
@@ -148,14 +160,15 @@ def onnxruntime_peak_rss_mb(onnx_path, cases: list[dict], threads: int) -> float
     return int(done.stdout.split()[-1]) / 1024.0          # VmHWM and Linux ru_maxrss are in KiB
 
 
-def top_ops(profile_file: str, k: int = 10) -> list[tuple[str, float]]:
-    """Top ``k`` op types by total time (ms) from an onnxruntime profile JSON."""
+def top_ops(profile_file: str, k: int = 10, runs: int = 1) -> list[tuple[str, float]]:
+    """Top ``k`` op types by kernel time from an onnxruntime profile JSON of ``runs`` runs, in ms
+    per run."""
     events = json.load(open(profile_file))
     tot: dict[str, float] = {}
     for e in events:
         if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
             op = e.get("args", {}).get("op_name", "?")
-            tot[op] = tot.get(op, 0.0) + e.get("dur", 0) / 1e3
+            tot[op] = tot.get(op, 0.0) + e.get("dur", 0) / 1e3 / runs
     return sorted(tot.items(), key=lambda kv: -kv[1])[:k]
 
 

@@ -224,13 +224,10 @@ def _stage_table(spec, net, cases, runs: int, no_reference: bool, onnx_path=None
     if spec.onnx_stages and onnx_path is not None:
         import onnx
 
-        from .ort import make_session, run_session
+        from .bench import profile_runs
         from .ort_stages import stage_times_from_profile
-        session = make_session(onnx_path, threads=threads, profile=True)
-        for i in range(n):
-            run_session(session, cases[i % len(cases)])
         out["onnxruntime"] = stage_times_from_profile(
-            session.end_profiling(), onnx.load(str(onnx_path), load_external_data=False),
+            profile_runs(onnx_path, cases, threads, n), onnx.load(str(onnx_path), load_external_data=False),
             list(spec.onnx_stages), spec.onnx_post_outputs, n)
     names = list(dict.fromkeys(k for row in out.values() for k in row))
     click.echo("per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names))
@@ -257,7 +254,7 @@ def _stage_table(spec, net, cases, runs: int, no_reference: bool, onnx_path=None
 def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
     from .bench import (as_dicts, benchmark, cpu_name, model_backends, onnxruntime_peak_rss_mb, pin_threads,
-                        results_table, top_ops, write_results_json)
+                        profile_runs, results_table, top_ops, write_results_json)
     from .export import build_model, export_model
     from .registry import model_spec
     card = _card(model, config)
@@ -274,7 +271,7 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     cases = [feeds for _, feeds in model_spec(card).make_cases(card, 4, 1)]
     default_int8 = onnx_path.with_suffix(".int8.onnx")
     int8_path = int8_path or (default_int8 if default_int8.exists() else None)
-    backends, session = model_backends(card, net, onnx_path, threads, not no_reference, profile, int8_path)
+    backends = model_backends(card, net, onnx_path, threads, not no_reference, int8_path)
     results = benchmark(backends, cases, runs, warmup, progress=_progress("bench"))
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     click.echo(f"{card.name} on {threads} thread(s), cores {cores}, {cpu_name()}, {runs} runs, {stamp}")
@@ -292,8 +289,10 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
                f"the {len(cases)} bench inputs once)")
     prof = None
     if profile:
-        prof = top_ops(session.end_profiling())
-        click.echo("onnxruntime top ops (total ms over the profiled runs):")
+        n = max(3, min(runs, 10))
+        prof = top_ops(profile_runs(onnx_path, cases, threads, n), runs=n)
+        click.echo(f"onnxruntime top ops (kernel ms per run, from {n} runs in a separately profiled session; "
+                   "the profiler slows small ops):")
         for op, ms in prof:
             click.echo(f"  {op:<24}{ms:10.1f}")
     if as_json:

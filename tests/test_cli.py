@@ -67,6 +67,28 @@ def test_bench_json_reports_every_backend(tmp_path, monkeypatch, tiny_export):
     assert all(r["fps"] > 0 for r in out["results"])
 
 
+def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_export):
+    """--profile: top ops per run from a profiled session, while the timed session is not profiled
+    (onnxruntime's profiler slows every node)."""
+    import radaredge.ort as ort_helpers
+    opened = []
+    real = ort_helpers.make_session
+
+    def spy(path, threads=2, profile=False, **kw):
+        opened.append(profile)
+        return real(path, threads=threads, profile=profile, **kw)
+
+    monkeypatch.setattr(ort_helpers, "make_session", spy)
+    monkeypatch.chdir(tmp_path)
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
+                 "--runs", "3", "--warmup", "1", "--no-reference", "--profile", "--json")
+    assert res.exit_code == 0, res.output
+    assert opened[0] is False and True in opened, opened
+    assert "kernel ms per run" in res.output
+    out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
+    assert out["top_ops"] and all(ms > 0 for _, ms in out["top_ops"])
+
+
 def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     onnx = tmp_path / "tiny.onnx"
