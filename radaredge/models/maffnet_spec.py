@@ -33,7 +33,9 @@ def synthetic_columns(scan) -> dict[str, np.ndarray]:
     return cols
 
 
-def _select(cols: dict[str, np.ndarray], card: ModelCard) -> np.ndarray:
+def synthetic_points(scan, card: ModelCard) -> np.ndarray:
+    """A synthetic scan's points [N, F] float32 in the card's feature columns, in card order."""
+    cols = synthetic_columns(scan)
     missing = [f for f in card.features if f not in cols]
     if missing:
         raise ConfigError(f"{card.where}: synthetic scans provide {sorted(cols)}; card features {missing} are not among them")
@@ -61,7 +63,7 @@ def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, 
         overrides = {"dynamic_fraction": 0.4} if kind == "dynamic-40%" else {}
         if kind == "dense-traffic":
             overrides = {"num_cars": 10, "num_pedestrians": 8, "num_cyclists": 6, "static_points": 600}
-        pts = _select(synthetic_columns(generate_scan(seed=s, **overrides)), card)
+        pts = synthetic_points(generate_scan(seed=s, **overrides), card)
         rng = np.random.default_rng(s)
         if kind == "out-of-range":
             pts = np.concatenate([pts, _out_of_range(rng, card, pts.shape[1])])

@@ -1,0 +1,100 @@
+"""benchmarks/maffnet_fitted_head.py: OpenPCDet's target assignment, residual coding and head loss
+on the tiny MAFF-Net card (the int8 experiment's head is only as good as these)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import maffnet_fitted_head as fh  # noqa: E402
+
+from radaredge.cards import load_card  # noqa: E402
+from radaredge.export import build_model  # noqa: E402
+from radaredge.models.maffnet import decode_boxes  # noqa: E402
+
+CARD = load_card(ROOT / "tests" / "cards" / "maffnet-tiny.yaml")
+
+
+def _setup():
+    model = build_model(CARD)
+    return model, fh.anchor_classes(CARD, len(model.anchors))
+
+
+def test_anchor_classes_follow_the_head_layout():
+    model, classes = _setup()
+    # per location: Car x 2 rotations, Pedestrian x 2, Cyclist x 2; sizes tell the classes apart
+    assert classes[:6].tolist() == [0, 0, 1, 1, 2, 2] and len(classes) == len(model.anchors)
+    lengths = model.anchors[:, 3]
+    assert torch.all(lengths[classes == 0] == 3.9) and torch.all(lengths[classes == 1] == 0.8)
+
+
+def test_encode_inverts_decode_with_the_direction_bin():
+    model, _ = _setup()
+    g = torch.Generator().manual_seed(0)
+    idx = torch.randint(0, len(model.anchors), (50,), generator=g)
+    anchors = model.anchors[idx]
+    gt = anchors.clone()
+    gt[:, :3] += torch.randn(50, 3, generator=g) * 0.5
+    gt[:, 3:6] *= torch.exp(torch.randn(50, 3, generator=g) * 0.2)
+    gt[:, 6] = torch.rand(50, generator=g) * 2 * math.pi - math.pi
+    residuals = fh.encode_boxes(gt, anchors)
+    bins = fh.direction_targets(gt, model.head_config)
+    logits = torch.nn.functional.one_hot(bins, model.head_config.num_dir_bins).float()
+    back = decode_boxes(residuals, anchors, logits, model.head_config)
+    np.testing.assert_allclose(back[:, :6].numpy(), gt[:, :6].numpy(), atol=1e-4)
+    heading_err = torch.remainder(back[:, 6] - gt[:, 6] + math.pi, 2 * math.pi) - math.pi
+    assert heading_err.abs().max() < 1e-4
+
+
+def test_assignment_per_class_thresholds_and_forced_best_anchor():
+    model, classes = _setup()
+    anchors = model.anchors
+    car = anchors[(classes == 0).nonzero()[40, 0]].clone()               # a car exactly on an anchor
+    ped = anchors[(classes == 1).nonzero()[300, 0]].clone()
+    ped[:2] += 0.45                                                      # a pedestrian between anchors
+    gt = torch.stack([car, ped])
+    t = fh.assign_targets(anchors, classes, gt, torch.tensor([0, 1]), CARD.get("classes"))
+    labels = t["labels"]
+    exact = (classes == 0).nonzero()[40, 0]
+    assert labels[exact] == 1 and torch.allclose(t["box_targets"][exact], torch.zeros(7), atol=1e-6)
+    assert (labels == 2).sum() >= 1                                      # forced: the pedestrian's best anchor
+    assert torch.all(labels[classes == 2] == 0)                          # no cyclist: cyclist anchors are background
+    far = (anchors[:, 0] - car[0]).abs() + (anchors[:, 1] - car[1]).abs() > 8
+    assert torch.all(labels[far & (classes == 0)] == 0)
+    assert (labels == -1).any()                                          # between the thresholds: ignored
+    pos = labels > 0
+    assert torch.all(t["matched"][pos].abs().sum(1) > 0)
+
+
+def test_nearest_bev_swaps_length_and_width_near_the_y_axis():
+    boxes = torch.tensor([[0, 0, 0, 4.0, 2.0, 1, 0.0], [0, 0, 0, 4.0, 2.0, 1, math.pi / 2 - 0.1],
+                          [0, 0, 0, 4.0, 2.0, 1, math.pi]])
+    rect = fh.nearest_bev(boxes)
+    np.testing.assert_allclose(rect[:, 2] - rect[:, 0], [4.0, 2.0, 4.0], atol=1e-6)
+
+
+def test_fitting_lowers_the_loss_on_tiny_scans():
+    """A few steps of fit_head reduce the head loss: gradients reach only the head."""
+    model, classes = _setup()
+    examples = fh.synthetic_examples(CARD, [5, 6])
+    feats = [fh.head_input(model, p) for p, _, _ in examples]
+    targets = [fh.assign_targets(model.anchors, classes, torch.from_numpy(g), torch.from_numpy(lab),
+                                 CARD.get("classes")) for _, g, lab in examples]
+    backbone_before = {k: v.clone() for k, v in model.backbone_2d.state_dict().items()}
+
+    def loss():
+        with torch.no_grad():
+            return sum(float(fh.head_loss(*model.dense_head(f), t, model.head_config, 3)) for f, t in zip(feats, targets))
+
+    fh.reset_head(model.dense_head)
+    start = loss()
+    fh.fit_head(model, feats, targets, epochs=15, lr=3e-3, log=lambda *_: None)
+    assert loss() < 0.7 * start
+    assert all(torch.equal(v, model.backbone_2d.state_dict()[k]) for k, v in backbone_before.items())
