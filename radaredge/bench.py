@@ -79,7 +79,7 @@ def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, pro
 def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, int8_path=None) -> dict:
     """name -> callable(feeds) for the torch reference, torch export formulation, onnxruntime fp32
     and, when ``int8_path`` is given, onnxruntime on the int8 graph. The sessions are never
-    profiled: onnxruntime's profiler costs time in every node (tdfanet-edge: 1.2x the latency),
+    profiled: onnxruntime's profiler costs time in every node (tdfanet-edge: 1.15x the latency),
     so profiles come from a session of their own (:func:`profile_runs`)."""
     from .ort import make_session, run_session
     from .registry import model_spec

@@ -176,7 +176,7 @@ class TDFANet(nn.Module):
             v_ego, ok, bev = torch.stack(vels), torch.stack(valids), torch.stack(bevs)
         else:
             # The K scans run through one RANSAC and one pillar scatter, concatenated: the same
-            # per-scan results as K separate passes with a third of the graph's nodes.
+            # per-scan results as K separate passes, with a third of their nodes in the graph.
             pts = torch.cat(frames, 0)
             frame = torch.cat([torch.full((f.shape[0],), k, dtype=torch.int64) for k, f in enumerate(frames)])
             valid = torch.ones(pts.shape[0], dtype=torch.bool)

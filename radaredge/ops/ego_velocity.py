@@ -221,8 +221,7 @@ class EgoVelocityRansac(nn.Module):
         ``frame`` [N] int64, the scan (0 .. count-1) each point belongs to (None: all scan 0).
         Returns (v_ego [count, 3] m/s, static_mask [N] bool, valid_estimate [count] bool), each
         scan's result exactly as if it ran alone: samples, inliers and refit see only its points.
-        One graph for all scans instead of one per scan: the RANSAC is hundreds of small ops,
-        whose per-op overhead, not their arithmetic, sets its time on a CPU."""
+        An exported graph then holds one RANSAC for all scans instead of one per scan."""
         cfg = self.config
         n_in = xyz.shape[0]
         out_dtype = xyz.dtype
