@@ -207,27 +207,26 @@ def _print_parity(report):
     click.echo("PASSED" if report.passed else "FAILED")
 
 
-def _stage_table(spec, net, cases, runs: int, no_reference: bool, onnx_path=None, threads: int = 2) -> dict | None:
-    """Median ms per pipeline stage in torch (export and reference formulations) and, when the
-    spec names its graph's stages, the mean ms per stage inside onnxruntime from its node
-    profile (a separate profiled session, so the timed runs above are not profiled); printed."""
+def _stage_table(spec, net, cases, n: int, no_reference: bool, onnx_path=None, profile_file=None) -> dict | None:
+    """Median ms per pipeline stage over ``n`` runs in torch (export and reference formulations)
+    and, when the spec names its graph's stages, the mean ms per stage inside onnxruntime from
+    ``profile_file``, the profile of ``n`` runs of ``onnx_path`` in a session of its own (the
+    timed runs are never profiled); printed."""
     if spec.stage_times is None:
         return None
     import statistics
-    n = max(3, min(runs, 10))
     out = {}
     for label, ref in (("torch export", False), ("torch reference", True)):
         if ref and no_reference:
             continue
         laps = [spec.stage_times(net, cases[i % len(cases)], ref) for i in range(n)]
         out[label] = {k: statistics.median(l[k] for l in laps) * 1e3 for k in laps[0]}
-    if spec.onnx_stages and onnx_path is not None:
+    if spec.onnx_stages and profile_file is not None:
         import onnx
 
-        from .bench import profile_runs
         from .ort_stages import stage_times_from_profile
         out["onnxruntime"] = stage_times_from_profile(
-            profile_runs(onnx_path, cases, threads, n), onnx.load(str(onnx_path), load_external_data=False),
+            profile_file, onnx.load(str(onnx_path), load_external_data=False),
             list(spec.onnx_stages), spec.onnx_post_outputs, n)
     names = list(dict.fromkeys(k for row in out.values() for k in row))
     click.echo("per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names))
@@ -268,7 +267,8 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     if not onnx_path.exists():
         click.echo(f"{onnx_path} missing: exporting it first", err=True)
         export_model(card, onnx_path, model=net)
-    cases = [feeds for _, feeds in model_spec(card).make_cases(card, 4, 1)]
+    spec = model_spec(card)
+    cases = [feeds for _, feeds in spec.make_cases(card, 4, 1)]
     default_int8 = onnx_path.with_suffix(".int8.onnx")
     int8_path = int8_path or (default_int8 if default_int8.exists() else None)
     backends = model_backends(card, net, onnx_path, threads, not no_reference, int8_path)
@@ -283,15 +283,18 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     if int8_r is not None:
         gain = ort_r.p50_ms / int8_r.p50_ms
         click.echo(f"int8 vs fp32: {gain:.2f}x" + ("  (int8 is SLOWER than fp32 on this CPU)" if gain < 1 else ""))
-    stages = _stage_table(model_spec(card), net, cases, runs, no_reference, onnx_path, threads)
+    # One profiled session serves the stage split and --profile: n runs of its own, never timed.
+    n_profiled = max(3, min(runs, 10))
+    wants_profile = profile or (spec.stage_times is not None and bool(spec.onnx_stages))
+    profile_file = profile_runs(onnx_path, cases, threads, n_profiled) if wants_profile else None
+    stages = _stage_table(spec, net, cases, n_profiled, no_reference, onnx_path, profile_file)
     peak_rss = onnxruntime_peak_rss_mb(onnx_path, cases, threads)
     click.echo(f"onnxruntime peak RSS: {peak_rss:.0f} MiB (a separate numpy + onnxruntime process running "
                f"the {len(cases)} bench inputs once)")
     prof = None
     if profile:
-        n = max(3, min(runs, 10))
-        prof = top_ops(profile_runs(onnx_path, cases, threads, n), runs=n)
-        click.echo(f"onnxruntime top ops (kernel ms per run, from {n} runs in a separately profiled session; "
+        prof = top_ops(profile_file, runs=n_profiled)
+        click.echo(f"onnxruntime top ops (kernel ms per run, from {n_profiled} runs in a separately profiled session; "
                    "the profiler slows small ops):")
         for op, ms in prof:
             click.echo(f"  {op:<24}{ms:10.1f}")

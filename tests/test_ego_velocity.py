@@ -9,6 +9,7 @@ from radaredge.ops.ego_velocity import (
     EgoVelocityRansac, RansacConfig, estimate_ego_velocity, estimate_ego_velocity_reference, sample_ranks,
     hypothesis_table,
 )
+from radaredge.ops.scan_batch import concat_scans
 
 
 def doppler_scan(n, dynamic_fraction, seed, v_ego=(8.0, 0.6, 0.1), noise=0.05):
@@ -134,17 +135,16 @@ def test_accuracy_on_synthetic_radar_scenes(dynamic_fraction):
 
 
 class _ScansAtOnce(torch.nn.Module):
-    """EgoVelocityRansac.frames over scans given as separate inputs, for export."""
+    """EgoVelocityRansac.estimate_frames over scans given as separate inputs, for export."""
 
     def __init__(self, count):
         super().__init__()
         self.ransac, self.count = EgoVelocityRansac(), count
 
     def forward(self, *xyz_vr):
-        xyz = torch.cat(xyz_vr[0::2])
+        xyz, frame = concat_scans(list(xyz_vr[0::2]))
         v_r = torch.cat(xyz_vr[1::2])
-        frame = torch.cat([torch.full((x.shape[0],), k, dtype=torch.int64) for k, x in enumerate(xyz_vr[0::2])])
-        return self.ransac.frames(xyz, v_r, torch.ones(xyz.shape[0], dtype=torch.bool), frame, self.count)
+        return self.ransac.estimate_frames(xyz, v_r, torch.ones(xyz.shape[0], dtype=torch.bool), frame, self.count)
 
 
 # Scans of different sizes and kinds: a plain one, an empty one, one too small to estimate, a

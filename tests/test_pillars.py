@@ -6,6 +6,7 @@ import torch
 
 from radaredge.errors import CapacityError
 from radaredge.ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference, voxelize_reference
+from radaredge.ops.scan_batch import concat_scans
 
 SMALL = PillarConfig(point_cloud_range=(0.0, -8.0, -3.0, 16.0, 8.0, 5.0), voxel_size=(0.5, 0.5, 8.0),
                      max_points_per_pillar=4, out_channels=16)
@@ -122,8 +123,7 @@ class _ScansAtOnce(torch.nn.Module):
         self.net, self.count = net, count
 
     def forward(self, *scans):
-        pts = torch.cat(scans)
-        frame = torch.cat([torch.full((s.shape[0],), k, dtype=torch.int64) for k, s in enumerate(scans)])
+        pts, frame = concat_scans(list(scans))
         return self.net.scatter_frames(pts, torch.ones(pts.shape[0], dtype=torch.bool), frame, self.count)
 
 

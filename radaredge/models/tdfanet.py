@@ -32,6 +32,7 @@ from ..ops.deform_attn import MSDeformAttn
 from ..ops.ego_velocity import EgoVelocityRansac, RansacConfig, estimate_ego_velocity_reference
 from ..ops.gem import GeM
 from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference
+from ..ops.scan_batch import concat_scans
 
 
 @dataclass(frozen=True)
@@ -177,10 +178,9 @@ class TDFANet(nn.Module):
         else:
             # The K scans run through one RANSAC and one pillar scatter, concatenated: the same
             # per-scan results as K separate passes, with a third of their nodes in the graph.
-            pts = torch.cat(frames, 0)
-            frame = torch.cat([torch.full((f.shape[0],), k, dtype=torch.int64) for k, f in enumerate(frames)])
+            pts, frame = concat_scans(frames)
             valid = torch.ones(pts.shape[0], dtype=torch.bool)
-            v_ego, static, ok = self.ransac.frames(pts[:, :3], pts[:, 3], valid, frame, len(frames))
+            v_ego, static, ok = self.ransac.estimate_frames(pts[:, :3], pts[:, 3], valid, frame, len(frames))
             bev = self.vfe.scatter_frames(pts, static, frame, len(frames))[0]
         if trace is not None:
             trace["ego_velocity"] = v_ego

@@ -187,7 +187,7 @@ class EgoVelocityRansac(nn.Module):
     """Export formulation: fixed-shape RANSAC for any N (dynamic axis).
 
     forward(xyz [N, 3] m, v_r [N] m/s, valid [N] bool) -> (v_ego [3] m/s, static_mask [N] bool,
-    valid_estimate [] bool). :meth:`frames` runs K scans at once, concatenated. See the module
+    valid_estimate [] bool). :meth:`estimate_frames` runs K scans at once, concatenated. See the module
     docstring for the algorithm and the defined results for degenerate input.
     """
 
@@ -212,13 +212,15 @@ class EgoVelocityRansac(nn.Module):
         return torch.minimum(torch.stack([r0, r1, r2], 2), torch.clamp(n - 1, min=0).unsqueeze(2))
 
     def forward(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor):
-        v_ego, static, ok = self.frames(xyz, v_r, valid, None, 1)
+        frame = torch.zeros(xyz.shape[0], dtype=torch.int64)
+        v_ego, static, ok = self.estimate_frames(xyz, v_r, valid, frame, 1)
         return v_ego[0], static, ok[0]
 
-    def frames(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
-               count: int):
+    def estimate_frames(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor,
+                        count: int):
         """``count`` scans concatenated along N: xyz [N, 3] m, v_r [N] m/s, valid [N] bool, and
-        ``frame`` [N] int64, the scan (0 .. count-1) each point belongs to (None: all scan 0).
+        ``frame`` [N] int64, the scan (0 .. count-1) each point belongs to
+        (:func:`radaredge.ops.scan_batch.concat_scans`).
         Returns (v_ego [count, 3] m/s, static_mask [N] bool, valid_estimate [count] bool), each
         scan's result exactly as if it ran alone: samples, inliers and refit see only its points.
         An exported graph then holds one RANSAC for all scans instead of one per scan."""
@@ -239,11 +241,8 @@ class EgoVelocityRansac(nn.Module):
         in_fov = ((x > 0) & (y.abs() <= math.tan(math.radians(cfg.max_azimuth_deg)) * x)
                   & (z.abs() <= math.tan(math.radians(cfg.max_elevation_deg)) * torch.sqrt(x * x + y * y)))
         eligible = usable & (rng >= cfg.min_range) & (rng <= cfg.max_range) & in_fov
-        if frame is None:
-            member = torch.ones(1, xyz.shape[0], dtype=torch.bool)               # [1, N]
-        else:
-            frame = torch.cat([frame, torch.zeros(3, dtype=torch.int64)], 0)
-            member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64).unsqueeze(1)   # [K, N]
+        frame = torch.cat([frame, torch.zeros(3, dtype=torch.int64)], 0)
+        member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64).unsqueeze(1)   # [K, N]
         own_eligible = eligible.unsqueeze(0) & member                          # [K, N]
 
         # Indices of eligible points in input order: the sort key puts them first, stably, so
@@ -271,11 +270,7 @@ class EgoVelocityRansac(nn.Module):
         v_ego, det_n = _solve3(normal, rhs)
         ok = (n_elig >= 3) & (best_count >= cfg.min_inliers) & (det_n.abs() >= cfg.min_det)
         v_ego = torch.where(ok.unsqueeze(1), v_ego, torch.zeros_like(v_ego))
-        if frame is None:
-            v_point, ok_point = v_ego.expand(n, -1), ok.expand(n)
-        else:
-            v_point, ok_point = v_ego[frame], ok[frame]
-        static = usable & (~ok_point | ((v_r + (dirs * v_point).sum(1)).abs() < cfg.inlier_threshold))
+        static = usable & (~ok[frame] | ((v_r + (dirs * v_ego[frame]).sum(1)).abs() < cfg.inlier_threshold))
         return v_ego.to(out_dtype), static[:n_in], ok
 
 

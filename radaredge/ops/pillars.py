@@ -114,8 +114,9 @@ class PillarFeatureNet(nn.Module):
 
     def scatter_frames(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
                        count: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``count`` scans concatenated along N (``frame`` [N] int64: the scan of each point, None:
-        all scan 0) -> (canvases [count, C, ny, nx], occupied [count, ny * nx] bool), each scan's
+        """``count`` scans concatenated along N (``frame`` [N] int64: the scan of each point, as
+        :func:`radaredge.ops.scan_batch.concat_scans` gives it; None: all scan 0) ->
+        (canvases [count, C, ny, nx], occupied [count, ny * nx] bool), each scan's
         canvas exactly as if it were encoded alone. Scan k's pillars are cells k * ny * nx + cell
         of one canvas, so all scans share one sort and one scatter instead of a graph each."""
         cfg = self.config
