@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 import onnx
+import onnxruntime as ort
 from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
@@ -93,6 +94,27 @@ def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
     return found
 
 
+def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Path:
+    """Write ``fp32_path`` after onnxruntime's basic graph optimisations (node fusions such as
+    MatMul+Add -> Gemm, redundant-node removal, shared constants) but without constant folding,
+    then ONNX shape inference, to ``out_path``: the graph quantize_static reads.
+
+    onnxruntime's own pre-processing (``quant_pre_process``) folds constants too, and here that
+    writes every shape-derived tensor of the export into the file: reference-point grids,
+    scatter buffers sized by the point budget. Those made the int8 graphs 2.6-3.3x their fp32
+    size (tdfanet 101 MB against 38.7 MB). Without folding, onnxruntime still folds them in
+    memory when the session loads, and the file holds the weights alone, as int8."""
+    tmp = Path(out_path).with_suffix(".basic.onnx")
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    options.optimized_model_filepath = str(tmp)
+    ort.InferenceSession(str(fp32_path), options, providers=["CPUExecutionProvider"],
+                         disabled_optimizers=["ConstantFolding"])
+    quant_pre_process(str(tmp), str(out_path), skip_optimization=True, skip_symbolic_shape=True)
+    tmp.unlink()
+    return Path(out_path)
+
+
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
                   calibration_cases: int = 16, seed: int = 12345) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
@@ -110,7 +132,7 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
         try:
-            quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
+            optimise_without_folding(fp32_path, pre)
             excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
             quantize_static(str(pre), str(out_path), _SyntheticWindows(card, calibration_cases, seed),
                             quant_format=QuantFormat.QDQ, per_channel=True,
