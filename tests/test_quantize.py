@@ -45,6 +45,34 @@ def test_int8_file_holds_weights_not_folded_tensors(int8):
     assert path.stat().st_size < 0.5 * fp32.stat().st_size
 
 
+def _quantised_weight_range(graph) -> tuple[int, set[int]]:
+    """(largest |int8 weight|, element types of the activations' QuantizeLinear zero points)."""
+    inits = {i.name: i for i in graph.initializer}
+    weights = [onnx.numpy_helper.to_array(inits[n.input[0]]) for n in graph.node
+               if n.op_type == "DequantizeLinear" and n.input[0] in inits
+               and inits[n.input[0]].data_type == onnx.TensorProto.INT8]
+    zero_points = {inits[n.input[2]].data_type for n in graph.node if n.op_type == "QuantizeLinear"}
+    return max(int(np.abs(w.astype(np.int32)).max()) for w in weights), zero_points
+
+
+def test_weights_use_seven_bits_unless_the_card_says_otherwise(int8, tiny_export, tmp_path):
+    """Default: uint8 activations, int8 weights within [-64, 64] (VPMADDUBSW cannot saturate on
+    AVX2 without VNNI). ``quantization.reduce_range: false`` gives full-range weights; a
+    non-boolean value is a ConfigError."""
+    _, _, _, path = int8
+    largest, zero_points = _quantised_weight_range(onnx.load(str(path)).graph)
+    assert largest <= 64 and zero_points == {onnx.TensorProto.UINT8}
+    assert json.loads(runtime.load(path).metadata["radaredge.quantization"])["weights"].endswith("7-bit range")
+    card, _, fp32, _ = tiny_export
+    full = parse_card({**card.data, "quantization": {"reduce_range": False}})
+    largest, _ = _quantised_weight_range(onnx.load(str(quantize_int8(full, fp32, tmp_path / "full.onnx",
+                                                                    calibration_cases=2))).graph)
+    assert largest == 127
+    bad = parse_card({**card.data, "quantization": {"reduce_range": "yes"}})
+    with pytest.raises(ConfigError, match="reduce_range must be true or false"):
+        quantize_int8(bad, fp32, tmp_path / "bad.onnx", calibration_cases=2)
+
+
 def test_metadata_travels_and_runtime_loads_it(int8):
     card, _, fp32, path = int8
     m = runtime.load(path)
