@@ -106,15 +106,20 @@ def model_backends(card, model, onnx_path, threads: int, include_reference: bool
     return backends
 
 
-def profile_runs(onnx_path, cases: list[dict], threads: int, runs: int) -> str:
+def profile_runs(onnx_path, cases: list[dict], threads: int, runs: int) -> list[dict]:
     """Run ``onnx_path`` ``runs`` times over ``cases`` in a profiled onnxruntime session of its
-    own; return the path of onnxruntime's profile JSON."""
+    own; return onnxruntime's profile events. The JSON file onnxruntime writes them to (20-30 MB
+    for a MAFF-Net bench) is read and deleted, so repeated benches do not fill the temp directory."""
     from .ort import make_session, run_session
 
     session = make_session(onnx_path, threads=threads, profile=True)
     for i in range(runs):
         run_session(session, cases[i % len(cases)])
-    return session.end_profiling()
+    path = Path(session.end_profiling())
+    try:
+        return json.loads(path.read_text())
+    finally:
+        path.unlink(missing_ok=True)
 
 
 def results_table(results: list[BackendResult], baseline: str = "torch reference") -> str:
@@ -160,10 +165,9 @@ def onnxruntime_peak_rss_mb(onnx_path, cases: list[dict], threads: int) -> float
     return int(done.stdout.split()[-1]) / 1024.0          # VmHWM and Linux ru_maxrss are in KiB
 
 
-def top_ops(profile_file: str, k: int = 10, runs: int = 1) -> list[tuple[str, float]]:
-    """Top ``k`` op types by kernel time from an onnxruntime profile JSON of ``runs`` runs, in ms
-    per run."""
-    events = json.load(open(profile_file))
+def top_ops(events: list[dict], k: int = 10, runs: int = 1) -> list[tuple[str, float]]:
+    """Top ``k`` op types by kernel time from the onnxruntime profile events of ``runs`` runs
+    (:func:`profile_runs`), in ms per run."""
     tot: dict[str, float] = {}
     for e in events:
         if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):

@@ -207,10 +207,10 @@ def _print_parity(report):
     click.echo("PASSED" if report.passed else "FAILED")
 
 
-def _stage_table(spec, net, cases, n: int, no_reference: bool, onnx_path=None, profile_file=None) -> dict | None:
+def _stage_table(spec, net, cases, n: int, no_reference: bool, onnx_path=None, profile=None) -> dict | None:
     """Median ms per pipeline stage over ``n`` runs in torch (export and reference formulations)
     and, when the spec names its graph's stages, the mean ms per stage inside onnxruntime from
-    ``profile_file``, the profile of ``n`` runs of ``onnx_path`` in a session of its own (the
+    ``profile``, the profile events of ``n`` runs of ``onnx_path`` in a session of its own (the
     timed runs are never profiled); printed."""
     if spec.stage_times is None:
         return None
@@ -221,12 +221,12 @@ def _stage_table(spec, net, cases, n: int, no_reference: bool, onnx_path=None, p
             continue
         laps = [spec.stage_times(net, cases[i % len(cases)], ref) for i in range(n)]
         out[label] = {k: statistics.median(l[k] for l in laps) * 1e3 for k in laps[0]}
-    if spec.onnx_stages and profile_file is not None:
+    if spec.onnx_stages and profile is not None:
         import onnx
 
         from .ort_stages import stage_times_from_profile
         out["onnxruntime"] = stage_times_from_profile(
-            profile_file, onnx.load(str(onnx_path), load_external_data=False),
+            profile, onnx.load(str(onnx_path), load_external_data=False),
             list(spec.onnx_stages), spec.onnx_post_outputs, n)
     names = list(dict.fromkeys(k for row in out.values() for k in row))
     click.echo("per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names))
@@ -286,14 +286,14 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     # One profiled session serves the stage split and --profile: n runs of its own, never timed.
     n_profiled = max(3, min(runs, 10))
     wants_profile = profile or (spec.stage_times is not None and bool(spec.onnx_stages))
-    profile_file = profile_runs(onnx_path, cases, threads, n_profiled) if wants_profile else None
-    stages = _stage_table(spec, net, cases, n_profiled, no_reference, onnx_path, profile_file)
+    profile_events = profile_runs(onnx_path, cases, threads, n_profiled) if wants_profile else None
+    stages = _stage_table(spec, net, cases, n_profiled, no_reference, onnx_path, profile_events)
     peak_rss = onnxruntime_peak_rss_mb(onnx_path, cases, threads)
     click.echo(f"onnxruntime peak RSS: {peak_rss:.0f} MiB (a separate numpy + onnxruntime process running "
                f"the {len(cases)} bench inputs once)")
     prof = None
     if profile:
-        prof = top_ops(profile_file, runs=n_profiled)
+        prof = top_ops(profile_events, runs=n_profiled)
         click.echo(f"onnxruntime top ops (kernel ms per run, from {n_profiled} runs in a separately profiled session; "
                    "the profiler slows small ops):")
         for op, ms in prof:

@@ -22,9 +22,7 @@ the Loop node's time already includes them.
 from __future__ import annotations
 
 import ast
-import json
 from collections import defaultdict
-from pathlib import Path
 
 import onnx
 
@@ -133,10 +131,11 @@ def _subgraph_node_names(model: onnx.ModelProto) -> set[str]:
     return names
 
 
-def stage_times_from_profile(profile_file: str | Path, model: onnx.ModelProto,
+def stage_times_from_profile(events: list[dict], model: onnx.ModelProto,
                              stages: list[tuple[str, tuple[str, ...]]], post_outputs: tuple[str, ...],
                              runs: int) -> dict[str, float]:
-    """Mean milliseconds per stage and run, from an onnxruntime profile of ``runs`` runs of ``model``.
+    """Mean milliseconds per stage and run, from the onnxruntime profile events of ``runs`` runs
+    of ``model`` (:func:`radaredge.bench.profile_runs`).
 
     Rows are the spec's stages in order, then the reorder and unmapped rows when non-zero.
     """
@@ -144,7 +143,7 @@ def stage_times_from_profile(profile_file: str | Path, model: onnx.ModelProto,
     by_output = {out: n.name for n in model.graph.node for out in n.output}
     inner = _subgraph_node_names(model) - set(stage)
     total: dict[str, float] = {s: 0.0 for s, _ in stages}
-    for e in json.loads(Path(profile_file).read_text()):
+    for e in events:
         name = e.get("name", "")
         if e.get("cat") != "Node" or not name.endswith("_kernel_time"):
             continue

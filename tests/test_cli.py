@@ -69,7 +69,9 @@ def test_bench_json_reports_every_backend(tmp_path, monkeypatch, tiny_export):
 
 def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_export):
     """--profile: top ops per run from a profiled session, while the timed session is not profiled
-    (onnxruntime's profiler slows every node)."""
+    (onnxruntime's profiler slows every node); the profiler's JSON file is not left behind."""
+    import tempfile
+
     import radaredge.ort as ort_helpers
     opened = []
     real = ort_helpers.make_session
@@ -79,6 +81,8 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
         return real(path, threads=threads, profile=profile, **kw)
 
     monkeypatch.setattr(ort_helpers, "make_session", spy)
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     monkeypatch.chdir(tmp_path)
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
                  "--runs", "3", "--warmup", "1", "--no-reference", "--profile", "--json")
@@ -87,6 +91,7 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
     assert "kernel ms per run" in res.output
     out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
     assert out["top_ops"] and all(ms > 0 for _, ms in out["top_ops"])
+    assert list((tmp_path / "tmp").iterdir()) == []
 
 
 def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
