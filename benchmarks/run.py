@@ -105,7 +105,8 @@ def markdown(suite: dict) -> str:
               "and channel) and scatter updates (1 per element), which common counters report as zero; "
               "pointwise ops are not counted. The int8 row's share of the fp32 peak can exceed 100 %: "
               "int8 arithmetic is not bound by it. int8 quantises only " + ", ".join(QUANTIZED_OPS) +
-              " (static QDQ, per-channel weights). By Amdahl's law its speed-up cannot exceed "
+              " (static QDQ, uint8 activations, per-channel int8 weights on 7 bits unless a card sets "
+              "quantization.reduce_range: false). By Amdahl's law its speed-up cannot exceed "
               "1 / (1 - share + share / s) for a kernel speed-up s, so a low share of fp32 time in those ops "
               "explains a small int8 gain.", ""]
     return "\n".join(lines)
