@@ -14,6 +14,7 @@ import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import numpy as np
 import onnx
 import onnxscript.optimizer
 import torch
@@ -96,14 +97,40 @@ def export_onnx(
 
 
 _GENERATORS = frozenset({"ConstantOfShape", "Expand", "Tile"})
+SMALL_FILL_ELEMENTS = 4096   # more than any layer's channel count in the cards (512)
 
 
 def _fold_unless_generator(node) -> bool | None:
     """Constant-folding policy: ops that build a large tensor from a small one (the zero canvas
-    of a pillar scatter, a bias spread over every query) stay in the graph, and onnxruntime
-    folds them when the session starts; folded here, the file would store their whole output
-    (up to the optimiser's 262144 elements each). Everything else folds as the optimiser decides."""
-    return False if node.op_type in _GENERATORS else None
+    of a pillar scatter, a bias spread over every query, a reference-point grid) stay in the
+    graph, and onnxruntime folds them when the session starts; folded here, the file would
+    store their whole output (up to the optimiser's 262144 elements each). A small fill folds:
+    one value spread over at most SMALL_FILL_ELEMENTS elements. That is the zero bias the
+    exporter writes as Expand(0, [C]) for a layer built with ``bias=False``, which must reach
+    onnxruntime's Conv+BatchNorm fusion and the int8 quantiser as a constant. Everything else
+    folds as the optimiser decides. The optimiser asks only about nodes whose inputs are all
+    constant."""
+    if node.op_type not in _GENERATORS:
+        return None
+    size = _fill_size(node)
+    return size is not None and size <= SMALL_FILL_ELEMENTS
+
+
+def _fill_size(node) -> int | None:
+    """Elements a generator with constant inputs writes when it spreads one value (Expand or
+    Tile of a one-element tensor, ConstantOfShape); None for any other generator. Computed from
+    the inputs: the optimiser has not inferred the output shape when it asks."""
+    try:
+        values = [v.const_value.numpy() for v in node.inputs]
+        if node.op_type == "ConstantOfShape":
+            return int(np.prod(values[0]))
+        if values[0].size != 1:
+            return None
+        if node.op_type == "Expand":
+            return int(np.prod(np.broadcast_shapes(values[0].shape, tuple(int(d) for d in values[1]))))
+        return int(np.prod(values[1]))                 # Tile of one element: the product of repeats
+    except (AttributeError, TypeError, ValueError, IndexError):
+        return None
 
 
 def _name_dynamic_dims(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:

@@ -103,37 +103,6 @@ def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
     return found
 
 
-def drop_zero_biases(model: onnx.ModelProto) -> int:
-    """Remove, in place, the bias input of every Conv/Gemm whose bias is ``Expand`` of a zero
-    scalar constant (how the exporter writes a layer built with ``bias=False``); return how
-    many. The result is the same. Without folding, the quantiser sees those zeros as a bias
-    computed in the graph, leaves it float and warns about it (60 warnings in one suite run).
-    onnxruntime folds the Expand when the session loads and fuses the layer into QLinearConv
-    either way (tdfanet-edge's QLinearConv time 12.4 vs 12.6 ms), so this changes neither speed
-    nor results; the int8 graph just holds what the layer is."""
-    inits = {t.name: t for t in model.graph.initializer}
-    producer = {o: n for n in model.graph.node for o in n.output}
-    dropped = 0
-    for node in model.graph.node:
-        if node.op_type not in ("Conv", "Gemm") or len(node.input) < 3 or not node.input[2]:
-            continue
-        expand = producer.get(node.input[2])
-        if expand is None or expand.op_type != "Expand" or expand.input[0] not in inits:
-            continue
-        value = onnx.numpy_helper.to_array(inits[expand.input[0]])
-        if value.size == 1 and float(value.reshape(())) == 0.0:
-            del node.input[2]
-            dropped += 1
-    used = {i for n in model.graph.node for i in n.input} | {o.name for o in model.graph.output}
-    orphans = [n for n in model.graph.node if n.op_type == "Expand" and n.output[0] not in used]
-    for n in orphans:
-        model.graph.node.remove(n)
-    freed = {i for n in orphans for i in n.input} - {i for n in model.graph.node for i in n.input}
-    for t in [t for t in model.graph.initializer if t.name in freed]:
-        model.graph.initializer.remove(t)
-    return dropped
-
-
 def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Path:
     """Write ``fp32_path`` after onnxruntime's basic graph optimisations (node fusions such as
     MatMul+Add -> Gemm, redundant-node removal, shared constants) but without constant folding,
@@ -143,8 +112,7 @@ def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Pat
     writes every shape-derived tensor of the export into the file: reference-point grids,
     scatter buffers sized by the point budget. Those made the int8 graphs 2.6-3.3x their fp32
     size (tdfanet 101 MB against 38.7 MB). Without folding, onnxruntime still folds them in
-    memory when the session loads, and the file holds the weights alone, as int8. Zero biases
-    left unfolded are dropped (:func:`drop_zero_biases`)."""
+    memory when the session loads, and the file holds the weights alone, as int8."""
     tmp = Path(out_path).with_suffix(".basic.onnx")
     options = ort.SessionOptions()
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
@@ -152,9 +120,6 @@ def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Pat
     options.log_severity_level = 3
     ort.InferenceSession(str(fp32_path), options, providers=["CPUExecutionProvider"],
                          disabled_optimizers=["ConstantFolding"])
-    basic = onnx.load(str(tmp))
-    drop_zero_biases(basic)
-    onnx.save(basic, str(tmp))
     quant_pre_process(str(tmp), str(out_path), skip_optimization=True, skip_symbolic_shape=True)
     tmp.unlink()
     return Path(out_path)

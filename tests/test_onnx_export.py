@@ -28,3 +28,30 @@ def test_zero_canvas_is_not_stored_in_the_file(onnx_roundtrip, tmp_path):
     feeds = {"cell": torch.randint(0, CELLS, (50,), generator=g), "value": torch.randn(50, 8, generator=g)}
     ref, got = rt(feeds)
     assert_close(got["canvas"], ref["canvas"], 1e-5, "onnxruntime vs torch")
+
+
+class ConvWithoutBias(nn.Module):
+    """A bias=False convolution followed by a batch norm, as the TDFANet pyramid builds them."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = nn.Conv2d(3, 8, 3, padding=1, bias=False)
+        self.bn = nn.BatchNorm2d(8).eval()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.bn(self.conv(x))
+
+
+def test_a_bias_free_layer_reads_a_constant_zero_bias(onnx_roundtrip, tmp_path):
+    """The exporter writes a bias=False layer's bias as Expand(0, [C]). That small fill folds,
+    so the Conv reads a constant: onnxruntime's Conv+BatchNorm fusion and the int8 quantiser
+    need one. Without the fold the bias stays a computed tensor (this test then finds the Expand)."""
+    example = {"x": torch.randn(1, 3, 6, 5)}
+    rt = onnx_roundtrip(ConvWithoutBias(), example, ["y"])
+    graph = onnx.load(str(tmp_path / "ConvWithoutBias.onnx")).graph
+    constants = {t.name for t in graph.initializer} | {o for n in graph.node if n.op_type == "Constant" for o in n.output}
+    assert [n.op_type for n in graph.node if n.op_type in ("Expand", "ConstantOfShape", "Tile")] == []
+    conv = next(n for n in graph.node if n.op_type == "Conv")
+    assert len(conv.input) == 3 and conv.input[2] in constants
+    ref, got = rt(example)
+    assert_close(got["y"], ref["y"], 1e-5, "onnxruntime vs torch")
