@@ -1,5 +1,6 @@
 """The benchmark suite: every model card x {torch reference, torch export, onnxruntime fp32,
-onnxruntime int8} on 2 cores, in one run, backends alternating every iteration.
+onnxruntime int8} on 2 cores, in one run, backends alternating every iteration; plus OpenVINO's
+CPU plugin on the same fp32 and int8 graphs when openvino is installed.
 
 Every card is exported and quantised afresh into export/ first, so the run times the current
 code. Writes benchmarks/results/suite-<date>.json, the Markdown table in benchmarks/README.md and
@@ -23,15 +24,18 @@ from pathlib import Path
 
 import torch
 
-from radaredge.bench import benchmark, cpu_name, model_backends, pin_threads, profile_runs, top_ops
+from radaredge.bench import (benchmark, cpu_name, format_differences, model_backends, output_differences,
+                             pin_threads, profile_runs, top_ops)
 from radaredge.cards import load_card
 from radaredge.export import build_model, export_model
 from radaredge.macs import count_macs, gemm_peak_gflops
+from radaredge.openvino_runtime import openvino_installed
 from radaredge.quantize import QUANTIZED_OPS, quantize_int8
 from radaredge.registry import model_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
+OPENVINO_BACKENDS = ("openvino", "openvino int8")
 # Every single-graph card. des4pos is a three-graph bundle with its own query/cell benchmark
 # (`radaredge bench --model des4pos`).
 SUITE_MODELS = ("tdfanet", "tdfanet-edge", "maffnet-vod", "maffnet-tj4d")
@@ -56,14 +60,14 @@ def quantised_time_share(onnx_path: Path, cases: list[dict], threads: int, runs:
     return sum(v for k, v in ops.items() if k in QUANTIZED_OPS) / total if total else 0.0
 
 
-def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path) -> dict:
+def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path, openvino: bool) -> dict:
     card = load_card(name)
     model = build_model(card)
     spec = model_spec(card)
     fp32, int8 = export_both(card, model, export_dir)
     cases = [feeds for _, feeds in spec.make_cases(card, 4, 1)]
     macs = count_macs(spec.run_export, model, {k: torch.from_numpy(v) for k, v in cases[0].items()})
-    backends = model_backends(card, model, fp32, threads, True, int8_path=int8)
+    backends = model_backends(card, model, fp32, threads, True, int8_path=int8, openvino=openvino)
     results = benchmark(backends, cases, runs, warmup=3)
     rows = []
     for r in results:
@@ -71,12 +75,16 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
         rows.append({**r.__dict__, "gmacs": macs["total"] / 1e9, "achieved_gflops": achieved,
                      "peak_fraction": achieved / peak})
     by = {r["backend"]: r for r in rows}
-    return {
+    out = {
         "model": name, "rows": rows, "macs_by_op": {k: v / 1e9 for k, v in macs.items()},
         "ort_vs_reference": by["torch reference"]["p50_ms"] / by["onnxruntime"]["p50_ms"],
         "int8_vs_fp32": by["onnxruntime"]["p50_ms"] / by["onnxruntime int8"]["p50_ms"],
         "quantised_op_time_share": quantised_time_share(fp32, cases, threads),
     }
+    if openvino:
+        out["openvino_vs_onnxruntime"] = by["onnxruntime"]["p50_ms"] / by["openvino"]["p50_ms"]
+        out["openvino_max_abs_diff"] = output_differences(backends["openvino"], backends["onnxruntime"], cases)
+    return out
 
 
 def markdown(suite: dict) -> str:
@@ -101,6 +109,13 @@ def markdown(suite: dict) -> str:
     for m in suite["models"]:
         lines.append(f"| {m['model']} | {m['ort_vs_reference']:.2f}x | {m['int8_vs_fp32']:.2f}x | "
                      f"{100 * m['quantised_op_time_share']:.0f} % |")
+    with_openvino = [m for m in suite["models"] if "openvino_vs_onnxruntime" in m]
+    if with_openvino:
+        lines += ["", "| model | OpenVINO fp32 vs onnxruntime fp32 | largest output difference from onnxruntime |",
+                  "|---|---:|---|"]
+        for m in with_openvino:
+            lines.append(f"| {m['model']} | {m['openvino_vs_onnxruntime']:.2f}x | "
+                         f"{format_differences(m['openvino_max_abs_diff'])} |")
     lines += ["", "GMACs count matrix products and convolutions, plus bilinear sampling (4 MACs per sample "
               "and channel) and scatter updates (1 per element), which common counters report as zero; "
               "pointwise ops are not counted. The int8 row's share of the fp32 peak can exceed 100 %: "
@@ -119,12 +134,14 @@ def chart(suite: dict, path: Path) -> None:
 
     models = [m["model"] for m in suite["models"]]
     fig, ax = plt.subplots(figsize=(8, 4))
-    width = 0.8 / len(BACKENDS)
-    for i, backend in enumerate(BACKENDS):
+    backends = [b for b in BACKENDS + OPENVINO_BACKENDS if all(any(r["backend"] == b for r in m["rows"])
+                                                               for m in suite["models"])]
+    width = 0.8 / len(backends)
+    for i, backend in enumerate(backends):
         fps = [next(r["fps"] for r in m["rows"] if r["backend"] == backend) for m in suite["models"]]
         bars = ax.bar([j + i * width for j in range(len(models))], fps, width, label=backend)
         ax.bar_label(bars, fmt="%.2g", fontsize=7)
-    ax.set_xticks([j + width * (len(BACKENDS) - 1) / 2 for j in range(len(models))], models)
+    ax.set_xticks([j + width * (len(backends) - 1) / 2 for j in range(len(models))], models)
     ax.set_yscale("log")                     # the cards span two orders of magnitude
     ax.set_ylabel("inferences per second (log)")
     ax.set_title(f"radaredge on {suite['threads']} cores, {suite['date']}\n"
@@ -151,11 +168,13 @@ def main(argv=None) -> int:
     results_dir = args.out / "results"
     results_dir.mkdir(parents=True, exist_ok=True)
     json_path = results_dir / f"suite-{date[:10]}.json"
+    openvino = openvino_installed()
+    backends = BACKENDS + (OPENVINO_BACKENDS if openvino else ())
     suite = {"date": date, "cpu": cpu_name(), "threads": args.threads, "cores": cores, "runs": args.runs,
              "gemm_peak_gflops": peak, "json": str(json_path.relative_to(args.out)), "models": []}
     for name in args.models:
-        print(f"{name}: benchmarking {', '.join(BACKENDS)}", flush=True)
-        suite["models"].append(bench_card(name, args.runs, args.threads, peak, args.export_dir))
+        print(f"{name}: benchmarking {', '.join(backends)}", flush=True)
+        suite["models"].append(bench_card(name, args.runs, args.threads, peak, args.export_dir, openvino))
     json_path.write_text(json.dumps(suite, indent=2))
     (args.out / "README.md").write_text(markdown(suite))
     chart(suite, args.out / "suite.png")

@@ -76,16 +76,17 @@ def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, pro
     return [summarise(n, times[n]) for n in backends]
 
 
-def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, int8_path=None) -> dict:
+def model_backends(card, model, onnx_path, threads: int, include_reference: bool = True, int8_path=None,
+                   openvino: bool = False) -> dict:
     """name -> callable(feeds) for the torch reference, torch export formulation, onnxruntime fp32
-    and, when ``int8_path`` is given, onnxruntime on the int8 graph. The sessions are never
+    and, when ``int8_path`` is given, onnxruntime on the int8 graph; with ``openvino``, the same
+    graph(s) in OpenVINO's CPU plugin too ("openvino", "openvino int8"). The sessions are never
     profiled: onnxruntime's profiler costs time in every node (tdfanet-edge: 1.15x the latency),
     so profiles come from a session of their own (:func:`profile_runs`)."""
-    from .ort import make_session, run_session
+    from .parity import graph_runner
     from .registry import model_spec
 
     spec = model_spec(card)
-    session = make_session(onnx_path, threads=threads)
 
     def torch_export(feeds):
         with torch.no_grad():
@@ -99,11 +100,33 @@ def model_backends(card, model, onnx_path, threads: int, include_reference: bool
     if include_reference:
         backends["torch reference"] = torch_reference
     backends["torch export"] = torch_export
-    backends["onnxruntime"] = lambda feeds: run_session(session, feeds)
+    backends["onnxruntime"] = graph_runner(onnx_path, "onnxruntime", threads)
     if int8_path is not None:
-        int8_session = make_session(int8_path, threads=threads)
-        backends["onnxruntime int8"] = lambda feeds: run_session(int8_session, feeds)
+        backends["onnxruntime int8"] = graph_runner(int8_path, "onnxruntime", threads)
+    if openvino:
+        backends["openvino"] = graph_runner(onnx_path, "openvino", threads)
+        if int8_path is not None:
+            backends["openvino int8"] = graph_runner(int8_path, "openvino", threads)
     return backends
+
+
+def output_differences(run_a, run_b, cases: list[dict]) -> dict[str, float]:
+    """Largest absolute difference per output between two runners of one graph over ``cases``
+    (outputs whose shapes differ count as inf): what a second runtime changes in the results."""
+    worst: dict[str, float] = {}
+    for feeds in cases:
+        a, b = run_a(feeds), run_b(feeds)
+        for name, x in a.items():
+            y = np.asarray(b[name])
+            d = (float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64)))) if x.size else 0.0) \
+                if x.shape == y.shape else float("inf")
+            worst[name] = max(worst.get(name, 0.0), d)
+    return worst
+
+
+def format_differences(diffs: dict[str, float]) -> str:
+    """``output diff, ...`` for :func:`output_differences`' result."""
+    return ", ".join(f"{k} {v:.2g}" if v != float("inf") else f"{k} (other shape)" for k, v in diffs.items())
 
 
 def profile_runs(onnx_path, cases: list[dict], threads: int, runs: int) -> list[dict]:

@@ -63,8 +63,9 @@ def export_cmd(card: ModelCard, checkpoint, output, opset: int, quantize, as_jso
         click.echo(f"dynamic int8 text encoder: {int8} ({int8.stat().st_size / 1e6:.2f} MB)")
 
 
-def parity_cmd(card: ModelCard, bundle_dir, checkpoint, cases: int, seed: int, as_json: bool, printer, progress) -> int:
-    """Parity of every part; returns the exit code (0 PASSED, 1 FAILED)."""
+def parity_cmd(card: ModelCard, bundle_dir, checkpoint, cases: int, seed: int, as_json: bool, printer, progress,
+               runtime_name: str = "onnxruntime") -> int:
+    """Parity of every part run in ``runtime_name``; returns the exit code (0 PASSED, 1 FAILED)."""
     from . import runtime
     from .export import build_model, require_same_weights
     from .parity import run_parity
@@ -80,7 +81,8 @@ def parity_cmd(card: ModelCard, bundle_dir, checkpoint, cases: int, seed: int, a
         part = spec.part_module(net, name)
         path = bundle_dir / f"{name}.onnx"
         require_same_weights(runtime.load(path), part, checkpoint)
-        reports[name] = run_parity(card, path, part, cases, seed, progress=progress(f"parity {name}"), spec=pspec)
+        reports[name] = run_parity(card, path, part, cases, seed, progress=progress(f"parity {name}"), spec=pspec,
+                                   runtime=runtime_name)
     passed = all(r.passed for r in reports.values())
     if as_json:
         click.echo(json.dumps({"model": card.name, "bundle": str(bundle_dir), "passed": passed,

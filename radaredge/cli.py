@@ -137,11 +137,13 @@ def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
 @click.option("--quantized", is_flag=True,
               help="The .onnx is int8: descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; "
                    "preprocessing outputs keep their fp32 tolerances.")
+@click.option("--runtime", "runtime_name", type=click.Choice(["onnxruntime", "openvino"]), default="onnxruntime", show_default=True,
+              help="Run the graph in onnxruntime or in OpenVINO's CPU plugin (pip install 'radaredge[openvino]').")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, as_json):
-    """Run the ONNX in onnxruntime and the reference formulation in torch on the same synthetic
-    cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
+def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, runtime_name, as_json):
+    """Run the ONNX in onnxruntime (or OpenVINO) and the reference formulation in torch on the
+    same synthetic cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
     from . import runtime
     from .errors import ConfigError
     from .export import build_model, export_model, require_same_weights
@@ -150,7 +152,7 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, a
     from .registry import is_bundle
     if is_bundle(card):
         from .bundle import parity_cmd
-        sys.exit(parity_cmd(card, onnx_path, checkpoint, cases, seed, as_json, _print_parity, _progress))
+        sys.exit(parity_cmd(card, onnx_path, checkpoint, cases, seed, as_json, _print_parity, _progress, runtime_name))
     net = build_model(card, checkpoint)
     exported = runtime.load(onnx_path)
     require_same_weights(exported, net, checkpoint)
@@ -165,7 +167,7 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, a
         return path
 
     report = run_parity(card, onnx_path, net, cases, seed, progress=_progress("parity"), quantized=quantized,
-                        debug_onnx=None if quantized else debug_graph)
+                        debug_onnx=None if quantized else debug_graph, runtime=runtime_name)
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:
@@ -175,7 +177,7 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, a
 
 def _print_parity(report):
     budget = " [int8 budget]" if report.quantized else ""
-    click.echo(f"parity {report.model}: {Path(report.onnx).name} (onnxruntime) vs reference (torch), "
+    click.echo(f"parity {report.model}: {Path(report.onnx).name} ({report.runtime}) vs reference (torch), "
                f"{len(report.cases)} cases{budget}")
     click.echo(f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos/IoU':>12}  verdict")
     for name, s in report.summary.items():
@@ -204,6 +206,9 @@ def _print_parity(report):
         else:
             click.echo(f"no intermediate diverges beyond tolerance in case {d['case']}: "
                        "the difference arises in the final outputs")
+    if report.runtime == "openvino" and not report.passed:
+        click.echo("note: OpenVINO's CPU plugin has no float64 kernels; what the graph computes in float64 "
+                   "(TDFANet's RANSAC ego velocity) carries float32 error there")
     click.echo("PASSED" if report.passed else "FAILED")
 
 
@@ -248,17 +253,24 @@ def _stage_table(spec, net, cases, n: int, no_reference: bool, onnx_path=None, p
 @click.option("--int8", "int8_path", type=click.Path(dir_okay=False),
               help="Also time this int8 graph (default: <onnx>.int8.onnx when it exists).")
 @click.option("--profile", is_flag=True, help="Print onnxruntime's top ops by time.")
+@click.option("--openvino/--no-openvino", default=None,
+              help="Also time the graph(s) in OpenVINO's CPU plugin (default: when openvino is installed).")
 @click.option("--json", "as_json", is_flag=True, help="Also write benchmarks/results/<model>-<date>.json.")
 @_friendly_errors
-def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, as_json):
+def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, openvino,
+          as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
-    from .bench import (as_dicts, benchmark, cpu_name, model_backends, onnxruntime_peak_rss_mb, pin_threads,
-                        profile_runs, results_table, top_ops, write_results_json)
+    from .bench import (as_dicts, benchmark, cpu_name, format_differences, model_backends, onnxruntime_peak_rss_mb,
+                        output_differences, pin_threads, profile_runs, results_table, top_ops, write_results_json)
+    from .errors import ConfigError
     from .export import build_model, export_model
+    from .openvino_runtime import openvino_installed
     from .registry import model_spec
     card = _card(model, config)
     from .registry import is_bundle
     if is_bundle(card):
+        if openvino:
+            raise ConfigError(f"--openvino times single-graph models; {card.name} is a bundle of graphs")
         from .models.des4pos_bench import bench_cmd
         return bench_cmd(card, onnx_path, checkpoint, threads, runs, warmup, no_reference, as_json, _progress)
     cores = pin_threads(threads)
@@ -271,7 +283,8 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     cases = [feeds for _, feeds in spec.make_cases(card, 4, 1)]
     default_int8 = onnx_path.with_suffix(".int8.onnx")
     int8_path = int8_path or (default_int8 if default_int8.exists() else None)
-    backends = model_backends(card, net, onnx_path, threads, not no_reference, int8_path)
+    openvino = openvino_installed() if openvino is None else openvino
+    backends = model_backends(card, net, onnx_path, threads, not no_reference, int8_path, openvino)
     results = benchmark(backends, cases, runs, warmup, progress=_progress("bench"))
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     click.echo(f"{card.name} on {threads} thread(s), cores {cores}, {cpu_name()}, {runs} runs, {stamp}")
@@ -283,6 +296,13 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     if int8_r is not None:
         gain = ort_r.p50_ms / int8_r.p50_ms
         click.echo(f"int8 vs fp32: {gain:.2f}x" + ("  (int8 is SLOWER than fp32 on this CPU)" if gain < 1 else ""))
+    openvino_diff = None
+    if openvino:
+        ov_r = next(r for r in results if r.backend == "openvino")
+        openvino_diff = output_differences(backends["openvino"], backends["onnxruntime"], cases)
+        click.echo(f"openvino vs onnxruntime: {ort_r.p50_ms / ov_r.p50_ms:.2f}x; largest output difference on the "
+                   f"bench inputs: {format_differences(openvino_diff)} "
+                   f"(`radaredge parity-check --runtime openvino` checks it against the reference)")
     # One profiled session serves the stage split and --profile: n runs of its own, never timed.
     n_profiled = max(3, min(runs, 10))
     wants_profile = profile or (spec.stage_times is not None and bool(spec.onnx_stages))
@@ -302,7 +322,7 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
         path = write_results_json(card.name, {
             "model": card.name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": stamp,
             "results": as_dicts(results), "onnxruntime_speedup": ratios, "top_ops": prof, "stage_ms": stages,
-            "onnxruntime_peak_rss_mib": peak_rss})
+            "onnxruntime_peak_rss_mib": peak_rss, "openvino_vs_onnxruntime_max_abs": openvino_diff})
         click.echo(f"wrote {path}")
 
 

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from .errors import ConfigError
 from .models.spec import OutputSpec
 
 
@@ -160,6 +161,7 @@ class ParityReport:
     min_retrieval_top1: float = 1.0
     quantized: bool = False
     divergence: dict | None = None
+    runtime: str = "onnxruntime"
 
     @property
     def passed(self) -> bool:
@@ -216,9 +218,25 @@ def summarise(outputs, cases: list[dict]) -> dict:
 QUANTIZED_MIN_TOP1 = 0.98
 
 
+RUNTIMES = ("onnxruntime", "openvino")
+
+
+def graph_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
+    """fn(feeds) -> {output name: array} running ``onnx_path`` in ``runtime`` (one of RUNTIMES)."""
+    if runtime == "onnxruntime":
+        from .ort import make_session, run_session
+        session = make_session(onnx_path, threads=threads)
+        return lambda feeds: run_session(session, feeds)
+    if runtime == "openvino":
+        from .openvino_runtime import compile_openvino
+        return compile_openvino(onnx_path, threads=threads).run
+    raise ConfigError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
+
+
 def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_onnx=None, progress=None,
-               quantized: bool = False, spec=None) -> ParityReport:
-    """Run onnxruntime on ``onnx_path`` and the reference formulation on the same cases.
+               quantized: bool = False, spec=None, runtime: str = "onnxruntime") -> ParityReport:
+    """Run ``onnx_path`` in ``runtime`` (onnxruntime, or OpenVINO's CPU plugin) and the
+    reference formulation on the same cases.
 
     ``quantized`` applies the int8 budget of each output (:meth:`OutputSpec.quantized`) and
     requires retrieval top-1 agreement >= QUANTIZED_MIN_TOP1 instead of 100 %. ``debug_onnx``
@@ -226,19 +244,18 @@ def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_o
     to locate the first diverging intermediate. ``spec`` (default: the card's) is the part's
     ModelSpec when ``onnx_path`` is one graph of a bundle.
     """
-    from .ort import make_session, run_session
     from .registry import model_spec
 
     spec = spec or model_spec(card)
-    session = make_session(onnx_path, threads=2)
+    run_graph = graph_runner(onnx_path, runtime)
     report = ParityReport(card.name, str(onnx_path), quantized=quantized,
-                          min_retrieval_top1=QUANTIZED_MIN_TOP1 if quantized else 1.0)
+                          min_retrieval_top1=QUANTIZED_MIN_TOP1 if quantized else 1.0, runtime=runtime)
     outputs = [o.quantized() for o in spec.outputs] if quantized else list(spec.outputs)
     desc_specs = [o for o in outputs if o.kind == "descriptor"]
     got_desc, ref_desc = [], []
     cases = spec.make_cases(card, cases_n, seed)
     for name, feeds in (progress(cases) if progress else cases):
-        got = run_session(session, feeds)
+        got = run_graph(feeds)
         with torch.no_grad():
             ref = {k: v.detach().numpy() for k, v in spec.run_reference(model, feeds).items()}
         comps = {}
@@ -261,7 +278,7 @@ def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_o
         report.retrieval_top1 = retrieval_top1_agreement(np.stack(got_desc), np.stack(ref_desc))
     if not report.passed and debug_onnx is not None:
         path = debug_onnx() if callable(debug_onnx) else debug_onnx
-        report.divergence = locate_divergence(card, spec, model, path, report, cases)
+        report.divergence = locate_divergence(card, spec, model, path, report, cases, runtime)
     return report
 
 
@@ -273,14 +290,13 @@ def _operands(spec: OutputSpec, got: dict, ref: dict):
     return got[spec.name], ref[spec.name]
 
 
-def locate_divergence(card, spec, model, debug_onnx, report: ParityReport, cases) -> dict | None:
-    """Re-run the first failing case through the debug export and the traced reference."""
-    from .ort import make_session, run_session
-
+def locate_divergence(card, spec, model, debug_onnx, report: ParityReport, cases,
+                      runtime: str = "onnxruntime") -> dict | None:
+    """Re-run the first failing case through the debug export (in ``runtime``) and the traced reference."""
     failing = next((c["case"] for c in report.cases if not all(o["passed"] for o in c["outputs"].values())), None)
     feeds = dict(cases)[failing] if failing else cases[0][1]
     from .export import DEBUG_PREFIX
-    got = {k[len(DEBUG_PREFIX):]: v for k, v in run_session(make_session(debug_onnx, threads=2), feeds).items()
+    got = {k[len(DEBUG_PREFIX):]: v for k, v in graph_runner(debug_onnx, runtime)(feeds).items()
            if k.startswith(DEBUG_PREFIX)}
     ref_trace: dict = {}
     with torch.no_grad():

@@ -63,7 +63,7 @@ def test_bench_json_reports_every_backend(tmp_path, monkeypatch, tiny_export):
                  "--runs", "3", "--warmup", "1", "--json")
     assert res.exit_code == 0, res.output
     out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
-    assert [r["backend"] for r in out["results"]] == ["torch reference", "torch export", "onnxruntime"]
+    assert [r["backend"] for r in out["results"]] == ["torch reference", "torch export", "onnxruntime", "openvino"]
     assert all(r["fps"] > 0 for r in out["results"])
 
 

@@ -160,7 +160,7 @@ def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path, monkeypatch):
                  "--runs", "3", "--warmup", "1", "--json")
     assert res.exit_code == 0, res.output
     saved = json.loads(next((tmp_path / "benchmarks" / "results").glob("maffnet-tiny-*.json")).read_text())
-    assert {r["backend"] for r in saved["results"]} == {"torch reference", "torch export", "onnxruntime"}
+    assert {r["backend"] for r in saved["results"]} == {"torch reference", "torch export", "onnxruntime", "openvino"}
     stages = ["VFE+SPA", "CFA", "CAF", "backbone+head", "NMS"]
     for formulation in ("torch export", "torch reference"):
         assert list(saved["stage_ms"][formulation]) == stages

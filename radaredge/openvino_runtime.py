@@ -1,0 +1,73 @@
+"""OpenVINO's CPU plugin as a second runtime for radaredge's ``.onnx`` graphs (optional).
+
+``pip install 'radaredge[openvino]'`` adds it; radaredge works without it. OpenVINO reads the
+ONNX file itself (no conversion step) and compiles it for the CPU. The same graph then runs in
+``radaredge bench`` beside onnxruntime and in ``radaredge parity-check --runtime openvino``
+against the torch reference.
+
+What differs from onnxruntime, measured on these graphs: OpenVINO's CPU plugin has no float64
+or int64 kernels (its CPU inference precisions are f32/bf16/f16, i32, u8/i8). float64 runs in
+float32, so the TDFANet RANSAC's ego velocity agrees with the float64 reference to about 6e-5
+m/s instead of 1e-6; an integer Mod runs in float32 too, which is why the RANSAC's hypothesis
+table keeps below 2**24 (:mod:`radaredge.ops.ego_velocity`). Numpy + openvino only: no torch.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from .errors import ConfigError, InputError
+
+INSTALL_HINT = "pip install 'radaredge[openvino]'"
+
+
+def openvino_installed() -> bool:
+    """True when the ``openvino`` package can be imported."""
+    return importlib.util.find_spec("openvino") is not None
+
+
+class OpenVinoModel:
+    """One ``.onnx`` compiled by OpenVINO for the CPU, run one request at a time."""
+
+    def __init__(self, path: Path, compiled):
+        self.path = path
+        self._request = compiled.create_infer_request()
+        self.output_names = [o.get_any_name() for o in compiled.outputs]
+        self._outputs = list(compiled.outputs)
+
+    def run(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Run on ``feeds`` (input name -> array) and return every output by name (copies:
+        the request reuses its buffers on the next run)."""
+        result = self._request.infer(dict(feeds))
+        return {name: np.array(result[o]) for name, o in zip(self.output_names, self._outputs)}
+
+
+def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
+    """Read ``path`` and compile it for OpenVINO's CPU plugin with ``threads`` inference threads,
+    one stream, the latency hint and float32 inference precision (a CPU with bf16 would otherwise
+    run in bf16 and no longer match the reference). ConfigError when openvino is not installed;
+    InputError when ``path`` is missing or OpenVINO cannot read or compile it, with its reason."""
+    if not openvino_installed():
+        raise ConfigError(f"OpenVINO is not installed; {INSTALL_HINT}")
+    import openvino as ov
+    from openvino.frontend import FrontEndManager
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path} does not exist; export one with `radaredge export --model NAME`")
+    try:
+        # The ONNX frontend by name: Core.read_model would also probe other formats (TensorFlow's
+        # prints parse errors of its own for a file that is not ONNX).
+        frontend = FrontEndManager().load_by_framework("onnx")
+        compiled = ov.Core().compile_model(frontend.convert(frontend.load(str(path))), "CPU", {
+            "INFERENCE_NUM_THREADS": threads, "NUM_STREAMS": 1,
+            "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32"})
+    except Exception as exc:      # OpenVINO's errors end with the reason, after where it was raised
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        raise InputError(f"{path}: OpenVINO cannot compile it for the CPU "
+                         f"({lines[-1] if lines else type(exc).__name__})") from None
+    return OpenVinoModel(path, compiled)
