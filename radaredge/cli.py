@@ -137,7 +137,8 @@ def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
 @click.option("--quantized", is_flag=True,
               help="The .onnx is int8: descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; "
                    "preprocessing outputs keep their fp32 tolerances.")
-@click.option("--runtime", "runtime_name", type=click.Choice(["onnxruntime", "openvino"]), default="onnxruntime", show_default=True,
+@click.option("--runtime", "runtime_name", type=click.Choice(["onnxruntime", "openvino"]), default="onnxruntime",
+              show_default=True,
               help="Run the graph in onnxruntime or in OpenVINO's CPU plugin (pip install 'radaredge[openvino]').")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
