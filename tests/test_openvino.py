@@ -2,10 +2,11 @@
 reference, and the bench times them beside onnxruntime."""
 
 import json
+from pathlib import Path
 
 import pytest
 
-from conftest import TINY_CARD, invoke
+from conftest import TINY_CARD, export_with_cli, invoke
 from radaredge import openvino_runtime
 from radaredge.errors import ConfigError, InputError
 from radaredge.parity import run_parity
@@ -28,8 +29,6 @@ def test_tiny_tdfanet_in_openvino_matches_the_reference_to_float32_precision(tin
 
 
 def test_tiny_maffnet_passes_parity_in_openvino(tmp_path):
-    from conftest import export_with_cli
-    from pathlib import Path
     config = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
     path = export_with_cli(tmp_path, "maffnet-tiny", config)
     res = invoke("parity-check", "--model", "maffnet-tiny", "--config", config, "--onnx", path, "--cases", "4",
@@ -64,7 +63,6 @@ def test_bench_times_openvino_and_reports_how_far_it_is_from_onnxruntime(tmp_pat
 
 
 def test_bench_refuses_openvino_for_a_bundle():
-    from pathlib import Path
     res = invoke("bench", "--model", "des4pos", "--config", Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
                  "--openvino", "--runs", "1")
     assert res.exit_code == 2 and "single-graph" in res.output
