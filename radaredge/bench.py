@@ -83,8 +83,8 @@ def model_backends(card, model, onnx_path, threads: int, include_reference: bool
     graph(s) in OpenVINO's CPU plugin too ("openvino", "openvino int8"). The sessions are never
     profiled: onnxruntime's profiler costs time in every node (tdfanet-edge: 1.15x the latency),
     so profiles come from a session of their own (:func:`profile_runs`)."""
-    from .parity import graph_runner
     from .registry import model_spec
+    from .runners import graph_runner
 
     spec = model_spec(card)
 

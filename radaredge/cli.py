@@ -11,6 +11,7 @@ from pathlib import Path
 import click
 
 from .errors import RadarEdgeError
+from .runners import RUNTIMES
 
 
 def _friendly_errors(fn):
@@ -137,7 +138,7 @@ def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
 @click.option("--quantized", is_flag=True,
               help="The .onnx is int8: descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; "
                    "preprocessing outputs keep their fp32 tolerances.")
-@click.option("--runtime", "runtime_name", type=click.Choice(["onnxruntime", "openvino"]), default="onnxruntime",
+@click.option("--runtime", "runtime_name", type=click.Choice(RUNTIMES), default="onnxruntime",
               show_default=True,
               help="Run the graph in onnxruntime or in OpenVINO's CPU plugin (pip install 'radaredge[openvino]').")
 @click.option("--json", "as_json", is_flag=True)

@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from .errors import ConfigError
 from .models.spec import OutputSpec
+from .runners import graph_runner
 
 
 @dataclass
@@ -216,21 +216,6 @@ def summarise(outputs, cases: list[dict]) -> dict:
 # The parity cases are distinct scenes, so this is a weak retrieval test; accept a quantised
 # place-recognition model with `radaredge eval` on a benchmark of nearby places as well.
 QUANTIZED_MIN_TOP1 = 0.98
-
-
-RUNTIMES = ("onnxruntime", "openvino")
-
-
-def graph_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
-    """fn(feeds) -> {output name: array} running ``onnx_path`` in ``runtime`` (one of RUNTIMES)."""
-    if runtime == "onnxruntime":
-        from .ort import make_session, run_session
-        session = make_session(onnx_path, threads=threads)
-        return lambda feeds: run_session(session, feeds)
-    if runtime == "openvino":
-        from .openvino_runtime import compile_openvino
-        return compile_openvino(onnx_path, threads=threads).run
-    raise ConfigError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
 
 
 def run_parity(card, onnx_path, model, cases_n: int = 20, seed: int = 0, debug_onnx=None, progress=None,
