@@ -3,7 +3,9 @@ timed in one run, alternating backends every iteration so machine drift hits all
 
 Numbers: warm-up runs are discarded; latency percentiles (ms) over the timed runs; FPS is
 1000 / median latency. Threads are fixed (torch.set_num_threads, onnxruntime intra-op threads)
-and the process is pinned to ``threads`` cores where the OS allows it.
+and the process is pinned to ``threads`` cores where the OS allows it. Each timed run starts
+after a short idle pause (:data:`SETTLE_S`), so no backend is timed while the previous one's
+worker threads still spin.
 """
 
 from __future__ import annotations
@@ -59,8 +61,17 @@ def summarise(name: str, times_s: list[float]) -> BackendResult:
                          float(ms.mean()), 1e3 / p50)
 
 
-def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, progress=None) -> list[BackendResult]:
-    """Time each callable in ``backends`` (name -> fn(feeds)) on ``cases``, interleaved per run."""
+# Idle time before each timed run, s. torch's OpenMP workers (GNU libgomp, OMP_WAIT_POLICY unset)
+# busy-wait after every parallel region and took CPU from whatever ran next on 2 cores:
+# tdfanet-edge (then C = 16) in onnxruntime took 43.3 ms right after the torch reference,
+# 38.0 ms alone and 38.2 ms after a 50 ms pause (2026-11-24, medians of 12).
+SETTLE_S = 0.05
+
+
+def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, progress=None,
+              settle_s: float = SETTLE_S) -> list[BackendResult]:
+    """Time each callable in ``backends`` (name -> fn(feeds)) on ``cases``, interleaved per run,
+    each timed call after ``settle_s`` seconds of idle (module docstring)."""
     for fn in backends.values():
         for i in range(warmup):
             fn(cases[i % len(cases)])
@@ -70,6 +81,7 @@ def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, pro
     for i in (progress(it) if progress else it):
         feeds = cases[i % len(cases)]
         for name in order[i % len(order):] + order[: i % len(order)]:   # rotate who goes first
+            time.sleep(settle_s)
             t0 = time.perf_counter()
             backends[name](feeds)
             times[name].append(time.perf_counter() - t0)

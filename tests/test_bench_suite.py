@@ -45,3 +45,17 @@ def test_suite_writes_table_json_and_chart(tmp_path, monkeypatch, tiny_export):
     row = data["models"][0]
     assert row["rows"][0]["gmacs"] > 0 and 0 < row["quantised_op_time_share"] < 1
     assert data["gemm_peak_gflops"] > 0
+
+
+def test_every_timed_run_starts_after_the_settle_pause(monkeypatch):
+    """The previous backend's spinning worker threads must not be timed into the next one."""
+    from radaredge import bench
+    events = []
+    monkeypatch.setattr(bench.time, "sleep", lambda s: events.append(("sleep", s)))
+    backends = {"a": lambda feeds: events.append("a"), "b": lambda feeds: events.append("b")}
+    results = bench.benchmark(backends, [{}], runs=2, warmup=1)
+    assert [r.runs for r in results] == [2, 2]
+    pause = ("sleep", bench.SETTLE_S)
+    assert bench.SETTLE_S > 0
+    # warm-up a, b without pauses; then run 0 (a, b) and run 1 (b first: rotation), each paused
+    assert events == ["a", "b", pause, "a", pause, "b", pause, "b", pause, "a"]
