@@ -1,5 +1,6 @@
 """The benchmark suite script end to end on the tiny card (few runs: this checks the plumbing,
-the table and the chart, not speed), and the MAC counter's extra formulas."""
+the table and the chart, not speed), the MAC counter's extra formulas and the harness's idle
+pause before each timed run."""
 
 import importlib.util
 import json
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from radaredge import bench
 from radaredge.macs import count_macs
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,7 +51,6 @@ def test_suite_writes_table_json_and_chart(tmp_path, monkeypatch, tiny_export):
 
 def test_every_timed_run_starts_after_the_settle_pause(monkeypatch):
     """The previous backend's spinning worker threads must not be timed into the next one."""
-    from radaredge import bench
     events = []
     monkeypatch.setattr(bench.time, "sleep", lambda s: events.append(("sleep", s)))
     backends = {"a": lambda feeds: events.append("a"), "b": lambda feeds: events.append("b")}
