@@ -68,10 +68,9 @@ def summarise(name: str, times_s: list[float]) -> BackendResult:
 SETTLE_S = 0.05
 
 
-def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, progress=None,
-              settle_s: float = SETTLE_S) -> list[BackendResult]:
+def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, progress=None) -> list[BackendResult]:
     """Time each callable in ``backends`` (name -> fn(feeds)) on ``cases``, interleaved per run,
-    each timed call after ``settle_s`` seconds of idle (module docstring)."""
+    each timed call after :data:`SETTLE_S` seconds of idle."""
     for fn in backends.values():
         for i in range(warmup):
             fn(cases[i % len(cases)])
@@ -81,7 +80,7 @@ def benchmark(backends: dict, cases: list[dict], runs: int, warmup: int = 3, pro
     for i in (progress(it) if progress else it):
         feeds = cases[i % len(cases)]
         for name in order[i % len(order):] + order[: i % len(order)]:   # rotate who goes first
-            time.sleep(settle_s)
+            time.sleep(SETTLE_S)
             t0 = time.perf_counter()
             backends[name](feeds)
             times[name].append(time.perf_counter() - t0)

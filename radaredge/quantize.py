@@ -17,7 +17,8 @@ saturate when full-range weights meet large activations; 7-bit weights cannot sa
 tdfanet-edge (then 0.64 m pillars and 4 sampling points) that cut the int8 descriptor error 6x
 (min cosine 0.99892 -> 0.99982 on the parity cases). int8 activations with the same weights
 gave the same accuracy (min cosine on tdfanet-edge, box recall on MAFF-Net) and ran 10 % slower
-on 2 cores (84.4 against 75.8 ms on tdfanet-edge). With VNNI a card can set ``reduce_range: false`` and get full 8-bit weights.
+on 2 cores (84.4 against 75.8 ms on tdfanet-edge). With VNNI a card can set
+``reduce_range: false`` and get full 8-bit weights.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Run one exported ``.onnx`` in a named runtime: onnxruntime, or OpenVINO's CPU plugin.
 
 Parity checks and benches take the runtime by name and get back one callable, so both runtimes
-go through the same code paths. Numpy only at import; each runtime is imported when chosen.
+go through the same code paths. Importing this module imports neither runtime; each is imported
+when chosen.
 """
 
 from __future__ import annotations
