@@ -191,6 +191,10 @@ def _print_parity(report):
             click.echo(f"{'':<24}boxes: end to end vs the full reference; matched-box recall {s['recall'] * 100:.1f} % "
                        f"(needs >= {s['tolerance']['min_recall'] * 100:.0f} % at IoU >= {s['tolerance']['min_iou']}); "
                        f"max abs = score diff, max rel = box coordinate diff")
+            bands = "; ".join(f">= {b}: {100 * m / n:.1f} % of {n}" if n else f">= {b}: no boxes"
+                              for b, (m, n) in s.get("recall_by_score", {}).items())
+            if bands:
+                click.echo(f"{'':<24}recall by reference score (reported, not judged): {bands}")
         elif s["kind"] == "boxes":
             e = s.get("end_to_end")
             click.echo(f"{'':<24}boxes: the graph's NMS vs the reference NMS on the graph's anchor outputs; "

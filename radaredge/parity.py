@@ -32,6 +32,7 @@ class Comparison:
     mismatches: int = 0
     matched: int = 0              # ``boxes``: reference boxes matched
     reference: int = 0            # ``boxes``: reference boxes
+    by_score: dict = field(default_factory=dict)   # int8 ``boxes``: {band: [matched, reference boxes scored >= band]}
     reason: str = ""
 
 
@@ -57,6 +58,12 @@ def match_boxes(got_boxes, got_scores, got_labels, ref_boxes, ref_scores, ref_la
             [j for j in range(len(ref_boxes)) if j not in used_r])
 
 
+# Reference-score floors at which the int8 matched-box recall is also reported (not judged): a
+# detector's low-score boxes sit next to the score threshold and to near-tie neighbours in the
+# NMS, so int8 noise re-decides them first; these bands show whether confident boxes survive.
+RECALL_SCORE_BANDS = (0.3, 0.5)
+
+
 def compare_boxes(spec: OutputSpec, got: tuple, ref: tuple) -> Comparison:
     """Detections (boxes, scores, labels) against the reference's: counts, matched IoU, score diff."""
     gb, gs, gl = (np.asarray(a) for a in got)
@@ -71,6 +78,9 @@ def compare_boxes(spec: OutputSpec, got: tuple, ref: tuple) -> Comparison:
         c.min_iou = min(iou for _, _, iou in pairs)
         c.max_rel = max(float(np.abs(gb[i] - rb[j]).max()) for i, j, _ in pairs)
     if spec.min_recall is not None:           # judged over the case set (summarise)
+        found = np.zeros(len(rb), bool)
+        found[[j for _, j, _ in pairs]] = True
+        c.by_score = {f"{b:g}": [int(found[rs >= b].sum()), int((rs >= b).sum())] for b in RECALL_SCORE_BANDS}
         return c
     reasons = []
     if lone_g or lone_r:
@@ -201,7 +211,8 @@ def summarise(outputs, cases: list[dict]) -> dict:
         if spec.kind == "boxes" and spec.min_recall is not None:
             ref_n = sum(r["reference"] for r in rows)
             recall = sum(r["matched"] for r in rows) / ref_n if ref_n else 1.0
-            out[spec.name].update(recall=recall, passed=recall >= spec.min_recall,
+            bands = {b: [sum(r["by_score"].get(b, [0, 0])[i] for r in rows) for i in (0, 1)] for b in (rows[0]["by_score"] if rows else {})}
+            out[spec.name].update(recall=recall, passed=recall >= spec.min_recall, recall_by_score=bands,
                                   tolerance={"min_recall": spec.min_recall, "min_iou": spec.min_iou},
                                   failed_cases=[] if recall >= spec.min_recall else ["the case set"])
         e2e = [r["end_to_end"] for r in rows if "end_to_end" in r]

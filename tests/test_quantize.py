@@ -177,3 +177,20 @@ def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
         cases.append({"case": str(k), "outputs": {"boxes": c.__dict__}})
     s = summarise([spec], cases)["boxes"]
     assert s["recall"] == pytest.approx(found / 20) and s["passed"] is passed
+
+
+def test_int8_box_recall_is_also_reported_by_reference_score_but_judged_overall():
+    """Recall per reference-score floor (0.3, 0.5) is reported beside the verdict: here int8 loses
+    the six boxes scored 0.12 and keeps every confident one, and the case set still fails."""
+    from radaredge.models.spec import OutputSpec
+    from radaredge.parity import compare, summarise
+    spec = OutputSpec("boxes", "boxes", group=("scores", "labels")).quantized()
+    ref = _boxes(10)
+    ref_scores = np.array([0.12] * 6 + [0.4, 0.4, 0.9, 0.9])
+    got = ref.copy()
+    got[:6, 0] += 3.0                                 # the six low-score boxes moved: missed
+    c = compare(spec, (got, ref_scores, np.ones(10)), (ref, ref_scores, np.ones(10)))
+    assert c.by_score == {"0.3": [4, 4], "0.5": [2, 2]}
+    s = summarise([spec], [{"case": "0", "outputs": {"boxes": c.__dict__}}])["boxes"]
+    assert s["recall"] == pytest.approx(0.4) and s["passed"] is False
+    assert s["recall_by_score"] == {"0.3": [4, 4], "0.5": [2, 2]}
