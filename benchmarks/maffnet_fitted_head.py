@@ -12,8 +12,10 @@ training recipe for this head: AxisAlignedTargetAssigner (axis-aligned BEV IoU o
 and boxes rotated to the nearest axis; upstream VoD thresholds), sigmoid focal loss, smooth-L1
 on ResidualCoder residuals with the sin-difference heading, and direction-bin cross entropy. It
 writes a checkpoint (seeded backbone + fitted head) and prints the fitted detector's recall of
-ground-truth boxes on held-out scans. The checkpoint is a test article for int8 (scores that
-separate), not a trained MAFF-Net: its backbone is random.
+ground-truth boxes on held-out scans. ``--train-backbone`` fits BaseBEVBackbone with the head
+(the layers before it, VFE, SPA, CFA and CAF, stay seeded), which takes about 25 minutes on 2
+cores. Either checkpoint is a test article for int8 (scores that separate), not a trained
+MAFF-Net: the layers it does not fit stay random.
 
     .venv/bin/python benchmarks/maffnet_fitted_head.py --out export/maffnet-vod-fitted-head.pth
     radaredge export --model maffnet-vod --checkpoint export/maffnet-vod-fitted-head.pth --quantize int8
@@ -69,13 +71,16 @@ def synthetic_examples(card, seeds) -> list[tuple[np.ndarray, np.ndarray, np.nda
     return out
 
 
-def head_input(model, points: np.ndarray) -> torch.Tensor:
-    """The frozen network's output that the anchor head reads: [1, C, H, W] (export formulation)."""
+def cached_input(model, points: np.ndarray, train_backbone: bool = False) -> torch.Tensor:
+    """What training reads from the frozen part of the network: the anchor head's input (the
+    backbone's output), or with ``train_backbone`` the fusion's BEV map that BaseBEVBackbone reads,
+    [1, C, H, W] (export formulation)."""
     pts = torch.from_numpy(points)
     with torch.no_grad():
         pillar, _, _ = model.pillar_stage(pts, False)
         cfa = model.cfa_stage(pts, False)[0]
-        return model.backbone_2d(model.fuser(pillar.unsqueeze(0), cfa))
+        fused = model.fuser(pillar.unsqueeze(0), cfa)
+        return fused if train_backbone else model.backbone_2d(fused)
 
 
 def anchor_classes(card, num_anchors: int) -> torch.Tensor:
@@ -194,25 +199,40 @@ def reset_head(head, prior: float = 0.01) -> None:
     torch.nn.init.normal_(head.conv_box.weight, std=0.001)
 
 
-def fit_head(model, features: list[torch.Tensor], targets: list[dict], epochs: int, lr: float, log=print) -> None:
-    """Adam on the head's parameters only, one scan per step, scans shuffled every epoch."""
+def fit(model, features: list[torch.Tensor], targets: list[dict], epochs: int, lr: float,
+        train_backbone: bool = False, log=print) -> None:
+    """Adam, one scan per step, scans shuffled every epoch, from a freshly initialised head.
+
+    Head only (``features`` from :func:`cached_input` without ``train_backbone``): the head's
+    parameters, learning rate cosine-annealed from ``lr``. With ``train_backbone`` (features are
+    the fusion's maps): BaseBEVBackbone and the head together, the backbone's batch norms in
+    training mode, a one-cycle schedule peaking at ``lr`` after 30 % of the steps, and gradients
+    clipped to norm 10. The model is left in eval mode."""
     head = model.dense_head
     reset_head(head)
-    opt = torch.optim.Adam(head.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs * len(features))
+    params = list(head.parameters()) + (list(model.backbone_2d.parameters()) if train_backbone else [])
+    opt = torch.optim.Adam(params, lr=lr)
+    steps = epochs * len(features)
+    sched = (torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps, pct_start=0.3) if train_backbone
+             else torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps))
+    model.backbone_2d.train(train_backbone)
     gen = torch.Generator().manual_seed(0)
     for epoch in range(epochs):
         total = 0.0
         for i in torch.randperm(len(features), generator=gen).tolist():
-            cls, box, direction = head(features[i].float())
+            x = features[i].float()
+            cls, box, direction = head(model.backbone_2d(x) if train_backbone else x)
             loss = head_loss(cls, box, direction, targets[i], model.head_config, head.num_classes)
             opt.zero_grad()
             loss.backward()
+            if train_backbone:
+                torch.nn.utils.clip_grad_norm_(params, 10.0)
             opt.step()
             sched.step()
             total += loss.item()
-        if epoch % 5 == 0 or epoch == epochs - 1:
+        if train_backbone or epoch % 5 == 0 or epoch == epochs - 1:
             log(f"  epoch {epoch:3d}  loss {total / len(features):.4f}")
+    model.eval()
 
 
 def detection_recall(model, examples, min_iou: float = 0.5) -> tuple[float, float]:
@@ -235,10 +255,17 @@ def main(argv=None) -> int:
     ap.add_argument("--card", default="maffnet-vod")
     ap.add_argument("--train-scans", type=int, default=40)
     ap.add_argument("--test-scans", type=int, default=8)
-    ap.add_argument("--epochs", type=int, default=40)
-    ap.add_argument("--lr", type=float, default=3e-3)
-    ap.add_argument("--out", type=Path, default=ROOT / "export" / "maffnet-vod-fitted-head.pth")
+    ap.add_argument("--train-backbone", action="store_true",
+                    help="fit BaseBEVBackbone with the head (about 2 min an epoch on 2 cores)")
+    ap.add_argument("--epochs", type=int, help="default 40 for the head alone, 12 with --train-backbone")
+    ap.add_argument("--lr", type=float, help="default 3e-3 for the head alone, peak 1e-3 with --train-backbone")
+    ap.add_argument("--out", type=Path, help="default export/maffnet-vod-fitted-head.pth, "
+                                            "export/maffnet-vod-fitted-backbone.pth with --train-backbone")
     args = ap.parse_args(argv)
+    deep = args.train_backbone
+    epochs = args.epochs or (12 if deep else 40)
+    lr = args.lr or (1e-3 if deep else 3e-3)
+    out = args.out or ROOT / "export" / f"maffnet-vod-fitted-{'backbone' if deep else 'head'}.pth"
     torch.manual_seed(0)
     card = load_card(args.card)
     model = build_model(card)
@@ -248,20 +275,20 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     features, targets = [], []
     for pts, gt, labels in train:
-        features.append(head_input(model, pts).half())
+        features.append(cached_input(model, pts, deep).half())
         targets.append(assign_targets(model.anchors, classes, torch.from_numpy(gt), torch.from_numpy(labels),
                                       card.get("classes")))
     n_pos = sum(int((t["labels"] > 0).sum()) for t in targets)
     n_gt = sum(len(g) for _, g, _ in train)
     print(f"{len(train)} training scans: {n_gt} boxes, {n_pos} positive anchors "
           f"({time.perf_counter() - t0:.0f} s for the frozen network)")
-    fit_head(model, features, targets, args.epochs, args.lr)
+    fit(model, features, targets, epochs, lr, deep)
     recall, per_scan = detection_recall(model, test)
     print(f"held-out scans ({len(test)}): recall of ground-truth boxes at BEV IoU >= 0.5 {100 * recall:.1f} %, "
           f"{per_scan:.1f} detections per scan")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(model.state_dict(), args.out)
-    print(f"wrote {args.out}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(model.state_dict(), out)
+    print(f"wrote {out}")
     return 0
 
 

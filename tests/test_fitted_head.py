@@ -80,21 +80,45 @@ def test_nearest_bev_swaps_length_and_width_near_the_y_axis():
     np.testing.assert_allclose(rect[:, 2] - rect[:, 0], [4.0, 2.0, 4.0], atol=1e-6)
 
 
-def test_fitting_lowers_the_loss_on_tiny_scans():
-    """A few steps of fit_head reduce the head loss: gradients reach only the head."""
+def _fitting_case(train_backbone: bool):
     model, classes = _setup()
     examples = fh.synthetic_examples(CARD, [5, 6])
-    feats = [fh.head_input(model, p) for p, _, _ in examples]
+    feats = [fh.cached_input(model, p, train_backbone) for p, _, _ in examples]
     targets = [fh.assign_targets(model.anchors, classes, torch.from_numpy(g), torch.from_numpy(lab),
                                  CARD.get("classes")) for _, g, lab in examples]
+    return model, feats, targets
+
+
+def _loss(model, feats, targets, train_backbone: bool) -> float:
+    with torch.no_grad():
+        return sum(float(fh.head_loss(*model.dense_head(model.backbone_2d(f) if train_backbone else f), t,
+                                      model.head_config, 3)) for f, t in zip(feats, targets))
+
+
+def test_fitting_lowers_the_loss_on_tiny_scans():
+    """A few steps of fit reduce the head loss: gradients reach only the head."""
+    model, feats, targets = _fitting_case(False)
     backbone_before = {k: v.clone() for k, v in model.backbone_2d.state_dict().items()}
-
-    def loss():
-        with torch.no_grad():
-            return sum(float(fh.head_loss(*model.dense_head(f), t, model.head_config, 3)) for f, t in zip(feats, targets))
-
     fh.reset_head(model.dense_head)
-    start = loss()
-    fh.fit_head(model, feats, targets, epochs=15, lr=3e-3, log=lambda *_: None)
-    assert loss() < 0.7 * start
+    start = _loss(model, feats, targets, False)
+    fh.fit(model, feats, targets, epochs=15, lr=3e-3, log=lambda *_: None)
+    assert _loss(model, feats, targets, False) < 0.7 * start
     assert all(torch.equal(v, model.backbone_2d.state_dict()[k]) for k, v in backbone_before.items())
+
+
+def test_fitting_the_backbone_too_trains_it_and_leaves_the_front_frozen():
+    """With train_backbone the features are the fusion's maps, BaseBEVBackbone learns with the
+    head (its batch-norm statistics too), the layers before it stay as they were, and the model
+    ends in eval mode."""
+    model, feats, targets = _fitting_case(True)
+    assert feats[0].shape[1] == CARD.get("caf.out_channels")
+    front = {k: v.clone() for k, v in model.state_dict().items() if not k.startswith(("backbone_2d.", "dense_head."))}
+    backbone_before = {k: v.clone() for k, v in model.backbone_2d.state_dict().items()}
+    fh.reset_head(model.dense_head)
+    start = _loss(model, feats, targets, True)
+    fh.fit(model, feats, targets, epochs=6, lr=1e-3, train_backbone=True, log=lambda *_: None)
+    assert not model.training and not model.backbone_2d.training
+    assert _loss(model, feats, targets, True) < 0.7 * start
+    changed = [k for k, v in backbone_before.items() if not torch.equal(v, model.backbone_2d.state_dict()[k])]
+    assert any(k.endswith("weight") for k in changed) and any(k.endswith("running_mean") for k in changed)
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in front.items())
