@@ -211,7 +211,8 @@ def summarise(outputs, cases: list[dict]) -> dict:
         if spec.kind == "boxes" and spec.min_recall is not None:
             ref_n = sum(r["reference"] for r in rows)
             recall = sum(r["matched"] for r in rows) / ref_n if ref_n else 1.0
-            bands = {b: [sum(r["by_score"].get(b, [0, 0])[i] for r in rows) for i in (0, 1)] for b in (rows[0]["by_score"] if rows else {})}
+            bands = {f"{b:g}": [sum(r["by_score"].get(f"{b:g}", [0, 0])[i] for r in rows) for i in (0, 1)]
+                     for b in RECALL_SCORE_BANDS}
             out[spec.name].update(recall=recall, passed=recall >= spec.min_recall, recall_by_score=bands,
                                   tolerance={"min_recall": spec.min_recall, "min_iou": spec.min_iou},
                                   failed_cases=[] if recall >= spec.min_recall else ["the case set"])
