@@ -404,7 +404,8 @@ def _print_eval(report):
         click.echo(f"{BACKEND_LABELS[name]:<18}" + "".join(f"{r:>9.2f}" for r in report.recall(name).values()))
     if report.agreement is not None:
         click.echo(f"top-1 agreement {BACKEND_LABELS[ONNX]} vs {BACKEND_LABELS[REFERENCE]}: "
-                   f"{report.agreement * 100:.1f} % of {len(q)} queries")
+                   f"{report.agreement * 100:.1f} % of {len(q)} queries the same window, "
+                   f"{report.place_agreement * 100:.1f} % within {report.radius:g} m of each other")
 
 
 @main.command("make-city")

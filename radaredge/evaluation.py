@@ -18,7 +18,8 @@ duplicates) may order differently from numpy.
 :mod:`radaredge.data.sequences`): one K-frame window per frame t >= K-1, placed at its last
 frame, described once by the exported ``.onnx`` in onnxruntime and once by the torch reference
 formulation, then scored with :func:`recall_at_n` for each and compared by
-:func:`top1_agreement`.
+:func:`top1_agreement` (the same database window) and :func:`top1_place_agreement` (database
+windows within the radius of each other).
 """
 
 from __future__ import annotations
@@ -148,6 +149,17 @@ def top1_agreement(a_top1, b_top1) -> float:
     return float((a == b).mean())
 
 
+def top1_place_agreement(a_top1, b_top1, db_pos: np.ndarray, radius: float) -> float:
+    """Fraction in [0, 1] of queries whose two top-1 database entries (rows into ``db_pos``
+    [B, 2], (northing, easting) m) lie within ``radius`` m of each other, the boundary included:
+    the two backends retrieve the same place, if not the same window. Where database windows lie
+    closer together than the radius, this is the agreement a place recogniser can promise."""
+    top1_agreement(a_top1, b_top1)
+    a, b = np.asarray(a_top1), np.asarray(b_top1)
+    db_pos = np.asarray(db_pos, dtype=np.float64)
+    return float((np.linalg.norm(db_pos[a] - db_pos[b], axis=1) <= _check_radius(radius)).mean())
+
+
 # ----------------------------------------------------------------------------- drives and windows
 
 
@@ -268,6 +280,7 @@ class EvalReport:
     queries: WindowSet
     results: dict[str, dict]
     agreement: float | None
+    place_agreement: float | None
 
     def recall(self, backend: str, ns: Sequence[int] = RECALL_NS) -> dict[int, float]:
         """Recall@N in percent of ``backend`` for each N of ``ns`` (within ``CURVE_NS``)."""
@@ -292,7 +305,7 @@ class EvalReport:
 
     def to_dict(self) -> dict:
         """The JSON report: setup, counts, Recall@1/5/10 and the Recall@N curve (N = 1..25) per
-        backend, top-1 agreement, and per query its window, position and top-1 match."""
+        backend, top-1 agreement by window and by place, and per query its window, position and top-1 match."""
         def side(ws: WindowSet) -> dict:
             return {"path": str(ws.path), "windows": len(ws),
                     "drives": {s.name: len(s) - ws.k + 1 for s in ws.sequences}}
@@ -303,6 +316,7 @@ class EvalReport:
             "recall": {name: {str(n): r for n, r in self.recall(name).items()} for name in self.results},
             "recall_curve": {name: [self.results[name]["recall"][n] for n in CURVE_NS] for name in self.results},
             "top1_agreement": self.agreement,
+            "top1_place_agreement": self.place_agreement,
             "per_query": [self._query(i) for i in range(len(self.queries))],
         }
 
@@ -355,7 +369,8 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
     """Recall@N of the exported ``onnx_path`` (onnxruntime) and, with ``reference``, of the
     card's torch reference formulation (``checkpoint`` or the seeded initialisation) over the
     K-frame windows of the ``queries`` drive(s) against those of the ``database`` drive(s), each
-    searched in an exact-L2 FAISS index; plus their top-1 agreement. ``progress(desc)`` returns
+    searched in an exact-L2 FAISS index; plus their top-1 agreement, by window and by place
+    (top-1 windows within ``radius`` m of each other). ``progress(desc)`` returns
     a wrapper for the window loops (a progress bar)."""
     from . import runtime
 
@@ -380,9 +395,12 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
                                for side, ws in (("database", db_windows), ("queries", query_windows)))
         results[name] = recall_at_n(query_desc, query_windows.positions, db_desc, db_windows.positions, CURVE_NS,
                                     radius)
-    agreement = top1_agreement(results[ONNX]["top1"], results[REFERENCE]["top1"]) if reference else None
+    agreement = place = None
+    if reference:
+        agreement = top1_agreement(results[ONNX]["top1"], results[REFERENCE]["top1"])
+        place = top1_place_agreement(results[ONNX]["top1"], results[REFERENCE]["top1"], db_windows.positions, radius)
     return EvalReport(card.name, str(onnx_path), str(checkpoint) if checkpoint else None, radius, db_windows,
-                      query_windows, results, agreement)
+                      query_windows, results, agreement, place)
 
 
 # ----------------------------------------------------------------------------- text-to-point-cloud localisation

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from radaredge.errors import ConfigError, InputError
-from radaredge.evaluation import nearest_neighbours, recall_at_n, top1_agreement
+from radaredge.evaluation import nearest_neighbours, recall_at_n, top1_agreement, top1_place_agreement
 
 BACKENDS = [pytest.param(True, id="faiss"), pytest.param(False, id="numpy")]
 
@@ -101,6 +101,17 @@ def test_top1_agreement():
     assert top1_agreement(np.arange(5), np.arange(5)) == 1.0
     with pytest.raises(InputError, match="one shape"):
         top1_agreement([1, 2], [1, 2, 3])
+
+
+def test_top1_place_agreement_counts_top1_windows_within_the_radius():
+    db_pos = np.array([[0.0, 0.0], [0.0, 1.0], [0.0, 5.0], [0.0, 30.0]])      # (northing, easting) m
+    # same window; 1 m apart; exactly 5 m apart (boundary counts); 29 m apart
+    assert top1_place_agreement([0, 0, 0, 1], [0, 1, 2, 3], db_pos, 5.0) == 0.75
+    assert top1_place_agreement([0, 0, 0, 1], [0, 1, 2, 3], db_pos, 0.5) == 0.25
+    with pytest.raises(InputError, match="one shape"):
+        top1_place_agreement([0], [0, 1], db_pos, 5.0)
+    with pytest.raises(ConfigError, match="radius"):
+        top1_place_agreement([0], [1], db_pos, 0.0)
 
 
 def test_bad_arguments_are_named():

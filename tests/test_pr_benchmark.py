@@ -118,6 +118,8 @@ def test_eval_on_the_benchmark_agrees_with_the_reference(tiny_export, small_benc
     assert set(report["recall"]["onnxruntime"]) == {"1", "5", "10"}
     assert len(report["recall_curve"]["onnxruntime"]) == 25
     assert report["top1_agreement"] >= 0.995
+    assert report["top1_place_agreement"] >= report["top1_agreement"]
+    assert "within 5 m of each other" in res.output
     assert len(report["per_query"]) == 36 and report["per_query"][0]["drive"] == "drive-01"
 
 
@@ -129,6 +131,7 @@ def test_eval_json_without_reference(tiny_export, small_benchmark):
     assert res.exit_code == 0, res.output
     report = json.loads(res.output)
     assert set(report["recall"]) == {"onnxruntime"} and report["top1_agreement"] is None
+    assert report["top1_place_agreement"] is None
     assert report["queries"]["drives"] == {"drive-02": 18}
 
 
