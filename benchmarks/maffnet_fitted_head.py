@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 from radaredge.cards import load_card  # noqa: E402
 from radaredge.data.synthetic import CLASS_NAMES, generate_scan  # noqa: E402
-from radaredge.export import build_model  # noqa: E402
+from radaredge.export import build_model, save_checkpoint  # noqa: E402
 from radaredge.models.maffnet_spec import synthetic_points  # noqa: E402
 from radaredge.parity import match_boxes  # noqa: E402
 
@@ -286,9 +286,7 @@ def main(argv=None) -> int:
     recall, per_scan = detection_recall(model, test)
     print(f"held-out scans ({len(test)}): recall of ground-truth boxes at BEV IoU >= 0.5 {100 * recall:.1f} %, "
           f"{per_scan:.1f} detections per scan")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(model.state_dict(), out)
-    print(f"wrote {out}")
+    print(f"wrote {save_checkpoint(model, out)}")
     return 0
 
 

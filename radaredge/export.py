@@ -43,6 +43,15 @@ def require_same_weights(exported: RadarModel, model: torch.nn.Module, checkpoin
                           f"pass the same --checkpoint/--config as at export")
 
 
+def save_checkpoint(model: torch.nn.Module, path: str | Path) -> Path:
+    """Write the model's state_dict to ``path`` (parent directories created), in the form
+    :func:`load_checkpoint` and ``--checkpoint`` read. Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(model.state_dict(), path)
+    return path
+
+
 def load_checkpoint(model: torch.nn.Module, path: str | Path) -> None:
     """Load a state_dict ``.pth`` (optionally under a ``model_state``/``state_dict`` key).
 
