@@ -82,8 +82,8 @@ def prepare_windows(model, town: Path, features) -> list[Window]:
             scans, timestamps = ws.inputs(i, features)
             pts, frame = concat_scans([torch.from_numpy(s) for s in scans])
             with torch.no_grad():
-                v_ego, static, _ = model.ransac.estimate_frames(pts[:, :3], pts[:, 3],
-                                                                torch.ones(len(pts), dtype=torch.bool), frame, len(scans))
+                everywhere = torch.ones(len(pts), dtype=torch.bool)
+                v_ego, static, _ = model.ransac.estimate_frames(pts[:, :3], pts[:, 3], everywhere, frame, len(scans))
             cells = grid_displacement(v_ego, model.vfe.config.voxel_size,
                                       timestamps=torch.as_tensor(timestamps, dtype=torch.float32))
             out.append(Window(pts, frame, static, cells, ws.positions[i], QUERY_DRIVES * role_id + ws.items[i][0]))

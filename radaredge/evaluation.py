@@ -157,6 +157,9 @@ def top1_place_agreement(a_top1, b_top1, db_pos: np.ndarray, radius: float) -> f
     top1_agreement(a_top1, b_top1)
     a, b = np.asarray(a_top1), np.asarray(b_top1)
     db_pos = np.asarray(db_pos, dtype=np.float64)
+    if db_pos.ndim != 2 or db_pos.shape[1] != 2 or min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= len(db_pos):
+        raise InputError(f"top-1 rows must index the {len(db_pos)} database positions [B, 2] (northing, easting), "
+                         f"got rows {min(a.min(), b.min())}..{max(a.max(), b.max())} into shape {db_pos.shape}")
     return float((np.linalg.norm(db_pos[a] - db_pos[b], axis=1) <= _check_radius(radius)).mean())
 
 

@@ -112,6 +112,8 @@ def test_top1_place_agreement_counts_top1_windows_within_the_radius():
         top1_place_agreement([0], [0, 1], db_pos, 5.0)
     with pytest.raises(ConfigError, match="radius"):
         top1_place_agreement([0], [1], db_pos, 0.0)
+    with pytest.raises(InputError, match="4 database positions"):
+        top1_place_agreement([0], [4], db_pos, 5.0)
 
 
 def test_bad_arguments_are_named():
