@@ -149,10 +149,9 @@ def fit(model, windows: list[Window], steps: int, lr: float, seed: int = 0, log=
             running = []
 
 
-def town_recall(model, town: Path, features) -> dict[int, float]:
-    """Recall@1/5/10 (%) of the export formulation's queries against its database on a
-    make-benchmark town (true positive within POSITIVE_RADIUS m)."""
-    windows = prepare_windows(model, town, features)
+def town_recall(model, windows: list[Window]) -> dict[int, float]:
+    """Recall@1/5/10 (%) of the export formulation's query windows against the database windows
+    of one prepared make-benchmark town (true positive within POSITIVE_RADIUS m)."""
     with torch.no_grad():
         desc = np.stack([describe(model, w).numpy() for w in windows])
     pos = np.array([w.position for w in windows])
@@ -180,9 +179,10 @@ def main(argv=None) -> int:
         make_pr_benchmark(test_town, seed=args.test_seed)
         windows = prepare_windows(model, train_town, card.features)
         print(f"training town (seed {args.train_seed}): {len(windows)} windows")
-        before = town_recall(model, test_town, card.features)
+        test_windows = prepare_windows(model, test_town, card.features)
+        before = town_recall(model, test_windows)
         fit(model, windows, args.steps, args.lr)
-        after = town_recall(model, test_town, card.features)
+        after = town_recall(model, test_windows)
     fmt = lambda r: "/".join(f"{v:.1f}" for v in r.values())  # noqa: E731
     print(f"held-out town (seed {args.test_seed}) R@{'/'.join(map(str, RECALL_NS))}: seeded {fmt(before)} %, "
           f"fitted {fmt(after)} %")
