@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from .errors import RadarEdgeError
+from .errors import ConfigError, RadarEdgeError
 from .runners import RUNTIMES
 
 
@@ -88,15 +88,29 @@ def inspect(onnx_path, as_json):
 @click.option("--opset", default=18, show_default=True, type=int)
 @click.option("--debug", is_flag=True, help="Also write <output>.debug.onnx with intermediate tensors as outputs.")
 @click.option("--quantize", type=click.Choice(["int8"]),
-              help="Also write <output>.int8.onnx: static QDQ int8 of Conv/MatMul/Gemm, calibrated on synthetic scenes.")
+              help="Also write <output>.int8.onnx: static QDQ int8 of Conv/MatMul/Gemm, calibrated on synthetic "
+                   "scenes or on --calibration.")
+@click.option("--calibration", "calibration_dir", type=click.Path(file_okay=False),
+              help="With --quantize int8: calibrate on this recording of your sensor (its scan files, .npy or "
+                   ".bin, one per frame in file-name order, or a drive with scans/) instead of synthetic scenes.")
+@click.option("--calibration-format", type=click.Choice(["vod", "tj4d", "transloc"]),
+              help="Scan format of --calibration (default: inferred from the files).")
+@click.option("--calibration-windows", default=16, show_default=True, type=click.IntRange(min=1),
+              help="Calibration windows, spread evenly over the recording (or synthetic scenes).")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
+def export(model, config, checkpoint, output, opset, debug, quantize, calibration_dir, calibration_format,
+           calibration_windows, as_json):
     """Export the whole pipeline (raw points in, result out) to one .onnx and a JSON sidecar."""
     from .export import build_model, export_model
     card = _card(model, config)
     from .registry import is_bundle
+    if (calibration_dir or calibration_format) and not quantize:
+        raise ConfigError("--calibration and --calibration-format choose int8 calibration data; add --quantize int8")
     if is_bundle(card):                 # several graphs: --output is a directory (default export/<model>/)
+        if calibration_dir:
+            raise ConfigError(f"{card.name}'s int8 text encoder is quantised dynamically (weights only, no "
+                              f"calibration); drop --calibration")
         from .bundle import export_cmd
         return export_cmd(card, checkpoint, output, opset, quantize, as_json, _progress)
     output = Path(output or f"export/{card.name}.onnx")
@@ -110,7 +124,8 @@ def export(model, config, checkpoint, output, opset, debug, quantize, as_json):
     if quantize:
         from .quantize import quantize_int8
         click.echo(f"quantising {card.name} to int8 ...", err=True)
-        int8_path = quantize_int8(card, res.path, output.with_suffix(".int8.onnx"))
+        int8_path = quantize_int8(card, res.path, output.with_suffix(".int8.onnx"), calibration_windows,
+                                  calibration_dir=calibration_dir, calibration_format=calibration_format)
     if as_json:
         click.echo(json.dumps({"onnx": str(res.path), "sidecar": str(res.sidecar), "size_bytes": res.size_bytes,
                                "op_histogram": res.op_histogram, "debug_onnx": str(debug_path) if debug_path else None,
@@ -148,7 +163,6 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, r
     """Run the ONNX in onnxruntime (or OpenVINO) and the reference formulation in torch on the
     same synthetic cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
     from . import runtime
-    from .errors import ConfigError
     from .export import build_model, export_model, require_same_weights
     from .parity import run_parity
     card = _card(model, config)
@@ -269,7 +283,6 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     """Frames per second and latency percentiles on THREADS cores, every backend in one run."""
     from .bench import (as_dicts, benchmark, cpu_name, format_differences, model_backends, onnxruntime_peak_rss_mb,
                         output_differences, pin_threads, profile_runs, results_table, top_ops, write_results_json)
-    from .errors import ConfigError
     from .export import build_model, export_model
     from .openvino_runtime import openvino_installed
     from .registry import model_spec
@@ -455,7 +468,6 @@ def locate(model, onnx_dir, map_path, text, top_k, threads, int8_text, no_cache,
     text (FAISS), run the fine stage in each and print the position estimates with their scores.
     Needs numpy, onnxruntime, faiss and tokenizers only (no torch, no network)."""
     import time
-    from .errors import ConfigError
     from .locate import Des4PosBundle, MapIndex
     int8 = Path(onnx_dir) / "text_encoder.int8.onnx" if int8_text else None
     if int8 is not None and not int8.is_file():

@@ -1,7 +1,8 @@
 """INT8 post-training quantisation of an exported pipeline (onnxruntime static QDQ).
 
 Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
-weights and uint8 activations calibrated on synthetic radar windows. Everything else stays
+weights and uint8 activations calibrated on synthetic radar windows or on a recording of the
+user's sensor (:mod:`radaredge.calibration`). Everything else stays
 fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
 (float64 in the graph, never touched), alignment and deformable-attention sampling
 (GridSample) and the index math. A card can keep more in fp32: the Conv/MatMul/Gemm layers of
@@ -30,25 +31,16 @@ from pathlib import Path
 
 import onnx
 import onnxruntime as ort
-from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
+from . import runtime
+from .calibration import FeedList, recorded_feeds, synthetic_feeds
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
 from .ort_stages import fused_from, module_names
-from .registry import model_spec
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
-
-
-class _SyntheticWindows(CalibrationDataReader):
-    """Feeds of ``n`` synthetic cases, one per call, for onnxruntime's calibrator."""
-
-    def __init__(self, card: ModelCard, n: int, seed: int):
-        self._feeds = iter([feeds for _, feeds in model_spec(card).make_cases(card, n, seed)])
-
-    def get_next(self):
-        return next(self._feeds, None)
 
 
 def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: dict) -> None:
@@ -135,12 +127,15 @@ def reduce_range(card: ModelCard) -> bool:
 
 
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
-                  calibration_cases: int = 16, seed: int = 12345) -> Path:
+                  calibration_cases: int = 16, seed: int = 12345, calibration_dir: str | Path | None = None,
+                  calibration_format: str | None = None) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
-    Calibration uses ``calibration_cases`` synthetic windows drawn with ``seed``. That seed
-    differs from the parity and bench seeds, so parity is checked on data the calibration did
-    not see. Activation ranges are min/max calibrated. Percentile (99.999 %) and entropy ranges,
+    Calibration uses ``calibration_cases`` windows: synthetic ones drawn with ``seed``, or with
+    ``calibration_dir`` windows of that recording (:mod:`radaredge.calibration`; its scan format
+    ``calibration_format`` or inferred). The seed differs from the parity and bench seeds, so
+    parity is checked on data the calibration did not see. Activation ranges are min/max
+    calibrated. Percentile (99.999 %) and entropy ranges,
     collected one window at a time because the point-count dependent tensors differ in shape
     between windows, were measured worse on both models (2026-11-24, int8 activations):
     tdfanet-edge min cosine 0.99793 and 0.99871 against min/max's 0.99892, and maffnet-vod's
@@ -151,12 +146,17 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
     fp32_path, out_path = Path(fp32_path), Path(out_path)
     patterns, seven_bit = keep_fp32_patterns(card), reduce_range(card)
     keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
+    if calibration_dir is None:
+        feeds = synthetic_feeds(card, calibration_cases, seed)
+        source = {"data": "synthetic", "cases": calibration_cases, "seed": seed}
+    else:
+        feeds, source = recorded_feeds(runtime.load(fp32_path), calibration_dir, calibration_cases, calibration_format)
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
         try:
             optimise_without_folding(fp32_path, pre)
             excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
-            quantize_static(str(pre), str(out_path), _SyntheticWindows(card, calibration_cases, seed),
+            quantize_static(str(pre), str(out_path), FeedList(feeds),
                             quant_format=QuantFormat.QDQ, per_channel=True,
                             op_types_to_quantize=list(QUANTIZED_OPS),
                             weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
@@ -167,5 +167,5 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
         "format": "QDQ", "weights": "int8 per-channel, 7-bit range" if seven_bit else "int8 per-channel",
         "activations": "uint8", "ops": list(QUANTIZED_OPS),
         "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
-        "calibration": {"cases": calibration_cases, "seed": seed, "method": "minmax"}})
+        "calibration": {**source, "method": "minmax"}})
     return out_path

@@ -66,8 +66,10 @@ class RadarModel:
             out.append(a)
         return out
 
-    def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
-        """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
+    def feeds(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """The graph's input feeds for one window: the validated frames (:meth:`validate`) and,
+        for a K-frame graph, ``timestamps`` float32 [K] (s, oldest first, strictly increasing;
+        default: the card's frame rate)."""
         frames = self.validate(frames)
         feeds = {f"points_{k}": f for k, f in enumerate(frames)} if self.frames > 1 else {self.input_names[0]: frames[0]}
         if "timestamps" in self.input_names:
@@ -80,7 +82,11 @@ class RadarModel:
                 if (np.diff(ts) <= 0).any():
                     raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
             feeds["timestamps"] = ts
-        out = run_session(self.session, feeds)
+        return feeds
+
+    def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
+        out = run_session(self.session, self.feeds(frames, timestamps))
         if "spa_overflow" in out and bool(out["spa_overflow"]):
             raise CapacityError(f"the scan has {int(out['num_pillars'])} non-empty pillars but {self.card.name}'s "
                                 f"sparse pillar attention holds spa.capacity = {self.card.get('spa.capacity')}; "

@@ -89,6 +89,7 @@ _LAYOUTS = {
                         {"x": 0, "y": 1, "z": 2, "v_r": 3, "intensity": 4, "rcs": 4}),
 }
 _BIN_FORMATS = ("vod", "tj4d")
+FILE_SUFFIX = {"vod": ".bin", "tj4d": ".bin", "transloc": ".npy"}   # scan-file formats and their suffix
 
 
 # ----------------------------------------------------------------------------- scan files
@@ -116,18 +117,26 @@ def _bin_row_bytes(fmt: str) -> int:
     return 4 * len(_LAYOUTS[fmt].columns)
 
 
-def _infer_format(path: Path) -> str:
-    """The scan format of ``path`` from its suffix, and for ``.bin`` from its byte size."""
-    if path.suffix == ".npy":
+def infer_format(paths: Sequence[Path]) -> str:
+    """The one scan format that reads every file of ``paths``: ``transloc`` when all are
+    ``.npy``; for ``.bin`` files, ``vod`` or ``tj4d`` when every file's byte size is a whole
+    number of rows of exactly one of the two. InputError for another or mixed suffixes, and when
+    both or neither layout fits (then the format must be given)."""
+    paths = [Path(p) for p in paths]
+    suffixes = sorted({p.suffix for p in paths})
+    where = str(paths[0]) if len(paths) == 1 else f"{len(paths)} scan files in {paths[0].parent}"
+    if suffixes == [".npy"]:
         return "transloc"
-    if path.suffix != ".bin":
-        raise InputError(f"{path}: cannot infer the scan format from suffix {path.suffix!r}; pass fmt= one of "
+    if suffixes != [".bin"]:
+        found = f"suffix {suffixes[0]!r}" if len(suffixes) == 1 else f"mixed suffixes {suffixes}"
+        raise InputError(f"{where}: cannot infer the scan format from {found}; pass fmt= one of "
                          f"{list(_LAYOUTS)} (ROS bags: iter_rosbag / read_rosbag)")
-    size = path.stat().st_size
-    fits = [fmt for fmt in _BIN_FORMATS if size % _bin_row_bytes(fmt) == 0]
+    sizes = [p.stat().st_size for p in paths]
+    fits = [fmt for fmt in _BIN_FORMATS if all(size % _bin_row_bytes(fmt) == 0 for size in sizes)]
     if len(fits) != 1:
         what = "both" if fits else "neither"
-        raise InputError(f"{path}: {size} bytes fit {what} of the .bin layouts vod (7 float32 columns, "
+        size = f"{sizes[0]} bytes" if len(paths) == 1 else "their byte sizes"
+        raise InputError(f"{where}: {size} fit {what} of the .bin layouts vod (7 float32 columns, "
                          f"{_bin_row_bytes('vod')} bytes a row) and tj4d (8 float32 columns, "
                          f"{_bin_row_bytes('tj4d')} bytes a row); pass fmt='vod' or fmt='tj4d'")
     return fits[0]
@@ -194,7 +203,7 @@ def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None 
     if fmt is None:
         if not path.is_file():
             raise InputError(f"{path}: no such scan file")
-        fmt = _infer_format(path)
+        fmt = infer_format([path])
     table = _read_table(path, fmt)
     return np.ascontiguousarray(table[:, _feature_columns(features, fmt)])
 

@@ -30,10 +30,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, InputError
-from .readers import TJ4D_COLUMNS, TRANSLOC_COLUMNS, VOD_COLUMNS, read_scan
+from .readers import FILE_SUFFIX, TJ4D_COLUMNS, TRANSLOC_COLUMNS, VOD_COLUMNS, read_scan
 
 GPS_COLUMNS = ("timestamp", "northing", "easting")
-_SUFFIX = {"transloc": ".npy", "vod": ".bin", "tj4d": ".bin"}
 _FILE_COLUMNS = {"transloc": TRANSLOC_COLUMNS, "vod": VOD_COLUMNS, "tj4d": TJ4D_COLUMNS}
 
 
@@ -64,8 +63,8 @@ class RadarSequence:
 
 
 def _check_fmt(fmt: str) -> str:
-    if fmt not in _SUFFIX:
-        raise InputError(f"unknown sequence scan format {fmt!r}; expected one of {list(_SUFFIX)}")
+    if fmt not in FILE_SUFFIX:
+        raise InputError(f"unknown sequence scan format {fmt!r}; expected one of {list(FILE_SUFFIX)}")
     return fmt
 
 
@@ -83,7 +82,7 @@ def _scan_files(directory: Path, fmt: str) -> list[Path]:
     scans = directory / "scans"
     if not scans.is_dir():
         raise InputError(f"{directory}: no scans/ directory; expected one scan file per frame in {scans}")
-    suffix = _SUFFIX[fmt]
+    suffix = FILE_SUFFIX[fmt]
     paths = sorted((p for p in scans.iterdir() if p.is_file() and p.suffix == suffix), key=lambda p: p.name)
     if not paths:
         found = sorted({p.suffix for p in scans.iterdir() if p.is_file()})
@@ -143,7 +142,7 @@ def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> Radar
     timestamps, positions = _read_gps(directory / "gps.csv")
     if len(timestamps) != len(paths):
         raise InputError(f"{directory}: gps.csv has {len(timestamps)} rows but scans/ holds {len(paths)} "
-                         f"{_SUFFIX[fmt]} scan files; expected one row per scan")
+                         f"{FILE_SUFFIX[fmt]} scan files; expected one row per scan")
     return RadarSequence(directory.name, paths, timestamps, positions, fmt)
 
 
@@ -205,7 +204,7 @@ def write_sequence(directory: str | os.PathLike, scans: Sequence[np.ndarray], ti
     (directory / "scans").mkdir(parents=True)
     width = max(6, len(str(len(tables) - 1)))
     for i, table in enumerate(tables):
-        path = directory / "scans" / f"{i:0{width}d}{_SUFFIX[fmt]}"
+        path = directory / "scans" / f"{i:0{width}d}{FILE_SUFFIX[fmt]}"
         if fmt == "transloc":
             np.save(path, table)
         else:
