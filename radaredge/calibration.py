@@ -65,7 +65,10 @@ def recording_format(paths: list[Path], fmt: str | None = None) -> str:
     """The scan format of the recording's files ``paths``: ``fmt`` when given, after checking
     that it reads their suffix, else :func:`radaredge.data.readers.infer_format`."""
     if fmt is None:
-        return infer_format(paths)
+        try:
+            return infer_format(paths)
+        except InputError as exc:
+            raise InputError(f"calibration: {exc} (radaredge export: --calibration-format)") from exc
     if fmt not in FILE_SUFFIX:
         raise ConfigError(f"calibration format {fmt!r}: expected one of {list(FILE_SUFFIX)}")
     wrong = [p.name for p in paths if p.suffix != FILE_SUFFIX[fmt]]

@@ -36,18 +36,22 @@ def _unit(v):
     return v / v.norm(dim=1, keepdim=True)
 
 
-def test_triplet_loss_counts_other_drive_positives_and_far_negatives():
+@pytest.mark.parametrize("same_drive", [True, False])
+def test_triplet_loss_counts_near_positives_and_far_negatives(same_drive):
     positions = torch.tensor([[0.0, 0.0], [0.0, 2.0], [0.0, 40.0], [0.0, 42.0]], dtype=torch.float64)
     drives = torch.tensor([0, 1, 0, 1])
     separated = _unit([[1, 0, 0], [1, 0.05, 0], [0, 1, 0], [0, 1, 0.05]])   # places apart, same place together
     swapped = _unit([[1, 0, 0], [0, 1, 0], [1, 0.05, 0], [0, 1, 0.05]])     # each window looks like the other place
-    assert tf.triplet_loss(separated, positions, drives).item() == 0.0
-    assert tf.triplet_loss(swapped, positions, drives).item() > tf.MARGIN
-    # windows of one drive 2 m apart are not positives: with no positive, there is no triplet
-    assert tf.triplet_loss(swapped, positions, torch.zeros(4, dtype=torch.long)).item() == 0.0
+    assert tf.triplet_loss(separated, positions, drives, same_drive).item() == 0.0
+    assert tf.triplet_loss(swapped, positions, drives, same_drive).item() > tf.MARGIN
+    # windows of one drive 2 m apart are positives only with same_drive; a window is never its own
+    one_drive = tf.triplet_loss(swapped, positions, torch.zeros(4, dtype=torch.long), same_drive).item()
+    assert one_drive > tf.MARGIN if same_drive else one_drive == 0.0
+    assert tf.triplet_loss(swapped[:1].repeat(2, 1), positions[[0, 2]], torch.zeros(2, dtype=torch.long),
+                           same_drive).item() == 0.0
     # between the radii (10 m) a window is neither a positive nor a negative
     mid = torch.tensor([[0.0, 0.0], [0.0, 2.0], [0.0, 10.0], [0.0, 12.0]], dtype=torch.float64)
-    assert tf.triplet_loss(swapped, mid, drives).item() == 0.0
+    assert tf.triplet_loss(swapped, mid, drives, same_drive).item() == 0.0
 
 
 def test_batches_pair_each_anchor_with_another_drive_nearby(tiny_town):
