@@ -17,10 +17,11 @@ margin 0.5); Adam at a constant learning rate. Positives are the other windows w
 evaluation's true-positive radius: by default those of any drive (``--positives any-drive``),
 which also pulls a drive's consecutive windows together, or only other drives' windows, as a
 query meets the database (``--positives other-drive``). The choice decides what int8 does to
-the fit (README: int8 min cosine on the benchmark town 0.9996 against 0.655). The model stays in eval mode (batch norms keep their statistics and act
-as learnt affine maps; dropout off). It prints Recall@1/5/10 of the fitted export formulation on
-a held-out town (the benchmark's world, seed 0) and writes a checkpoint. It is a test article
-for int8 (descriptors that separate places), not a trained TDFANet: synthetic scans, one street.
+the fit (README: int8 min cosine on the benchmark town 0.9996 against 0.655). The model stays
+in eval mode (batch norms keep their statistics and act as learnt affine maps; dropout off).
+It prints Recall@1/5/10 of the fitted export formulation on a held-out town (the benchmark's
+world, seed 0) and writes a checkpoint. It is a test article for int8 (descriptors that
+separate places), not a trained TDFANet: synthetic scans, one street.
 
     .venv/bin/python benchmarks/tdfanet_fitted.py --out export/tdfanet-edge-fitted.pth
     radaredge export --model tdfanet-edge --checkpoint export/tdfanet-edge-fitted.pth \\
@@ -176,12 +177,13 @@ def main(argv=None) -> int:
                     help="which windows within 5 m of an anchor are its positives")
     ap.add_argument("--train-seed", type=int, default=1, help="world seed of the training town")
     ap.add_argument("--test-seed", type=int, default=0, help="world seed of the held-out town (the benchmark's)")
-    ap.add_argument("--out", type=Path, help="default export/<card>-fitted.pth")
+    ap.add_argument("--out", type=Path, help="default export/<card>-fitted.pth (-fitted-other-drive.pth)")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     card = load_card(args.card)
     model = build_model(card)
-    out = args.out or ROOT / "export" / f"{card.name}-fitted.pth"
+    suffix = "" if args.positives == "any-drive" else "-other-drive"
+    out = args.out or ROOT / "export" / f"{card.name}-fitted{suffix}.pth"
     with tempfile.TemporaryDirectory() as tmp:
         train_town, test_town = Path(tmp) / "train", Path(tmp) / "test"
         make_pr_benchmark(train_town, drives=6, frames_per_drive=80, seed=args.train_seed)

@@ -12,7 +12,8 @@ them, and an activation range that is too narrow clips a deployed model's activa
            by byte size when every file fits exactly one of them, else pass the format).
 
 A K-frame model is calibrated on windows of K consecutive files, spread evenly over the
-recording (the first and the last window included), timestamped at the card's frame rate.
+recording (the first and, from two windows on, the last window included), timestamped at the
+card's frame rate.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from .errors import ConfigError, InputError
 from .registry import model_spec
 from .runtime import RadarModel
 
+DEFAULT_WINDOWS = 16        # calibration windows when none are asked for
 
 class FeedList(CalibrationDataReader):
     """onnxruntime calibration reader over a list of input-feed dicts, one window per call."""
@@ -45,43 +47,56 @@ def synthetic_feeds(card: ModelCard, n: int, seed: int) -> list[dict[str, np.nda
     return [feeds for _, feeds in model_spec(card).make_cases(card, n, seed)]
 
 
-def recorded_scan_paths(directory: str | os.PathLike) -> list[Path]:
-    """The scan files (.npy / .bin) of a recording, in file-name order: those directly in
-    ``directory``, else those in ``directory``/scans. InputError when there are none."""
+def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) -> list[Path]:
+    """The scan files of a recording, in file-name order: those directly in ``directory``, else
+    those in ``directory``/scans. Scan files are .npy and .bin, or only ``fmt``'s suffix when it
+    is given. InputError when there are none."""
     directory = Path(directory)
     if not directory.is_dir():
         raise InputError(f"calibration: {directory} is not a directory; expected one holding a recording's "
                          f"scan files (.npy or .bin, one per frame) or a drive with scans/")
-    suffixes = set(FILE_SUFFIX.values())
+    if fmt is not None and fmt not in FILE_SUFFIX:
+        raise ConfigError(f"calibration format {fmt!r}: expected one of {list(FILE_SUFFIX)}")
+    suffixes = {FILE_SUFFIX[fmt]} if fmt else set(FILE_SUFFIX.values())
     for folder in (directory, directory / "scans"):
         if folder.is_dir():
             paths = sorted((p for p in folder.iterdir() if p.suffix in suffixes and p.is_file()), key=lambda p: p.name)
             if paths:
                 return paths
-    raise InputError(f"calibration: no .npy or .bin scan files in {directory} or {directory / 'scans'}")
+    kinds = " or ".join(sorted(suffixes))
+    raise InputError(f"calibration: no {kinds} scan files in {directory} or {directory / 'scans'}")
 
 
 def recording_format(paths: list[Path], fmt: str | None = None) -> str:
-    """The scan format of the recording's files ``paths``: ``fmt`` when given, after checking
-    that it reads their suffix, else :func:`radaredge.data.readers.infer_format`."""
-    if fmt is None:
-        try:
-            return infer_format(paths)
-        except InputError as exc:
-            raise InputError(f"calibration: {exc} (radaredge export: --calibration-format)") from exc
-    if fmt not in FILE_SUFFIX:
-        raise ConfigError(f"calibration format {fmt!r}: expected one of {list(FILE_SUFFIX)}")
-    wrong = [p.name for p in paths if p.suffix != FILE_SUFFIX[fmt]]
-    if wrong:
-        raise InputError(f"calibration: format {fmt!r} reads {FILE_SUFFIX[fmt]} files, but {wrong[0]} "
-                         f"({len(wrong)} of {len(paths)} files) is not one")
-    return fmt
+    """The scan format of the recording's files ``paths`` (:func:`recorded_scan_paths`):
+    ``fmt`` when given, else :func:`radaredge.data.readers.infer_format`. InputError for a
+    folder that mixes .npy and .bin files or whose .bin sizes do not tell vod from tj4d."""
+    if fmt is not None:
+        return fmt
+    suffixes = sorted({p.suffix for p in paths})
+    if len(suffixes) > 1:
+        raise InputError(f"calibration: {paths[0].parent} mixes {' and '.join(suffixes)} scan files; keep one "
+                         f"recording in one format, or name the format (--calibration-format) to read only its files")
+    try:
+        return infer_format(paths)
+    except InputError as exc:
+        raise InputError(f"calibration: {exc} (radaredge export: --calibration-format)") from exc
+
+
+def check_recording(directory: str | os.PathLike, k: int, n: int,
+                    fmt: str | None = None) -> tuple[list[Path], str, np.ndarray]:
+    """The recording's scan files, their format and the first-frame indices of its ``n``
+    calibration windows of ``k`` frames (:func:`window_starts`), before any scan is read, so
+    that a wrong directory fails before an export. InputError / ConfigError as those say."""
+    paths = recorded_scan_paths(directory, fmt)
+    fmt = recording_format(paths, fmt)
+    return paths, fmt, window_starts(len(paths), k, n)
 
 
 def window_starts(num_scans: int, k: int, n: int) -> np.ndarray:
     """First-frame indices of ``n`` windows of ``k`` consecutive scans spread evenly over
-    ``num_scans`` scans, the first and last window included; every window when there are at
-    most ``n``. InputError when there are fewer than ``k`` scans."""
+    ``num_scans`` scans, the first and (for ``n`` >= 2) the last window included; every window
+    when there are at most ``n``. InputError when there are fewer than ``k`` scans."""
     if n < 1:
         raise ConfigError(f"calibration needs at least one window, got {n}")
     if num_scans < k:
@@ -99,9 +114,7 @@ def recorded_feeds(model: RadarModel, directory: str | os.PathLike, n: int,
     in ``model``'s feature columns and checked like any runtime input, plus a description for
     the int8 graph's metadata (directory, format, scans, windows). InputError names the file
     whose scan cannot be read or fed."""
-    paths = recorded_scan_paths(directory)
-    fmt = recording_format(paths, fmt)
-    starts = window_starts(len(paths), model.frames, n)
+    paths, fmt, starts = check_recording(directory, model.frames, n, fmt)
     feeds = []
     for s in starts:
         window = paths[s:s + model.frames]

@@ -95,8 +95,9 @@ def inspect(onnx_path, as_json):
                    ".bin, one per frame in file-name order, or a drive with scans/) instead of synthetic scenes.")
 @click.option("--calibration-format", type=click.Choice(["vod", "tj4d", "transloc"]),
               help="Scan format of --calibration (default: inferred from the files).")
-@click.option("--calibration-windows", default=16, show_default=True, type=click.IntRange(min=1),
-              help="Calibration windows, spread evenly over the recording (or synthetic scenes).")
+@click.option("--calibration-windows", type=click.IntRange(min=1),
+              help="With --quantize int8: calibration windows, spread evenly over the recording, or synthetic "
+                   "scenes  [default: 16]")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
 def export(model, config, checkpoint, output, opset, debug, quantize, calibration_dir, calibration_format,
@@ -105,15 +106,24 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
     from .export import build_model, export_model
     card = _card(model, config)
     from .registry import is_bundle
-    if (calibration_dir or calibration_format) and not quantize:
-        raise ConfigError("--calibration and --calibration-format choose int8 calibration data; add --quantize int8")
+    calibration = [name for name, value in (("--calibration", calibration_dir),
+                                            ("--calibration-format", calibration_format),
+                                            ("--calibration-windows", calibration_windows)) if value is not None]
+    if calibration and not quantize:
+        raise ConfigError(f"{', '.join(calibration)}: int8 calibration options need --quantize int8")
+    if calibration_format and not calibration_dir:
+        raise ConfigError("--calibration-format is the format of a --calibration recording; add --calibration DIR")
     if is_bundle(card):                 # several graphs: --output is a directory (default export/<model>/)
-        if calibration_dir:
+        if calibration:
             raise ConfigError(f"{card.name}'s int8 text encoder is quantised dynamically (weights only, no "
-                              f"calibration); drop --calibration")
+                              f"calibration); drop {', '.join(calibration)}")
         from .bundle import export_cmd
         return export_cmd(card, checkpoint, output, opset, quantize, as_json, _progress)
     output = Path(output or f"export/{card.name}.onnx")
+    from .calibration import DEFAULT_WINDOWS, check_recording
+    calibration_windows = calibration_windows or DEFAULT_WINDOWS
+    if calibration_dir:                 # a wrong recording fails before the export, not after it
+        check_recording(calibration_dir, int(card.get("frames", 1)), calibration_windows, calibration_format)
     net = build_model(card, checkpoint)
     click.echo(f"exporting {card.name} ...", err=True)
     res = export_model(card, output, opset=opset, model=net)

@@ -35,7 +35,7 @@ from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, 
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from . import runtime
-from .calibration import FeedList, recorded_feeds, synthetic_feeds
+from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_feeds
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
 from .ort_stages import fused_from, module_names
@@ -127,7 +127,7 @@ def reduce_range(card: ModelCard) -> bool:
 
 
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
-                  calibration_cases: int = 16, seed: int = 12345, calibration_dir: str | Path | None = None,
+                  calibration_cases: int = DEFAULT_WINDOWS, seed: int = 12345, calibration_dir: str | Path | None = None,
                   calibration_format: str | None = None) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 

@@ -68,8 +68,8 @@ class RadarModel:
 
     def feeds(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """The graph's input feeds for one window: the validated frames (:meth:`validate`) and,
-        for a K-frame graph, ``timestamps`` float32 [K] (s, oldest first, strictly increasing;
-        default: the card's frame rate)."""
+        when the graph takes them, ``timestamps`` float32 [K] (s, oldest first, strictly
+        increasing; default: the card's frame rate)."""
         frames = self.validate(frames)
         feeds = {f"points_{k}": f for k, f in enumerate(frames)} if self.frames > 1 else {self.input_names[0]: frames[0]}
         if "timestamps" in self.input_names:

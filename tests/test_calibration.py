@@ -47,7 +47,7 @@ def test_scan_files_directly_or_under_scans(tmp_path):
     assert [p.name for p in recorded_scan_paths(flat)] == ["000000.npy", "000001.npy", "000002.npy"]
     drive = write_scans(tmp_path / "drive" / "scans", n=4).parent
     assert len(recorded_scan_paths(drive)) == 4
-    with pytest.raises(InputError, match="no .npy or .bin scan files"):
+    with pytest.raises(InputError, match="no .bin or .npy scan files"):
         recorded_scan_paths(tmp_path / "flat" / "..")
     with pytest.raises(InputError, match="is not a directory"):
         recorded_scan_paths(tmp_path / "missing")
@@ -56,8 +56,10 @@ def test_scan_files_directly_or_under_scans(tmp_path):
 def test_recording_format(tmp_path):
     npy = recorded_scan_paths(write_scans(tmp_path / "a", n=2))
     assert recording_format(npy) == "transloc"
-    with pytest.raises(InputError, match="format 'vod' reads .bin files, but 000000.npy"):
-        recording_format(npy, "vod")
+    with pytest.raises(InputError, match="no .bin scan files in"):
+        recorded_scan_paths(tmp_path / "a", "vod")
+    with pytest.raises(ConfigError, match="calibration format 'pcd'"):
+        recorded_scan_paths(tmp_path / "a", "pcd")
     bins = tmp_path / "b"
     bins.mkdir()
     np.zeros((5, 8), "<f4").tofile(bins / "000000.bin")     # 160 bytes: tj4d rows only
@@ -68,9 +70,11 @@ def test_recording_format(tmp_path):
     np.zeros((4, 7), "<f4").tofile(bins / "000003.bin")     # 112 bytes: vod only -> no layout fits all
     with pytest.raises(InputError, match="fit neither .*--calibration-format"):
         recording_format(recorded_scan_paths(bins))
+    assert recording_format(recorded_scan_paths(bins, "tj4d"), "tj4d") == "tj4d"   # named: not inferred
     np.save(bins / "000004.npy", np.zeros((2, 5), np.float32))
-    with pytest.raises(InputError, match="cannot infer the scan format"):
+    with pytest.raises(InputError, match="mixes .bin and .npy scan files"):
         recording_format(recorded_scan_paths(bins))
+    assert [p.name for p in recorded_scan_paths(bins, "transloc")] == ["000004.npy"]   # a named format reads its own
 
 
 def test_recorded_feeds_are_runtime_feeds(tiny_export, tmp_path):
@@ -80,9 +84,10 @@ def test_recorded_feeds_are_runtime_feeds(tiny_export, tmp_path):
     feeds, info = recorded_feeds(model, rec, 3)
     assert info == {"data": "recorded", "directory": str(rec), "format": "transloc", "scans": 7, "windows": 3}
     assert len(feeds) == 3 and set(feeds[0]) == set(model.input_names)
-    # the last window is scans 4, 5, 6, oldest first, in the card's feature columns
-    last = np.load(rec / "000004.npy")
-    np.testing.assert_array_equal(feeds[-1]["points_0"], last[:, :len(model.features)])
+    # the last window is the last K scans, oldest first, in the card's feature columns
+    for k in range(model.frames):
+        scan = np.load(rec / f"{7 - model.frames + k:06d}.npy")
+        np.testing.assert_array_equal(feeds[-1][f"points_{k}"], scan[:, :len(model.features)])
     np.testing.assert_allclose(feeds[-1]["timestamps"], np.arange(model.frames) / model.frame_rate)
 
 
@@ -109,14 +114,26 @@ def test_quantise_on_a_recording(tiny_export, tmp_path):
     assert report.passed, report.summary
 
 
-def test_cli_calibration_needs_quantize_and_a_static_graph(tmp_path):
-    rec = write_scans(tmp_path / "rec", n=3)
-    res = invoke("export", "--model", "tdfanet", "--calibration", rec, "--output", tmp_path / "x.onnx")
-    assert res.exit_code == 2 and "add --quantize int8" in res.output
-    res = invoke("export", "--model", "des4pos", "--quantize", "int8", "--calibration", rec,
-                 "--output", tmp_path / "d")
-    assert res.exit_code == 2 and "quantised dynamically" in res.output
+@pytest.mark.parametrize("args, message", [
+    (["--calibration", "REC"], "--calibration: int8 calibration options need --quantize int8"),
+    (["--calibration-windows", "4"], "--calibration-windows: int8 calibration options need --quantize int8"),
+    (["--quantize", "int8", "--calibration-format", "vod"], "add --calibration DIR"),
+    (["--quantize", "int8", "--calibration", "MISSING"], "MISSING is not a directory"),
+    (["--quantize", "int8", "--calibration", "REC", "--calibration-format", "vod"], "no .bin scan files"),
+    (["--quantize", "int8", "--calibration", "SHORT"], "holds 2 scan(s) but one window of this model takes 3"),
+])
+def test_cli_calibration_options_fail_before_the_export(tmp_path, args, message):
+    rec, short = write_scans(tmp_path / "rec", n=3), write_scans(tmp_path / "short", n=2)
+    paths = {"REC": str(rec), "SHORT": str(short), "MISSING": str(tmp_path / "MISSING")}
+    res = invoke("export", "--model", "tdfanet", "--output", tmp_path / "x.onnx", *[paths.get(a, a) for a in args])
+    assert res.exit_code == 2 and message in res.output
+    assert not (tmp_path / "x.onnx").exists()
 
+
+def test_cli_calibration_does_not_apply_to_the_dynamic_text_encoder(tmp_path):
+    res = invoke("export", "--model", "des4pos", "--quantize", "int8", "--calibration-windows", "4",
+                 "--output", tmp_path / "d")
+    assert res.exit_code == 2 and "quantised dynamically" in res.output and "drop --calibration-windows" in res.output
 
 
 def test_recorded_feeds_need_the_cards_columns(tmp_path):

@@ -123,6 +123,8 @@ def infer_format(paths: Sequence[Path]) -> str:
     number of rows of exactly one of the two. InputError for another or mixed suffixes, and when
     both or neither layout fits (then the format must be given)."""
     paths = [Path(p) for p in paths]
+    if not paths:
+        raise InputError("no scan files to infer a format from")
     suffixes = sorted({p.suffix for p in paths})
     where = str(paths[0]) if len(paths) == 1 else f"{len(paths)} scan files in {paths[0].parent}"
     if suffixes == [".npy"]:
