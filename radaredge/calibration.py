@@ -69,14 +69,11 @@ def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) ->
 
 def recording_format(paths: list[Path], fmt: str | None = None) -> str:
     """The scan format of the recording's files ``paths`` (:func:`recorded_scan_paths`):
-    ``fmt`` when given, else :func:`radaredge.data.readers.infer_format`. InputError for a
-    folder that mixes .npy and .bin files or whose .bin sizes do not tell vod from tj4d."""
+    ``fmt`` when given, else :func:`radaredge.data.readers.infer_format`, whose InputError (a
+    folder that mixes .npy and .bin files, .bin sizes that do not tell vod from tj4d) is told
+    the command-line option."""
     if fmt is not None:
         return fmt
-    suffixes = sorted({p.suffix for p in paths})
-    if len(suffixes) > 1:
-        raise InputError(f"calibration: {paths[0].parent} mixes {' and '.join(suffixes)} scan files; keep one "
-                         f"recording in one format, or name the format (--calibration-format) to read only its files")
     try:
         return infer_format(paths)
     except InputError as exc:

@@ -120,10 +120,10 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
         from .bundle import export_cmd
         return export_cmd(card, checkpoint, output, opset, quantize, as_json, _progress)
     output = Path(output or f"export/{card.name}.onnx")
-    from .calibration import DEFAULT_WINDOWS, check_recording
-    calibration_windows = calibration_windows or DEFAULT_WINDOWS
     if calibration_dir:                 # a wrong recording fails before the export, not after it
-        check_recording(calibration_dir, int(card.get("frames", 1)), calibration_windows, calibration_format)
+        from .calibration import DEFAULT_WINDOWS, check_recording
+        check_recording(calibration_dir, int(card.get("frames", 1)), calibration_windows or DEFAULT_WINDOWS,
+                        calibration_format)
     net = build_model(card, checkpoint)
     click.echo(f"exporting {card.name} ...", err=True)
     res = export_model(card, output, opset=opset, model=net)

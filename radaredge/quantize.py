@@ -127,15 +127,15 @@ def reduce_range(card: ModelCard) -> bool:
 
 
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
-                  calibration_cases: int = DEFAULT_WINDOWS, seed: int = 12345, calibration_dir: str | Path | None = None,
+                  calibration_cases: int | None = None, seed: int = 12345, calibration_dir: str | Path | None = None,
                   calibration_format: str | None = None) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
-    Calibration uses ``calibration_cases`` windows: synthetic ones drawn with ``seed``, or with
-    ``calibration_dir`` windows of that recording (:mod:`radaredge.calibration`; its scan format
-    ``calibration_format`` or inferred). The seed differs from the parity and bench seeds, so
-    parity is checked on data the calibration did not see. Activation ranges are min/max
-    calibrated. Percentile (99.999 %) and entropy ranges,
+    Calibration uses ``calibration_cases`` windows (default ``DEFAULT_WINDOWS``): synthetic ones
+    drawn with ``seed``, or with ``calibration_dir`` windows of that recording
+    (:mod:`radaredge.calibration`; its scan format ``calibration_format`` or inferred). The seed
+    differs from the parity and bench seeds, so parity is checked on data the calibration did
+    not see. Activation ranges are min/max calibrated. Percentile (99.999 %) and entropy ranges,
     collected one window at a time because the point-count dependent tensors differ in shape
     between windows, were measured worse on both models (2026-11-24, int8 activations):
     tdfanet-edge min cosine 0.99793 and 0.99871 against min/max's 0.99892, and maffnet-vod's
@@ -146,6 +146,7 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
     fp32_path, out_path = Path(fp32_path), Path(out_path)
     patterns, seven_bit = keep_fp32_patterns(card), reduce_range(card)
     keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
+    calibration_cases = DEFAULT_WINDOWS if calibration_cases is None else calibration_cases
     if calibration_dir is None:
         feeds = synthetic_feeds(card, calibration_cases, seed)
         source = {"data": "synthetic", "cases": calibration_cases, "seed": seed}

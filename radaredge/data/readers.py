@@ -129,9 +129,11 @@ def infer_format(paths: Sequence[Path]) -> str:
     where = str(paths[0]) if len(paths) == 1 else f"{len(paths)} scan files in {paths[0].parent}"
     if suffixes == [".npy"]:
         return "transloc"
+    if len(suffixes) > 1:
+        raise InputError(f"{paths[0].parent} mixes {' and '.join(suffixes)} scan files; keep one recording in one "
+                         f"format, or pass fmt= to read only the files of that format")
     if suffixes != [".bin"]:
-        found = f"suffix {suffixes[0]!r}" if len(suffixes) == 1 else f"mixed suffixes {suffixes}"
-        raise InputError(f"{where}: cannot infer the scan format from {found}; pass fmt= one of "
+        raise InputError(f"{where}: cannot infer the scan format from suffix {suffixes[0]!r}; pass fmt= one of "
                          f"{list(_LAYOUTS)} (ROS bags: iter_rosbag / read_rosbag)")
     sizes = [p.stat().st_size for p in paths]
     fits = [fmt for fmt in _BIN_FORMATS if all(size % _bin_row_bytes(fmt) == 0 for size in sizes)]
