@@ -125,6 +125,8 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
         check_recording(calibration_dir, int(card.get("frames", 1)), calibration_windows or DEFAULT_WINDOWS,
                         calibration_format)
     net = build_model(card, checkpoint)
+    if getattr(net, "checkpoint_report", None) is not None:
+        click.echo(net.checkpoint_report.summary(), err=True)
     click.echo(f"exporting {card.name} ...", err=True)
     res = export_model(card, output, opset=opset, model=net)
     debug_path = int8_path = None

@@ -9,6 +9,8 @@ from __future__ import annotations
 import collections
 import hashlib
 import json
+import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,44 +54,99 @@ def save_checkpoint(model: torch.nn.Module, path: str | Path) -> Path:
     return path
 
 
-def load_checkpoint(model: torch.nn.Module, path: str | Path) -> None:
-    """Load a state_dict ``.pth`` (optionally under a ``model_state``/``state_dict`` key).
+# Entries of an OpenPCDet ``model_state`` that are bookkeeping, not weights (Detector3DTemplate's step counter).
+IGNORED_CHECKPOINT_KEYS = ("global_step",)
 
-    Missing, unexpected and shape-mismatched keys are reported by name as a ConfigError.
-    """
+
+@dataclass
+class LoadReport:
+    """What :func:`load_checkpoint` did: tensors loaded, and the dropped keys by the rule that dropped them."""
+
+    path: str
+    loaded: int
+    dropped: dict[str, list[str]] = field(default_factory=dict)   # rule -> keys
+    ignored: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        parts = [f"loaded {self.loaded} tensors from {self.path}"]
+        parts += [f"dropped {len(keys)} ({rule})" for rule, keys in self.dropped.items()]
+        if self.ignored:
+            parts.append(f"ignored {', '.join(self.ignored)}")
+        return "; ".join(parts)
+
+
+def _read_state(path: str | Path) -> dict:
+    """The state_dict inside a ``.pth`` (bare, or under OpenPCDet's ``model_state``, ``state_dict`` or
+    ``model``), its values tensors; ConfigError naming the file and the problem otherwise."""
     try:
-        obj = torch.load(str(path), map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():            # torch warns about pickle protocols before refusing
+            warnings.simplefilter("ignore")
+            obj = torch.load(str(path), map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise ConfigError(f"checkpoint {path} does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError(f"checkpoint {path} is a directory, not a .pth file") from None
     except Exception as exc:
-        raise ConfigError(f"checkpoint {path} is not a readable torch state_dict: {exc}") from exc
+        if not zipfile.is_zipfile(path):
+            why = "not a file written by torch.save (truncated, or another format)"
+        elif "weights_only" in str(exc) or "Unsupported global" in str(exc):
+            why = "a pickle of objects other than tensors and plain containers (radaredge runs no pickled code)"
+        else:
+            why = f"damaged ({type(exc).__name__})"
+        raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: {why}") from None
     for key in ("model_state", "state_dict", "model"):
         if isinstance(obj, dict) and isinstance(obj.get(key), dict):
             obj = obj[key]
     if not isinstance(obj, dict):
         raise ConfigError(f"checkpoint {path}: expected a state_dict mapping, got {type(obj).__name__}")
+    bad = [f"{k!r} ({type(v).__name__})" for k, v in obj.items() if not isinstance(k, str) or not torch.is_tensor(v)]
+    if bad:
+        raise ConfigError(f"checkpoint {path}: state_dict entries must be named tensors; not so: {', '.join(bad[:5])}")
+    return obj
+
+
+def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
+    """Load a state_dict ``.pth`` into ``model`` and account for every key.
+
+    Keys the model declares as having no effect on its output (``model.checkpoint_drop_rules()``:
+    (rule, key prefixes) pairs, e.g. upstream MAFF-Net parameters that its test-time path never
+    reads) are dropped by rule; :data:`IGNORED_CHECKPOINT_KEYS` are ignored. Any other missing,
+    unexpected or shape-mismatched key is a one-line ConfigError naming the keys.
+    """
+    obj = _read_state(path)
+    rules = model.checkpoint_drop_rules() if hasattr(model, "checkpoint_drop_rules") else []
     own = model.state_dict()
-    missing = sorted(set(own) - set(obj))
-    unexpected = sorted(set(obj) - set(own))
-    shapes = sorted(f"{k}: checkpoint {tuple(obj[k].shape)} vs model {tuple(own[k].shape)}"
-                    for k in set(own) & set(obj) if tuple(obj[k].shape) != tuple(own[k].shape))
-    if missing or unexpected or shapes:
-        lines = []
-        if missing:
-            lines.append(f"missing keys ({len(missing)}): {', '.join(missing[:20])}")
-        if unexpected:
-            lines.append(f"unexpected keys ({len(unexpected)}): {', '.join(unexpected[:20])}")
-        if shapes:
-            lines.append(f"shape mismatches ({len(shapes)}): {'; '.join(shapes[:20])}")
-        raise ConfigError(f"checkpoint {path} does not fit this card's model:\n  " + "\n  ".join(lines))
-    model.load_state_dict(obj)
+    report = LoadReport(str(path), 0)
+    state = {}
+    for key, value in obj.items():
+        rule = next((r for r, prefixes in rules if key not in own and key.startswith(tuple(prefixes))), None)
+        if rule is not None:
+            report.dropped.setdefault(rule, []).append(key)
+        elif key in IGNORED_CHECKPOINT_KEYS and key not in own:
+            report.ignored.append(key)
+        else:
+            state[key] = value
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    shapes = sorted(f"{k} (checkpoint {tuple(state[k].shape)}, model {tuple(own[k].shape)})"
+                    for k in set(own) & set(state) if tuple(state[k].shape) != tuple(own[k].shape))
+    problems = []
+    for what, keys in (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)):
+        if keys:
+            more = f" and {len(keys) - 12} more" if len(keys) > 12 else ""
+            problems.append(f"{what} ({len(keys)}): {', '.join(keys[:12])}{more}")
+    if problems:
+        raise ConfigError(f"checkpoint {path} does not fit this card's model: {'; '.join(problems)}")
+    model.load_state_dict(state)
+    report.loaded = len(state)
+    return report
 
 
 def build_model(card: ModelCard, checkpoint: str | Path | None = None) -> torch.nn.Module:
     """The card's model, seeded, with ``checkpoint`` loaded when given."""
     model = model_spec(card).build(card)
     if checkpoint:
-        load_checkpoint(model, checkpoint)
+        model.checkpoint_report = load_checkpoint(model, checkpoint)
     return model.eval()
 
 

@@ -68,56 +68,64 @@ def _cda_case(seed, n=600):
     rng = np.random.default_rng(seed)
     xyz = np.stack([rng.uniform(0, 30, n), rng.uniform(-10, 10, n), rng.uniform(-2, 2, n)], 1).astype(np.float32)
     cluster = rng.random(n) < 0.6
-    in_range = rng.random(n) < 0.9
+    scan = rng.random(n) < 0.9
+    cluster &= scan
     rois = np.zeros((6, 7), np.float32)
     rois[:4] = [[5, 0, 0, 4, 2, 1.5, 0], [15, 5, 1, 1, 1, 1, 0], [25, -5, -1, 2, 2, 2, 0], [10, -8, 3, 1, 1, 1, 0]]
     valid = np.array([True] * 4 + [False] * 2)             # two zero-padded rois at the origin
-    return xyz, cluster, in_range, rois, valid
+    return xyz, cluster, scan, rois, valid
 
 
-@pytest.mark.parametrize("case", ["normal", "few", "no-selection", "no-cluster", "nothing", "padded-only"])
+def _inside(p, roi, r=2.5, h=3.0):
+    """Upstream's cylinder test for one point and one roi, in float64 (for the assertions only)."""
+    radius = max(roi[3], roi[4]) / 2 + r
+    return np.hypot(p[0] - roi[0], p[1] - roi[1]) <= radius and abs(p[2] - roi[2]) <= (roi[5] + h) / 2
+
+
+@pytest.mark.parametrize("case", ["normal", "few", "no-selection", "no-cluster", "nothing", "padded-only",
+                                  "padded-valid-only"])
 def test_cda_sampler_matches_reference(case):
-    xyz, cluster, in_range, rois, valid = _cda_case(3)
-    npoint = 16
+    xyz, cluster, scan, rois, valid = _cda_case(3)
+    npoint, padded = 16, "upstream"
     if case == "few":
         cluster[:] = False
         cluster[[3, 50, 120]] = True
+        scan[[3, 50, 120]] = True
         xyz[[3, 50, 120]] = [[5, 0.5, 0], [5.5, 0, 0.2], [25, -5, -1]]
+        xyz[:, 0] += np.where(cluster, 0, 40).astype(np.float32)     # nothing else near the origin's padded rois
     if case == "no-selection":
         rois[:4, :2] += 100                                 # no cluster point near a valid roi
+        xyz[:, 0] += 3                                      # nor near the padded rois at the origin
     if case == "no-cluster":
-        rois[:4, :2] += 100
         cluster[:] = False
     if case == "nothing":
         cluster[:] = False
-        in_range[:] = False
-    if case == "padded-only":
+        scan[:] = False
+    if case in ("padded-only", "padded-valid-only"):
         valid[:] = False
+        rois[:] = 0
         xyz[:5] = 0.0                                       # points at the padded rois' centre
-    sampler = CDAKeypointSampler(KeypointConfig(num_keypoints=npoint, cda_radius=2.5, cda_height=3.0))
-    got = sampler(*(torch.from_numpy(a) for a in (xyz, cluster, in_range, rois, valid)))
-    ref = sampler.reference(xyz, cluster, in_range, rois, valid)
-    for name, g, r in zip(("keypoints", "valid", "selection"), got, ref):
+        cluster[:5] = scan[:5] = True
+        padded = "upstream" if case == "padded-only" else "valid"
+    sampler = CDAKeypointSampler(KeypointConfig(num_keypoints=npoint, padded_rois=padded))
+    got = sampler(*(torch.from_numpy(a) for a in (xyz, cluster, scan, rois, valid)))
+    ref = sampler.reference(xyz, cluster, scan, rois, valid)
+    for name, g, r in zip(("keypoints", "valid"), got, ref):
         np.testing.assert_array_equal(g.numpy(), r.numpy(), err_msg=f"{case}: {name}")
-    kp, kp_valid, sel = (t.numpy() for t in ref)
-    count = int(kp_valid.sum())
-    if case == "normal":
-        assert count == npoint and sel.sum() > npoint
-    if case == "few":
-        assert count == 3 and sorted(np.flatnonzero(sel).tolist()) == [3, 50, 120]
+    kp, kp_valid = (t.numpy() for t in ref)
+    assert kp_valid.all() != (case == "nothing")            # every slot filled unless the scan is empty
+    if case == "few":                                       # the cylinder points first, in index order
+        np.testing.assert_array_equal(kp[:3], xyz[[3, 50, 120]])
+        np.testing.assert_array_equal(kp[3], xyz[np.flatnonzero(scan)[0]])   # then FPS over the scan from its first point
     if case == "no-selection":                              # upstream points[:1]: the first cluster point
-        assert count == 1 and np.flatnonzero(sel).tolist() == [np.flatnonzero(cluster)[0]]
-    if case == "no-cluster":
-        assert count == 1 and np.flatnonzero(sel).tolist() == [np.flatnonzero(in_range)[0]]
-    if case == "nothing":
-        assert count == 0
-    if case == "padded-only":                               # padded rois never select: fall-back
-        assert count == 1 and np.flatnonzero(sel).tolist() == [np.flatnonzero(cluster)[0]]
-    # every selected point is a cluster point within the documented distance of a valid roi
-    if case in ("normal", "few"):
-        for i in np.flatnonzero(sel):
-            d = xyz[i] - rois[valid, :3]
-            assert cluster[i] and ((d[:, 0] ** 2 + d[:, 1] ** 2 <= 6.25) & (np.abs(d[:, 2]) <= 1.5)).any()
+        np.testing.assert_array_equal(kp[0], xyz[np.flatnonzero(cluster)[0]])
+    if case == "padded-only":                               # upstream: the zero rois select around the origin
+        np.testing.assert_array_equal(kp[:5], np.zeros((5, 3), np.float32))
+    if case == "padded-valid-only":                         # "valid": nothing selected, first cluster point,
+        np.testing.assert_array_equal(kp[:2], np.zeros((2, 3), np.float32))   # then the fill's FPS from the
+        assert (kp[2:5] != 0).any(1).all()                                     # first scan point: the same point
+    if case == "normal":                                    # more cylinder points than slots: all inside
+        assert all(any(_inside(p, roi) for roi in rois) for p in kp)
 
 
 # ----------------------------------------------------------------------------- ROI head pieces
@@ -162,13 +170,14 @@ def test_pfe_point_head_roi_head_match_reference(tiny):
     keypoints = xyz[kp_idx]
     keypoints[-3:] = [50.0, 50.0, 0.0]                       # far away: empty balls
     kp_valid = np.arange(k) < k - 10                         # the last 10 slots are invalid
-    bev = rng.normal(size=(64, 40, 40)).astype(np.float32)
+    bev = rng.normal(size=(32, 40, 40)).astype(np.float32)              # the fuser's output (caf.out_channels)
     t = {name: torch.from_numpy(a) for name, a in
          dict(xyz=xyz, feats=feats, cluster=cluster, keypoints=keypoints, kp_valid=kp_valid, bev=bev).items()}
     with torch.no_grad():
         before, pf = model.pfe(t["bev"], t["keypoints"], t["xyz"], t["feats"], t["cluster"])
         before_r, pf_r = model.pfe.reference(t["bev"], t["keypoints"], t["xyz"], t["feats"], t["cluster"])
-        assert before.shape == (k, 64 + 16)
+        assert model.pfe.SA_clusterpoints.out_channels == 16
+        assert before.shape == (k, 32 + 16)
         assert_close(before.numpy(), before_r.numpy(), 1e-5, "point_features_before_fusion")
         assert_close(pf.numpy(), pf_r.numpy(), 1e-5, "point_features")
         scores = model.point_head(before)
@@ -257,7 +266,8 @@ def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):
     nodes = {n.name: n for n in model.graph.node}
     producers = {o: nodes[n] for n in nodes for o in nodes[n].output}
     loops = sorted(stage[n] for n in nodes if nodes[n].op_type == "Loop")
-    assert loops == ["final NMS", "proposals+CDA", "proposals+CDA"], loops
+    # proposal NMS, FPS over the cylinder points (above K), FPS fill over the scan; final NMS
+    assert loops == ["final NMS", "proposals+CDA", "proposals+CDA", "proposals+CDA"], loops
     assert stage[producers["rois"].name] == "proposals+CDA"
     assert stage[producers["keypoints"].name] == "proposals+CDA"
     assert stage[producers["rcnn_scores"].name] == "ROI head"
@@ -274,12 +284,12 @@ def _bn(prefix, c):
 
 
 def expected_vod_stage_two_keys() -> dict[str, tuple]:
-    """Upstream PV-RCNN-style keys and shapes of MAFF-Net_vod.yaml's stage two (pfe.SA_rawpoints: our name)."""
+    """Upstream keys and shapes of MAFF-Net_vod.yaml's stage two (VoxelSetAbstraction_cda, PointHeadSimple, PVRCNNHead)."""
     keys: dict[str, tuple] = {}
     for s in (0, 1):
-        keys[f"pfe.SA_rawpoints.mlps.{s}.0.weight"] = (16, 7, 1, 1)
-        keys[f"pfe.SA_rawpoints.mlps.{s}.3.weight"] = (16, 16, 1, 1)
-        keys.update({**_bn(f"pfe.SA_rawpoints.mlps.{s}.1", 16), **_bn(f"pfe.SA_rawpoints.mlps.{s}.4", 16)})
+        keys[f"pfe.SA_clusterpoints.mlps.{s}.0.weight"] = (16, 7, 1, 1)
+        keys[f"pfe.SA_clusterpoints.mlps.{s}.3.weight"] = (16, 16, 1, 1)
+        keys.update({**_bn(f"pfe.SA_clusterpoints.mlps.{s}.1", 16), **_bn(f"pfe.SA_clusterpoints.mlps.{s}.4", 16)})
         keys[f"roi_head.roi_grid_pool_layer.mlps.{s}.0.weight"] = (64, 131, 1, 1)
         keys[f"roi_head.roi_grid_pool_layer.mlps.{s}.3.weight"] = (64, 64, 1, 1)
         keys.update({**_bn(f"roi_head.roi_grid_pool_layer.mlps.{s}.1", 64),
@@ -334,15 +344,24 @@ def _scan_5000(card, seed=0) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def vod_full_onnx(tmp_path_factory):
-    path = tmp_path_factory.mktemp("maffnet-vod-full") / "maffnet-vod-full.onnx"
-    res = invoke("export", "--model", "maffnet-vod-full", "--output", str(path))
+    """maffnet-vod-full exported from an upstream-format checkpoint (OpenPCDet wrapper, every
+    upstream key: the seeded weights plus upstream's no-effect fuser parameters and global_step)."""
+    from references.maffnet_upstream_keys import openpcdet_checkpoint, upstream_state_dict
+    out = tmp_path_factory.mktemp("maffnet-vod-full")
+    own = build_model(load_card(VOD_FULL)).state_dict()
+    state = {k: own.get(k, v) for k, v in upstream_state_dict("vod", seed=1).items()}
+    torch.save(openpcdet_checkpoint(state), out / "upstream.pth")
+    path = out / "maffnet-vod-full.onnx"
+    res = invoke("export", "--model", "maffnet-vod-full", "--output", str(path), "--checkpoint", out / "upstream.pth")
     assert res.exit_code == 0, res.output
+    assert (f"loaded {len(own)} tensors from {out / 'upstream.pth'}; dropped 47 (upstream fuser parameters with "
+            f"no effect at test time); ignored global_step") in res.output
     return path
 
 
 def test_vod_full_export_and_parity(vod_full_onnx):
     res = invoke("parity-check", "--model", "maffnet-vod-full", "--onnx", str(vod_full_onnx), "--cases", "2",
-                 "--json")
+                 "--checkpoint", vod_full_onnx.parent / "upstream.pth", "--json")
     report = json.loads(res.output)
     assert res.exit_code == 0 and report["passed"], res.output
     assert report["summary"]["boxes"]["mismatches"] == 0

@@ -7,7 +7,8 @@ Pipeline for one radar scan (points [N, F], columns as the card names them, rada
    (:mod:`radaredge.ops.pillar_attention`);
 3. image_backbone: clustering-feature assistance (CFA) = GridDensityBEV map (velocity, density,
    cluster label; :mod:`radaredge.ops.grid_density`) -> 3x3 convs 3 -> 16 -> 32 -> 64;
-4. fuser: cross-attention fusion (CAF), the CFA map queries the pillar map (:class:`CrossAttentionFusion`);
+4. fuser: upstream's CQCA_caf at test time (:class:`CrossAttentionFusion`): the CFA tokens query
+   the pillar tokens, the result is upsampled onto the pillar map, SE, concat, conv;
 5. backbone_2d: OpenPCDet's BaseBEVBackbone; dense_head: AnchorHeadSingle (class, box and
    direction 1x1 convs), residual box decoding with the direction bin;
 6. post-processing: sigmoid scores, best class per anchor, score threshold and class-agnostic
@@ -18,10 +19,9 @@ Pipeline for one radar scan (points [N, F], columns as the card names them, rada
 
 Module names follow upstream's state-dict keys (``vfe.pfn_layers.0.linear.weight``,
 ``map_to_bev_module.pillar_attention_rope.q_mlp.weight``, ``image_backbone.conv.0.weight``,
-``backbone_2d.blocks.0.1.weight``, ``dense_head.conv_cls.weight``...). The fuser's source is
-not public in the upstream repository; its layout and key names (``fuser.*``) are ours, built
-from the paper's description and the config's channel counts (IN_CHANNEL_CROSS 64, IN_CHANNEL
-128, OUT_CHANNEL 64); the card says so.
+``backbone_2d.blocks.0.1.weight``, ``dense_head.conv_cls.weight``, ``fuser.crossfusion.pos_emb_ir``...),
+so an upstream checkpoint loads by name; upstream parameters that never reach the output are
+dropped by the rules of :meth:`MAFFNet.checkpoint_drop_rules` (docs/models/maffnet.md lists them).
 
 ``forward`` is the export formulation; ``run(..., reference=True)`` computes the same function
 with the reference ops (dynamic voxelization, NonZero-based SPA, GridDensityBEV with Python
@@ -68,13 +68,14 @@ class CfaConfig:
 
 @dataclass(frozen=True)
 class CafConfig:
-    """Card section ``caf``: the cross-attention fusion's shape (values the paper leaves open)."""
+    """Card section ``caf``: upstream CQCA_caf's shape (TransformerFusionBlock defaults)."""
 
-    pool_size: int = 16           # both maps are average-pooled to pool_size x pool_size tokens (paper: 16)
-    heads: int = 4
-    ffn_ratio: int = 4
-    se_reduction: int = 16        # squeeze-and-excitation (Hu et al.) default
-    out_channels: int = 64        # upstream OUT_CHANNEL
+    pool_size: int = 16           # vert_anchors = horz_anchors: tokens are a pool_size x pool_size grid
+    heads: int = 8                # h
+    ffn_ratio: int = 4            # block_exp of mlp_ir
+    se_reduction: int = 16        # SELayer reduction
+    out_channels: int = 64        # OUT_CHANNEL
+    bn_eps: float = 1e-5          # the fusion conv's BatchNorm2d (torch default; upstream sets none)
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,7 @@ class ClusteringFeatureAssist(nn.Module):
 
 
 class SELayer(nn.Module):
-    """Squeeze-and-excitation: x * sigmoid(FC(ReLU(FC(mean over H, W))))."""
+    """Squeeze-and-excitation (upstream se_module.SELayer): x * sigmoid(FC(ReLU(FC(mean over H, W))))."""
 
     def __init__(self, channels: int, reduction: int):
         super().__init__()
@@ -146,54 +147,170 @@ class SELayer(nn.Module):
         return x * self.fc(x.mean((2, 3))).unsqueeze(-1).unsqueeze(-1)
 
 
-class CrossAttentionFusion(nn.Module):
-    """CAF (upstream ``fuser``, CQCA_caf) for pillar features P [1, C, H, W] and CFA features Q [1, C', H', W']:
+class Scalar(nn.Module):
+    """A learnable scalar factor (upstream LearnableCoefficient: x * bias, bias initialised to 1)."""
 
-    tokens: adaptive average pooling of both maps to s x s, plus a learnable position embedding;
-    one pre-norm cross-transformer layer, queries from the CFA tokens (the clustering query),
-    keys/values from the pillar tokens, then an FFN; tokens -> s x s map -> bilinear upsampling
-    to H x W -> SE -> concat with P -> 3x3 conv + BN + ReLU -> [1, out, H, W].
-    """
-
-    def __init__(self, pillar_channels: int, cfa_channels: int, cfg: CafConfig):
+    def __init__(self):
         super().__init__()
-        c = pillar_channels
-        if c % cfg.heads:
-            raise ConfigError(f"caf.heads ({cfg.heads}) must divide the pillar channels ({c})")
-        self.pool_size, self.heads = cfg.pool_size, cfg.heads
-        self.pos_embed = nn.Parameter(torch.randn(1, cfg.pool_size ** 2, c) * 0.02)
-        self.query_proj = nn.Linear(cfa_channels, c)
-        self.query_norm = nn.LayerNorm(c)
-        self.key_norm = nn.LayerNorm(c)
-        self.q = nn.Linear(c, c)
-        self.k = nn.Linear(c, c)
-        self.v = nn.Linear(c, c)
-        self.out = nn.Linear(c, c)
-        self.ffn_norm = nn.LayerNorm(c)
-        self.ffn = nn.Sequential(nn.Linear(c, cfg.ffn_ratio * c), nn.GELU(), nn.Linear(cfg.ffn_ratio * c, c))
-        self.se = SELayer(c, cfg.se_reduction)
-        self.fuse = nn.Sequential(*_conv_bn_relu(2 * c, cfg.out_channels))
+        self.bias = nn.Parameter(torch.ones(1))
 
-    def _tokens(self, x: torch.Tensor) -> torch.Tensor:
-        return F.adaptive_avg_pool2d(x, self.pool_size).flatten(2).transpose(1, 2)     # [1, s*s, C]
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.bias
+
+
+class PoolMix(nn.Module):
+    """Upstream LearnableWeights: w1 * average-pooled + w2 * max-pooled tokens (both start at 0.5)."""
+
+    def __init__(self):
+        super().__init__()
+        self.w1 = nn.Parameter(torch.full((1,), 0.5))
+        self.w2 = nn.Parameter(torch.full((1,), 0.5))
+
+    def forward(self, avg: torch.Tensor, peak: torch.Tensor) -> torch.Tensor:
+        return avg * self.w1 + peak * self.w2
+
+
+def pool_window(size: int, tokens: int) -> tuple[int, int]:
+    """(kernel, stride) of upstream's AdaptivePool2d along one axis: stride = size // tokens,
+    kernel = size - (tokens - 1) * stride (the last window ends at the border); (1, 1) when the
+    axis is already ``tokens`` long (upstream then skips pooling)."""
+    if size < tokens:
+        raise ConfigError(f"caf.pool_size {tokens} exceeds the BEV map side {size}")
+    stride = size // tokens
+    return size - (tokens - 1) * stride, stride
+
+
+class ClusterQueryAttention(nn.Module):
+    """The eval-path part of upstream's CrossAttention that reaches CQCA_caf's output: queries from
+    LN1 of the clustering-feature (CFA) tokens, keys and values from LN2 of the pillar tokens,
+    ``heads`` heads of width C / heads, softmax(q k^T / sqrt(C / heads)) v, output projection.
+
+    Upstream also computes the opposite direction (pillar queries on CFA keys) and a dynamic
+    position bias whose sum is commented out; neither reaches the output (see UNUSED_FUSER_KEYS)."""
+
+    def __init__(self, channels: int, heads: int):
+        super().__init__()
+        if channels % heads:
+            raise ConfigError(f"caf.heads ({heads}) must divide the pillar channels ({channels})")
+        self.heads = heads
+        self.LN1 = nn.LayerNorm(channels)
+        self.LN2 = nn.LayerNorm(channels)
+        self.que_proj_vis = nn.Linear(channels, channels)
+        self.key_proj_ir = nn.Linear(channels, channels)
+        self.val_proj_ir = nn.Linear(channels, channels)
+        self.out_proj_ir = nn.Linear(channels, channels)
+
+    def forward(self, cfa_tokens: torch.Tensor, pillar_tokens: torch.Tensor) -> torch.Tensor:
+        """cfa_tokens, pillar_tokens [B, T, C] -> attended pillar values [B, T, C]."""
+        b, t, c = pillar_tokens.shape
+        d = c // self.heads
+
+        def heads(x):
+            return x.reshape(b, t, self.heads, d).transpose(1, 2)                      # [B, heads, T, d]
+
+        q = heads(self.que_proj_vis(self.LN1(cfa_tokens)))
+        kv = self.LN2(pillar_tokens)
+        att = torch.softmax(q @ heads(self.key_proj_ir(kv)).transpose(-1, -2) / math.sqrt(d), -1)
+        return self.out_proj_ir((att @ heads(self.val_proj_ir(kv))).transpose(1, 2).reshape(b, t, c))
+
+
+class CrossTransformerLayer(nn.Module):
+    """The pillar branch of upstream's CrossTransformerBlock (one layer, one loop):
+    a = c3 * ir + c4 * attention(cfa, ir); out = c7 * a + c8 * MLP_ir(LN2(a)), MLP = Linear, GELU, Linear."""
+
+    def __init__(self, channels: int, heads: int, ffn_ratio: int):
+        super().__init__()
+        self.crossatt = ClusterQueryAttention(channels, heads)
+        self.LN2 = nn.LayerNorm(channels)
+        self.mlp_ir = nn.Sequential(nn.Linear(channels, ffn_ratio * channels), nn.GELU(),
+                                    nn.Linear(ffn_ratio * channels, channels))
+        self.coefficient3, self.coefficient4 = Scalar(), Scalar()
+        self.coefficient7, self.coefficient8 = Scalar(), Scalar()
+
+    def forward(self, cfa_tokens: torch.Tensor, pillar_tokens: torch.Tensor) -> torch.Tensor:
+        a = self.coefficient3(pillar_tokens) + self.coefficient4(self.crossatt(cfa_tokens, pillar_tokens))
+        return self.coefficient7(a) + self.coefficient8(self.mlp_ir(self.LN2(a)))
+
+
+class TransformerFusion(nn.Module):
+    """Upstream TransformerFusionBlock, eval path: both maps [B, C, H, W] -> s x s tokens
+    (w1 * avg-pool + w2 * max-pool with upstream's fixed windows, :func:`pool_window`) plus their
+    own position embedding (``pos_emb_vis`` for CFA, ``pos_emb_ir`` for pillars); one
+    :class:`CrossTransformerLayer`; pillar tokens -> s x s map -> bilinear upsampling to H x W
+    (half-pixel centres, upstream's eval mode; training upsamples nearest) + the pillar map."""
+
+    def __init__(self, channels: int, cfg: CafConfig):
+        super().__init__()
+        s = cfg.pool_size
+        self.pool_size = s
+        self.pos_emb_vis = nn.Parameter(torch.randn(1, s * s, channels) * 0.02)
+        self.pos_emb_ir = nn.Parameter(torch.randn(1, s * s, channels) * 0.02)
+        self.vis_coefficient, self.ir_coefficient = PoolMix(), PoolMix()
+        self.crosstransformer = nn.Sequential(CrossTransformerLayer(channels, cfg.heads, cfg.ffn_ratio))
+
+    def _tokens(self, x: torch.Tensor, mix: PoolMix, pos: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = x.shape
+        (kh, sh), (kw, sw) = pool_window(h, self.pool_size), pool_window(w, self.pool_size)
+        pooled = mix(F.avg_pool2d(x, (kh, kw), (sh, sw)), F.max_pool2d(x, (kh, kw), (sh, sw)))
+        return pooled.flatten(2).transpose(1, 2) + pos                                 # [B, s*s, C]
 
     def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
         b, c, h, w = pillar.shape
-        q = self.query_proj(self._tokens(cfa)) + self.pos_embed
-        kv = self._tokens(pillar) + self.pos_embed
-        qn, kn = self.query_norm(q), self.key_norm(kv)
-        d = c // self.heads
-
-        def split(t):
-            return t.reshape(b, -1, self.heads, d).transpose(1, 2)                     # [1, heads, s*s, d]
-
-        att = torch.softmax(split(self.q(qn)) @ split(self.k(kn)).transpose(-1, -2) / math.sqrt(d), -1)
-        x = q + self.out((att @ split(self.v(kn))).transpose(1, 2).reshape(b, -1, c))
-        x = x + self.ffn(self.ffn_norm(x))
+        tokens = self.crosstransformer[0](self._tokens(cfa, self.vis_coefficient, self.pos_emb_vis),
+                                          self._tokens(pillar, self.ir_coefficient, self.pos_emb_ir))
         s = self.pool_size
-        grid = x.transpose(1, 2).reshape(b, c, s, s)
-        up = F.interpolate(grid, size=(h, w), mode="bilinear", align_corners=False)
-        return self.fuse(torch.cat([pillar, self.se(up)], 1))
+        grid = tokens.transpose(1, 2).reshape(b, c, s, s)
+        return F.interpolate(grid, size=(h, w), mode="bilinear", align_corners=False) + pillar
+
+
+class CrossAttentionFusion(nn.Module):
+    """CAF = upstream ``fuser`` (CQCA_caf) at test time, with upstream's parameter names: for pillar
+    features P [B, C, H, W] (the SPA map) and CFA features Q [B, C, H, W],
+    out = ReLU(BN(Conv3x3([P, SE(TransformerFusion(P, Q))]))) [B, out_channels, H, W].
+
+    Only the parameters that reach the output exist here; a checkpoint's others are listed in
+    :data:`UNUSED_FUSER_KEYS` and dropped by the loader."""
+
+    def __init__(self, pillar_channels: int, cfa_channels: int, cfg: CafConfig):
+        super().__init__()
+        if cfa_channels != pillar_channels:
+            raise ConfigError(f"caf: the CFA map has {cfa_channels} channels, the pillar map {pillar_channels}; "
+                              "upstream's fusion needs equal widths (IN_CHANNEL_CROSS)")
+        c = pillar_channels
+        self.crossfusion = TransformerFusion(c, cfg)
+        self.se = SELayer(c, cfg.se_reduction)
+        self.conv = nn.Sequential(nn.Conv2d(2 * c, cfg.out_channels, 3, padding=1, bias=False),
+                                  nn.BatchNorm2d(cfg.out_channels, eps=cfg.bn_eps), nn.ReLU())
+
+    def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
+        return self.conv(torch.cat([pillar, self.se(self.crossfusion(pillar, cfa))], 1))
+
+
+# Upstream CQCA_caf parameters with no effect on its output at test time (one fusion layer, one
+# loop, CQCA_caf returning only the pillar branch): the unused patch embedder, the commented-out
+# dynamic position bias, the CFA-query direction of the attention, the CFA branch's MLP and the
+# block's third MLP, the norms that are never called and the coefficients of the CFA branch.
+STAGE_TWO_PREFIXES = ("pfe.", "point_head.", "roi_head.")
+# TJ4D's RadarPillarVFE_TJ builds an SE layer on its 11 inputs with reduction 16 (0-wide tensors)
+# and never calls it.
+UNUSED_VFE_KEYS = ("vfe.se.",)
+UNUSED_FUSER_KEYS = (
+    "fuser.crossfusion.bev_embedder.",
+    "fuser.crossfusion.crosstransformer.0.ln_input.",
+    "fuser.crossfusion.crosstransformer.0.ln_output.",
+    "fuser.crossfusion.crosstransformer.0.LN1.",
+    "fuser.crossfusion.crosstransformer.0.crossatt.dpb.",
+    "fuser.crossfusion.crosstransformer.0.crossatt.key_proj_vis.",
+    "fuser.crossfusion.crosstransformer.0.crossatt.val_proj_vis.",
+    "fuser.crossfusion.crosstransformer.0.crossatt.que_proj_ir.",
+    "fuser.crossfusion.crosstransformer.0.crossatt.out_proj_vis.",
+    "fuser.crossfusion.crosstransformer.0.mlp_vis.",
+    "fuser.crossfusion.crosstransformer.0.mlp.",
+    "fuser.crossfusion.crosstransformer.0.coefficient1.",
+    "fuser.crossfusion.crosstransformer.0.coefficient2.",
+    "fuser.crossfusion.crosstransformer.0.coefficient5.",
+    "fuser.crossfusion.crosstransformer.0.coefficient6.",
+)
 
 
 class BaseBEVBackbone(nn.Module):
@@ -331,7 +448,15 @@ class MAFFNet(nn.Module):
         self.stage_two_config = stage_two          # StageTwoConfig or None (stage one only)
         if stage_two is not None:
             r, v = pillars.point_cloud_range, pillars.voxel_size
-            two.build_stage_two(self, stage_two, len(features) - 3, pillars.out_channels, (r[0], r[1]), (v[0], v[1]))
+            two.build_stage_two(self, stage_two, len(features) - 3, caf.out_channels, (r[0], r[1]), (v[0], v[1]))
+
+    def checkpoint_drop_rules(self) -> list[tuple[str, tuple[str, ...]]]:
+        """Upstream checkpoint keys this model drops on load, by rule (see export.load_checkpoint)."""
+        rules = [("upstream fuser parameters with no effect at test time", UNUSED_FUSER_KEYS),
+                 ("upstream RadarPillarVFE_TJ's zero-width SE layer, never called", UNUSED_VFE_KEYS)]
+        if self.stage_two_config is None:
+            rules.append(("stage-two modules on a stage-one card", STAGE_TWO_PREFIXES))
+        return rules
 
     def init_kaiming(self) -> None:
         """He-normal (fan_out, ReLU) weights for every conv before the head, so an untrained
@@ -413,7 +538,7 @@ class MAFFNet(nn.Module):
         if self.stage_two_config is None:
             out["boxes"], out["scores"], out["labels"] = self.postprocess(scores, boxes, reference)
         else:
-            out.update(two.run_stage_two(self, points, pillar, cluster, logits, boxes, reference, trace))
+            out.update(two.run_stage_two(self, points, fused[0], cluster, logits, boxes, reference, trace))
         return out
 
 
@@ -443,7 +568,7 @@ def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[s
             model.postprocess(scores, boxes, reference)
             lap("NMS")
             return out
-        two.run_stage_two(model, points, pillar, cluster, logits, boxes, reference, lap=lap)
+        two.run_stage_two(model, points, fused[0], cluster, logits, boxes, reference, lap=lap)
     return out
 
 

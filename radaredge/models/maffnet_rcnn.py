@@ -8,11 +8,12 @@ radians; boxes in OpenPCDet's (x, y, z, dx, dy, dz, heading) layout):
    ``iou_thresh``, the first ``post_max`` -> rois [R, 7] zero-padded, roi_labels [R] (0 when
    padded) and roi_valid [R]. No score threshold (upstream has none here).
 2. CDA keypoints (:class:`CDAKeypointSampler`, upstream ``VoxelSetAbstraction_cda`` with
-   POINT_SOURCE cluster_points): the CFA's cluster points (GridDensityBEV's point mask) near a
-   valid roi, then farthest point sampling to ``num_keypoints`` slots + keypoint_valid.
-3. VSA (``pfe``, :class:`VoxelSetAbstractionCDA`): per keypoint [BEV features bilinearly
-   interpolated from stage one's pillar map, multi-scale set abstraction over the cluster
-   points] = point_features_before_fusion, then Linear + BN + ReLU -> point_features.
+   SAMPLE_METHOD CDA): the CFA's cluster points inside a cylinder around any roi row, in index
+   order (FPS above ``num_keypoints``), then filled to exactly ``num_keypoints`` by FPS over all
+   scan points -> keypoints [K, 3] + keypoint_valid.
+3. VSA (``pfe``, :class:`VoxelSetAbstractionCDA`): per keypoint [the fuser's output bilinearly
+   interpolated, multi-scale set abstraction ``SA_clusterpoints`` over all scan points] =
+   point_features_before_fusion, then Linear + BN + ReLU -> point_features.
 4. ``point_head`` (PointHeadSimple, class agnostic): point_cls_scores = sigmoid(MLP(before fusion)).
 5. ``roi_head`` (:class:`PVRCNNHead`): a grid_size^3 grid per roi, set abstraction of the
    valid keypoints' point_features * point_cls_scores around each grid point, shared FCs, a class
@@ -21,12 +22,10 @@ radians; boxes in OpenPCDet's (x, y, z, dx, dy, dz, heading) layout):
 6. final class-agnostic NMS on the refined boxes (score = sigmoid(rcnn logit), label = roi
    label); padded rois are never emitted (ours: upstream can emit the zero-size boxes of padding).
 
-Choices that are ours (MAFF-Net's CDA source is not public), stated in the card too: the CDA
-selection rule (a cluster point is kept when, for at least one valid roi, its horizontal distance
-to the roi centre is <= ``cda_radius`` and |z - roi z| <= ``cda_height`` / 2), the fall-back when
-nothing is kept (the first kept-candidate as upstream's ``points[:1]``: the first cluster point, or
-the first point in the pillar range when there is no cluster point, or no keypoint at all), the BEV
-source (stage one's SPA pillar map, stride 1) and the ``pfe.SA_rawpoints`` key name.
+Upstream's behaviour is reproduced where it is odd (the zero rois of empty slots take part in
+the CDA cylinder test unless ``keypoints.padded_rois: valid``); where it crashes (an empty scan
+divides by zero in the fill) the graph returns invalid keypoints instead. docs/models/maffnet.md
+lists every such choice.
 
 Every module has the export formulation (``forward``: fixed shapes; the only data-dependent
 parts are the NMS's candidate pairs and Loop and the FPS Loop) and a ``reference`` (Python loops
@@ -47,7 +46,7 @@ from ..config import config_from_dict
 from ..errors import ConfigError
 from ..ops.bev_interp import bev_interpolate, bev_interpolate_reference
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
-from ..ops.point_sampling import farthest_point_sample_masked, farthest_point_sample_masked_reference
+from ..ops.point_sampling import farthest_point_sample_masked, farthest_point_sample_reference
 from ..ops.set_abstraction import SAModuleMSG
 
 
@@ -72,9 +71,18 @@ class ProposalConfig:
 class KeypointConfig:
     """``stage_two.keypoints`` (PFE NUM_KEYPOINTS, CDAM_SAMPLING)."""
 
-    num_keypoints: int = 1024     # NUM_KEYPOINTS
-    cda_radius: float = 2.5       # m, SAMPLE_RADIUS_R: horizontal distance to a roi centre
-    cda_height: float = 3.0       # m, SAMPLE_RADIUS_H: full height of the band around the roi's z
+    num_keypoints: int = 1024     # NUM_KEYPOINTS: keypoints per scan, always filled to this count
+    sample_radius_r: float = 2.5  # m, SAMPLE_RADIUS_R: cylinder radius = max(dx, dy) / 2 + this
+    sample_radius_h: float = 3.0  # m, SAMPLE_RADIUS_H: cylinder height = dz + this, centred on the roi
+    num_sectors: int = 1          # NUM_SECTORS of the sector FPS (only 1 is supported)
+    padded_rois: str = "upstream"  # "upstream": the zero rois of empty slots count (a cylinder of radius
+                                   # SAMPLE_RADIUS_R at the origin); "valid": only rois that NMS kept
+
+    def __post_init__(self):
+        if self.num_sectors != 1:
+            raise ConfigError("stage_two.keypoints.num_sectors: only 1 sector is supported (upstream's configs)")
+        if self.padded_rois not in ("upstream", "valid"):
+            raise ConfigError(f"stage_two.keypoints.padded_rois must be 'upstream' or 'valid', got {self.padded_rois!r}")
 
 
 @dataclass(frozen=True)
@@ -88,7 +96,7 @@ class SAConfig:
 
 @dataclass(frozen=True)
 class VsaConfig:
-    """``stage_two.vsa`` scalars (the SA branch is ``stage_two.vsa.sa_rawpoints``)."""
+    """``stage_two.vsa`` scalars (the SA branch is ``stage_two.vsa.sa_clusterpoints``)."""
 
     bev_stride: int = 1           # stride of the BEV source relative to the pillar grid
     num_output_features: int = 128  # NUM_OUTPUT_FEATURES
@@ -112,7 +120,7 @@ class StageTwoConfig:
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
     keypoints: KeypointConfig = field(default_factory=KeypointConfig)
     vsa: VsaConfig = field(default_factory=VsaConfig)
-    sa_rawpoints: SAConfig = field(default_factory=SAConfig)
+    sa_clusterpoints: SAConfig = field(default_factory=SAConfig)
     point_head_fc: tuple = (256, 256)
     roi_head: RoiHeadConfig = field(default_factory=RoiHeadConfig)
     roi_grid_pool: SAConfig = field(default_factory=lambda: SAConfig((0.8, 1.6), (16, 16), ((64, 64), (64, 64))))
@@ -136,8 +144,8 @@ def read_stage_two(card: ModelCard) -> StageTwoConfig | None:
     return StageTwoConfig(
         proposals=card.section("stage_two.proposals", ProposalConfig),
         keypoints=card.section("stage_two.keypoints", KeypointConfig),
-        vsa=config_from_dict(VsaConfig, {k: v for k, v in vsa.items() if k != "sa_rawpoints"}, where + ".vsa"),
-        sa_rawpoints=card.section("stage_two.vsa.sa_rawpoints", SAConfig),
+        vsa=config_from_dict(VsaConfig, {k: v for k, v in vsa.items() if k != "sa_clusterpoints"}, where + ".vsa"),
+        sa_clusterpoints=card.section("stage_two.vsa.sa_clusterpoints", SAConfig),
         point_head_fc=tuple(card.get("stage_two.point_head.cls_fc", (256, 256))),
         roi_head=config_from_dict(RoiHeadConfig, {k: v for k, v in roi.items() if k != "roi_grid_pool"},
                                   where + ".roi_head"),
@@ -182,61 +190,110 @@ class ProposalLayer(nn.Module):
 
 
 class CDAKeypointSampler(nn.Module):
-    """Cluster points near the rois -> ``num_keypoints`` keypoint slots (no parameters).
+    """Upstream VoxelSetAbstraction_cda's CDA keypoints of one scan (no parameters).
 
-    Inputs: xyz [N, 3] (finite; m), cluster [N] bool (GridDensityBEV's point mask), in_range [N]
-    bool (finite and inside the pillar range), rois [R, 7], roi_valid [R]. Outputs keypoints
-    [K, 3], keypoint_valid [K] (slot < number of selected points, at most K) and the selection
-    mask [N]. Selection: cluster and, for some valid roi, (x - xr)^2 + (y - yr)^2 <= radius^2
-    and |z - zr| <= height / 2 (float32, in that order); when nothing is selected, the first
-    cluster point, else the first in-range point, else nothing (all slots invalid). FPS as
-    :func:`radaredge.ops.point_sampling.farthest_point_sample_masked`.
+    Inputs: xyz [N, 3] (finite; m), cluster [N] bool (the CFA's cluster points), scan [N] bool
+    (upstream's batch points: finite and inside the range's x/y box), rois [R, 7] (zero rows in
+    empty slots), roi_valid [R]. Output keypoints [K, 3], keypoint_valid [K], K = num_keypoints:
+
+    1. a cluster point is kept when it lies in some roi's cylinder: horizontal distance
+       sqrt(dx^2 + dy^2) <= max(roi dx, roi dy) / 2 + SAMPLE_RADIUS_R and roi z - h / 2 <= z <=
+       roi z + h / 2 with h = roi dz + SAMPLE_RADIUS_H (float32, in that order). With
+       ``padded_rois: upstream`` the zero rois of empty slots count like any roi. Nothing kept:
+       the first cluster point (upstream's ``points[:1]``), or nothing without cluster points;
+    2. more than K kept: FPS over them (one sector), K picks in FPS order; else the kept points
+       in index order;
+    3. the remaining slots: FPS over all scan points, repeated cyclically when there are fewer
+       scan points than slots (upstream's ``repeat``). Every slot is valid unless the scan is empty.
+    FPS as :func:`radaredge.ops.point_sampling.farthest_point_sample_masked` (start at the first
+    point, ties to the lowest index; the CUDA kernel breaks exact ties by thread order).
     """
 
     def __init__(self, cfg: KeypointConfig):
         super().__init__()
         self.cfg = cfg
 
-    def forward(self, xyz, cluster, in_range, rois, roi_valid):
+    def cylinder_mask(self, xyz, rois, roi_valid):
+        """[N, R] bool: point inside roi's cylinder (step 1's test), export formulation."""
         c = self.cfg
-        d = xyz[:, None, :] - rois[None, :, :3]                                   # [N, R, 3]
-        near = ((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] <= c.cda_radius ** 2)
-                & (d[..., 2].abs() <= c.cda_height / 2) & roi_valid[None, :])
-        selected = cluster & near.any(1)
-        source = (cluster & cluster.any()) | (in_range & ~cluster.any())           # bool Where: no ORT kernel
-        first = (torch.arange(xyz.shape[0]) == torch.argmax(source.to(torch.int64))) & source
-        mask = selected | (first & ~selected.any())
-        idx = farthest_point_sample_masked(xyz, mask, c.num_keypoints)
-        valid = torch.arange(c.num_keypoints) < mask.sum()
-        return xyz[idx], valid, mask
+        radius = torch.maximum(rois[:, 3], rois[:, 4]) / 2 + c.sample_radius_r
+        height = rois[:, 5] + c.sample_radius_h
+        z_lo, z_hi = rois[:, 2] - height / 2, rois[:, 2] + height / 2
+        dx, dy = xyz[:, None, 0] - rois[None, :, 0], xyz[:, None, 1] - rois[None, :, 1]
+        z = xyz[:, 2:3]
+        inside = (torch.sqrt(dx * dx + dy * dy) <= radius) & (z >= z_lo) & (z <= z_hi)
+        return inside & roi_valid[None, :] if c.padded_rois == "valid" else inside
 
-    def reference(self, xyz: np.ndarray, cluster: np.ndarray, in_range: np.ndarray, rois: np.ndarray,
+    def forward(self, xyz, cluster, scan, rois, roi_valid):
+        k, n = self.cfg.num_keypoints, xyz.shape[0]
+        selected = cluster & self.cylinder_mask(xyz, rois, roi_valid).any(1)
+        ar = torch.arange(n)
+        first_cluster = (ar == torch.argmax(cluster.to(torch.int64))) & cluster
+        kept = selected | (first_cluster & ~selected.any())
+        count = kept.sum()
+        slots = torch.arange(k)
+        # step 2: index order (first K kept points) or FPS when more than K are kept
+        key = torch.where(kept, ar, ar + n).to(torch.float32)
+        m = min(k, n)
+        ordered = torch.topk(key, m, largest=False, sorted=True).values.to(torch.int64)
+        ordered = torch.cat([ordered, torch.zeros(k - m, dtype=torch.int64)]) if m < k else ordered
+        over = count > k
+        fps_kept = farthest_point_sample_masked(xyz, kept, k, torch.where(over, k, 0))
+        first = torch.where(over, fps_kept, torch.where(ordered >= n, 0, ordered))
+        n1 = torch.clamp(count, max=k)
+        # step 3: fill from FPS over the scan points, cyclic when the scan is short
+        n_scan = scan.sum()
+        picks = torch.minimum(k - n1, n_scan)
+        fill = farthest_point_sample_masked(xyz, scan, k, picks)
+        cyc = torch.remainder(slots - n1, torch.clamp(picks, min=1))
+        idx = torch.where(slots < n1, first, torch.gather(fill, 0, cyc))
+        valid = (slots < n1) | (n_scan > 0)
+        return xyz[idx], valid
+
+    def reference(self, xyz: np.ndarray, cluster: np.ndarray, scan: np.ndarray, rois: np.ndarray,
                   roi_valid: np.ndarray):
-        """Python loops over points and rois; FPS on the compacted selection."""
-        c = self.cfg
-        r2, half = np.float32(c.cda_radius ** 2), np.float32(c.cda_height / 2)
-        selected = np.zeros(len(xyz), bool)
+        """Python loops over points and rois; FPS on the compacted sets; the fill as a list."""
+        c, f32, k = self.cfg, np.float32, self.cfg.num_keypoints
+        kept = []
         for i, p in enumerate(xyz):
             if not cluster[i]:
                 continue
             for roi, ok in zip(rois, roi_valid):
-                dx, dy, dz = p[0] - roi[0], p[1] - roi[1], p[2] - roi[2]
-                if ok and dx * dx + dy * dy <= r2 and abs(dz) <= half:
-                    selected[i] = True
+                if c.padded_rois == "valid" and not ok:
+                    continue
+                radius = max(roi[3], roi[4]) / f32(2) + f32(c.sample_radius_r)
+                height = roi[5] + f32(c.sample_radius_h)
+                dx, dy = p[0] - roi[0], p[1] - roi[1]
+                if (np.sqrt(dx * dx + dy * dy) <= radius and roi[2] - height / f32(2) <= p[2]
+                        <= roi[2] + height / f32(2)):
+                    kept.append(i)
                     break
-        if not selected.any():                       # upstream: points[:1]
-            source = cluster if cluster.any() else in_range
-            selected[np.flatnonzero(source)[:1]] = True
-        idx = farthest_point_sample_masked_reference(xyz, selected, c.num_keypoints)
-        valid = np.arange(c.num_keypoints) < min(int(selected.sum()), c.num_keypoints)
-        return torch.from_numpy(xyz[idx]), torch.from_numpy(valid), torch.from_numpy(selected)
+        if not kept:
+            kept = list(np.flatnonzero(cluster)[:1])
+        kept = np.array(kept, np.int64)
+        if len(kept) > k:
+            kept = kept[farthest_point_sample_reference(xyz[kept], k)]
+        idx = list(kept)
+        scan_idx = np.flatnonzero(scan)
+        need = k - len(idx)
+        if need > 0 and len(scan_idx):
+            picks = scan_idx[farthest_point_sample_reference(xyz[scan_idx], min(need, len(scan_idx)))]
+            idx += [picks[j % len(picks)] for j in range(need)]
+        valid = np.zeros(k, bool)
+        valid[:len(idx)] = True
+        idx += [0] * (k - len(idx))
+        return torch.from_numpy(xyz[np.array(idx, np.int64)]), torch.from_numpy(valid)
 
 
 # ----------------------------------------------------------------------------- VSA and point head
 
 
 class VoxelSetAbstractionCDA(nn.Module):
-    """Upstream ``pfe``: [BEV(bev_channels), SA over cluster points] -> fusion Linear/BN/ReLU.
+    """Upstream ``pfe`` (VoxelSetAbstraction_cda, FEATURES_SOURCE [bev, cluster_points]): per keypoint
+    [the fused BEV map (the fuser's output, upstream's overwritten ``spatial_features``) bilinearly
+    interpolated, multi-scale set abstraction ``SA_clusterpoints`` over ALL scan points (upstream
+    runs that branch on ``batch_dict['points']`` with their features beyond xyz)] = before_fusion,
+    then Linear + BN + ReLU -> point_features.
 
     ``origin`` (x_min, y_min) and ``cell`` (vx, vy) in metres place the BEV map (the pillar grid).
     """
@@ -244,24 +301,24 @@ class VoxelSetAbstractionCDA(nn.Module):
     def __init__(self, point_channels: int, bev_channels: int, vsa: VsaConfig, sa: SAConfig, origin, cell):
         super().__init__()
         self.origin, self.cell, self.stride = tuple(origin), tuple(cell), vsa.bev_stride
-        self.SA_rawpoints = SAModuleMSG(point_channels, sa.radii, sa.nsample, sa.mlps)
-        self.num_before_fusion = bev_channels + self.SA_rawpoints.out_channels
+        self.SA_clusterpoints = SAModuleMSG(point_channels, sa.radii, sa.nsample, sa.mlps)
+        self.num_before_fusion = bev_channels + self.SA_clusterpoints.out_channels
         self.vsa_point_feature_fusion = nn.Sequential(
             nn.Linear(self.num_before_fusion, vsa.num_output_features, bias=False),
             nn.BatchNorm1d(vsa.num_output_features), nn.ReLU())
 
-    def forward(self, bev, keypoints, xyz, feats, cluster):
-        """Export formulation: bev [C, H, W], keypoints [K, 3], cluster points xyz [N, 3], feats
-        [N, F], cluster [N] -> (before_fusion [K, C + SA], point_features [K, out])."""
+    def forward(self, bev, keypoints, xyz, feats, scan):
+        """Export formulation: bev [C, H, W], keypoints [K, 3], points xyz [N, 3], feats [N, F],
+        scan [N] (the points SA may group) -> (before_fusion [K, C + SA], point_features [K, out])."""
         before = torch.cat([bev_interpolate(bev, keypoints[:, :2], self.origin, self.cell, self.stride),
-                            self.SA_rawpoints(xyz, cluster, feats, keypoints)], 1)
+                            self.SA_clusterpoints(xyz, scan, feats, keypoints)], 1)
         return before, self.vsa_point_feature_fusion(before)
 
-    def reference(self, bev, keypoints, xyz, feats, cluster):
+    def reference(self, bev, keypoints, xyz, feats, scan):
         kp = keypoints.numpy()
         before = torch.cat([torch.from_numpy(bev_interpolate_reference(bev.numpy(), kp[:, :2], self.origin,
                                                                        self.cell, self.stride)),
-                            self.SA_rawpoints.reference(xyz.numpy(), cluster.numpy(), feats.numpy(), kp)], 1)
+                            self.SA_clusterpoints.reference(xyz.numpy(), scan.numpy(), feats.numpy(), kp)], 1)
         return before, self.vsa_point_feature_fusion(before)
 
 
@@ -394,39 +451,40 @@ def build_stage_two(model: nn.Module, cfg: StageTwoConfig, num_point_features: i
     plus our parameter-free proposal_layer and keypoint_sampler."""
     model.proposal_layer = ProposalLayer(cfg.proposals)
     model.keypoint_sampler = CDAKeypointSampler(cfg.keypoints)
-    model.pfe = VoxelSetAbstractionCDA(num_point_features, bev_channels, cfg.vsa, cfg.sa_rawpoints, origin, cell)
+    model.pfe = VoxelSetAbstractionCDA(num_point_features, bev_channels, cfg.vsa, cfg.sa_clusterpoints, origin, cell)
     model.point_head = PointHeadSimple(model.pfe.num_before_fusion, cfg.point_head_fc)
     model.roi_head = PVRCNNHead(cfg.vsa.num_output_features, cfg.roi_head, cfg.roi_grid_pool)
     model.roi_head.init_upstream()
 
 
 def scan_points(points: torch.Tensor, point_cloud_range) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(xyz [N, 3], features [N, F - 3], in_range [N]): rows with a non-finite value are zeroed
-    and out of range; in range = inside the pillar range [min, max) on x, y, z."""
+    """(xyz [N, 3], features [N, F - 3], scan [N]): rows with a non-finite value are zeroed and
+    left out; scan = the points upstream's data processor keeps (mask_points_by_range: x and y
+    inside the range, bounds included; z is not tested), i.e. its ``batch_dict['points']``."""
     finite = torch.isfinite(points).all(1)
     clean = torch.where(finite[:, None], points, torch.zeros_like(points))
-    lo = torch.tensor(point_cloud_range[:3], dtype=torch.float32)
-    hi = torch.tensor(point_cloud_range[3:], dtype=torch.float32)
-    in_range = finite & ((clean[:, :3] >= lo) & (clean[:, :3] < hi)).all(1)
-    return clean[:, :3], clean[:, 3:], in_range
+    r = point_cloud_range
+    x, y = clean[:, 0], clean[:, 1]
+    scan = finite & (x >= r[0]) & (x <= r[3]) & (y >= r[1]) & (y <= r[4])
+    return clean[:, :3], clean[:, 3:], scan
 
 
-def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, in_range, reference: bool) -> dict:
+def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference: bool) -> dict:
     """Stage "proposals+CDA": rois, roi_labels, roi_valid, keypoints, keypoint_valid."""
     if reference:
         rois, labels, valid = model.proposal_layer.reference(cls_logits, boxes)
-        kp, kp_valid, _ = model.keypoint_sampler.reference(xyz.numpy(), cluster.numpy(), in_range.numpy(),
-                                                           rois.numpy(), valid.numpy())
+        kp, kp_valid = model.keypoint_sampler.reference(xyz.numpy(), cluster.numpy(), scan.numpy(),
+                                                        rois.numpy(), valid.numpy())
     else:
         rois, labels, valid = model.proposal_layer(cls_logits, boxes)
-        kp, kp_valid, _ = model.keypoint_sampler(xyz, cluster, in_range, rois, valid)
+        kp, kp_valid = model.keypoint_sampler(xyz, cluster, scan, rois, valid)
     return {"rois": rois, "roi_labels": labels, "roi_valid": valid, "keypoints": kp, "keypoint_valid": kp_valid}
 
 
-def keypoint_features(model, bev, s: dict, xyz, feats, cluster, reference: bool):
+def keypoint_features(model, bev, s: dict, xyz, feats, scan, reference: bool):
     """Stage "VSA+point head": (point_features [K, C], point_cls_scores [K])."""
     run = model.pfe.reference if reference else model.pfe
-    before, point_features = run(bev, s["keypoints"], xyz, feats, cluster)
+    before, point_features = run(bev, s["keypoints"], xyz, feats, scan)
     return point_features, model.point_head(before)
 
 
@@ -448,16 +506,17 @@ def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: 
     return rcnn_boxes[sel], scores[sel], roi_labels[sel]
 
 
-def run_stage_two(model, points, pillar_bev, cluster, cls_logits, boxes, reference: bool,
+def run_stage_two(model, points, fused_bev, cluster, cls_logits, boxes, reference: bool,
                   trace: dict | None = None, lap=None) -> dict:
-    """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs.
-    ``lap(stage)``, if given, is called as each bench stage ends (see maffnet.stage_times)."""
+    """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs;
+    ``fused_bev`` [C, H, W] is the fuser's output. ``lap(stage)``, if given, is called as each
+    bench stage ends (see maffnet.stage_times)."""
     lap = lap or (lambda stage: None)
-    xyz, feats, in_range = scan_points(points, model.vfe.config.point_cloud_range)
-    cluster = cluster & torch.isfinite(points).all(1)
-    s = proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, in_range, reference)
+    xyz, feats, scan = scan_points(points, model.vfe.config.point_cloud_range)
+    cluster = cluster & scan
+    s = proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference)
     lap("proposals+CDA")
-    point_features, point_scores = keypoint_features(model, pillar_bev, s, xyz, feats, cluster, reference)
+    point_features, point_scores = keypoint_features(model, fused_bev, s, xyz, feats, scan, reference)
     lap("VSA+point head")
     rcnn_scores, rcnn_boxes = refine(model, s, point_features, point_scores, reference)
     lap("ROI head")

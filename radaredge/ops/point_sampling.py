@@ -83,7 +83,8 @@ def farthest_point_sample_reference(xyz: np.ndarray, npoint: int) -> np.ndarray:
     return np.array(out, np.int64)
 
 
-def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint: int) -> torch.Tensor:
+def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint: int,
+                                 picks: torch.Tensor | None = None) -> torch.Tensor:
     """Export formulation of FPS over the valid points of one set. xyz [N, 3] (finite), valid [N]
     bool -> int64 [npoint] indices into N.
 
@@ -91,25 +92,29 @@ def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint:
     (mapped back to N): start at the first valid point, pick the first index of the largest
     running minimum squared distance; invalid points carry distance -1 so they are never picked
     while a valid one exists. Slots past the number of valid points pick already chosen points
-    (distance 0); a set without valid points gives index 0 everywhere. The ``npoint`` - 1 picks
-    run in :func:`radaredge.ops.loops.fixed_point_loop` (one ONNX Loop once exported), not unrolled.
+    (distance 0); a set without valid points gives index 0 everywhere. The picks run in
+    :func:`radaredge.ops.loops.fixed_point_loop` (one ONNX Loop once exported), not unrolled.
+    ``picks`` (a 0-d int64 tensor), when given, stops the loop after that many slots: the later
+    slots hold the start index (callers that need fewer picks than ``npoint`` at run time).
     """
     n = xyz.shape[0]
     start = torch.argmax(valid.to(torch.int64))                                 # first valid (0 if none)
     dist = torch.where(valid, torch.full((n,), float("inf")), torch.full((n,), -1.0))
     slots = torch.arange(npoint, dtype=torch.int64)
     out = torch.zeros(npoint, dtype=torch.int64) + start
+    limit = torch.full((), npoint, dtype=torch.int64) if picks is None else torch.clamp(picks, max=npoint)
 
-    def not_done(i, far, dist, out):
-        return i < npoint
+    def not_done(i, far, dist, out, limit):
+        return i < limit
 
-    def step(i, far, dist, out):
+    def step(i, far, dist, out, limit):
         centre = torch.index_select(xyz, 0, far.view(1))                       # [1, 3]
         dist = torch.minimum(dist, _sqdist(xyz, centre))
         far = torch.argmax(dist)
-        return i + 1, far, dist, torch.where(slots == i, far, out)
+        return i + 1, far, dist, torch.where(slots == i, far, out), limit.clone()
 
-    return fixed_point_loop(not_done, step, (torch.ones((), dtype=torch.int64), start, dist, out))[3]
+    state = (torch.ones((), dtype=torch.int64), start, dist, out, limit)
+    return fixed_point_loop(not_done, step, state)[3]
 
 
 def farthest_point_sample_masked_reference(xyz: np.ndarray, valid: np.ndarray, npoint: int) -> np.ndarray:
