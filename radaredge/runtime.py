@@ -12,6 +12,7 @@ an embedded application needs neither torch nor the radaredge model code::
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -91,7 +92,28 @@ class RadarModel:
             raise CapacityError(f"the scan has {int(out['num_pillars'])} non-empty pillars but {self.card.name}'s "
                                 f"sparse pillar attention holds spa.capacity = {self.card.get('spa.capacity')}; "
                                 "export with a larger spa.capacity (--config) or crop the scan")
+        if "cfa_converged" in out and not bool(out["cfa_converged"]):
+            self._cfa_not_converged()
         return out
+
+    def _cfa_not_converged(self) -> None:
+        """MAFF-Net's clustering map is not the one its method defines: the card's ``cfa.not_converged``
+        says whether that is an error (default for DBSCAN: more scan points than its capacity) or a
+        warning (default for GridDensityBEV: components longer than its max-pool steps)."""
+        cfa = self.card.get("cfa", {}) or {}
+        method = cfa.get("method", "grid_density")
+        policy = cfa.get("not_converged") or ("error" if method == "dbscan" else "warn")
+        if method == "dbscan":
+            msg = (f"the scan has more points inside the range than {self.card.name}'s DBSCAN clusters "
+                   f"(cfa.dbscan.capacity = {self.card.get('cfa.dbscan.capacity')}); the points beyond it were "
+                   "left out of the clustering map; export with a larger capacity (--config) or crop the scan")
+        else:
+            msg = (f"{self.card.name}'s GridDensityBEV components did not converge in cfa.grid.cc_iterations = "
+                   f"{self.card.get('cfa.grid.cc_iterations')} max-pool steps (the fork's partial labels); "
+                   "cc_mode: exact gives true components")
+        if policy == "error":
+            raise CapacityError(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
 
 def load(path: str | Path, threads: int = 2) -> RadarModel:

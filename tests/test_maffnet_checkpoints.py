@@ -25,7 +25,8 @@ STAGE_ONE_RULE = "stage-two modules on a stage-one card"
 
 
 @pytest.mark.parametrize("card, dataset", [("maffnet-vod-full", "vod"), ("maffnet-vod", "vod"),
-                                           ("maffnet-tj4d", "tj4d"), ("maffnet-tj4d-full", "tj4d")])
+                                           ("maffnet-tj4d", "tj4d"), ("maffnet-tj4d-full", "tj4d"),
+                                           ("maffnet-vod-full-dbscan", "vod"), ("maffnet-tj4d-full-dbscan", "tj4d")])
 def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, tmp_path):
     model = build_model(load_card(ROOT / "models" / f"{card}.yaml"))
     own = model.state_dict()
@@ -36,9 +37,12 @@ def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, t
     assert report.ignored == ["global_step"]
     assert report.loaded == len(own)
     assert len(dropped.pop(FUSER_RULE)) == 47
+    summary = report.summary()
+    assert summary.startswith(f"loaded {len(own)} tensors from {tmp_path / 'ckpt.pth'}; ")
+    assert f"dropped 47 ({FUSER_RULE})" in summary and summary.endswith("ignored global_step")
     if dataset == "tj4d":
         assert dropped.pop(VFE_RULE) == {"vfe.se.fc.0.weight", "vfe.se.fc.2.weight"}
-    if not card.endswith("-full"):
+    if "-full" not in card:
         assert {k.split(".")[0] for k in dropped.pop(STAGE_ONE_RULE)} == {"pfe", "point_head", "roi_head"}
     assert not dropped
     # the loaded tensors are upstream's, bit for bit

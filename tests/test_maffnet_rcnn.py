@@ -367,6 +367,16 @@ def test_vod_full_export_and_parity(vod_full_onnx):
     assert report["summary"]["boxes"]["mismatches"] == 0
 
 
+def test_tj4d_full_export_and_parity(tmp_path):
+    onnx_path = tmp_path / "maffnet-tj4d-full.onnx"
+    res = invoke("export", "--model", "maffnet-tj4d-full", "--output", onnx_path)
+    assert res.exit_code == 0, res.output
+    res = invoke("parity-check", "--model", "maffnet-tj4d-full", "--onnx", onnx_path, "--cases", "4", "--json")
+    report = json.loads(res.output)
+    assert res.exit_code == 0 and report["passed"], res.output
+    assert report["summary"]["boxes"]["mismatches"] == 0
+
+
 def test_vod_full_intermediates_under_256_mb(vod_full_onnx, tmp_path):
     """No node output of the ONNX graph exceeds 256 MB on a 5,000-point scan (onnxruntime profile)."""
     import onnxruntime as ort

@@ -149,3 +149,37 @@ def test_tiny_full_keypoints_and_vsa_equal_upstream_on_its_own_rois(tmp_path):
         ref = upstream_cda_keypoints(pts[m, :3], pts[m & cluster.numpy(), :3], out["rois"].numpy(), k, 2.5, 3.0)
         assert out["keypoint_valid"].numpy().all(), name
         np.testing.assert_array_equal(out["keypoints"].numpy(), ref, err_msg=name)
+
+
+def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
+    """maffnet-vod-full with upstream-format fuser and pfe weights, on a drive scan and a dense
+    5-frame cloud: exactly 1024 keypoints, equal to upstream's CDA given the graph's own rois and
+    cluster points, and VSA features within 1e-4 of upstream's VoxelSetAbstraction_cda."""
+    from radaredge.models.maffnet_spec import five_frame_points
+    card = load_card(ROOT / "models" / "maffnet-vod-full.yaml")
+    model = build_model(card)
+    fuser = UpstreamCQCACaf().eval()
+    sa = card.get("stage_two.vsa.sa_clusterpoints")
+    r, v = card.get("pillars.point_cloud_range"), card.get("pillars.voxel_size")
+    vsa = UpstreamVSA(7, 64, sa["radii"], sa["nsample"], sa["mlps"], 128, r, v).eval()
+    state = {k: t for k, t in model.state_dict().items() if not k.startswith(("fuser.", "pfe."))}
+    state.update({"fuser." + k: t for k, t in randomise(fuser, 8).items()})
+    state.update({"pfe." + k: t for k, t in randomise(vsa, 9).items()})
+    torch.save({"model_state": state}, tmp_path / "upstream.pth")
+    load_checkpoint(model, tmp_path / "upstream.pth")
+    from radaredge.registry import model_spec
+    clouds = [model_spec(card).make_cases(card, 1, 5)[0][1]["points"], five_frame_points(3, card)]
+    for pts in clouds:
+        trace: dict = {}
+        with torch.no_grad():
+            out = model.run(torch.from_numpy(pts), trace=trace)
+            _, _, _, cluster = model.cfa_stage(torch.from_numpy(pts), reference=False)
+        m = upstream_scan_mask(pts, r) & np.isfinite(pts).all(1)
+        ref = upstream_cda_keypoints(pts[m, :3], pts[m & cluster.numpy(), :3], out["rois"].numpy(), 1024, 2.5, 3.0)
+        assert out["keypoints"].shape == (1024, 3) and out["keypoint_valid"].all()
+        np.testing.assert_array_equal(out["keypoints"].numpy(), ref)
+        with torch.no_grad():
+            xyz, feats, scan = scan_points(torch.from_numpy(pts), r)
+            before, _ = model.pfe(trace["fused"][0], out["keypoints"], xyz, feats, scan)
+            before_r, _ = vsa(ref, trace["fused"][0], pts[m])
+        assert float((before - before_r).abs().max()) <= 1e-4

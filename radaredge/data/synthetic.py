@@ -866,6 +866,29 @@ def vod_table(scan: RadarScan) -> np.ndarray:
     return np.column_stack([xyz, scan.column("rcs"), v_r, v_r_compensated, np.zeros(len(xyz))]).astype(np.float32)
 
 
+def vod_accumulated_table(scans: list[RadarScan], fov_deg: float | None = None) -> np.ndarray:
+    """View-of-Delft ``radar_5frames``-style rows [N, 7] (the :func:`vod_table` columns) from
+    consecutive scans, the newest last: every scan's points moved into the newest scan's radar
+    frame (through the poses), ``time`` = the scan's timestamp minus the newest one (s, <= 0),
+    velocities as each scan measured them. ``fov_deg`` keeps the points within that azimuth of
+    the x axis (a camera field-of-view crop, as VoD's FOV_POINTS_ONLY); None keeps all."""
+    if not scans:
+        raise InputError("vod_accumulated_table: no scans given")
+    newest = scans[-1]
+    to_newest = np.linalg.inv(newest.pose)
+    rows = []
+    for scan in scans:
+        table = vod_table(scan).astype(np.float64)
+        xyz1 = np.column_stack([table[:, :3], np.ones(len(table))])
+        table[:, :3] = (xyz1 @ (to_newest @ scan.pose).T)[:, :3]
+        table[:, 6] = scan.timestamp - newest.timestamp
+        rows.append(table)
+    out = np.concatenate(rows)
+    if fov_deg is not None:
+        out = out[np.abs(np.degrees(np.arctan2(out[:, 1], out[:, 0]))) <= fov_deg]
+    return out.astype(np.float32)
+
+
 def tj4d_table(scan: RadarScan) -> np.ndarray:
     """``scan`` as TJ4DRadSet radar rows, float32 [N, 8] of ``radaredge.data.readers.TJ4D_COLUMNS`` =
     X, Y, Z (m), V_r (m/s), Range (m), Power, Alpha, Beta.

@@ -41,6 +41,7 @@ from torch import nn
 from ..cards import ModelCard
 from ..config import config_from_dict
 from ..errors import CapacityError, ConfigError
+from ..ops.dbscan import DbscanConfig, cqca_cfa_map, cqca_cfa_map_reference
 from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
 from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
@@ -59,11 +60,28 @@ class SpaConfig:
     capacity: int = 1024          # pillar slots of the exported attention; more pillars are reported
 
 
+CFA_METHODS = ("grid_density", "dbscan")
+
+
 @dataclass(frozen=True)
 class CfaConfig:
-    """Card section ``cfa`` (the grid itself is ``cfa.grid``, a GridDensityConfig)."""
+    """Card section ``cfa`` scalars; the method's own settings are ``cfa.grid`` (GridDensityConfig)
+    or ``cfa.dbscan`` (DbscanConfig)."""
 
     velocity_feature: str = "v_r_comp"   # card feature column used as the map's velocity (upstream DBSCAN_V)
+    method: str = "grid_density"         # "grid_density" (the fthbng77 fork) or "dbscan" (upstream CQCA_cfa)
+    not_converged: str = ""              # runtime on cfa_converged False: "warn" or "error"; default: the
+                                         # method's ("warn" for grid_density, "error" for dbscan)
+
+    def __post_init__(self):
+        if self.method not in CFA_METHODS:
+            raise ValueError(f"method must be one of {CFA_METHODS}, got {self.method!r}")
+        if self.not_converged not in ("", "warn", "error"):
+            raise ValueError(f"not_converged must be 'warn' or 'error', got {self.not_converged!r}")
+
+    @property
+    def on_not_converged(self) -> str:
+        return self.not_converged or ("error" if self.method == "dbscan" else "warn")
 
 
 @dataclass(frozen=True)
@@ -126,12 +144,42 @@ def _conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1, padding: int
 
 
 class ClusteringFeatureAssist(nn.Module):
-    """CFA (upstream ``image_backbone``): GridDensityBEV map [3, H, W] -> CNN -> [64, H, W]."""
+    """CFA (upstream ``image_backbone``): a clustering map [3, H, W] -> CNN -> [64, H, W].
 
-    def __init__(self, grid: GridDensityConfig):
+    The map is GridDensityBEV's (``grid``, the fork's) or upstream CQCA_cfa's DBSCAN map
+    (``dbscan``, :mod:`radaredge.ops.dbscan`): sklearn's DBSCAN on (x, y, velocity) of the scan
+    points, computed in the graph; channels velocity, raw cluster size, raw label."""
+
+    def __init__(self, grid: GridDensityConfig | None = None, dbscan: DbscanConfig | None = None):
         super().__init__()
-        self.grid_density = GridDensityBEV(grid)
+        if (grid is None) == (dbscan is None):
+            raise ConfigError("cfa: exactly one of a GridDensityBEV grid and a DBSCAN config is needed")
+        self.grid_density = GridDensityBEV(grid) if grid is not None else None
+        self.dbscan = dbscan
         self.conv = nn.Sequential(*_conv_bn_relu(3, 16), *_conv_bn_relu(16, 32), *_conv_bn_relu(32, 64))
+
+    def clustering_map(self, xyv: torch.Tensor, scan: torch.Tensor, reference: bool):
+        """(map [3, H, W], cluster_points [N] bool, converged [] bool) for points xyv [N, 3]
+        (x, y in m, velocity in m/s); ``scan`` marks the points upstream's model sees."""
+        if self.grid_density is not None:
+            everything = np.ones(len(xyv), bool) if reference else torch.ones(xyv.shape[0], dtype=torch.bool)
+            if reference:
+                bev, mask, converged = grid_density_bev_reference(xyv.numpy(), everything, self.grid_density.config)
+                return torch.from_numpy(bev), torch.from_numpy(mask), torch.tensor(converged)
+            return self.grid_density(xyv, everything)
+        # the scan points first, in index order, so ``capacity`` counts scan points; then back
+        if reference:
+            s = scan.numpy()
+            order = np.concatenate([np.flatnonzero(s), np.flatnonzero(~s)])
+            bev, mask, converged = cqca_cfa_map_reference(xyv.numpy()[order], s[order], self.dbscan)
+            back = np.zeros(len(s), bool)
+            back[order] = mask
+            return torch.as_tensor(bev), torch.from_numpy(back), torch.tensor(bool(converged))
+        n = xyv.shape[0]
+        ar = torch.arange(n)
+        order = torch.argsort(torch.where(scan, ar, ar + n))
+        bev, mask, converged = cqca_cfa_map(xyv[order], scan[order], self.dbscan)
+        return bev, torch.zeros(n, dtype=torch.bool).scatter(0, order, mask), converged
 
 
 class SELayer(nn.Module):
@@ -419,7 +467,7 @@ class MAFFNet(nn.Module):
     """MAFF-Net stage one with both formulations. Build it with :func:`build_maffnet`."""
 
     def __init__(self, features: list[str], classes: list[str], pillars: PillarConfig, spa: SpaConfig,
-                 cfa: CfaConfig, grid: GridDensityConfig, caf: CafConfig, backbone: BackboneConfig,
+                 cfa: CfaConfig, grid: GridDensityConfig | DbscanConfig, caf: CafConfig, backbone: BackboneConfig,
                  head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig, stage_two=None):
         super().__init__()
         if features[:3] != ["x", "y", "z"]:
@@ -431,14 +479,18 @@ class MAFFNet(nn.Module):
         nx, ny, nz = pillars.grid_size
         if nz != 1:
             raise ConfigError(f"pillars: the z range must be one voxel (got {nz})")
-        if (grid.map_h, grid.map_w) != (ny, nx):
-            raise ConfigError(f"cfa.grid is {grid.map_h} x {grid.map_w} cells but the pillar grid is {ny} x {nx}")
+        rows, cols = (grid.map_rows, grid.map_cols) if isinstance(grid, DbscanConfig) else (grid.map_h, grid.map_w)
+        if (rows, cols) != (ny, nx):
+            section = "cfa.dbscan" if isinstance(grid, DbscanConfig) else "cfa.grid"
+            raise ConfigError(f"{section} is {rows} x {cols} cells but the pillar grid is {ny} x {nx}")
         self.features, self.classes = list(features), list(classes)
         self.velocity_index = features.index(cfa.velocity_feature)
         self.spa_config, self.head_config, self.nms_config = spa, head, nms
         self.vfe = PillarFeatureNet(len(features), pillars)
         self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
-        self.image_backbone = ClusteringFeatureAssist(grid)
+        self.cfa_config = cfa
+        self.image_backbone = (ClusteringFeatureAssist(dbscan=grid) if isinstance(grid, DbscanConfig)
+                               else ClusteringFeatureAssist(grid=grid))
         self.fuser = CrossAttentionFusion(pillars.out_channels, 64, caf)
         self.backbone_2d = BaseBEVBackbone(caf.out_channels, backbone)
         per_loc = sum(len(a.anchor_sizes) * len(a.anchor_rotations) for a in anchors)
@@ -490,15 +542,11 @@ class MAFFNet(nn.Module):
         return canvas, num, torch.zeros((), dtype=torch.bool)
 
     def cfa_stage(self, points: torch.Tensor, reference: bool):
-        """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool, cluster_points [N] bool
-        = GridDensityBEV's point mask, the points of non-noise cells)."""
+        """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool, cluster_points [N] bool:
+        GridDensityBEV's points of non-noise cells, or DBSCAN's non-noise scan points)."""
         xyv = torch.stack([points[:, 0], points[:, 1], points[:, self.velocity_index]], 1)
-        gd = self.image_backbone.grid_density
-        if reference:
-            bev, mask, converged = grid_density_bev_reference(xyv.numpy(), np.ones(len(xyv), bool), gd.config)
-            bev, mask, converged = torch.from_numpy(bev), torch.from_numpy(mask), torch.tensor(converged)
-        else:
-            bev, mask, converged = gd(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))
+        scan = two.scan_points(points, self.vfe.config.point_cloud_range)[2]
+        bev, mask, converged = self.image_backbone.clustering_map(xyv, scan, reference)
         return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged, mask
 
     def head_stage(self, fused: torch.Tensor):
@@ -599,14 +647,19 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
     torch.manual_seed(int(card.get("seed", 0)))
     head = dict(card.get("dense_head", {}) or {})
     head.pop("anchors", None)
+    cfa = config_from_dict(CfaConfig, {k: v for k, v in (card.get("cfa", {}) or {}).items()
+                                       if k not in ("grid", "dbscan")}, f"{card.where}: cfa")
+    unused = "grid" if cfa.method == "dbscan" else "dbscan"
+    if card.get(f"cfa.{unused}") is not None:
+        raise ConfigError(f"{card.where}: cfa.{unused} is set but cfa.method is {cfa.method!r}; remove one")
     model = MAFFNet(
         features=card.features,
         classes=list(card.get("classes", [])),
         pillars=card.section("pillars", PillarConfig),
         spa=card.section("spa", SpaConfig),
-        cfa=config_from_dict(CfaConfig, {k: v for k, v in (card.get("cfa", {}) or {}).items() if k != "grid"},
-                             f"{card.where}: cfa"),
-        grid=card.section("cfa.grid", GridDensityConfig),
+        cfa=cfa,
+        grid=(card.section("cfa.dbscan", DbscanConfig) if cfa.method == "dbscan"
+              else card.section("cfa.grid", GridDensityConfig)),
         caf=card.section("caf", CafConfig),
         backbone=card.section("backbone_2d", BackboneConfig),
         head=config_from_dict(HeadConfig, head, f"{card.where}: dense_head"),

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..cards import ModelCard
-from ..data.synthetic import generate_scan, tj4d_table, vod_table
+from ..data.synthetic import generate_scan, generate_sequence, tj4d_table, vod_accumulated_table, vod_table
 from ..errors import ConfigError
 from .maffnet import MAFFNet, build_maffnet, output_names, stage_times
 from .spec import ModelSpec, OutputSpec
@@ -52,18 +52,37 @@ def _out_of_range(rng: np.random.Generator, card: ModelCard, width: int, n: int 
     return pts
 
 
+DENSE_TRAFFIC = {"num_cars": 10, "num_pedestrians": 8, "num_cyclists": 6, "static_points": 600}
+VOD_CAMERA_FOV_DEG = 32.9   # half the horizontal field of view of VoD's camera (FOV_POINTS_ONLY)
+
+
+def five_frame_points(seed: int, card: ModelCard, dense: bool = True) -> np.ndarray:
+    """A VoD ``radar_5frames``-style cloud: 5 consecutive synthetic scans moved into the newest
+    scan's frame, ``time`` <= 0 s, cropped to the camera's field of view, in the card's columns."""
+    seq = generate_sequence(5, seed=seed, **(DENSE_TRAFFIC if dense else {}))
+    cols = dict(zip(("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"), vod_accumulated_table(seq, VOD_CAMERA_FOV_DEG).T))
+    return np.ascontiguousarray(np.stack([cols[f] for f in card.features], 1), np.float32)
+
+
 def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, np.ndarray]]]:
     """``n`` synthetic scans in rotation: urban drives, 40 % dynamic points, dense traffic (more
-    clusters for the CFA), and drives with points outside the range; one in ten has 3 points."""
+    clusters for the CFA), drives with points outside the range and, for cards with VoD's
+    ``time`` column, dense 5-frame accumulated clouds (upstream's radar_5frames input); one in ten
+    has 3 points."""
     kinds = ("drive", "dynamic-40%", "dense-traffic", "out-of-range")
+    if "time" in card.features and set(card.features) <= {"x", "y", "z", "rcs", "v_r", "v_r_comp", "time"}:
+        kinds += ("5-frame",)
     cases = []
     for i in range(n):
         kind = kinds[i % len(kinds)]
         s = seed * 1000 + i
         overrides = {"dynamic_fraction": 0.4} if kind == "dynamic-40%" else {}
         if kind == "dense-traffic":
-            overrides = {"num_cars": 10, "num_pedestrians": 8, "num_cyclists": 6, "static_points": 600}
-        pts = synthetic_points(generate_scan(seed=s, **overrides), card)
+            overrides = dict(DENSE_TRAFFIC)
+        if kind == "5-frame":
+            pts = five_frame_points(s, card)
+        else:
+            pts = synthetic_points(generate_scan(seed=s, **overrides), card)
         rng = np.random.default_rng(s)
         if kind == "out-of-range":
             pts = np.concatenate([pts, _out_of_range(rng, card, pts.shape[1])])
