@@ -252,6 +252,17 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
     out = model.run(model_spec(card).make_cases(card, 1, 3)[0][1]["points"])
     assert out["boxes"].shape[1] == 7 and len(out["boxes"]) == len(out["scores"]) == len(out["labels"])
     assert out["keypoints"].shape == (64, 3) and set(out["labels"].tolist()) <= {1, 2, 3}
+    # fewer points than keypoint slots, and an empty scan: the graph equals the torch export formulation
+    net = build_model(card)
+    full = model_spec(card).make_cases(card, 1, 3)[0][1]["points"]
+    inside = full[(full[:, 0] >= 0) & (full[:, 0] <= 12.8) & (np.abs(full[:, 1]) <= 6.4)]
+    for pts in (inside[:3], full[:0]):
+        got = model.run(pts)
+        with torch.no_grad():
+            want = net.run(torch.from_numpy(pts))
+        for k in ("keypoints", "keypoint_valid", "rois", "boxes"):
+            np.testing.assert_allclose(got[k], want[k].numpy(), atol=1e-5, err_msg=f"{len(pts)} points: {k}")
+        assert got["keypoint_valid"].all() == (len(pts) > 0)
 
 
 def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):

@@ -9,7 +9,8 @@ from rosbags.typesys import Stores, get_typestore
 from radaredge.data.readers import (
     FORMATS, TJ4D_COLUMNS, VOD_COLUMNS, iter_rosbag, read_rosbag, read_scan, read_tj4d_bin, read_vod_bin,
 )
-from radaredge.data.synthetic import generate_scan, write_tj4d_bin, write_vod_bin
+from radaredge.data.synthetic import (generate_scan, generate_sequence, vod_accumulated_table, write_tj4d_bin,
+                                      write_vod_bin)
 from radaredge.errors import InputError
 
 CARD = ["x", "y", "z", "v_r", "rcs"]
@@ -67,6 +68,17 @@ def test_files_written_by_the_synthetic_generator_read_back_as_the_card_columns(
     scan = generate_scan(seed=1)
     for write, fmt in ((write_vod_bin, "vod"), (write_tj4d_bin, "tj4d")):
         np.testing.assert_array_equal(read_scan(write(tmp_path / f"{fmt}.bin", scan), CARD, fmt), scan.points)
+
+
+def test_vod_radar_5frames_layout_reads_into_the_maffnet_vod_columns(tmp_path):
+    """VoD's radar_5frames files (5 scans in the newest scan's frame, time <= 0 s) have the
+    single-scan layout; they read into MAFF-Net's VoD features unchanged, time column included."""
+    table = vod_accumulated_table(generate_sequence(5, seed=1), fov_deg=32.9)
+    table.astype("<f4").tofile(tmp_path / "00042.bin")
+    pts = read_scan(tmp_path / "00042.bin", ["x", "y", "z", "rcs", "v_r", "v_r_comp", "time"])
+    np.testing.assert_array_equal(pts, table)
+    assert (pts[:, 6] <= 0).all() and len(np.unique(pts[:, 6])) == 5
+    assert (np.abs(np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))) <= 32.9).all()
 
 
 def test_empty_scan_is_zero_rows(tmp_path):

@@ -85,6 +85,20 @@ class CfaConfig:
 
 
 @dataclass(frozen=True)
+class InputConfig:
+    """Card section ``input``: what one call of the graph expects (upstream's test-time input)."""
+
+    scans_accumulated: int = 1     # scans accumulated into one cloud (VoD radar_5frames: 5, time <= 0 s)
+    crop: str = "none"             # "camera_fov": points outside the camera's view removed beforehand
+
+    def __post_init__(self):
+        if not isinstance(self.scans_accumulated, int) or self.scans_accumulated < 1:
+            raise ValueError(f"scans_accumulated must be an integer >= 1, got {self.scans_accumulated!r}")
+        if self.crop not in ("none", "camera_fov"):
+            raise ValueError(f"crop must be 'none' or 'camera_fov', got {self.crop!r}")
+
+
+@dataclass(frozen=True)
 class CafConfig:
     """Card section ``caf``: upstream CQCA_caf's shape (TransformerFusionBlock defaults)."""
 
@@ -649,6 +663,7 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
     head.pop("anchors", None)
     cfa = config_from_dict(CfaConfig, {k: v for k, v in (card.get("cfa", {}) or {}).items()
                                        if k not in ("grid", "dbscan")}, f"{card.where}: cfa")
+    card.section("input", InputConfig)             # validated here; the runtime and docs read it
     unused = "grid" if cfa.method == "dbscan" else "dbscan"
     if card.get(f"cfa.{unused}") is not None:
         raise ConfigError(f"{card.where}: cfa.{unused} is set but cfa.method is {cfa.method!r}; remove one")

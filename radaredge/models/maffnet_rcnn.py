@@ -189,6 +189,12 @@ class ProposalLayer(nn.Module):
 # ----------------------------------------------------------------------------- CDA keypoints
 
 
+def _first_true(mask: torch.Tensor) -> torch.Tensor:
+    """Index of the first True of ``mask`` [N], or N when there is none (N = 0 included: a
+    sentinel keeps the ArgMax input non-empty)."""
+    return torch.argmax(torch.cat([mask, torch.ones(1, dtype=torch.bool)]).to(torch.int64))
+
+
 class CDAKeypointSampler(nn.Module):
     """Upstream VoxelSetAbstraction_cda's CDA keypoints of one scan (no parameters).
 
@@ -228,15 +234,14 @@ class CDAKeypointSampler(nn.Module):
         k, n = self.cfg.num_keypoints, xyz.shape[0]
         selected = cluster & self.cylinder_mask(xyz, rois, roi_valid).any(1)
         ar = torch.arange(n)
-        first_cluster = (ar == torch.argmax(cluster.to(torch.int64))) & cluster
+        first_cluster = (ar == _first_true(cluster)) & cluster
         kept = selected | (first_cluster & ~selected.any())
         count = kept.sum()
         slots = torch.arange(k)
         # step 2: index order (first K kept points) or FPS when more than K are kept
         key = torch.where(kept, ar, ar + n).to(torch.float32)
-        m = min(k, n)
-        ordered = torch.topk(key, m, largest=False, sorted=True).values.to(torch.int64)
-        ordered = torch.cat([ordered, torch.zeros(k - m, dtype=torch.int64)]) if m < k else ordered
+        pad = torch.arange(k, dtype=torch.float32) + 2 * n          # K keys above any point's: N < K works
+        ordered = torch.topk(torch.cat([key, pad]), k, largest=False, sorted=True).values.to(torch.int64)
         over = count > k
         fps_kept = farthest_point_sample_masked(xyz, kept, k, torch.where(over, k, 0))
         first = torch.where(over, fps_kept, torch.where(ordered >= n, 0, ordered))
@@ -248,7 +253,8 @@ class CDAKeypointSampler(nn.Module):
         cyc = torch.remainder(slots - n1, torch.clamp(picks, min=1))
         idx = torch.where(slots < n1, first, torch.gather(fill, 0, cyc))
         valid = (slots < n1) | (n_scan > 0)
-        return xyz[idx], valid
+        padded = torch.cat([xyz, xyz.new_zeros(1, 3)])                # an empty scan reads the zero row
+        return padded[torch.where(valid, idx, n)], valid
 
     def reference(self, xyz: np.ndarray, cluster: np.ndarray, scan: np.ndarray, rois: np.ndarray,
                   roi_valid: np.ndarray):

@@ -98,7 +98,8 @@ def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint:
     slots hold the start index (callers that need fewer picks than ``npoint`` at run time).
     """
     n = xyz.shape[0]
-    start = torch.argmax(valid.to(torch.int64))                                 # first valid (0 if none)
+    start = torch.argmax(torch.cat([valid, torch.zeros(1, dtype=torch.bool)]).to(torch.int64))  # first valid
+    start = torch.where(start < n, start, 0)                                    # (0 if none; N = 0 too)
     dist = torch.where(valid, torch.full((n,), float("inf")), torch.full((n,), -1.0))
     slots = torch.arange(npoint, dtype=torch.int64)
     out = torch.zeros(npoint, dtype=torch.int64) + start

@@ -81,7 +81,14 @@ class SAModuleMSG(nn.Module):
 
     def forward(self, xyz: torch.Tensor, valid: torch.Tensor, features: torch.Tensor,
                 centres: torch.Tensor) -> torch.Tensor:
-        """Export formulation: xyz [N, 3], valid [N] bool, features [N, C], centres [S, 3] -> [S, out]."""
+        """Export formulation: xyz [N, 3], valid [N] bool, features [N, C], centres [S, 3] -> [S, out].
+
+        The point set is padded with max(nsample) invalid rows, so any N (0 included) gives the
+        ball query at least nsample candidates and every gathered index a row to read."""
+        pad = max(self.nsamples)
+        xyz = torch.cat([xyz, xyz.new_zeros(pad, 3)])
+        valid = torch.cat([valid, valid.new_zeros(pad)])
+        features = torch.cat([features, features.new_zeros(pad, features.shape[1])])
         out = []
         for radius, nsample, mlp in zip(self.radii, self.nsamples, self.mlps):
             idx, empty = ball_query_masked(xyz.unsqueeze(0), valid.unsqueeze(0), centres.unsqueeze(0),
