@@ -35,6 +35,20 @@ def test_masked_fps_matches_reference(seed, keep):
             assert (got == 0).all()
 
 
+def test_masked_fps_stops_after_the_given_picks():
+    xyz, rng = _cloud(5)
+    valid = rng.random(len(xyz)) < 0.7
+    full = farthest_point_sample_masked_reference(xyz, valid, 20)
+    for picks in (0, 1, 7, 20, 25):
+        got = farthest_point_sample_masked(torch.from_numpy(xyz), torch.from_numpy(valid), 20,
+                                           torch.tensor(picks)).numpy()
+        done = max(min(picks, 20), 1)                      # slot 0 is the start in any case
+        np.testing.assert_array_equal(got[:done], full[:done], err_msg=f"picks {picks}")
+        assert (got[done:] == full[0]).all()             # the rest hold the start index
+    empty = farthest_point_sample_masked(torch.zeros(0, 3), torch.zeros(0, dtype=torch.bool), 4, torch.tensor(0))
+    assert empty.tolist() == [0, 0, 0, 0]
+
+
 def test_masked_fps_line():
     xyz = np.zeros((12, 3), np.float32)
     xyz[:, 0] = np.arange(12)

@@ -348,14 +348,15 @@ class CrossAttentionFusion(nn.Module):
         return self.conv(torch.cat([pillar, self.se(self.crossfusion(pillar, cfa))], 1))
 
 
-# Upstream CQCA_caf parameters with no effect on its output at test time (one fusion layer, one
-# loop, CQCA_caf returning only the pillar branch): the unused patch embedder, the commented-out
-# dynamic position bias, the CFA-query direction of the attention, the CFA branch's MLP and the
-# block's third MLP, the norms that are never called and the coefficients of the CFA branch.
+# Upstream's stage-two modules, dropped from a checkpoint by the stage-one cards.
 STAGE_TWO_PREFIXES = ("pfe.", "point_head.", "roi_head.")
 # TJ4D's RadarPillarVFE_TJ builds an SE layer on its 11 inputs with reduction 16 (0-wide tensors)
 # and never calls it.
 UNUSED_VFE_KEYS = ("vfe.se.",)
+# Upstream CQCA_caf parameters with no effect on its output at test time (one fusion layer, one
+# loop, CQCA_caf returning only the pillar branch): the unused patch embedder, the commented-out
+# dynamic position bias, the CFA-query direction of the attention, the CFA branch's MLP and the
+# block's third MLP, the norms that are never called and the coefficients of the CFA branch.
 UNUSED_FUSER_KEYS = (
     "fuser.crossfusion.bev_embedder.",
     "fuser.crossfusion.crosstransformer.0.ln_input.",
@@ -502,7 +503,6 @@ class MAFFNet(nn.Module):
         self.spa_config, self.head_config, self.nms_config = spa, head, nms
         self.vfe = PillarFeatureNet(len(features), pillars)
         self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
-        self.cfa_config = cfa
         self.image_backbone = (ClusteringFeatureAssist(dbscan=grid) if isinstance(grid, DbscanConfig)
                                else ClusteringFeatureAssist(grid=grid))
         self.fuser = CrossAttentionFusion(pillars.out_channels, 64, caf)

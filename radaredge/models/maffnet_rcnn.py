@@ -285,10 +285,9 @@ class CDAKeypointSampler(nn.Module):
         if need > 0 and len(scan_idx):
             picks = scan_idx[farthest_point_sample_reference(xyz[scan_idx], min(need, len(scan_idx)))]
             idx += [picks[j % len(picks)] for j in range(need)]
-        valid = np.zeros(k, bool)
-        valid[:len(idx)] = True
-        idx += [0] * (k - len(idx))
-        return torch.from_numpy(xyz[np.array(idx, np.int64)]), torch.from_numpy(valid)
+        keypoints = np.zeros((k, 3), np.float32)                   # slots without a point stay zero
+        keypoints[:len(idx)] = xyz[np.array(idx, np.int64)]
+        return torch.from_numpy(keypoints), torch.from_numpy(np.arange(k) < len(idx))
 
 
 # ----------------------------------------------------------------------------- VSA and point head

@@ -137,19 +137,27 @@ def _exact_components(mask: torch.Tensor, jumps: list[int]):
 
 
 def _hook(parent, valid, cells, h, w):
+    """One hooking step on the grid: the neighbour roots come from the 3 x 3 max-pool."""
+    return hook_roots(parent, valid, cells, *_neighbour_roots(parent, valid, h, w), dim=1)
+
+
+def hook_roots(parent, active, ids, nb_max, nb_min, dim: int):
     """Conditional (to the largest neighbouring root) and stagnant (to the smallest) hooking.
 
-    Scatter-reduce onto ``parent`` gathers, per root r (a star's cells all point at r), the
-    largest / smallest root next to its star; background cells are their own parent and
-    contribute their own index, which changes nothing.
+    ``parent`` maps every element to its root (all trees are stars), ``ids`` are the elements'
+    own indices, ``nb_max`` / ``nb_min`` the largest / smallest root among each element's
+    neighbours (itself included) and ``active`` the elements that take part; all along axis
+    ``dim``. Scatter-reduce onto ``parent`` gathers, per root r, the largest / smallest root next
+    to its star; inactive elements are their own parent and contribute their own index, which
+    changes nothing. Shared by the grid components here and the DBSCAN core graph
+    (:mod:`radaredge.ops.dbscan`).
     """
-    nb_max, nb_min = _neighbour_roots(parent, valid, h, w)
-    up = cells.scatter_reduce(1, parent, torch.where(valid, nb_max, cells), reduce="amax", include_self=True)
-    down = cells.scatter_reduce(1, parent, torch.where(valid, nb_min, cells), reduce="amin", include_self=True)
-    hooks_up = up > cells
+    up = ids.scatter_reduce(dim, parent, torch.where(active, nb_max, ids), reduce="amax", include_self=True)
+    down = ids.scatter_reduce(dim, parent, torch.where(active, nb_min, ids), reduce="amin", include_self=True)
+    hooks_up = up > ids
     hooked_onto = torch.zeros_like(parent).scatter_reduce(
-        1, torch.where(hooks_up, up, cells), hooks_up.to(torch.int64), reduce="amax", include_self=True) > 0
-    stagnant = ~hooks_up & ~hooked_onto & (down < cells)
+        dim, torch.where(hooks_up, up, ids), hooks_up.to(torch.int64), reduce="amax", include_self=True) > 0
+    stagnant = ~hooks_up & ~hooked_onto & (down < ids)
     return torch.where(hooks_up, up, torch.where(stagnant, down, parent))
 
 

@@ -93,7 +93,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .components import exact_schedule
+from .components import exact_schedule, hook_roots
 
 
 @dataclass(frozen=True)
@@ -203,20 +203,10 @@ def dbscan_labels(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig, rou
 
 
 def _hook(parent, adj, core, idx, m):
-    """Conditional (to the largest adjacent root) and stagnant (to the smallest) hooking.
-
-    At the start of a round every tree is a star, so ``parent`` holds roots only and a
-    scatter onto ``parent`` collects, per root, the largest / smallest root adjacent to any
-    point of its star; non-core points are their own isolated root and contribute themselves.
-    """
-    nb_max, nb_min = _neighbour_roots(parent, adj, m)
-    up = idx.scatter_reduce(0, parent, torch.where(core, nb_max, idx), reduce="amax", include_self=True)
-    down = idx.scatter_reduce(0, parent, torch.where(core, nb_min, idx), reduce="amin", include_self=True)
-    hooks_up = up > idx
-    hooked_onto = torch.zeros_like(parent).scatter_reduce(
-        0, torch.where(hooks_up, up, idx), hooks_up.to(torch.int64), reduce="amax", include_self=True) > 0
-    stagnant = ~hooks_up & ~hooked_onto & (down < idx)
-    return torch.where(hooks_up, up, torch.where(stagnant, down, parent))
+    """One hooking step on the core graph (:func:`radaredge.ops.components.hook_roots`); the
+    neighbour roots are row extrema over the dense adjacency. Non-core points are their own
+    isolated roots."""
+    return hook_roots(parent, core, idx, *_neighbour_roots(parent, adj, m), dim=0)
 
 
 def _neighbour_roots(parent, adj, m):
