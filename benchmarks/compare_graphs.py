@@ -1,0 +1,81 @@
+"""Time two exported graphs of one model family against each other on 2 cores, alternating.
+
+For the question "did this change make the graph slower?": both ``.onnx`` files run in
+onnxruntime on the same synthetic cases, timed in one loop that alternates them every run
+(:func:`radaredge.bench.benchmark`), then each is profiled once more and its kernel time split by
+stage (:func:`radaredge.ort_stages.stage_times_from_profile`, the stages of the card given with
+``--model``). Writes ``benchmarks/results/compare-<label>-<date>.json`` and prints a table.
+
+    python benchmarks/compare_graphs.py --model maffnet-vod --a old.onnx --b export/maffnet-vod.onnx \\
+        --label fuser --runs 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+from pathlib import Path
+
+import onnx
+
+from radaredge.bench import benchmark, cpu_name, pin_threads, profile_runs
+from radaredge.cards import load_card
+from radaredge.ort import make_session, run_session
+from radaredge.ort_stages import stage_times_from_profile
+from radaredge.registry import model_spec
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int = 4) -> dict:
+    """Alternating p50/p90 of graphs ``a`` and ``b`` and their per-stage kernel ms (mean per run)."""
+    card = load_card(model)
+    spec = model_spec(card)
+    cases = [feeds for _, feeds in spec.make_cases(card, cases_n, 1)]
+    sessions = {str(p): make_session(p, threads=threads) for p in (a, b)}
+    backends = {name: (lambda feeds, s=s: run_session(s, feeds)) for name, s in sessions.items()}
+    results = {r.backend: r for r in benchmark(backends, cases, runs)}
+    out = {"model": model, "cases": cases_n, "runs": runs, "threads": threads, "graphs": []}
+    for path in (a, b):
+        events = profile_runs(path, cases, threads, len(cases))
+        stages = stage_times_from_profile(events, onnx.load(str(path), load_external_data=False),
+                                          list(spec.onnx_stages), spec.onnx_post_outputs, len(cases))
+        r = results[str(path)]
+        out["graphs"].append({"onnx": str(path), "p50_ms": r.p50_ms, "p90_ms": r.p90_ms, "stage_ms": stages})
+    return out
+
+
+def table(result: dict) -> str:
+    names = list(dict.fromkeys(k for g in result["graphs"] for k in g["stage_ms"]))
+    lines = ["| graph | p50 ms | p90 ms | " + " | ".join(names) + " |",
+             "|---|---:|---:|" + "---:|" * len(names)]
+    for g in result["graphs"]:
+        stages = " | ".join(f"{g['stage_ms'].get(k, 0.0):.1f}" for k in names)
+        lines.append(f"| {Path(g['onnx']).name} | {g['p50_ms']:.1f} | {g['p90_ms']:.1f} | {stages} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", required=True, help="card whose cases and stages to use")
+    ap.add_argument("--a", type=Path, required=True)
+    ap.add_argument("--b", type=Path, required=True)
+    ap.add_argument("--label", required=True, help="names the JSON file")
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--cases", type=int, default=4, help="synthetic cases of the card (VoD's fifth: a 5-frame cloud)")
+    args = ap.parse_args(argv)
+    cores = pin_threads(args.threads)
+    result = compare(args.model, args.a, args.b, args.runs, args.threads, args.cases)
+    result.update(date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), cpu=cpu_name(), cores=cores)
+    path = ROOT / "benchmarks" / "results" / f"compare-{args.label}-{args.cases}cases-{result['date'][:10]}.json"
+    path.write_text(json.dumps(result, indent=2))
+    print(table(result))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
