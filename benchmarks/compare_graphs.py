@@ -4,7 +4,9 @@ For the question "did this change make the graph slower?": both ``.onnx`` files 
 onnxruntime on the same synthetic cases, timed in one loop that alternates them every run
 (:func:`radaredge.bench.benchmark`), then each is profiled once more and its kernel time split by
 stage (:func:`radaredge.ort_stages.stage_times_from_profile`, the stages of the card given with
-``--model``). Writes ``benchmarks/results/compare-<label>-<date>.json`` and prints a table.
+``--model``): the median over several profiled passes, which alternate between the graphs, since
+one profiled pass per graph moves stages of identical code by tens of percent. Writes
+``benchmarks/results/compare-<label>-<date>.json`` and prints a table.
 
     python benchmarks/compare_graphs.py --model maffnet-vod --a old.onnx --b export/maffnet-vod.onnx \\
         --label fuser --runs 20
@@ -15,6 +17,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -29,19 +32,32 @@ from radaredge.registry import model_spec
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int = 4) -> dict:
-    """Alternating p50/p90 of graphs ``a`` and ``b`` and their per-stage kernel ms (mean per run)."""
+def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int = 4,
+            keep: list[int] | None = None, rounds: int = 5) -> dict:
+    """Alternating p50/p90 of graphs ``a`` and ``b`` over the card's first ``cases_n`` synthetic
+    cases (only the indices in ``keep`` when given), and per stage the median over ``rounds``
+    profiled passes (alternating a and b) of the mean kernel ms per case."""
     card = load_card(model)
     spec = model_spec(card)
-    cases = [feeds for _, feeds in spec.make_cases(card, cases_n, 1)]
+    named = spec.make_cases(card, cases_n, 1)
+    named = [named[i] for i in keep] if keep else named
+    cases = [feeds for _, feeds in named]
     sessions = {str(p): make_session(p, threads=threads) for p in (a, b)}
     backends = {name: (lambda feeds, s=s: run_session(s, feeds)) for name, s in sessions.items()}
     results = {r.backend: r for r in benchmark(backends, cases, runs)}
-    out = {"model": model, "cases": cases_n, "runs": runs, "threads": threads, "graphs": []}
+    graphs = {str(p): onnx.load(str(p), load_external_data=False) for p in (a, b)}
+    passes: dict[str, list[dict]] = {str(p): [] for p in (a, b)}
+    for _ in range(rounds):
+        for path in (a, b):
+            events = profile_runs(path, cases, threads, len(cases))
+            passes[str(path)].append(stage_times_from_profile(events, graphs[str(path)], list(spec.onnx_stages),
+                                                              spec.onnx_post_outputs, len(cases)))
+    out = {"model": model, "cases": [name for name, _ in named],
+           "points": [int(len(next(iter(f.values())))) for f in cases], "runs": runs, "threads": threads,
+           "profile_rounds": rounds, "graphs": []}
     for path in (a, b):
-        events = profile_runs(path, cases, threads, len(cases))
-        stages = stage_times_from_profile(events, onnx.load(str(path), load_external_data=False),
-                                          list(spec.onnx_stages), spec.onnx_post_outputs, len(cases))
+        rows = passes[str(path)]
+        stages = {k: statistics.median(r.get(k, 0.0) for r in rows) for k in dict.fromkeys(k for r in rows for k in r)}
         r = results[str(path)]
         out["graphs"].append({"onnx": str(path), "p50_ms": r.p50_ms, "p90_ms": r.p90_ms, "stage_ms": stages})
     return out
@@ -66,11 +82,13 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cases", type=int, default=4, help="synthetic cases of the card (VoD's fifth: a 5-frame cloud)")
+    ap.add_argument("--case", type=int, action="append", help="time only this case index (repeatable)")
+    ap.add_argument("--rounds", type=int, default=5, help="profiled passes per graph for the stage split")
     args = ap.parse_args(argv)
     cores = pin_threads(args.threads)
-    result = compare(args.model, args.a, args.b, args.runs, args.threads, args.cases)
+    result = compare(args.model, args.a, args.b, args.runs, args.threads, args.cases, args.case, args.rounds)
     result.update(date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), cpu=cpu_name(), cores=cores)
-    path = ROOT / "benchmarks" / "results" / f"compare-{args.label}-{args.cases}cases-{result['date'][:10]}.json"
+    path = ROOT / "benchmarks" / "results" / f"compare-{args.label}-{result['date'][:10]}.json"
     path.write_text(json.dumps(result, indent=2))
     print(table(result))
     print(f"wrote {path}")

@@ -109,9 +109,10 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
     """Load a state_dict ``.pth`` into ``model`` and account for every key.
 
     Keys the model declares as having no effect on its output (``model.checkpoint_drop_rules()``:
-    (rule, key prefixes) pairs, e.g. upstream MAFF-Net parameters that its test-time path never
-    reads) are dropped by rule; :data:`IGNORED_CHECKPOINT_KEYS` are ignored. Any other missing,
-    unexpected or shape-mismatched key is a one-line ConfigError naming the keys.
+    (rule, key prefixes, only zero-size tensors) per rule, e.g. upstream MAFF-Net parameters that
+    its test-time path never reads) are dropped by rule; :data:`IGNORED_CHECKPOINT_KEYS` are
+    ignored. Any other missing, unexpected or shape-mismatched key is a one-line ConfigError
+    naming the keys.
     """
     obj = _read_state(path)
     rules = model.checkpoint_drop_rules() if hasattr(model, "checkpoint_drop_rules") else []
@@ -119,7 +120,8 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
     report = LoadReport(str(path), 0)
     state = {}
     for key, value in obj.items():
-        rule = next((r for r, prefixes in rules if key not in own and key.startswith(tuple(prefixes))), None)
+        rule = next((r for r, prefixes, empty_only in rules if key not in own and key.startswith(tuple(prefixes))
+                     and (value.numel() == 0 or not empty_only)), None)
         if rule is not None:
             report.dropped.setdefault(rule, []).append(key)
         elif key in IGNORED_CHECKPOINT_KEYS and key not in own:

@@ -104,4 +104,9 @@ def test_bad_checkpoints_end_with_one_clear_error(tmp_path):
     torch.save({"model_state": {**state, "vfe.pfn_layers.0.linear.weight": 3}}, tmp_path / "value.pth")
     _one_error_line(export(tmp_path / "value.pth"), "named tensors", "vfe.pfn_layers.0.linear.weight")
     _one_error_line(export(tmp_path / "nowhere.pth"), "nowhere.pth does not exist")
+    # TJ4D's never-called SE layer is dropped only as upstream builds it, zero-width
+    torch.save({"model_state": {**state, "vfe.se.fc.0.weight": torch.zeros(2, 11)}}, tmp_path / "se.pth")
+    _one_error_line(export(tmp_path / "se.pth"), "unexpected keys (1): vfe.se.fc.0.weight")
+    torch.save({"model_state": {**state, "vfe.se.fc.0.weight": torch.zeros(0, 11)}}, tmp_path / "se0.pth")
+    assert load_checkpoint(model, tmp_path / "se0.pth").dropped == {VFE_RULE: ["vfe.se.fc.0.weight"]}
     assert not (tmp_path / "x.onnx").exists()

@@ -123,9 +123,9 @@ def test_vsa_equals_upstream(tmp_path):
     assert float((feats_out - feats_r).abs().max()) <= 1e-4
 
 
-def test_tiny_full_keypoints_and_vsa_equal_upstream_on_its_own_rois(tmp_path):
-    """The whole tiny two-stage model with upstream-format fuser and pfe weights: the graph's
-    keypoints (exactly K, every scan) and the VSA features equal upstream's given the same rois."""
+def test_tiny_full_fused_map_and_keypoints_equal_upstream_on_its_own_rois(tmp_path):
+    """The whole tiny two-stage model with upstream-format fuser weights: the fused map and the
+    graph's keypoints (exactly K, every scan) equal upstream's given the same rois."""
     card = load_card(TINY_FULL)
     model = build_model(card)
     caf = card.get("caf")
@@ -174,12 +174,13 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
         with torch.no_grad():
             out = model.run(torch.from_numpy(pts), trace=trace)
             _, _, _, cluster = model.cfa_stage(torch.from_numpy(pts), reference=False)
+            cfa_feat, _, _, _ = model.cfa_stage(torch.from_numpy(pts), reference=False)
+            pillar, _, _ = model.pillar_stage(torch.from_numpy(pts), reference=False)
+            fused_ref = fuser(cfa_feat, pillar.unsqueeze(0))[0]           # upstream's spatial_features
         m = upstream_scan_mask(pts, r) & np.isfinite(pts).all(1)
         ref = upstream_cda_keypoints(pts[m, :3], pts[m & cluster.numpy(), :3], out["rois"].numpy(), 1024, 2.5, 3.0)
         assert out["keypoints"].shape == (1024, 3) and out["keypoint_valid"].all()
         np.testing.assert_array_equal(out["keypoints"].numpy(), ref)
-        with torch.no_grad():
-            xyz, feats, scan = scan_points(torch.from_numpy(pts), r)
-            before, _ = model.pfe(trace["fused"][0], out["keypoints"], xyz, feats, scan)
-            before_r, _ = vsa(ref, trace["fused"][0], pts[m])
-        assert float((before - before_r).abs().max()) <= 1e-4
+        with torch.no_grad():                                   # the graph's own VSA output, as wired
+            _, features_ref = vsa(ref, fused_ref, pts[m])
+        assert float((trace["point_features"] - features_ref).abs().max()) <= 1e-4

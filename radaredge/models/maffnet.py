@@ -5,9 +5,10 @@ Pipeline for one radar scan (points [N, F], columns as the card names them, rada
    ReLU, max over the pillar's points) scattered to the canvas [64, ny, nx];
 2. map_to_bev_module: sparse pillar attention (SPA) with the 2-D rotary term
    (:mod:`radaredge.ops.pillar_attention`);
-3. image_backbone: clustering-feature assistance (CFA) = GridDensityBEV map (velocity, density,
-   cluster label; :mod:`radaredge.ops.grid_density`) -> 3x3 convs 3 -> 16 -> 32 -> 64;
-4. fuser: upstream's CQCA_caf at test time (:class:`CrossAttentionFusion`): the CFA tokens query
+3. image_backbone: clustering-feature assistance (CFA) = a clustering map -> 3x3 convs 3 -> 16 ->
+   32 -> 64; the map is the fork's GridDensityBEV (:mod:`radaredge.ops.grid_density`) or, with
+   ``cfa.method: dbscan``, upstream CQCA_cfa's sklearn-DBSCAN map (:mod:`radaredge.ops.dbscan`);
+4. fuser: upstream's CQCA_caf at test time (:mod:`radaredge.models.maffnet_fuser`): the CFA tokens query
    the pillar tokens, the result is upsampled onto the pillar map, SE, concat, conv;
 5. backbone_2d: OpenPCDet's BaseBEVBackbone; dense_head: AnchorHeadSingle (class, box and
    direction 1x1 convs), residual box decoding with the direction bin;
@@ -24,8 +25,8 @@ so an upstream checkpoint loads by name; upstream parameters that never reach th
 dropped by the rules of :meth:`MAFFNet.checkpoint_drop_rules` (docs/models/maffnet.md lists them).
 
 ``forward`` is the export formulation; ``run(..., reference=True)`` computes the same function
-with the reference ops (dynamic voxelization, NonZero-based SPA, GridDensityBEV with Python
-loops, plain-Python greedy NMS).
+with the reference ops (dynamic voxelization, NonZero-based SPA, GridDensityBEV or DBSCAN with
+Python loops, plain-Python greedy NMS).
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from ..cards import ModelCard
@@ -47,6 +47,7 @@ from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_referenc
 from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
 from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_features_reference, scatter_pillars_reference
 from . import maffnet_rcnn as two
+from .maffnet_fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -70,18 +71,14 @@ class CfaConfig:
 
     velocity_feature: str = "v_r_comp"   # card feature column used as the map's velocity (upstream DBSCAN_V)
     method: str = "grid_density"         # "grid_density" (the fthbng77 fork) or "dbscan" (upstream CQCA_cfa)
-    not_converged: str = ""              # runtime on cfa_converged False: "warn" or "error"; default: the
-                                         # method's ("warn" for grid_density, "error" for dbscan)
+    not_converged: str = ""              # radaredge.runtime on cfa_converged False: "warn" or "error";
+                                         # "" = the method's ("warn" for grid_density, "error" for dbscan)
 
     def __post_init__(self):
         if self.method not in CFA_METHODS:
             raise ValueError(f"method must be one of {CFA_METHODS}, got {self.method!r}")
         if self.not_converged not in ("", "warn", "error"):
             raise ValueError(f"not_converged must be 'warn' or 'error', got {self.not_converged!r}")
-
-    @property
-    def on_not_converged(self) -> str:
-        return self.not_converged or ("error" if self.method == "dbscan" else "warn")
 
 
 @dataclass(frozen=True)
@@ -96,18 +93,6 @@ class InputConfig:
             raise ValueError(f"scans_accumulated must be an integer >= 1, got {self.scans_accumulated!r}")
         if self.crop not in ("none", "camera_fov"):
             raise ValueError(f"crop must be 'none' or 'camera_fov', got {self.crop!r}")
-
-
-@dataclass(frozen=True)
-class CafConfig:
-    """Card section ``caf``: upstream CQCA_caf's shape (TransformerFusionBlock defaults)."""
-
-    pool_size: int = 16           # vert_anchors = horz_anchors: tokens are a pool_size x pool_size grid
-    heads: int = 8                # h
-    ffn_ratio: int = 4            # block_exp of mlp_ir
-    se_reduction: int = 16        # SELayer reduction
-    out_channels: int = 64        # OUT_CHANNEL
-    bn_eps: float = 1e-5          # the fusion conv's BatchNorm2d (torch default; upstream sets none)
 
 
 @dataclass(frozen=True)
@@ -172,208 +157,31 @@ class ClusteringFeatureAssist(nn.Module):
         self.dbscan = dbscan
         self.conv = nn.Sequential(*_conv_bn_relu(3, 16), *_conv_bn_relu(16, 32), *_conv_bn_relu(32, 64))
 
-    def clustering_map(self, xyv: torch.Tensor, scan: torch.Tensor, reference: bool):
-        """(map [3, H, W], cluster_points [N] bool, converged [] bool) for points xyv [N, 3]
-        (x, y in m, velocity in m/s); ``scan`` marks the points upstream's model sees."""
+    def forward(self, xyv: torch.Tensor, scan: torch.Tensor):
+        """Export formulation: (map [3, H, W], cluster_points [N] bool, converged [] bool) for points
+        xyv [N, 3] (x, y in m, velocity in m/s); ``scan`` marks the points upstream's model sees.
+        (A forward, so the exported nodes carry the ``image_backbone`` scope for the stage split.)"""
         if self.grid_density is not None:
-            everything = np.ones(len(xyv), bool) if reference else torch.ones(xyv.shape[0], dtype=torch.bool)
-            if reference:
-                bev, mask, converged = grid_density_bev_reference(xyv.numpy(), everything, self.grid_density.config)
-                return torch.from_numpy(bev), torch.from_numpy(mask), torch.tensor(converged)
-            return self.grid_density(xyv, everything)
+            return self.grid_density(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))
         # the scan points first, in index order, so ``capacity`` counts scan points; then back
-        if reference:
-            s = scan.numpy()
-            order = np.concatenate([np.flatnonzero(s), np.flatnonzero(~s)])
-            bev, mask, converged = cqca_cfa_map_reference(xyv.numpy()[order], s[order], self.dbscan)
-            back = np.zeros(len(s), bool)
-            back[order] = mask
-            return torch.as_tensor(bev), torch.from_numpy(back), torch.tensor(bool(converged))
         n = xyv.shape[0]
         ar = torch.arange(n)
         order = torch.argsort(torch.where(scan, ar, ar + n))
         bev, mask, converged = cqca_cfa_map(xyv[order], scan[order], self.dbscan)
         return bev, torch.zeros(n, dtype=torch.bool).scatter(0, order, mask), converged
 
-
-class SELayer(nn.Module):
-    """Squeeze-and-excitation (upstream se_module.SELayer): x * sigmoid(FC(ReLU(FC(mean over H, W))))."""
-
-    def __init__(self, channels: int, reduction: int):
-        super().__init__()
-        hidden = max(channels // reduction, 1)
-        self.fc = nn.Sequential(nn.Linear(channels, hidden, bias=False), nn.ReLU(),
-                                nn.Linear(hidden, channels, bias=False), nn.Sigmoid())
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.fc(x.mean((2, 3))).unsqueeze(-1).unsqueeze(-1)
-
-
-class Scalar(nn.Module):
-    """A learnable scalar factor (upstream LearnableCoefficient: x * bias, bias initialised to 1)."""
-
-    def __init__(self):
-        super().__init__()
-        self.bias = nn.Parameter(torch.ones(1))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.bias
-
-
-class PoolMix(nn.Module):
-    """Upstream LearnableWeights: w1 * average-pooled + w2 * max-pooled tokens (both start at 0.5)."""
-
-    def __init__(self):
-        super().__init__()
-        self.w1 = nn.Parameter(torch.full((1,), 0.5))
-        self.w2 = nn.Parameter(torch.full((1,), 0.5))
-
-    def forward(self, avg: torch.Tensor, peak: torch.Tensor) -> torch.Tensor:
-        return avg * self.w1 + peak * self.w2
-
-
-def pool_window(size: int, tokens: int) -> tuple[int, int]:
-    """(kernel, stride) of upstream's AdaptivePool2d along one axis: stride = size // tokens,
-    kernel = size - (tokens - 1) * stride (the last window ends at the border); (1, 1) when the
-    axis is already ``tokens`` long (upstream then skips pooling)."""
-    if size < tokens:
-        raise ConfigError(f"caf.pool_size {tokens} exceeds the BEV map side {size}")
-    stride = size // tokens
-    return size - (tokens - 1) * stride, stride
-
-
-class ClusterQueryAttention(nn.Module):
-    """The eval-path part of upstream's CrossAttention that reaches CQCA_caf's output: queries from
-    LN1 of the clustering-feature (CFA) tokens, keys and values from LN2 of the pillar tokens,
-    ``heads`` heads of width C / heads, softmax(q k^T / sqrt(C / heads)) v, output projection.
-
-    Upstream also computes the opposite direction (pillar queries on CFA keys) and a dynamic
-    position bias whose sum is commented out; neither reaches the output (see UNUSED_FUSER_KEYS)."""
-
-    def __init__(self, channels: int, heads: int):
-        super().__init__()
-        if channels % heads:
-            raise ConfigError(f"caf.heads ({heads}) must divide the pillar channels ({channels})")
-        self.heads = heads
-        self.LN1 = nn.LayerNorm(channels)
-        self.LN2 = nn.LayerNorm(channels)
-        self.que_proj_vis = nn.Linear(channels, channels)
-        self.key_proj_ir = nn.Linear(channels, channels)
-        self.val_proj_ir = nn.Linear(channels, channels)
-        self.out_proj_ir = nn.Linear(channels, channels)
-
-    def forward(self, cfa_tokens: torch.Tensor, pillar_tokens: torch.Tensor) -> torch.Tensor:
-        """cfa_tokens, pillar_tokens [B, T, C] -> attended pillar values [B, T, C]."""
-        b, t, c = pillar_tokens.shape
-        d = c // self.heads
-
-        def heads(x):
-            return x.reshape(b, t, self.heads, d).transpose(1, 2)                      # [B, heads, T, d]
-
-        q = heads(self.que_proj_vis(self.LN1(cfa_tokens)))
-        kv = self.LN2(pillar_tokens)
-        att = torch.softmax(q @ heads(self.key_proj_ir(kv)).transpose(-1, -2) / math.sqrt(d), -1)
-        return self.out_proj_ir((att @ heads(self.val_proj_ir(kv))).transpose(1, 2).reshape(b, t, c))
-
-
-class CrossTransformerLayer(nn.Module):
-    """The pillar branch of upstream's CrossTransformerBlock (one layer, one loop):
-    a = c3 * ir + c4 * attention(cfa, ir); out = c7 * a + c8 * MLP_ir(LN2(a)), MLP = Linear, GELU, Linear."""
-
-    def __init__(self, channels: int, heads: int, ffn_ratio: int):
-        super().__init__()
-        self.crossatt = ClusterQueryAttention(channels, heads)
-        self.LN2 = nn.LayerNorm(channels)
-        self.mlp_ir = nn.Sequential(nn.Linear(channels, ffn_ratio * channels), nn.GELU(),
-                                    nn.Linear(ffn_ratio * channels, channels))
-        self.coefficient3, self.coefficient4 = Scalar(), Scalar()
-        self.coefficient7, self.coefficient8 = Scalar(), Scalar()
-
-    def forward(self, cfa_tokens: torch.Tensor, pillar_tokens: torch.Tensor) -> torch.Tensor:
-        a = self.coefficient3(pillar_tokens) + self.coefficient4(self.crossatt(cfa_tokens, pillar_tokens))
-        return self.coefficient7(a) + self.coefficient8(self.mlp_ir(self.LN2(a)))
-
-
-class TransformerFusion(nn.Module):
-    """Upstream TransformerFusionBlock, eval path: both maps [B, C, H, W] -> s x s tokens
-    (w1 * avg-pool + w2 * max-pool with upstream's fixed windows, :func:`pool_window`) plus their
-    own position embedding (``pos_emb_vis`` for CFA, ``pos_emb_ir`` for pillars); one
-    :class:`CrossTransformerLayer`; pillar tokens -> s x s map -> bilinear upsampling to H x W
-    (half-pixel centres, upstream's eval mode; training upsamples nearest) + the pillar map."""
-
-    def __init__(self, channels: int, cfg: CafConfig):
-        super().__init__()
-        s = cfg.pool_size
-        self.pool_size = s
-        self.pos_emb_vis = nn.Parameter(torch.randn(1, s * s, channels) * 0.02)
-        self.pos_emb_ir = nn.Parameter(torch.randn(1, s * s, channels) * 0.02)
-        self.vis_coefficient, self.ir_coefficient = PoolMix(), PoolMix()
-        self.crosstransformer = nn.Sequential(CrossTransformerLayer(channels, cfg.heads, cfg.ffn_ratio))
-
-    def _tokens(self, x: torch.Tensor, mix: PoolMix, pos: torch.Tensor) -> torch.Tensor:
-        b, c, h, w = x.shape
-        (kh, sh), (kw, sw) = pool_window(h, self.pool_size), pool_window(w, self.pool_size)
-        pooled = mix(F.avg_pool2d(x, (kh, kw), (sh, sw)), F.max_pool2d(x, (kh, kw), (sh, sw)))
-        return pooled.flatten(2).transpose(1, 2) + pos                                 # [B, s*s, C]
-
-    def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
-        b, c, h, w = pillar.shape
-        tokens = self.crosstransformer[0](self._tokens(cfa, self.vis_coefficient, self.pos_emb_vis),
-                                          self._tokens(pillar, self.ir_coefficient, self.pos_emb_ir))
-        s = self.pool_size
-        grid = tokens.transpose(1, 2).reshape(b, c, s, s)
-        return F.interpolate(grid, size=(h, w), mode="bilinear", align_corners=False) + pillar
-
-
-class CrossAttentionFusion(nn.Module):
-    """CAF = upstream ``fuser`` (CQCA_caf) at test time, with upstream's parameter names: for pillar
-    features P [B, C, H, W] (the SPA map) and CFA features Q [B, C, H, W],
-    out = ReLU(BN(Conv3x3([P, SE(TransformerFusion(P, Q))]))) [B, out_channels, H, W].
-
-    Only the parameters that reach the output exist here; a checkpoint's others are listed in
-    :data:`UNUSED_FUSER_KEYS` and dropped by the loader."""
-
-    def __init__(self, pillar_channels: int, cfa_channels: int, cfg: CafConfig):
-        super().__init__()
-        if cfa_channels != pillar_channels:
-            raise ConfigError(f"caf: the CFA map has {cfa_channels} channels, the pillar map {pillar_channels}; "
-                              "upstream's fusion needs equal widths (IN_CHANNEL_CROSS)")
-        c = pillar_channels
-        self.crossfusion = TransformerFusion(c, cfg)
-        self.se = SELayer(c, cfg.se_reduction)
-        self.conv = nn.Sequential(nn.Conv2d(2 * c, cfg.out_channels, 3, padding=1, bias=False),
-                                  nn.BatchNorm2d(cfg.out_channels, eps=cfg.bn_eps), nn.ReLU())
-
-    def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
-        return self.conv(torch.cat([pillar, self.se(self.crossfusion(pillar, cfa))], 1))
-
-
-# Upstream's stage-two modules, dropped from a checkpoint by the stage-one cards.
-STAGE_TWO_PREFIXES = ("pfe.", "point_head.", "roi_head.")
-# TJ4D's RadarPillarVFE_TJ builds an SE layer on its 11 inputs with reduction 16 (0-wide tensors)
-# and never calls it.
-UNUSED_VFE_KEYS = ("vfe.se.",)
-# Upstream CQCA_caf parameters with no effect on its output at test time (one fusion layer, one
-# loop, CQCA_caf returning only the pillar branch): the unused patch embedder, the commented-out
-# dynamic position bias, the CFA-query direction of the attention, the CFA branch's MLP and the
-# block's third MLP, the norms that are never called and the coefficients of the CFA branch.
-UNUSED_FUSER_KEYS = (
-    "fuser.crossfusion.bev_embedder.",
-    "fuser.crossfusion.crosstransformer.0.ln_input.",
-    "fuser.crossfusion.crosstransformer.0.ln_output.",
-    "fuser.crossfusion.crosstransformer.0.LN1.",
-    "fuser.crossfusion.crosstransformer.0.crossatt.dpb.",
-    "fuser.crossfusion.crosstransformer.0.crossatt.key_proj_vis.",
-    "fuser.crossfusion.crosstransformer.0.crossatt.val_proj_vis.",
-    "fuser.crossfusion.crosstransformer.0.crossatt.que_proj_ir.",
-    "fuser.crossfusion.crosstransformer.0.crossatt.out_proj_vis.",
-    "fuser.crossfusion.crosstransformer.0.mlp_vis.",
-    "fuser.crossfusion.crosstransformer.0.mlp.",
-    "fuser.crossfusion.crosstransformer.0.coefficient1.",
-    "fuser.crossfusion.crosstransformer.0.coefficient2.",
-    "fuser.crossfusion.crosstransformer.0.coefficient5.",
-    "fuser.crossfusion.crosstransformer.0.coefficient6.",
-)
+    def reference(self, xyv: torch.Tensor, scan: torch.Tensor):
+        """Reference formulation of :meth:`forward` (Python loops over points and cells)."""
+        if self.grid_density is not None:
+            bev, mask, converged = grid_density_bev_reference(xyv.numpy(), np.ones(len(xyv), bool),
+                                                              self.grid_density.config)
+            return torch.from_numpy(bev), torch.from_numpy(mask), torch.tensor(converged)
+        s = scan.numpy()
+        order = np.concatenate([np.flatnonzero(s), np.flatnonzero(~s)])
+        bev, mask, converged = cqca_cfa_map_reference(xyv.numpy()[order], s[order], self.dbscan)
+        back = np.zeros(len(s), bool)
+        back[order] = mask
+        return torch.as_tensor(bev), torch.from_numpy(back), torch.tensor(bool(converged))
 
 
 class BaseBEVBackbone(nn.Module):
@@ -516,12 +324,13 @@ class MAFFNet(nn.Module):
             r, v = pillars.point_cloud_range, pillars.voxel_size
             two.build_stage_two(self, stage_two, len(features) - 3, caf.out_channels, (r[0], r[1]), (v[0], v[1]))
 
-    def checkpoint_drop_rules(self) -> list[tuple[str, tuple[str, ...]]]:
-        """Upstream checkpoint keys this model drops on load, by rule (see export.load_checkpoint)."""
-        rules = [("upstream fuser parameters with no effect at test time", UNUSED_FUSER_KEYS),
-                 ("upstream RadarPillarVFE_TJ's zero-width SE layer, never called", UNUSED_VFE_KEYS)]
+    def checkpoint_drop_rules(self) -> list[tuple[str, tuple[str, ...], bool]]:
+        """Upstream checkpoint keys this model drops on load: (rule, key prefixes, only zero-size
+        tensors) per rule (see export.load_checkpoint)."""
+        rules = [("upstream fuser parameters with no effect at test time", UNUSED_FUSER_KEYS, False),
+                 ("upstream RadarPillarVFE_TJ's zero-width SE layer, never called", UNUSED_VFE_KEYS, True)]
         if self.stage_two_config is None:
-            rules.append(("stage-two modules on a stage-one card", STAGE_TWO_PREFIXES))
+            rules.append(("stage-two modules on a stage-one card", STAGE_TWO_PREFIXES, False))
         return rules
 
     def init_kaiming(self) -> None:
@@ -560,7 +369,8 @@ class MAFFNet(nn.Module):
         GridDensityBEV's points of non-noise cells, or DBSCAN's non-noise scan points)."""
         xyv = torch.stack([points[:, 0], points[:, 1], points[:, self.velocity_index]], 1)
         scan = two.scan_points(points, self.vfe.config.point_cloud_range)[2]
-        bev, mask, converged = self.image_backbone.clustering_map(xyv, scan, reference)
+        cfa = self.image_backbone
+        bev, mask, converged = cfa.reference(xyv, scan) if reference else cfa(xyv, scan)
         return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged, mask
 
     def head_stage(self, fused: torch.Tensor):
@@ -663,7 +473,7 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
     head.pop("anchors", None)
     cfa = config_from_dict(CfaConfig, {k: v for k, v in (card.get("cfa", {}) or {}).items()
                                        if k not in ("grid", "dbscan")}, f"{card.where}: cfa")
-    card.section("input", InputConfig)             # validated here; the runtime and docs read it
+    card.section("input", InputConfig)             # validated here; docs/models/maffnet.md explains it
     unused = "grid" if cfa.method == "dbscan" else "dbscan"
     if card.get(f"cfa.{unused}") is not None:
         raise ConfigError(f"{card.where}: cfa.{unused} is set but cfa.method is {cfa.method!r}; remove one")

@@ -79,9 +79,9 @@ Export (opset 18, dynamic N): Sub/Mul/Add/LessOrEqual in float64 for the distanc
 two float32 Mul + ReduceMax over [M, M] for the neighbour roots, ScatterElements (max / min)
 onto the roots and GatherElements for the jumps; ReduceMin, CumSum, ScatterElements (add, max),
 Gather, Where, Slice and Concat around them. The Python loops have constant trip counts and
-unroll: 636 nodes for capacity 2048 and a 320 x 320 map; onnxruntime CPU, 1 thread, about 2.5 ms
-per call for N = 300, 15 ms for N = 1000 and 75 ms at N >= capacity (quadratic in M). Beside each export op lives its plain numpy reference
-(:func:`dbscan_labels_reference`, :func:`cqca_cfa_map_reference`).
+unroll, so the node count grows with log2(capacity) only; the run time grows with M^2 (the
+README's benchmark section compares it with GridDensityBEV). Beside each export op lives its
+plain numpy reference (:func:`dbscan_labels_reference`, :func:`cqca_cfa_map_reference`).
 """
 
 from __future__ import annotations
