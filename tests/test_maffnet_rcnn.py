@@ -371,7 +371,7 @@ def vod_full_onnx(tmp_path_factory):
 
 
 def test_vod_full_export_and_parity(vod_full_onnx):
-    res = invoke("parity-check", "--model", "maffnet-vod-full", "--onnx", str(vod_full_onnx), "--cases", "2",
+    res = invoke("parity-check", "--model", "maffnet-vod-full", "--onnx", str(vod_full_onnx), "--cases", "5",
                  "--checkpoint", vod_full_onnx.parent / "upstream.pth", "--json")
     report = json.loads(res.output)
     assert res.exit_code == 0 and report["passed"], res.output

@@ -184,6 +184,13 @@ class ClusteringFeatureAssist(nn.Module):
         return torch.as_tensor(bev), torch.from_numpy(back), torch.tensor(bool(converged))
 
 
+# Upstream's stage-two modules, dropped from a checkpoint by the stage-one cards.
+STAGE_TWO_PREFIXES = ("pfe.", "point_head.", "roi_head.")
+# TJ4D's RadarPillarVFE_TJ builds an SE layer on its 11 inputs with reduction 16 (0-wide tensors)
+# and never calls it.
+UNUSED_VFE_KEYS = ("vfe.se.",)
+
+
 class BaseBEVBackbone(nn.Module):
     """OpenPCDet's BaseBEVBackbone: strided conv blocks, transposed-conv upsampling, concat."""
 
