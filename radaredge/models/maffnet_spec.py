@@ -24,18 +24,25 @@ def dynamic_axes(card: ModelCard) -> dict:
     return {"points": {0: "num_points"}}
 
 
+VOD_FEATURES = ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time")   # upstream's names of the VoD columns
+
+
 def synthetic_columns(scan) -> dict[str, np.ndarray]:
     """Every feature name a MAFF-Net card may use, from a synthetic scan: the VoD columns under
-    upstream's names (x, y, z, rcs, v_r, v_r_comp, time) and TJ4D's SNR (the Power column) and range."""
+    upstream's names (:data:`VOD_FEATURES`) and TJ4D's SNR (the Power column) and range."""
     vod, tj4d = vod_table(scan), tj4d_table(scan)
-    cols = dict(zip(("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"), vod.T))
+    cols = dict(zip(VOD_FEATURES, vod.T))
     cols.update(snr=tj4d[:, 5], range=tj4d[:, 4])
     return cols
 
 
 def synthetic_points(scan, card: ModelCard) -> np.ndarray:
     """A synthetic scan's points [N, F] float32 in the card's feature columns, in card order."""
-    cols = synthetic_columns(scan)
+    return _card_columns(synthetic_columns(scan), card)
+
+
+def _card_columns(cols: dict[str, np.ndarray], card: ModelCard) -> np.ndarray:
+    """The card's feature columns of ``cols`` [N, F] float32, in card order."""
     missing = [f for f in card.features if f not in cols]
     if missing:
         raise ConfigError(f"{card.where}: synthetic scans provide {sorted(cols)}; card features {missing} are not among them")
@@ -60,8 +67,7 @@ def five_frame_points(seed: int, card: ModelCard, dense: bool = True) -> np.ndar
     """A VoD ``radar_5frames``-style cloud: 5 consecutive synthetic scans moved into the newest
     scan's frame, ``time`` <= 0 s, cropped to the camera's field of view, in the card's columns."""
     seq = generate_sequence(5, seed=seed, **(DENSE_TRAFFIC if dense else {}))
-    cols = dict(zip(("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"), vod_accumulated_table(seq, VOD_CAMERA_FOV_DEG).T))
-    return np.ascontiguousarray(np.stack([cols[f] for f in card.features], 1), np.float32)
+    return _card_columns(dict(zip(VOD_FEATURES, vod_accumulated_table(seq, VOD_CAMERA_FOV_DEG).T)), card)
 
 
 def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, np.ndarray]]]:
@@ -70,7 +76,7 @@ def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, 
     ``time`` column, dense 5-frame accumulated clouds (upstream's radar_5frames input); one in ten
     has 3 points."""
     kinds = ("drive", "dynamic-40%", "dense-traffic", "out-of-range")
-    if "time" in card.features and set(card.features) <= {"x", "y", "z", "rcs", "v_r", "v_r_comp", "time"}:
+    if "time" in card.features and set(card.features) <= set(VOD_FEATURES):
         kinds += ("5-frame",)
     cases = []
     for i in range(n):

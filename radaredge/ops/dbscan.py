@@ -80,7 +80,7 @@ two float32 Mul + ReduceMax over [M, M] for the neighbour roots, ScatterElements
 onto the roots and GatherElements for the jumps; ReduceMin, CumSum, ScatterElements (add, max),
 Gather, Where, Slice and Concat around them. The Python loops have constant trip counts and
 unroll, so the node count grows with log2(capacity) only; the run time grows with M^2 (the
-README's benchmark section compares it with GridDensityBEV). Beside each export op lives its
+Speed section of docs/models/maffnet.md compares it with GridDensityBEV). Beside each export op lives its
 plain numpy reference (:func:`dbscan_labels_reference`, :func:`cqca_cfa_map_reference`).
 """
 
