@@ -8,6 +8,8 @@ RUNS    ?= 20
 
 .PHONY: setup test demo bench clean
 
+# `.[dev]` is every extra (export, eval, ros, openvino) plus the test tools; a device that only
+# runs exported graphs needs the base install (`pip install .`: numpy, onnxruntime, pyyaml, click).
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet -e '.[dev]'

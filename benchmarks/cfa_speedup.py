@@ -1,9 +1,9 @@
 """MAFF-Net's clustering-feature stage (upstream IMAGE_BACKBONE): GridDensityBEV vs the DBSCAN path.
 
-Times, on 2 pinned cores and interleaved per run (radaredge.bench.benchmark), the map that feeds
+Times, on 2 pinned cores and interleaved per run (radaredge.timing.benchmark), the map that feeds
 the 3 -> 16 -> 32 -> 64 CNN and the whole stage (map + CNN), for:
 - CQCA_cfa as upstream runs it: sklearn DBSCAN on (x, y, v_r_comp), a per-point cluster-size
-  loop, a last-write-wins map (tests/references/dbscan_cfa.cqca_cfa_map), then the CNN in torch;
+  loop, a last-write-wins map (radaredge.ops.dbscan.cqca_cfa_map_sklearn), then the CNN in torch;
 - the same with the cluster sizes counted by np.unique (DBSCAN's best case);
 - GridDensityBEV in torch (radaredge's export formulation);
 - GridDensityBEV in onnxruntime (the map, and the stage, exported alone).
@@ -11,6 +11,9 @@ Scans are synthetic VoD scans (one radar scan, and five scans merged as VoD's 5-
 restricted to the card's grid so the upstream indexing is valid.
 
     .venv/bin/python benchmarks/cfa_speedup.py --runs 20     # prints a Markdown table, writes JSON
+
+It imports radaredge as installed (``pip install -e .``, ``make setup``) and needs scikit-learn
+(the ``dev`` extra) for the upstream rows.
 """
 
 from __future__ import annotations
@@ -25,18 +28,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from radaredge.cards import load_card
+from radaredge.data.synthetic import generate_scan
+from radaredge.exporter import build_model
+from radaredge.models.maffnet_spec import synthetic_columns
+from radaredge.onnx_export import export_onnx
+from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
+from radaredge.ops.grid_density import GridDensityConfig
+from radaredge.runtime.session import make_session
+from radaredge.timing import benchmark, cpu_name, pin_threads
 
-from radaredge.bench import benchmark, cpu_name, pin_threads  # noqa: E402
-from radaredge.cards import load_card  # noqa: E402
-from radaredge.data.synthetic import generate_scan  # noqa: E402
-from radaredge.export import build_model  # noqa: E402
-from radaredge.models.maffnet_spec import synthetic_columns  # noqa: E402
-from radaredge.onnx_export import export_onnx  # noqa: E402
-from radaredge.ops.grid_density import GridDensityConfig  # noqa: E402
-from radaredge.ort import make_session  # noqa: E402
-from tests.references.dbscan_cfa import cqca_cfa_map  # noqa: E402
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 class _MapOnly(torch.nn.Module):
@@ -76,19 +78,24 @@ def scans(g: GridDensityConfig, merged: int, count: int, seed: int) -> list[np.n
 
 def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", count: int = 4,
         merges=(1, 5)) -> dict:
+    """Time every backend on ``count`` synthetic clouds per entry of ``merges`` (scans merged into
+    one cloud), ``runs`` interleaved runs after ``warmup``, on ``threads`` pinned threads. Returns
+    the JSON document: the host, and one row per (cloud size, part, backend) with p50 / p90 in ms
+    and the speed-up over the upstream per-point loop (its p50 over the row's)."""
     cores = pin_threads(threads)
     card = load_card(card_name)
     model = build_model(card)
     cfa = model.image_backbone
     g = cfa.grid_density.config
-    kw = dict(eps=g.eps, min_samples=g.min_density, max_cluster_size=g.max_density, map_h=g.map_h,
-              map_w=g.map_w, resolution=g.resolution, y_offset=-g.y_min)
-    tmp = Path(tempfile.mkdtemp())
+    upstream = DbscanConfig(eps=g.eps, min_samples=g.min_density, max_cluster_size=g.max_density,
+                            map_rows=g.map_h, map_cols=g.map_w, resolution=g.resolution, y_offset=-g.y_min)
     example = torch.zeros(50, 3)
-    export_onnx(_MapOnly(cfa.grid_density), (example,), tmp / "map.onnx", ["xyv"], ["map"], {"xyv": {0: "n"}})
-    export_onnx(_Stage(cfa), (example,), tmp / "stage.onnx", ["xyv"], ["features"], {"xyv": {0: "n"}})
-    map_session = make_session(tmp / "map.onnx", threads=threads)
-    stage_session = make_session(tmp / "stage.onnx", threads=threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        export_onnx(_MapOnly(cfa.grid_density), (example,), tmp / "map.onnx", ["xyv"], ["map"], {"xyv": {0: "n"}})
+        export_onnx(_Stage(cfa), (example,), tmp / "stage.onnx", ["xyv"], ["features"], {"xyv": {0: "n"}})
+        map_session = make_session(tmp / "map.onnx", threads=threads)
+        stage_session = make_session(tmp / "stage.onnx", threads=threads)
 
     def cnn(bev):
         return cfa.conv(bev.unsqueeze(0))
@@ -97,14 +104,15 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
         return cfa.grid_density(torch.from_numpy(xyv), torch.ones(len(xyv), dtype=torch.bool))[0]
 
     map_backends = {
-        "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cqca_cfa_map(f["xyv"], **kw),
-        "CQCA_cfa: DBSCAN + np.unique counts": lambda f: cqca_cfa_map(f["xyv"], vectorised=True, **kw),
+        "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cqca_cfa_map_sklearn(f["xyv"], upstream),
+        "CQCA_cfa: DBSCAN + np.unique counts": lambda f: cqca_cfa_map_sklearn(f["xyv"], upstream, vectorised=True),
         "GridDensityBEV, torch": lambda f: gd(f["xyv"]),
         "GridDensityBEV, onnxruntime": lambda f: map_session.run(None, {"xyv": f["xyv"]}),
     }
     stage_backends = {
-        "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cnn(cqca_cfa_map(f["xyv"], **kw)[0]),
-        "CQCA_cfa: DBSCAN + np.unique counts": lambda f: cnn(cqca_cfa_map(f["xyv"], vectorised=True, **kw)[0]),
+        "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cnn(cqca_cfa_map_sklearn(f["xyv"], upstream)[0]),
+        "CQCA_cfa: DBSCAN + np.unique counts":
+            lambda f: cnn(cqca_cfa_map_sklearn(f["xyv"], upstream, vectorised=True)[0]),
         "GridDensityBEV, torch": lambda f: cnn(gd(f["xyv"])),
         "GridDensityBEV, onnxruntime": lambda f: stage_session.run(None, {"xyv": f["xyv"]}),
     }
@@ -126,6 +134,7 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
 
 
 def table(result: dict) -> str:
+    """The rows of :func:`run`'s result as a Markdown table (p50 in ms)."""
     lines = ["| cloud | part | backend | p50 ms | x vs upstream |", "|---|---|---|---:|---:|"]
     for r in result["rows"]:
         cloud = f"{r['scans']} scan{'s' if r['scans'] > 1 else ''}, {r['points']} pts"
@@ -139,9 +148,12 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--card", default="maffnet-vod")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--clouds", type=int, default=4, help="synthetic clouds per cloud size")
+    ap.add_argument("--scans", type=lambda s: tuple(int(x) for x in s.split(",")), default=(1, 5),
+                    help="scans merged into one cloud, one cloud size per comma-separated count")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the JSON result")
     args = ap.parse_args(argv)
-    result = run(args.runs, args.warmup, args.threads, args.card)
+    result = run(args.runs, args.warmup, args.threads, args.card, args.clouds, args.scans)
     print(f"{args.card}: clustering-feature stage on {args.threads} thread(s), cores {result['cores']}, "
           f"{result['cpu']}, {args.runs} runs, {result['date']}")
     print(table(result))

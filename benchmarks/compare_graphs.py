@@ -3,7 +3,7 @@
 For the question "did this change make the graph slower?": both ``.onnx`` files run in
 onnxruntime on the same synthetic cases, timed in one loop that alternates them every run
 (:func:`radaredge.bench.benchmark`), then each is profiled once more and its kernel time split by
-stage (:func:`radaredge.ort_stages.stage_times_from_profile`, the stages of the card given with
+stage (:func:`radaredge.profiling.stage_times_from_profile`, the stages of the card given with
 ``--model``): the median over several profiled passes, which alternate between the graphs, since
 one profiled pass per graph moves stages of identical code by tens of percent. Writes
 ``benchmarks/results/compare-<label>-<date>.json`` and prints a table.
@@ -23,11 +23,11 @@ from pathlib import Path
 
 import onnx
 
-from radaredge.bench import benchmark, cpu_name, pin_threads, profile_runs
 from radaredge.cards import load_card
-from radaredge.ort import make_session, run_session
-from radaredge.ort_stages import stage_times_from_profile
+from radaredge.profiling import profile_runs, stage_times_from_profile
 from radaredge.registry import model_spec
+from radaredge.runtime.session import make_session, run_session
+from radaredge.timing import benchmark, cpu_name, pin_threads
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -38,7 +38,7 @@ def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int 
     cases (only the indices in ``keep`` when given), and per stage the median over ``rounds``
     profiled passes (alternating a and b) of the mean kernel ms per case."""
     card = load_card(model)
-    spec = model_spec(card)
+    spec = model_spec(card).graph()
     named = spec.make_cases(card, cases_n, 1)
     named = [named[i] for i in keep] if keep else named
     cases = [feeds for _, feeds in named]

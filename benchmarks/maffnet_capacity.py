@@ -25,7 +25,7 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.data.synthetic import generate_sequence, vod_accumulated_table
-from radaredge.export import build_model
+from radaredge.exporter import build_model
 from radaredge.models.maffnet_rcnn import scan_points
 from radaredge.models.maffnet_spec import DENSE_TRAFFIC, VOD_CAMERA_FOV_DEG
 

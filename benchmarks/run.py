@@ -24,21 +24,23 @@ from pathlib import Path
 
 import torch
 
-from radaredge.bench import (benchmark, cpu_name, format_differences, model_backends, output_differences,
-                             pin_threads, profile_runs, top_ops)
+import radaredge
+from radaredge.benchmarking import BenchOptions, pipeline_backends
 from radaredge.cards import load_card
-from radaredge.export import build_model, export_model
+from radaredge.exporter import build_model
 from radaredge.macs import count_macs, gemm_peak_gflops
-from radaredge.openvino_runtime import openvino_installed
-from radaredge.quantize import QUANTIZED_OPS, quantize_int8
+from radaredge.profiling import profile_runs, top_ops
+from radaredge.quantize import QUANTIZED_OPS
 from radaredge.registry import model_spec
+from radaredge.runtime.openvino import openvino_installed
+from radaredge.timing import benchmark, cpu_name, output_differences, pin_threads
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
 OPENVINO_BACKENDS = ("openvino", "openvino int8")
 # The single-graph cards: TDFANet's two, MAFF-Net stage one for both datasets, and both stages on
 # VoD with each clustering branch (the TJ4D two-stage cards differ from these only in grid size).
-# des4pos is a three-graph bundle with its own query/cell benchmark (`radaredge bench --model des4pos`).
+# des4pos exports three graphs and has its own query/cell benchmark (`radaredge bench --model des4pos`).
 SUITE_MODELS = ("tdfanet", "tdfanet-edge", "maffnet-vod", "maffnet-tj4d", "maffnet-vod-full", "maffnet-vod-full-dbscan")
 
 
@@ -49,8 +51,7 @@ def export_both(card, model, export_dir: Path) -> tuple[Path, Path]:
     fp32 = export_dir / f"{card.name}.onnx"
     int8 = export_dir / f"{card.name}.int8.onnx"
     print(f"  exporting {fp32} and quantising {int8}", flush=True)
-    export_model(card, fp32, model=model)
-    quantize_int8(card, fp32, int8)
+    radaredge.export(card, fp32, model=model, quantize="int8")
     return fp32, int8
 
 
@@ -64,11 +65,11 @@ def quantised_time_share(onnx_path: Path, cases: list[dict], threads: int, runs:
 def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path, openvino: bool) -> dict:
     card = load_card(name)
     model = build_model(card)
-    spec = model_spec(card)
+    graph = model_spec(card).graph()
     fp32, int8 = export_both(card, model, export_dir)
-    cases = [feeds for _, feeds in spec.make_cases(card, 4, 1)]
-    macs = count_macs(spec.run_export, model, {k: torch.from_numpy(v) for k, v in cases[0].items()})
-    backends = model_backends(card, model, fp32, threads, True, int8_path=int8, openvino=openvino)
+    cases = [feeds for _, feeds in graph.make_cases(card, 4, 1)]
+    macs = count_macs(graph.run_export, model, {k: torch.from_numpy(v) for k, v in cases[0].items()})
+    backends = pipeline_backends(card, graph, model, fp32, BenchOptions(threads=threads), int8, openvino)
     results = benchmark(backends, cases, runs, warmup=3)
     rows = []
     for r in results:
@@ -86,46 +87,6 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
         out["openvino_vs_onnxruntime"] = by["onnxruntime"]["p50_ms"] / by["openvino"]["p50_ms"]
         out["openvino_max_abs_diff"] = output_differences(backends["openvino"], backends["onnxruntime"], cases)
     return out
-
-
-def markdown(suite: dict) -> str:
-    lines = [
-        "# Benchmarks",
-        "",
-        f"Written by `make bench` (`python benchmarks/run.py`) on {suite['date']}: {suite['cpu']}, "
-        f"{suite['threads']} threads pinned to cores {suite['cores']}, {suite['runs']} timed runs per backend after "
-        f"3 warm-ups, backends alternating every run. Measured fp32 GEMM peak on these threads (best of 20 "
-        f"1024 x 1024 products): "
-        f"{suite['gemm_peak_gflops']:.1f} GFLOP/s. JSON: `{suite['json']}`; chart: `suite.png`.",
-        "",
-        "| model | backend | p50 ms | p90 ms | FPS | GMACs | % of fp32 GEMM peak |",
-        "|---|---|---:|---:|---:|---:|---:|",
-    ]
-    for m in suite["models"]:
-        for r in m["rows"]:
-            lines.append(f"| {m['model']} | {r['backend']} | {r['p50_ms']:.1f} | {r['p90_ms']:.1f} | {r['fps']:.2f} | "
-                         f"{r['gmacs']:.2f} | {100 * r['peak_fraction']:.1f} |")
-    lines += ["", "| model | onnxruntime fp32 vs torch reference | int8 vs fp32 | fp32 time in quantised ops |",
-              "|---|---:|---:|---:|"]
-    for m in suite["models"]:
-        lines.append(f"| {m['model']} | {m['ort_vs_reference']:.2f}x | {m['int8_vs_fp32']:.2f}x | "
-                     f"{100 * m['quantised_op_time_share']:.0f} % |")
-    with_openvino = [m for m in suite["models"] if "openvino_vs_onnxruntime" in m]
-    if with_openvino:
-        lines += ["", "| model | OpenVINO fp32 vs onnxruntime fp32 | largest output difference from onnxruntime |",
-                  "|---|---:|---|"]
-        for m in with_openvino:
-            lines.append(f"| {m['model']} | {m['openvino_vs_onnxruntime']:.2f}x | "
-                         f"{format_differences(m['openvino_max_abs_diff'])} |")
-    lines += ["", "GMACs count matrix products and convolutions, plus bilinear sampling (4 MACs per sample "
-              "and channel) and scatter updates (1 per element), which common counters report as zero; "
-              "pointwise ops are not counted. The int8 row's share of the fp32 peak can exceed 100 %: "
-              "int8 arithmetic is not bound by it. int8 quantises only " + ", ".join(QUANTIZED_OPS) +
-              " (static QDQ, uint8 activations, per-channel int8 weights on 7 bits unless a card sets "
-              "quantization.reduce_range: false). By Amdahl's law its speed-up cannot exceed "
-              "1 / (1 - share + share / s) for a kernel speed-up s, so a low share of fp32 time in those ops "
-              "explains a small int8 gain.", ""]
-    return "\n".join(lines)
 
 
 def chart(suite: dict, path: Path) -> None:
@@ -153,6 +114,16 @@ def chart(suite: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _render_readme(results_dir: Path) -> str:
+    """benchmarks/render.py's ``render(results_dir)``, loaded by path: this script also runs as an
+    imported module (tests), where benchmarks/ is not on sys.path."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("benchmarks_render", Path(__file__).with_name("render.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.render(results_dir)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", nargs="+", default=list(SUITE_MODELS))
@@ -177,9 +148,8 @@ def main(argv=None) -> int:
         print(f"{name}: benchmarking {', '.join(backends)}", flush=True)
         suite["models"].append(bench_card(name, args.runs, args.threads, peak, args.export_dir, openvino))
     json_path.write_text(json.dumps(suite, indent=2))
-    (args.out / "README.md").write_text(markdown(suite))
+    (args.out / "README.md").write_text(_render_readme(results_dir))
     chart(suite, args.out / "suite.png")
-    print(markdown(suite))
     print(f"wrote {json_path}, {args.out / 'README.md'}, {args.out / 'suite.png'}")
     return 0
 

@@ -27,7 +27,6 @@ from onnxruntime.quantization import CalibrationDataReader
 from .cards import ModelCard
 from .data.readers import FILE_SUFFIX, infer_format, read_scan
 from .errors import ConfigError, InputError
-from .registry import model_spec
 from .runtime import RadarModel
 
 DEFAULT_WINDOWS = 16        # calibration windows when none are asked for
@@ -42,9 +41,13 @@ class FeedList(CalibrationDataReader):
         return next(self._feeds, None)
 
 
-def synthetic_feeds(card: ModelCard, n: int, seed: int) -> list[dict[str, np.ndarray]]:
-    """The feeds of ``n`` synthetic cases of the card's model drawn with ``seed``."""
-    return [feeds for _, feeds in model_spec(card).make_cases(card, n, seed)]
+def synthetic_feeds(card: ModelCard, n: int, seed: int, graph=None) -> list[dict[str, np.ndarray]]:
+    """The feeds of ``n`` synthetic cases drawn with ``seed`` of ``graph`` (a
+    :class:`radaredge.models.spec.GraphSpec`; default the card's model's only graph)."""
+    if graph is None:
+        from .registry import model_spec
+        graph = model_spec(card).graph()
+    return [feeds for _, feeds in graph.make_cases(card, n, seed)]
 
 
 def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) -> list[Path]:

@@ -323,6 +323,23 @@ class EvalReport:
             "per_query": [self._query(i) for i in range(len(self.queries))],
         }
 
+    def lines(self) -> list[str]:
+        """The text report: setup, counts, Recall@1/5/10 per backend and top-1 agreement."""
+        lines = []
+        q, db = self.queries, self.database
+        lines.append(f"eval {self.model}: {len(q)} query windows from {len(q.sequences)} drive(s) vs {len(db)} database "
+                     f"windows from {len(db.sequences)} drive(s), K = {db.k}, true positive within {self.radius:g} m")
+        lines.append(f"{self.evaluated} queries evaluated, {self.skipped} skipped (no database window within "
+                     f"{self.radius:g} m)")
+        lines.append(f"{'backend':<18}" + "".join(f"{f'R@{n}':>9}" for n in RECALL_NS))
+        for name in self.results:
+            lines.append(f"{BACKEND_LABELS[name]:<18}" + "".join(f"{r:>9.2f}" for r in self.recall(name).values()))
+        if self.agreement is not None:
+            lines.append(f"top-1 agreement {BACKEND_LABELS[ONNX]} vs {BACKEND_LABELS[REFERENCE]}: "
+                         f"{self.agreement * 100:.1f} % of {len(q)} queries the same window, "
+                         f"{self.place_agreement * 100:.1f} % within {self.radius:g} m of each other")
+        return lines
+
     def write_json(self, path: str | os.PathLike) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -385,7 +402,7 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
     answerable(query_windows.positions, db_windows.positions, radius)
     backends = {ONNX: onnx_backend(exported)}
     if reference:
-        from .export import build_model, require_same_weights
+        from .exporter import build_model, require_same_weights
         net = build_model(card, checkpoint)
         require_same_weights(exported, net, checkpoint)
         backends[REFERENCE] = reference_backend(net)
@@ -412,9 +429,18 @@ LOCALIZATION_KS = (1, 5, 10)
 LOCALIZATION_THRESHOLDS = (5.0, 10.0, 15.0)
 
 
+def localization_levels(ks: Sequence[int], thresholds: Sequence[float]) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """``ks`` as positive ints and ``thresholds`` as positive finite distances (m); else ConfigError."""
+    ks = _check_ns(ks)
+    if not thresholds or any(not np.isfinite(t) or t <= 0 for t in thresholds):
+        raise ConfigError(f"thresholds must be positive distances in metres, got {thresholds!r}")
+    return ks, tuple(float(t) for t in thresholds)
+
+
 def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
                         thresholds: Sequence[float] = LOCALIZATION_THRESHOLDS, same_scene=None) -> dict:
-    """Top-k localisation recall as Text2Loc / Des4Pos report it (``calc_sample_accuracies``).
+    """Top-k localisation recall as Text2Loc / Des4Pos report it (``calc_sample_accuracies``);
+    :func:`radaredge.des4pos_eval.evaluate_localization` computes it for an exported bundle.
 
     ``pred_w`` [Q, K, 2]: the position predicted in each of a query's K retrieved cells, best
     first (world x, y m); ``pose_w`` [Q, 2]: the ground-truth pose. A query counts at (k, t) when
@@ -429,9 +455,7 @@ def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
         raise InputError(f"expected predictions [Q, K, 2] and poses [Q, 2] (m) with Q >= 1, got {pred.shape} and {pose.shape}")
     if not (np.isfinite(pred).all() and np.isfinite(pose).all()):
         raise InputError("predicted and ground-truth positions must be finite")
-    ks = _check_ns(ks)
-    if not thresholds or any(not np.isfinite(t) or t <= 0 for t in thresholds):
-        raise ConfigError(f"thresholds must be positive distances in metres, got {thresholds!r}")
+    ks, thresholds = localization_levels(ks, thresholds)
     dist = np.linalg.norm(pred - pose[:, None, :], axis=2)                 # [Q, K]
     if same_scene is not None:
         same = np.asarray(same_scene, bool)
@@ -439,4 +463,4 @@ def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
             raise InputError(f"same_scene must be [Q, K] = {dist.shape}, got {same.shape}")
         dist = np.where(same, dist, np.inf)
     best = np.minimum.accumulate(dist, axis=1)                             # min over the first k
-    return {k: {float(t): float((best[:, min(k, dist.shape[1]) - 1] <= t).mean()) for t in thresholds} for k in ks}
+    return {k: {t: float((best[:, min(k, dist.shape[1]) - 1] <= t).mean()) for t in thresholds} for k in ks}

@@ -1,4 +1,5 @@
-"""INT8 post-training quantisation of an exported pipeline (onnxruntime static QDQ).
+"""INT8 post-training quantisation of exported graphs: onnxruntime static QDQ (the default for
+every graph of a model) and dynamic int8 (weights only, for a model that asks for it).
 
 Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
 weights and uint8 activations calibrated on synthetic radar windows or on a recording of the
@@ -14,12 +15,10 @@ quantisation settings are added under ``radaredge.quantization``.
 The format is uint8 activations x int8 weights with the weights on a 7-bit range
 (``quantization.reduce_range``, default true). On x86 CPUs without VNNI (AVX2 only)
 onnxruntime multiplies uint8 by int8 with VPMADDUBSW, whose int16 sums of two products
-saturate when full-range weights meet large activations; 7-bit weights cannot saturate. On
-tdfanet-edge (then 0.64 m pillars and 4 sampling points) that cut the int8 descriptor error 6x
-(min cosine 0.99892 -> 0.99982 on the parity cases). int8 activations with the same weights
-gave the same accuracy (min cosine on tdfanet-edge, box recall on MAFF-Net) and ran 10 % slower
-on 2 cores (84.4 against 75.8 ms on tdfanet-edge). With VNNI a card can set
-``reduce_range: false`` and get full 8-bit weights.
+saturate when full-range weights meet large activations; 7-bit weights cannot saturate, and on
+tdfanet-edge they cut the int8 descriptor error several-fold. int8 activations with the same
+weights were as accurate and slower on 2 cores. With VNNI a card can set ``reduce_range: false``
+and get full 8-bit weights. Measurements: benchmarks/README.md.
 """
 
 from __future__ import annotations
@@ -27,18 +26,21 @@ from __future__ import annotations
 import fnmatch
 import json
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import onnx
 import onnxruntime as ort
-from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_dynamic, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from . import runtime
 from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_feeds
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
-from .ort_stages import fused_from, module_names
+from .models.spec import GraphSpec, ModelSpec
+from .node_scopes import fused_from, module_names
+from .runtime.metadata import QUANTIZATION
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
 
@@ -51,7 +53,7 @@ def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: di
     del q.metadata_props[:]
     for prop in src.metadata_props:
         q.metadata_props.add(key=prop.key, value=prop.value)
-    q.metadata_props.add(key="radaredge.quantization", value=json.dumps(quantization))
+    q.metadata_props.add(key=QUANTIZATION, value=json.dumps(quantization))
     onnx.save(q, str(out_path))
 
 
@@ -86,7 +88,7 @@ def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name:
 
 def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
     """The nodes of the pre-processed graph that came from ``names``: the optimiser keeps a
-    node's name or extends it (:func:`radaredge.ort_stages.fused_from`). ExportError when one of
+    node's name or extends it (:func:`radaredge.node_scopes.fused_from`). ExportError when one of
     ``names`` has no such node, since it would be quantised against the card's wish."""
     found = [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and fused_from(n.name) in names]
     lost = sorted(names - {fused_from(n) for n in found})
@@ -103,8 +105,8 @@ def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Pat
 
     onnxruntime's own pre-processing (``quant_pre_process``) folds constants too, and here that
     writes every shape-derived tensor of the export into the file: reference-point grids,
-    scatter buffers sized by the point budget. Those made the int8 graphs 2.6-3.3x their fp32
-    size (tdfanet 101 MB against 38.7 MB). Without folding, onnxruntime still folds them in
+    scatter buffers sized by the point budget, which made the int8 graphs several times their
+    fp32 size. Without folding, onnxruntime still folds them in
     memory when the session loads, and the file holds the weights alone, as int8."""
     tmp = Path(out_path).with_suffix(".basic.onnx")
     options = ort.SessionOptions()
@@ -128,27 +130,25 @@ def reduce_range(card: ModelCard) -> bool:
 
 def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
                   calibration_cases: int | None = None, seed: int = 12345, calibration_dir: str | Path | None = None,
-                  calibration_format: str | None = None) -> Path:
+                  calibration_format: str | None = None, graph: GraphSpec | None = None) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
     Calibration uses ``calibration_cases`` windows (default ``DEFAULT_WINDOWS``): synthetic ones
     drawn with ``seed``, or with ``calibration_dir`` windows of that recording
     (:mod:`radaredge.calibration`; its scan format ``calibration_format`` or inferred). The seed
     differs from the parity and bench seeds, so parity is checked on data the calibration did
-    not see. Activation ranges are min/max calibrated. Percentile (99.999 %) and entropy ranges,
-    collected one window at a time because the point-count dependent tensors differ in shape
-    between windows, were measured worse on both models (2026-11-24, int8 activations):
-    tdfanet-edge min cosine 0.99793 and 0.99871 against min/max's 0.99892, and maffnet-vod's
-    fitted-head matched-box recall 67.6 % and 71.2 % against 69.9 %. The layers of the card's
+    not see. Activation ranges are min/max calibrated: percentile and entropy ranges (collected
+    one window at a time, since the point-count dependent tensors differ in shape between
+    windows) were less accurate on both TDFANet and MAFF-Net. The layers of the card's
     ``quantization.keep_fp32`` modules stay fp32; ``quantization.reduce_range`` is the module
-    docstring's weight range.
+    docstring's weight range. ``graph`` is the graph's spec (default: the card's only graph).
     """
     fp32_path, out_path = Path(fp32_path), Path(out_path)
     patterns, seven_bit = keep_fp32_patterns(card), reduce_range(card)
     keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
     calibration_cases = DEFAULT_WINDOWS if calibration_cases is None else calibration_cases
     if calibration_dir is None:
-        feeds = synthetic_feeds(card, calibration_cases, seed)
+        feeds = synthetic_feeds(card, calibration_cases, seed, graph)
         source = {"data": "synthetic", "cases": calibration_cases, "seed": seed}
     else:
         feeds, source = recorded_feeds(runtime.load(fp32_path), calibration_dir, calibration_cases, calibration_format)
@@ -170,3 +170,42 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
         "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
         "calibration": {**source, "method": "minmax"}})
     return out_path
+
+
+def quantize_dynamic_int8(fp32_path: str | Path, out_path: str | Path) -> Path:
+    """onnxruntime dynamic quantisation: int8 weights of MatMul/Gemm, activations quantised at run
+    time (no calibration). Metadata is copied and ``radaredge.quantization`` added."""
+    fp32_path, out_path = Path(fp32_path), Path(out_path)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            # the exporter's intermediate value_info carries shapes that onnx's re-inference rejects
+            # after quantisation rewrites the graph; drop it and let the quantiser infer afresh
+            clean = onnx.load(str(fp32_path))
+            del clean.graph.value_info[:]
+            pre = Path(tmp) / "pre.onnx"
+            onnx.save(clean, str(pre))
+            quantize_dynamic(str(pre), str(out_path), weight_type=QuantType.QInt8,
+                             op_types_to_quantize=["MatMul", "Gemm"])
+    except Exception as exc:
+        raise ExportError(f"dynamic int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
+    carry_metadata(fp32_path, out_path, {"format": "dynamic", "weights": "int8", "activations": "uint8 at run time",
+                                         "ops": ["MatMul", "Gemm"]})
+    return out_path
+
+
+@dataclass(frozen=True)
+class Int8Options:
+    """``export --quantize int8`` settings: calibration windows (default ``DEFAULT_WINDOWS``)
+    and, to calibrate on a recording instead of synthetic scenes, its directory and format."""
+
+    windows: int | None = None
+    calibration_dir: str | Path | None = None
+    calibration_format: str | None = None
+
+
+def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
+    """The default int8 hook: a static QDQ copy ``<graph>.int8.onnx`` of every graph."""
+    return {g.name: quantize_int8(card, paths[g.name], paths[g.name].with_suffix(".int8.onnx"), options.windows,
+                                  calibration_dir=options.calibration_dir,
+                                  calibration_format=options.calibration_format, graph=g)
+            for g in spec.graphs}

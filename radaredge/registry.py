@@ -26,21 +26,14 @@ def _des4pos(card=None):
 MODELS: dict[str, Callable] = {
     "tdfanet": _tdfanet,
     "maffnet": _maffnet,
-    "des4pos": _des4pos,       # a BundleSpec: three graphs (submap encoder, text encoder, fine stage)
+    "des4pos": _des4pos,       # three graphs: submap encoder, text encoder, fine stage
 }
 
 
 def model_spec(card: ModelCard):
-    """The :class:`radaredge.models.spec.ModelSpec` (one graph) or
-    :class:`radaredge.models.spec.BundleSpec` (several graphs) of ``card``'s model."""
+    """The :class:`radaredge.models.spec.ModelSpec` of ``card``'s model (its graphs and hooks)."""
     try:
         entry = MODELS[card.model]
     except KeyError:
         raise ConfigError(f"{card.where}: unknown model {card.model!r}; known: {sorted(MODELS)}") from None
     return entry(card)
-
-
-def is_bundle(card: ModelCard) -> bool:
-    """True when ``card``'s model exports as several graphs (a BundleSpec)."""
-    from .models.spec import BundleSpec
-    return isinstance(model_spec(card), BundleSpec)

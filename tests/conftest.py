@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from radaredge.onnx_export import export_onnx
-from radaredge.ort import make_session, run_session
+from radaredge.runtime.session import make_session, run_session
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)      # `make test` runs two workers on two cores: one torch thread each
@@ -66,13 +66,13 @@ TINY_CARD = Path(__file__).parent / "cards" / "tdfanet-tiny.yaml"
 def tiny_export(tmp_path_factory):
     """The tiny TDFANet card exported once per session: (card, model, onnx path, debug onnx path)."""
     from radaredge.cards import load_card
-    from radaredge.export import build_model, export_model
+    import radaredge
+    from radaredge.exporter import build_model
 
     card = load_card(TINY_CARD)
     model = build_model(card)
     d = tmp_path_factory.mktemp("tiny-export")
-    export_model(card, d / "tdfanet-tiny.onnx", model=model)
-    export_model(card, d / "tdfanet-tiny.debug.onnx", model=model, debug=True)
+    radaredge.export(card, d / "tdfanet-tiny.onnx", model=model, debug=True)
     return card, model, d / "tdfanet-tiny.onnx", d / "tdfanet-tiny.debug.onnx"
 
 
@@ -90,3 +90,9 @@ def export_with_cli(out_dir: Path, model: str, config: Path) -> Path:
     res = invoke("export", "--model", model, "--config", config, "--output", path)
     assert res.exit_code == 0, res.output
     return path
+
+
+def summary_of(report: dict, graph: str | None = None) -> dict:
+    """The per-output summary of one graph in a parity report's JSON (the only graph by default)."""
+    graphs = report["graphs"]
+    return (graphs[graph] if graph is not None else next(iter(graphs.values())))["summary"]

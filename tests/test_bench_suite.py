@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from radaredge import bench
+from radaredge import timing as bench
 from radaredge.macs import count_macs
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -10,7 +10,7 @@ from radaredge import runtime
 from radaredge.calibration import recorded_feeds, recorded_scan_paths, recording_format, window_starts
 from radaredge.data.synthetic import generate_sequence
 from radaredge.errors import ConfigError, InputError
-from radaredge.parity import run_parity
+import radaredge
 from radaredge.quantize import quantize_int8
 from conftest import invoke
 
@@ -110,8 +110,8 @@ def test_quantise_on_a_recording(tiny_export, tmp_path):
     calib = json.loads(runtime.load(path).metadata["radaredge.quantization"])["calibration"]
     assert calib == {"data": "recorded", "directory": str(rec), "format": "transloc", "scans": 8, "windows": 4,
                      "method": "minmax"}
-    report = run_parity(card, path, model, cases_n=6, seed=4, quantized=True)
-    assert report.passed, report.summary
+    report = radaredge.parity(card, path, model=model, cases=6, seed=4, quantized=True)
+    assert report, report.to_dict()
 
 
 @pytest.mark.parametrize("args, message", [

@@ -7,7 +7,7 @@ from click.testing import CliRunner
 
 from radaredge.cli import main
 
-from conftest import TINY_CARD
+from conftest import TINY_CARD, summary_of
 
 TINY = str(TINY_CARD)
 
@@ -25,7 +25,7 @@ def test_help_lists_the_commands():
 
 def test_list_shows_the_shipped_cards():
     res = invoke("list", "--json")
-    names = {c["name"] for c in json.loads(res.output)}
+    names = {c["name"] for c in json.loads(res.stdout)}
     assert {"tdfanet", "tdfanet-edge"} <= names
 
 
@@ -44,10 +44,10 @@ def test_full_card_export_and_parity(model, tmp_path):
     assert side["inputs"][0] == {"name": "points_0", "shape": ["num_points_0", 5]}
     assert side["inputs"][-1] == {"name": "timestamps", "shape": [3]}
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", "4", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["descriptor_normalized"]["min_cosine"] >= 0.9999
-    assert report["summary"]["ego_velocity"]["max_abs"] <= 1e-4
+    assert summary_of(report)["descriptor_normalized"]["min_cosine"] >= 0.9999
+    assert summary_of(report)["ego_velocity"]["max_abs"] <= 1e-4
 
 
 def test_parity_refuses_an_onnx_with_other_weights(tmp_path):
@@ -57,14 +57,30 @@ def test_parity_refuses_an_onnx_with_other_weights(tmp_path):
     assert res.exit_code == 2 and "other weights" in res.output
 
 
-def test_bench_json_reports_every_backend(tmp_path, monkeypatch, tiny_export):
-    monkeypatch.chdir(tmp_path)
+def test_bench_json_reports_every_backend(tmp_path, tiny_export):
+    saved = tmp_path / "results" / "tiny.json"
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
-                 "--runs", "3", "--warmup", "1", "--json")
+                 "--runs", "3", "--warmup", "1", "--json", "--save", saved)
     assert res.exit_code == 0, res.output
-    out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
-    assert [r["backend"] for r in out["results"]] == ["torch reference", "torch export", "onnxruntime", "openvino"]
-    assert all(r["fps"] > 0 for r in out["results"])
+    out = json.loads(res.stdout)
+    assert json.loads(saved.read_text()) == out
+    rows = out["tasks"]["tdfanet"]["rows"]
+    assert [r["backend"] for r in rows] == ["torch reference", "torch export", "onnxruntime", "openvino"]
+    assert all(r["fps"] > 0 and r["status"] == "ok" for r in rows)
+    assert out["graphs"]["tdfanet"]["onnxruntime_peak_rss_mib"] > 0
+
+
+def test_a_failing_backend_is_a_row_not_an_abort():
+    """Ultralytics-style: the backend that raises gets status error and its reason; the rest are timed."""
+    from radaredge.timing import benchmark, results_table
+
+    def broken(case):
+        raise RuntimeError("no kernel for this op\nsecond line")
+    rows = benchmark({"good": lambda case: None, "bad": broken}, [{}], runs=2, warmup=1)
+    assert [(r.backend, r.status) for r in rows] == [("good", "ok"), ("bad", "error")]
+    assert rows[0] and not rows[1] and rows[1].error == "RuntimeError: no kernel for this op"
+    assert rows[0].runs == 2 and rows[1].p50_ms is None
+    assert "| bad | error: RuntimeError: no kernel for this op |" in results_table(rows, "good")
 
 
 def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_export):
@@ -72,7 +88,7 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
     (onnxruntime's profiler slows every node); the profiler's JSON file is not left behind."""
     import tempfile
 
-    import radaredge.ort as ort_helpers
+    import radaredge.runtime.session as ort_helpers
     opened = []
     real = ort_helpers.make_session
 
@@ -81,16 +97,19 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
         return real(path, threads=threads, profile=profile, **kw)
 
     monkeypatch.setattr(ort_helpers, "make_session", spy)
+    import radaredge.profiling
+    monkeypatch.setattr(radaredge.profiling, "make_session", spy)
     (tmp_path / "tmp").mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
-    monkeypatch.chdir(tmp_path)
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
-                 "--runs", "3", "--warmup", "1", "--no-reference", "--profile", "--json")
+                 "--runs", "3", "--warmup", "1", "--no-reference", "--profile")
     assert res.exit_code == 0, res.output
     assert opened[0] is False and True in opened, opened
     assert "kernel ms per run" in res.output
-    out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
-    assert out["top_ops"] and all(ms > 0 for _, ms in out["top_ops"])
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
+                 "--runs", "3", "--warmup", "1", "--no-reference", "--profile", "--json")
+    top = json.loads(res.stdout)["graphs"]["tdfanet"]["top_ops"]
+    assert top and all(ms > 0 for _, ms in top)
     assert list((tmp_path / "tmp").iterdir()) == []
 
 

@@ -17,9 +17,9 @@ from radaredge.cli import main
 from radaredge.data.cellmap import load_map, pack_cells
 from radaredge.data.text_city import make_city
 from radaredge.errors import ConfigError, InputError
-from radaredge.export import build_model
+from radaredge.exporter import build_model
 from radaredge.models.minilm import MiniLMEncoder, T5Encoder, minilm_dir
-from radaredge.text_tokens import encode_hints, load_tokenizer, split_hints
+from radaredge.runtime.text_tokens import encode_hints, load_tokenizer, split_hints
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
 
@@ -183,9 +183,9 @@ def test_bundle_export_and_parity_of_every_part(bundle):
     assert side["inputs"] == [{"name": "input_ids", "shape": ["hints", "tokens"]},
                               {"name": "attention_mask", "shape": ["hints", "tokens"]}]
     res = invoke("parity-check", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--cases", "4", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    parts = report["parts"]
+    parts = report["graphs"]
     assert parts["submap_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
     assert parts["text_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
     assert parts["fine_stage"]["summary"]["position"]["max_abs"] <= 1e-3
@@ -207,7 +207,7 @@ def test_locate_end_to_end_and_cached(bundle, tmp_path):
     res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", bundle, "--map", city, "--text", text,
                  "--top-k", "4", "--json")
     assert res.exit_code == 0, res.output
-    out = json.loads(res.output)
+    out = json.loads(res.stdout)
     assert not out["from_cache"] and len(out["results"]) == 4 and out["hints"] == split_hints(text)
     scores = [r["score"] for r in out["results"]]
     assert scores == sorted(scores, reverse=True)
@@ -228,7 +228,7 @@ def test_locate_runs_without_torch(bundle, tmp_path):
     script = textwrap.dedent(f"""
         import sys
         sys.modules["torch"] = None
-        from radaredge.locate import Des4PosBundle, MapIndex
+        from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
         b = Des4PosBundle({str(bundle)!r})
         hits = b.locate("The pose is south of a gray pole.", MapIndex.build(b, {str(tmp_path / 'c.npz')!r}), 2)
         assert "torch" not in [k for k, v in sys.modules.items() if v is not None]

@@ -2,6 +2,7 @@
 
 import os
 import pickle
+import subprocess
 import sys
 import types
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from radaredge.data.cellmap import load_map
-from radaredge.data.kitti360pose import read_kitti360pose, read_pickle
+from radaredge.data.kitti360pose import read_cells, read_pickle, read_poses
 from radaredge.errors import InputError
 from radaredge.evaluation import localization_recall
 
@@ -78,10 +79,21 @@ def test_pickle_of_the_wrong_thing_is_a_clear_error(tmp_path):
     path = tmp_path / "cells.pkl"
     path.write_bytes(pickle.dumps({"not": "cells"}))
     with pytest.raises(InputError, match="expected a list of cells, got dict"):
-        read_kitti360pose(path, None, 4, 8)
+        read_cells(path)
+    with pytest.raises(InputError, match="expected a list of poses, got dict"):
+        read_poses(path)
     path.write_bytes(pickle.dumps([np.zeros(3)]))
     with pytest.raises(InputError, match="cell 0: has no attribute 'id'"):
-        read_kitti360pose(path, None, 4, 8)
+        read_cells(path)
+    with pytest.raises(InputError, match="pose 0: has no attribute 'pose_w'"):
+        read_poses(path)
+
+
+def test_the_reader_does_not_import_the_map_module():
+    """One-way dependency: cellmap.load_map packs what kitti360pose reads, never the reverse."""
+    code = "import sys, radaredge.data.kitti360pose; print('radaredge.data.cellmap' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.split() == ["False"], res.stderr
 
 
 # ----------------------------------------------------------------------------- recall protocol

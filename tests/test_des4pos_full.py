@@ -1,4 +1,4 @@
-"""The paper card (models/des4pos.yaml) exports as three graphs and passes parity on every part."""
+"""The paper card (radaredge/cards/des4pos.yaml) exports as three graphs and passes parity on every part."""
 
 import json
 
@@ -17,8 +17,8 @@ def test_full_card_bundle_export_and_parity(tmp_path):
     assert side["inputs"][0] == {"name": "points", "shape": ["cells", 28, 256, 6]}
     res = CliRunner().invoke(main, ["parity-check", "--model", "des4pos", "--onnx", str(out), "--cases", "2", "--json"],
                              catch_exceptions=False)
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["parts"]["submap_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
-    assert report["parts"]["text_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
-    assert report["parts"]["fine_stage"]["summary"]["position"]["max_abs"] <= 1e-3
+    assert report["graphs"]["submap_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
+    assert report["graphs"]["text_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
+    assert report["graphs"]["fine_stage"]["summary"]["position"]["max_abs"] <= 1e-3

@@ -1,25 +1,20 @@
-"""benchmarks/maffnet_fitted_head.py: OpenPCDet's target assignment, residual coding and head loss
+"""radaredge.fitting.maffnet_head: OpenPCDet's target assignment, residual coding and head loss
 on the tiny MAFF-Net card (the int8 experiment's head is only as good as these)."""
 
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from radaredge.cards import load_card
+from radaredge.exporter import build_model
+from radaredge.fitting import maffnet_head as fh
+from radaredge.models.maffnet import decode_boxes
 
-import maffnet_fitted_head as fh  # noqa: E402
-
-from radaredge.cards import load_card  # noqa: E402
-from radaredge.export import build_model  # noqa: E402
-from radaredge.models.maffnet import decode_boxes  # noqa: E402
-
-CARD = load_card(ROOT / "tests" / "cards" / "maffnet-tiny.yaml")
+CARD = load_card(Path(__file__).parent / "cards" / "maffnet-tiny.yaml")
 
 
 def _setup():
@@ -122,3 +117,23 @@ def test_fitting_the_backbone_too_trains_it_and_leaves_the_front_frozen():
     changed = [k for k, v in backbone_before.items() if not torch.equal(v, model.backbone_2d.state_dict()[k])]
     assert any(k.endswith("weight") for k in changed) and any(k.endswith("running_mean") for k in changed)
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in front.items())
+
+
+def test_detection_recall_counts_ground_truth_found_with_its_class():
+    """Detections (labels 1-based, as the graph outputs them) that repeat the ground truth find all
+    of it; the same boxes with another class find none."""
+    examples = fh.synthetic_examples(CARD, [5, 6])
+
+    class Oracle:
+        def __init__(self, shift):
+            self.shift, self.scan = shift, iter(examples)
+
+        def run(self, points):
+            _, gt, labels = next(self.scan)
+            return {"boxes": torch.from_numpy(gt), "scores": torch.ones(len(gt)),
+                    "labels": torch.from_numpy(labels + 1 + self.shift)}
+
+    boxes = sum(len(g) for _, g, _ in examples)
+    assert boxes > 0
+    assert fh.detection_recall(Oracle(0), examples) == (1.0, boxes / 2)
+    assert fh.detection_recall(Oracle(1), examples) == (0.0, boxes / 2)

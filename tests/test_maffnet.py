@@ -13,10 +13,10 @@ import torch
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, ConfigError
-from radaredge.export import build_model, load_checkpoint
+from radaredge.exporter import build_model, load_checkpoint
 from radaredge.models.maffnet import HeadConfig, decode_boxes
-from radaredge.models.maffnet_spec import MAFFNET_SPEC
-from conftest import assert_close, export_with_cli, invoke
+from radaredge.models.maffnet_spec import STAGE_ONE_GRAPH
+from conftest import assert_close, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
@@ -55,7 +55,7 @@ def expected_vod_keys() -> dict[str, tuple]:
 
 @pytest.fixture(scope="module")
 def vod_model():
-    return build_model(load_card(ROOT / "models" / "maffnet-vod.yaml"))
+    return build_model(load_card(ROOT / "radaredge" / "cards" / "maffnet-vod.yaml"))
 
 
 def test_vod_state_dict_follows_upstream_keys(vod_model, tmp_path):
@@ -95,10 +95,10 @@ def test_decode_zero_residual_gives_the_anchor():
 def test_tiny_export_formulation_equals_reference():
     card = load_card(TINY)
     model = build_model(card)
-    for name, feeds in MAFFNET_SPEC.make_cases(card, 5, 1):
+    for name, feeds in STAGE_ONE_GRAPH.make_cases(card, 5, 1):
         with torch.no_grad():
-            e = MAFFNET_SPEC.run_export(model, feeds)
-            r = MAFFNET_SPEC.run_reference(model, feeds)
+            e = STAGE_ONE_GRAPH.run_export(model, feeds)
+            r = STAGE_ONE_GRAPH.run_reference(model, feeds)
         assert len(e["boxes"]) > 0, name
         assert_close(e["anchor_scores"].numpy(), r["anchor_scores"].numpy(), 1e-5, name)
         assert_close(e["boxes"].numpy(), r["boxes"].numpy(), 1e-4, name)
@@ -117,11 +117,11 @@ def test_tiny_parity_and_runtime(tiny_onnx):
     assert [o["name"] for o in side["outputs"]][:3] == ["boxes", "scores", "labels"]
     res = invoke("parity-check", "--model", "maffnet-tiny", "--config", str(TINY), "--onnx", str(tiny_onnx),
                  "--cases", "6", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["boxes"]["min_iou"] >= 0.99 and report["summary"]["boxes"]["mismatches"] == 0
+    assert summary_of(report)["boxes"]["min_iou"] >= 0.99 and summary_of(report)["boxes"]["mismatches"] == 0
     model = runtime.load(tiny_onnx)
-    _, feeds = MAFFNET_SPEC.make_cases(load_card(TINY), 1, 3)[0]
+    _, feeds = STAGE_ONE_GRAPH.make_cases(load_card(TINY), 1, 3)[0]
     out = model.run(feeds["points"])
     assert out["boxes"].shape[1] == 7 and len(out["boxes"]) == len(out["scores"]) == len(out["labels"]) > 0
     assert set(out["labels"].tolist()) <= {1, 2, 3}
@@ -150,18 +150,19 @@ def test_full_card_export_and_parity(model, tmp_path):
     assert res.exit_code == 0, res.output
     cases = "5" if model == "maffnet-vod" else "2"        # VoD's fifth case is a dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", cases, "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["boxes"]["mismatches"] == 0
+    assert summary_of(report)["boxes"]["mismatches"] == 0
 
 
-def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
+def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path):
     res = invoke("bench", "--model", "maffnet-tiny", "--config", str(TINY), "--onnx", str(tiny_onnx),
-                 "--runs", "3", "--warmup", "1", "--json")
+                 "--runs", "3", "--warmup", "1", "--save", tmp_path / "bench.json")
     assert res.exit_code == 0, res.output
-    saved = json.loads(next((tmp_path / "benchmarks" / "results").glob("maffnet-tiny-*.json")).read_text())
-    assert {r["backend"] for r in saved["results"]} == {"torch reference", "torch export", "onnxruntime", "openvino"}
+    report = json.loads((tmp_path / "bench.json").read_text())
+    assert {r["backend"] for r in report["tasks"]["maffnet"]["rows"]} == \
+        {"torch reference", "torch export", "onnxruntime", "openvino"}
+    saved = report["graphs"]["maffnet"]
     stages = ["VFE+SPA", "CFA", "CAF", "backbone+head", "NMS"]
     for formulation in ("torch export", "torch reference"):
         assert list(saved["stage_ms"][formulation]) == stages
@@ -176,9 +177,9 @@ def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path, monkeypatch):
 def test_onnx_nodes_attributed_to_stages(tiny_onnx):
     """Every graph node lands in one MAFF-Net stage, by module scope or by graph position."""
     import onnx
-    from radaredge.ort_stages import node_stages
+    from radaredge.profiling import node_stages
     model = onnx.load(str(tiny_onnx), load_external_data=False)
-    stage = node_stages(model, list(MAFFNET_SPEC.onnx_stages), MAFFNET_SPEC.onnx_post_outputs)
+    stage = node_stages(model, list(STAGE_ONE_GRAPH.onnx_stages), STAGE_ONE_GRAPH.onnx_post_outputs)
     nodes = {n.name: n for n in model.graph.node}
     assert set(stage) == set(nodes)
     by_op = {}

@@ -17,12 +17,12 @@ import torch
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, ConfigError
-from radaredge.export import build_model
+from radaredge.exporter import build_model
 from radaredge.models.maffnet_spec import five_frame_points
 from radaredge.registry import model_spec
 from references.maffnet_upstream import upstream_scan_mask
 from references.sklearn_cqca_cfa import upstream_map
-from conftest import export_with_cli, invoke
+from conftest import export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "cards" / "maffnet-tiny-full-dbscan.yaml"
@@ -40,12 +40,12 @@ def _sklearn_map(card, pts):
     return bev, cluster
 
 
-@pytest.mark.parametrize("card_path, cases", [(TINY, 5), (ROOT / "models" / "maffnet-vod-full-dbscan.yaml", 5)])
+@pytest.mark.parametrize("card_path, cases", [(TINY, 5), (ROOT / "radaredge" / "cards" / "maffnet-vod-full-dbscan.yaml", 5)])
 def test_clustering_map_equals_sklearn(card_path, cases):
     card = load_card(card_path)
     model = build_model(card)
     seen = 0
-    for name, feeds in model_spec(card).make_cases(card, cases, 4):
+    for name, feeds in model_spec(card).graph().make_cases(card, cases, 4):
         pts = feeds["points"]
         want_map, want_cluster = _sklearn_map(card, pts)
         for reference in (False, True):
@@ -62,7 +62,7 @@ def test_tiny_dbscan_export_parity_and_runtime(tmp_path):
     onnx_path = export_with_cli(tmp_path, "maffnet-tiny-full-dbscan", TINY)
     res = invoke("parity-check", "--model", "maffnet-tiny-full-dbscan", "--config", TINY, "--onnx", onnx_path,
                  "--cases", "5", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     model = runtime.load(onnx_path)
     card = load_card(TINY)
@@ -111,7 +111,7 @@ def test_card_names_one_clustering_method(tmp_path):
 def test_dense_five_frame_clouds_fit_the_vod_capacities():
     """The documented sizing (docs/models/maffnet.md): dense 5-frame clouds in the camera FOV stay
     below spa.capacity in non-empty pillars and below cfa.dbscan.capacity in scan points."""
-    card = load_card(ROOT / "models" / "maffnet-vod-full-dbscan.yaml")
+    card = load_card(ROOT / "radaredge" / "cards" / "maffnet-vod-full-dbscan.yaml")
     model = build_model(card)
     r = card.get("pillars.point_cloud_range")
     for seed in (0, 2, 4):
@@ -130,7 +130,7 @@ def test_full_dbscan_cards_export_and_parity(model, tmp_path):
     assert res.exit_code == 0, res.output
     cases = "5" if "vod" in model else "2"                # VoD's fifth case is the dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", onnx_path, "--cases", cases, "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["boxes"]["mismatches"] == 0
-    assert report["summary"]["keypoints"]["max_abs"] == 0
+    assert summary_of(report)["boxes"]["mismatches"] == 0
+    assert summary_of(report)["keypoints"]["max_abs"] == 0

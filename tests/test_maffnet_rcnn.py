@@ -14,11 +14,11 @@ import torch
 
 from radaredge import runtime
 from radaredge.cards import load_card
-from radaredge.export import build_model
+from radaredge.exporter import build_model
 from radaredge.models.maffnet_rcnn import (CDAKeypointSampler, KeypointConfig, ProposalConfig, ProposalLayer,
                                            decode_roi_residuals)
 from radaredge.registry import model_spec
-from conftest import assert_close, export_with_cli, invoke
+from conftest import assert_close, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_FULL = Path(__file__).parent / "cards" / "maffnet-tiny-full.yaml"
@@ -198,8 +198,8 @@ def test_pfe_point_head_roi_head_match_reference(tiny):
 
 def test_tiny_full_export_formulation_equals_reference(tiny):
     card, model = tiny
-    spec = model_spec(card)
-    assert spec.output_names[-7:] == ["rois", "roi_labels", "roi_valid", "keypoints", "keypoint_valid",
+    spec = model_spec(card).graph()
+    assert spec.output_names(card)[-7:] == ["rois", "roi_labels", "roi_valid", "keypoints", "keypoint_valid",
                                       "rcnn_scores", "rcnn_boxes"]
     seen_valid_kp = set()
     for name, feeds in spec.make_cases(card, 4, 2):
@@ -222,7 +222,7 @@ def test_tiny_full_export_formulation_equals_reference(tiny):
 def test_tiny_full_stage_times(tiny):
     from radaredge.models.maffnet import stage_times
     card, model = tiny
-    pts = torch.from_numpy(model_spec(card).make_cases(card, 1, 0)[0][1]["points"])
+    pts = torch.from_numpy(model_spec(card).graph().make_cases(card, 1, 0)[0][1]["points"])
     for reference in (False, True):
         laps = stage_times(model, pts, reference)
         assert list(laps) == ["VFE+SPA", "CFA", "CAF", "backbone+head", "proposals+CDA", "VSA+point head",
@@ -242,19 +242,19 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
     assert side["op_histogram"].get("Loop", 0) >= 3           # proposal NMS, FPS, final NMS
     res = invoke("parity-check", "--model", "maffnet-tiny-full", "--config", str(TINY_FULL),
                  "--onnx", str(tiny_full_onnx), "--cases", "4", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["boxes"]["mismatches"] == 0
-    assert report["summary"]["rcnn_scores"]["max_abs"] <= 1e-4
+    assert summary_of(report)["boxes"]["mismatches"] == 0
+    assert summary_of(report)["rcnn_scores"]["max_abs"] <= 1e-4
     # the torch-free runtime loads the two-stage detector like stage one
     model = runtime.load(tiny_full_onnx)
     card = load_card(TINY_FULL)
-    out = model.run(model_spec(card).make_cases(card, 1, 3)[0][1]["points"])
+    out = model.run(model_spec(card).graph().make_cases(card, 1, 3)[0][1]["points"])
     assert out["boxes"].shape[1] == 7 and len(out["boxes"]) == len(out["scores"]) == len(out["labels"])
     assert out["keypoints"].shape == (64, 3) and set(out["labels"].tolist()) <= {1, 2, 3}
     # fewer points than keypoint slots, and an empty scan: the graph equals the torch export formulation
     net = build_model(card)
-    full = model_spec(card).make_cases(card, 1, 3)[0][1]["points"]
+    full = model_spec(card).graph().make_cases(card, 1, 3)[0][1]["points"]
     inside = full[(full[:, 0] >= 0) & (full[:, 0] <= 12.8) & (np.abs(full[:, 1]) <= 6.4)]
     for pts in (inside[:3], full[:0]):
         got = model.run(pts)
@@ -267,8 +267,8 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
 
 def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):
     import onnx
-    from radaredge.ort_stages import node_stages
-    spec = model_spec(load_card(TINY_FULL))
+    from radaredge.profiling import node_stages
+    spec = model_spec(load_card(TINY_FULL)).graph()
     stages = [s for s, _ in spec.onnx_stages]
     assert stages == ["VFE+SPA", "CFA", "CAF", "backbone+head", "proposals+CDA", "VSA+point head", "ROI head",
                       "final NMS"]
@@ -319,7 +319,7 @@ def expected_vod_stage_two_keys() -> dict[str, tuple]:
     return keys
 
 
-VOD_FULL = ROOT / "models" / "maffnet-vod-full.yaml"
+VOD_FULL = ROOT / "radaredge" / "cards" / "maffnet-vod-full.yaml"
 
 
 def test_vod_full_card_keys_and_stage_one():
@@ -330,19 +330,19 @@ def test_vod_full_card_keys_and_stage_one():
     two = expected_vod_stage_two_keys()
     assert {k: own.get(k) for k in two} == two
     stage_one = {k: v for k, v in own.items() if k.split(".")[0] not in ("pfe", "point_head", "roi_head")}
-    one = build_model(load_card(ROOT / "models" / "maffnet-vod.yaml")).state_dict()
+    one = build_model(load_card(ROOT / "radaredge" / "cards" / "maffnet-vod.yaml")).state_dict()
     assert stage_one == {k: tuple(v.shape) for k, v in one.items()}       # all of maffnet-vod, unchanged
     assert set(expected_vod_keys()) <= set(stage_one)
     assert set(own) == set(stage_one) | set(two)
     # the stage-one part of the two cards is the same card
-    full, base = load_card(VOD_FULL).data, load_card(ROOT / "models" / "maffnet-vod.yaml").data
+    full, base = load_card(VOD_FULL).data, load_card(ROOT / "radaredge" / "cards" / "maffnet-vod.yaml").data
     assert {k: v for k, v in full.items() if k not in ("name", "description", "stage_two")} == \
         {k: v for k, v in base.items() if k not in ("name", "description")}
 
 
 def _scan_5000(card, seed=0) -> np.ndarray:
     """A synthetic VoD scan padded to 5,000 points with clutter inside the range."""
-    spec = model_spec(card)
+    spec = model_spec(card).graph()
     pts = spec.make_cases(card, 1, seed)[0][1]["points"]
     rng = np.random.default_rng(seed)
     extra = np.zeros((5000 - len(pts), pts.shape[1]), np.float32)
@@ -373,9 +373,9 @@ def vod_full_onnx(tmp_path_factory):
 def test_vod_full_export_and_parity(vod_full_onnx):
     res = invoke("parity-check", "--model", "maffnet-vod-full", "--onnx", str(vod_full_onnx), "--cases", "5",
                  "--checkpoint", vod_full_onnx.parent / "upstream.pth", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["boxes"]["mismatches"] == 0
+    assert summary_of(report)["boxes"]["mismatches"] == 0
 
 
 def test_tj4d_full_export_and_parity(tmp_path):
@@ -383,9 +383,9 @@ def test_tj4d_full_export_and_parity(tmp_path):
     res = invoke("export", "--model", "maffnet-tj4d-full", "--output", onnx_path)
     assert res.exit_code == 0, res.output
     res = invoke("parity-check", "--model", "maffnet-tj4d-full", "--onnx", onnx_path, "--cases", "2", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
-    assert report["summary"]["boxes"]["mismatches"] == 0
+    assert summary_of(report)["boxes"]["mismatches"] == 0
 
 
 def test_vod_full_intermediates_under_256_mb(vod_full_onnx, tmp_path):
@@ -406,12 +406,11 @@ def test_vod_full_intermediates_under_256_mb(vod_full_onnx, tmp_path):
     assert biggest >= 50 * 2 ** 20          # the ROI-grid pooling's [21600, 1024] distances do show up
 
 
-def test_bench_reports_stage_two_split_and_memory(tiny_full_onnx, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
+def test_bench_reports_stage_two_split_and_memory(tiny_full_onnx, tmp_path):
     res = invoke("bench", "--model", "maffnet-tiny-full", "--config", TINY_FULL, "--onnx", tiny_full_onnx,
-                 "--runs", "2", "--warmup", "1", "--json")
+                 "--runs", "2", "--warmup", "1", "--save", tmp_path / "bench.json")
     assert res.exit_code == 0, res.output
-    saved = json.loads(next((tmp_path / "benchmarks" / "results").glob("maffnet-tiny-full-*.json")).read_text())
+    saved = json.loads((tmp_path / "bench.json").read_text())["graphs"]["maffnet"]
     stages = ["VFE+SPA", "CFA", "CAF", "backbone+head", "proposals+CDA", "VSA+point head", "ROI head", "final NMS"]
     for row in ("torch export", "torch reference"):
         assert list(saved["stage_ms"][row]) == stages

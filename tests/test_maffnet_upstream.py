@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from radaredge.cards import load_card
-from radaredge.export import build_model, load_checkpoint
+from radaredge.exporter import build_model, load_checkpoint
 from radaredge.models.maffnet import UNUSED_FUSER_KEYS
 from radaredge.models.maffnet_rcnn import CDAKeypointSampler, KeypointConfig, scan_points
 from references.maffnet_upstream import (UpstreamCQCACaf, UpstreamVSA, randomise, upstream_cda_keypoints,
@@ -34,7 +34,7 @@ def _with_upstream_part(model, prefix: str, part_state: dict, tmp_path: Path) ->
     return path
 
 
-@pytest.mark.parametrize("card_path, side", [(TINY_FULL, 40), (ROOT / "models" / "maffnet-vod.yaml", 320)])
+@pytest.mark.parametrize("card_path, side", [(TINY_FULL, 40), (ROOT / "radaredge" / "cards" / "maffnet-vod.yaml", 320)])
 def test_fuser_equals_upstream_cqca_caf(card_path, side, tmp_path):
     card = load_card(card_path)
     model = build_model(card)
@@ -133,7 +133,7 @@ def test_tiny_full_fused_map_and_keypoints_equal_upstream_on_its_own_rois(tmp_pa
                             caf["se_reduction"]).eval()
     load_checkpoint(model, _with_upstream_part(model, "fuser.", randomise(fuser, 5), tmp_path))
     from radaredge.registry import model_spec
-    spec = model_spec(card)
+    spec = model_spec(card).graph()
     k = card.get("stage_two.keypoints.num_keypoints")
     r = card.get("pillars.point_cloud_range")
     for name, feeds in spec.make_cases(card, 4, 9):
@@ -156,7 +156,7 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
     5-frame cloud: exactly 1024 keypoints, equal to upstream's CDA given the graph's own rois and
     cluster points, and VSA features within 1e-4 of upstream's VoxelSetAbstraction_cda."""
     from radaredge.models.maffnet_spec import five_frame_points
-    card = load_card(ROOT / "models" / "maffnet-vod-full.yaml")
+    card = load_card(ROOT / "radaredge" / "cards" / "maffnet-vod-full.yaml")
     model = build_model(card)
     fuser = UpstreamCQCACaf().eval()
     sa = card.get("stage_two.vsa.sa_clusterpoints")
@@ -168,7 +168,7 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
     torch.save({"model_state": state}, tmp_path / "upstream.pth")
     load_checkpoint(model, tmp_path / "upstream.pth")
     from radaredge.registry import model_spec
-    clouds = [model_spec(card).make_cases(card, 1, 5)[0][1]["points"], five_frame_points(3, card)]
+    clouds = [model_spec(card).graph().make_cases(card, 1, 5)[0][1]["points"], five_frame_points(3, card)]
     for pts in clouds:
         trace: dict = {}
         with torch.no_grad():

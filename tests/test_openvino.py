@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from conftest import TINY_CARD, export_with_cli, invoke
-from radaredge import openvino_runtime
+from conftest import TINY_CARD, export_with_cli, invoke, summary_of
+from radaredge.runtime import openvino as openvino_runtime
 from radaredge.errors import ConfigError, InputError
-from radaredge.parity import run_parity
+import radaredge
 
 
 def test_tiny_tdfanet_in_openvino_matches_the_reference_to_float32_precision(tiny_export):
@@ -20,12 +20,12 @@ def test_tiny_tdfanet_in_openvino_matches_the_reference_to_float32_precision(tin
     Before the hypothesis table was kept below 2**24, OpenVINO's float32 Mod drew other samples
     and ego velocity missed by up to 0.05 m/s."""
     card, model, path, _ = tiny_export
-    report = run_parity(card, path, model, cases_n=8, seed=3, runtime="openvino")
+    report = radaredge.parity(card, path, model=model, cases=8, seed=3, runtime="openvino")
     assert report.runtime == "openvino"
-    s = report.summary
-    assert s["descriptor"]["passed"] and s["descriptor_normalized"]["passed"] and s["ego_valid"]["passed"], s
-    assert s["ego_velocity"]["max_abs"] < 1e-3, s["ego_velocity"]
-    assert report.retrieval_top1 == 1.0
+    s = report.graph().summary
+    assert s["descriptor"] and s["descriptor_normalized"] and s["ego_valid"], s
+    assert s["ego_velocity"].max_abs < 1e-3, s["ego_velocity"]
+    assert s["descriptor_normalized"].retrieval_top1 == 1.0
 
 
 def test_tiny_maffnet_passes_parity_in_openvino(tmp_path):
@@ -33,9 +33,9 @@ def test_tiny_maffnet_passes_parity_in_openvino(tmp_path):
     path = export_with_cli(tmp_path, "maffnet-tiny", config)
     res = invoke("parity-check", "--model", "maffnet-tiny", "--config", config, "--onnx", path, "--cases", "4",
                  "--runtime", "openvino", "--json")
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"] and report["runtime"] == "openvino", res.output
-    assert report["summary"]["boxes"]["mismatches"] == 0
+    assert summary_of(report)["boxes"]["mismatches"] == 0
 
 
 def test_errors_name_the_file_and_the_fix(tmp_path, monkeypatch):
@@ -51,18 +51,18 @@ def test_errors_name_the_file_and_the_fix(tmp_path, monkeypatch):
 
 
 def test_bench_times_openvino_and_reports_how_far_it_is_from_onnxruntime(tmp_path, monkeypatch, tiny_export):
-    monkeypatch.chdir(tmp_path)
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", tiny_export[2],
-                 "--runs", "3", "--warmup", "1", "--no-reference", "--openvino", "--json")
+    args = ("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", tiny_export[2],
+            "--runs", "3", "--warmup", "1", "--no-reference", "--openvino")
+    res = invoke(*args)
     assert res.exit_code == 0, res.output
     assert "openvino vs onnxruntime:" in res.output
-    out = json.loads(next(tmp_path.glob("benchmarks/results/tdfanet-tiny-*.json")).read_text())
-    assert [r["backend"] for r in out["results"]] == ["torch export", "onnxruntime", "openvino"]
-    diffs = out["openvino_vs_onnxruntime_max_abs"]
+    out = json.loads(invoke(*args, "--json").stdout)
+    assert [r["backend"] for r in out["tasks"]["tdfanet"]["rows"]] == ["torch export", "onnxruntime", "openvino"]
+    diffs = out["graphs"]["tdfanet"]["openvino_vs_onnxruntime_max_abs"]
     assert diffs["descriptor_normalized"] < 1e-4 and diffs["ego_velocity"] < 1e-4 and diffs["ego_valid"] == 0
 
 
 def test_bench_refuses_openvino_for_a_bundle():
     res = invoke("bench", "--model", "des4pos", "--config", Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
                  "--openvino", "--runs", "1")
-    assert res.exit_code == 2 and "single-graph" in res.output
+    assert res.exit_code == 2 and "one-graph models" in res.output

@@ -98,7 +98,7 @@ def small_benchmark(tmp_path_factory):
     out = tmp_path_factory.mktemp("pr-benchmark")
     res = invoke("make-benchmark", "--out", out, "--drives", 3, "--frames", 20, "--seed", 0, "--json")
     assert res.exit_code == 0, res.output
-    assert [d["role"] for d in json.loads(res.output)["drives"]] == ["database", "query", "query"]
+    assert [d["role"] for d in json.loads(res.stdout)["drives"]] == ["database", "query", "query"]
     return out
 
 
@@ -129,7 +129,7 @@ def test_eval_json_without_reference(tiny_export, small_benchmark):
                  "--database", small_benchmark / "database/drive-00", "--queries", small_benchmark / "queries/drive-02",
                  "--json")
     assert res.exit_code == 0, res.output
-    report = json.loads(res.output)
+    report = json.loads(res.stdout)
     assert set(report["recall"]) == {"onnxruntime"} and report["top1_agreement"] is None
     assert report["top1_place_agreement"] is None
     assert report["queries"]["drives"] == {"drive-02": 18}

@@ -9,8 +9,8 @@ import pytest
 from radaredge import runtime
 from radaredge.cards import parse_card
 from radaredge.errors import ConfigError
-from radaredge.ort_stages import module_names
-from radaredge.parity import run_parity
+from radaredge.node_scopes import module_names
+import radaredge
 from radaredge.quantize import quantize_int8
 
 
@@ -129,21 +129,21 @@ def test_keep_fp32_rejects_bad_patterns(tiny_export, tmp_path, patterns, message
 
 def test_quantised_parity_budget(int8):
     card, model, _, path = int8
-    report = run_parity(card, path, model, cases_n=8, seed=4, quantized=True)
-    assert report.passed, report.summary
-    s = report.summary
-    assert s["descriptor_normalized"]["min_cosine"] >= 0.99
-    assert s["ego_velocity"]["max_abs"] <= 1e-4          # preprocessing is fp32: unchanged
-    assert s["ego_valid"]["mismatches"] == 0
-    assert s["descriptor"]["tolerance"] == "reported only"
-    assert report.retrieval_top1 >= 0.98
+    report = radaredge.parity(card, path, model=model, cases=8, seed=4, quantized=True)
+    assert report, report.to_dict()
+    s = report.graph().summary
+    assert s["descriptor_normalized"].min_cosine >= 0.99
+    assert s["ego_velocity"].max_abs <= 1e-4          # preprocessing is fp32: unchanged
+    assert s["ego_valid"].mismatches == 0
+    assert s["descriptor"].tolerance == "reported only"
+    assert s["descriptor_normalized"].retrieval_top1 >= 0.98
 
 
 def test_quantised_graph_is_not_the_fp32_graph(int8):
     card, _, fp32, path = int8
     a, b = runtime.load(fp32), runtime.load(path)
     from radaredge.registry import model_spec
-    _, feeds = model_spec(card).make_cases(card, 1, 9)[0]
+    _, feeds = model_spec(card).graph().make_cases(card, 1, 9)[0]
     frames = [feeds[f"points_{k}"] for k in range(3)]
     da = a.run(frames, feeds["timestamps"])["descriptor_normalized"]
     db = b.run(frames, feeds["timestamps"])["descriptor_normalized"]
@@ -159,13 +159,17 @@ def _boxes(n, shift=0.0):
     return b
 
 
+def _dets(boxes, scores):
+    """A detector's outputs by name: boxes, their scores, all of label 1."""
+    return {"boxes": boxes, "scores": scores, "labels": np.ones(len(boxes))}
+
+
 @pytest.mark.parametrize("found, passed", [(19, True), (18, False)])
 def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
     """The int8 budget for detections: >= 95 % of the reference boxes matched (IoU >= 0.5, same
     label) over all cases together; a moved box (IoU < 0.5) and a missing box both count as missed."""
-    from radaredge.models.spec import OutputSpec
-    from radaredge.parity import compare, summarise
-    spec = OutputSpec("boxes", "boxes", group=("scores", "labels")).quantized()
+    from radaredge.comparators import Boxes
+    spec = Boxes("boxes").quantized()
     assert spec.min_recall == 0.95 and spec.min_iou == 0.5
     ref = _boxes(10)
     cases = []
@@ -173,24 +177,22 @@ def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
         got = ref.copy()
         got[:, 0] += 0.2                              # a small shift still matches
         got[n:, 0] += 3.0                             # moved beyond IoU 0.5: missed
-        c = compare(spec, (got, np.full(10, 0.3), np.ones(10)), (ref, np.full(10, 0.5), np.ones(10)))
-        cases.append({"case": str(k), "outputs": {"boxes": c.__dict__}})
-    s = summarise([spec], cases)["boxes"]
-    assert s["recall"] == pytest.approx(found / 20) and s["passed"] is passed
+        cases.append(spec.compare(_dets(got, np.full(10, 0.3)), _dets(ref, np.full(10, 0.5))))
+    s = spec.summarise(cases, ["0", "1"])
+    assert s.recall == pytest.approx(found / 20) and s.passed is passed
 
 
 def test_int8_box_recall_is_also_reported_by_reference_score_but_judged_overall():
     """Recall per reference-score floor (0.3, 0.5) is reported beside the verdict: here int8 loses
     the six boxes scored 0.12 and keeps every confident one, and the case set still fails."""
-    from radaredge.models.spec import OutputSpec
-    from radaredge.parity import compare, summarise
-    spec = OutputSpec("boxes", "boxes", group=("scores", "labels")).quantized()
+    from radaredge.comparators import Boxes
+    spec = Boxes("boxes").quantized()
     ref = _boxes(10)
     ref_scores = np.array([0.12] * 6 + [0.4, 0.4, 0.9, 0.9])
     got = ref.copy()
     got[:6, 0] += 3.0                                 # the six low-score boxes moved: missed
-    c = compare(spec, (got, ref_scores, np.ones(10)), (ref, ref_scores, np.ones(10)))
+    c = spec.compare(_dets(got, ref_scores), _dets(ref, ref_scores))
     assert c.by_score == {"0.3": [4, 4], "0.5": [2, 2]}
-    s = summarise([spec], [{"case": "0", "outputs": {"boxes": c.__dict__}}])["boxes"]
-    assert s["recall"] == pytest.approx(0.4) and s["passed"] is False
-    assert s["recall_by_score"] == {"0.3": [4, 4], "0.5": [2, 2]}
+    s = spec.summarise([c], ["0"])
+    assert s.recall == pytest.approx(0.4) and not s
+    assert s.recall_by_score == {"0.3": [4, 4], "0.5": [2, 2]}

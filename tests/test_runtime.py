@@ -24,7 +24,7 @@ def onnx_path(tiny_export):
 @pytest.fixture(scope="module")
 def frames():
     card = load_card(TINY)
-    _, feeds = model_spec(card).make_cases(card, 1, 2)[0]
+    _, feeds = model_spec(card).graph().make_cases(card, 1, 2)[0]
     return [feeds[f"points_{k}"] for k in range(3)], feeds["timestamps"]
 
 

@@ -8,8 +8,9 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
-from radaredge.export import build_model, load_checkpoint
-from radaredge.parity import run_parity
+from radaredge.exporter import build_model, load_checkpoint
+import radaredge
+from radaredge.parity_check import check_graph
 from radaredge.registry import model_spec
 
 from conftest import TINY_CARD as TINY
@@ -28,7 +29,7 @@ def exported(tiny_export):
 
 def test_export_formulation_equals_reference(card):
     model = build_model(card)
-    spec = model_spec(card)
+    spec = model_spec(card).graph()
     for name, feeds in spec.make_cases(card, 8, 5):
         with torch.no_grad():
             ref = spec.run_reference(model, feeds)
@@ -41,9 +42,9 @@ def test_export_formulation_equals_reference(card):
 
 def test_outputs_are_shaped_and_normalised(card):
     model = build_model(card)
-    _, feeds = model_spec(card).make_cases(card, 1, 0)[0]
+    _, feeds = model_spec(card).graph().make_cases(card, 1, 0)[0]
     with torch.no_grad():
-        out = model_spec(card).run_export(model, {k: torch.from_numpy(v) for k, v in feeds.items()})
+        out = model_spec(card).graph().run_export(model, {k: torch.from_numpy(v) for k, v in feeds.items()})
     assert out["descriptor"].shape == (32,)
     assert abs(float(out["descriptor_normalized"].norm()) - 1.0) < 1e-5
     assert out["ego_velocity"].shape == (3, 3) and out["ego_valid"].shape == (3,)
@@ -51,11 +52,12 @@ def test_outputs_are_shaped_and_normalised(card):
 
 def test_onnx_parity_passes_on_all_case_kinds(card, exported):
     model, onnx_path, _ = exported
-    report = run_parity(card, onnx_path, model, cases_n=8, seed=1)
-    assert report.passed, report.summary
-    assert report.summary["descriptor_normalized"]["min_cosine"] >= 0.9999
-    assert report.summary["ego_velocity"]["max_abs"] <= 1e-4
-    kinds = {c["case"].split("-", 1)[1] for c in report.cases}
+    report = radaredge.parity(card, onnx_path, model=model, cases=8, seed=1)
+    assert report, report.to_dict()
+    s = report.graph().summary
+    assert s["descriptor_normalized"].min_cosine >= 0.9999 and s["descriptor_normalized"].retrieval_top1 == 1.0
+    assert s["ego_velocity"].max_abs <= 1e-4
+    kinds = {c["case"].split("-", 1)[1] for c in report.graph().cases}
     assert kinds == {"drive", "dynamic-40%", "tiny-scans", "out-of-range"}
 
 
@@ -64,14 +66,15 @@ def test_parity_names_the_first_diverging_tensor(card, exported):
     broken = build_model(card)
     with torch.no_grad():
         broken.vfe.pfn_layers[0].linear.weight.mul_(1.5)   # reference now differs from the ONNX
-    report = run_parity(card, onnx_path, broken, cases_n=2, seed=0, debug_onnx=debug_path)
-    assert not report.passed
+    graph = model_spec(card).graph()
+    report = check_graph(card, graph, broken, onnx_path, cases_n=2, seed=0, debug_onnx=debug_path)
+    assert not report
     assert report.divergence["tensor"] == "bev"
     late = build_model(card)
     with torch.no_grad():
         late.dfa[0].ffn[0].weight.mul_(1.5)
-    report = run_parity(card, onnx_path, late, cases_n=2, seed=0, debug_onnx=debug_path)
-    assert not report.passed and report.divergence["tensor"] == "aggregated_l0"
+    report = check_graph(card, graph, late, onnx_path, cases_n=2, seed=0, debug_onnx=debug_path)
+    assert not report and report.divergence["tensor"] == "aggregated_l0"
 
 
 def test_checkpoint_round_trip_and_mismatch_report(card, tmp_path):
@@ -105,11 +108,10 @@ def test_card_errors_name_the_field(tmp_path):
 
 
 def test_debug_export_follows_the_pyramid_depth(tmp_path):
-    from radaredge.export import export_model
     card_path = tmp_path / "two-stage.yaml"
     card_path.write_text(TINY.read_text().replace("pyramid_stages: 3", "pyramid_stages: 2"))
     card = load_card(card_path)
-    res = export_model(card, tmp_path / "two.debug.onnx", model=build_model(card), debug=True)
+    res = radaredge.export(card, tmp_path / "two.onnx", model=build_model(card), debug=True)
     import json
-    outputs = json.loads(res.sidecar.read_text())["debug_outputs"]
+    outputs = json.loads(res.debug["tdfanet"].with_suffix(".json").read_text())["debug_outputs"]
     assert outputs == ["ego_velocity", "bev", "aligned_bev", "aggregated_l2", "aggregated_l1", "aggregated_l0"]

@@ -1,26 +1,21 @@
-"""benchmarks/tdfanet_fitted.py: the triplet loss, the batch sampler and the fit on the tiny
+"""radaredge.fitting.tdfanet_places: the triplet loss, the batch sampler and the fit on the tiny
 TDFANet card (the int8 experiment's descriptors are only as good as these)."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from radaredge.cards import load_card
+from radaredge.data.pr_benchmark import make_pr_benchmark
+from radaredge.evaluation import load_windows
+from radaredge.exporter import build_model, save_checkpoint
+from radaredge.fitting import tdfanet_places as tf
 
-import tdfanet_fitted as tf  # noqa: E402
-
-from radaredge.cards import load_card  # noqa: E402
-from radaredge.data.pr_benchmark import make_pr_benchmark  # noqa: E402
-from radaredge.evaluation import load_windows  # noqa: E402
-from radaredge.export import build_model, save_checkpoint  # noqa: E402
-
-CARD = load_card(ROOT / "tests" / "cards" / "tdfanet-tiny.yaml")
+CARD = load_card(Path(__file__).parent / "cards" / "tdfanet-tiny.yaml")
 
 
 @pytest.fixture(scope="module")

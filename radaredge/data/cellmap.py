@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from . import kitti360pose
 
 
 @dataclass
@@ -59,11 +60,13 @@ def load_map(path: str | Path, slots: int | None = None, points: int | None = No
         raise InputError(f"map {path} does not exist; make one with `radaredge make-city --out {path}` or pass a "
                          f"KITTI360Pose cells/<scene>.pkl")
     if path.suffix == ".pkl":
-        from .kitti360pose import read_kitti360pose
         if slots is None or points is None:
             raise InputError(f"{path}: a KITTI360Pose pickle is packed for a model; pass its slots and points")
+        m = pack_cells(kitti360pose.read_cells(path), slots, points, str(path))
         poses = path.parent.parent / "poses" / path.name
-        return read_kitti360pose(path, poses if poses.is_file() else None, slots, points)
+        if poses.is_file():
+            m.pose_w, m.pose_cell, m.pose_text = kitti360pose.read_poses(poses)
+        return m
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}

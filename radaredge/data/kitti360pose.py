@@ -11,6 +11,11 @@ Layout (Text2Loc): a cell has ``id`` (``<scene>_<idx:05>``), ``scene_name``, ``o
 has ``id``, ``instance_id``, ``xyz`` [N, 3] normalised to the cell ([0, 1]), ``rgb`` [N, 3] in
 [0, 1] and ``label``. A pose has ``pose_w`` (world, m), ``cell_id`` (its best cell) and
 ``descriptions``, each rendered as "The pose is {direction} of a {color} {label}.".
+
+This module only reads: :func:`read_cells` gives the cells in the input form of
+:func:`radaredge.data.cellmap.pack_cells`, :func:`read_poses` the poses as arrays, and
+:func:`radaredge.data.cellmap.load_map` packs them into a map (cellmap imports this module,
+never the other way round).
 """
 
 from __future__ import annotations
@@ -21,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .cellmap import CellMap, pack_cells
 
 TEXT2LOC_MODULE = "datapreparation.kitti360pose.imports"
 
@@ -91,28 +95,36 @@ def hint_text(description) -> str:
             f"{description.object_label}.")
 
 
-def read_kitti360pose(cells_path: str | Path, poses_path: str | Path | None, slots: int, points: int) -> CellMap:
-    """The cells of one scene packed into ``slots`` objects of ``points`` points, plus its poses."""
-    cells = read_pickle(cells_path)
+def read_cells(path: str | Path) -> list[dict]:
+    """The cells of one ``cells/<scene>.pkl`` as :func:`radaredge.data.cellmap.pack_cells` takes
+    them: ``{id, scene, origin [2] (world x, y of the cell's min corner, m), size (m), objects:
+    [{xyz [N, 3] normalised to the cell, rgb [N, 3] in [0, 1], label}]}``."""
+    cells = read_pickle(path)
     if not isinstance(cells, list):
-        raise InputError(f"{cells_path}: expected a list of cells, got {type(cells).__name__}")
+        raise InputError(f"{path}: expected a list of cells, got {type(cells).__name__}")
     raw = []
     for i, c in enumerate(cells):
-        where = f"{cells_path}: cell {i}"
+        where = f"{path}: cell {i}"
         cid = str(_get(c, "id", where))
         bbox = np.asarray(_get(c, "bbox_w", where), np.float64)
         if bbox.shape != (6,):
-            raise InputError(f"{cells_path}: cell {cid}: bbox_w must hold 6 values, got shape {bbox.shape}")
-        objs = [{"xyz": _get(o, "xyz", f"{cells_path}: cell {cid}, object {j}"), "rgb": _get(o, "rgb", cid),
+            raise InputError(f"{path}: cell {cid}: bbox_w must hold 6 values, got shape {bbox.shape}")
+        objs = [{"xyz": _get(o, "xyz", f"{path}: cell {cid}, object {j}"), "rgb": _get(o, "rgb", cid),
                  "label": str(_get(o, "label", cid))} for j, o in enumerate(_get(c, "objects", where))]
         raw.append({"id": cid, "scene": str(_get(c, "scene_name", where)), "origin": bbox[:2],
                     "size": float(_get(c, "cell_size", where)), "objects": objs})
-    m = pack_cells(raw, slots, points, str(cells_path))
-    if poses_path is not None:
-        poses = read_pickle(poses_path)
-        m.pose_w = np.array([np.asarray(_get(p, "pose_w", f"{poses_path}: pose {i}"), np.float64)[:2]
-                             for i, p in enumerate(poses)]).reshape(-1, 2)
-        m.pose_cell = np.array([str(_get(p, "cell_id", str(poses_path))) for p in poses], dtype=str)
-        m.pose_text = np.array([" ".join(hint_text(d) for d in _get(p, "descriptions", str(poses_path)))
-                                for p in poses], dtype=str)
-    return m
+    return raw
+
+
+def read_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The poses of one ``poses/<scene>.pkl``: (world x, y [Q, 2] float64 m, best-cell id [Q] str,
+    description [Q] str: the pose's hints rendered by :func:`hint_text`, joined by spaces)."""
+    poses = read_pickle(path)
+    if not isinstance(poses, list):
+        raise InputError(f"{path}: expected a list of poses, got {type(poses).__name__}")
+    pose_w = np.array([np.asarray(_get(p, "pose_w", f"{path}: pose {i}"), np.float64)[:2]
+                       for i, p in enumerate(poses)]).reshape(-1, 2)
+    pose_cell = np.array([str(_get(p, "cell_id", str(path))) for p in poses], dtype=str)
+    pose_text = np.array([" ".join(hint_text(d) for d in _get(p, "descriptions", str(path))) for p in poses],
+                         dtype=str)
+    return pose_w, pose_cell, pose_text

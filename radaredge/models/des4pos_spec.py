@@ -1,4 +1,5 @@
-"""Des4Pos's three graph signatures, parity cases and tolerances (see radaredge.models.spec).
+"""Des4Pos's three graph signatures, parity cases and comparators, its dynamic int8 text encoder
+and its query / cell-encoding benchmark (see radaredge.models.spec).
 
 Graphs (all opset 18, CPU onnxruntime, no custom ops):
 
@@ -20,14 +21,15 @@ import numpy as np
 import torch
 
 from ..cards import ModelCard
+from ..comparators import Dense, Descriptor
 from ..data.text_city import make_city
-from ..text_tokens import encode_hints, load_tokenizer, split_hints
-from .des4pos import CellConfig, Des4Pos, TextConfig, build_des4pos
+from ..errors import ConfigError
+from ..runtime.text_tokens import encode_hints, load_tokenizer, split_hints
+from .des4pos import Des4Pos, build_des4pos
+from .des4pos_config import CellConfig, TextConfig
 from .minilm import backbone_dir
-from .spec import BundleSpec, ModelSpec, OutputSpec
+from .spec import EvalInputs, GraphSpec, ModelSpec
 
-PARTS = ("submap_encoder", "text_encoder", "fine_stage")
-_MODULE = {"submap_encoder": "submap", "text_encoder": "text", "fine_stage": "fine"}
 
 
 def _cell(card) -> CellConfig:
@@ -95,14 +97,15 @@ def submap_export(model, feeds, trace=None):
     return {"descriptor": d, "object_features": h}
 
 
-SUBMAP_SPEC = ModelSpec(
-    build=lambda card: build_des4pos(card).submap,
+SUBMAP_OUTPUTS = (Descriptor("descriptor", min_cosine=0.9999), Dense("object_features", atol=1e-4, rtol=1e-3))
+SUBMAP_GRAPH = GraphSpec(
+    name="submap_encoder",
+    module=lambda model: model.submap,
     input_names=lambda card: ["points", "num_points", "object_mask"],
     dynamic_axes=lambda card: {k: {0: "cells"} for k in ("points", "num_points", "object_mask")},
-    outputs=(OutputSpec("descriptor", "descriptor", min_cosine=0.9999),
-             OutputSpec("object_features", "dense", atol=1e-4, rtol=1e-3)),
+    output_names=lambda card: [c.name for c in SUBMAP_OUTPUTS],
+    comparators=lambda card: SUBMAP_OUTPUTS,
     make_cases=submap_cases, run_reference=submap_reference, run_export=submap_export,
-    trace_order=lambda card: (),
 )
 
 
@@ -144,14 +147,15 @@ def text_export(model, feeds, trace=None):
     return {"descriptor": d, "hint_features": h}
 
 
-TEXT_SPEC = ModelSpec(
-    build=lambda card: build_des4pos(card).text,
+TEXT_OUTPUTS = (Descriptor("descriptor", min_cosine=0.9999), Dense("hint_features", atol=1e-4, rtol=1e-3))
+TEXT_GRAPH = GraphSpec(
+    name="text_encoder",
+    module=lambda model: model.text,
     input_names=lambda card: ["input_ids", "attention_mask"],
     dynamic_axes=lambda card: {k: {0: "hints", 1: "tokens"} for k in ("input_ids", "attention_mask")},
-    outputs=(OutputSpec("descriptor", "descriptor", min_cosine=0.9999),
-             OutputSpec("hint_features", "dense", atol=1e-4, rtol=1e-3)),
+    output_names=lambda card: [c.name for c in TEXT_OUTPUTS],
+    comparators=lambda card: TEXT_OUTPUTS,
     make_cases=text_cases, run_reference=text_reference, run_export=text_export,
-    trace_order=lambda card: (),
 )
 
 
@@ -195,26 +199,129 @@ def fine_export(model, feeds, trace=None):
     return {"offset": off, "position": pos}
 
 
-FINE_SPEC = ModelSpec(
-    build=lambda card: build_des4pos(card).fine,
+FINE_OUTPUTS = (Dense("offset", atol=1e-5, rtol=1e-4), Dense("position", unit="m", atol=1e-3, rtol=0.0))
+FINE_GRAPH = GraphSpec(
+    name="fine_stage",
+    module=lambda model: model.fine,
     input_names=lambda card: list(FINE_INPUTS),
     dynamic_axes=lambda card: {"object_features": {0: "candidates"}, "object_mask": {0: "candidates"},
                                "hint_features": {0: "hints"}, "cell_origin": {0: "candidates"},
                                "cell_size": {0: "candidates"}},
-    outputs=(OutputSpec("offset", "dense", atol=1e-5, rtol=1e-4),
-             OutputSpec("position", "dense", atol=1e-3, rtol=0.0, unit="m")),
+    output_names=lambda card: [c.name for c in FINE_OUTPUTS],
+    comparators=lambda card: FINE_OUTPUTS,
     make_cases=fine_cases, run_reference=fine_reference, run_export=fine_export,
-    trace_order=lambda card: (),
 )
 
 
-def part_module(model: Des4Pos, part: str) -> torch.nn.Module:
-    return getattr(model, _MODULE[part])
+# ----------------------------------------------------------------------------- hooks
 
 
-DES4POS_SPEC = BundleSpec(
+def text_int8(card: ModelCard, spec: ModelSpec, paths: dict, options) -> dict:
+    """``export --quantize int8``: a dynamically quantised copy of the text encoder
+    (text_encoder.int8.onnx: int8 MatMul/Gemm weights, no calibration). The point and fine
+    graphs stay fp32."""
+    from ..quantize import quantize_dynamic_int8
+    path = paths["text_encoder"]
+    return {"text_encoder": quantize_dynamic_int8(path, path.with_suffix(".int8.onnx"))}
+
+
+def bench_tasks(card: ModelCard, model: Des4Pos, paths: dict, options) -> list:
+    """What ``bench`` times for Des4Pos:
+
+    * **query**: text encode + FAISS search over a synthetic map's cell descriptors + fine stage
+      on the top-k cells, per description (tokenisation included), for the torch export
+      formulation, the torch reference (optional), onnxruntime fp32 and onnxruntime with the
+      dynamically quantised text encoder (when ``text_encoder.int8.onnx`` exists);
+    * **cells**: cell-encoding throughput of the submap encoder, batches of 8 cells.
+    """
+    from ..runtime.des4pos import Des4PosBundle, MapIndex
+    from ..timing import BenchTask
+    if options.openvino:
+        raise ConfigError(f"--openvino times the graphs of one-graph models; {card.name}'s bench times "
+                          f"queries through its three graphs in onnxruntime")
+    top_k, batch = 3, 8
+    bundle_dir = paths["text_encoder"].parent
+    cell = card.section("cell", CellConfig)
+    city = make_city(cell.max_objects, cell.points_per_object, seed=1, size=cell.size, stride=cell.stride, poses=0)
+    ort_b = Des4PosBundle(bundle_dir, threads=options.threads)
+    int8 = paths["text_encoder"].with_suffix(".int8.onnx")
+    with torch.no_grad():
+        desc, objs = model.submap(torch.from_numpy(city.points), torch.from_numpy(city.num_points),
+                                  torch.from_numpy(city.object_mask))
+    index = MapIndex(city.ids, city.origins, city.sizes, city.object_mask, desc.numpy(), objs.numpy())
+    texts = descriptions(card, 8, 3)
+
+    def torch_query(text, reference=False):
+        with torch.no_grad():
+            hints, ids, mask = ort_b.tokenize(text)
+            if reference:
+                d, h = model.text.reference([ids[i][mask[i] > 0] for i in range(len(ids))])
+            else:
+                d, h = model.text(torch.from_numpy(ids), torch.from_numpy(mask))
+            _, cells = index.search(d.numpy()[None], top_k)
+            c = cells[0]
+            if reference:
+                model.fine.reference([torch.from_numpy(index.object_features[j][index.object_mask[j]]) for j in c], h,
+                                     index.origins[c], index.sizes[c])
+            else:
+                model.fine(torch.from_numpy(index.object_features[c]), torch.from_numpy(index.object_mask[c]), h,
+                           torch.from_numpy(index.origins[c]), torch.from_numpy(index.sizes[c]))
+
+    query = {}
+    if options.reference:
+        query["torch reference"] = lambda t: torch_query(t, True)
+    query["torch export"] = torch_query
+    query["onnxruntime"] = lambda t: ort_b.locate(t, index, top_k)
+    if int8.is_file():
+        ort_q = Des4PosBundle(bundle_dir, threads=options.threads, text_encoder=int8)
+        query["onnxruntime int8 text"] = lambda t: ort_q.locate(t, index, top_k)
+
+    # cell encoding: batches of `batch` cells (the reference one cell at a time, real objects only)
+    batches = [slice(s, s + batch) for s in range(0, len(city) - batch + 1, batch)][:4]
+
+    def torch_cells(sl, reference=False):
+        with torch.no_grad():
+            if reference:
+                for c in range(sl.start, sl.stop):
+                    m = city.object_mask[c]
+                    model.submap.reference(city.points[c][m], city.num_points[c][m])
+            else:
+                model.submap(torch.from_numpy(city.points[sl]), torch.from_numpy(city.num_points[sl]),
+                             torch.from_numpy(city.object_mask[sl]))
+
+    sess = ort_b.graphs["submap_encoder"].session
+    cells = {}
+    if options.reference:
+        cells["torch reference"] = lambda sl: torch_cells(sl, True)
+    cells["torch export"] = torch_cells
+    cells["onnxruntime"] = lambda sl: sess.run(None, {"points": city.points[sl], "num_points": city.num_points[sl],
+                                                      "object_mask": city.object_mask[sl]})
+    return [
+        BenchTask("query", f"query latency (tokenise + text encode + FAISS search over {len(index)} cells + fine "
+                           f"stage on top-{top_k}), {options.runs} runs over {len(texts)} descriptions",
+                  query, texts, options.runs, options.warmup, baseline="torch export",
+                  facts={"top_k": top_k, "map_cells": len(index), "descriptions": len(texts)}),
+        BenchTask("cells", f"cell encoding, batches of {batch} cells "
+                           f"({int(city.object_mask[:batch].sum())} objects in the first)",
+                  cells, batches, max(2, min(options.runs, 6)), 1, baseline="torch export",
+                  items_per_case=batch, item_unit="cells", facts={"cell_batch": batch}),
+    ]
+
+
+def evaluate_localization(card: ModelCard, onnx, inputs: EvalInputs):
+    """Localisation recall of the export over a cell map's described poses
+    (:func:`radaredge.des4pos_eval.evaluate_localization`)."""
+    from ..des4pos_eval import evaluate_localization as localize
+    inputs.require("localisation recall", ("map",), card.name)
+    return localize(onnx, inputs.map, progress=inputs.progress)
+
+
+DES4POS_SPEC = ModelSpec(
     build=build_des4pos,
-    parts={"submap_encoder": SUBMAP_SPEC, "text_encoder": TEXT_SPEC, "fine_stage": FINE_SPEC},
-    part_module=part_module,
+    graphs=(SUBMAP_GRAPH, TEXT_GRAPH, FINE_GRAPH),
     files=lambda card: {"tokenizer.json": tokenizer_path(card)},
+    int8=text_int8,
+    int8_calibrated=False,
+    bench_tasks=bench_tasks,
+    evaluate=evaluate_localization,
 )

@@ -1,4 +1,4 @@
-"""MAFF-Net's graph signature, parity cases and tolerances (see radaredge.models.spec)."""
+"""MAFF-Net's graph signature, parity cases, comparators and runtime checks (see radaredge.models.spec)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ from ..cards import ModelCard
 from ..data.synthetic import generate_scan, generate_sequence, tj4d_table, vod_accumulated_table, vod_table
 from ..errors import ConfigError
 from .maffnet import MAFFNet, build_maffnet, output_names, stage_times
-from .spec import ModelSpec, OutputSpec
+from ..comparators import Boxes, Comparator, Dense, Exact
+from ..runtime.metadata import OutputCheck
+from .spec import GraphSpec, ModelSpec
 
 
 def input_names(card: ModelCard) -> list[str]:
@@ -128,37 +130,60 @@ def postprocess_reference_two(model: MAFFNet, got: dict) -> dict:
     return {"boxes": boxes, "scores": scores, "labels": labels}
 
 
-def _outputs(stage_two: bool = False) -> tuple[OutputSpec, ...]:
-    specs = {
-        "boxes": OutputSpec("boxes", "boxes", unit="m, rad", group=("scores", "labels")),
-        "scores": OutputSpec("scores", "grouped"),
-        "labels": OutputSpec("labels", "grouped"),
-        "anchor_scores": OutputSpec("anchor_scores", "dense", atol=1e-4, rtol=1e-3, quantized_info=True),
+def _comparators(stage_two: bool = False) -> tuple[Comparator, ...]:
+    """How parity judges each output of the one- or two-stage graph (graph order)."""
+    angle = dict(angle_column=6, angle_period=math.pi)
+    judges = {
+        "boxes": Boxes("boxes", unit="m, rad"),               # with its scores and labels outputs
+        "anchor_scores": Dense("anchor_scores", atol=1e-4, rtol=1e-3, quantized_info=True),
         # heading compared modulo pi: a direction-bin logit pair within float noise may pick the other bin
-        "anchor_boxes": OutputSpec("anchor_boxes", "dense", atol=1e-3, rtol=1e-3, unit="m, rad", quantized_info=True,
-                                   angle_column=6, angle_period=math.pi),
-        "num_pillars": OutputSpec("num_pillars", "exact"),
-        "spa_overflow": OutputSpec("spa_overflow", "exact"),
-        "cfa_converged": OutputSpec("cfa_converged", "exact"),
+        "anchor_boxes": Dense("anchor_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, **angle),
+        "num_pillars": Exact("num_pillars"),
+        "spa_overflow": Exact("spa_overflow"),
+        "cfa_converged": Exact("cfa_converged"),
         # stage two (cards with ``stage_two``): rois as decoded by stage one, hence its tolerance
-        "rois": OutputSpec("rois", "dense", atol=1e-3, rtol=1e-3, unit="m, rad", quantized_info=True,
-                           angle_column=6, angle_period=math.pi),
-        "roi_labels": OutputSpec("roi_labels", "exact"),
-        "roi_valid": OutputSpec("roi_valid", "exact"),
-        "keypoints": OutputSpec("keypoints", "dense", atol=1e-6, rtol=0.0, unit="m"),
-        "keypoint_valid": OutputSpec("keypoint_valid", "exact"),
-        "rcnn_scores": OutputSpec("rcnn_scores", "dense", atol=1e-4, rtol=1e-3, quantized_info=True),
-        "rcnn_boxes": OutputSpec("rcnn_boxes", "dense", atol=1e-3, rtol=1e-3, unit="m, rad", quantized_info=True,
-                                 angle_column=6, angle_period=math.pi),
+        "rois": Dense("rois", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, **angle),
+        "roi_labels": Exact("roi_labels"),
+        "roi_valid": Exact("roi_valid"),
+        "keypoints": Dense("keypoints", unit="m", atol=1e-6, rtol=0.0),
+        "keypoint_valid": Exact("keypoint_valid"),
+        "rcnn_scores": Dense("rcnn_scores", atol=1e-4, rtol=1e-3, quantized_info=True),
+        "rcnn_boxes": Dense("rcnn_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, **angle),
     }
-    return tuple(specs[n] for n in output_names(stage_two))
+    return tuple(judges[n] for n in output_names(stage_two) if n in judges)
 
 
-MAFFNET_SPEC = ModelSpec(
-    build=build_maffnet,
+def runtime_checks(card: ModelCard) -> list[OutputCheck]:
+    """The capacity flags the runtime acts on: ``spa_overflow`` (more non-empty pillars than the
+    sparse pillar attention holds: always an error) and ``cfa_converged`` (the clustering map is
+    not the one its method defines; the card's ``cfa.not_converged`` says error or warning,
+    default error for DBSCAN, whose points beyond its capacity were left out, and warning for
+    GridDensityBEV, whose max-pool components stopped short)."""
+    spa = OutputCheck("spa_overflow", True, "error",
+                      f"the scan has {{num_pillars}} non-empty pillars but {card.name}'s sparse pillar attention "
+                      f"holds spa.capacity = {card.get('spa.capacity')}; export with a larger spa.capacity "
+                      f"(--config) or crop the scan")
+    cfa = card.get("cfa", {}) or {}
+    method = cfa.get("method", "grid_density")
+    policy = cfa.get("not_converged") or ("error" if method == "dbscan" else "warn")
+    if method == "dbscan":
+        msg = (f"the scan has more points inside the range than {card.name}'s DBSCAN clusters "
+               f"(cfa.dbscan.capacity = {card.get('cfa.dbscan.capacity')}); the points beyond it were "
+               "left out of the clustering map; export with a larger capacity (--config) or crop the scan")
+    else:
+        msg = (f"{card.name}'s GridDensityBEV components did not converge in cfa.grid.cc_iterations = "
+               f"{card.get('cfa.grid.cc_iterations')} max-pool steps (the fork's partial labels); "
+               "cc_mode: exact gives true components")
+    return [spa, OutputCheck("cfa_converged", False, policy, msg)]
+
+
+STAGE_ONE_GRAPH = GraphSpec(
+    name="maffnet",
     input_names=input_names,
     dynamic_axes=dynamic_axes,
-    outputs=_outputs(),
+    frame_inputs=input_names,
+    output_names=lambda card: list(output_names(False)),
+    comparators=lambda card: _comparators(False),
     make_cases=make_cases,
     run_reference=run_reference,
     run_export=run_export,
@@ -172,14 +197,18 @@ MAFFNET_SPEC = ModelSpec(
 
 # Cards with ``stage_two``: the stage-one NMS is replaced by the proposal layer, and the graph
 # continues with CDA keypoints, VSA, point head, ROI head and the final NMS.
-MAFFNET_FULL_SPEC = replace(
-    MAFFNET_SPEC,
-    outputs=_outputs(stage_two=True),
+TWO_STAGE_GRAPH = replace(
+    STAGE_ONE_GRAPH,
+    output_names=lambda card: list(output_names(True)),
+    comparators=lambda card: _comparators(True),
     postprocess_reference=postprocess_reference_two,
-    onnx_stages=(*MAFFNET_SPEC.onnx_stages[:4], ("proposals+CDA", ("proposal_layer", "keypoint_sampler")),
+    onnx_stages=(*STAGE_ONE_GRAPH.onnx_stages[:4], ("proposals+CDA", ("proposal_layer", "keypoint_sampler")),
                  ("VSA+point head", ("pfe", "point_head")), ("ROI head", ("roi_head",)), ("final NMS", ())),
     onnx_post_outputs=("rcnn_scores", "rcnn_boxes"),
 )
+
+MAFFNET_SPEC = ModelSpec(build=build_maffnet, graphs=(STAGE_ONE_GRAPH,), runtime_checks=runtime_checks)
+MAFFNET_FULL_SPEC = replace(MAFFNET_SPEC, graphs=(TWO_STAGE_GRAPH,))
 
 
 def spec_for(card: ModelCard | None = None) -> ModelSpec:

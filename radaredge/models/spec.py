@@ -1,115 +1,140 @@
-"""What the exporter, parity checker and benchmark need to know about one model family."""
+"""What the verbs (export, parity, bench) need to know about a model: its graphs and its hooks.
+
+A model is one or more graphs that share one set of weights (:class:`ModelSpec`). Each graph
+(:class:`GraphSpec`) names its inputs, its outputs with their parity comparators, its synthetic
+cases and its two formulations (export and reference). Model-specific extras are hooks on the
+ModelSpec (how int8 copies are made, what ``bench`` times, files shipped beside the graphs, the
+runtime checks written into the metadata); the verbs have one code path for every model.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 import torch
 
 from ..cards import ModelCard
+from ..comparators import Comparator
 
 
 @dataclass(frozen=True)
-class OutputSpec:
-    """One graph output and how parity compares it.
+class EvalInputs:
+    """What ``eval`` was given; each model's ``evaluate`` hook takes what its task needs and
+    refuses the rest. Place recognition: ``database``/``queries`` drives, ``radius`` (m),
+    ``checkpoint`` and ``reference``; localisation: a cell ``map``."""
 
-    ``kind``: ``dense`` (max abs / max rel / p99 against ``atol``), ``descriptor`` (cosine
-    >= ``min_cosine`` plus dense statistics), ``exact`` (bit-equal labels, flags, masks),
-    ``info`` (statistics reported, no verdict), ``boxes`` (detections [M, 7] matched one to one
-    with the reference by rotated BEV IoU >= ``min_iou``, same label, score within
-    ``max_score_diff``; its scores and labels outputs, named in ``group``, are of kind
-    ``grouped`` and judged with it).
+    database: str | None = None
+    queries: str | None = None
+    map: str | None = None
+    checkpoint: str | None = None
+    radius: float = 5.0
+    reference: bool = True
+    progress: Callable | None = None
 
-    For an int8 graph (:meth:`quantized`) descriptors are held to ``quantized_min_cosine``,
-    detections to a matched-box recall of ``quantized_min_recall`` against the full reference at
-    IoU >= ``quantized_min_iou`` (same label; scores reported, not judged), outputs marked
-    ``quantized_info`` are reported only, and the rest keep their tolerances (they come from the
-    fp32 preprocessing that quantisation does not touch).
+    def require(self, task: str, needed: tuple[str, ...], card_name: str) -> None:
+        """ConfigError unless exactly the inputs ``needed`` (of database, queries, map) are given."""
+        from ..errors import ConfigError
+        missing = [n for n in needed if getattr(self, n) is None]
+        extra = [n for n in ("database", "queries", "map") if n not in needed and getattr(self, n) is not None]
+        if missing or extra:
+            raise ConfigError(f"{card_name} is evaluated by {task} on {', '.join('--' + n for n in needed)}"
+                              + (f"; missing {', '.join('--' + n for n in missing)}" if missing else "")
+                              + (f"; {', '.join('--' + n for n in extra)} not used" if extra else ""))
+
+
+def _whole(model: torch.nn.Module) -> torch.nn.Module:
+    return model
+
+
+def _no_checks(card: ModelCard) -> list:
+    return []
+
+
+def _no_files(card: ModelCard) -> dict:
+    return {}
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """One exported graph.
+
+    - ``name``: the graph's file stem inside a multi-graph export (``text_encoder``); unused for a
+      one-graph model, whose graph is the output file itself;
+    - ``input_names(card)`` / ``dynamic_axes(card)``: the input signature; ``frame_inputs(card)``
+      the inputs that take one point cloud [N, F] each (oldest first) and ``timestamps_input`` the
+      one taking per-frame times (s), for :mod:`radaredge.runtime`;
+    - ``output_names(card)``: graph outputs in order; ``comparators(card)``: how parity judges
+      them, each output judged by exactly one comparator;
+    - ``make_cases(card, n, seed)`` -> [(case name, {input name: numpy array})];
+    - ``run_reference(module, feeds, trace=None)`` -> {output: tensor}, the reference formulation;
+    - ``run_export(module, feeds, trace=None)`` -> the export formulation's outputs, filling ``trace``;
+    - ``trace_order(card)``: intermediate tensor names in pipeline order (divergence reports);
+    - ``module(model)``: the sub-module of the model this graph runs (the whole model by default).
+
+    Optional: ``postprocess_reference(module, graph outputs)`` -> the reference post-processing
+    (NMS) of the graph's own dense outputs, which detections are judged against (see
+    :class:`radaredge.comparators.Boxes`); ``stage_times(module, feeds, reference)`` ->
+    {stage: s} for one torch run; ``onnx_stages`` (stage, module prefixes) and
+    ``onnx_post_outputs``, the same stages inside onnxruntime (:mod:`radaredge.profiling`).
     """
 
     name: str
-    kind: str
-    atol: float = 1e-4
-    rtol: float = 1e-3
-    min_cosine: float = 0.9999
-    unit: str = ""
-    quantized_min_cosine: float = 0.99
-    quantized_info: bool = False
-    group: tuple = ()            # ``boxes``: the names of its scores and labels outputs
-    min_iou: float = 0.99        # ``boxes``: matched rotated BEV IoU
-    max_score_diff: float = 1e-4  # ``boxes``: |score - matched reference score|
-    min_recall: float | None = None  # ``boxes``: if set, judge the share of reference boxes matched over
-    #                                  the case set (end to end) instead of requiring every box matched
-    quantized_min_recall: float = 0.95   # ``boxes`` int8 budget: matched-box recall over the case set
-    quantized_min_iou: float = 0.5       # ``boxes`` int8 budget: IoU (same label) that counts as a match
-    angle_column: int = -1       # ``dense``: last-axis column holding an angle compared modulo angle_period
-    angle_period: float = 0.0
-
-    def quantized(self) -> "OutputSpec":
-        """The budget this output is held to when the graph is int8-quantised."""
-        if self.kind == "descriptor":
-            return replace(self, min_cosine=self.quantized_min_cosine)
-        if self.kind == "boxes":
-            return replace(self, min_iou=self.quantized_min_iou, min_recall=self.quantized_min_recall,
-                           max_score_diff=float("inf"))
-        if self.quantized_info:
-            return replace(self, kind="info")
-        return self
+    input_names: Callable[[ModelCard], list[str]]
+    dynamic_axes: Callable[[ModelCard], dict]
+    output_names: Callable[[ModelCard], list[str]]
+    comparators: Callable[[ModelCard], tuple[Comparator, ...]]
+    make_cases: Callable[[ModelCard, int, int], list[tuple[str, dict[str, np.ndarray]]]]
+    run_reference: Callable
+    run_export: Callable
+    trace_order: Callable[[ModelCard], tuple[str, ...]] = lambda card: ()
+    frame_inputs: Callable[[ModelCard], list[str]] = lambda card: []
+    timestamps_input: str | None = None
+    module: Callable[[torch.nn.Module], torch.nn.Module] = _whole
+    postprocess_reference: Callable | None = None
+    stage_times: Callable | None = None
+    onnx_stages: tuple = ()
+    onnx_post_outputs: tuple = ()
 
 
 @dataclass(frozen=True)
 class ModelSpec:
-    """Adapter between a model family and the generic commands.
+    """A model family: ``build(card)`` -> the whole nn.Module (seeded, eval mode) and its graphs.
 
-    - ``build(card)`` -> nn.Module in eval mode, seeded;
-    - ``input_names(card)`` / ``dynamic_axes(card)``: the graph's input signature;
-    - ``outputs``: output specs in graph order;
-    - ``make_cases(card, n, seed)`` -> list of (case name, {input name: numpy array});
-    - ``run_reference(model, feeds)`` -> {output name: tensor}, the reference formulation;
-    - ``run_export(model, feeds, trace)`` -> outputs of the export formulation, filling ``trace``;
-    - ``trace_order(card)``: intermediate tensor names in pipeline order (divergence reports).
+    Hooks (each takes the card first):
+
+    - ``files(card)`` -> {file name: source path} copied beside the graphs (a tokenizer);
+    - ``runtime_checks(card)`` -> [:class:`radaredge.runtime.metadata.OutputCheck`] written into
+      every graph's metadata and applied by the runtime after each run (capacity flags);
+    - ``int8(card, paths, options)`` -> {graph name: int8 path}: how ``export --quantize int8``
+      makes the int8 copies (default: static QDQ of every graph, :mod:`radaredge.quantize`);
+      ``int8_calibrated`` says whether it takes calibration data;
+    - ``bench_tasks(card, model, paths, options)`` -> [:class:`radaredge.timing.BenchTask`]: what
+      ``bench`` times (default: each graph's pipeline in every backend);
+    - ``evaluate(card, onnx, inputs)`` -> a report (``to_dict``, ``lines``, ``write_json``): the
+      task metric ``eval`` computes from an :class:`EvalInputs` (none for a model without one).
     """
 
     build: Callable[[ModelCard], torch.nn.Module]
-    input_names: Callable[[ModelCard], list[str]]
-    dynamic_axes: Callable[[ModelCard], dict]
-    outputs: tuple[OutputSpec, ...]
-    make_cases: Callable[[ModelCard, int, int], list[tuple[str, dict[str, np.ndarray]]]]
-    run_reference: Callable
-    run_export: Callable
-    trace_order: Callable[[ModelCard], tuple[str, ...]]
-    # Optional: (model, onnxruntime outputs) -> reference post-processing (NMS) of the graph's
-    # own dense outputs. ``boxes`` outputs are then judged against it, so a score or IoU that
-    # sits within float noise of a threshold cannot flip the verdict; the end-to-end match
-    # against the full reference is still reported.
-    postprocess_reference: Callable | None = None
-    # Optional: (model, feeds, reference) -> {stage name: seconds} for one run in torch.
-    stage_times: Callable | None = None
-    # Optional: the same stages inside onnxruntime, as (stage name, module prefixes) in pipeline
-    # order, plus the graph outputs after which everything is the last stage (see ort_stages).
-    onnx_stages: tuple = ()
-    onnx_post_outputs: tuple = ()
+    graphs: tuple[GraphSpec, ...]
+    files: Callable[[ModelCard], dict] = _no_files
+    runtime_checks: Callable[[ModelCard], list] = _no_checks
+    int8: Callable | None = None
+    int8_calibrated: bool = True
+    bench_tasks: Callable | None = None
+    evaluate: Callable | None = None
 
     @property
-    def output_names(self) -> list[str]:
-        return [o.name for o in self.outputs]
+    def multi_graph(self) -> bool:
+        """True when the model exports as several graphs (a directory) rather than one file."""
+        return len(self.graphs) > 1
 
-
-@dataclass(frozen=True)
-class BundleSpec:
-    """A model family exported as several graphs ("parts") that share one set of weights.
-
-    - ``build(card)`` -> the whole nn.Module (seeded, eval mode);
-    - ``parts``: part name -> the :class:`ModelSpec` of that graph, in export order;
-    - ``part_module(model, name)`` -> the sub-module the part's spec runs and exports.
-
-    ``radaredge export`` writes ``<dir>/<part>.onnx`` + sidecar per part and ``<dir>/bundle.json``;
-    ``radaredge parity-check`` checks every part against its reference.
-    """
-
-    build: Callable[[ModelCard], torch.nn.Module]
-    parts: dict
-    part_module: Callable[[torch.nn.Module, str], torch.nn.Module]
-    files: Callable[[ModelCard], dict] = lambda card: {}     # extra files copied into the bundle: name -> path
+    def graph(self, name: str | None = None) -> GraphSpec:
+        """The graph called ``name``; the only graph when ``name`` is None."""
+        if name is None and len(self.graphs) == 1:
+            return self.graphs[0]
+        for g in self.graphs:
+            if g.name == name:
+                return g
+        raise KeyError(f"no graph {name!r}; graphs: {[g.name for g in self.graphs]}")

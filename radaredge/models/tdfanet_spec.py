@@ -1,4 +1,4 @@
-"""TDFANet's graph signature, parity cases and tolerances (see radaredge.models.spec)."""
+"""TDFANet's graph signature, parity cases and comparators (see radaredge.models.spec)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import torch
 from ..cards import ModelCard
 from ..data.synthetic import generate_sequence
 from ..errors import ConfigError
-from .spec import ModelSpec, OutputSpec
+from ..comparators import Dense, Descriptor, Exact
+from .spec import EvalInputs, GraphSpec, ModelSpec
 from .tdfanet import TDFANet, build_tdfanet
 
 
@@ -94,18 +95,36 @@ def run_export(model: TDFANet, feeds, trace=None):
     return model.run(frames, ts, reference=False, trace=trace)
 
 
+def evaluate_places(card: ModelCard, onnx, inputs: EvalInputs):
+    """Place-recognition Recall@N of the export and the torch reference over query drives against
+    database drives (:func:`radaredge.evaluation.evaluate`)."""
+    from ..evaluation import evaluate
+    inputs.require("place recognition", ("database", "queries"), card.name)
+    return evaluate(card, onnx, inputs.database, inputs.queries, inputs.checkpoint, inputs.radius, inputs.reference,
+                    inputs.progress)
+
+
+OUTPUTS = (
+    Dense("descriptor", atol=1e-4, rtol=1e-3, quantized_info=True),
+    Descriptor("descriptor_normalized", min_cosine=0.9999),
+    Dense("ego_velocity", unit="m/s", atol=1e-4, rtol=0.0),
+    Exact("ego_valid"),
+)
+
 TDFANET_SPEC = ModelSpec(
     build=build_tdfanet,
-    input_names=input_names,
-    dynamic_axes=dynamic_axes,
-    outputs=(
-        OutputSpec("descriptor", "dense", atol=1e-4, rtol=1e-3, quantized_info=True),
-        OutputSpec("descriptor_normalized", "descriptor", min_cosine=0.9999),
-        OutputSpec("ego_velocity", "dense", atol=1e-4, rtol=0.0, unit="m/s"),
-        OutputSpec("ego_valid", "exact"),
-    ),
-    make_cases=make_cases,
-    run_reference=run_reference,
-    run_export=run_export,
-    trace_order=trace_order,
+    graphs=(GraphSpec(
+        name="tdfanet",
+        input_names=input_names,
+        dynamic_axes=dynamic_axes,
+        frame_inputs=lambda card: input_names(card)[:-1],
+        timestamps_input="timestamps",
+        output_names=lambda card: [c.name for c in OUTPUTS],
+        comparators=lambda card: OUTPUTS,
+        make_cases=make_cases,
+        run_reference=run_reference,
+        run_export=run_export,
+        trace_order=trace_order,
+    ),),
+    evaluate=evaluate_places,
 )

@@ -81,7 +81,9 @@ onto the roots and GatherElements for the jumps; ReduceMin, CumSum, ScatterEleme
 Gather, Where, Slice and Concat around them. The Python loops have constant trip counts and
 unroll, so the node count grows with log2(capacity) only; the run time grows with M^2 (the
 Speed section of docs/models/maffnet.md compares it with GridDensityBEV). Beside each export op lives its
-plain numpy reference (:func:`dbscan_labels_reference`, :func:`cqca_cfa_map_reference`).
+plain numpy reference (:func:`dbscan_labels_reference`, :func:`cqca_cfa_map_reference`), and
+:func:`cqca_cfa_map_sklearn` runs upstream's own steps (sklearn, a per-point Python loop), the
+baseline that ``benchmarks/cfa_speedup.py`` times.
 """
 
 from __future__ import annotations
@@ -336,3 +338,45 @@ def cqca_cfa_map_reference(xyv, valid, cfg: DbscanConfig):
         if 0 <= row < cfg.map_rows and 0 <= col < cfg.map_cols:
             bev[:, row, col] = (v, density[i], np.float32(labels[i]))
     return bev, labels != -1, converged
+
+
+# ----------------------------------------------------------------------------- upstream, for timing
+
+
+def cqca_cfa_map_sklearn(xyv, cfg: DbscanConfig = VOD, vectorised: bool = False):
+    """Upstream CQCA_cfa.generate_map as upstream runs it: the baseline ``benchmarks/cfa_speedup.py``
+    times against GridDensityBEV. Needs scikit-learn (the ``dev`` extra).
+
+    ``xyv`` [N, 3] (x m, y m, v m/s), all points used (sklearn refuses non-finite values);
+    ``cfg.capacity`` does not apply. The steps of the module docstring in upstream's own form:
+    sklearn ``DBSCAN(eps, min_samples)`` on the three columns, then each point's cluster size
+    counted by one ``torch.where`` over all labels per point (upstream's O(N^2) Python loop;
+    ``vectorised`` counts with ``np.unique`` instead, DBSCAN's best case), then one torch index
+    write of the points with label > 0 into the map (of several points in one cell, CPU torch
+    keeps the last, as the module docstring's contract says). Returns torch ``(map [3, rows,
+    cols] float32 with channels (v, cluster size, label), labels [N] int64 after the size cut)``.
+    """
+    from sklearn.cluster import DBSCAN
+
+    xyv = torch.as_tensor(np.asarray(xyv, np.float32).reshape(-1, 3))
+    labels = torch.as_tensor(DBSCAN(eps=cfg.eps, min_samples=cfg.min_samples).fit_predict(xyv.numpy()),
+                             dtype=torch.int64)
+    if vectorised:
+        _, inverse, counts = np.unique(labels.numpy(), return_inverse=True, return_counts=True)
+        density = torch.as_tensor(np.where(labels.numpy() >= 0, counts[inverse], 0), dtype=torch.float32)
+    else:
+        density = torch.zeros(len(labels), dtype=torch.float32)
+        for i, label in enumerate(labels):
+            if label != -1:
+                density[i] = len(torch.where(labels == label)[0])
+    labels = torch.where((density > cfg.max_cluster_size) & (labels != -1), -1, labels)
+    keep = labels > 0
+    col = (xyv[keep, 0] / cfg.resolution).long() - 1
+    row = ((xyv[keep, 1] + cfg.y_offset) / cfg.resolution).long() - 1
+    col = torch.where(col == -1, cfg.map_cols - 1, col)
+    row = torch.where(row == -1, cfg.map_rows - 1, row)
+    values = torch.stack([xyv[keep, 2], density[keep], labels[keep].float()], 1)
+    inside = (col >= 0) & (col < cfg.map_cols) & (row >= 0) & (row < cfg.map_rows)
+    bev = torch.zeros(cfg.map_rows, cfg.map_cols, 3)
+    bev[row[inside], col[inside]] = values[inside]
+    return bev.permute(2, 0, 1).contiguous(), labels

@@ -21,7 +21,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import ConfigError, InputError
+from ..errors import ConfigError, InputError
 
 INSTALL_HINT = "pip install 'radaredge[openvino]'"
 

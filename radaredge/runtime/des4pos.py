@@ -1,6 +1,6 @@
 """Torch-free Des4Pos query path: numpy + onnxruntime + faiss + tokenizers only.
 
-    from radaredge.locate import Des4PosBundle, MapIndex
+    from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
     bundle = Des4PosBundle("export/des4pos")            # three graphs + tokenizer.json + bundle.json
     index = MapIndex.build(bundle, "city.npz")          # encodes every cell once (cached beside the map)
     for hit in bundle.locate("The pose is north of a red car.", index, top_k=3):
@@ -21,11 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .cards import card_from_yaml
-from .data.cellmap import CellMap, load_map, validate_map
-from .errors import ConfigError, InputError
-from .runtime import META_PREFIX, RadarModel
-from .runtime import load as load_graph
+from ..cards import card_from_yaml
+from ..data.cellmap import CellMap, load_map, validate_map
+from ..errors import ConfigError, InputError
+from ..models.des4pos_config import CellConfig, TextConfig
+from . import RadarModel
+from . import load as load_graph
 from .text_tokens import encode_hints, load_tokenizer, split_hints
 
 PARTS = ("submap_encoder", "text_encoder", "fine_stage")
@@ -49,17 +50,16 @@ class Des4PosBundle:
                 raise InputError(f"{manifest} lists no {part} graph")
             path = Path(text_encoder) if (part == "text_encoder" and text_encoder) else d / info["onnx"]
             g = load_graph(path, threads=threads)
-            if g.metadata.get(META_PREFIX + "bundle_weights_sha256") != self.manifest["weights_sha256"]:
+            if g.info.bundle_weights_sha256 != self.manifest["weights_sha256"]:
                 raise InputError(f"{path} belongs to another export than {manifest} (bundle weights differ); "
                                  f"re-export the bundle")
             self.graphs[part] = g
-        self.card = card_from_yaml(self.graphs["submap_encoder"].metadata[META_PREFIX + "card"])
+        self.card = card_from_yaml(self.graphs["submap_encoder"].info.card_yaml)
         self.weights_sha256: str = self.manifest["weights_sha256"]
         self.tokenizer = load_tokenizer(d / "tokenizer.json")
-        self.slots = int(self.card.get("cell.max_objects", 28))
-        self.points = int(self.card.get("cell.points_per_object", 256))
-        self.max_tokens = int(self.card.get("text.max_tokens", 32))
-        self.max_hints = int(self.card.get("text.max_hints", 8))
+        cell, text = self.card.section("cell", CellConfig), self.card.section("text", TextConfig)
+        self.slots, self.points = cell.max_objects, cell.points_per_object
+        self.max_tokens, self.max_hints = text.max_tokens, text.max_hints
 
     # -- the three graphs -------------------------------------------------------------------
     def encode_cells(self, cells: CellMap, batch: int = 8, progress=None) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,6 @@
-"""Per-stage time inside onnxruntime: its node profile attributed to the model's pipeline stages.
+"""Where onnxruntime spends its time: profiled runs, top ops, per-stage split, peak memory.
+
+Per-stage time: onnxruntime's node profile attributed to the model's pipeline stages.
 
 onnxruntime's profiler times each node of the *optimised* graph. This module maps those nodes
 back to the stages a model spec names (``ModelSpec.onnx_stages``, e.g. MAFF-Net's VFE+SPA, CFA,
@@ -21,35 +23,21 @@ the Loop node's time already includes them.
 
 from __future__ import annotations
 
-import ast
+import json
+import subprocess
+import sys
+import tempfile
 from collections import defaultdict
+from pathlib import Path
 
+import numpy as np
 import onnx
+
+from .node_scopes import fused_from, module_names
+from .runtime.session import make_session, run_session
 
 REORDER = "layout reorders (onnxruntime)"
 UNMAPPED = "other (unmapped)"
-
-
-def module_names(node: onnx.NodeProto) -> list[str]:
-    """The torch modules a node of an exported graph was traced in, outermost first, as
-    qualified names relative to the exported model (``backbone_2d.blocks.2``): the exporter's
-    ``pkg.torch.onnx.name_scopes`` metadata without its ``model.`` root and without the op's own
-    name. Empty for nodes traced outside every submodule (index math, scatters) and for graphs
-    an optimiser rewrote (the metadata does not survive)."""
-    for p in node.metadata_props:
-        if p.key == "pkg.torch.onnx.name_scopes":
-            try:
-                scopes = list(ast.literal_eval(p.value))
-            except (ValueError, SyntaxError):
-                return []
-            return [s.split(".", 1)[1] for s in scopes if s.startswith("model.")]
-    return []
-
-
-def fused_from(node_name: str) -> str:
-    """The exported node an onnxruntime-optimised node was made from: onnxruntime keeps the
-    name and appends its rewrite (``node_MatMul_12/MatMulAddFusion`` came from ``node_MatMul_12``)."""
-    return node_name.split("/", 1)[0]
 
 
 def _module_stage(names: list[str], stages: list[tuple[str, tuple[str, ...]]]) -> str | None:
@@ -135,7 +123,7 @@ def stage_times_from_profile(events: list[dict], model: onnx.ModelProto,
                              stages: list[tuple[str, tuple[str, ...]]], post_outputs: tuple[str, ...],
                              runs: int) -> dict[str, float]:
     """Mean milliseconds per stage and run, from the onnxruntime profile events of ``runs`` runs
-    of ``model`` (:func:`radaredge.bench.profile_runs`).
+    of ``model`` (:func:`profile_runs`).
 
     Rows are the spec's stages in order, then the reorder and unmapped rows when non-zero.
     """
@@ -153,3 +141,56 @@ def stage_times_from_profile(events: list[dict], model: onnx.ModelProto,
         key = _resolve(node, stage, by_output)
         total[key] = total.get(key, 0.0) + e.get("dur", 0) / 1e3
     return {k: v / runs for k, v in total.items() if v > 0 or k in dict(stages)}
+
+
+def profile_runs(onnx_path, cases: list[dict], threads: int, runs: int) -> list[dict]:
+    """Run ``onnx_path`` ``runs`` times over ``cases`` in a profiled onnxruntime session of its
+    own; return onnxruntime's profile events. The JSON file onnxruntime writes them to (20-30 MB
+    for a MAFF-Net bench) is read and deleted, so repeated benches do not fill the temp directory."""
+    session = make_session(onnx_path, threads=threads, profile=True)
+    for i in range(runs):
+        run_session(session, cases[i % len(cases)])
+    path = Path(session.end_profiling())
+    try:
+        return json.loads(path.read_text())
+    finally:
+        path.unlink(missing_ok=True)
+
+
+_RSS_CHILD = """
+import resource, sys
+import numpy as np
+from radaredge.runtime.session import make_session, run_session
+session = make_session(sys.argv[1], threads=int(sys.argv[3]))
+cases = np.load(sys.argv[2])
+names = sorted({k.split("/", 1)[1] for k in cases.files})
+count = len({k.split("/", 1)[0] for k in cases.files})
+for i in range(count):
+    run_session(session, {n: cases[f"{i}/{n}"] for n in names})
+try:      # this process's own high-water mark; ru_maxrss can carry the parent's size across fork + exec
+    print(next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:")))
+except OSError:
+    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+def onnxruntime_peak_rss_mb(onnx_path, cases: list[dict], threads: int) -> float:
+    """Peak resident memory (MiB) of a fresh process that only loads ``onnx_path`` in onnxruntime
+    (numpy + onnxruntime, no torch) and runs every case once: what an embedded app would need."""
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = Path(tmp) / "cases.npz"
+        np.savez(npz, **{f"{i}/{k}": v for i, feeds in enumerate(cases) for k, v in feeds.items()})
+        done = subprocess.run([sys.executable, "-c", _RSS_CHILD, str(onnx_path), str(npz), str(threads)],
+                              capture_output=True, text=True, check=True)
+    return int(done.stdout.split()[-1]) / 1024.0          # VmHWM and Linux ru_maxrss are in KiB
+
+
+def top_ops(events: list[dict], k: int = 10, runs: int = 1) -> list[tuple[str, float]]:
+    """Top ``k`` op types by kernel time from the onnxruntime profile events of ``runs`` runs
+    (:func:`profile_runs`), in ms per run."""
+    tot: dict[str, float] = {}
+    for e in events:
+        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
+            op = e.get("args", {}).get("op_name", "?")
+            tot[op] = tot.get(op, 0.0) + e.get("dur", 0) / 1e3 / runs
+    return sorted(tot.items(), key=lambda kv: -kv[1])[:k]

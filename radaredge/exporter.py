@@ -1,7 +1,11 @@
-"""Whole-pipeline export: raw points in, result out, one self-contained ``.onnx`` + JSON sidecar.
+"""Whole-pipeline export: raw points in, result out, one self-contained ``.onnx`` + JSON sidecar
+per graph; a multi-graph model writes its graphs, their shared files and ``bundle.json`` into a
+directory.
 
-The card, the feature columns, the input signature, the package versions and a hash of the
-weights travel inside the ONNX ``metadata_props``, so an embedded app needs nothing else.
+The card, the feature columns, the input signature, the runtime checks, the package versions
+and a hash of the weights travel inside each graph's ``metadata_props``
+(:mod:`radaredge.runtime.metadata`), so an embedded app needs nothing else. Also here: building
+the card's model and loading checkpoints into it.
 """
 
 from __future__ import annotations
@@ -21,8 +25,10 @@ from . import __version__
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
 from .onnx_export import DEFAULT_OPSET, export_onnx
+from .models.spec import GraphSpec, ModelSpec
 from .registry import model_spec
-from .runtime import META_PREFIX, RadarModel
+from .runtime import RadarModel
+from .runtime.metadata import GraphMetadata
 
 DEBUG_PREFIX = "debug."   # debug-export outputs are named debug.<intermediate>
 
@@ -144,80 +150,82 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
     return report
 
 
-def build_model(card: ModelCard, checkpoint: str | Path | None = None) -> torch.nn.Module:
-    """The card's model, seeded, with ``checkpoint`` loaded when given."""
-    model = model_spec(card).build(card)
+def build_model(card: ModelCard, checkpoint: str | Path | None = None, spec: ModelSpec | None = None) -> torch.nn.Module:
+    """The card's model (``spec`` when the caller resolved it), seeded, with ``checkpoint``
+    loaded when given (its :class:`LoadReport` as ``model.checkpoint_report``)."""
+    model = (spec or model_spec(card)).build(card)
     if checkpoint:
         model.checkpoint_report = load_checkpoint(model, checkpoint)
     return model.eval()
 
 
 class _PipelineWrapper(torch.nn.Module):
-    """Positional-input wrapper of the export formulation; ``debug`` also returns the traced
-    intermediates named in ``spec.trace_order(card)`` (for divergence reports)."""
+    """Positional-input wrapper of one graph's export formulation; ``debug`` also returns the
+    traced intermediates named in ``graph.trace_order(card)`` (for divergence reports)."""
 
-    def __init__(self, model, spec, card, debug: bool):
+    def __init__(self, module, graph: GraphSpec, card, debug: bool):
         super().__init__()
-        self.model, self.spec, self.names, self.debug = model, spec, spec.input_names(card), debug
-        self.trace_names = spec.trace_order(card)
+        self.model, self.graph, self.names, self.debug = module, graph, graph.input_names(card), debug
+        self.out_names = graph.output_names(card)
+        self.trace_names = graph.trace_order(card)
 
     def forward(self, *inputs):
         trace: dict | None = {} if self.debug else None
-        out = self.spec.run_export(self.model, dict(zip(self.names, inputs)), trace)
+        out = self.graph.run_export(self.model, dict(zip(self.names, inputs)), trace)
         extra = tuple(trace[n] for n in self.trace_names) if self.debug else ()
-        return tuple(out[n] for n in self.spec.output_names) + extra
+        return tuple(out[n] for n in self.out_names) + extra
 
 
 @dataclass
-class ExportResult:
+class GraphExport:
+    """One written graph: the .onnx, its JSON sidecar, size, op histogram and metadata."""
+
     path: Path
     sidecar: Path
     size_bytes: int
     op_histogram: dict[str, int]
-    metadata: dict[str, str] = field(default_factory=dict)
+    metadata: GraphMetadata
+
+    def to_dict(self) -> dict:
+        return {"onnx": str(self.path), "sidecar": str(self.sidecar), "size_bytes": self.size_bytes,
+                "op_histogram": self.op_histogram}
 
 
-def metadata_for(card: ModelCard, model: torch.nn.Module, spec, opset: int) -> dict[str, str]:
-    """The ``metadata_props`` written into the graph."""
+def graph_metadata(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, opset: int,
+                   part: str | None = None, bundle_hash: str | None = None) -> GraphMetadata:
+    """The metadata written into one graph (:mod:`radaredge.runtime.metadata`)."""
     import onnxruntime
-    return {
-        META_PREFIX + "model": card.name,
-        META_PREFIX + "card": card.to_yaml(),
-        META_PREFIX + "features": json.dumps(card.features),
-        META_PREFIX + "inputs": json.dumps({
-            "names": spec.input_names(card),
-            "dynamic_axes": {k: {str(a): s for a, s in v.items()} for k, v in spec.dynamic_axes(card).items()},
-        }),
-        META_PREFIX + "outputs": json.dumps(spec.output_names),
-        META_PREFIX + "weights_sha256": weights_hash(model),
-        META_PREFIX + "versions": json.dumps({"radaredge": __version__, "torch": torch.__version__,
-                                              "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
-                                              "opset": opset}),
-    }
+    return GraphMetadata(
+        model=card.name, card_yaml=card.to_yaml(), features=card.features,
+        input_names=graph.input_names(card),
+        dynamic_axes={k: {str(a): s for a, s in v.items()} for k, v in graph.dynamic_axes(card).items()},
+        frame_inputs=graph.frame_inputs(card), timestamps_input=graph.timestamps_input,
+        output_names=graph.output_names(card), weights_sha256=weights_hash(module),
+        versions={"radaredge": __version__, "torch": torch.__version__, "onnx": onnx.__version__,
+                  "onnxruntime": onnxruntime.__version__, "opset": opset},
+        checks=list(spec.runtime_checks(card)), part=part, bundle_weights_sha256=bundle_hash)
 
 
-def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | None = None,
-                 opset: int = DEFAULT_OPSET, debug: bool = False, model: torch.nn.Module | None = None,
-                 spec=None, extra_metadata: dict | None = None) -> ExportResult:
-    """Export the card's whole pipeline to ``output`` and write ``output`` with suffix .json.
+def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, output: str | Path,
+                 opset: int = DEFAULT_OPSET, debug: bool = False, part: str | None = None,
+                 bundle_hash: str | None = None) -> GraphExport:
+    """Export one graph of the card's model (``module`` = ``graph.module(model)``) to ``output``
+    and write ``output`` with suffix .json beside it.
 
-    ``debug`` adds the intermediate tensors of ``spec.trace_order(card)`` as extra graph outputs.
-    ``spec`` (default: the card's) and ``extra_metadata`` serve the parts of a bundle
-    (:func:`export_bundle`).
+    ``debug`` adds the intermediate tensors of ``graph.trace_order(card)`` as extra outputs named
+    ``debug.<name>``. ``part`` and ``bundle_hash`` mark a graph of a multi-graph model.
     """
-    spec = spec or model_spec(card)
-    model = model if model is not None else build_model(card, checkpoint)
-    names = spec.input_names(card)
-    _, example = spec.make_cases(card, 1, 0)[0]
+    names = graph.input_names(card)
+    _, example = graph.make_cases(card, 1, 0)[0]
     args = tuple(torch.from_numpy(example[n]) for n in names)
-    module = _PipelineWrapper(model, spec, card, debug)
-    out_names = spec.output_names + ([DEBUG_PREFIX + n for n in spec.trace_order(card)] if debug else [])
+    wrapper = _PipelineWrapper(module, graph, card, debug)
+    out_names = graph.output_names(card) + ([DEBUG_PREFIX + n for n in graph.trace_order(card)] if debug else [])
     path = Path(output)
-    export_onnx(module, args, path, names, out_names, spec.dynamic_axes(card), opset=opset)
+    export_onnx(wrapper, args, path, names, out_names, graph.dynamic_axes(card), opset=opset)
     proto = onnx.load(str(path))
-    meta = {**metadata_for(card, model, spec, opset), **(extra_metadata or {})}
+    meta = graph_metadata(card, spec, graph, module, opset, part, bundle_hash)
     del proto.metadata_props[:]
-    for k, v in meta.items():
+    for k, v in meta.to_props().items():
         proto.metadata_props.add(key=k, value=v)
     proto.doc_string = f"radaredge export of {card.name}: {card.description}"
     try:
@@ -230,14 +238,14 @@ def export_model(card: ModelCard, output: str | Path, checkpoint: str | Path | N
     if custom:
         raise ExportError(f"exported graph uses custom op domains {custom}; radaredge graphs must not")
     sidecar = path.with_suffix(".json")
-    result = ExportResult(path, sidecar, path.stat().st_size, hist, meta)
+    result = GraphExport(path, sidecar, path.stat().st_size, hist, meta)
     sidecar.write_text(json.dumps({
         "model": card.name, "onnx": path.name, "size_bytes": result.size_bytes, "opset": opset,
-        "debug_outputs": list(spec.trace_order(card)) if debug else [],
+        "debug_outputs": list(graph.trace_order(card)) if debug else [],
         "inputs": [{"name": i.name, "shape": _shape(i)} for i in proto.graph.input],
         "outputs": [{"name": o.name, "shape": _shape(o)} for o in proto.graph.output],
-        "op_histogram": hist, "weights_sha256": meta[META_PREFIX + "weights_sha256"],
-        "versions": json.loads(meta[META_PREFIX + "versions"]),
+        "op_histogram": hist, "weights_sha256": meta.weights_sha256,
+        "versions": meta.versions,
     }, indent=2))
     return result
 
@@ -247,40 +255,59 @@ def _shape(value_info) -> list:
     return [d.dim_param or d.dim_value for d in dims]
 
 
-@dataclass
-class BundleResult:
-    directory: Path
-    manifest: Path
-    parts: dict[str, ExportResult]
+MANIFEST = "bundle.json"
 
 
-def export_bundle(card: ModelCard, out_dir: str | Path, model: torch.nn.Module, opset: int = DEFAULT_OPSET,
-                  progress=None) -> BundleResult:
-    """Export every part of a multi-graph card (a BundleSpec) to ``out_dir/<part>.onnx`` + sidecar,
-    copy the bundle's extra files (e.g. tokenizer.json) and write ``out_dir/bundle.json``.
+def graph_paths(spec: ModelSpec, output: str | Path) -> dict[str, Path]:
+    """Where each graph of a model lives: a one-graph model's graph is ``output`` itself (an
+    .onnx); a multi-graph model's are ``output/<graph>.onnx`` (a directory)."""
+    output = Path(output)
+    if not spec.multi_graph:
+        return {spec.graphs[0].name: output}
+    return {g.name: output / f"{g.name}.onnx" for g in spec.graphs}
 
-    Each graph carries its part name and the hash of its own weights and of the whole bundle.
-    """
+
+def default_output(card: ModelCard, spec: ModelSpec) -> Path:
+    """export/<card>.onnx, or the directory export/<card>/ for a multi-graph model."""
+    return Path(f"export/{card.name}") if spec.multi_graph else Path(f"export/{card.name}.onnx")
+
+
+def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, output: str | Path,
+                  opset: int = DEFAULT_OPSET, debug: bool = False, progress=None) -> dict[str, GraphExport]:
+    """Export every graph of the card's model to :func:`graph_paths` (``debug``: the debug
+    graphs to the same paths with suffix .debug.onnx); a multi-graph model also gets its
+    shared files (``spec.files``) and the manifest ``bundle.json`` in ``output``."""
+    paths = graph_paths(spec, output)
+    multi = spec.multi_graph
+    bundle_hash = weights_hash(model) if multi else None
+    graphs = list(spec.graphs)
+    done = {}
+    for g in (progress(graphs) if progress else graphs):
+        module = g.module(model)
+        part = g.name if multi else None
+        done[g.name] = export_graph(card, spec, g, module, paths[g.name], opset, part=part, bundle_hash=bundle_hash)
+        if debug:
+            export_graph(card, spec, g, module, paths[g.name].with_suffix(".debug.onnx"), opset, debug=True,
+                         part=part, bundle_hash=bundle_hash)
+    if multi:
+        write_manifest(card, spec, Path(output), done, opset, bundle_hash)
+    return done
+
+
+def write_manifest(card: ModelCard, spec: ModelSpec, out_dir: Path, graphs: dict[str, GraphExport], opset: int,
+                   bundle_hash: str) -> Path:
+    """Copy the model's shared files into ``out_dir`` and write ``out_dir/bundle.json``: the
+    graphs with their hashes, the files and the card."""
     import shutil
-    spec = model_spec(card)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    bundle_hash = weights_hash(model)
-    parts = {}
-    items = list(spec.parts.items())
-    for name, pspec in (progress(items) if progress else items):
-        parts[name] = export_model(card, out_dir / f"{name}.onnx", opset=opset, model=spec.part_module(model, name),
-                                   spec=pspec, extra_metadata={META_PREFIX + "part": name,
-                                                               META_PREFIX + "bundle_weights_sha256": bundle_hash})
     files = {}
     for fname, src in spec.files(card).items():
         shutil.copyfile(src, out_dir / fname)
         files[fname] = str(fname)
-    manifest = out_dir / "bundle.json"
+    manifest = out_dir / MANIFEST
     manifest.write_text(json.dumps({
         "model": card.name, "family": card.model, "opset": opset, "weights_sha256": bundle_hash,
         "parts": {n: {"onnx": r.path.name, "sidecar": r.sidecar.name, "size_bytes": r.size_bytes,
-                      "weights_sha256": r.metadata[META_PREFIX + "weights_sha256"]} for n, r in parts.items()},
+                      "weights_sha256": r.metadata.weights_sha256} for n, r in graphs.items()},
         "files": files, "card": card.data,
     }, indent=2))
-    return BundleResult(out_dir, manifest, parts)
+    return manifest

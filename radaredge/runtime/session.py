@@ -9,7 +9,7 @@ from typing import Mapping
 import numpy as np
 import onnxruntime as ort
 
-from .errors import InputError
+from ..errors import InputError
 
 
 def make_session(path: str | Path, threads: int = 2, profile: bool = False,

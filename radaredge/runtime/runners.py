@@ -7,7 +7,7 @@ when chosen.
 
 from __future__ import annotations
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 RUNTIMES = ("onnxruntime", "openvino")
 
@@ -16,10 +16,10 @@ def graph_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
     """fn(feeds) -> {output name: array} running ``onnx_path`` in ``runtime`` (one of RUNTIMES)
     on ``threads`` threads; ConfigError for any other runtime name."""
     if runtime == "onnxruntime":
-        from .ort import make_session, run_session
+        from .session import make_session, run_session
         session = make_session(onnx_path, threads=threads)
         return lambda feeds: run_session(session, feeds)
     if runtime == "openvino":
-        from .openvino_runtime import compile_openvino
+        from .openvino import compile_openvino
         return compile_openvino(onnx_path, threads=threads).run
     raise ConfigError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")

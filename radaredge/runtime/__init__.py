@@ -1,29 +1,31 @@
 """Torch-free runtime: load an exported ``.onnx`` and run it on raw radar frames.
 
-Imports only numpy, onnxruntime and radaredge's own torch-free modules (cards, errors, ort), so
-an embedded application needs neither torch nor the radaredge model code::
+Imports only numpy, onnxruntime and radaredge's own torch-free modules (cards, errors and this
+package), so an embedded application needs neither torch nor the radaredge model code::
 
     from radaredge import runtime
     model = runtime.load("export/tdfanet.onnx")
     out = model.run([scan_t2, scan_t1, scan_t0])     # oldest first, each [N_k, 5] x,y,z,v_r,rcs
     out["descriptor_normalized"]                      # 256-d place descriptor
+
+The package: :mod:`.session` (onnxruntime session options), :mod:`.openvino` (OpenVINO's CPU
+plugin), :mod:`.runners` (either runtime behind one callable), :mod:`.metadata` (the
+``radaredge.*`` metadata contract), :mod:`.des4pos` and :mod:`.text_tokens` (the Des4Pos query
+path: tokens, map index, locate).
 """
 
 from __future__ import annotations
 
-import json
-import warnings
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import onnxruntime as ort
 
-from .cards import ModelCard, card_from_yaml
-from .errors import CapacityError, InputError
-from .ort import make_session, run_session
-
-META_PREFIX = "radaredge."
+from ..cards import ModelCard, card_from_yaml
+from ..errors import InputError
+from .metadata import GraphMetadata
+from .session import make_session, run_session
 
 
 class RadarModel:
@@ -32,20 +34,21 @@ class RadarModel:
     def __init__(self, session: ort.InferenceSession, path: Path):
         self.session = session
         self.path = path
-        meta = session.get_modelmeta().custom_metadata_map
-        if META_PREFIX + "card" not in meta:
-            raise InputError(f"{path} is not a radaredge export: its metadata has no {META_PREFIX}card entry")
-        self.metadata = meta
-        self.card: ModelCard = card_from_yaml(meta[META_PREFIX + "card"])
-        self.features: list[str] = json.loads(meta[META_PREFIX + "features"])
+        self.metadata = session.get_modelmeta().custom_metadata_map
+        self.info = GraphMetadata.from_props(self.metadata, str(path))
+        self.card: ModelCard = card_from_yaml(self.info.card_yaml)
+        self.features: list[str] = self.info.features
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
-        self.weights_sha256: str | None = meta.get(META_PREFIX + "weights_sha256")
-        self.frames = int(self.card.get("frames", 1))
+        self.weights_sha256: str = self.info.weights_sha256
+        self.frames = len(self.info.frame_inputs)
         self.frame_rate = float(self.card.get("frame_rate", 10.0))
 
     def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Check frame count, shapes, dtype and finiteness against the card; return float32 copies."""
+        if not self.frames:
+            raise InputError(f"{self.path} ({self.info.part or self.card.name}) takes no point-cloud frames; "
+                             f"its inputs are {self.input_names}: run it with .session")
         if isinstance(frames, np.ndarray):
             frames = [frames] if self.frames == 1 else list(frames)
         if len(frames) != self.frames:
@@ -72,8 +75,8 @@ class RadarModel:
         when the graph takes them, ``timestamps`` float32 [K] (s, oldest first, strictly
         increasing; default: the card's frame rate)."""
         frames = self.validate(frames)
-        feeds = {f"points_{k}": f for k, f in enumerate(frames)} if self.frames > 1 else {self.input_names[0]: frames[0]}
-        if "timestamps" in self.input_names:
+        feeds = dict(zip(self.info.frame_inputs, frames))
+        if self.info.timestamps_input is not None:
             if timestamps is None:
                 ts = np.arange(self.frames, dtype=np.float32) / self.frame_rate
             else:
@@ -82,41 +85,50 @@ class RadarModel:
                     raise InputError(f"timestamps: expected {self.frames} finite values in seconds, got {timestamps!r}")
                 if (np.diff(ts) <= 0).any():
                     raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
-            feeds["timestamps"] = ts
+            feeds[self.info.timestamps_input] = ts
         return feeds
 
     def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
         out = run_session(self.session, self.feeds(frames, timestamps))
-        if "spa_overflow" in out and bool(out["spa_overflow"]):
-            raise CapacityError(f"the scan has {int(out['num_pillars'])} non-empty pillars but {self.card.name}'s "
-                                f"sparse pillar attention holds spa.capacity = {self.card.get('spa.capacity')}; "
-                                "export with a larger spa.capacity (--config) or crop the scan")
-        if "cfa_converged" in out and not bool(out["cfa_converged"]):
-            self._cfa_not_converged()
+        for check in self.info.checks:        # declared by the model at export (capacity flags)
+            check.apply(out)
         return out
-
-    def _cfa_not_converged(self) -> None:
-        """MAFF-Net's clustering map is not the one its method defines: the card's ``cfa.not_converged``
-        says whether that is an error (default for DBSCAN: more scan points than its capacity) or a
-        warning (default for GridDensityBEV: components longer than its max-pool steps)."""
-        cfa = self.card.get("cfa", {}) or {}
-        method = cfa.get("method", "grid_density")
-        policy = cfa.get("not_converged") or ("error" if method == "dbscan" else "warn")
-        if method == "dbscan":
-            msg = (f"the scan has more points inside the range than {self.card.name}'s DBSCAN clusters "
-                   f"(cfa.dbscan.capacity = {self.card.get('cfa.dbscan.capacity')}); the points beyond it were "
-                   "left out of the clustering map; export with a larger capacity (--config) or crop the scan")
-        else:
-            msg = (f"{self.card.name}'s GridDensityBEV components did not converge in cfa.grid.cc_iterations = "
-                   f"{self.card.get('cfa.grid.cc_iterations')} max-pool steps (the fork's partial labels); "
-                   "cc_mode: exact gives true components")
-        if policy == "error":
-            raise CapacityError(msg)
-        warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
 
 def load(path: str | Path, threads: int = 2) -> RadarModel:
     """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads."""
     path = Path(path)
     return RadarModel(make_session(path, threads=threads), path)
+
+
+def inspect_export(path: str | Path) -> dict:
+    """What an export holds: for a graph file, or each graph of a multi-graph export directory
+    (its ``bundle.json`` lists them), the card name, graph name, feature columns, frame inputs,
+    inputs and outputs with their shapes, runtime checks, weights hash and versions."""
+    path = Path(path)
+    if path.is_dir():
+        manifest = path / "bundle.json"
+        if not manifest.is_file():
+            raise InputError(f"{path} is a directory without bundle.json; pass an .onnx or a multi-graph export "
+                             f"directory")
+        import json
+        try:
+            files = [path / part["onnx"] for part in json.loads(manifest.read_text())["parts"].values()]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise InputError(f"{manifest}: unreadable manifest ({type(exc).__name__}: {exc})") from None
+    else:
+        files = [path]
+    graphs = []
+    for f in files:
+        m = load(f)
+        graphs.append({
+            "model": m.card.name, "graph": m.info.part or m.card.name, "onnx": str(f), "features": m.features,
+            "frames": m.info.frame_inputs,
+            "inputs": {i.name: i.shape for i in m.session.get_inputs()},
+            "outputs": {o.name: o.shape for o in m.session.get_outputs()},
+            "checks": [c.output for c in m.info.checks],
+            "quantization": m.info.quantization,
+            "weights_sha256": m.weights_sha256, "versions": m.info.versions,
+        })
+    return {"path": str(path), "graphs": graphs}

@@ -1,29 +1,33 @@
-"""Model cards: YAML files in ``models/`` that hold every range, size, channel and threshold.
+"""Model cards: YAML files that hold every range, size, channel and threshold.
 
 A card is the single source of truth for a model: code reads its sections through
 :meth:`ModelCard.section`, and the exported ONNX carries the card in its metadata.
+
+The shipped cards are package data in this directory (``radaredge/cards/<name>.yaml``), so a
+non-editable install has them too. :func:`load_card` takes a shipped card's name or the path
+of any card file; ``$RADAREDGE_CARDS`` points the by-name lookup at another directory.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Type, TypeVar
 
 import yaml
 
-from .config import config_from_dict
-from .errors import ConfigError
+from ..config import config_from_dict
+from ..errors import ConfigError
 
 T = TypeVar("T")
 REQUIRED = ("name", "description", "model", "features")
 
 
 def cards_dir() -> Path:
-    """Directory of the shipped cards: $RADAREDGE_CARDS, else ``models/`` beside the package."""
+    """Directory searched by card name: $RADAREDGE_CARDS, else the shipped cards (this package)."""
     env = os.environ.get("RADAREDGE_CARDS")
-    return Path(env) if env else Path(__file__).resolve().parent.parent / "models"
+    return Path(env) if env else Path(__file__).resolve().parent
 
 
 @dataclass
@@ -32,7 +36,6 @@ class ModelCard:
 
     data: dict[str, Any]
     path: Path | None = None
-    _sections: dict = field(default_factory=dict, repr=False)
 
     @property
     def name(self) -> str:
@@ -93,7 +96,8 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
 
 
 def load_card(name_or_path: str | Path) -> ModelCard:
-    """Load a card by name (``tdfanet`` -> models/tdfanet.yaml) or by file path."""
+    """Load a shipped card by name (``tdfanet`` -> radaredge/cards/tdfanet.yaml, or the file of
+    that name in $RADAREDGE_CARDS) or any card by path (anything ending in .yaml/.yml)."""
     p = Path(name_or_path)
     if p.suffix not in (".yaml", ".yml"):
         p = cards_dir() / f"{name_or_path}.yaml"
@@ -113,6 +117,6 @@ def card_from_yaml(text: str) -> ModelCard:
 
 
 def available_cards() -> list[str]:
-    """Names of the shipped cards, sorted."""
+    """Names of the cards loadable by name (those in :func:`cards_dir`), sorted."""
     d = cards_dir()
     return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []

@@ -1,13 +1,13 @@
-"""TDFANet int8 on descriptors fitted to recognise places in a synthetic town.
+"""Fit TDFANet's descriptors to recognise places in a synthetic town: a test article for int8.
 
 Why. With the seeded weights, tdfanet-edge maps every window of the synthetic town benchmark to
-nearly one descriptor: the nearest database descriptor of a query is a median 4.4 % closer than
-the second (a gap of about 0.0015 on unit vectors), so int8 noise decides which of two database
-windows 1 m apart comes first, and top-1 agreement measures that tie-breaking. No trained
-TDFANet checkpoint is published.
+nearly one descriptor: a query's nearest database descriptor is barely closer than the second,
+so int8 noise decides which of two database windows 1 m apart comes first, and top-1 agreement
+measures that tie-breaking. No trained TDFANet checkpoint is published. docs/quantization.md
+describes what int8 does to the seeded and to the fitted descriptors.
 
-What this script does. It writes a training town with ``radaredge make-benchmark``'s generator
-(its own world seed, 1 by default, not the benchmark's 0; six drives of 80 scans), runs the
+What it does. It writes a training town with ``radaredge make-benchmark``'s generator (its own
+world seed, 1 by default, not the benchmark's 0; six drives of 80 scans), runs the
 parameter-free front once per K-frame window (RANSAC ego velocity, static mask, grid
 displacement), and fits every layer behind it (pillar VFE, residual pyramid, deformable
 aggregation, descriptor MLP, GeM p) as a place recogniser: batches of 8 windows drawn at random
@@ -17,13 +17,13 @@ margin 0.5); Adam at a constant learning rate. Positives are the other windows w
 evaluation's true-positive radius: by default those of any drive (``--positives any-drive``),
 which also pulls a drive's consecutive windows together, or only other drives' windows, as a
 query meets the database (``--positives other-drive``). The choice decides what int8 does to
-the fit (README: int8 min cosine on the benchmark town 0.9996 against 0.655). The model stays
-in eval mode (batch norms keep their statistics and act as learnt affine maps; dropout off).
-It prints Recall@1/5/10 of the fitted export formulation on a held-out town (the benchmark's
-world, seed 0) and writes a checkpoint. It is a test article for int8 (descriptors that
-separate places), not a trained TDFANet: synthetic scans, one street.
+the fit (docs/quantization.md). The model stays in eval mode (batch norms keep their statistics
+and act as learnt affine maps; dropout off). It prints Recall@1/5/10 (%) of the fitted export
+formulation on a held-out town (the benchmark's world, seed 0) and writes a checkpoint, a test
+article for int8 (descriptors that separate places), not a trained TDFANet: synthetic scans,
+one street.
 
-    .venv/bin/python benchmarks/tdfanet_fitted.py --out export/tdfanet-edge-fitted.pth
+    python -m radaredge.fitting.tdfanet_places --out export/tdfanet-edge-fitted.pth
     radaredge export --model tdfanet-edge --checkpoint export/tdfanet-edge-fitted.pth \\
         --output export/tdfanet-edge-fitted.onnx --quantize int8
     radaredge make-benchmark --out bench-town
@@ -44,15 +44,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from radaredge.cards import load_card  # noqa: E402
-from radaredge.data.pr_benchmark import DATABASE_DIR, QUERIES_DIR, make_pr_benchmark  # noqa: E402
-from radaredge.evaluation import RECALL_NS, load_windows, recall_at_n  # noqa: E402
-from radaredge.export import build_model, save_checkpoint  # noqa: E402
-from radaredge.ops.alignment import grid_displacement  # noqa: E402
-from radaredge.ops.scan_batch import concat_scans  # noqa: E402
+from ..cards import load_card
+from ..data.pr_benchmark import DATABASE_DIR, QUERIES_DIR, make_pr_benchmark
+from ..evaluation import RECALL_NS, load_windows, recall_at_n
+from ..exporter import build_model, save_checkpoint
+from ..ops.alignment import grid_displacement
+from ..ops.scan_batch import concat_scans
 
 POSITIVE_RADIUS = 5.0   # m: windows this close are the same place (radaredge eval's radius)
 NEGATIVE_RADIUS = 15.0  # m: windows this far apart are other places; 5-15 m is neither
@@ -169,21 +166,24 @@ def town_recall(model, windows: list[Window]) -> dict[int, float]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m radaredge.fitting.tdfanet_places",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("--card", default="tdfanet-edge")
-    ap.add_argument("--steps", type=int, default=400, help="batches of 16 windows (about 3 s each on 2 cores)")
+    ap.add_argument("--steps", type=int, default=400,
+                    help="Adam steps, one batch of 8 places (each with a partner window of another drive) each")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--positives", choices=("any-drive", "other-drive"), default="any-drive",
                     help="which windows within 5 m of an anchor are its positives")
     ap.add_argument("--train-seed", type=int, default=1, help="world seed of the training town")
     ap.add_argument("--test-seed", type=int, default=0, help="world seed of the held-out town (the benchmark's)")
-    ap.add_argument("--out", type=Path, help="default export/<card>-fitted.pth (-fitted-other-drive.pth)")
+    ap.add_argument("--out", type=Path,
+                    help="default export/<card>-fitted.pth (-fitted-other-drive.pth), under the working directory")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     card = load_card(args.card)
     model = build_model(card)
     suffix = "" if args.positives == "any-drive" else "-other-drive"
-    out = args.out or ROOT / "export" / f"{card.name}-fitted{suffix}.pth"
+    out = args.out or Path("export") / f"{card.name}-fitted{suffix}.pth"
     with tempfile.TemporaryDirectory() as tmp:
         train_town, test_town = Path(tmp) / "train", Path(tmp) / "test"
         make_pr_benchmark(train_town, drives=6, frames_per_drive=80, seed=args.train_seed)

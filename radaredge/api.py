@@ -1,0 +1,224 @@
+"""The Python API: the verbs the command line calls, one code path for every model.
+
+    import radaredge
+    res = radaredge.export("tdfanet", output="export/tdfanet.onnx")          # -> ExportResult
+    report = radaredge.parity("tdfanet", "export/tdfanet.onnx", cases=20)     # bool(report): the verdict
+    bench = radaredge.bench("tdfanet", threads=2, runs=20)                    # -> BenchReport, a row per backend
+
+A model is 1..n graphs (:mod:`radaredge.models.spec`); each verb resolves the card's spec once,
+builds the model once and loops over the graphs. ``card`` is a :class:`ModelCard`, a shipped
+card's name or a card YAML path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from .benchmarking import BenchReport, bench
+from .cards import ModelCard, load_card
+from .errors import ConfigError, InputError
+
+__all__ = ["export", "parity", "bench", "evaluate", "ExportResult", "BenchReport", "resolve_card",
+           "EXPORT_ARTIFACTS"]
+
+
+def resolve_card(card: ModelCard | str | Path) -> ModelCard:
+    """``card`` itself, or the card loaded by name or path."""
+    return card if isinstance(card, ModelCard) else load_card(card)
+
+
+# What `export` can write beside the fp32 graph(s), the option that asks for it and the file it
+# writes per graph (Ultralytics' export_formats() table, for the artifacts of one export).
+EXPORT_ARTIFACTS = (
+    # (artifact, option, suffix, what)
+    ("onnx", None, ".onnx", "the fp32 graph, raw points in, result out, with a .json sidecar"),
+    ("debug", "debug", ".debug.onnx", "the fp32 graph with its traced intermediates as extra outputs"),
+    ("int8", "quantize", ".int8.onnx", "an int8 copy (the model's int8 hook: static QDQ by default)"),
+)
+
+
+@dataclass
+class ExportResult:
+    """What :func:`export` wrote: per graph the .onnx and its sidecar (and debug / int8 copies),
+    a multi-graph model's directory and manifest, and the checkpoint load report."""
+
+    model: str
+    output: Path
+    graphs: dict = field(default_factory=dict)            # graph name -> exporter.GraphExport
+    debug: dict[str, Path] = field(default_factory=dict)
+    int8: dict[str, Path] = field(default_factory=dict)
+    manifest: Path | None = None
+    checkpoint: object | None = None                       # exporter.LoadReport
+
+    @property
+    def path(self) -> Path:
+        """The one graph's .onnx of a one-graph model."""
+        if len(self.graphs) != 1:
+            raise ConfigError(f"{self.model} exported {len(self.graphs)} graphs into {self.output}; "
+                              f"use .graphs[name].path")
+        return next(iter(self.graphs.values())).path
+
+    def to_dict(self) -> dict:
+        return {"model": self.model, "output": str(self.output),
+                "manifest": str(self.manifest) if self.manifest else None,
+                "graphs": {n: {**g.to_dict(), "debug_onnx": str(self.debug[n]) if n in self.debug else None,
+                               "int8_onnx": str(self.int8[n]) if n in self.int8 else None}
+                           for n, g in self.graphs.items()},
+                "checkpoint": None if self.checkpoint is None else {
+                    "path": self.checkpoint.path, "loaded": self.checkpoint.loaded,
+                    "dropped": self.checkpoint.dropped, "ignored": self.checkpoint.ignored}}
+
+    def lines(self) -> list[str]:
+        out = []
+        for name, g in self.graphs.items():
+            top = ", ".join(f"{k} {v}" for k, v in list(g.op_histogram.items())[:12])
+            out.append(f"wrote {g.path} ({g.size_bytes / 1e6:.2f} MB, {sum(g.op_histogram.values())} nodes) "
+                       f"and {g.sidecar.name}")
+            out.append(f"ops: {top}")
+            if name in self.debug:
+                out.append(f"debug graph: {self.debug[name]}")
+            if name in self.int8:
+                p = self.int8[name]
+                out.append(f"int8 graph: {p} ({p.stat().st_size / 1e6:.2f} MB); check it with "
+                           f"`radaredge parity-check --quantized --onnx {p}`" if len(self.graphs) == 1 else
+                           f"int8 graph: {p} ({p.stat().st_size / 1e6:.2f} MB)")
+        if self.manifest:
+            out.append(f"wrote {self.manifest}")
+        return out
+
+
+def _check_export_options(card: ModelCard, spec, quantize, calibration: dict) -> None:
+    """Generic option validation: calibration options need ``quantize`` and a model whose int8
+    hook is calibrated; an unknown ``quantize`` value is refused."""
+    given = [name for name, value in calibration.items() if value is not None]
+    if quantize not in (None, "int8"):
+        raise ConfigError(f"--quantize {quantize!r}: the one int8 format is 'int8'")
+    if given and not quantize:
+        raise ConfigError(f"{', '.join(given)}: int8 calibration options need --quantize int8")
+    if given and not spec.int8_calibrated:
+        raise ConfigError(f"{card.name}'s int8 copy is quantised dynamically (weights only, no calibration); "
+                          f"drop {', '.join(given)}")
+    if calibration.get("--calibration-format") and not calibration.get("--calibration"):
+        raise ConfigError("--calibration-format is the format of a --calibration recording; add --calibration DIR")
+
+
+def export(card: ModelCard | str | Path, output: str | Path | None = None, *, checkpoint: str | Path | None = None,
+           model=None, opset: int | None = None, debug: bool = False, quantize: str | None = None,
+           calibration: str | Path | None = None, calibration_format: str | None = None,
+           calibration_windows: int | None = None, progress: Callable | None = None,
+           log: Callable[[str], None] | None = None) -> ExportResult:
+    """Export the card's whole pipeline: every graph to ``output`` (a one-graph model's .onnx,
+    default ``export/<card>.onnx``; a multi-graph model's directory, default ``export/<card>/``)
+    with a JSON sidecar each; ``debug`` adds ``<graph>.debug.onnx``, ``quantize="int8"`` the
+    model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
+    synthetic scenes; ``calibration_windows`` windows). ``model`` reuses a built model (its
+    weights must be the checkpoint's). ``log`` receives progress lines."""
+    from .exporter import build_model, default_output, export_graphs, graph_paths
+    from .onnx_export import DEFAULT_OPSET
+    from .registry import model_spec
+
+    card = resolve_card(card)
+    spec = model_spec(card)
+    say = log or (lambda line: None)
+    _check_export_options(card, spec, quantize, {"--calibration": calibration,
+                                                 "--calibration-format": calibration_format,
+                                                 "--calibration-windows": calibration_windows})
+    if calibration is not None:                 # a wrong recording fails before the export, not after it
+        from .calibration import DEFAULT_WINDOWS, check_recording
+        check_recording(calibration, int(card.get("frames", 1)), calibration_windows or DEFAULT_WINDOWS,
+                        calibration_format)
+    output = Path(output) if output is not None else default_output(card, spec)
+    if model is None:
+        model = build_model(card, checkpoint, spec)
+    report = getattr(model, "checkpoint_report", None)
+    if report is not None:
+        say(report.summary())
+    names = ", ".join(g.name for g in spec.graphs)
+    say(f"exporting {card.name}" + (f" ({names}) to {output}/" if spec.multi_graph else "") + " ...")
+    graphs = export_graphs(card, spec, model, output, opset or DEFAULT_OPSET, debug=debug, progress=progress)
+    result = ExportResult(card.name, output, graphs, checkpoint=report)
+    result.debug = {n: g.path.with_suffix(".debug.onnx") for n, g in graphs.items()} if debug else {}
+    if spec.multi_graph:
+        from .exporter import MANIFEST
+        result.manifest = output / MANIFEST
+    if quantize:
+        from .quantize import Int8Options, static_int8
+        say(f"quantising {card.name} to int8 ...")
+        hook = spec.int8 or static_int8
+        result.int8 = hook(card, spec, graph_paths(spec, output),
+                           Int8Options(calibration_windows, calibration, calibration_format))
+    return result
+
+
+def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None,
+           model=None, cases: int = 20, seed: int = 0, quantized: bool = False, runtime: str = "onnxruntime",
+           progress: Callable[[str], Callable] | None = None):
+    """Parity of every graph of the card's model at ``onnx`` (the .onnx, or a multi-graph
+    model's directory; default the export path) run in ``runtime`` against the torch reference
+    formulation, on ``cases`` synthetic cases drawn with ``seed``. ``quantized``: the graph is an
+    int8 copy, held to each output's int8 budget. Returns a
+    :class:`radaredge.parity_check.ParityReport`, whose truth value is the verdict."""
+    from . import runtime as rt
+    from .exporter import build_model, default_output, export_graph, graph_paths, require_same_weights
+    from .parity_check import ParityReport, check_graph
+    from .registry import model_spec
+
+    card = resolve_card(card)
+    spec = model_spec(card)
+    onnx = Path(onnx) if onnx is not None else default_output(card, spec)
+    if spec.multi_graph:
+        from .exporter import MANIFEST
+        if not (onnx / MANIFEST).is_file():
+            raise InputError(f"{onnx} is not a {card.name} export directory (no {MANIFEST}); {card.name} exports "
+                             f"as {len(spec.graphs)} graphs: pass the directory `radaredge export --model "
+                             f"{card.name}` wrote")
+        if quantized:
+            raise ConfigError(f"--quantized checks a one-graph int8 export; {card.name}'s int8 text encoder is "
+                              f"timed by `radaredge bench`")
+    if model is None:
+        model = build_model(card, checkpoint, spec)
+    report = ParityReport(card.name, str(onnx), runtime, quantized)
+    for graph in spec.graphs:
+        path = graph_paths(spec, onnx)[graph.name]
+        module = graph.module(model)
+        exported = rt.load(path)
+        require_same_weights(exported, module, checkpoint)
+        if quantized and exported.info.quantization is None:
+            raise ConfigError(f"{path} is not an int8 export; drop --quantized or pass the .int8.onnx")
+
+        def debug_graph(path=path, graph=graph, module=module, exported=exported):
+            """The debug export beside the .onnx, (re)written unless it holds these weights."""
+            debug_path = path.with_suffix(".debug.onnx")
+            if not debug_path.exists() or rt.load(debug_path).weights_sha256 != exported.weights_sha256:
+                export_graph(card, spec, graph, module, debug_path, debug=True,
+                             part=exported.info.part, bundle_hash=exported.info.bundle_weights_sha256)
+            return debug_path
+
+        wrap = progress(f"parity {graph.name}") if progress else None
+        report.graphs[graph.name] = check_graph(card, graph, module, path, cases, seed, quantized, runtime,
+                                                debug_onnx=None if quantized else debug_graph, progress=wrap)
+    return report
+
+
+def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Path | None = None,
+             queries: str | Path | None = None, *, map_path: str | Path | None = None,
+             checkpoint: str | Path | None = None, radius: float = 5.0, reference: bool = True,
+             progress: Callable[[str], Callable] | None = None):
+    """The model's task metric on the export at ``onnx``, by the model's ``evaluate`` hook:
+    TDFANet's place-recognition Recall@N (and the torch reference's) over the K-frame windows of
+    ``queries`` drives against ``database`` drives, true positives within ``radius`` m
+    (:func:`radaredge.evaluation.evaluate`); Des4Pos's localisation recall over the described
+    poses of the cell map ``map_path`` (:func:`radaredge.des4pos_eval.evaluate_localization`)."""
+    from .models.spec import EvalInputs
+    from .registry import model_spec
+    card = resolve_card(card)
+    spec = model_spec(card)
+    if spec.evaluate is None:
+        raise ConfigError(f"{card.name} ({card.model}) has no evaluation on recorded data in radaredge; "
+                          f"`radaredge parity-check` checks its export against the reference")
+    inputs = EvalInputs(str(database) if database else None, str(queries) if queries else None,
+                        str(map_path) if map_path else None, str(checkpoint) if checkpoint else None, radius,
+                        reference, progress)
+    return spec.evaluate(card, onnx, inputs)

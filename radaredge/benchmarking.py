@@ -1,0 +1,269 @@
+"""The ``bench`` verb: every backend of a model timed in one run on THREADS cores, one row each.
+
+What is timed comes from the model's spec: by default each graph's whole pipeline in the torch
+reference, the torch export formulation, onnxruntime fp32, onnxruntime int8 (when an int8 copy
+exists) and OpenVINO (when installed); a model may time something else through its
+``bench_tasks`` hook (Des4Pos: queries and cell encoding). A backend that fails is a row with
+status ``error``, not an abort. Beside the tables: the onnxruntime per-stage split and top ops
+from a separately profiled session, the peak memory of a numpy + onnxruntime process per graph,
+and OpenVINO's largest output difference from onnxruntime.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import statistics
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from .cards import ModelCard
+from .timing import BackendResult, BenchTask, benchmark, cpu_name, format_differences, output_differences, \
+    pin_threads, results_table
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    """What a ``bench_tasks`` hook is told: threads, timed runs, warm-up runs, whether to time the
+    torch reference, whether to add OpenVINO (None: when installed), and each graph's int8 copy."""
+
+    threads: int = 2
+    runs: int = 20
+    warmup: int = 3
+    reference: bool = True
+    openvino: bool | None = None
+    int8: dict = field(default_factory=dict)
+
+
+@dataclass
+class TaskResult:
+    """One timed table: its rows (one per backend) and the ratios read from them."""
+
+    name: str
+    title: str
+    rows: list[BackendResult]
+    baseline: str
+    items_per_case: int | None = None
+    item_unit: str = ""
+    facts: dict = field(default_factory=dict)
+
+    def row(self, backend: str) -> BackendResult | None:
+        return next((r for r in self.rows if r.backend == backend and r), None)
+
+    @property
+    def onnxruntime_speedup(self) -> dict[str, float]:
+        """onnxruntime p50 speed-up over each torch backend."""
+        ort = self.row("onnxruntime")
+        return {r.backend: r.p50_ms / ort.p50_ms for r in self.rows if r and ort and r.backend.startswith("torch")}
+
+    @property
+    def int8_vs_fp32(self) -> float | None:
+        ort, int8 = self.row("onnxruntime"), self.row("onnxruntime int8")
+        return ort.p50_ms / int8.p50_ms if ort and int8 else None
+
+    @property
+    def openvino_vs_onnxruntime(self) -> float | None:
+        ort, ov = self.row("onnxruntime"), self.row("openvino")
+        return ort.p50_ms / ov.p50_ms if ort and ov else None
+
+    def to_dict(self) -> dict:
+        return {"title": self.title, "baseline": self.baseline, "rows": [asdict(r) for r in self.rows],
+                "onnxruntime_speedup": self.onnxruntime_speedup, "int8_vs_fp32": self.int8_vs_fp32,
+                "openvino_vs_onnxruntime": self.openvino_vs_onnxruntime,
+                **({"items_per_case": self.items_per_case, "item_unit": self.item_unit} if self.items_per_case else {}),
+                **self.facts}
+
+
+@dataclass
+class GraphExtras:
+    """Per graph: stage split (ms), top onnxruntime ops (ms per run), peak RSS (MiB) of an
+    onnxruntime-only process, OpenVINO's largest output difference from onnxruntime."""
+
+    stage_ms: dict | None = None
+    top_ops: list | None = None
+    peak_rss_mib: float | None = None
+    openvino_max_abs: dict | None = None
+    profiled_runs: int = 0
+
+
+@dataclass
+class BenchReport:
+    """A whole ``bench`` run; true when every backend ran."""
+
+    model: str
+    threads: int
+    cores: list | None
+    cpu: str
+    runs: int
+    date: str
+    tasks: dict[str, TaskResult] = field(default_factory=dict)
+    graphs: dict[str, GraphExtras] = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return all(r for t in self.tasks.values() for r in t.rows)
+
+    def to_dict(self) -> dict:
+        return {"model": self.model, "threads": self.threads, "cores": self.cores, "cpu": self.cpu, "runs": self.runs,
+                "date": self.date, "tasks": {n: t.to_dict() for n, t in self.tasks.items()},
+                "graphs": {n: {"stage_ms": g.stage_ms, "top_ops": g.top_ops,
+                               "onnxruntime_peak_rss_mib": g.peak_rss_mib,
+                               "openvino_vs_onnxruntime_max_abs": g.openvino_max_abs} for n, g in self.graphs.items()}}
+
+    def lines(self) -> list[str]:
+        out = [f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu}, {self.runs} runs, {self.date}"]
+        for t in self.tasks.values():
+            if t.title:
+                out.append(t.title + ":")
+            out.append(results_table(t.rows, t.baseline, t.items_per_case, t.item_unit))
+            if t.onnxruntime_speedup:
+                out.append("onnxruntime speed-up: " + ", ".join(f"{v:.2f}x vs {k}" for k, v in t.onnxruntime_speedup.items()))
+            if t.int8_vs_fp32 is not None:
+                out.append(f"int8 vs fp32: {t.int8_vs_fp32:.2f}x" +
+                           ("  (int8 is SLOWER than fp32 on this CPU)" if t.int8_vs_fp32 < 1 else ""))
+            extras = self.graphs.get(t.name)
+            if t.openvino_vs_onnxruntime is not None and extras and extras.openvino_max_abs is not None:
+                out.append(f"openvino vs onnxruntime: {t.openvino_vs_onnxruntime:.2f}x; largest output difference on "
+                           f"the bench inputs: {format_differences(extras.openvino_max_abs)} "
+                           f"(`radaredge parity-check --runtime openvino` checks it against the reference)")
+        for name, g in self.graphs.items():
+            label = f"{name}: " if len(self.graphs) > 1 else ""
+            if g.stage_ms:
+                names = list(dict.fromkeys(k for row in g.stage_ms.values() for k in row))
+                out.append(f"{label}per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names))
+                for backend, row in g.stage_ms.items():
+                    out.append(f"  {backend:<16}" + "".join(f"{row[k]:>14.1f}" if k in row else f"{'-':>14}" for k in names))
+            if g.peak_rss_mib is not None:
+                out.append(f"{label}onnxruntime peak RSS: {g.peak_rss_mib:.0f} MiB (a separate numpy + onnxruntime "
+                           f"process running the bench inputs once)")
+            if g.top_ops:
+                out.append(f"{label}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a separately "
+                           "profiled session; the profiler slows small ops):")
+                out += [f"  {op:<24}{ms:10.1f}" for op, ms in g.top_ops]
+        return out
+
+
+BENCH_CASES, BENCH_SEED = 4, 1          # the inputs every backend is timed on: 4 synthetic cases, seed 1
+
+
+def pipeline_backends(card: ModelCard, graph, module, onnx_path, options: BenchOptions, int8_path=None,
+                      openvino: bool = False) -> dict[str, Callable]:
+    """name -> fn(feeds) running one graph's pipeline: the torch reference (``options.reference``),
+    the torch export formulation, onnxruntime fp32, onnxruntime on ``int8_path`` and, with
+    ``openvino``, the same graph(s) in OpenVINO's CPU plugin. The sessions are never profiled
+    (onnxruntime's profiler costs time in every node); profiles come from a session of their own."""
+    import torch
+
+    from .runtime.runners import graph_runner
+
+    def torch_export(feeds):
+        with torch.no_grad():
+            graph.run_export(module, {k: torch.from_numpy(v) for k, v in feeds.items()}, None)
+
+    def torch_reference(feeds):
+        with torch.no_grad():
+            graph.run_reference(module, feeds)
+
+    backends = {}
+    if options.reference:
+        backends["torch reference"] = torch_reference
+    backends["torch export"] = torch_export
+    backends["onnxruntime"] = graph_runner(onnx_path, "onnxruntime", options.threads)
+    if int8_path is not None:
+        backends["onnxruntime int8"] = graph_runner(int8_path, "onnxruntime", options.threads)
+    if openvino:
+        backends["openvino"] = graph_runner(onnx_path, "openvino", options.threads)
+        if int8_path is not None:
+            backends["openvino int8"] = graph_runner(int8_path, "openvino", options.threads)
+    return backends
+
+
+def default_tasks(card: ModelCard, spec, model, paths: dict[str, Path], options: BenchOptions) -> list[BenchTask]:
+    """One task per graph: its pipeline in every backend (:func:`pipeline_backends`) on
+    :data:`BENCH_CASES` synthetic cases."""
+    from .runtime.openvino import openvino_installed
+    openvino = openvino_installed() if options.openvino is None else options.openvino
+    tasks = []
+    for g in spec.graphs:
+        cases = [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
+        backends = pipeline_backends(card, g, g.module(model), paths[g.name], options, options.int8.get(g.name),
+                                     openvino)
+        tasks.append(BenchTask(g.name, "" if len(spec.graphs) == 1 else f"{g.name}, {options.runs} runs", backends,
+                               cases, options.runs, options.warmup,
+                               baseline="torch reference" if options.reference else "torch export"))
+    return tasks
+
+
+def _stage_ms(graph, module, cases, n: int, reference: bool, onnx_path, profile) -> dict | None:
+    """Median ms per pipeline stage over ``n`` runs in torch (export and reference formulations)
+    and, when the graph names its stages inside onnxruntime, the mean ms per stage from
+    ``profile`` (the events of ``n`` profiled runs)."""
+    if graph.stage_times is None:
+        return None
+    out = {}
+    for label, ref in (("torch export", False), ("torch reference", True)):
+        if ref and not reference:
+            continue
+        laps = [graph.stage_times(module, cases[i % len(cases)], ref) for i in range(n)]
+        out[label] = {k: statistics.median(lap[k] for lap in laps) * 1e3 for k in laps[0]}
+    if graph.onnx_stages and profile is not None:
+        import onnx
+
+        from .profiling import stage_times_from_profile
+        out["onnxruntime"] = stage_times_from_profile(profile, onnx.load(str(onnx_path), load_external_data=False),
+                                                      list(graph.onnx_stages), graph.onnx_post_outputs, n)
+    return out
+
+
+def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None, model=None,
+          threads: int = 2, runs: int = 20, warmup: int = 3, reference: bool = True, int8: str | Path | None = None,
+          profile: bool = False, openvino: bool | None = None, progress: Callable[[str], Callable] | None = None,
+          log: Callable[[str], None] | None = None) -> BenchReport:
+    """Time every backend of the card's model on ``threads`` pinned cores, ``runs`` timed runs
+    after ``warmup``, backends alternating every run. ``onnx`` (default the export path) is
+    exported first when missing; ``int8`` names a one-graph model's int8 copy (default
+    ``<onnx>.int8.onnx`` when it exists). ``profile`` adds onnxruntime's top ops; the per-stage
+    split is added for graphs that name their stages."""
+    from .api import resolve_card
+    from .exporter import build_model, default_output, export_graphs, graph_paths
+    from .profiling import onnxruntime_peak_rss_mb, profile_runs, top_ops
+    from .registry import model_spec
+
+    card = resolve_card(card)
+    spec = model_spec(card)
+    say = log or (lambda line: None)
+    cores = pin_threads(threads)
+    if model is None:
+        model = build_model(card, checkpoint, spec)
+    onnx = Path(onnx) if onnx is not None else default_output(card, spec)
+    paths = graph_paths(spec, onnx)
+    if not all(p.exists() for p in paths.values()):
+        say(f"{onnx} missing: exporting it first")
+        export_graphs(card, spec, model, onnx)
+    int8_paths = {}
+    for name, p in paths.items():
+        candidate = Path(int8) if (int8 is not None and not spec.multi_graph) else p.with_suffix(".int8.onnx")
+        if candidate.exists():
+            int8_paths[name] = candidate
+    options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths)
+    tasks = (spec.bench_tasks or (lambda c, m, p, o: default_tasks(c, spec, m, p, o)))(card, model, paths, options)
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    report = BenchReport(card.name, threads, cores, cpu_name(), runs, stamp)
+    for t in tasks:
+        rows = benchmark(t.backends, t.cases, t.runs, t.warmup, progress=progress(f"bench {t.name}") if progress else None)
+        report.tasks[t.name] = TaskResult(t.name, t.title, rows, t.baseline, t.items_per_case, t.item_unit, t.facts)
+    n_profiled = max(3, min(runs, 10))
+    for g in spec.graphs:
+        cases = [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
+        extras = GraphExtras(profiled_runs=n_profiled)
+        task = next((t for t in tasks if t.name == g.name), None)
+        if task is not None and "openvino" in task.backends and "onnxruntime" in task.backends:
+            extras.openvino_max_abs = output_differences(task.backends["openvino"], task.backends["onnxruntime"], cases)
+        # one profiled session serves the stage split and --profile: runs of its own, never timed
+        wants = profile or (g.stage_times is not None and bool(g.onnx_stages))
+        events = profile_runs(paths[g.name], cases, threads, n_profiled) if wants else None
+        extras.stage_ms = _stage_ms(g, g.module(model), cases, n_profiled, reference, paths[g.name], events)
+        extras.peak_rss_mib = onnxruntime_peak_rss_mb(paths[g.name], cases, threads)
+        if profile:
+            extras.top_ops = top_ops(events, runs=n_profiled)
+        report.graphs[g.name] = extras
+    return report

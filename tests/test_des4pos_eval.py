@@ -1,0 +1,89 @@
+"""radaredge.des4pos_eval: localisation recall of an exported Des4Pos bundle over a map's described poses."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import invoke
+from radaredge.data.cellmap import load_map
+from radaredge.data.text_city import make_city
+from radaredge.des4pos_eval import evaluate_localization
+from radaredge.errors import ConfigError, InputError
+from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
+
+TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("des4pos") / "bundle"
+    res = invoke("export", "--model", "des4pos-tiny", "--config", TINY, "--output", d)
+    assert res.exit_code == 0, res.output
+    return d
+
+
+@pytest.fixture
+def city(tmp_path):
+    """A small synthetic city in the tiny card's layout (6 slots of 32 points, at most 5 hints)."""
+    return make_city(6, 32, seed=3, objects=30, poses=6, max_hints=5).save(tmp_path / "city.npz")
+
+
+def test_recall_is_that_of_the_located_positions(bundle, city):
+    loops = []
+    report = evaluate_localization(bundle, city, progress=lambda desc: loops.append(desc) or iter)
+    m = load_map(city)
+    assert (report.model, report.cells, report.queries) == ("des4pos-tiny", len(m), 6)
+    assert report.ks == (1, 5, 10) and report.thresholds == (5.0, 10.0, 15.0) and loops == ["cells", "poses"]
+    # the same poses located one by one: recall at (k, t) is the share with a position within t m in the top k
+    b = Des4PosBundle(bundle)
+    index = MapIndex.build(b, city, cells=m)
+    pred = np.array([[h["position"] for h in b.locate(str(t), index, top_k=10)] for t in m.pose_text])
+    dist = np.linalg.norm(pred - m.pose_w[:, None], axis=2)
+    for k in report.ks:
+        for t in report.thresholds:
+            assert report.recall[k][t] == pytest.approx((dist[:, :k] <= t).any(1).mean())
+    assert not report.from_cache
+    again = evaluate_localization(bundle, city, top_k=(1, 3), thresholds=(30.0,))
+    assert again.from_cache and list(again.recall) == [1, 3]
+    assert again.recall[3][30.0] == pytest.approx((dist[:, :3] <= 30.0).any(1).mean())
+    out = json.loads(json.dumps(report.to_dict()))
+    assert out["queries"] == 6 and set(out["recall"]) == {"1", "5", "10"}
+    assert set(out["recall"]["5"]) == {"5", "10", "15"}
+    assert report.table().splitlines()[1].split()[0] == "top-1"
+
+
+def test_errors_name_the_map_and_pose(bundle, city, tmp_path):
+    with pytest.raises(ConfigError, match="thresholds must be positive"):
+        evaluate_localization(bundle, city, thresholds=(0.0,))
+    bare = make_city(6, 32, seed=3, objects=30, poses=0).save(tmp_path / "bare.npz")
+    with pytest.raises(InputError, match="holds no described pose; make a map with poses"):
+        evaluate_localization(bundle, bare)
+    m = load_map(city)
+    m.pose_text[2] = "A. B. C. D. E. F."
+    with pytest.raises(InputError, match=r"pose 2: the description has 6 hint sentences; this model takes at most 5"):
+        evaluate_localization(bundle, m.save(tmp_path / "long.npz"))
+    m = load_map(city)
+    m.pose_cell[0] = "elsewhere"
+    with pytest.raises(InputError, match="pose best cell elsewhere is not a cell of the map"):
+        evaluate_localization(bundle, m.save(tmp_path / "lost.npz"))
+
+
+def test_eval_command_runs_the_models_own_metric(bundle, tmp_path):
+    """`radaredge eval` on des4pos is localisation recall over a map made by `radaredge make-city`
+    with the card's hint limit; place-recognition inputs are refused by name."""
+    city = tmp_path / "city.npz"
+    res = invoke("make-city", "--model", "des4pos-tiny", "--config", TINY, "--out", city, "--poses", 5,
+                 "--objects", 30, "--json")
+    assert res.exit_code == 0, res.output
+    res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city, "--json")
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert out["queries"] == 5 and set(out["recall"]) == {"1", "5", "10"}
+    assert json.loads(bundle.with_name("bundle.eval.json").read_text()) == out
+    res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city,
+                 "--database", tmp_path)
+    assert res.exit_code == 2 and "evaluated by localisation recall on --map; --database not used" in res.output
