@@ -1,0 +1,420 @@
+"""Build benchmarks/README.md from the committed JSON files in benchmarks/results/.
+
+Every figure on that page comes from a results file, so nobody edits a measurement by hand and
+none goes stale unnoticed (tests/test_docs.py checks that the committed page equals
+``render(benchmarks/results)``). This module reads JSON and writes Markdown, nothing else: it
+imports neither torch nor radaredge, so it runs anywhere.
+
+Files it knows, by name (``<kind>-<YYYY-MM-DD>.json``):
+
+- ``suite-<date>.json``: ``make bench`` (``benchmarks/run.py``), every card and backend;
+- ``<card>-<date>.json``: ``radaredge bench --model <card>`` saved with ``--save``/``--json``;
+- ``compare-<label>-<date>.json``: ``benchmarks/compare_graphs.py``, two graphs alternately;
+- ``maffnet-capacity-<date>.json``: ``benchmarks/maffnet_capacity.py``;
+- ``cfa-speedup-<date>.json``: ``benchmarks/cfa_speedup.py``.
+
+The newest file of each kind is rendered in full; older ones are listed under "History".
+
+    python benchmarks/render.py            # rewrites benchmarks/README.md
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import re
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RESULTS_DIR = HERE / "results"
+README = HERE / "README.md"
+
+# What the int8 export quantises when a suite file does not record it (radaredge's quantiser).
+DEFAULT_QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
+_NAME = re.compile(r"^(?P<kind>.+)-(?P<date>\d{4}-\d{2}-\d{2})\.json$")
+
+
+# --- reading -----------------------------------------------------------------------------------
+
+class Result:
+    """One results file: its kind, the key it is newest-of within that kind, and its content."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        m = _NAME.match(path.name)
+        self.stem = m["kind"] if m else path.stem
+        self.day = dt.date.fromisoformat(m["date"]) if m else None
+        self.data = json.loads(path.read_text())
+        self.kind = _kind(self.stem, self.data)
+
+    @property
+    def key(self) -> str:
+        """Files with the same key are runs of the same study; the newest one is rendered."""
+        return "suite" if self.kind == "suite" else self.stem
+
+    @property
+    def when(self) -> str:
+        """The run's own time stamp when it has one, else the date in the file name."""
+        d = self.data.get("date") if isinstance(self.data, dict) else None
+        return str(d) if d else (self.day.isoformat() if self.day else "undated")
+
+    def sort_key(self):
+        return (self.day or dt.date.min, self.when, self.path.name)
+
+
+def _kind(stem: str, data) -> str:
+    if not isinstance(data, dict):
+        return "other"
+    if stem == "suite":
+        return "suite"
+    if stem.startswith("compare-"):
+        return "compare"
+    if stem == "maffnet-capacity":
+        return "capacity"
+    if stem == "cfa-speedup":
+        return "cfa"
+    if any(k in data for k in ("tasks", "results", "rows", "query")):
+        return "bench"
+    return "other"
+
+
+def load(results_dir: Path) -> list[Result]:
+    return sorted((Result(p) for p in Path(results_dir).glob("*.json")), key=Result.sort_key)
+
+
+def newest_by_key(results: list[Result], kind: str) -> list[Result]:
+    """The newest file of every key of ``kind``, ordered by key."""
+    newest: dict[str, Result] = {}
+    for r in results:                          # sorted oldest first, so the last one wins
+        if r.kind == kind:
+            newest[r.key] = r
+    return [newest[k] for k in sorted(newest)]
+
+
+# --- formatting helpers --------------------------------------------------------------------------
+
+def _num(v, fmt: str = ".1f", missing: str = "-") -> str:
+    return missing if v is None else format(v, fmt)
+
+
+def _diffs(diffs: dict) -> str:
+    """``output diff, ...`` as `radaredge bench` prints OpenVINO's largest output differences."""
+    return ", ".join(f"{k} {v:.2g}" if v != float("inf") else f"{k} (other shape)" for k, v in diffs.items())
+
+
+def _table(header: list[str], rows: list[list[str]], align: list[str] | None = None) -> list[str]:
+    align = align or ["---"] + ["---:"] * (len(header) - 1)
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"] + \
+           ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def _link(r: Result, results_dir: Path) -> str:
+    return f"[{r.path.name}]({Path(results_dir).name}/{r.path.name})"
+
+
+def _machine(d: dict) -> str:
+    """``AMD EPYC, 2 threads pinned to cores [0, 1], 20 timed runs`` from whatever the file records."""
+    parts = []
+    if d.get("cpu"):
+        parts.append(str(d["cpu"]))
+    if d.get("threads") is not None:
+        cores = f" pinned to cores {d['cores']}" if d.get("cores") is not None else ""
+        parts.append(f"{d['threads']} threads{cores}")
+    if d.get("runs") is not None:
+        parts.append(f"{d['runs']} timed runs per backend")
+    return ", ".join(parts)
+
+
+def _stamp(r: Result, d: dict) -> str:
+    """``<when>: <machine>`` or just ``<when>`` when the file records no machine."""
+    machine = _machine(d)
+    return f"{r.when}: {machine}" if machine else r.when
+
+
+# --- sections --------------------------------------------------------------------------------
+
+def suite_section(r: Result, results_dir: Path) -> list[str]:
+    s = r.data
+    models = s.get("models", [])
+    out = ["## Speed suite", ""]
+    warm = f" after {s.get('warmup', 3)} warm-ups" if s.get("runs") else ""
+    intro = (f"`make bench` (`benchmarks/run.py`) on {_stamp(r, s)}{warm}, backends alternating every run; "
+             f"every card exported and quantised afresh by the run.")
+    if s.get("gemm_peak_gflops") is not None:
+        intro += (f" Measured fp32 GEMM peak on these threads (best of 20 1024 x 1024 products): "
+                  f"{s['gemm_peak_gflops']:.1f} GFLOP/s.")
+    out += [intro + f" JSON: {_link(r, results_dir)}; chart: [suite.png](suite.png).", ""]
+    rows = []
+    for m in models:
+        for row in m.get("rows", []):
+            frac = row.get("peak_fraction")
+            rows.append([m["model"], row["backend"], _num(row.get("p50_ms")), _num(row.get("p90_ms")),
+                         _num(row.get("fps"), ".2f"), _num(row.get("gmacs"), ".2f"),
+                         _num(None if frac is None else 100 * frac)])
+    out += _table(["model", "backend", "p50 ms", "p90 ms", "FPS", "GMACs", "% of fp32 GEMM peak"], rows,
+                  ["---", "---"] + ["---:"] * 5)
+    rows = []
+    for m in models:
+        share = m.get("quantised_op_time_share")
+        rows.append([m["model"], _num(m.get("ort_vs_reference"), ".2f") + "x",
+                     _num(m.get("int8_vs_fp32"), ".2f") + "x",
+                     _num(None if share is None else 100 * share, ".0f") + " %"])
+    out += [""] + _table(["model", "onnxruntime fp32 vs torch reference", "int8 vs fp32",
+                          "fp32 time in quantised ops"], rows)
+    with_ov = [m for m in models if "openvino_vs_onnxruntime" in m]
+    if with_ov:
+        rows = [[m["model"], f"{m['openvino_vs_onnxruntime']:.2f}x", _diffs(m.get("openvino_max_abs_diff") or {})]
+                for m in with_ov]
+        out += [""] + _table(["model", "OpenVINO fp32 vs onnxruntime fp32",
+                              "largest output difference from onnxruntime"], rows, ["---", "---:", "---"])
+    ops = ", ".join(s.get("quantized_ops") or DEFAULT_QUANTIZED_OPS)
+    out += ["", "GMACs count matrix products and convolutions, plus bilinear sampling (4 MACs per sample and "
+            "channel) and scatter updates (1 per element), which common counters report as zero; pointwise "
+            "ops are not counted. The int8 row's share of the fp32 peak can exceed 100 %: int8 arithmetic is "
+            f"not bound by it. int8 quantises only {ops} (static QDQ, uint8 activations, per-channel int8 "
+            "weights on 7 bits unless a card sets quantization.reduce_range: false). By Amdahl's law its "
+            "speed-up cannot exceed 1 / (1 - share + share / s) for a kernel speed-up s, so a low share of fp32 "
+            "time in those ops explains a small int8 gain. OpenVINO's largest difference on `boxes` can be an "
+            "ordering effect: two near-tied boxes swap output slots (`radaredge parity-check --runtime "
+            "openvino` matches boxes by IoU).", ""]
+    return out
+
+
+def _status(row: dict) -> str:
+    status = str(row.get("status", ""))
+    return f"{status}: {row['error']}" if row.get("error") else status
+
+
+def _bench_rows(rows: list[dict], items_per_case: int | None = None, item_unit: str = "") -> list[str]:
+    """One row per backend; a failed backend keeps its row, with its status and no times."""
+    has_status = any("status" in row for row in rows)
+    per_item = bool(items_per_case)
+    header = ["backend"] + (["status"] if has_status else []) + ["p50 ms", "p90 ms", "p99 ms", "FPS"] + \
+        ([f"{item_unit or 'items'}/s"] if per_item else [])
+    body = []
+    for row in rows:
+        p50 = row.get("p50_ms")
+        body.append([str(row.get("backend", "?"))] + ([_status(row)] if has_status else []) +
+                    [_num(p50), _num(row.get("p90_ms")), _num(row.get("p99_ms")), _num(row.get("fps"), ".2f")] +
+                    ([_num(items_per_case * 1e3 / p50 if p50 else None)] if per_item else []))
+    return _table(header, body, ["---"] * (2 if has_status else 1) + ["---:"] * (5 if per_item else 4))
+
+
+def _ratios(t: dict) -> list[str]:
+    parts = [f"{v:.2f}x vs {k}" for k, v in (t.get("onnxruntime_speedup") or {}).items()]
+    out = ["onnxruntime speed-up: " + ", ".join(parts) + "."] if parts else []
+    if t.get("int8_vs_fp32") is not None:
+        out.append(f"int8 vs fp32: {t['int8_vs_fp32']:.2f}x.")
+    if t.get("openvino_vs_onnxruntime") is not None:
+        out.append(f"OpenVINO vs onnxruntime: {t['openvino_vs_onnxruntime']:.2f}x.")
+    return [" ".join(out), ""] if out else []
+
+
+def _graph_extras(g: dict, label: str = "") -> list[str]:
+    """Per graph: peak memory, OpenVINO's largest output difference, stage split, top ops."""
+    out = []
+    rss = g.get("onnxruntime_peak_rss_mib")
+    if rss is not None:
+        out += [f"{label}onnxruntime peak resident set: {rss:.0f} MiB (a fresh numpy + onnxruntime process "
+                "running the bench inputs).", ""]
+    ov = g.get("openvino_vs_onnxruntime_max_abs")
+    if ov:
+        out += [f"{label}largest OpenVINO output difference from onnxruntime: {_diffs(ov)}.", ""]
+    if g.get("stage_ms"):
+        out += _stage_table(g["stage_ms"]) + [""]
+    if g.get("top_ops"):
+        out += _table(["onnxruntime op", "kernel ms per run"], [[str(op), _num(ms)] for op, ms in g["top_ops"]]) + [""]
+    return out
+
+
+def _stage_table(stage_ms: dict) -> list[str]:
+    """Backends as rows, stages as columns (union of every backend's stages, in first-seen order)."""
+    stages: list[str] = []
+    for per in stage_ms.values():
+        for k in per:
+            if k not in stages:
+                stages.append(k)
+    rows = [[backend] + [_num(per.get(k)) for k in stages] for backend, per in stage_ms.items()]
+    return _table(["per stage, ms"] + stages, rows)
+
+
+def bench_section(results: list[Result], results_dir: Path) -> list[str]:
+    if not results:
+        return []
+    out = ["## Per-model benches", "",
+           "`radaredge bench --model <card> --save benchmarks/results/<card>-<date>.json`: the newest saved run "
+           "of each card. Times of different runs are comparable only on the same machine on the same day; read "
+           "the ratios within one run.", ""]
+    for r in results:
+        d = r.data
+        name = d.get("model", r.stem)
+        out += [f"### {name}", "", f"{_stamp(r, d)}. JSON: {_link(r, results_dir)}.", ""]
+        for task in (d.get("tasks") or {}).values():          # radaredge bench --save
+            if task.get("title"):
+                out += [f"{task['title']}:", ""]
+            out += _bench_rows(task.get("rows", []), task.get("items_per_case"), task.get("item_unit", "")) + [""]
+            out += _ratios(task)
+        graphs = d.get("graphs") or {}
+        for gname, g in graphs.items():
+            out += _graph_extras(g or {}, f"{gname}: " if len(graphs) > 1 else "")
+        rows = d.get("results") or d.get("rows")                # earlier `bench --json` files
+        if rows:
+            out += _bench_rows(rows) + [""]
+        if d.get("query"):
+            out += [f"Query (tokenise, text encode, search over {d.get('map_cells', '?')} cells, fine stage on the "
+                    f"top {d.get('top_k', '?')}):", ""] + _bench_rows(d["query"]) + [""]
+        if d.get("cell_batches"):
+            batch = d.get("cell_batch")
+            cps = d.get("cells_per_s") or {}
+            body = [[str(row.get("backend")), _num(row.get("p50_ms")), _num(cps.get(row.get("backend")))]
+                    for row in d["cell_batches"]]
+            out += [f"Cell encoding, batches of {batch} cells:", ""] + \
+                _table(["backend", "p50 ms per batch", "cells/s"], body) + [""]
+        out += _ratios(d)
+        out += _graph_extras({"onnxruntime_peak_rss_mib": d.get("onnxruntime_peak_rss_mib"),
+                              "openvino_vs_onnxruntime_max_abs": d.get("openvino_vs_onnxruntime_max_abs"),
+                              "stage_ms": d.get("stage_ms"), "top_ops": d.get("top_ops")})
+    return out
+
+
+def compare_section(results: list[Result], results_dir: Path) -> list[str]:
+    if not results:
+        return []
+    out = ["## Graph comparisons", "",
+           "`benchmarks/compare_graphs.py` times two graphs of one card alternately in one run, then splits each "
+           "graph's onnxruntime kernel time by stage (median over several profiled passes, mean ms per case).", ""]
+    for r in results:
+        d = r.data
+        graphs = d.get("graphs", [])
+        label = r.stem[len("compare-"):]
+        cases = ", ".join(f"{c} ({p} points)" for c, p in zip(d.get("cases", []), d.get("points", [])))
+        out += [f"### {label}", "",
+                f"{d.get('model', '?')}, {_stamp(r, d)}, {d.get('profile_rounds', '?')} profiled passes. "
+                f"Cases: {cases or '-'}. JSON: {_link(r, results_dir)}.", ""]
+        names = [f"`{g.get('onnx', '?')}`" for g in graphs]
+        stages: list[str] = []
+        for g in graphs:
+            for k in g.get("stage_ms", {}):
+                if k not in stages:
+                    stages.append(k)
+        rows = [["p50 ms (whole graph)"] + [_num(g.get("p50_ms")) for g in graphs],
+                ["p90 ms (whole graph)"] + [_num(g.get("p90_ms")) for g in graphs]]
+        rows += [[k] + [_num(g.get("stage_ms", {}).get(k)) for g in graphs] for k in stages]
+        out += _table([""] + names, rows) + [""]
+    return out
+
+
+def capacity_section(r: Result | None, results_dir: Path) -> list[str]:
+    if r is None:
+        return []
+    d = r.data
+    spa, db = d.get("spa_capacity"), d.get("dbscan_capacity")
+    clouds = d.get("clouds", [])
+    n = len({c.get("seed") for c in clouds})
+    out = ["## MAFF-Net capacity", "",
+           f"`benchmarks/maffnet_capacity.py`, {r.when}: how full synthetic VoD 5-frame clouds make the "
+           f"fixed-size stages of `{d.get('card', '?')}` ({n} cloud{'s' if n != 1 else ''}, each with "
+           f"and without the crop; `spa.capacity` {spa}, "
+           f"`cfa.dbscan.capacity` {db}). Scan points are the points inside the x-y range, the ones DBSCAN "
+           f"clusters. JSON: {_link(r, results_dir)}.", ""]
+
+    def margin(cap, n):
+        return "-" if not cap or not n else f"{cap / n:.1f}x"
+
+    rows = []
+    for label, key in (("camera field of view crop", "camera_fov"), ("no crop", "no_crop")):
+        m = d.get(key)
+        if m:
+            rows.append([label, f"{m['points']:,}", f"{m['scan_points']:,}", margin(db, m["scan_points"]),
+                         f"{m['pillars']:,}", margin(spa, m["pillars"])])
+    out += _table(["largest cloud", "points", "scan points", "DBSCAN capacity margin", "non-empty pillars",
+                   "SPA capacity margin"], rows, ["---"] + ["---:"] * 5) + [""]
+    return out
+
+
+def cfa_section(r: Result | None, results_dir: Path) -> list[str]:
+    if r is None:
+        return []
+    d = r.data
+    rows = d.get("rows", [])
+    backends: list[str] = []
+    for row in rows:
+        if row["backend"] not in backends:
+            backends.append(row["backend"])
+    groups: dict[tuple, dict] = {}
+    for row in rows:
+        groups.setdefault((row["scans"], row["points"], row["part"]), {})[row["backend"]] = row
+    body = []
+    for (scans, points, part), by in groups.items():
+        cells = []
+        for b in backends:
+            row = by.get(b)
+            cells.append("-" if row is None else f"{row['p50_ms']:.1f} ms ({row['speedup_vs_upstream']:.2f}x)")
+        body.append([f"{scans} scan{'s' if scans != 1 else ''}, {points:,} points", part] + cells)
+    out = ["## Clustering stage: GridDensityBEV against DBSCAN", "",
+           f"`benchmarks/cfa_speedup.py` on `{d.get('card', '?')}`, {_stamp(r, d)}. MAFF-Net's "
+           "clustering-feature map alone and with the 3 -> 16 -> 32 -> 64 CNN; p50 and the speed-up over "
+           f"upstream's CQCA_cfa. JSON: {_link(r, results_dir)}.", ""]
+    out += _table(["cloud", "part"] + backends, body, ["---", "---"] + ["---:"] * len(backends)) + [""]
+    return out
+
+
+def _summary(r: Result) -> str:
+    d = r.data
+    if r.kind == "suite":
+        return f"{r.when}, {', '.join(m['model'] for m in d.get('models', []))}, {d.get('runs', '?')} runs"
+    if r.kind == "compare":
+        return f"{r.when}, {d.get('model', '?')}: " + " vs ".join(f"`{g.get('onnx', '?')}`" for g in d.get("graphs", []))
+    if r.kind == "bench":
+        return f"{r.when}, `radaredge bench --model {d.get('model', r.stem)}`"
+    return r.when
+
+
+def history_section(results: list[Result], rendered: set[Path], results_dir: Path) -> list[str]:
+    older = [r for r in reversed(results) if r.path not in rendered and r.kind != "other"]
+    if not older:
+        return []
+    return ["## History", "",
+            "Earlier result files, newest first. They were measured on the code of their day; `git log` on a "
+            "file tells what changed since.", ""] + \
+        [f"- {_link(r, results_dir)}: {_summary(r)}" for r in older] + [""]
+
+
+def render(results_dir: Path = RESULTS_DIR) -> str:
+    """The whole of benchmarks/README.md, built from the JSON files in ``results_dir``."""
+    results_dir = Path(results_dir)
+    results = load(results_dir)
+    suites = newest_by_key(results, "suite")
+    benches = newest_by_key(results, "bench")
+    compares = newest_by_key(results, "compare")
+    capacity = (newest_by_key(results, "capacity") or [None])[-1]
+    cfa = (newest_by_key(results, "cfa") or [None])[-1]
+    out = ["# Benchmarks", "",
+           "Generated by `python benchmarks/render.py` from the JSON files in [results/](results/); do not edit "
+           "it by hand. `make bench` writes a new `suite-<date>.json` and regenerates this page; the other "
+           "studies write their own files (see each section), after which `python benchmarks/render.py` "
+           "rewrites the page. The runs use the cards' seeded, untrained weights: the figures measure what the "
+           "deployed pipeline costs, not a trained model's accuracy.", ""]
+    if suites:
+        out += suite_section(suites[-1], results_dir)
+    out += bench_section(benches, results_dir)
+    out += compare_section(compares, results_dir)
+    out += capacity_section(capacity, results_dir)
+    out += cfa_section(cfa, results_dir)
+    rendered = {r.path for r in suites + benches + compares} | {r.path for r in (capacity, cfa) if r is not None}
+    out += history_section(results, rendered, results_dir)
+    others = [r for r in results if r.kind == "other"]
+    if others:
+        out += ["## Other files", ""] + [f"- {_link(r, results_dir)}" for r in others] + [""]
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    README.write_text(render(RESULTS_DIR))
+    print(f"wrote {README}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

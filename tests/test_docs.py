@@ -1,0 +1,154 @@
+"""The documentation stays true: README.md is short, undated and lists every command;
+benchmarks/README.md is exactly what benchmarks/render.py makes of the committed JSON; every
+relative link in README.md and docs/ points at a file (and heading) that exists. Fast, no torch."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+DATE = re.compile(r"20\d\d-\d\d-\d\d")
+# [text](target) and ![alt](target); the target ends at whitespace or ')'.
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+CODE_FENCE = re.compile(r"^(```|~~~)")
+
+
+def _render_module():
+    spec = importlib.util.spec_from_file_location("benchmarks_render", ROOT / "benchmarks" / "render.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _doc_files() -> list[Path]:
+    return [README] + sorted((ROOT / "docs").rglob("*.md"))
+
+
+def _unfenced(text: str) -> list[str]:
+    """The lines of ``text`` outside fenced code blocks."""
+    out, fenced = [], False
+    for line in text.splitlines():
+        if CODE_FENCE.match(line.strip()):
+            fenced = not fenced
+        elif not fenced:
+            out.append(line)
+    return out
+
+
+def _prose(text: str) -> str:
+    """``text`` without code blocks and inline code, where brackets are not links."""
+    return "\n".join(re.sub(r"`[^`]*`", "", line) for line in _unfenced(text))
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a Markdown heading."""
+    text = re.sub(r"[`*_]|\[([^\]]*)\]\([^)]*\)", lambda m: m.group(1) or "", heading.strip().lower())
+    text = re.sub(r"[^\w\- ]", "", text)
+    return text.replace(" ", "-")
+
+
+def _anchors(path: Path) -> set[str]:
+    anchors, seen = set(), {}
+    for line in _unfenced(path.read_text()):
+        m = re.match(r"^#{1,6}\s+(.*?)\s*#*$", line)
+        if m:
+            slug = _slug(m.group(1))
+            n = seen.get(slug, 0)
+            anchors.add(slug if n == 0 else f"{slug}-{n}")
+            seen[slug] = n + 1
+    return anchors
+
+
+def test_readme_is_short_and_undated():
+    lines = README.read_text().splitlines()
+    assert len(lines) < 250, f"README.md has {len(lines)} lines; move detail to docs/"
+    dated = [f"{i}: {line}" for i, line in enumerate(lines, 1) if DATE.search(line)]
+    assert not dated, "README.md must not carry dated measurements:\n" + "\n".join(dated)
+
+
+def test_readme_lists_every_command():
+    from radaredge.cli import main
+    text = README.read_text()
+    missing = [name for name in main.commands if not re.search(rf"radaredge {re.escape(name)}\b", text)]
+    assert not missing, f"README.md does not show `radaredge <command>` for: {missing}"
+
+
+def test_benchmarks_readme_is_generated_from_results():
+    render = _render_module()
+    expected = render.render(ROOT / "benchmarks" / "results")
+    committed = (ROOT / "benchmarks" / "README.md").read_text()
+    assert committed == expected, ("benchmarks/README.md differs from the committed JSON's rendering; "
+                                   "run `python benchmarks/render.py` (never edit it by hand)")
+
+
+def test_render_handles_every_result_kind(tmp_path):
+    """A minimal file of each kind renders, the newest of a kind is the one shown, older ones go
+    to the history, and a failed backend row (status, no timing) does not break the table."""
+    import json
+    render = _render_module()
+    res = tmp_path / "results"
+    res.mkdir()
+    row = {"backend": "onnxruntime", "p50_ms": 10.0, "p90_ms": 12.0, "p99_ms": 13.0, "fps": 100.0}
+    suite = {"date": "2030-01-02 00:00 UTC", "cpu": "cpu", "threads": 2, "cores": [0, 1], "runs": 5,
+             "gemm_peak_gflops": 50.0, "models": [{"model": "m", "rows": [{**row, "gmacs": 1.0, "peak_fraction": 0.5}],
+                                                    "ort_vs_reference": 2.0, "int8_vs_fp32": 1.0,
+                                                    "quantised_op_time_share": 0.3}]}
+    (res / "suite-2030-01-01.json").write_text(json.dumps({**suite, "date": "2030-01-01 00:00 UTC"}))
+    (res / "suite-2030-01-02.json").write_text(json.dumps(suite))
+    failed = {"backend": "openvino", "runs": 0, "p50_ms": None, "p90_ms": None, "p99_ms": None, "mean_ms": None,
+              "fps": None, "status": "error", "error": "not installed"}
+    (res / "m-2030-01-02.json").write_text(json.dumps({        # `radaredge bench --save`
+        "model": "m", "threads": 2, "cores": [0, 1], "cpu": "cpu", "runs": 5, "date": "2030-01-02 00:00 UTC",
+        "tasks": {"m": {"title": "", "baseline": "torch reference", "rows": [{**row, "status": "ok"}, failed],
+                        "onnxruntime_speedup": {}, "int8_vs_fp32": None, "openvino_vs_onnxruntime": None}},
+        "graphs": {"m": {"stage_ms": {"onnxruntime": {"a": 1.0, "b": 2.0}}, "top_ops": [["Conv", 3.0]],
+                         "onnxruntime_peak_rss_mib": 100.0, "openvino_vs_onnxruntime_max_abs": None}}}))
+    (res / "m-2030-01-01.json").write_text(json.dumps({"model": "m", "date": "2030-01-01 00:00 UTC", "results": [row]}))
+    (res / "compare-x-2030-01-01.json").write_text(json.dumps({
+        "model": "m", "cases": ["c"], "points": [3], "runs": 5, "threads": 2, "profile_rounds": 5,
+        "date": "2030-01-01 00:00 UTC", "graphs": [{"onnx": "a.onnx", "p50_ms": 1.0, "p90_ms": 2.0, "stage_ms": {"s": 1.0}},
+                                                   {"onnx": "b.onnx", "p50_ms": 1.5, "p90_ms": 2.5, "stage_ms": {"s": 1.2}}]}))
+    (res / "maffnet-capacity-2030-01-01.json").write_text(json.dumps({
+        "card": "m", "spa_capacity": 10, "dbscan_capacity": 20, "clouds": [{"seed": 0}, {"seed": 0}],
+        "camera_fov": {"points": 8, "scan_points": 5, "pillars": 4},
+        "no_crop": {"points": 9, "scan_points": 6, "pillars": 5}, "date": "2030-01-01 00:00 UTC"}))
+    (res / "cfa-speedup-2030-01-01.json").write_text(json.dumps({
+        "card": "m", "date": "2030-01-01 00:00 UTC", "rows": [
+            {"scans": 1, "points": 3, "part": "map", "backend": "up", "p50_ms": 2.0, "speedup_vs_upstream": 1.0},
+            {"scans": 1, "points": 3, "part": "map", "backend": "ours", "p50_ms": 1.0, "speedup_vs_upstream": 2.0}]}))
+    text = render.render(res)
+    current, history = text.split("## History")
+    for heading in ("## Speed suite", "## Per-model benches", "## Graph comparisons", "## MAFF-Net capacity",
+                    "## Clustering stage"):
+        assert heading in current
+    assert "2030-01-02 00:00 UTC" in current
+    assert "[suite-2030-01-01.json](results/suite-2030-01-01.json)" in history
+    assert "[m-2030-01-01.json](results/m-2030-01-01.json)" in history
+    assert "| openvino | error: not installed | - |" in current
+    assert "2.0x" in current and "(1 cloud, each with and without the crop" in current
+    assert render.render(res) == text                          # deterministic
+
+
+def _relative_links(path: Path):
+    for target in LINK.findall(_prose(path.read_text())):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith("#") and not target[1:]:
+            continue                                    # http:, https:, mailto:, ...
+        yield target
+
+
+@pytest.mark.parametrize("doc", _doc_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_resolve(doc):
+    broken = []
+    for target in _relative_links(doc):
+        file_part, _, anchor = target.partition("#")
+        dest = (doc.parent / file_part).resolve() if file_part else doc
+        if not dest.exists():
+            broken.append(f"{target} (no such file)")
+        elif anchor and dest.is_file() and dest.suffix == ".md" and anchor not in _anchors(dest):
+            broken.append(f"{target} (no heading #{anchor} in {dest.relative_to(ROOT)})")
+    assert not broken, f"{doc.relative_to(ROOT)}: broken links: {broken}"
