@@ -36,7 +36,7 @@ from radaredge.onnx_export import export_onnx
 from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.runtime.session import make_session
-from radaredge.timing import benchmark, cpu_name, pin_threads
+from radaredge.timing import benchmark, cpu_name, pin_threads, require_ok
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -122,7 +122,7 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
             clouds = [{"xyv": c} for c in scans(g, merged, count, seed=7)]
             points = int(np.median([len(c["xyv"]) for c in clouds]))
             for part, backends in (("map", map_backends), ("map + CNN", stage_backends)):
-                for r in benchmark(backends, clouds, runs, warmup):
+                for r in require_ok(benchmark(backends, clouds, runs, warmup)):
                     rows.append({"scans": merged, "points": points, "part": part, "backend": r.backend,
                                  "p50_ms": r.p50_ms, "p90_ms": r.p90_ms})
     base = {(r["scans"], r["part"]): r["p50_ms"] for r in rows if r["backend"].endswith("(upstream)")}

@@ -2,7 +2,7 @@
 
 For the question "did this change make the graph slower?": both ``.onnx`` files run in
 onnxruntime on the same synthetic cases, timed in one loop that alternates them every run
-(:func:`radaredge.bench.benchmark`), then each is profiled once more and its kernel time split by
+(:func:`radaredge.timing.benchmark`), then each is profiled once more and its kernel time split by
 stage (:func:`radaredge.profiling.stage_times_from_profile`, the stages of the card given with
 ``--model``): the median over several profiled passes, which alternate between the graphs, since
 one profiled pass per graph moves stages of identical code by tens of percent. Writes
@@ -27,7 +27,7 @@ from radaredge.cards import load_card
 from radaredge.profiling import profile_runs, stage_times_from_profile
 from radaredge.registry import model_spec
 from radaredge.runtime.session import make_session, run_session
-from radaredge.timing import benchmark, cpu_name, pin_threads
+from radaredge.timing import benchmark, cpu_name, pin_threads, require_ok
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,7 +44,7 @@ def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int 
     cases = [feeds for _, feeds in named]
     sessions = {str(p): make_session(p, threads=threads) for p in (a, b)}
     backends = {name: (lambda feeds, s=s: run_session(s, feeds)) for name, s in sessions.items()}
-    results = {r.backend: r for r in benchmark(backends, cases, runs)}
+    results = {r.backend: r for r in require_ok(benchmark(backends, cases, runs))}
     graphs = {str(p): onnx.load(str(p), load_external_data=False) for p in (a, b)}
     passes: dict[str, list[dict]] = {str(p): [] for p in (a, b)}
     for _ in range(rounds):

@@ -8,7 +8,7 @@ imports neither torch nor radaredge, so it runs anywhere.
 Files it knows, by name (``<kind>-<YYYY-MM-DD>.json``):
 
 - ``suite-<date>.json``: ``make bench`` (``benchmarks/run.py``), every card and backend;
-- ``<card>-<date>.json``: ``radaredge bench --model <card>`` saved with ``--save``/``--json``;
+- ``<card>-<date>.json``: ``radaredge bench --model <card>`` saved with ``--save``;
 - ``compare-<label>-<date>.json``: ``benchmarks/compare_graphs.py``, two graphs alternately;
 - ``maffnet-capacity-<date>.json``: ``benchmarks/maffnet_capacity.py``;
 - ``cfa-speedup-<date>.json``: ``benchmarks/cfa_speedup.py``.

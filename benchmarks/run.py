@@ -33,7 +33,7 @@ from radaredge.profiling import profile_runs, top_ops
 from radaredge.quantize import QUANTIZED_OPS
 from radaredge.registry import model_spec
 from radaredge.runtime.openvino import openvino_installed
-from radaredge.timing import benchmark, cpu_name, output_differences, pin_threads
+from radaredge.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
@@ -70,7 +70,7 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
     cases = [feeds for _, feeds in graph.make_cases(card, 4, 1)]
     macs = count_macs(graph.run_export, model, {k: torch.from_numpy(v) for k, v in cases[0].items()})
     backends = pipeline_backends(card, graph, model, fp32, BenchOptions(threads=threads), int8, openvino)
-    results = benchmark(backends, cases, runs, warmup=3)
+    results = require_ok(benchmark(backends, cases, runs, warmup=3))
     rows = []
     for r in results:
         achieved = 2 * macs["total"] / (r.p50_ms / 1e3) / 1e9

@@ -21,7 +21,7 @@ from .cards import ModelCard, load_card
 from .errors import ConfigError, InputError
 
 __all__ = ["export", "parity", "bench", "evaluate", "ExportResult", "BenchReport", "resolve_card",
-           "EXPORT_ARTIFACTS"]
+           "EXPORT_OPTIONS"]
 
 
 def resolve_card(card: ModelCard | str | Path) -> ModelCard:
@@ -29,14 +29,36 @@ def resolve_card(card: ModelCard | str | Path) -> ModelCard:
     return card if isinstance(card, ModelCard) else load_card(card)
 
 
-# What `export` can write beside the fp32 graph(s), the option that asks for it and the file it
-# writes per graph (Ultralytics' export_formats() table, for the artifacts of one export).
-EXPORT_ARTIFACTS = (
-    # (artifact, option, suffix, what)
-    ("onnx", None, ".onnx", "the fp32 graph, raw points in, result out, with a .json sidecar"),
-    ("debug", "debug", ".debug.onnx", "the fp32 graph with its traced intermediates as extra outputs"),
-    ("int8", "quantize", ".int8.onnx", "an int8 copy (the model's int8 hook: static QDQ by default)"),
+# Every export option that depends on another or on the model (Ultralytics' export_formats():
+# one table, one generic check): (option, the option it needs, whether the model allows it,
+# what to say when it does not).
+def _calibrated(spec) -> bool:
+    return spec.int8_calibrated
+
+
+DYNAMIC_INT8 = "quantised dynamically (weights only, no calibration)"
+EXPORT_OPTIONS = (
+    ("--calibration", "--quantize", _calibrated, DYNAMIC_INT8),
+    ("--calibration-windows", "--quantize", _calibrated, DYNAMIC_INT8),
+    ("--calibration-format", "--calibration", _calibrated, DYNAMIC_INT8),
 )
+NEEDS_HINT = {"--quantize": "int8 calibration options need --quantize int8",
+              "--calibration": "--calibration-format is the format of a --calibration recording; add --calibration DIR"}
+
+
+def check_export_options(card: ModelCard, spec, given: dict) -> None:
+    """ConfigError for an option of :data:`EXPORT_OPTIONS` given without the option it needs, or
+    to a model that does not take it; ``given`` maps option names to values (None: not given)."""
+    if given.get("--quantize") not in (None, "int8"):
+        raise ConfigError(f"--quantize {given['--quantize']!r}: the one int8 format is 'int8'")
+    for option, needs, allowed, why in EXPORT_OPTIONS:
+        if given.get(option) is None:
+            continue
+        if given.get(needs) is None:
+            hint = NEEDS_HINT[needs]
+            raise ConfigError(f"{option}: {hint}" if needs == "--quantize" else hint)
+        if not allowed(spec):
+            raise ConfigError(f"{card.name}'s int8 copy is {why}; drop {option}")
 
 
 @dataclass
@@ -89,21 +111,6 @@ class ExportResult:
         return out
 
 
-def _check_export_options(card: ModelCard, spec, quantize, calibration: dict) -> None:
-    """Generic option validation: calibration options need ``quantize`` and a model whose int8
-    hook is calibrated; an unknown ``quantize`` value is refused."""
-    given = [name for name, value in calibration.items() if value is not None]
-    if quantize not in (None, "int8"):
-        raise ConfigError(f"--quantize {quantize!r}: the one int8 format is 'int8'")
-    if given and not quantize:
-        raise ConfigError(f"{', '.join(given)}: int8 calibration options need --quantize int8")
-    if given and not spec.int8_calibrated:
-        raise ConfigError(f"{card.name}'s int8 copy is quantised dynamically (weights only, no calibration); "
-                          f"drop {', '.join(given)}")
-    if calibration.get("--calibration-format") and not calibration.get("--calibration"):
-        raise ConfigError("--calibration-format is the format of a --calibration recording; add --calibration DIR")
-
-
 def export(card: ModelCard | str | Path, output: str | Path | None = None, *, checkpoint: str | Path | None = None,
            model=None, opset: int | None = None, debug: bool = False, quantize: str | None = None,
            calibration: str | Path | None = None, calibration_format: str | None = None,
@@ -122,12 +129,12 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     card = resolve_card(card)
     spec = model_spec(card)
     say = log or (lambda line: None)
-    _check_export_options(card, spec, quantize, {"--calibration": calibration,
-                                                 "--calibration-format": calibration_format,
-                                                 "--calibration-windows": calibration_windows})
+    check_export_options(card, spec, {"--quantize": quantize, "--calibration": calibration,
+                                      "--calibration-format": calibration_format,
+                                      "--calibration-windows": calibration_windows})
     if calibration is not None:                 # a wrong recording fails before the export, not after it
         from .calibration import DEFAULT_WINDOWS, check_recording
-        check_recording(calibration, int(card.get("frames", 1)), calibration_windows or DEFAULT_WINDOWS,
+        check_recording(calibration, len(spec.graph().frame_inputs(card)), calibration_windows or DEFAULT_WINDOWS,
                         calibration_format)
     output = Path(output) if output is not None else default_output(card, spec)
     if model is None:
@@ -175,8 +182,8 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
                              f"as {len(spec.graphs)} graphs: pass the directory `radaredge export --model "
                              f"{card.name}` wrote")
         if quantized:
-            raise ConfigError(f"--quantized checks a one-graph int8 export; {card.name}'s int8 text encoder is "
-                              f"timed by `radaredge bench`")
+            raise ConfigError(f"--quantized checks a one-graph int8 export; {card.name} exports "
+                              f"{len(spec.graphs)} graphs, whose int8 copies `radaredge bench` times")
     if model is None:
         model = build_model(card, checkpoint, spec)
     report = ParityReport(card.name, str(onnx), runtime, quantized)

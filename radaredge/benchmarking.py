@@ -18,14 +18,16 @@ from pathlib import Path
 from typing import Callable
 
 from .cards import ModelCard
+from .errors import ConfigError, InputError
 from .timing import BackendResult, BenchTask, benchmark, cpu_name, format_differences, output_differences, \
-    pin_threads, results_table
+    pinned, results_table
 
 
 @dataclass(frozen=True)
 class BenchOptions:
     """What a ``bench_tasks`` hook is told: threads, timed runs, warm-up runs, whether to time the
-    torch reference, whether to add OpenVINO (None: when installed), and each graph's int8 copy."""
+    torch reference, whether to add OpenVINO (None: when installed), each graph's int8 copy, and
+    where progress lines go."""
 
     threads: int = 2
     runs: int = 20
@@ -33,6 +35,7 @@ class BenchOptions:
     reference: bool = True
     openvino: bool | None = None
     int8: dict = field(default_factory=dict)
+    log: Callable[[str], None] = lambda line: None
 
 
 @dataclass
@@ -102,6 +105,14 @@ class BenchReport:
     def __bool__(self) -> bool:
         return all(r for t in self.tasks.values() for r in t.rows)
 
+    def save(self, path: str | Path) -> Path:
+        """Write :meth:`to_dict` as JSON to ``path`` (parents created); return it."""
+        import json
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2))
+        return path
+
     def to_dict(self) -> dict:
         return {"model": self.model, "threads": self.threads, "cores": self.cores, "cpu": self.cpu, "runs": self.runs,
                 "date": self.date, "tasks": {n: t.to_dict() for n, t in self.tasks.items()},
@@ -150,10 +161,11 @@ def pipeline_backends(card: ModelCard, graph, module, onnx_path, options: BenchO
     """name -> fn(feeds) running one graph's pipeline: the torch reference (``options.reference``),
     the torch export formulation, onnxruntime fp32, onnxruntime on ``int8_path`` and, with
     ``openvino``, the same graph(s) in OpenVINO's CPU plugin. The sessions are never profiled
-    (onnxruntime's profiler costs time in every node); profiles come from a session of their own."""
+    (onnxruntime's profiler costs time in every node); profiles come from a session of their own.
+    Graphs load on their first run, so one that fails to load is a failed row."""
     import torch
 
-    from .runtime.runners import graph_runner
+    from .runtime.runners import lazy_runner
 
     def torch_export(feeds):
         with torch.no_grad():
@@ -167,13 +179,13 @@ def pipeline_backends(card: ModelCard, graph, module, onnx_path, options: BenchO
     if options.reference:
         backends["torch reference"] = torch_reference
     backends["torch export"] = torch_export
-    backends["onnxruntime"] = graph_runner(onnx_path, "onnxruntime", options.threads)
+    backends["onnxruntime"] = lazy_runner(onnx_path, "onnxruntime", options.threads)
     if int8_path is not None:
-        backends["onnxruntime int8"] = graph_runner(int8_path, "onnxruntime", options.threads)
+        backends["onnxruntime int8"] = lazy_runner(int8_path, "onnxruntime", options.threads)
     if openvino:
-        backends["openvino"] = graph_runner(onnx_path, "openvino", options.threads)
+        backends["openvino"] = lazy_runner(onnx_path, "openvino", options.threads)
         if int8_path is not None:
-            backends["openvino int8"] = graph_runner(int8_path, "openvino", options.threads)
+            backends["openvino int8"] = lazy_runner(int8_path, "openvino", options.threads)
     return backends
 
 
@@ -222,16 +234,29 @@ def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None
     after ``warmup``, backends alternating every run. ``onnx`` (default the export path) is
     exported first when missing; ``int8`` names a one-graph model's int8 copy (default
     ``<onnx>.int8.onnx`` when it exists). ``profile`` adds onnxruntime's top ops; the per-stage
-    split is added for graphs that name their stages."""
+    split is added for graphs that name their stages. The process is pinned to ``threads``
+    cores while it runs and restored afterwards."""
     from .api import resolve_card
-    from .exporter import build_model, default_output, export_graphs, graph_paths
-    from .profiling import onnxruntime_peak_rss_mb, profile_runs, top_ops
     from .registry import model_spec
 
     card = resolve_card(card)
     spec = model_spec(card)
+    if int8 is not None and spec.multi_graph:
+        raise ConfigError(f"--int8 names the int8 copy of a one-graph model; {card.name}'s bench finds its "
+                          f"int8 graphs in the export directory")
+    if int8 is not None and not Path(int8).is_file():
+        raise InputError(f"--int8 {int8} does not exist; write it with `radaredge export --quantize int8`")
+    with pinned(threads) as cores:
+        return _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino,
+                      progress, log, cores)
+
+
+def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino, progress,
+           log, cores) -> BenchReport:
+    from .exporter import build_model, default_output, export_graphs, graph_paths
+    from .profiling import onnxruntime_peak_rss_mb, profile_runs, top_ops
+
     say = log or (lambda line: None)
-    cores = pin_threads(threads)
     if model is None:
         model = build_model(card, checkpoint, spec)
     onnx = Path(onnx) if onnx is not None else default_output(card, spec)
@@ -244,7 +269,7 @@ def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None
         candidate = Path(int8) if (int8 is not None and not spec.multi_graph) else p.with_suffix(".int8.onnx")
         if candidate.exists():
             int8_paths[name] = candidate
-    options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths)
+    options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths, say)
     tasks = (spec.bench_tasks or (lambda c, m, p, o: default_tasks(c, spec, m, p, o)))(card, model, paths, options)
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     report = BenchReport(card.name, threads, cores, cpu_name(), runs, stamp)
@@ -256,7 +281,8 @@ def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None
         cases = [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
         extras = GraphExtras(profiled_runs=n_profiled)
         task = next((t for t in tasks if t.name == g.name), None)
-        if task is not None and "openvino" in task.backends and "onnxruntime" in task.backends:
+        rows = report.tasks[g.name].rows if g.name in report.tasks else []
+        if sum(1 for r in rows if r and r.backend in ("openvino", "onnxruntime")) == 2:
             extras.openvino_max_abs = output_differences(task.backends["openvino"], task.backends["onnxruntime"], cases)
         # one profiled session serves the stage split and --profile: runs of its own, never timed
         wants = profile or (g.stage_times is not None and bool(g.onnx_stages))

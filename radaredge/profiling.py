@@ -3,7 +3,7 @@
 Per-stage time: onnxruntime's node profile attributed to the model's pipeline stages.
 
 onnxruntime's profiler times each node of the *optimised* graph. This module maps those nodes
-back to the stages a model spec names (``ModelSpec.onnx_stages``, e.g. MAFF-Net's VFE+SPA, CFA,
+back to the stages a graph spec names (``GraphSpec.onnx_stages``, e.g. MAFF-Net's VFE+SPA, CFA,
 CAF, backbone+head, NMS):
 
 1. a node traced inside a stage's module (the exporter's ``pkg.torch.onnx.name_scopes``

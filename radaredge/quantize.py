@@ -34,12 +34,12 @@ import onnxruntime as ort
 from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_dynamic, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
-from . import runtime
 from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_feeds
 from .cards import ModelCard
 from .errors import ConfigError, ExportError
 from .models.spec import GraphSpec, ModelSpec
 from .node_scopes import fused_from, module_names
+from .runtime import FrameFeeds
 from .runtime.metadata import QUANTIZATION
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
@@ -151,7 +151,11 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
         feeds = synthetic_feeds(card, calibration_cases, seed, graph)
         source = {"data": "synthetic", "cases": calibration_cases, "seed": seed}
     else:
-        feeds, source = recorded_feeds(runtime.load(fp32_path), calibration_dir, calibration_cases, calibration_format)
+        if graph is None:
+            from .registry import model_spec
+            graph = model_spec(card).graph()
+        inputs = FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input, str(fp32_path))
+        feeds, source = recorded_feeds(inputs, calibration_dir, calibration_cases, calibration_format)
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
         try:

@@ -10,10 +10,11 @@ worker threads still spin.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -70,6 +71,28 @@ def pin_threads(threads: int) -> list[int] | None:
         return cores
     except (AttributeError, OSError):
         return None
+
+
+@contextlib.contextmanager
+def pinned(threads: int):
+    """:func:`pin_threads` for the duration of a ``with`` block (yields the cores); the process's
+    CPU affinity and torch's thread count are restored afterwards."""
+    try:
+        affinity = os.sched_getaffinity(0)
+    except (AttributeError, OSError):
+        affinity = None
+    try:
+        import torch
+        torch_threads = torch.get_num_threads()
+    except ImportError:
+        torch = None
+    try:
+        yield pin_threads(threads)
+    finally:
+        if affinity is not None:
+            os.sched_setaffinity(0, affinity)
+        if torch is not None:
+            torch.set_num_threads(torch_threads)
 
 
 def cpu_name() -> str:
@@ -131,6 +154,15 @@ def benchmark(backends: dict, cases: list, runs: int, warmup: int = 3, progress=
             else summarise(n, times[n]) for n in backends]
 
 
+def require_ok(rows: list[BackendResult]) -> list[BackendResult]:
+    """``rows`` when every backend ran; RuntimeError naming the first that failed and why (for
+    scripts whose tables need every row)."""
+    for r in rows:
+        if not r:
+            raise RuntimeError(f"backend {r.backend!r} failed: {r.error}")
+    return rows
+
+
 def output_differences(run_a, run_b, cases: list[dict]) -> dict[str, float]:
     """Largest absolute difference per output between two runners of one graph over ``cases``
     (outputs whose shapes differ count as inf): what a second runtime changes in the results."""
@@ -167,9 +199,3 @@ def results_table(results: list[BackendResult], baseline: str = "torch reference
         lines.append(f"| {r.backend} | {r.p50_ms:.1f} | {r.p90_ms:.1f} | {r.p99_ms:.1f} | {r.fps:.2f} | "
                      f"{base.p50_ms / r.p50_ms:.2f} |{rate}")
     return "\n".join(lines)
-
-
-def as_dicts(results: list[BackendResult]) -> list[dict]:
-    return [asdict(r) for r in results]
-
-

@@ -157,3 +157,38 @@ def test_exported_graph_carries_the_contract(tiny_export):
     assert m.info.checks == [] and m.info.part is None and m.info.quantization is None
     info = runtime.inspect_export(path)["graphs"][0]
     assert info["model"] == "tdfanet-tiny" and info["frames"] == m.info.frame_inputs
+
+
+def test_a_missing_optional_package_is_one_line_with_the_extra_to_install(monkeypatch):
+    from radaredge import api
+
+    def needs_torch(*a, **kw):
+        raise ModuleNotFoundError("No module named 'torch'", name="torch")
+    monkeypatch.setattr(api, "export", needs_torch)
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY_CARD)
+    assert res.exit_code == 2
+    assert res.output.strip() == ("error: this command needs torch, which the base install leaves out: "
+                                  "pip install 'radaredge[export]'")
+
+
+def test_bench_refuses_a_missing_int8_graph_and_reports_a_failing_backend_as_a_row(tiny_export, tmp_path):
+    _, _, path, _ = tiny_export
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8",
+                 tmp_path / "typo.int8.onnx", "--runs", 1)
+    assert res.exit_code == 2 and "typo.int8.onnx does not exist" in res.output
+    junk = tmp_path / "junk.int8.onnx"
+    junk.write_bytes(b"not onnx")
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8", junk,
+                 "--runs", 2, "--warmup", 1, "--no-reference", "--no-openvino", "--json")
+    assert res.exit_code == 1, res.output
+    rows = {r["backend"]: r for r in json.loads(res.stdout)["tasks"]["tdfanet"]["rows"]}
+    assert rows["onnxruntime"]["status"] == "ok" and rows["onnxruntime int8"]["status"] == "error"
+    assert "onnxruntime cannot load it" in rows["onnxruntime int8"]["error"]
+
+
+def test_a_multi_graph_export_refuses_a_file_as_its_directory(tmp_path):
+    target = tmp_path / "taken.onnx"
+    target.write_text("x")
+    res = invoke("export", "--model", "des4pos-tiny", "--config", Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
+                 "--output", target)
+    assert res.exit_code == 2 and "exports 3 graphs into a directory" in res.output

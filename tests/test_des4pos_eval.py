@@ -87,3 +87,10 @@ def test_eval_command_runs_the_models_own_metric(bundle, tmp_path):
     res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city,
                  "--database", tmp_path)
     assert res.exit_code == 2 and "evaluated by localisation recall on --map; --database not used" in res.output
+
+
+def test_locate_without_an_int8_text_encoder_says_how_to_make_one(bundle, city):
+    res = invoke("locate", "--onnx-dir", bundle, "--map", city, "--text", "The pose is north of a red car.",
+                 "--int8-text")
+    assert res.exit_code == 2 and "text_encoder.int8.onnx does not exist" in res.output
+    assert "--quantize int8" in res.output

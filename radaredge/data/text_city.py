@@ -126,3 +126,12 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
         pose_text.append(" ".join(hints))
     m.pose_w, m.pose_cell, m.pose_text = np.array(pose_w), np.array(pose_cell, dtype=str), np.array(pose_text, dtype=str)
     return m
+
+
+def make_city_for_card(card, seed: int = 0, world: float = 90.0, objects: int = 70, poses: int = 40) -> CellMap:
+    """:func:`make_city` in the layout of a Des4Pos ``card``: its object slots, points per object,
+    cell size and stride (m), and descriptions of at most its ``text.max_hints`` hints."""
+    from ..models.des4pos_config import CellConfig, TextConfig
+    c, t = card.section("cell", CellConfig), card.section("text", TextConfig)
+    return make_city(c.max_objects, c.points_per_object, seed=seed, world=world, size=c.size, stride=c.stride,
+                     objects=objects, poses=poses, max_hints=min(6, t.max_hints))

@@ -231,7 +231,7 @@ def bench_tasks(card: ModelCard, model: Des4Pos, paths: dict, options) -> list:
     * **query**: text encode + FAISS search over a synthetic map's cell descriptors + fine stage
       on the top-k cells, per description (tokenisation included), for the torch export
       formulation, the torch reference (optional), onnxruntime fp32 and onnxruntime with the
-      dynamically quantised text encoder (when ``text_encoder.int8.onnx`` exists);
+      dynamically quantised text encoder (``text_encoder.int8.onnx``, written first when missing);
     * **cells**: cell-encoding throughput of the submap encoder, batches of 8 cells.
     """
     from ..runtime.des4pos import Des4PosBundle, MapIndex
@@ -245,6 +245,9 @@ def bench_tasks(card: ModelCard, model: Des4Pos, paths: dict, options) -> list:
     city = make_city(cell.max_objects, cell.points_per_object, seed=1, size=cell.size, stride=cell.stride, poses=0)
     ort_b = Des4PosBundle(bundle_dir, threads=options.threads)
     int8 = paths["text_encoder"].with_suffix(".int8.onnx")
+    if not int8.is_file():
+        options.log(f"{int8} missing: quantising the text encoder (dynamic int8)")
+        text_int8(card, None, paths, options)
     with torch.no_grad():
         desc, objs = model.submap(torch.from_numpy(city.points), torch.from_numpy(city.num_points),
                                   torch.from_numpy(city.object_mask))
@@ -272,9 +275,8 @@ def bench_tasks(card: ModelCard, model: Des4Pos, paths: dict, options) -> list:
         query["torch reference"] = lambda t: torch_query(t, True)
     query["torch export"] = torch_query
     query["onnxruntime"] = lambda t: ort_b.locate(t, index, top_k)
-    if int8.is_file():
-        ort_q = Des4PosBundle(bundle_dir, threads=options.threads, text_encoder=int8)
-        query["onnxruntime int8 text"] = lambda t: ort_q.locate(t, index, top_k)
+    ort_q = Des4PosBundle(bundle_dir, threads=options.threads, text_encoder=int8)
+    query["onnxruntime int8 text"] = lambda t: ort_q.locate(t, index, top_k)
 
     # cell encoding: batches of `batch` cells (the reference one cell at a time, real objects only)
     batches = [slice(s, s + batch) for s in range(0, len(city) - batch + 1, batch)][:4]
@@ -313,7 +315,7 @@ def evaluate_localization(card: ModelCard, onnx, inputs: EvalInputs):
     (:func:`radaredge.des4pos_eval.evaluate_localization`)."""
     from ..des4pos_eval import evaluate_localization as localize
     inputs.require("localisation recall", ("map",), card.name)
-    return localize(onnx, inputs.map, progress=inputs.progress)
+    return localize(onnx, inputs.map, progress=inputs.progress, model=card.name)
 
 
 DES4POS_SPEC = ModelSpec(

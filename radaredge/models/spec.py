@@ -33,11 +33,15 @@ class EvalInputs:
     reference: bool = True
     progress: Callable | None = None
 
-    def require(self, task: str, needed: tuple[str, ...], card_name: str) -> None:
-        """ConfigError unless exactly the inputs ``needed`` (of database, queries, map) are given."""
+    def require(self, task: str, needed: tuple[str, ...], card_name: str, uses: tuple[str, ...] = ()) -> None:
+        """ConfigError unless exactly the inputs ``needed`` (of database, queries, map) are given
+        and no option outside ``uses`` (of checkpoint, radius, reference) was set."""
         from ..errors import ConfigError
         missing = [n for n in needed if getattr(self, n) is None]
         extra = [n for n in ("database", "queries", "map") if n not in needed and getattr(self, n) is not None]
+        set_options = {"checkpoint": self.checkpoint is not None, "radius": self.radius != 5.0,
+                       "no-reference": not self.reference}
+        extra += [n for n, given in set_options.items() if given and n.replace("no-", "") not in uses]
         if missing or extra:
             raise ConfigError(f"{card_name} is evaluated by {task} on {', '.join('--' + n for n in needed)}"
                               + (f"; missing {', '.join('--' + n for n in missing)}" if missing else "")
@@ -137,4 +141,5 @@ class ModelSpec:
         for g in self.graphs:
             if g.name == name:
                 return g
-        raise KeyError(f"no graph {name!r}; graphs: {[g.name for g in self.graphs]}")
+        from ..errors import ConfigError
+        raise ConfigError(f"no graph {name!r} in this model; its graphs: {[g.name for g in self.graphs]}")

@@ -99,7 +99,7 @@ def evaluate_places(card: ModelCard, onnx, inputs: EvalInputs):
     """Place-recognition Recall@N of the export and the torch reference over query drives against
     database drives (:func:`radaredge.evaluation.evaluate`)."""
     from ..evaluation import evaluate
-    inputs.require("place recognition", ("database", "queries"), card.name)
+    inputs.require("place recognition", ("database", "queries"), card.name, ("checkpoint", "radius", "reference"))
     return evaluate(card, onnx, inputs.database, inputs.queries, inputs.checkpoint, inputs.radius, inputs.reference,
                     inputs.progress)
 

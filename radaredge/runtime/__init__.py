@@ -28,31 +28,32 @@ from .metadata import GraphMetadata
 from .session import make_session, run_session
 
 
-class RadarModel:
-    """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``."""
+class FrameFeeds:
+    """A point-cloud graph's inputs: checks raw frames against the card's columns and builds the
+    graph's feeds. Used by :class:`RadarModel` and by int8 calibration on recordings, so both
+    feed a graph the same way."""
 
-    def __init__(self, session: ort.InferenceSession, path: Path):
-        self.session = session
-        self.path = path
-        self.metadata = session.get_modelmeta().custom_metadata_map
-        self.info = GraphMetadata.from_props(self.metadata, str(path))
-        self.card: ModelCard = card_from_yaml(self.info.card_yaml)
-        self.features: list[str] = self.info.features
-        self.input_names = [i.name for i in session.get_inputs()]
-        self.output_names = [o.name for o in session.get_outputs()]
-        self.weights_sha256: str = self.info.weights_sha256
-        self.frames = len(self.info.frame_inputs)
-        self.frame_rate = float(self.card.get("frame_rate", 10.0))
+    def __init__(self, name: str, features: list[str], frame_inputs: list[str], timestamps_input: str | None,
+                 frame_rate: float = 10.0, where: str = ""):
+        self.name, self.features, self.frame_inputs = name, list(features), list(frame_inputs)
+        self.timestamps_input, self.frame_rate, self.where = timestamps_input, float(frame_rate), where or name
+        self.frames = len(self.frame_inputs)
+
+    @classmethod
+    def of_card(cls, card: ModelCard, frame_inputs: list[str], timestamps_input: str | None,
+                where: str = "") -> "FrameFeeds":
+        """The feeds of a graph of ``card`` taking ``frame_inputs`` (and ``timestamps_input``)."""
+        return cls(card.name, card.features, frame_inputs, timestamps_input, float(card.get("frame_rate", 10.0)),
+                   where)
 
     def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Check frame count, shapes, dtype and finiteness against the card; return float32 copies."""
         if not self.frames:
-            raise InputError(f"{self.path} ({self.info.part or self.card.name}) takes no point-cloud frames; "
-                             f"its inputs are {self.input_names}: run it with .session")
+            raise InputError(f"{self.where} takes no point-cloud frames: run it with its session")
         if isinstance(frames, np.ndarray):
             frames = [frames] if self.frames == 1 else list(frames)
         if len(frames) != self.frames:
-            raise InputError(f"{self.card.name} takes {self.frames} frame(s) (oldest first), got {len(frames)}")
+            raise InputError(f"{self.name} takes {self.frames} frame(s) (oldest first), got {len(frames)}")
         cols = len(self.features)
         out = []
         for k, f in enumerate(frames):
@@ -75,8 +76,8 @@ class RadarModel:
         when the graph takes them, ``timestamps`` float32 [K] (s, oldest first, strictly
         increasing; default: the card's frame rate)."""
         frames = self.validate(frames)
-        feeds = dict(zip(self.info.frame_inputs, frames))
-        if self.info.timestamps_input is not None:
+        feeds = dict(zip(self.frame_inputs, frames))
+        if self.timestamps_input is not None:
             if timestamps is None:
                 ts = np.arange(self.frames, dtype=np.float32) / self.frame_rate
             else:
@@ -85,8 +86,36 @@ class RadarModel:
                     raise InputError(f"timestamps: expected {self.frames} finite values in seconds, got {timestamps!r}")
                 if (np.diff(ts) <= 0).any():
                     raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
-            feeds[self.info.timestamps_input] = ts
+            feeds[self.timestamps_input] = ts
         return feeds
+
+
+class RadarModel:
+    """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``."""
+
+    def __init__(self, session: ort.InferenceSession, path: Path):
+        self.session = session
+        self.path = path
+        self.metadata = session.get_modelmeta().custom_metadata_map
+        self.info = GraphMetadata.from_props(self.metadata, str(path))
+        self.card: ModelCard = card_from_yaml(self.info.card_yaml)
+        self.features: list[str] = self.info.features
+        self.input_names = [i.name for i in session.get_inputs()]
+        self.output_names = [o.name for o in session.get_outputs()]
+        self.weights_sha256: str = self.info.weights_sha256
+        self.inputs = FrameFeeds(self.card.name, self.info.features, self.info.frame_inputs, self.info.timestamps_input,
+                                 float(self.card.get("frame_rate", 10.0)),
+                                 f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})")
+        self.frames = self.inputs.frames
+        self.frame_rate = self.inputs.frame_rate
+
+    def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Check frame count, shapes, dtype and finiteness against the card (:class:`FrameFeeds`)."""
+        return self.inputs.validate(frames)
+
+    def feeds(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """The graph's input feeds for one window (:meth:`FrameFeeds.feeds`)."""
+        return self.inputs.feeds(frames, timestamps)
 
     def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""

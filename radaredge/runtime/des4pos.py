@@ -38,6 +38,9 @@ class Des4PosBundle:
 
     def __init__(self, directory: str | Path, threads: int = 2, text_encoder: str | Path | None = None):
         self.directory = d = Path(directory)
+        if text_encoder is not None and not Path(text_encoder).is_file():
+            raise ConfigError(f"{text_encoder} does not exist; the int8 text encoder is written by "
+                              f"`radaredge export --model des4pos --quantize int8`")
         manifest = d / "bundle.json"
         if not manifest.is_file():
             raise InputError(f"{d} is not a Des4Pos bundle (no bundle.json); export one with "
@@ -155,3 +158,52 @@ class MapIndex:
         if cache:
             np.savez(path, descriptors=desc, object_features=objs)
         return cls(**common, descriptors=desc, object_features=objs, cache=path if cache else None)
+
+
+@dataclass
+class LocateResult:
+    """One description located in one map: its hints, the map's cells (encoded, or read from the
+    cache), the ranked cells with a position each, and the time the map and the query took (ms)."""
+
+    text: str
+    map: str
+    hints: list[str]
+    index: MapIndex
+    hits: list[dict]
+    map_ms: float
+    query_ms: float
+
+    def to_dict(self) -> dict:
+        return {"text": self.text, "hints": self.hints, "cells": len(self.index), "from_cache": self.index.from_cache,
+                "map_ms": self.map_ms, "query_ms": self.query_ms, "results": self.hits}
+
+    def lines(self) -> list[str]:
+        index = self.index
+        how = (f"read from {index.cache.name}" if index.from_cache else
+               "encoded" + (f", cached in {index.cache.name}" if index.cache else ""))
+        out = [f"map {self.map}: {len(index)} cells ({how}) in {self.map_ms:.0f} ms",
+               f"query: {len(self.hints)} hint(s), text encode + search + fine stage in {self.query_ms:.1f} ms",
+               f"{'rank':>4}  {'cell':<32}{'score':>8}  {'x (m)':>11}{'y (m)':>11}"]
+        out += [f"{h['rank']:>4}  {h['cell']:<32}{h['score']:>8.4f}  {h['position'][0]:>11.2f}{h['position'][1]:>11.2f}"
+                for h in self.hits]
+        return out
+
+
+def locate_description(directory: str | Path, map_path: str | Path, text: str, top_k: int = 3, threads: int = 2,
+                       int8_text: bool = False, cache: bool = True, progress=None,
+                       model: str | None = None) -> LocateResult:
+    """Locate ``text`` in the map at ``map_path`` with the Des4Pos export in ``directory`` (its int8
+    text encoder with ``int8_text``): the map's cells encoded once (cached beside the map with
+    ``cache``), the top-k cells retrieved, the fine stage's position in each. ``model``, when
+    given, must be the export's card name (or ``des4pos``)."""
+    import time
+    bundle = Des4PosBundle(directory, threads=threads,
+                           text_encoder=Path(directory) / "text_encoder.int8.onnx" if int8_text else None)
+    if bundle.card.model != "des4pos" or (model not in (None, "des4pos", bundle.card.name)):
+        raise ConfigError(f"{directory} holds {bundle.card.name}, not {model}")
+    t0 = time.perf_counter()
+    index = MapIndex.build(bundle, map_path, cache=cache, progress=progress)
+    t1 = time.perf_counter()
+    hits = bundle.locate(text, index, top_k)
+    t2 = time.perf_counter()
+    return LocateResult(text, str(map_path), bundle.tokenize(text)[0], index, hits, (t1 - t0) * 1e3, (t2 - t1) * 1e3)

@@ -5,11 +5,11 @@ ONNX file itself (no conversion step) and compiles it for the CPU. The same grap
 ``radaredge bench`` beside onnxruntime and in ``radaredge parity-check --runtime openvino``
 against the torch reference.
 
-What differs from onnxruntime, measured on these graphs: OpenVINO's CPU plugin has no float64
-or int64 kernels (its CPU inference precisions are f32/bf16/f16, i32, u8/i8). float64 runs in
-float32, so the TDFANet RANSAC's ego velocity differs from the float64 reference by up to
-1.4e-4 m/s (20 parity cases; onnxruntime is bit-equal), over its 1e-4 m/s tolerance. An integer
-Mod runs in float32 too, which is why the RANSAC's hypothesis table keeps below 2**24
+What differs from onnxruntime: OpenVINO's CPU plugin has no float64 or int64 kernels (its CPU
+inference precisions are f32/bf16/f16, i32, u8/i8). float64 runs in float32, so the TDFANet
+RANSAC's ego velocity can miss its 1e-4 m/s tolerance against the float64 reference, which
+onnxruntime meets bit-equal (`parity-check --runtime openvino` shows by how much). An integer Mod
+runs in float32 too, which is why the RANSAC's hypothesis table keeps below 2**24
 (:mod:`radaredge.ops.ego_velocity`). Numpy + openvino only: no torch.
 """
 

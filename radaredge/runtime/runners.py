@@ -12,6 +12,18 @@ from ..errors import ConfigError
 RUNTIMES = ("onnxruntime", "openvino")
 
 
+def lazy_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
+    """:func:`graph_runner` that loads the graph on its first call, so a graph that fails to load
+    fails where the call is handled (a bench row), not where the runner is built."""
+    loaded = []
+
+    def run(feeds):
+        if not loaded:
+            loaded.append(graph_runner(onnx_path, runtime, threads))
+        return loaded[0](feeds)
+    return run
+
+
 def graph_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
     """fn(feeds) -> {output name: array} running ``onnx_path`` in ``runtime`` (one of RUNTIMES)
     on ``threads`` threads; ConfigError for any other runtime name."""

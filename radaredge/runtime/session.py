@@ -19,11 +19,14 @@ def make_session(path: str | Path, threads: int = 2, profile: bool = False,
     ``graph_level`` is one of ``disable``, ``basic``, ``extended``, ``all``. The worker threads
     stop spinning when a run returns (``session.force_spinning_stop``): a radar app calls the
     model once per scan and needs the cores for its own work in between, and onnxruntime's
-    default of spinning on after the run took the cores from whatever ran next (a second
-    session run right after one measured 1.4x slower on 2 cores). InputError when
+    default of spinning on after the run takes the cores from whatever runs next (on 2 cores, a
+    second session run right after the first is slowed down). InputError when
     ``path`` is missing or onnxruntime cannot load it (not an ONNX model, truncated, an
     operator this onnxruntime lacks), with onnxruntime's reason.
     """
+    if Path(path).is_dir():
+        raise InputError(f"{path} is a directory; pass one graph's .onnx (a multi-graph export directory goes "
+                         f"to the commands that take one: inspect, parity-check, bench, eval, locate)")
     if not Path(path).is_file():
         raise InputError(f"{path} does not exist; export one with `radaredge export --model NAME`")
     opts = ort.SessionOptions()
