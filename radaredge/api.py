@@ -29,21 +29,22 @@ def resolve_card(card: ModelCard | str | Path) -> ModelCard:
     return card if isinstance(card, ModelCard) else load_card(card)
 
 
-# Every export option that depends on another or on the model (Ultralytics' export_formats():
-# one table, one generic check): (option, the option it needs, whether the model allows it,
-# what to say when it does not).
 def _calibrated(spec) -> bool:
+    """The model's int8 hook takes calibration data."""
     return spec.int8_calibrated
 
 
-DYNAMIC_INT8 = "quantised dynamically (weights only, no calibration)"
+# Every export option that depends on another option or on the model, checked by one generic
+# function (Ultralytics' export_formats() table): (option, the option it needs, what to say when
+# that is missing, whether the model takes it, what to say when it does not).
 EXPORT_OPTIONS = (
-    ("--calibration", "--quantize", _calibrated, DYNAMIC_INT8),
-    ("--calibration-windows", "--quantize", _calibrated, DYNAMIC_INT8),
-    ("--calibration-format", "--calibration", _calibrated, DYNAMIC_INT8),
+    ("--calibration", "--quantize", "int8 calibration options need --quantize int8",
+     _calibrated, "its int8 copy is quantised dynamically (weights only, no calibration)"),
+    ("--calibration-windows", "--quantize", "int8 calibration options need --quantize int8",
+     _calibrated, "its int8 copy is quantised dynamically (weights only, no calibration)"),
+    ("--calibration-format", "--calibration", "the format of a --calibration recording; add --calibration DIR",
+     _calibrated, "its int8 copy is quantised dynamically (weights only, no calibration)"),
 )
-NEEDS_HINT = {"--quantize": "int8 calibration options need --quantize int8",
-              "--calibration": "--calibration-format is the format of a --calibration recording; add --calibration DIR"}
 
 
 def check_export_options(card: ModelCard, spec, given: dict) -> None:
@@ -51,14 +52,13 @@ def check_export_options(card: ModelCard, spec, given: dict) -> None:
     to a model that does not take it; ``given`` maps option names to values (None: not given)."""
     if given.get("--quantize") not in (None, "int8"):
         raise ConfigError(f"--quantize {given['--quantize']!r}: the one int8 format is 'int8'")
-    for option, needs, allowed, why in EXPORT_OPTIONS:
+    for option, needs, missing, allowed, refused in EXPORT_OPTIONS:
         if given.get(option) is None:
             continue
         if given.get(needs) is None:
-            hint = NEEDS_HINT[needs]
-            raise ConfigError(f"{option}: {hint}" if needs == "--quantize" else hint)
+            raise ConfigError(f"{option}: {missing}")
         if not allowed(spec):
-            raise ConfigError(f"{card.name}'s int8 copy is {why}; drop {option}")
+            raise ConfigError(f"{card.name}: {refused}; drop {option}")
 
 
 @dataclass
