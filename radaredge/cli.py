@@ -2,7 +2,8 @@
 
 Each command parses its options, calls one library verb and renders the result as text, or as
 one JSON document on stdout with ``--json``. Errors of radaredge's own kinds are one ``error:``
-line on stderr and exit code 2; a FAILED parity check exits 1.
+line on stderr and exit code 2 (a missing optional package: the extra that adds it); a FAILED
+parity check, or a bench whose backend failed, exits 1.
 """
 
 from __future__ import annotations
