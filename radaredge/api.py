@@ -18,10 +18,14 @@ from typing import Callable
 
 from .benchmarking import BenchReport, bench
 from .cards import ModelCard, load_card
+from .config import check_count
 from .errors import ConfigError, InputError
 
 __all__ = ["export", "parity", "bench", "evaluate", "ExportResult", "BenchReport", "resolve_card",
            "EXPORT_OPTIONS"]
+
+
+MAX_CASES = 10_000          # parity cases are built before the first run: bound them
 
 
 def resolve_card(card: ModelCard | str | Path) -> ModelCard:
@@ -172,6 +176,7 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
     from .parity_check import ParityReport, check_graph
     from .registry import model_spec
 
+    check_count("cases", cases, 1, MAX_CASES)
     card = resolve_card(card)
     spec = model_spec(card)
     onnx = Path(onnx) if onnx is not None else default_output(card, spec)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from .cards import ModelCard
+from .config import check_count
 from .errors import ConfigError, InputError
 from .timing import BackendResult, BenchTask, benchmark, cpu_name, format_differences, output_differences, \
     pinned, results_table
@@ -153,6 +154,7 @@ class BenchReport:
         return out
 
 
+MAX_RUNS = 100_000
 BENCH_CASES, BENCH_SEED = 4, 1          # the inputs every backend is timed on: 4 synthetic cases, seed 1
 
 
@@ -239,6 +241,10 @@ def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None
     from .api import resolve_card
     from .registry import model_spec
 
+    from .runtime.session import checked_threads
+    checked_threads(threads)
+    check_count("runs", runs, 1, MAX_RUNS)
+    check_count("warmup", warmup, 0, MAX_RUNS)
     card = resolve_card(card)
     spec = model_spec(card)
     if int8 is not None and spec.multi_graph:

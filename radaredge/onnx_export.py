@@ -43,7 +43,9 @@ def export_onnx(
     """Export ``module(*args)`` to ``path`` with torch's dynamo exporter.
 
     ``dynamic_axes`` maps an input name to ``{axis: symbolic_name}``; inputs sharing a symbolic
-    name share one dimension. The exporter refuses code whose control flow depends on a dynamic
+    name share one dimension. ExportError when the graph does not come out at ``opset`` (the
+    exporter keeps its own opset when it cannot convert a model), so no file claims an opset it
+    does not have. The exporter refuses code whose control flow depends on a dynamic
     size, which is what we want: a data-dependent branch must not be silently baked in.
     """
     path = Path(path)
@@ -91,6 +93,12 @@ def export_onnx(
         raise ExportError(
             f"exporting {type(module).__name__} to ONNX failed: {type(exc).__name__}: {exc}"
         ) from exc
+    actual = next((o.version for o in onnx.load(str(path), load_external_data=False).opset_import
+                   if o.domain in ("", "ai.onnx")), None)
+    if actual != opset:
+        path.unlink(missing_ok=True)
+        raise ExportError(f"opset {opset}: torch's exporter could not convert this graph to it and "
+                          f"kept opset {actual}; export with --opset {actual} (radaredge's default is {DEFAULT_OPSET})")
     if dynamic_axes:
         _name_dynamic_dims(path, dynamic_axes)
     return path

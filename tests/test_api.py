@@ -192,3 +192,37 @@ def test_a_multi_graph_export_refuses_a_file_as_its_directory(tmp_path):
     res = invoke("export", "--model", "des4pos-tiny", "--config", Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
                  "--output", target)
     assert res.exit_code == 2 and "exports 3 graphs into a directory" in res.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (("bench", "--threads", 0), "threads: expected an integer from 1 to"),
+    (("bench", "--threads", 10**6), "threads: expected an integer from 1 to"),
+    (("bench", "--runs", 0), "runs: expected an integer from 1 to 100000, got 0"),
+    (("bench", "--warmup", -1), "warmup: expected an integer from 0 to 100000, got -1"),
+    (("parity-check", "--onnx", "x.onnx", "--cases", 0), "cases: expected an integer from 1 to 10000, got 0"),
+])
+def test_counts_are_bounded_before_any_work(args, message):
+    res = invoke(*args[:1], "--model", "tdfanet-tiny", "--config", TINY_CARD, *args[1:])
+    assert res.exit_code == 2 and message in res.output
+    assert res.output.count("error:") == 1 and "Traceback" not in res.output
+
+
+def test_runtime_threads_are_bounded(tiny_export):
+    from radaredge import runtime
+    from radaredge.errors import ConfigError
+    from radaredge.runtime.session import usable_cores
+    with pytest.raises(ConfigError, match="threads: expected an integer from 1 to"):
+        runtime.load(tiny_export[2], threads=10**6)
+    with pytest.raises(ConfigError, match="threads"):
+        runtime.load(tiny_export[2], threads=0)
+    with pytest.warns(RuntimeWarning, match="more than the .* usable cores"):
+        runtime.load(tiny_export[2], threads=usable_cores() + 1)
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+def test_non_finite_card_numbers_are_refused_by_field(tmp_path, value):
+    card = tmp_path / "bad.yaml"
+    card.write_text(TINY_CARD.read_text().replace("inlier_threshold: 0.15", f"inlier_threshold: {value}"))
+    res = invoke("export", "--model", "bad", "--config", card, "--output", tmp_path / "bad.onnx")
+    assert res.exit_code == 2 and "preprocess.ransac.inlier_threshold: expected a finite number" in res.output
+    assert not (tmp_path / "bad.onnx").exists()

@@ -55,3 +55,26 @@ def test_a_bias_free_layer_reads_a_constant_zero_bias(onnx_roundtrip, tmp_path):
     assert len(conv.input) == 3 and conv.input[2] in constants
     ref, got = rt(example)
     assert_close(got["y"], ref["y"], 1e-5, "onnxruntime vs torch")
+
+
+def test_the_graph_has_the_opset_asked_for_or_none_is_written(tmp_path):
+    """A model the exporter can convert comes out at the requested opset; one it cannot (the
+    tiny TDFANet at opset 17) is refused with the opset it kept, and no file is left claiming it."""
+    from click.testing import CliRunner
+
+    from conftest import TINY_CARD
+    from radaredge.cli import main
+    from radaredge.onnx_export import export_onnx
+
+    class Double(nn.Module):
+        def forward(self, x):
+            return torch.relu(x) * 2
+
+    path = export_onnx(Double(), (torch.ones(3),), tmp_path / "double.onnx", ["x"], ["y"], opset=17)
+    assert [o.version for o in onnx.load(str(path)).opset_import if o.domain in ("", "ai.onnx")] == [17]
+    out = tmp_path / "tiny.onnx"
+    res = CliRunner().invoke(main, ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
+                                    "--output", str(out), "--opset", "17"])
+    assert res.exit_code == 2
+    assert "error: opset 17: torch's exporter could not convert this graph to it and kept opset 18" in res.output
+    assert not out.exists() and not out.with_suffix(".json").exists()

@@ -82,6 +82,24 @@ def test_timestamps_are_checked(onnx_path, frames):
         m.run(frames[0], [0.0, 0.1])
 
 
+def test_absolute_timestamps_give_the_outputs_of_relative_ones(onnx_path, frames):
+    """ROS / Unix epoch stamps and time since boot are made relative in float64 before the graph
+    sees float32: the outputs are bitwise those of the same stamps made relative by the caller,
+    and match a window stamped exactly 0, 0.1, 0.2 s to float precision. In float32 the epoch
+    stamps would have collapsed (a 0.1 s step is below float32's resolution at 1.7e9 s)."""
+    m = runtime.load(onnx_path)
+    exact = m.run(frames[0], [0.0, 0.1, 0.2])
+    for t0 in (1_732_500_000.123456, 1e6, 3.7e4):           # epoch seconds (a ROS stamp), time since boot
+        stamps = t0 + np.array([0.0, 0.1, 0.2])
+        out = m.run(frames[0], stamps)
+        rel = m.run(frames[0], stamps - stamps[0])
+        for k in out:
+            np.testing.assert_array_equal(out[k], rel[k], err_msg=f"t0 = {t0}: {k}")
+            np.testing.assert_allclose(out[k], exact[k], atol=1e-5, err_msg=f"t0 = {t0}: {k}")
+    with pytest.raises(InputError, match="increase strictly"):      # checked in float64, at epoch scale too
+        m.run(frames[0], 1e9 + np.array([0.0, 0.2, 0.1]))
+
+
 def test_empty_frames_are_valid_input(onnx_path, frames):
     m = runtime.load(onnx_path)
     out = m.run([np.zeros((0, 5), np.float32), frames[0][1], np.zeros((0, 5), np.float32)])

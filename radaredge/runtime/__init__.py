@@ -73,20 +73,26 @@ class FrameFeeds:
 
     def feeds(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """The graph's input feeds for one window: the validated frames (:meth:`validate`) and,
-        when the graph takes them, ``timestamps`` float32 [K] (s, oldest first, strictly
-        increasing; default: the card's frame rate)."""
+        when the graph takes them, the frame times [K] (s, oldest first, strictly increasing;
+        default: the card's frame rate). Times may be absolute (ROS or Unix epoch, time since
+        boot): they are checked and made relative to the oldest frame in float64, and only the
+        relative times go to the graph as float32, so their differences keep sub-millisecond
+        precision whatever the epoch."""
         frames = self.validate(frames)
         feeds = dict(zip(self.frame_inputs, frames))
         if self.timestamps_input is not None:
             if timestamps is None:
-                ts = np.arange(self.frames, dtype=np.float32) / self.frame_rate
+                ts = np.arange(self.frames, dtype=np.float64) / self.frame_rate
             else:
-                ts = np.asarray(timestamps, np.float32)
-                if ts.shape != (self.frames,) or not np.isfinite(ts).all():
+                try:
+                    ts = np.asarray(timestamps, np.float64)
+                except (TypeError, ValueError):
+                    ts = None
+                if ts is None or ts.shape != (self.frames,) or not np.isfinite(ts).all():
                     raise InputError(f"timestamps: expected {self.frames} finite values in seconds, got {timestamps!r}")
                 if (np.diff(ts) <= 0).any():
                     raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
-            feeds[self.timestamps_input] = ts
+            feeds[self.timestamps_input] = (ts - ts[0]).astype(np.float32)
         return feeds
 
 

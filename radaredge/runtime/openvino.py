@@ -57,6 +57,8 @@ def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
     import openvino as ov
     from openvino.frontend import FrontEndManager
 
+    from .session import checked_threads
+    threads = checked_threads(threads)
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path} does not exist; export one with `radaredge export --model NAME`")

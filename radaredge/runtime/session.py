@@ -2,14 +2,40 @@
 
 from __future__ import annotations
 
+import os
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 import onnxruntime as ort
 
-from ..errors import InputError
+from ..errors import ConfigError, InputError
+
+THREADS_PER_CORE_MAX = 4      # more threads than this per usable core only slow a run down and cost memory
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS tells, else the CPU count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def checked_threads(threads) -> int:
+    """``threads`` as an int in 1 .. :data:`THREADS_PER_CORE_MAX` x the usable cores; ConfigError
+    outside it (a huge count exhausts memory creating threads), a RuntimeWarning above the core count."""
+    cores = usable_cores()
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or \
+            not 1 <= threads <= THREADS_PER_CORE_MAX * cores:
+        raise ConfigError(f"threads: expected an integer from 1 to {THREADS_PER_CORE_MAX * cores} "
+                          f"({THREADS_PER_CORE_MAX} x the {cores} usable cores), got {threads!r}")
+    if threads > cores:
+        warnings.warn(f"threads = {threads} is more than the {cores} usable cores; runs will be slower, not faster",
+                      RuntimeWarning, stacklevel=3)
+    return int(threads)
 
 
 def make_session(path: str | Path, threads: int = 2, profile: bool = False,
@@ -24,6 +50,7 @@ def make_session(path: str | Path, threads: int = 2, profile: bool = False,
     ``path`` is missing or onnxruntime cannot load it (not an ONNX model, truncated, an
     operator this onnxruntime lacks), with onnxruntime's reason.
     """
+    threads = checked_threads(threads)
     if Path(path).is_dir():
         raise InputError(f"{path} is a directory; pass one graph's .onnx (a multi-graph export directory goes "
                          f"to the commands that take one: inspect, parity-check, bench, eval, locate)")
