@@ -72,7 +72,26 @@ def _card(model: str, config: str | None):
     return load_card(config or model)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class OneLineUsageErrors(click.Group):
+    """click's group, with a usage error (unknown option, bad value, missing option) reported as
+    one ``error:`` line and exit code 2, like radaredge's own errors, instead of click's usage block."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        try:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as exc:     # a bare `radaredge`: the help, as --help shows it
+            click.echo(exc.ctx.get_help())
+            sys.exit(0)
+        except click.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx is not None else "radaredge"
+            click.echo(f"error: {exc.format_message()} (`{where} --help` lists the options)", err=True)
+            sys.exit(2)
+        except click.Abort:
+            click.echo("aborted", err=True)
+            sys.exit(1)
+
+
+@click.group(cls=OneLineUsageErrors, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="radaredge")
 def main():
     """radaredge: export 4D-radar perception models to one self-contained ONNX, prove parity

@@ -226,3 +226,17 @@ def test_non_finite_card_numbers_are_refused_by_field(tmp_path, value):
     res = invoke("export", "--model", "bad", "--config", card, "--output", tmp_path / "bad.onnx")
     assert res.exit_code == 2 and "preprocess.ransac.inlier_threshold: expected a finite number" in res.output
     assert not (tmp_path / "bad.onnx").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (("bench", "--nope"), "error: No such option '--nope'."),
+    (("export", "--model", "tdfanet", "--opset", "x"), "error: Invalid value for '--opset': 'x' is not a valid integer."),
+    (("export",), "error: Missing option '--model'."),
+    (("no-such-command",), "error: No such command 'no-such-command'."),
+])
+def test_usage_errors_are_one_line(args, message):
+    from click.testing import CliRunner
+
+    from radaredge.cli import main
+    res = CliRunner().invoke(main, list(args))
+    assert res.exit_code == 2 and res.output.startswith(message) and res.output.count("\n") == 1, res.output

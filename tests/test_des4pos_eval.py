@@ -94,3 +94,35 @@ def test_locate_without_an_int8_text_encoder_says_how_to_make_one(bundle, city):
                  "--int8-text")
     assert res.exit_code == 2 and "text_encoder.int8.onnx does not exist" in res.output
     assert "--quantize int8" in res.output
+
+
+def test_a_bad_or_unwritable_cell_cache_is_rebuilt_not_trusted(bundle, city, monkeypatch):
+    """The cache beside the map is written atomically with a hash of its arrays: a truncated or
+    tampered cache is rebuilt with a warning (same positions as a fresh encoding), and a map
+    directory that cannot be written costs the cache, not the result."""
+    import tempfile
+    b = Des4PosBundle(bundle)
+    fresh = MapIndex.build(b, city, cache=True)
+    assert fresh.cache is not None and fresh.cache.is_file() and not fresh.from_cache
+    assert not [p for p in city.parent.iterdir() if p.name.endswith(".tmp")]
+    assert MapIndex.build(b, city).from_cache
+    data = fresh.cache.read_bytes()
+    for damaged in (data[: len(data) // 2], data.replace(b"descriptors", b"descriptorz")):
+        fresh.cache.write_bytes(damaged)
+        with pytest.warns(RuntimeWarning, match="ignoring the cell cache"):
+            again = MapIndex.build(b, city)
+        assert not again.from_cache and np.array_equal(again.descriptors, fresh.descriptors)
+    with np.load(fresh.cache) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["descriptors"] = arrays["descriptors"] + 1.0            # tampered values, old hash
+    np.savez(fresh.cache, **arrays)
+    with pytest.warns(RuntimeWarning, match="do not match the map or their hash"):
+        assert not MapIndex.build(b, city).from_cache
+    fresh.cache.unlink()
+
+    def read_only(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(city.parent))
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)              # a read-only map directory
+    with pytest.warns(RuntimeWarning, match="cannot write the cell cache"):
+        index = MapIndex.build(b, city)
+    assert index.cache is None and np.array_equal(index.descriptors, fresh.descriptors)

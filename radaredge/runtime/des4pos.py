@@ -141,7 +141,12 @@ class MapIndex:
     def build(cls, bundle: Des4PosBundle, map_path: str | Path, cache: bool = True, progress=None,
               cells: CellMap | None = None) -> "MapIndex":
         """Encode the map's cells with the bundle, or read them from the cache written beside the map
-        (``<map>.des4pos-<key>.npz``; the key hashes the map file and the bundle's weights)."""
+        (``<map>.des4pos-<key>.npz``; the key hashes the map file and the bundle's weights).
+
+        The cache is written atomically (a temporary file renamed into place) with a hash of its
+        arrays; one that is unreadable, of the wrong shape or whose arrays do not match the hash
+        is rebuilt with a warning, and a map directory that cannot be written only loses the
+        cache (a warning), never the result."""
         map_path = Path(map_path)
         cells = cells if cells is not None else load_map(map_path, bundle.slots, bundle.points)
         h = hashlib.sha256(bundle.weights_sha256.encode())
@@ -151,13 +156,59 @@ class MapIndex:
         path = map_path.with_name(f"{map_path.name}.des4pos-{h.hexdigest()[:16]}.npz")
         common = dict(ids=cells.ids, origins=cells.origins, sizes=cells.sizes, object_mask=cells.object_mask)
         if cache and path.is_file():
-            with np.load(path, allow_pickle=False) as z:
-                return cls(**common, descriptors=z["descriptors"], object_features=z["object_features"],
-                           cache=path, from_cache=True)
+            arrays = _read_cache(path, len(cells), cells.object_mask.shape[1])
+            if arrays is not None:
+                return cls(**common, descriptors=arrays[0], object_features=arrays[1], cache=path, from_cache=True)
         desc, objs = bundle.encode_cells(cells, progress=progress)
-        if cache:
-            np.savez(path, descriptors=desc, object_features=objs)
-        return cls(**common, descriptors=desc, object_features=objs, cache=path if cache else None)
+        written = cache and _write_cache(path, desc, objs)
+        return cls(**common, descriptors=desc, object_features=objs, cache=path if written else None)
+
+
+def _digest(descriptors: np.ndarray, object_features: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in (descriptors, object_features):
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def _read_cache(path: Path, cells: int, slots: int):
+    """(descriptors [C, D], object features [C, T, D]) from a cache file, or None (with a
+    warning) when it cannot be trusted."""
+    import warnings
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            desc, objs, digest = z["descriptors"], z["object_features"], str(z["digest"])
+        ok = (desc.ndim == 2 and desc.shape[0] == cells and objs.shape == (cells, slots, desc.shape[1])
+              and digest == _digest(desc, objs))
+    except Exception as exc:          # a truncated or foreign file: numpy, zipfile and key errors alike
+        ok, why = False, f"{type(exc).__name__}: {exc}"
+    else:
+        why = "its arrays do not match the map or their hash"
+    if ok:
+        return desc, objs
+    warnings.warn(f"{path}: ignoring the cell cache ({why}); encoding the map again", RuntimeWarning, stacklevel=3)
+    return None
+
+
+def _write_cache(path: Path, descriptors: np.ndarray, object_features: np.ndarray) -> bool:
+    """Write the cache atomically beside the map; False (with a warning) when that is not possible."""
+    import os
+    import tempfile
+    import warnings
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, descriptors=descriptors, object_features=object_features,
+                     digest=np.array(_digest(descriptors, object_features)))
+        os.replace(tmp, path)
+        return True
+    except OSError as exc:
+        if "tmp" in locals():
+            Path(tmp).unlink(missing_ok=True)
+        warnings.warn(f"cannot write the cell cache beside the map ({exc}); the map will be encoded again next "
+                      f"time", RuntimeWarning, stacklevel=3)
+        return False
 
 
 @dataclass
