@@ -123,3 +123,60 @@ def test_worker_threads_stop_spinning_when_a_run_returns(onnx_path, frames):
     before = time.process_time()
     time.sleep(0.3)
     assert time.process_time() - before < 0.01, "onnxruntime's worker threads kept spinning after the run"
+
+
+def test_points_per_frame_are_capped_by_the_card(tiny_export, frames, tmp_path):
+    """A frame beyond the card's max_points_per_frame (default 65,536) is a CapacityError naming
+    the frame, before onnxruntime allocates for it."""
+    from radaredge.errors import CapacityError
+    m = runtime.load(tiny_export[2])
+    big = np.zeros((65_537, 5), np.float32)
+    with pytest.raises(CapacityError, match=r"frame 1: 65537 points; tdfanet-tiny takes at most max_points_per_frame = 65536"):
+        m.run([frames[0][0], big, frames[0][2]])
+    m.inputs.max_points = 10
+    with pytest.raises(CapacityError, match="frame 0"):
+        m.run([np.zeros((11, 5), np.float32), frames[0][1], frames[0][2]])
+
+
+@pytest.mark.parametrize("text, message", [
+    ("a: &x [1, 2]\nb: *x\n", "anchors and aliases are not allowed in a model card"),
+    ("a: [1, 2\n", "invalid YAML"),
+    ("a: !!python/object/apply:os.system ['true']\n", "invalid YAML"),
+])
+def test_card_yaml_is_safe_and_alias_free(tmp_path, text, message):
+    from radaredge.cards import card_from_yaml, load_card
+    from radaredge.errors import ConfigError
+    path = tmp_path / "card.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        load_card(path)
+    with pytest.raises(ConfigError, match=f"graph.onnx: the card in its metadata: .*{message}"):
+        card_from_yaml(text, "graph.onnx: the card in its metadata")
+
+
+def test_a_binary_or_huge_card_file_is_one_error(tmp_path):
+    from radaredge.cards import load_card
+    from radaredge.errors import ConfigError
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(bytes(range(256)))
+    with pytest.raises(ConfigError, match="binary.yaml: not a text file"):
+        load_card(binary)
+    huge = tmp_path / "huge.yaml"
+    huge.write_text("a: " + "x" * 300_000)
+    with pytest.raises(ConfigError, match="huge.yaml: 300003 bytes; a model card is at most 262144 bytes"):
+        load_card(huge)
+
+
+def test_a_graph_whose_metadata_card_is_an_alias_bomb_is_refused(tiny_export, tmp_path):
+    import onnx
+    model = onnx.load(str(tiny_export[2]))
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{c}: &{c} [{', '.join(['*' + p] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi"))
+    for prop in model.metadata_props:
+        if prop.key == "radaredge.card":
+            prop.value = bomb
+    path = tmp_path / "bomb.onnx"
+    onnx.save(model, str(path))
+    from radaredge.errors import ConfigError
+    with pytest.raises(ConfigError, match="bomb.onnx: the card in its metadata: .*aliases are not allowed"):
+        runtime.load(path)

@@ -104,16 +104,45 @@ def load_card(name_or_path: str | Path) -> ModelCard:
     if not p.is_file():
         raise ConfigError(f"no model card {str(name_or_path)!r}: {p} does not exist; "
                           f"available: {', '.join(available_cards()) or 'none'}")
+    if p.stat().st_size > MAX_CARD_BYTES:
+        raise ConfigError(f"{p.name}: {p.stat().st_size} bytes; a model card is at most {MAX_CARD_BYTES} bytes")
     try:
-        data = yaml.safe_load(p.read_text())
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p.name}: not a text file (a model card is UTF-8 YAML)") from None
+    return parse_card(read_yaml(text, p.name), p)
+
+
+MAX_CARD_BYTES = 256 * 1024      # the largest shipped card is a few KiB
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """PyYAML's safe loader without anchors and aliases: cards never need them, and a few nested
+    aliases expand to gigabytes (a "billion laughs" card inside an .onnx's metadata)."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, "anchors and aliases are not allowed in a model card",
+                                              event.start_mark)
+        return super().compose_node(parent, index)
+
+
+def read_yaml(text: str, where: str):
+    """The YAML document ``text`` (safe types only, no aliases, at most :data:`MAX_CARD_BYTES`);
+    ConfigError naming ``where`` otherwise."""
+    if len(text) > MAX_CARD_BYTES:
+        raise ConfigError(f"{where}: {len(text)} characters; a model card is at most {MAX_CARD_BYTES}")
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p.name}: invalid YAML: {exc}") from exc
-    return parse_card(data, p)
+        raise ConfigError(f"{where}: invalid YAML: {' '.join(str(exc).split())}") from None
 
 
-def card_from_yaml(text: str) -> ModelCard:
-    """Parse a card from YAML text (used when the card travels inside ONNX metadata)."""
-    return parse_card(yaml.safe_load(text))
+def card_from_yaml(text: str, where: str = "<card>") -> ModelCard:
+    """Parse a card from YAML text (used when the card travels inside ONNX metadata); ``where``
+    names its origin in errors."""
+    return parse_card(read_yaml(text, where))
 
 
 def available_cards() -> list[str]:

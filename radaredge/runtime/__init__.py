@@ -23,9 +23,21 @@ import numpy as np
 import onnxruntime as ort
 
 from ..cards import ModelCard, card_from_yaml
-from ..errors import InputError
+from ..errors import CapacityError, ConfigError, InputError
 from .metadata import GraphMetadata
 from .session import make_session, run_session
+
+
+DEFAULT_MAX_POINTS = 65_536      # points per frame a card takes unless it says max_points_per_frame
+
+
+def max_points_per_frame(card: ModelCard) -> int:
+    """The card's ``max_points_per_frame`` (default :data:`DEFAULT_MAX_POINTS`); ConfigError
+    unless a positive integer."""
+    value = card.get("max_points_per_frame", DEFAULT_MAX_POINTS)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{card.where}: max_points_per_frame must be a positive integer, got {value!r}")
+    return value
 
 
 class FrameFeeds:
@@ -34,17 +46,18 @@ class FrameFeeds:
     feed a graph the same way."""
 
     def __init__(self, name: str, features: list[str], frame_inputs: list[str], timestamps_input: str | None,
-                 frame_rate: float = 10.0, where: str = ""):
+                 frame_rate: float = 10.0, where: str = "", max_points: int = DEFAULT_MAX_POINTS):
         self.name, self.features, self.frame_inputs = name, list(features), list(frame_inputs)
         self.timestamps_input, self.frame_rate, self.where = timestamps_input, float(frame_rate), where or name
         self.frames = len(self.frame_inputs)
+        self.max_points = max_points
 
     @classmethod
     def of_card(cls, card: ModelCard, frame_inputs: list[str], timestamps_input: str | None,
                 where: str = "") -> "FrameFeeds":
         """The feeds of a graph of ``card`` taking ``frame_inputs`` (and ``timestamps_input``)."""
         return cls(card.name, card.features, frame_inputs, timestamps_input, float(card.get("frame_rate", 10.0)),
-                   where)
+                   where, max_points_per_frame(card))
 
     def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Check frame count, shapes, dtype and finiteness against the card; return float32 copies."""
@@ -62,6 +75,10 @@ class FrameFeeds:
                 raise InputError(f"frame {k}: expected a numeric array of points, got dtype {a.dtype}")
             if a.ndim != 2 or a.shape[1] != cols:
                 raise InputError(f"frame {k}: expected shape [N, {cols}] with columns {self.features}, got {a.shape}")
+            if len(a) > self.max_points:
+                raise CapacityError(f"frame {k}: {len(a)} points; {self.name} takes at most max_points_per_frame = "
+                                    f"{self.max_points} a frame (memory grows with every point): crop or "
+                                    f"subsample the scan, or raise the card's max_points_per_frame")
             a = np.ascontiguousarray(a, np.float32)
             bad = ~np.isfinite(a)
             if bad.any():
@@ -104,14 +121,15 @@ class RadarModel:
         self.path = path
         self.metadata = session.get_modelmeta().custom_metadata_map
         self.info = GraphMetadata.from_props(self.metadata, str(path))
-        self.card: ModelCard = card_from_yaml(self.info.card_yaml)
+        self.card: ModelCard = card_from_yaml(self.info.card_yaml, f"{path}: the card in its metadata")
         self.features: list[str] = self.info.features
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
         self.weights_sha256: str = self.info.weights_sha256
         self.inputs = FrameFeeds(self.card.name, self.info.features, self.info.frame_inputs, self.info.timestamps_input,
                                  float(self.card.get("frame_rate", 10.0)),
-                                 f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})")
+                                 f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})",
+                                 max_points_per_frame(self.card))
         self.frames = self.inputs.frames
         self.frame_rate = self.inputs.frame_rate
 

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cards import card_from_yaml
 from ..data.cellmap import CellMap, load_map, validate_map
 from ..errors import ConfigError, InputError
 from ..models.des4pos_config import CellConfig, TextConfig
@@ -57,7 +56,7 @@ class Des4PosBundle:
                 raise InputError(f"{path} belongs to another export than {manifest} (bundle weights differ); "
                                  f"re-export the bundle")
             self.graphs[part] = g
-        self.card = card_from_yaml(self.graphs["submap_encoder"].info.card_yaml)
+        self.card = self.graphs["submap_encoder"].card
         self.weights_sha256: str = self.manifest["weights_sha256"]
         self.tokenizer = load_tokenizer(d / "tokenizer.json")
         cell, text = self.card.section("cell", CellConfig), self.card.section("text", TextConfig)
