@@ -115,6 +115,17 @@ class ExportResult:
         return out
 
 
+def _writable_dir(directory: Path) -> None:
+    """Create ``directory`` if needed; ConfigError when it cannot hold the export."""
+    import os
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--output: cannot create the directory {directory} ({exc.strerror or exc})") from None
+    if not os.access(directory, os.W_OK):
+        raise ConfigError(f"--output: {directory} is not writable")
+
+
 def export(card: ModelCard | str | Path, output: str | Path | None = None, *, checkpoint: str | Path | None = None,
            model=None, opset: int | None = None, debug: bool = False, quantize: str | None = None,
            calibration: str | Path | None = None, calibration_format: str | None = None,
@@ -126,7 +137,7 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
     synthetic scenes; ``calibration_windows`` windows). ``model`` reuses a built model (its
     weights must be the checkpoint's). ``log`` receives progress lines."""
-    from .exporter import build_model, default_output, export_graphs, graph_paths
+    from .exporter import build_model, check_output, default_output, export_graphs, graph_paths
     from .onnx_export import DEFAULT_OPSET
     from .registry import model_spec
 
@@ -141,6 +152,8 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
         check_recording(calibration, len(spec.graph().frame_inputs(card)), calibration_windows or DEFAULT_WINDOWS,
                         calibration_format)
     output = Path(output) if output is not None else default_output(card, spec)
+    check_output(card, spec, output)
+    _writable_dir(output if spec.multi_graph else output.parent)       # before a long export, not after it
     if model is None:
         model = build_model(card, checkpoint, spec)
     report = getattr(model, "checkpoint_report", None)

@@ -42,6 +42,12 @@ def _friendly_errors(fn):
             click.echo(f"error: this command needs {top}, which the base install leaves out: "
                        f"pip install 'radaredge[{EXTRA_OF[top]}]'", err=True)
             sys.exit(2)
+        except OSError as exc:             # a path that cannot be read or written (read-only, not a directory)
+            if exc.filename is None:
+                raise
+            why = "not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or exc
+            click.echo(f"error: {exc.filename}: {why}", err=True)
+            sys.exit(2)
     return wrapper
 
 

@@ -272,14 +272,19 @@ def default_output(card: ModelCard, spec: ModelSpec) -> Path:
     return Path(f"export/{card.name}") if spec.multi_graph else Path(f"export/{card.name}.onnx")
 
 
+def check_output(card: ModelCard, spec: ModelSpec, output: str | Path) -> None:
+    """ConfigError when a multi-graph model's output directory is an existing file."""
+    if spec.multi_graph and Path(output).exists() and not Path(output).is_dir():
+        raise ConfigError(f"{output} is a file; {card.name} exports {len(spec.graphs)} graphs into a directory "
+                          f"(e.g. export/{card.name}/)")
+
+
 def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, output: str | Path,
                   opset: int = DEFAULT_OPSET, debug: bool = False, progress=None) -> dict[str, GraphExport]:
     """Export every graph of the card's model to :func:`graph_paths` (``debug``: the debug
     graphs to the same paths with suffix .debug.onnx); a multi-graph model also gets its
     shared files (``spec.files``) and the manifest ``bundle.json`` in ``output``."""
-    if spec.multi_graph and Path(output).exists() and not Path(output).is_dir():
-        raise ConfigError(f"{output} is a file; {card.name} exports {len(spec.graphs)} graphs into a directory "
-                          f"(e.g. export/{card.name}/)")
+    check_output(card, spec, output)
     paths = graph_paths(spec, output)
     multi = spec.multi_graph
     bundle_hash = weights_hash(model) if multi else None

@@ -240,3 +240,15 @@ def test_usage_errors_are_one_line(args, message):
     from radaredge.cli import main
     res = CliRunner().invoke(main, list(args))
     assert res.exit_code == 2 and res.output.startswith(message) and res.output.count("\n") == 1, res.output
+
+
+def test_unwritable_outputs_and_impossible_cities_are_one_error_before_any_work(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--output", blocker / "x.onnx")
+    assert res.exit_code == 2 and f"--output: cannot create the directory {blocker}" in res.output
+    assert "exporting" not in res.output                           # refused before the model is built
+    res = invoke("make-city", "--out", blocker / "city.npz", "--poses", 2)
+    assert res.exit_code == 2 and res.output.strip() == f"error: {blocker}: not a directory"
+    res = invoke("make-city", "--out", tmp_path / "city.npz", "--objects", 0)
+    assert res.exit_code == 2 and "a synthetic city needs objects >= 1" in res.output

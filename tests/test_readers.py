@@ -311,3 +311,14 @@ def test_missing_or_unreadable_bag(tmp_path):
     (tmp_path / "junk.bag").write_bytes(b"not a bag")
     with pytest.raises(InputError, match="junk.bag: cannot read the ROS bag"):
         read_rosbag(tmp_path / "junk.bag", "/r", CARD)
+
+
+def test_npy_header_claiming_more_than_the_file_holds_is_refused_before_allocating(tmp_path):
+    """A header saying 5e11 rows over an 80-byte body would make numpy allocate terabytes."""
+    path = tmp_path / "lie.npy"
+    header = "{'descr': '<f4', 'fortran_order': False, 'shape': (500000000000, 5), }"
+    body = (header + " " * (118 - len(header)) + "\n").encode()
+    path.write_bytes(b"\x93NUMPY\x01\x00" + len(body).to_bytes(2, "little") + body + bytes(80))
+    with pytest.raises(InputError, match=r"lie.npy: its header claims shape \(500000000000, 5\) of float32 "
+                                         r"\(1e\+13 bytes\) but the file holds 209 bytes"):
+        read_scan(path, ["x", "y", "z", "v_r", "rcs"], "transloc")

@@ -164,6 +164,18 @@ def _read_npy(path: Path, fmt: str) -> np.ndarray:
     with path.open("rb") as f:
         if f.read(len(np.lib.format.MAGIC_PREFIX)) != np.lib.format.MAGIC_PREFIX:
             raise InputError(f"{path}: not a readable .npy file (no NumPy array header)")
+        f.seek(0)
+        try:
+            version = np.lib.format.read_magic(f)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, _, dtype = read_header(f)
+        except (ValueError, SyntaxError) as exc:
+            raise InputError(f"{path}: not a readable .npy file: {exc}") from None
+    claimed = dtype.itemsize * float(np.prod(shape, dtype=np.float64))
+    if claimed > path.stat().st_size:              # checked before numpy allocates what the header claims
+        raise InputError(f"{path}: its header claims shape {shape} of {dtype} ({claimed:.3g} bytes) but the file "
+                         f"holds {path.stat().st_size} bytes (truncated or damaged)")
     try:
         table = np.load(path, allow_pickle=False)
     except ValueError as exc:  # behind a valid header, a pickle is an object array

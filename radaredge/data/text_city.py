@@ -90,7 +90,13 @@ def direction(pose: np.ndarray, obj: dict) -> str:
 def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size: float = 30.0, stride: float = 10.0,
               objects: int = 70, poses: int = 40, min_hints: int = 2, max_hints: int = 6,
               min_points: int = 8) -> CellMap:
-    """The synthetic city as a :class:`CellMap` in the model's slot layout, with query poses."""
+    """The synthetic city as a :class:`CellMap` in the model's slot layout, with query poses.
+    ConfigError for a city that cannot hold a cell (no objects, a world smaller than a cell)."""
+    from ..errors import ConfigError
+    if objects < 1 or poses < 0 or not size <= world or stride <= 0:
+        raise ConfigError(f"a synthetic city needs objects >= 1, poses >= 0, a world edge >= the cell size "
+                          f"({size:g} m) and a positive stride; got objects={objects}, poses={poses}, "
+                          f"world={world:g} m, stride={stride:g} m")
     rng = np.random.default_rng(seed)
     objs = make_objects(rng, world, objects)
     starts = np.arange(0.0, world - size + 1e-9, stride)
