@@ -205,8 +205,9 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
     if model is None:
         model = build_model(card, checkpoint, spec)
     report = ParityReport(card.name, str(onnx), runtime, quantized)
+    paths = graph_paths(spec, onnx)
     for graph in spec.graphs:
-        path = graph_paths(spec, onnx)[graph.name]
+        path = paths[graph.name]
         module = graph.module(model)
         exported = rt.load(path)
         require_same_weights(exported, module, checkpoint)

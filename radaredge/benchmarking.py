@@ -284,9 +284,9 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
         report.tasks[t.name] = TaskResult(t.name, t.title, rows, t.baseline, t.items_per_case, t.item_unit, t.facts)
     n_profiled = max(3, min(runs, 10))
     for g in spec.graphs:
-        cases = [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
+        task = next((t for t in tasks if t.name == g.name), None)      # the graph's own pipeline task
+        cases = task.cases if task is not None else [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
         extras = GraphExtras(profiled_runs=n_profiled)
-        task = next((t for t in tasks if t.name == g.name), None)
         rows = report.tasks[g.name].rows if g.name in report.tasks else []
         if sum(1 for r in rows if r and r.backend in ("openvino", "onnxruntime")) == 2:
             extras.openvino_max_abs = output_differences(task.backends["openvino"], task.backends["onnxruntime"], cases)

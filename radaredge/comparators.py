@@ -17,6 +17,7 @@ no verdict), :class:`Boxes` (detections matched one to one by rotated BEV IoU).
 
 from __future__ import annotations
 
+import abc
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Mapping, Sequence
 
@@ -99,7 +100,7 @@ def _worst(name: str, kind: str, tolerance, results: Sequence[CaseResult], case_
 
 
 @dataclass(frozen=True)
-class Comparator:
+class Comparator(abc.ABC):
     """Base: compares output ``name``; subclasses set ``kind`` and the rules."""
 
     name: str
@@ -118,11 +119,14 @@ class Comparator:
         """The graph outputs this comparator judges."""
         return (self.name,)
 
+    @abc.abstractmethod
     def compare(self, got: Outputs, ref: Outputs, post: Outputs | None = None) -> CaseResult:
-        raise NotImplementedError
+        """One case: the graph's outputs ``got`` against the reference's ``ref`` (``post``: the
+        reference post-processing of ``got``, where the graph has one)."""
 
+    @abc.abstractmethod
     def tolerance(self) -> dict | str:
-        raise NotImplementedError
+        """What the verdict is held to, as reported."""
 
     def summarise(self, results: Sequence[CaseResult], case_names: Sequence[str],
                   got: Sequence[Outputs] = (), ref: Sequence[Outputs] = ()) -> OutputSummary:
@@ -186,13 +190,17 @@ class Dense(Comparator):
         if bad:
             return bad
         c = CaseResult(self.name, self.kind, True)
-        if _dense_stats(c, g, r, self.atol, self.rtol, self.angle_column, self.angle_period) is None:
-            return c
+        pair = _dense_stats(c, g, r, self.atol, self.rtol, self.angle_column, self.angle_period)
+        if pair is not None:
+            self._judge(c, *pair)
+        return c
+
+    def _judge(self, c: CaseResult, got: np.ndarray, ref: np.ndarray) -> None:
+        """The verdict of one case from its statistics and the flat float64 values."""
         c.passed = c.mismatches == 0
         if not c.passed:
             c.reason = (f"{c.mismatches} element(s) beyond atol {self.atol:g} + rtol {self.rtol:g} "
                         f"(max abs {c.max_abs:.3g})")
-        return c
 
     def tolerance(self):
         return {"atol": self.atol, "rtol": self.rtol}
@@ -207,11 +215,8 @@ class Info(Dense):
 
     kind = "info"
 
-    def compare(self, got, ref, post=None):
-        c = super().compare(got, ref, post)
-        if c.mismatches and not c.passed:          # beyond tolerance: reported, not judged
-            c.passed, c.reason = True, ""
-        return c
+    def _judge(self, c, got, ref):
+        """Reported, not judged (shape and finiteness still are)."""
 
     def tolerance(self):
         return "reported only"
@@ -221,10 +226,11 @@ class Info(Dense):
 
 
 @dataclass(frozen=True)
-class Descriptor(Comparator):
+class Descriptor(Dense):
     """An embedding: cosine >= ``min_cosine`` per case, and over the case set each case's nearest
-    reference descriptor (L2) must be its own for ``min_top1`` of the cases. int8:
-    ``quantized_min_cosine`` and :data:`QUANTIZED_MIN_TOP1`."""
+    reference descriptor (L2) must be its own for ``min_top1`` of the cases; the element-wise
+    statistics of :class:`Dense` are reported beside. int8: ``quantized_min_cosine`` and
+    :data:`QUANTIZED_MIN_TOP1`."""
 
     min_cosine: float = 0.9999
     min_top1: float = 1.0
@@ -232,21 +238,12 @@ class Descriptor(Comparator):
 
     kind = "descriptor"
 
-    def compare(self, got, ref, post=None):
-        g, r, bad = _operands(self, got, ref)
-        if bad:
-            return bad
-        c = CaseResult(self.name, self.kind, True)
-        pair = _dense_stats(c, g, r, 1e-4, 1e-3)
-        if pair is None:
-            return c
-        gv, rv = pair
-        denom = np.linalg.norm(gv) * np.linalg.norm(rv)
-        c.cosine = float(gv @ rv / denom) if denom > 0 else float(np.array_equal(gv, rv))
+    def _judge(self, c, got, ref):
+        denom = np.linalg.norm(got) * np.linalg.norm(ref)
+        c.cosine = float(got @ ref / denom) if denom > 0 else float(np.array_equal(got, ref))
         c.passed = c.cosine >= self.min_cosine
         if not c.passed:
             c.reason = f"cosine {c.cosine:.6f} < {self.min_cosine}"
-        return c
 
     def tolerance(self):
         return {"min_cosine": self.min_cosine, "min_top1": self.min_top1}

@@ -39,9 +39,9 @@ class EvalInputs:
         from ..errors import ConfigError
         missing = [n for n in needed if getattr(self, n) is None]
         extra = [n for n in ("database", "queries", "map") if n not in needed and getattr(self, n) is not None]
-        set_options = {"checkpoint": self.checkpoint is not None, "radius": self.radius != 5.0,
-                       "no-reference": not self.reference}
-        extra += [n for n, given in set_options.items() if given and n.replace("no-", "") not in uses]
+        options = (("checkpoint", "checkpoint", self.checkpoint is not None), ("radius", "radius", self.radius != 5.0),
+                   ("reference", "no-reference", not self.reference))       # (name, option, set)
+        extra += [option for name, option, given in options if given and name not in uses]
         if missing or extra:
             raise ConfigError(f"{card_name} is evaluated by {task} on {', '.join('--' + n for n in needed)}"
                               + (f"; missing {', '.join('--' + n for n in missing)}" if missing else "")

@@ -24,8 +24,8 @@ import numpy as np
 from ..data.cellmap import CellMap, load_map, validate_map
 from ..errors import ConfigError, InputError
 from ..models.des4pos_config import CellConfig, TextConfig
-from . import RadarModel
-from . import load as load_graph
+from .model import RadarModel
+from .model import load as load_graph
 from .text_tokens import encode_hints, load_tokenizer, split_hints
 
 PARTS = ("submap_encoder", "text_encoder", "fine_stage")

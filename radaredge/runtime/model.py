@@ -1,0 +1,175 @@
+"""The exported-graph wrapper: :class:`RadarModel` (load, check input, run, apply the graph's
+declared checks), :class:`FrameFeeds` (raw frames -> the graph's feeds) and :func:`inspect_export`."""
+
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import onnxruntime as ort
+
+from ..cards import ModelCard, card_from_yaml
+from ..errors import CapacityError, ConfigError, InputError
+from .metadata import GraphMetadata
+from .session import make_session, run_session
+
+
+DEFAULT_MAX_POINTS = 65_536      # points per frame a card takes unless it says max_points_per_frame
+
+
+def max_points_per_frame(card: ModelCard) -> int:
+    """The card's ``max_points_per_frame`` (default :data:`DEFAULT_MAX_POINTS`); ConfigError
+    unless a positive integer."""
+    value = card.get("max_points_per_frame", DEFAULT_MAX_POINTS)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{card.where}: max_points_per_frame must be a positive integer, got {value!r}")
+    return value
+
+
+class FrameFeeds:
+    """A point-cloud graph's inputs: checks raw frames against the card's columns and builds the
+    graph's feeds. Used by :class:`RadarModel` and by int8 calibration on recordings, so both
+    feed a graph the same way."""
+
+    def __init__(self, name: str, features: list[str], frame_inputs: list[str], timestamps_input: str | None,
+                 frame_rate: float = 10.0, where: str = "", max_points: int = DEFAULT_MAX_POINTS):
+        self.name, self.features, self.frame_inputs = name, list(features), list(frame_inputs)
+        self.timestamps_input, self.frame_rate, self.where = timestamps_input, float(frame_rate), where or name
+        self.frames = len(self.frame_inputs)
+        self.max_points = max_points
+
+    @classmethod
+    def of_card(cls, card: ModelCard, frame_inputs: list[str], timestamps_input: str | None,
+                where: str = "") -> "FrameFeeds":
+        """The feeds of a graph of ``card`` taking ``frame_inputs`` (and ``timestamps_input``)."""
+        return cls(card.name, card.features, frame_inputs, timestamps_input, float(card.get("frame_rate", 10.0)),
+                   where, max_points_per_frame(card))
+
+    def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Check frame count, shapes, dtype and finiteness against the card; return float32 copies."""
+        if not self.frames:
+            raise InputError(f"{self.where} takes no point-cloud frames: run it with its session")
+        if isinstance(frames, np.ndarray):
+            frames = [frames] if self.frames == 1 else list(frames)
+        if len(frames) != self.frames:
+            raise InputError(f"{self.name} takes {self.frames} frame(s) (oldest first), got {len(frames)}")
+        cols = len(self.features)
+        out = []
+        for k, f in enumerate(frames):
+            a = np.asarray(f)
+            if a.dtype.kind not in "fiu":
+                raise InputError(f"frame {k}: expected a numeric array of points, got dtype {a.dtype}")
+            if a.ndim != 2 or a.shape[1] != cols:
+                raise InputError(f"frame {k}: expected shape [N, {cols}] with columns {self.features}, got {a.shape}")
+            if len(a) > self.max_points:
+                raise CapacityError(f"frame {k}: {len(a)} points; {self.name} takes at most max_points_per_frame = "
+                                    f"{self.max_points} a frame (memory grows with every point): crop or "
+                                    f"subsample the scan, or raise the card's max_points_per_frame")
+            a = np.ascontiguousarray(a, np.float32)
+            bad = ~np.isfinite(a)
+            if bad.any():
+                row, col = np.argwhere(bad)[0]
+                raise InputError(f"frame {k}: non-finite value {a[row, col]} at point {row}, column "
+                                 f"'{self.features[col]}' ({int(bad.any(1).sum())} point(s) affected)")
+            out.append(a)
+        return out
+
+    def feeds(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """The graph's input feeds for one window: the validated frames (:meth:`validate`) and,
+        when the graph takes them, the frame times [K] (s, oldest first, strictly increasing;
+        default: the card's frame rate). Times may be absolute (ROS or Unix epoch, time since
+        boot): they are checked and made relative to the oldest frame in float64, and only the
+        relative times go to the graph as float32, so their differences keep sub-millisecond
+        precision whatever the epoch."""
+        frames = self.validate(frames)
+        feeds = dict(zip(self.frame_inputs, frames))
+        if self.timestamps_input is not None:
+            if timestamps is None:
+                ts = np.arange(self.frames, dtype=np.float64) / self.frame_rate
+            else:
+                try:
+                    ts = np.asarray(timestamps, np.float64)
+                except (TypeError, ValueError):
+                    ts = None
+                if ts is None or ts.shape != (self.frames,) or not np.isfinite(ts).all():
+                    raise InputError(f"timestamps: expected {self.frames} finite values in seconds, got {timestamps!r}")
+                if (np.diff(ts) <= 0).any():
+                    raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
+            feeds[self.timestamps_input] = (ts - ts[0]).astype(np.float32)
+        return feeds
+
+
+class RadarModel:
+    """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``."""
+
+    def __init__(self, session: ort.InferenceSession, path: Path):
+        self.session = session
+        self.path = path
+        self.metadata = session.get_modelmeta().custom_metadata_map
+        self.info = GraphMetadata.from_props(self.metadata, str(path))
+        self.card: ModelCard = card_from_yaml(self.info.card_yaml, f"{path}: the card in its metadata")
+        self.features: list[str] = self.info.features
+        self.input_names = [i.name for i in session.get_inputs()]
+        self.output_names = [o.name for o in session.get_outputs()]
+        self.weights_sha256: str = self.info.weights_sha256
+        self.inputs = FrameFeeds(self.card.name, self.info.features, self.info.frame_inputs, self.info.timestamps_input,
+                                 float(self.card.get("frame_rate", 10.0)),
+                                 f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})",
+                                 max_points_per_frame(self.card))
+        self.frames = self.inputs.frames
+        self.frame_rate = self.inputs.frame_rate
+
+    def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Check frame count, shapes, dtype and finiteness against the card (:class:`FrameFeeds`)."""
+        return self.inputs.validate(frames)
+
+    def feeds(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """The graph's input feeds for one window (:meth:`FrameFeeds.feeds`)."""
+        return self.inputs.feeds(frames, timestamps)
+
+    def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
+        out = run_session(self.session, self.feeds(frames, timestamps))
+        for check in self.info.checks:        # declared by the model at export (capacity flags)
+            check.apply(out)
+        return out
+
+
+def load(path: str | Path, threads: int = 2) -> RadarModel:
+    """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads."""
+    path = Path(path)
+    return RadarModel(make_session(path, threads=threads), path)
+
+
+def inspect_export(path: str | Path) -> dict:
+    """What an export holds: for a graph file, or each graph of a multi-graph export directory
+    (its ``bundle.json`` lists them), the card name, graph name, feature columns, frame inputs,
+    inputs and outputs with their shapes, runtime checks, weights hash and versions."""
+    path = Path(path)
+    if path.is_dir():
+        manifest = path / "bundle.json"
+        if not manifest.is_file():
+            raise InputError(f"{path} is a directory without bundle.json; pass an .onnx or a multi-graph export "
+                             f"directory")
+        import json
+        try:
+            files = [path / part["onnx"] for part in json.loads(manifest.read_text())["parts"].values()]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise InputError(f"{manifest}: unreadable manifest ({type(exc).__name__}: {exc})") from None
+    else:
+        files = [path]
+    graphs = []
+    for f in files:
+        m = load(f)
+        graphs.append({
+            "model": m.card.name, "graph": m.info.part or m.card.name, "onnx": str(f), "features": m.features,
+            "frames": m.info.frame_inputs,
+            "inputs": {i.name: i.shape for i in m.session.get_inputs()},
+            "outputs": {o.name: o.shape for o in m.session.get_outputs()},
+            "checks": [c.output for c in m.info.checks],
+            "quantization": m.info.quantization,
+            "weights_sha256": m.weights_sha256, "versions": m.info.versions,
+        })
+    return {"path": str(path), "graphs": graphs}
