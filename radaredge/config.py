@@ -4,11 +4,82 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Mapping, Type, TypeVar
+from typing import Any, Callable, Mapping, Type, TypeVar
 
 from .errors import ConfigError
 
 T = TypeVar("T")
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The values a numeric card field may take: ``low`` .. ``high``, each end closed unless marked
+    open. A tuple field's range applies to each of its numbers."""
+
+    low: float
+    high: float
+    low_open: bool = False
+    high_open: bool = False
+
+    def __contains__(self, v) -> bool:
+        above = v > self.low if self.low_open else v >= self.low
+        below = v < self.high if self.high_open else v <= self.high
+        return bool(above and below)
+
+    def __str__(self) -> str:
+        return (f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}")
+
+
+def positive(high: float) -> Range:
+    """``(0, high]``: sizes, radii, thresholds that must exceed zero."""
+    return Range(0.0, high, low_open=True)
+
+
+def card_ranges(**ranges: Range | tuple) -> Callable[[Type[T]], Type[T]]:
+    """Class decorator: the allowed range of each numeric field of a card-section dataclass,
+    checked by :func:`config_from_dict` (a pair ``(low, high)`` is the closed range).
+    ``tests/test_config.py`` asserts that every numeric field of every card section has one."""
+    def attach(cls: Type[T]) -> Type[T]:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(ranges) - names
+        if unknown:
+            raise TypeError(f"card_ranges on {cls.__name__}: no field(s) {sorted(unknown)}")
+        cls.__card_ranges__ = {k: v if isinstance(v, Range) else Range(*v) for k, v in ranges.items()}
+        return cls
+    return attach
+
+
+def field_range(cls: type, name: str) -> Range | None:
+    """The declared range of field ``name`` of card section ``cls`` (None if it has none)."""
+    return getattr(cls, "__card_ranges__", {}).get(name)
+
+
+def _numbers(value) -> list:
+    """Every leaf of a (nested) tuple/list, or [value] for a scalar."""
+    if isinstance(value, (tuple, list)):
+        return [x for v in value for x in _numbers(v)]
+    return [value]
+
+
+def check_numbers(value, rng: Range | None, integral: bool, where: str):
+    """Each number in ``value`` (a number or nested tuple of numbers) is finite, of the right kind
+    and inside ``rng``; ConfigError naming ``where`` and the range otherwise."""
+    kind = "an integer" if integral else "a number"
+    span = f" in {rng}" if rng is not None else ""
+    for x in _numbers(value):
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise ConfigError(f"{where}: expected {kind}{span}, got {value!r}")
+        if not math.isfinite(x):
+            raise ConfigError(f"{where}: expected a finite number{span}, got {value!r}")
+        if integral and isinstance(x, float) and not x.is_integer():
+            raise ConfigError(f"{where}: expected an integer{span}, got {value!r}")
+        if rng is not None and x not in rng:
+            raise ConfigError(f"{where}: {x!r} is out of range; allowed {rng}")
+
+
+def _integral_default(default) -> bool:
+    nums = _numbers(default)
+    return bool(nums) and all(isinstance(x, int) and not isinstance(x, bool) for x in nums)
 
 
 def check_count(name: str, value, low: int, high: int) -> int:
@@ -25,7 +96,8 @@ def config_from_dict(cls: Type[T], data: Mapping[str, Any] | None, where: str) -
     ``where`` is the card path of the section (e.g. ``"tdfanet.yaml: preprocess.ransac"``) and
     appears in every message. Missing keys take the dataclass defaults. Lists become tuples when
     the default is a tuple. Numbers must be finite (a NaN or infinite threshold passes every
-    ``<=`` check and silently breaks the graph).
+    ``<=`` check and silently breaks the graph) and inside the field's declared range
+    (:func:`card_ranges`); tuples of numbers are checked number by number.
     """
     data = dict(data or {})
     fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -36,24 +108,33 @@ def config_from_dict(cls: Type[T], data: Mapping[str, Any] | None, where: str) -
     for name, value in data.items():
         f = fields[name]
         default = f.default if f.default is not dataclasses.MISSING else None
+        rng = field_range(cls, name)
         if isinstance(default, tuple) and isinstance(value, list):
-            value = tuple(value)
+            value = _tuples(value)
         if isinstance(default, bool) and not isinstance(value, bool):
             raise ConfigError(f"{where}.{name}: expected true/false, got {value!r}")
+        if isinstance(default, str) and not isinstance(value, str):
+            raise ConfigError(f"{where}.{name}: expected a string, got {value!r}")
+        if isinstance(default, tuple) and not isinstance(value, tuple):
+            raise ConfigError(f"{where}.{name}: expected a list, got {value!r}")
         if isinstance(default, (int, float)) and not isinstance(default, bool):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"{where}.{name}: expected a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ConfigError(f"{where}.{name}: expected a finite number, got {value!r}")
-            if isinstance(default, float):
-                value = float(value)
-            elif isinstance(value, float) and not value.is_integer():
-                raise ConfigError(f"{where}.{name}: expected an integer, got {value!r}")
-            else:
-                value = int(value)
+            check_numbers(value, rng, isinstance(default, int), f"{where}.{name}")
+            value = float(value) if isinstance(default, float) else int(value)
+        elif rng is not None or (isinstance(default, tuple) and default and _numbers(default)
+                                 and all(isinstance(x, (int, float)) for x in _numbers(default))):
+            check_numbers(value, rng, _integral_default(default), f"{where}.{name}")
         kwargs[name] = value
+    missing = [f.name for f in fields.values() if f.name not in kwargs
+               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"{where}: missing field(s) {missing}")
     try:
         obj = cls(**kwargs)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from exc
     return obj
+
+
+def _tuples(value):
+    """A YAML list as a tuple, nested lists included."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value

@@ -202,3 +202,25 @@ def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
         np.testing.assert_allclose(got["v_ego"], ref["v_ego"], atol=1e-5)
         assert np.array_equal(got["static_mask"], ref["static_mask"])
         assert np.array_equal(got["valid_estimate"], ref["valid_estimate"])
+
+
+def test_a_scan_without_a_static_world_is_not_a_valid_estimate():
+    """Doppler that fits no common ego motion (a swapped rcs column, a scan of movers only): the
+    best 3-point fit explains few points and is flagged invalid by the inlier ratio."""
+    rng = np.random.default_rng(3)
+    for seed in range(20):
+        xyz, _, _ = doppler_scan(300, 0.0, seed)
+        rcs_as_doppler = rng.uniform(-20.0, 40.0, len(xyz))
+        for v, static, ok in (estimate_ego_velocity_reference(xyz, rcs_as_doppler),
+                              estimate_ego_velocity(xyz, rcs_as_doppler)):
+            assert not ok and np.all(np.asarray(v) == 0) and np.all(static)
+
+
+def test_an_implausible_speed_is_not_a_valid_estimate():
+    """A perfect static world seen at 90 m/s fits, but exceeds max_speed (70 m/s by default)."""
+    xyz, v_r, _ = doppler_scan(300, 0.0, 0, v_ego=(90.0, 0.0, 0.0), noise=0.0)
+    for cfg, expect in ((RansacConfig(), False), (RansacConfig(max_speed=100.0), True)):
+        v_ref, _, ok_ref = estimate_ego_velocity_reference(xyz, v_r, cfg)
+        v_exp, _, ok_exp = estimate_ego_velocity(xyz, v_r, cfg)
+        assert ok_ref == ok_exp == expect
+        assert np.allclose(v_ref, v_exp, atol=1e-4)

@@ -46,13 +46,36 @@ def test_vod_columns_land_in_their_named_features(tmp_path):
 
 
 def test_tj4d_columns_and_power_as_rcs(tmp_path):
-    table = labelled_table(3, 8)  # 96 bytes: a whole number of 8-column rows only
+    table = labelled_table(3, 8)  # not TJ4D content (Range is no distance): the format is named
     path = write_bin(tmp_path / "000000.bin", table)
-    scan = read_scan(path, ["x", "y", "z", "v_r", "rcs", "range", "power", "alpha", "beta"])
+    scan = read_scan(path, ["x", "y", "z", "v_r", "rcs", "range", "power", "alpha", "beta"], "tj4d")
     col = {name: table[:, i] for i, name in enumerate(TJ4D_COLUMNS)}
     expected = ["X", "Y", "Z", "V_r", "Power", "Range", "Power", "Alpha", "Beta"]
     np.testing.assert_array_equal(scan, np.column_stack([col[c] for c in expected]))
     np.testing.assert_array_equal(read_tj4d_bin(path), table)
+
+
+def test_bin_format_is_inferred_from_size_and_content(tmp_path):
+    scan = generate_scan(seed=2)
+    tj4d = write_tj4d_bin(tmp_path / "t.bin", scan)
+    vod = write_vod_bin(tmp_path / "v.bin", scan)
+    np.testing.assert_array_equal(read_scan(tj4d, CARD), scan.points)
+    np.testing.assert_array_equal(read_scan(vod, CARD), scan.points)
+
+
+def test_a_truncated_file_that_fits_the_other_layout_is_refused(tmp_path):
+    """A VoD file cut to 2,784 bytes fits 87 TJ4D rows; a TJ4D file cut to a multiple of 28
+    bytes fits VoD rows. Neither is read as the other layout (rcs would be served as v_r)."""
+    scan = generate_scan(seed=2, static_points=400)
+    data = write_vod_bin(tmp_path / "full.bin", scan).read_bytes()
+    (tmp_path / "cut_vod.bin").write_bytes(data[:2784])
+    with pytest.raises(InputError, match="fit the tj4d layout, but its Range column.*fmt='vod'"):
+        read_scan(tmp_path / "cut_vod.bin", CARD)
+    data = write_tj4d_bin(tmp_path / "full.bin", scan).read_bytes()
+    (tmp_path / "cut_tj4d.bin").write_bytes(data[:28 * 50])
+    with pytest.raises(InputError, match="fit the vod layout, but its first rows read as TJ4DRadSet rows"):
+        read_scan(tmp_path / "cut_tj4d.bin", CARD)
+    assert read_scan(tmp_path / "cut_tj4d.bin", CARD, "vod").shape == (50, 5)     # named: read as told
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])

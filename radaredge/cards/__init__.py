@@ -17,11 +17,18 @@ from typing import Any, Type, TypeVar
 
 import yaml
 
-from ..config import config_from_dict
+from ..config import Range, check_numbers, config_from_dict, positive
 from ..errors import ConfigError
 
 T = TypeVar("T")
 REQUIRED = ("name", "description", "model", "features")
+# Top-level numbers every model reads: (range, integral). Sections are checked by their dataclasses.
+TOP_LEVEL_NUMBERS = {
+    "frames": (Range(1, 64), True),                       # scans per window
+    "frame_rate": (positive(1000.0), False),              # Hz, the recording's nominal rate
+    "seed": (Range(0, 2**32 - 1), True),                  # weight initialisation seed
+    "max_points_per_frame": (Range(1, 2**24), True),      # runtime capacity per scan
+}
 
 
 def cards_dir() -> Path:
@@ -92,6 +99,15 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
         raise ConfigError(f"{where}: features must start with x, y, z (radar frame, metres); got {feats[:3]}")
     if len(set(feats)) != len(feats):
         raise ConfigError(f"{where}: duplicate feature names in {feats}")
+    for key in ("name", "description", "model"):
+        if not isinstance(data[key], str) or not data[key]:
+            raise ConfigError(f"{where}: {key} must be a non-empty string, got {data[key]!r}")
+    for key, (rng, integral) in TOP_LEVEL_NUMBERS.items():
+        if key in data:
+            check_numbers(data[key], rng, integral, f"{where}: {key}")
+    classes = data.get("classes", [])
+    if not isinstance(classes, list) or not all(isinstance(c, str) and c for c in classes):
+        raise ConfigError(f"{where}: classes must be a list of class names, got {classes!r}")
     return ModelCard(data=data, path=path)
 
 

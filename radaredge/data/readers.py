@@ -26,7 +26,10 @@ served from it. A model trained on true RCS sees a different scale from these co
 
 ``read_scan`` infers ``fmt`` from the file when it is not given: ``.npy`` is ``transloc``; a
 ``.bin`` is ``vod`` or ``tj4d`` only when its byte size is a whole number of rows of exactly one
-of 7 or 8 float32 columns (otherwise pass ``fmt``).
+of 7 or 8 float32 columns that its first rows agree with: TJ4D rows carry their own distance in
+the Range column, so a file is ``tj4d`` only when they do and ``vod`` only when they do not (a
+size that fits both is settled by the content; a truncated file of one layout whose size
+happens to fit the other is refused). Otherwise pass ``fmt``.
 
 ROS bags (fmt ``rosbag``)
 -------------------------
@@ -119,9 +122,10 @@ def _bin_row_bytes(fmt: str) -> int:
 
 def infer_format(paths: Sequence[Path]) -> str:
     """The one scan format that reads every file of ``paths``: ``transloc`` when all are
-    ``.npy``; for ``.bin`` files, ``vod`` or ``tj4d`` when every file's byte size is a whole
-    number of rows of exactly one of the two. InputError for another or mixed suffixes, and when
-    both or neither layout fits (then the format must be given)."""
+    ``.npy``; for ``.bin`` files, ``vod`` or ``tj4d`` when the byte sizes and the content of the
+    files' first rows (TJ4D rows hold their own distance) agree on one. InputError for another
+    or mixed suffixes, when neither layout fits, and when size and content disagree or cannot
+    tell (then the format must be given)."""
     paths = [Path(p) for p in paths]
     if not paths:
         raise InputError("no scan files to infer a format from")
@@ -137,13 +141,47 @@ def infer_format(paths: Sequence[Path]) -> str:
                          f"{list(_LAYOUTS)} (ROS bags: iter_rosbag / read_rosbag)")
     sizes = [p.stat().st_size for p in paths]
     fits = [fmt for fmt in _BIN_FORMATS if all(size % _bin_row_bytes(fmt) == 0 for size in sizes)]
+    step = max(1, len(paths) // _SIGNATURE_FILES)
+    votes = {p: _looks_like_tj4d(p) for p in paths[::step][:_SIGNATURE_FILES]}
+    judged = {v for v in votes.values() if v is not None}
+    if len(fits) == 2 and len(judged) == 1:
+        fits = ["tj4d" if judged == {True} else "vod"]
     if len(fits) != 1:
         what = "both" if fits else "neither"
         size = f"{sizes[0]} bytes" if len(paths) == 1 else "their byte sizes"
         raise InputError(f"{where}: {size} fit {what} of the .bin layouts vod (7 float32 columns, "
                          f"{_bin_row_bytes('vod')} bytes a row) and tj4d (8 float32 columns, "
                          f"{_bin_row_bytes('tj4d')} bytes a row); pass fmt='vod' or fmt='tj4d'")
+    for p, tj4d_like in votes.items():
+        if tj4d_like is None or tj4d_like == (fits[0] == "tj4d"):
+            continue
+        size = p.stat().st_size
+        if fits[0] == "tj4d":
+            raise InputError(f"{p}: {size} bytes fit the tj4d layout, but its Range column (5th of 8) is not the "
+                             f"points' distance sqrt(X^2 + Y^2 + Z^2): not a TJ4DRadSet scan (a truncated "
+                             f"View-of-Delft .bin?); pass fmt='vod' or fmt='tj4d'")
+        raise InputError(f"{p}: {size} bytes fit the vod layout, but its first rows read as TJ4DRadSet rows "
+                         f"(the 5th of 8 columns is the points' distance): a truncated tj4d file?; pass "
+                         f"fmt='vod' or fmt='tj4d'")
     return fits[0]
+
+
+_SIGNATURE_FILES = 16     # files of a recording whose content infer_format checks
+_SIGNATURE_ROWS = 64      # rows read from the head of each
+
+
+def _looks_like_tj4d(path: Path) -> bool | None:
+    """Whether the head of ``path``, read as 8-column float32 rows, has a 5th column equal to
+    each row's distance sqrt(X^2 + Y^2 + Z^2) (TJ4DRadSet's Range) within 1 % + 5 cm; None when
+    it cannot tell (no whole row, or only zeros). The head survives truncation, so a cut TJ4D
+    file is still recognised; View-of-Delft rows read at an 8-column stride do not match."""
+    head = np.fromfile(path, dtype="<f4", count=8 * _SIGNATURE_ROWS)
+    rows = head[: len(head) // 8 * 8].reshape(-1, 8).astype(np.float64)
+    if not np.any(rows):
+        return None
+    with np.errstate(all="ignore"):
+        dist = np.linalg.norm(rows[:, :3], axis=1)
+        return bool(np.all(np.abs(rows[:, 4] - dist) <= 0.01 * dist + 0.05))
 
 
 def _read_bin(path: Path, fmt: str) -> np.ndarray:

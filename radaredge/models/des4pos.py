@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..cards import ModelCard
+from ..config import card_ranges, positive
 from ..errors import ConfigError
 from ..ops.point_sampling import (ball_query, ball_query_reference, farthest_point_sample,
                                   farthest_point_sample_reference, group_points, group_points_reference)
@@ -53,6 +54,10 @@ POINT_COLUMNS = ("x", "y", "z", "r", "g", "b")
 # ----------------------------------------------------------------------------- configuration
 
 
+@card_ranges(embed_dim=(1, 4096), sa1_npoint=(1, 65_536), sa1_radius=positive(100.0), sa1_nsample=(1, 1024),
+             sa1_mlp=(1, 4096), sa2_npoint=(1, 65_536), sa2_radius=positive(100.0), sa2_nsample=(1, 1024),
+             sa2_mlp=(1, 4096), global_mlp=(1, 4096), encoder_hidden=(1, 4096), heads=(1, 64), lstm_hidden=(1, 4096),
+             downsample_stride=(1, 64))
 @dataclass(frozen=True)
 class SubmapConfig:
     """Card section ``submap``."""
@@ -73,6 +78,7 @@ class SubmapConfig:
     downsample_stride: int = 2         # eq. 7 step k
 
 
+@card_ranges(cra_layers=(1, 32), heads=(1, 64), mlp_hidden=(1, 4096))
 @dataclass(frozen=True)
 class FineConfig:
     """Card section ``fine``."""

@@ -8,7 +8,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..config import card_ranges, positive
 
+
+@card_ranges(max_objects=(1, 1024), points_per_object=(1, 65_536), size=positive(10_000.0), stride=positive(10_000.0),
+             count_mean=(0.0, 1e9), count_std=positive(1e9))
 @dataclass(frozen=True)
 class CellConfig:
     """Card section ``cell``."""
@@ -21,6 +25,8 @@ class CellConfig:
     count_std: float = 2516.8905096993817
 
 
+@card_ranges(backbone_layers=(0, 64), max_tokens=(3, 4096), max_hints=(1, 256), prior_layers=(0, 64),
+             prior_heads=(1, 64), prior_dim=(1, 8192), align_heads=(1, 64), ffn_ratio=(1, 16))
 @dataclass(frozen=True)
 class TextConfig:
     """Card section ``text``."""

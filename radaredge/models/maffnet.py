@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from ..cards import ModelCard
-from ..config import config_from_dict
+from ..config import Range, card_ranges, config_from_dict, positive
 from ..errors import CapacityError, ConfigError
 from ..ops.dbscan import DbscanConfig, cqca_cfa_map, cqca_cfa_map_reference
 from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
@@ -53,6 +53,7 @@ from .maffnet_fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
 # ----------------------------------------------------------------------------- configuration
 
 
+@card_ranges(capacity=(1, 2**20))
 @dataclass(frozen=True)
 class SpaConfig:
     """Card section ``spa``."""
@@ -81,6 +82,7 @@ class CfaConfig:
             raise ValueError(f"not_converged must be 'warn' or 'error', got {self.not_converged!r}")
 
 
+@card_ranges(scans_accumulated=(1, 64))
 @dataclass(frozen=True)
 class InputConfig:
     """Card section ``input``: what one call of the graph expects (upstream's test-time input)."""
@@ -95,6 +97,8 @@ class InputConfig:
             raise ValueError(f"crop must be 'none' or 'camera_fov', got {self.crop!r}")
 
 
+@card_ranges(layer_nums=(0, 64), layer_strides=(1, 8), num_filters=(1, 4096), upsample_strides=positive(16.0),
+             num_upsample_filters=(1, 4096))
 @dataclass(frozen=True)
 class BackboneConfig:
     """Card section ``backbone_2d`` (OpenPCDet BaseBEVBackbone)."""
@@ -112,6 +116,8 @@ class BackboneConfig:
             raise ValueError("backbone_2d lists must all have the same length")
 
 
+@card_ranges(anchor_sizes=positive(1000.0), anchor_rotations=(-7.0, 7.0), anchor_bottom_heights=(-1000.0, 1000.0),
+             feature_map_stride=(1, 64))
 @dataclass(frozen=True)
 class AnchorClass:
     """One entry of ``dense_head.anchors`` (OpenPCDet ANCHOR_GENERATOR_CONFIG)."""
@@ -124,6 +130,8 @@ class AnchorClass:
     feature_map_stride: int = 2
 
 
+@card_ranges(dir_offset=(-7.0, 7.0), dir_limit_offset=(0.0, 1.0), num_dir_bins=(1, 64),
+             cls_prior=Range(0.0, 1.0, True, True))
 @dataclass(frozen=True)
 class HeadConfig:
     """Card section ``dense_head`` scalars (the anchors are read separately)."""

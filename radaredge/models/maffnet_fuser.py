@@ -17,9 +17,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..config import card_ranges, positive
 from ..errors import ConfigError
 
 
+@card_ranges(pool_size=(1, 1024), heads=(1, 64), ffn_ratio=(1, 16), se_reduction=(1, 4096), out_channels=(1, 4096),
+             bn_eps=positive(1.0))
 @dataclass(frozen=True)
 class CafConfig:
     """Card section ``caf``: upstream CQCA_caf's shape (TransformerFusionBlock defaults)."""

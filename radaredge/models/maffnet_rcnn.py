@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from ..cards import ModelCard
-from ..config import config_from_dict
+from ..config import Range, card_ranges, check_numbers, config_from_dict, positive
 from ..errors import ConfigError
 from ..ops.bev_interp import bev_interpolate, bev_interpolate_reference
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
@@ -53,6 +53,7 @@ from ..ops.set_abstraction import SAModuleMSG
 # ----------------------------------------------------------------------------- configuration
 
 
+@card_ranges(pre_max=(1, 2**20), iou_thresh=(0.0, 1.0), post_max=(1, 2**16))
 @dataclass(frozen=True)
 class ProposalConfig:
     """``stage_two.proposals`` (ROI_HEAD.NMS_CONFIG.TEST)."""
@@ -67,6 +68,8 @@ class ProposalConfig:
                          post_max=self.post_max)
 
 
+@card_ranges(num_keypoints=(1, 2**16), sample_radius_r=positive(1000.0), sample_radius_h=positive(1000.0),
+             num_sectors=(1, 64))
 @dataclass(frozen=True)
 class KeypointConfig:
     """``stage_two.keypoints`` (PFE NUM_KEYPOINTS, CDAM_SAMPLING)."""
@@ -85,6 +88,7 @@ class KeypointConfig:
             raise ConfigError(f"stage_two.keypoints.padded_rois must be 'upstream' or 'valid', got {self.padded_rois!r}")
 
 
+@card_ranges(radii=positive(100.0), nsample=(1, 1024), mlps=(1, 4096))
 @dataclass(frozen=True)
 class SAConfig:
     """A StackSAModuleMSG: radii (m), nsample and MLP widths per scale."""
@@ -94,6 +98,7 @@ class SAConfig:
     mlps: tuple = ((16, 16), (16, 16))
 
 
+@card_ranges(bev_stride=(1, 64), num_output_features=(1, 4096))
 @dataclass(frozen=True)
 class VsaConfig:
     """``stage_two.vsa`` scalars (the SA branch is ``stage_two.vsa.sa_clusterpoints``)."""
@@ -102,6 +107,8 @@ class VsaConfig:
     num_output_features: int = 128  # NUM_OUTPUT_FEATURES
 
 
+@card_ranges(shared_fc=(1, 4096), cls_fc=(1, 4096), reg_fc=(1, 4096), dropout=Range(0.0, 1.0, high_open=True),
+             grid_size=(1, 32))
 @dataclass(frozen=True)
 class RoiHeadConfig:
     """``stage_two.roi_head`` scalars (the pooling is ``stage_two.roi_head.roi_grid_pool``)."""
@@ -146,12 +153,22 @@ def read_stage_two(card: ModelCard) -> StageTwoConfig | None:
         keypoints=card.section("stage_two.keypoints", KeypointConfig),
         vsa=config_from_dict(VsaConfig, {k: v for k, v in vsa.items() if k != "sa_clusterpoints"}, where + ".vsa"),
         sa_clusterpoints=card.section("stage_two.vsa.sa_clusterpoints", SAConfig),
-        point_head_fc=tuple(card.get("stage_two.point_head.cls_fc", (256, 256))),
+        point_head_fc=_point_head_fc(card),
         roi_head=config_from_dict(RoiHeadConfig, {k: v for k, v in roi.items() if k != "roi_grid_pool"},
                                   where + ".roi_head"),
         roi_grid_pool=card.section("stage_two.roi_head.roi_grid_pool", SAConfig),
         post_processing=card.section("stage_two.post_processing", NmsConfig),
     )
+
+
+def _point_head_fc(card: ModelCard) -> tuple:
+    """``stage_two.point_head.cls_fc``: the point head's hidden widths (each 1 .. 4096)."""
+    fc = card.get("stage_two.point_head.cls_fc", [256, 256])
+    where = f"{card.where}: stage_two.point_head.cls_fc"
+    if not isinstance(fc, (list, tuple)) or not fc:
+        raise ConfigError(f"{where}: expected a non-empty list of widths, got {fc!r}")
+    check_numbers(fc, Range(1, 4096), True, where)
+    return tuple(int(v) for v in fc)
 
 
 # ----------------------------------------------------------------------------- proposals

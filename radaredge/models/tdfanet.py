@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..cards import ModelCard
+from ..config import Range, card_ranges, positive
 from ..errors import ConfigError
 from ..ops.alignment import BevGrid, align_bev, align_bev_reference, grid_displacement
 from ..ops.deform_attn import MSDeformAttn
@@ -35,6 +36,8 @@ from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_referen
 from ..ops.scan_batch import concat_scans
 
 
+@card_ranges(pyramid_stages=(1, 6), heads=(1, 64), points=(1, 64), ffn_ratio=(1, 16), dropout=Range(0.0, 1.0, high_open=True),
+             descriptor_dim=(1, 4096), mlp_hidden=(0, 4096), gem_p=positive(100.0), gem_eps=positive(1.0))
 @dataclass(frozen=True)
 class TDFANetConfig:
     """Model-card section ``network``. Values the paper leaves open are justified in the card."""

@@ -96,8 +96,11 @@ import torch
 
 from ..errors import InputError
 from .components import exact_schedule, hook_roots
+from ..config import card_ranges, positive
 
 
+@card_ranges(eps=positive(100.0), min_samples=(1, 100_000), max_cluster_size=(0, 2**24), capacity=(1, 2**24 - 1),
+             map_rows=(1, 8192), map_cols=(1, 8192), resolution=positive(100.0), y_offset=(-1000.0, 1000.0))
 @dataclass(frozen=True)
 class DbscanConfig:
     """CQCA_cfa's DBSCAN and map settings (mixed m and m/s for eps, metres, cells); VoD by default."""

@@ -27,7 +27,9 @@ Defined results for bad input (never NaN, never an exception inside the graph):
 - NaN/Inf coordinates or velocity: the point is masked out (``static_mask`` False) and never
   sampled.
 - Fewer than 3 eligible points, no non-degenerate hypothesis, fewer than ``min_inliers``
-  inliers, or a singular refit: ``valid`` is False, ``v_ego`` is 0, and ``static_mask`` keeps
+  inliers, fewer than ``min_inlier_ratio`` of the eligible points as inliers, a singular refit,
+  or an implausible speed (``|v_ego| > max_speed``, default 70 m/s = 252 km/h; scans with no
+  static points or a swapped Doppler column produce such fits): ``valid`` is False, ``v_ego`` is 0, and ``static_mask`` keeps
   every finite, valid point (nothing can be classified, so nothing is removed).
 - An all-zero-velocity scan (ego standing still, static world) is a regular case: v_ego = 0,
   every point static, ``valid`` True.
@@ -51,6 +53,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..config import Range, card_ranges, positive
 from ..errors import InputError
 
 # Table values stay below 2**24, where float32 holds every integer: OpenVINO's CPU plugin
@@ -59,6 +62,10 @@ from ..errors import InputError
 _TABLE_MAX = 2**24
 
 
+@card_ranges(inlier_threshold=positive(100.0), num_hypotheses=(1, 65_536), min_inliers=(3, 2**24),
+             min_range=(0.0, 10_000.0), max_range=positive(10_000.0), max_azimuth_deg=Range(0, 90, True, True),
+             max_elevation_deg=Range(0, 90, True, True), min_det=(0.0, 1.0), seed=(0, 2**32 - 1),
+             max_speed=positive(1000.0), min_inlier_ratio=(0.0, 1.0))
 @dataclass(frozen=True)
 class RansacConfig:
     """Model-card section ``preprocess.ransac`` (units: m/s, m, degrees)."""
@@ -72,6 +79,8 @@ class RansacConfig:
     max_elevation_deg: float = 22.5     # |elevation| limit (REVE elevation_thresh_deg)
     min_det: float = 1e-3               # |det| of a 3-point sample below this is degenerate
     seed: int = 0                       # seed of the hypothesis table
+    max_speed: float = 70.0             # m/s; a faster estimate is implausible -> invalid
+    min_inlier_ratio: float = 0.2       # winner's inliers / eligible points below this -> invalid
 
     def __post_init__(self):
         if self.inlier_threshold <= 0:
@@ -157,11 +166,15 @@ def estimate_ego_velocity_reference(xyz, v_r, config: RansacConfig = RansacConfi
             best_count, best_inliers = count, inliers
     if best_inliers is None or best_count < config.min_inliers:
         return fallback
+    if best_count < config.min_inlier_ratio * len(elig_idx):
+        return fallback
     p = dirs[best_inliers]
     normal = p.T @ p
     if abs(np.linalg.det(normal)) < config.min_det:
         return fallback
     v_ego = np.linalg.solve(normal, -p.T @ v_safe[best_inliers])
+    if np.linalg.norm(v_ego) > config.max_speed:
+        return fallback
     static = usable & (np.abs(v_safe + dirs @ v_ego) < config.inlier_threshold)
     return v_ego, static, True
 
@@ -271,7 +284,9 @@ class EgoVelocityRansac(nn.Module):
         normal = (dirs.unsqueeze(0) * w.unsqueeze(2)).transpose(1, 2) @ dirs   # [K, 3, 3]
         rhs = -(dirs.unsqueeze(0) * (w * v_r).unsqueeze(2)).sum(1)             # [K, 3]
         v_ego, det_n = _solve3(normal, rhs)
-        ok = (n_elig >= 3) & (best_count >= cfg.min_inliers) & (det_n.abs() >= cfg.min_det)
+        ok = ((n_elig >= 3) & (best_count >= cfg.min_inliers) & (det_n.abs() >= cfg.min_det)
+              & (best_count.double() >= cfg.min_inlier_ratio * n_elig.double())
+              & (torch.linalg.vector_norm(v_ego, dim=1) <= cfg.max_speed))
         v_ego = torch.where(ok.unsqueeze(1), v_ego, torch.zeros_like(v_ego))
         static = usable & (~ok[frame] | ((v_r + (dirs * v_ego[frame]).sum(1)).abs() < cfg.inlier_threshold))
         return v_ego.to(out_dtype), static[:n_in], ok

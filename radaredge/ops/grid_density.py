@@ -47,8 +47,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from .components import MODES, connected_components
+from ..config import card_ranges, positive
 
 
+@card_ranges(map_h=(1, 8192), map_w=(1, 8192), resolution=positive(100.0), x_min=(-1000.0, 1000.0),
+             y_min=(-1000.0, 1000.0), eps=positive(100.0), min_density=(1, 1_000_000),
+             max_density=(1, 1_000_000), cc_iterations=(1, 100_000))
 @dataclass(frozen=True)
 class GridDensityConfig:
     """Model-card section of GridDensityBEV (metres, cells, point counts); VoD values by default."""

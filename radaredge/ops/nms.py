@@ -32,8 +32,10 @@ import torch
 
 from .box_iou import bev_iou_paired, bev_iou_reference
 from .loops import fixed_point_loop
+from ..config import card_ranges
 
 
+@card_ranges(score_thresh=(0.0, 1.0), iou_thresh=(0.0, 1.0), pre_max=(1, 2**20), post_max=(1, 2**20))
 @dataclass(frozen=True)
 class NmsConfig:
     """OpenPCDet POST_PROCESSING values (SCORE_THRESH, NMS_CONFIG)."""

@@ -23,15 +23,22 @@ Point policy, identical in both formulations:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
+from ..config import card_ranges, positive
 from ..errors import CapacityError
 
 
+MAX_GRID_CELLS = 2**22     # BEV cells (x * y * z) a card may ask for: 4.2 M, 64 channels = 1 GiB float32
+
+
+@card_ranges(point_cloud_range=(-1000.0, 1000.0), voxel_size=positive(100.0), max_points_per_pillar=(1, 1024),
+             max_pillars=(0, 2**22), out_channels=(1, 4096), bn_eps=positive(1.0))
 @dataclass(frozen=True)
 class PillarConfig:
     """Model-card section ``pillars`` (metres)."""
@@ -46,6 +53,15 @@ class PillarConfig:
     def __post_init__(self):
         if len(self.point_cloud_range) != 6 or len(self.voxel_size) != 3:
             raise ValueError("point_cloud_range needs 6 values and voxel_size 3")
+        lo, hi = self.point_cloud_range[:3], self.point_cloud_range[3:]
+        if not all(a < b for a, b in zip(lo, hi)):
+            raise ValueError(f"point_cloud_range must be [x_min, y_min, z_min, x_max, y_max, z_max] with each "
+                             f"min < max, got {list(self.point_cloud_range)}")
+        if min(self.grid_size) < 1:
+            raise ValueError(f"voxel_size {list(self.voxel_size)} is larger than the point_cloud_range it divides")
+        cells = math.prod(self.grid_size)
+        if cells > MAX_GRID_CELLS:
+            raise ValueError(f"point_cloud_range / voxel_size make {cells} grid cells; at most {MAX_GRID_CELLS}")
         if any(v <= 0 for v in self.voxel_size):
             raise ValueError("voxel_size entries must be > 0")
         if self.max_points_per_pillar < 1:
