@@ -7,6 +7,7 @@ The verbs (:mod:`radaredge.api`)::
     report = radaredge.parity("tdfanet")              # bool(report) is the verdict
     radaredge.bench("tdfanet", threads=2)             # -> BenchReport
     radaredge.evaluate("tdfanet", onnx, database, queries)
+    radaredge.train("tdfanet-edge", "train-towns")     # -> TrainReport; runs/tdfanet-edge/best.pth
 
 Importing the package imports neither torch nor onnxruntime (the verbs load them when called);
 ``radaredge.runtime`` needs only numpy and onnxruntime.
@@ -14,7 +15,7 @@ Importing the package imports neither torch nor onnxruntime (the verbs load them
 
 __version__ = "0.1.0"
 
-_VERBS = ("export", "parity", "bench", "evaluate")
+_VERBS = ("export", "parity", "bench", "evaluate", "train")
 
 
 def __getattr__(name):

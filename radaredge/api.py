@@ -18,14 +18,15 @@ from typing import Callable
 
 from .benchmarking import BenchReport, bench
 from .cards import ModelCard, load_card
-from .config import check_count
+from .config import check_count, check_writable_dir
 from .errors import ConfigError, InputError
 
-__all__ = ["export", "parity", "bench", "evaluate", "ExportResult", "BenchReport", "resolve_card",
+__all__ = ["export", "parity", "bench", "evaluate", "train", "ExportResult", "BenchReport", "resolve_card",
            "EXPORT_OPTIONS"]
 
 
 MAX_CASES = 10_000          # parity cases are built before the first run: bound them
+MIN_OPSET = 7               # the oldest opset onnx's version converter writes
 
 
 def resolve_card(card: ModelCard | str | Path) -> ModelCard:
@@ -115,17 +116,6 @@ class ExportResult:
         return out
 
 
-def _writable_dir(directory: Path) -> None:
-    """Create ``directory`` if needed; ConfigError when it cannot hold the export."""
-    import os
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--output: cannot create the directory {directory} ({exc.strerror or exc})") from None
-    if not os.access(directory, os.W_OK):
-        raise ConfigError(f"--output: {directory} is not writable")
-
-
 def export(card: ModelCard | str | Path, output: str | Path | None = None, *, checkpoint: str | Path | None = None,
            model=None, opset: int | None = None, debug: bool = False, quantize: str | None = None,
            calibration: str | Path | None = None, calibration_format: str | None = None,
@@ -144,6 +134,9 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     card = resolve_card(card)
     spec = model_spec(card)
     say = log or (lambda line: None)
+    if opset is not None:
+        import onnx
+        check_count("--opset", opset, MIN_OPSET, onnx.defs.onnx_opset_version())
     check_export_options(card, spec, {"--quantize": quantize, "--calibration": calibration,
                                       "--calibration-format": calibration_format,
                                       "--calibration-windows": calibration_windows})
@@ -153,7 +146,7 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
                         calibration_format)
     output = Path(output) if output is not None else default_output(card, spec)
     check_output(card, spec, output)
-    _writable_dir(output if spec.multi_graph else output.parent)       # before a long export, not after it
+    check_writable_dir(output if spec.multi_graph else output.parent, "--output")   # before a long export
     if model is None:
         model = build_model(card, checkpoint, spec)
     report = getattr(model, "checkpoint_report", None)
@@ -161,7 +154,8 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
         say(report.summary())
     names = ", ".join(g.name for g in spec.graphs)
     say(f"exporting {card.name}" + (f" ({names}) to {output}/" if spec.multi_graph else "") + " ...")
-    graphs = export_graphs(card, spec, model, output, opset or DEFAULT_OPSET, debug=debug, progress=progress)
+    graphs = export_graphs(card, spec, model, output, DEFAULT_OPSET if opset is None else opset, debug=debug,
+                           progress=progress)
     result = ExportResult(card.name, output, graphs, checkpoint=report)
     result.debug = {n: g.path.with_suffix(".debug.onnx") for n, g in graphs.items()} if debug else {}
     if spec.multi_graph:
@@ -248,3 +242,33 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
                         str(map_path) if map_path else None, str(checkpoint) if checkpoint else None, radius,
                         reference, progress)
     return spec.evaluate(card, onnx, inputs)
+
+
+def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | None = None, *,
+          checkpoint: str | Path | None = None, device: str = "cpu", resume: bool = False,
+          validation: tuple[str, ...] | list[str] | None = None, data_format: str | None = None,
+          bag: dict | None = None, options: dict | None = None, progress: Callable | None = None,
+          log: Callable[[str], None] | None = None):
+    """Train the card's model with its paper's recipe on the data at ``data`` (TDFANet: drives
+    of radar scans with positions; the model's ``train`` hook says what it reads) and write the
+    run directory ``output`` (default ``runs/<card>/``): ``best.pth`` (for ``export
+    --checkpoint``), ``last.pth`` (for ``resume``) and ``train-log.json``. ``checkpoint``
+    initialises the weights (fine-tuning); ``options`` overrides recipe values by name (epochs,
+    lr, batch_size, ...); ``bag`` says where ROS bag drives keep their radar scans and GNSS fixes
+    (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
+    :class:`radaredge.training.run.TrainReport`."""
+    from .exporter import build_model
+    from .models.spec import TrainInputs
+    from .registry import model_spec
+    card = resolve_card(card)
+    spec = model_spec(card)
+    if spec.train is None:
+        raise ConfigError(f"{card.name} ({card.model}): radaredge has no training recipe for this model; "
+                          f"train it upstream and pass the weights to `radaredge export --checkpoint`")
+    if resume and checkpoint is not None:
+        raise ConfigError("--resume continues the run in --output from its last.pth; drop --checkpoint")
+    output = Path(output) if output is not None else Path("runs") / card.name
+    model = build_model(card, checkpoint, spec)
+    inputs = TrainInputs(str(output), device, resume, tuple(validation) if validation is not None else None,
+                         data_format, dict(bag or {}), dict(options or {}), progress, log)
+    return spec.train(card, model, data, inputs)

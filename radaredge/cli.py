@@ -60,6 +60,36 @@ def _progress(desc):
     return lambda it: tqdm(it, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
 
 
+def _bar(desc: str, total: int):
+    """A progress bar on stderr when it is a terminal (tqdm, when installed): update, set_postfix, close."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        from .training.run import no_progress
+        return no_progress(desc, total)
+    return tqdm(total=total, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
+
+
+def _options(pairs: tuple[str, ...], option: str = "--set", example: str = "negatives=8") -> dict:
+    """``KEY=VALUE`` pairs as a dict, values read as YAML scalars (numbers, true/false, strings)."""
+    import yaml
+    from .errors import ConfigError
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{option} {pair!r}: expected KEY=VALUE, e.g. {option} {example}")
+        try:
+            parsed = yaml.safe_load(value) if value.strip() else None
+        except yaml.YAMLError:
+            parsed = value
+        if isinstance(parsed, (dict, list)):
+            raise ConfigError(f"{option} {pair!r}: expected a number, true/false or a word, got a "
+                              f"{type(parsed).__name__}")
+        out[key.strip()] = parsed
+    return out
+
+
 def _log(line: str) -> None:
     click.echo(line, err=True)
 
@@ -220,6 +250,9 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     """Frames per second and latency percentiles on THREADS cores, every backend in one run, a row each
     (exit 1 when a backend failed: its row says why)."""
     from .api import bench as bench_verb
+    if save_path:
+        from .config import check_writable_dir
+        check_writable_dir(Path(save_path).parent, "--save")     # before the runs, not after them
     report = bench_verb(_card(model, config), onnx_path, checkpoint=checkpoint, threads=threads, runs=runs,
                         warmup=warmup, reference=not no_reference, int8=int8_path, profile=profile,
                         openvino=openvino, progress=_progress, log=_log)
@@ -235,21 +268,28 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 @click.option("--drives", default=3, show_default=True, type=int, help="Drive 0 is the database, the rest queries.")
 @click.option("--frames", default=60, show_default=True, type=int, help="Scans per drive (10 Hz).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
+@click.option("--towns", default=1, show_default=True, type=int,
+              help="Towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def make_benchmark(out_dir, drives, frames, seed, as_json):
+def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
     """Write a synthetic place-recognition benchmark: one town (static world) driven on several
     days with other traffic, ego speed and heading offset, and some parked cars moved."""
-    from .data.pr_benchmark import make_pr_benchmark
-    plan = make_pr_benchmark(out_dir, drives, frames, seed, progress=_progress("drives"))
-    rows = [{"drive": str(Path(out_dir) / d.subdir), "role": d.role, "frames": d.frames,
-             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change} for d in plan]
+    from .data.pr_benchmark import make_pr_benchmark, make_pr_towns
+    if towns == 1:
+        plans = {"": make_pr_benchmark(out_dir, drives, frames, seed, progress=_progress("drives"))}
+    else:
+        plans = make_pr_towns(out_dir, towns, drives, frames, seed, progress=_progress("drives"))
+    plan = [d for ds in plans.values() for d in ds]
+    rows = [{"drive": str(Path(out_dir) / town / d.subdir), "role": d.role, "frames": d.frames,
+             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change}
+            for town, ds in plans.items() for d in ds]
     if as_json:
-        click.echo(json.dumps({"out": str(out_dir), "seed": seed, "drives": rows}, indent=2))
+        click.echo(json.dumps({"out": str(out_dir), "seed": seed, "towns": towns, "drives": rows}, indent=2))
         return
-    click.echo(f"wrote {len(plan)} drives of {frames} scans (seed {seed}) to {out_dir}:")
+    click.echo(f"wrote {len(plan)} drives of {frames} scans ({towns} town(s), seed {seed}) to {out_dir}:")
     for r in rows:
-        click.echo(f"  {r['drive']:<32}{r['role']:<10}{r['speed_m_s']:5.1f} m/s, parked cars changed "
+        click.echo(f"  {r['drive']:<40}{r['role']:<10}{r['speed_m_s']:5.1f} m/s, parked cars changed "
                    f"{r['parked_change'] * 100:.0f} %")
 
 
@@ -280,19 +320,71 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
     over query drives against database drives (TDFANet), or localisation recall at top-k cells and
     5/10/15 m over a map's described poses (Des4Pos)."""
     from .api import evaluate
-    report = evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, checkpoint=checkpoint,
-                      radius=radius, reference=not no_reference, progress=_progress)
+    from .config import check_writable_dir
     base = Path(onnx_path)
     base = base.with_name(base.name + ".eval.json") if base.suffix != ".onnx" else base.with_suffix(".eval.json")
-    written = [str(report.write_json(report_path or base))]
+    report_path, plot_path = Path(report_path or base), Path(plot_path or base.with_suffix(".png"))
+    check_writable_dir(report_path.parent, "--report")          # before the evaluation, not after it
+    check_writable_dir(plot_path.parent, "--plot")
+    report = evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, checkpoint=checkpoint,
+                      radius=radius, reference=not no_reference, progress=_progress)
+    written = [str(report.write_json(report_path))]
     if hasattr(report, "plot"):
-        written.append(str(report.plot(plot_path or base.with_suffix(".png"))))
+        written.append(str(report.plot(plot_path)))
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
         return
     for line in report.lines():
         click.echo(line)
     _log(f"wrote {', '.join(written)}")
+
+
+@main.command()
+@click.option("--model", required=True, help="Model card name (see `radaredge list`).")
+@click.option("--data", "data_dir", required=True, type=click.Path(),
+              help="Training data. TDFANet: a directory of drives (scans/ + gps.csv, or TransLoc4D-style "
+                   "pointclouds/ + gps.csv), e.g. several `radaredge make-benchmark` towns.")
+@click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
+@click.option("--output", type=click.Path(file_okay=False),
+              help="Run directory: best.pth, last.pth, train-log.json  [default: runs/<model>]")
+@click.option("--checkpoint", type=click.Path(dir_okay=False), help="Initial weights (fine-tuning); default: seeded.")
+@click.option("--epochs", type=int, help="Epochs to train (the recipe's default otherwise).")
+@click.option("--batch-size", type=int, help="Training tuples per optimiser step (TDFANet paper: 1).")
+@click.option("--lr", type=float, help="Initial learning rate (TDFANet paper: 8e-4).")
+@click.option("--seed", type=int, help="Seeds the tuple order, the mining and dropout.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Any other recipe option, e.g. --set negatives=8 (the docs of the model list them).")
+@click.option("--validation", multiple=True, metavar="DRIVE",
+              help="A held-out drive, relative to --data (repeat for several); default: the last drive of "
+                   "every directory of drives.")
+@click.option("--format", "data_format", type=click.Choice(["transloc", "vod", "tj4d"]),
+              help="Scan file format of every drive (default: inferred from the files).")
+@click.option("--radar-topic", help="ROS bag drives: the radar's point-cloud topic  [default: /radar_enhanced_pcl]")
+@click.option("--gps-topic", help="ROS bag drives: the GNSS NavSatFix topic  [default: /ublox/fix]")
+@click.option("--field-map", "field_map", multiple=True, metavar="FEATURE=FIELD",
+              help="ROS bag drives: the field or channel (name or index) of a card feature, e.g. v_r=0.")
+@click.option("--doppler-sign", type=click.Choice(["1", "-1"]),
+              help="ROS bag drives: -1 when the sensor's Doppler is positive approaching.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+@click.option("--resume", is_flag=True, help="Continue the run in --output after its last finished epoch.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
+@_friendly_errors
+def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, seed, settings, validation,
+          data_format, radar_topic, gps_topic, field_map, doppler_sign, device, resume, as_json):
+    """Train a model with its paper's recipe (TDFANet: the lazy quadruplet loss, Adam 8e-4 decayed 0.9
+    per epoch), validate every epoch and keep the best checkpoint for `radaredge export --checkpoint`."""
+    from .api import train as train_verb
+    options = {k.replace("-", "_"): v for k, v in _options(settings).items()}
+    options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed))
+                    if v is not None})
+    bag = {"radar_topic": radar_topic, "gps_topic": gps_topic,
+           "field_map": {k: (v if isinstance(v, int) else str(v))
+                         for k, v in _options(field_map, "--field-map", "v_r=0").items()} or None,
+           "doppler_sign": float(doppler_sign) if doppler_sign else None}
+    report = train_verb(_card(model, config), data_dir, output, checkpoint=checkpoint, device=device, resume=resume,
+                        validation=validation or None, data_format=data_format, bag=bag, options=options,
+                        progress=_bar, log=_log)
+    _emit(as_json, report)
 
 
 @main.command("make-city")

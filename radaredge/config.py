@@ -138,3 +138,24 @@ def config_from_dict(cls: Type[T], data: Mapping[str, Any] | None, where: str) -
 def _tuples(value):
     """A YAML list as a tuple, nested lists included."""
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def check_writable_dir(directory, option: str, create: bool = False) -> None:
+    """ConfigError naming ``option`` unless files can be written into ``directory``: its nearest
+    existing ancestor is a writable directory (checked before a long run, not after it, and
+    without leaving anything behind); with ``create`` the directory is made now."""
+    import os
+    from pathlib import Path
+    directory = Path(directory)
+    if create:
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"{option}: cannot create the directory {directory} ({exc.strerror or exc})") from None
+    existing = directory
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"{option}: cannot create {directory}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK):
+        raise ConfigError(f"{option}: {existing} is not writable")

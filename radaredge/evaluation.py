@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .cards import ModelCard
-from .data.sequences import RadarSequence, load_sequence, window_positions, windows
+from .data.sequences import RadarSequence, is_drive, load_sequence, window_positions, windows
 from .errors import ConfigError, InputError
 
 RECALL_NS = (1, 5, 10)
@@ -167,14 +167,14 @@ def top1_place_agreement(a_top1, b_top1, db_pos: np.ndarray, radius: float) -> f
 
 
 def drive_directories(path: str | os.PathLike) -> list[Path]:
-    """``path`` itself if it is one drive (has ``scans/``), else its sub-directories that are
+    """``path`` itself if it is one drive (has ``scans/`` or ``pointclouds/``), else its sub-directories that are
     drives, sorted by name. InputError when there is none."""
     path = Path(path)
     if not path.is_dir():
         raise InputError(f"{path} is not a directory; expected a drive (scans/ + gps.csv) or a directory of drives")
-    if (path / "scans").is_dir():
+    if is_drive(path):
         return [path]
-    drives = sorted(p for p in path.iterdir() if (p / "scans").is_dir())
+    drives = sorted(p for p in path.iterdir() if is_drive(p))
     if not drives:
         raise InputError(f"{path}: no drives found; expected {path}/scans/*.npy + {path}/gps.csv, or "
                          f"sub-directories each holding scans/ + gps.csv (make one with `radaredge make-benchmark`)")

@@ -22,8 +22,8 @@ PKG = Path(radaredge.__file__).parent
 
 
 def test_verbs_import_from_the_package_without_torch():
-    from radaredge import api, bench, evaluate, export, parity
-    assert (export, parity, bench, evaluate) == (api.export, api.parity, api.bench, api.evaluate)
+    from radaredge import api, bench, evaluate, export, parity, train
+    assert (export, parity, bench, evaluate, train) == (api.export, api.parity, api.bench, api.evaluate, api.train)
     done = subprocess.run([sys.executable, "-c", "import sys, radaredge, radaredge.cli, radaredge.runtime; "
                            "print(sorted(m for m in ('torch', 'onnx', 'onnxscript') if m in sys.modules))"],
                           capture_output=True, text=True, check=True)
@@ -54,6 +54,7 @@ class _Result:
     ("parity-check", "parity", ("--onnx", "x.onnx")),
     ("bench", "bench", ()),
     ("eval", "evaluate", ("--onnx", "x.onnx", "--database", ".", "--queries", ".")),
+    ("train", "train", ("--data", ".")),
 ])
 def test_the_cli_calls_the_library_verbs(monkeypatch, command, verb, extra):
     """Each command parses its options, calls radaredge.api.<verb> and renders what it returns."""
@@ -246,7 +247,7 @@ def test_unwritable_outputs_and_impossible_cities_are_one_error_before_any_work(
     blocker = tmp_path / "file"
     blocker.write_text("x")
     res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--output", blocker / "x.onnx")
-    assert res.exit_code == 2 and f"--output: cannot create the directory {blocker}" in res.output
+    assert res.exit_code == 2 and f"--output: cannot create {blocker}: {blocker} is not a directory" in res.output
     assert "exporting" not in res.output                           # refused before the model is built
     res = invoke("make-city", "--out", blocker / "city.npz", "--poses", 2)
     assert res.exit_code == 2 and res.output.strip() == f"error: {blocker}: not a directory"

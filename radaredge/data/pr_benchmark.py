@@ -21,7 +21,9 @@ Scans are [N, 5] x, y, z (m, radar frame: x forward, y left, z up), v (radial ve
 and intensity (the synthetic RCS, dBsm). gps.csv holds per scan the timestamp (s; drive d starts
 d days, 86400 d s, after drive 0) and the radar's position in the world frame of
 :mod:`radaredge.data.synthetic` as a local planar east-north frame: **easting = world x** (the
-direction the street starts in, m) and **northing = world y** (m, to its left).
+direction the street starts in, m) and **northing = world y** (m, to its left). The town of seed
+``s`` lies ``s`` x 10 km east (easting + 10,000 s m), so the drives of several towns can share
+one training directory (``radaredge train``) without two towns claiming the same place.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ QUERIES_DIR = "queries"
 DAY_S = 86400.0                   # s between the starts of consecutive drives
 DYNAMIC_FRACTION = (0.1, 0.3)     # range of the per-day share of points on moving objects
 CURVE_RADIUS = (80.0, 150.0)      # m, range of the street's radius of curvature
+TOWN_SPACING = 10_000.0           # m of easting between the towns of consecutive seeds
 
 
 @dataclass(frozen=True)
@@ -93,11 +96,11 @@ def plan_drives(drives: int = 3, frames_per_drive: int = 60, seed: int = 0, spee
     return plan
 
 
-def drive_track(scans: list[RadarScan], start: float) -> tuple[np.ndarray, np.ndarray]:
+def drive_track(scans: list[RadarScan], start: float, easting_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps [T] s = ``start`` + scan time, positions [T, 2] (northing = world y, easting =
-    world x) m of the radar) of a generated drive."""
+    world x + ``easting_offset``) m of the radar) of a generated drive."""
     xy = np.array([scan.pose[:2, 3] for scan in scans])
-    return start + np.array([scan.timestamp for scan in scans]), xy[:, ::-1].copy()
+    return start + np.array([scan.timestamp for scan in scans]), xy[:, ::-1] + np.array([0.0, easting_offset])
 
 
 def make_pr_benchmark(out_dir: str | os.PathLike, drives: int = 3, frames_per_drive: int = 60, seed: int = 0,
@@ -109,6 +112,19 @@ def make_pr_benchmark(out_dir: str | os.PathLike, drives: int = 3, frames_per_dr
     plan = plan_drives(drives, frames_per_drive, seed, speed, parked_change)
     for drive in (progress or iter)(plan):
         scans = drive.scans()
-        timestamps, positions = drive_track(scans, drive.start)
+        timestamps, positions = drive_track(scans, drive.start, TOWN_SPACING * seed)
         write_sequence(Path(out_dir) / drive.subdir, [scan.points for scan in scans], timestamps, positions)
     return plan
+
+
+def make_pr_towns(out_dir: str | os.PathLike, towns: int, drives: int = 3, frames_per_drive: int = 60, seed: int = 0,
+                  speed: tuple[float, float] = (7.0, 10.0), parked_change: float = 0.3,
+                  progress=None) -> dict[str, list[BenchmarkDrive]]:
+    """``towns`` benchmarks of consecutive seeds ``seed``, ``seed + 1``, ... in ``out_dir/town-<seed>``
+    (one training directory for ``radaredge train``: the towns lie 10 km apart). Returns
+    {town directory name: its plan}."""
+    if isinstance(towns, bool) or not isinstance(towns, (int, np.integer)) or towns < 1:
+        raise ConfigError(f"towns must be an integer >= 1, got {towns!r}")
+    return {f"town-{s}": make_pr_benchmark(Path(out_dir) / f"town-{s}", drives, frames_per_drive, s, speed,
+                                           parked_change, progress)
+            for s in range(seed, seed + int(towns))}

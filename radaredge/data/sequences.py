@@ -14,6 +14,14 @@ A scan's columns are as :mod:`radaredge.data.readers` describes for its format (
 x forward, y left, z up; metres, m/s). Positions are planar (northing, easting) in metres, as
 a GPS/UTM track gives them.
 
+TransLoc4D layout. A directory with ``pointclouds/`` instead of ``scans/`` is read as TransLoc4D
+writes its sets: each scan file is named by its timestamp (``pointclouds/1646303235123456.npy``)
+and gps.csv rows are matched to files by that name, exactly (a row without its file is an
+error; files without a row are ignored); rows come in timestamp order. Integer names are
+TransLoc4D's microseconds since the epoch, names with a decimal point seconds. TransLoc4D's
+released sets hold preprocessed clouds (normalised coordinates, a velocity column that is no
+longer the Doppler in m/s); a model that reads metres and m/s needs the raw scans in this layout.
+
 A window of k frames ending at frame t is the frames t-k+1 ... t, oldest first. Its time and
 position are those of its last frame t, so windows and their positions line up one to one.
 """
@@ -41,10 +49,12 @@ class RadarSequence:
     """One recorded drive.
 
     name        the drive's directory name
-    scan_paths  the scan file of each frame, in frame order
+    scan_paths  the scan file of each frame, in frame order (a ROS bag: the bag, once per frame)
     timestamps  float64 [T], s, strictly increasing
     positions   float64 [T, 2], (northing, easting) m of each frame
-    fmt         the scan file format: "transloc", "vod" or "tj4d"
+    fmt         the scan file format: "transloc", "vod", "tj4d" or "rosbag"
+    arrays      for a ROS bag, the scans read at load, float32 [N, F] with columns ``array_features``
+    utm_zone    the UTM zone of ``positions`` when radaredge projected them from GNSS fixes
     """
 
     name: str
@@ -52,14 +62,23 @@ class RadarSequence:
     timestamps: np.ndarray
     positions: np.ndarray
     fmt: str
+    arrays: list[np.ndarray] | None = None
+    array_features: tuple[str, ...] = ()
+    utm_zone: int | None = None
 
     def scan(self, i: int, features: Sequence[str]) -> np.ndarray:
         """Frame ``i``'s points: float32 [N, len(features)], the columns named by ``features``
         (radar frame x forward, y left, z up; m, m/s), read with :func:`read_scan`."""
-        return read_scan(self.scan_paths[i], features, self.fmt)
+        if self.arrays is None:
+            return read_scan(self.scan_paths[i], features, self.fmt)
+        missing = [f for f in features if f not in self.array_features]
+        if missing:
+            raise InputError(f"{self.scan_paths[i]}: scans were read with the features {list(self.array_features)}, "
+                             f"not {missing}")
+        return self.arrays[i][:, [self.array_features.index(f) for f in features]]
 
     def __len__(self) -> int:
-        return len(self.scan_paths)
+        return len(self.timestamps)
 
 
 def _check_fmt(fmt: str) -> str:
@@ -102,13 +121,18 @@ def _parse_value(text: str, row: int, column: str, where: str) -> float:
     return value
 
 
-def _read_gps(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(timestamps float64 [T] s, positions float64 [T, 2] northing, easting m) of gps.csv."""
+def _read_gps(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(timestamps float64 [T] s, positions float64 [T, 2] northing, easting m, the timestamp
+    cells as written) of gps.csv."""
     if not path.is_file():
         raise InputError(f"{path}: no such file; expected a CSV with header {','.join(GPS_COLUMNS)} "
                          f"and one row per scan")
-    with path.open(newline="") as f:
-        rows = [r for r in csv.reader(f) if any(cell.strip() for cell in r)]
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = [r for r in csv.reader(f) if any(cell.strip() for cell in r)]
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: not a text CSV ({type(exc).__name__}: {str(exc)[:120]}); expected a header "
+                         f"line {','.join(GPS_COLUMNS)} and one row per scan") from None
     if not rows:
         raise InputError(f"{path}: empty; expected a header line {','.join(GPS_COLUMNS)} and one row per scan")
     header = [name.strip().lower() for name in rows[0]]
@@ -123,13 +147,61 @@ def _read_gps(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise InputError(f"{path}: row {row} has {len(cells)} values, the header has {len(header)} columns")
         values[row] = [_parse_value(cells[i], row, name, str(path)) for i, name in zip(index, GPS_COLUMNS)]
     _check_increasing(values[:, 0], str(path))
-    return values[:, 0], values[:, 1:]
+    return values[:, 0], values[:, 1:], [cells[index[0]].strip() for cells in rows[1:]]
+
+
+POINTCLOUDS = "pointclouds"
+_INTERVAL_RANGE = (1e-3, 10.0)      # s: plausible median intervals between radar frames
+
+
+def is_drive(path: str | os.PathLike) -> bool:
+    """``path`` holds a drive: ``scans/``, or ``pointclouds/`` in the TransLoc4D layout."""
+    path = Path(path)
+    return (path / "scans").is_dir() or (path / POINTCLOUDS).is_dir()
+
+
+def _transloc_sequence(directory: Path, fmt: str | None) -> RadarSequence:
+    """A drive in the TransLoc4D layout (module docstring)."""
+    folder = directory / POINTCLOUDS
+    suffixes = sorted({p.suffix for p in folder.iterdir() if p.is_file() and p.suffix in FILE_SUFFIX.values()})
+    if not suffixes:
+        raise InputError(f"{folder}: no scan files (.npy or .bin); expected one file per frame named by its timestamp")
+    if len(suffixes) > 1:
+        raise InputError(f"{folder}: mixes {suffixes} scan files; a drive holds one format")
+    if fmt is None:
+        if suffixes[0] != ".npy":
+            raise InputError(f"{folder}: .bin scans can be View-of-Delft or TJ4DRadSet rows; pass the format "
+                             f"(--format vod|tj4d)")
+        fmt = "transloc"
+    fmt = _check_fmt(fmt)
+    if FILE_SUFFIX[fmt] != suffixes[0]:
+        raise InputError(f"{folder}: holds {suffixes[0]} files, but fmt {fmt!r} stores {FILE_SUFFIX[fmt]}")
+    gps = directory / "gps.csv"
+    _, positions, stamps = _read_gps(gps)
+    paths = [folder / f"{stamp}{suffixes[0]}" for stamp in stamps]
+    missing = [(row, p.name) for row, p in enumerate(paths) if not p.is_file()]
+    if missing:
+        row, name = missing[0]
+        raise InputError(f"{gps}: row {row} (timestamp {stamps[row]}) has no scan {folder / name}; TransLoc4D-style "
+                         f"drives name each scan by its gps.csv timestamp ({len(missing)} row(s) without a file)")
+    micro = all(st.lstrip("-").isdigit() for st in stamps)
+    seconds = np.array([int(st) / 1e6 if micro else float(st) for st in stamps], np.float64)
+    if len(seconds) > 1:
+        interval = float(np.median(np.diff(seconds)))
+        lo, hi = _INTERVAL_RANGE
+        if not lo <= interval <= hi:
+            unit = "integer microseconds" if micro else "seconds (with a decimal point)"
+            raise InputError(f"{gps}: read as {unit}, the timestamps put the frames {interval:g} s apart (median); "
+                             f"expected {lo:g}-{hi:g} s. TransLoc4D-style names are integer microseconds since the "
+                             f"epoch, or seconds with a decimal point")
+    return RadarSequence(directory.name, paths, seconds, positions, fmt)
 
 
 def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> RadarSequence:
     """The drive stored in ``directory`` (layout in the module docstring) as a
     :class:`RadarSequence`; scans are read on demand by :meth:`RadarSequence.scan`.
 
+    A directory with ``pointclouds/`` and no ``scans/`` is read in the TransLoc4D layout.
     ``fmt`` is the scan file format: None or "transloc" (.npy), "vod" or "tj4d" (.bin). gps.csv
     rows are numbered from 0, the first row after the header, i.e. by frame. Raises
     :class:`InputError` for a missing scans/ or gps.csv, a row count that differs from the scan
@@ -137,9 +209,11 @@ def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> Radar
     not increase.
     """
     directory = Path(directory)
+    if not (directory / "scans").is_dir() and (directory / POINTCLOUDS).is_dir():
+        return _transloc_sequence(directory, fmt)
     fmt = _check_fmt("transloc" if fmt is None else fmt)
     paths = _scan_files(directory, fmt)
-    timestamps, positions = _read_gps(directory / "gps.csv")
+    timestamps, positions, _ = _read_gps(directory / "gps.csv")
     if len(timestamps) != len(paths):
         raise InputError(f"{directory}: gps.csv has {len(timestamps)} rows but scans/ holds {len(paths)} "
                          f"{FILE_SUFFIX[fmt]} scan files; expected one row per scan")

@@ -48,6 +48,26 @@ class EvalInputs:
                               + (f"; {', '.join('--' + n for n in extra)} not used" if extra else ""))
 
 
+@dataclass(frozen=True)
+class TrainInputs:
+    """What ``train`` was given besides the card, the model and the data: the run directory
+    ``output``, ``device`` (cpu or cuda), ``resume`` from ``output``'s last state, the held-out
+    ``validation`` drives or scenes (None: the model's default split), the scan ``data_format``,
+    where ROS bags keep their scans and fixes (``bag``: the fields of
+    :class:`radaredge.data.bag_drives.BagSource`), the recipe ``options`` (name -> value, None =
+    the recipe's default), and the progress-bar factory ``progress(desc, total)`` and ``log(line)``."""
+
+    output: str
+    device: str = "cpu"
+    resume: bool = False
+    validation: tuple[str, ...] | None = None
+    data_format: str | None = None
+    bag: dict | None = None
+    options: dict | None = None
+    progress: Callable | None = None
+    log: Callable[[str], None] | None = None
+
+
 def _whole(model: torch.nn.Module) -> torch.nn.Module:
     return model
 
@@ -117,7 +137,10 @@ class ModelSpec:
     - ``bench_tasks(card, model, paths, options)`` -> [:class:`radaredge.timing.BenchTask`]: what
       ``bench`` times (default: each graph's pipeline in every backend);
     - ``evaluate(card, onnx, inputs)`` -> a report (``to_dict``, ``lines``, ``write_json``): the
-      task metric ``eval`` computes from an :class:`EvalInputs` (none for a model without one).
+      task metric ``eval`` computes from an :class:`EvalInputs` (none for a model without one);
+    - ``train(card, model, data, inputs)`` -> a :class:`radaredge.training.run.TrainReport`: the
+      model's training recipe on the data at ``data`` with a :class:`TrainInputs` (none for a
+      model radaredge does not train).
     """
 
     build: Callable[[ModelCard], torch.nn.Module]
@@ -128,6 +151,7 @@ class ModelSpec:
     int8_calibrated: bool = True
     bench_tasks: Callable | None = None
     evaluate: Callable | None = None
+    train: Callable | None = None
 
     @property
     def multi_graph(self) -> bool:

@@ -15,11 +15,18 @@ Both formulations share one set of weights: ``forward`` is the export formulatio
 ops only); ``run(..., reference=True)`` computes the same function with the reference ops
 (numpy RANSAC, dynamic voxelization, explicit bilinear alignment, gather-based deformable
 attention).
+
+The export formulation also runs batched for training (:meth:`TDFANet.prepare` once per window,
+then :meth:`TDFANet.describe` over many windows at once), with BatchNorm batch statistics and
+dropout in train mode. The paper's ablations (Table II) are card fields of ``network``:
+``remove_dynamic`` (DPR), ``align`` (FA) and ``aggregation: sum`` (the plain TDFANet, no pyramid
+and no deformable attention).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -34,6 +41,9 @@ from ..ops.ego_velocity import EgoVelocityRansac, RansacConfig, estimate_ego_vel
 from ..ops.gem import GeM
 from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference
 from ..ops.scan_batch import concat_scans
+
+
+AGGREGATIONS = ("deformable", "sum")
 
 
 @card_ranges(pyramid_stages=(1, 6), heads=(1, 64), points=(1, 64), ffn_ratio=(1, 16), dropout=Range(0.0, 1.0, high_open=True),
@@ -51,10 +61,36 @@ class TDFANetConfig:
     mlp_hidden: int = 0           # hidden width of the channel MLP to 256; 0 = descriptor_dim
     gem_p: float = 3.0            # GeM initial p (Radenovic et al.: 3)
     gem_eps: float = 1e-6
+    remove_dynamic: bool = True   # Table II DPR: RANSAC outliers (moving points) stay out of the BEV maps
+    align: bool = True            # Table II FA: past maps are warped along the ego-velocity trajectory
+    aggregation: str = "deformable"   # "deformable": pyramid + DFA layers (TSP + DA); "sum": the plain
+                                      # TDFANet of Table II, the K BEV maps summed
 
     def __post_init__(self):
         if self.pyramid_stages < 1:
             raise ValueError("pyramid_stages must be >= 1")
+        if self.aggregation not in AGGREGATIONS:
+            raise ValueError(f"aggregation must be one of {list(AGGREGATIONS)}, got {self.aggregation!r}")
+
+
+@dataclass
+class PreparedWindow:
+    """The parameter-free front of one K-frame window (:meth:`TDFANet.prepare`): ``points``
+    [N, F] its K scans concatenated (oldest first), ``frame`` [N] int64 the scan of each point,
+    ``keep`` [N] bool the points that enter the BEV maps (RANSAC inliers, or every point without
+    dynamic-point removal), ``cells`` [K, 2] the grid displacement of each scan to the last one
+    (eq. 5, cells; zero without alignment), ``ego_velocity`` [K, 3] m/s and ``ego_valid`` [K]."""
+
+    points: torch.Tensor
+    frame: torch.Tensor
+    keep: torch.Tensor
+    cells: torch.Tensor
+    ego_velocity: torch.Tensor
+    ego_valid: torch.Tensor
+
+    def to(self, device) -> "PreparedWindow":
+        return PreparedWindow(*(t.to(device) for t in (self.points, self.frame, self.keep, self.cells,
+                                                        self.ego_velocity, self.ego_valid)))
 
 
 class ResidualStage(nn.Module):
@@ -88,26 +124,28 @@ class DeformableAggregationLayer(nn.Module):
 
     def forward(self, current: torch.Tensor, past: torch.Tensor, coarser: torch.Tensor | None,
                 reference: bool = False) -> torch.Tensor:
-        """current [1, d, H, W], past [K-1, d, H, W], coarser A_l+1 [1, d', H', W'] -> A_l [1, d, H, W]."""
-        _, d, h, w = current.shape
-        q = current.flatten(2).transpose(1, 2)                                     # [1, HW, d]
+        """current F_t,l [B, d, H, W], past F^a_t-k,l [B, K-1, d, H, W], coarser A_l+1 [B, d', H', W']
+        (None at the top level) -> A_l [B, d, H, W]; B windows at once."""
+        b, d, h, w = current.shape
+        kp = past.shape[1]
+        q = current.flatten(2).transpose(1, 2)                                     # [B, HW, d]
         if self.query_fuse is not None:
             up = F.interpolate(coarser, size=(h, w), mode="bilinear", align_corners=False)
             q = self.query_fuse(torch.cat([q, up.flatten(2).transpose(1, 2)], -1))
-        value = past.flatten(2).transpose(1, 2)                                    # [K-1, HW, d]
-        k = value.shape[0]
-        adv = self.advanced_query(torch.cat([q.expand(k, -1, -1), value], -1))    # [K-1, HW, d]
-        ref = _pixel_centres(h, w).expand(k, -1, -1, -1)                           # [K-1, HW, 1, 2]
-        m = self.attn(adv, ref, value, [(h, w)], reference=reference).sum(0, keepdim=True)
+        value = past.flatten(3).transpose(2, 3).reshape(b * kp, h * w, d)          # [B(K-1), HW, d]
+        per_past = q.unsqueeze(1).expand(b, kp, h * w, d).reshape(b * kp, h * w, d)
+        adv = self.advanced_query(torch.cat([per_past, value], -1))                # [B(K-1), HW, d]
+        ref = _pixel_centres(h, w, q.device).expand(b * kp, -1, -1, -1)            # [B(K-1), HW, 1, 2]
+        m = self.attn(adv, ref, value, [(h, w)], reference=reference).reshape(b, kp, h * w, d).sum(1)
         x = self.norm(self.dropout(m) + q)
         a = x + self.ffn(x)                                                        # Transformer FFN sublayer
-        return a.transpose(1, 2).reshape(1, d, h, w)
+        return a.transpose(1, 2).reshape(b, d, h, w)
 
 
-def _pixel_centres(h: int, w: int) -> torch.Tensor:
+def _pixel_centres(h: int, w: int, device=None) -> torch.Tensor:
     """Normalised (x, y) reference points of every cell centre of an h x w map, [1, h*w, 1, 2]."""
-    ys = (torch.arange(h, dtype=torch.float32) + 0.5) / h
-    xs = (torch.arange(w, dtype=torch.float32) + 0.5) / w
+    ys = (torch.arange(h, dtype=torch.float32, device=device) + 0.5) / h
+    xs = (torch.arange(w, dtype=torch.float32, device=device) + 0.5) / w
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     return torch.stack([gx, gy], -1).reshape(1, h * w, 1, 2)
 
@@ -115,48 +153,93 @@ def _pixel_centres(h: int, w: int) -> torch.Tensor:
 class TDFANet(nn.Module):
     """TDFANet with both formulations. Build it with :func:`build_tdfanet` from a model card."""
 
-    def __init__(self, num_features: int, frames: int, frame_rate: float, ransac: RansacConfig,
+    def __init__(self, features: Sequence[str], frames: int, frame_rate: float, ransac: RansacConfig,
                  pillars: PillarConfig, net: TDFANetConfig):
         super().__init__()
+        features = list(features)
         if frames < 2:
             raise ConfigError("TDFANet needs frames >= 2 (the paper uses K = 3)")
+        if features[:3] != ["x", "y", "z"] or "v_r" not in features:
+            raise ConfigError(f"TDFANet's features must start with x, y, z and include v_r (the radial velocity "
+                              f"the RANSAC reads, m/s); got {features}")
+        self.features = features
+        self.v_column = features.index("v_r")
         self.frames, self.frame_rate, self.net_config = frames, frame_rate, net
         self.ransac = EgoVelocityRansac(ransac)
-        self.vfe = PillarFeatureNet(num_features, pillars)
+        self.vfe = PillarFeatureNet(len(features), pillars)
         self.grid = BevGrid.from_range(pillars.point_cloud_range, pillars.voxel_size)
         c = pillars.out_channels
-        if c % net.heads:
-            raise ConfigError(f"pillars.out_channels ({c}) must be divisible by network.heads ({net.heads})")
-        chans = [c * 2**i for i in range(net.pyramid_stages + 1)]
-        self.pyramid = nn.ModuleList(ResidualStage(chans[i], chans[i + 1]) for i in range(net.pyramid_stages))
-        self.dfa = nn.ModuleList(
-            DeformableAggregationLayer(chans[l], chans[l + 1] if l < net.pyramid_stages else None,
-                                       net.heads, net.points, net.ffn_ratio, net.dropout)
-            for l in range(net.pyramid_stages + 1))
+        if net.aggregation == "deformable":
+            if c % net.heads:
+                raise ConfigError(f"pillars.out_channels ({c}) must be divisible by network.heads ({net.heads})")
+            chans = [c * 2**i for i in range(net.pyramid_stages + 1)]
+            self.pyramid = nn.ModuleList(ResidualStage(chans[i], chans[i + 1]) for i in range(net.pyramid_stages))
+            self.dfa = nn.ModuleList(
+                DeformableAggregationLayer(chans[l], chans[l + 1] if l < net.pyramid_stages else None,
+                                           net.heads, net.points, net.ffn_ratio, net.dropout)
+                for l in range(net.pyramid_stages + 1))
         hidden = net.mlp_hidden or net.descriptor_dim
         self.mlp = nn.Sequential(nn.Conv2d(c, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, net.descriptor_dim, 1))
         self.gem = GeM(p=net.gem_p, eps=net.gem_eps)
 
     # -- shared stages ---------------------------------------------------------------
     def aggregate(self, bev: torch.Tensor, cells: torch.Tensor, reference: bool, trace: dict | None) -> torch.Tensor:
-        """bev [K, C, ny, nx] (oldest first), cells [K, 2] grid displacement of each frame to the
-        current one (eq. 5) -> descriptor [D] (before L2 normalisation)."""
+        """bev [B*K, C, ny, nx] (window-major, oldest scan first), cells [B*K, 2] grid displacement of
+        each scan to its window's current one (eq. 5) -> descriptors [B, D] (before L2 normalisation)."""
         k = self.frames
-        align = align_bev_reference if reference else align_bev
-        past = align(bev[: k - 1], cells[: k - 1], grid=self.grid)
-        maps = torch.cat([past, bev[k - 1:]], 0)
-        levels = [maps]
+        b = bev.shape[0] // k
+        maps = bev.unflatten(0, (b, k))                                            # [B, K, C, H, W]
+        if self.net_config.align:
+            align = align_bev_reference if reference else align_bev
+            past = align(maps[:, : k - 1].flatten(0, 1), cells.unflatten(0, (b, k))[:, : k - 1].flatten(0, 1),
+                         grid=self.grid)
+            maps = torch.cat([past.unflatten(0, (b, k - 1)), maps[:, k - 1:]], 1)
+        if trace is not None:
+            trace["aligned_bev"] = maps.flatten(0, 1)
+        if self.net_config.aggregation == "sum":
+            return self.gem(self.mlp(maps.sum(1)))
+        levels = [maps.flatten(0, 1)]
         for stage in self.pyramid:
             levels.append(stage(levels[-1]))
         a = None
         for l in range(len(levels) - 1, -1, -1):
-            feats = levels[l]
-            a = self.dfa[l](feats[k - 1:], feats[: k - 1], a, reference=reference)
+            feats = levels[l].unflatten(0, (b, k))
+            a = self.dfa[l](feats[:, k - 1], feats[:, : k - 1], a, reference=reference)
             if trace is not None:
                 trace[f"aggregated_l{l}"] = a
+        return self.gem(self.mlp(a))
+
+    def prepare(self, frames: list[torch.Tensor], timestamps: torch.Tensor) -> PreparedWindow:
+        """The parameter-free front of one window, export formulation: the K scans (oldest first,
+        [N_k, F] each) through one RANSAC (eq. 1-3), the BEV point mask and the grid displacement
+        from the ego velocities and ``timestamps`` [K] s (eq. 4-5)."""
+        # The K scans run through one RANSAC and one pillar scatter, concatenated: the same
+        # per-scan results as K separate passes, with a third of their nodes in the graph.
+        pts, frame = concat_scans(frames)
+        valid = torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device)
+        v_ego, static, ok = self.ransac.estimate_frames(pts[:, :3], pts[:, self.v_column], valid, frame, len(frames))
+        keep = static if self.net_config.remove_dynamic else valid
+        cells = grid_displacement(v_ego, self.vfe.config.voxel_size, timestamps=timestamps)
+        if not self.net_config.align:
+            cells = torch.zeros_like(cells)
+        return PreparedWindow(pts, frame, keep, cells, v_ego, ok)
+
+    def describe(self, windows: Sequence[PreparedWindow], trace: dict | None = None) -> torch.Tensor:
+        """Descriptors [B, D] (before L2 normalisation) of B prepared windows in one batched pass:
+        one pillar scatter over their B*K scans, then the aggregation. In train mode BatchNorm
+        takes its statistics over the whole batch, as a batch of tuples trains."""
+        if len(windows) == 1:
+            w = windows[0]
+            pts, frame, keep, cells = w.points, w.frame, w.keep, w.cells
+        else:
+            pts = torch.cat([w.points for w in windows])
+            frame = torch.cat([w.frame + i * self.frames for i, w in enumerate(windows)])
+            keep = torch.cat([w.keep for w in windows])
+            cells = torch.cat([w.cells for w in windows])
+        bev = self.vfe.scatter_frames(pts, keep, frame, len(windows) * self.frames)[0]
         if trace is not None:
-            trace["aligned_bev"] = maps
-        return self.gem(self.mlp(a))[0]
+            trace["bev"] = bev
+        return self.aggregate(bev, cells, False, trace)
 
     # -- the two formulations --------------------------------------------------------------
     def forward(self, *inputs: torch.Tensor):
@@ -172,24 +255,23 @@ class TDFANet(nn.Module):
         if reference:
             vels, valids, bevs = [], [], []
             for pts in frames:
-                v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, 3].numpy(),
+                v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, self.v_column].numpy(),
                                                                 self.ransac.config)
                 vels.append(torch.tensor(v, dtype=torch.float32))
                 valids.append(torch.tensor(ok))
-                bevs.append(pillar_scatter_reference(self.vfe, pts.numpy(), static))
+                keep = static if self.net_config.remove_dynamic else None
+                bevs.append(pillar_scatter_reference(self.vfe, pts.numpy(), keep))
             v_ego, ok, bev = torch.stack(vels), torch.stack(valids), torch.stack(bevs)
+            cells = grid_displacement(v_ego, self.vfe.config.voxel_size, timestamps=timestamps)
+            if trace is not None:
+                trace["bev"] = bev
+            desc = self.aggregate(bev, cells, True, trace)[0]
         else:
-            # The K scans run through one RANSAC and one pillar scatter, concatenated: the same
-            # per-scan results as K separate passes, with a third of their nodes in the graph.
-            pts, frame = concat_scans(frames)
-            valid = torch.ones(pts.shape[0], dtype=torch.bool)
-            v_ego, static, ok = self.ransac.estimate_frames(pts[:, :3], pts[:, 3], valid, frame, len(frames))
-            bev = self.vfe.scatter_frames(pts, static, frame, len(frames))[0]
+            prepared = self.prepare(frames, timestamps)
+            v_ego, ok = prepared.ego_velocity, prepared.ego_valid
+            desc = self.describe([prepared], trace)[0]
         if trace is not None:
             trace["ego_velocity"] = v_ego
-            trace["bev"] = bev
-        cells = grid_displacement(v_ego, self.vfe.config.voxel_size, timestamps=timestamps)
-        desc = self.aggregate(bev, cells, reference, trace)
         return {
             "descriptor": desc,
             "descriptor_normalized": desc / torch.clamp(torch.linalg.vector_norm(desc), min=1e-12),
@@ -202,7 +284,7 @@ def build_tdfanet(card: ModelCard) -> TDFANet:
     """TDFANet from a model card, with a seeded initialisation (card ``seed``, default 0)."""
     torch.manual_seed(int(card.get("seed", 0)))
     model = TDFANet(
-        num_features=len(card.features),
+        features=card.features,
         frames=int(card.get("frames", 3)),
         frame_rate=float(card.get("frame_rate", 10.0)),
         ransac=card.section("preprocess.ransac", RansacConfig),

@@ -9,7 +9,7 @@ from ..cards import ModelCard
 from ..data.synthetic import generate_sequence
 from ..errors import ConfigError
 from ..comparators import Dense, Descriptor, Exact
-from .spec import EvalInputs, GraphSpec, ModelSpec
+from .spec import EvalInputs, GraphSpec, ModelSpec, TrainInputs
 from .tdfanet import TDFANet, build_tdfanet
 
 
@@ -75,8 +75,10 @@ def make_cases(card: ModelCard, n: int, seed: int) -> list[tuple[str, dict[str, 
 
 
 def trace_order(card: ModelCard) -> tuple[str, ...]:
-    """Intermediates in pipeline order: ego velocity, BEV maps, aligned maps, then the
-    aggregated map of every pyramid level from the coarsest down to level 0."""
+    """Intermediates in pipeline order: ego velocity, BEV maps, aligned maps, then (with the
+    deformable aggregation) the aggregated map of every pyramid level from the coarsest down to level 0."""
+    if card.get("network.aggregation", "deformable") == "sum":
+        return "ego_velocity", "bev", "aligned_bev"
     levels = int(card.get("network.pyramid_stages", 3))
     return ("ego_velocity", "bev", "aligned_bev") + tuple(f"aggregated_l{l}" for l in range(levels, -1, -1))
 
@@ -104,6 +106,17 @@ def evaluate_places(card: ModelCard, onnx, inputs: EvalInputs):
                     inputs.progress)
 
 
+def train_places(card: ModelCard, model: TDFANet, data, inputs: TrainInputs):
+    """TDFANet's training recipe (:mod:`radaredge.training.tdfanet`) on the drives under ``data``."""
+    from ..data.bag_drives import BagSource
+    from ..training.run import no_progress
+    from ..training.tdfanet import PlaceRecipe, train_places as run
+    recipe = PlaceRecipe.from_options(inputs.options or {})
+    bag = BagSource(**{k: v for k, v in (inputs.bag or {}).items() if v is not None})
+    return run(card, model, data, inputs.output, recipe, inputs.device, inputs.resume, inputs.validation,
+               inputs.data_format, inputs.progress or no_progress, inputs.log or (lambda line: None), bag)
+
+
 OUTPUTS = (
     Dense("descriptor", atol=1e-4, rtol=1e-3, quantized_info=True),
     Descriptor("descriptor_normalized", min_cosine=0.9999),
@@ -127,4 +140,5 @@ TDFANET_SPEC = ModelSpec(
         trace_order=trace_order,
     ),),
     evaluate=evaluate_places,
+    train=train_places,
 )

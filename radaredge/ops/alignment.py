@@ -89,7 +89,7 @@ def grid_displacement(ego_velocities: torch.Tensor, voxel_size, *, frame_interva
     steps = ego_velocities[:-1, :2] * dt.unsqueeze(1)                        # [K-1, 2] m
     to_current = torch.flip(torch.cumsum(torch.flip(steps, [0]), 0), [0])    # sum_{j >= k} steps_j
     metres = torch.cat([to_current, torch.zeros_like(steps[:1])], 0)
-    return metres / torch.tensor([voxel_size[0], voxel_size[1]], dtype=metres.dtype)
+    return metres / torch.tensor([voxel_size[0], voxel_size[1]], dtype=metres.dtype, device=metres.device)
 
 
 def _check_inputs(past_map: torch.Tensor, displacement_cells: torch.Tensor, yaw, grid: BevGrid) -> None:
@@ -110,9 +110,9 @@ def _index_map(displacement_cells: torch.Tensor, yaw, grid: BevGrid):
     In cell units p_past = R p + d becomes u' = c + A (u - c) + delta with A = S^-1 R S,
     S = diag(sx, sy), c the radar origin in cell coordinates and delta = ``displacement_cells``.
     """
-    dtype = displacement_cells.dtype
-    u = torch.arange(grid.nx, dtype=dtype).view(1, 1, -1)
-    v = torch.arange(grid.ny, dtype=dtype).view(1, -1, 1)
+    dtype, dev = displacement_cells.dtype, displacement_cells.device
+    u = torch.arange(grid.nx, dtype=dtype, device=dev).view(1, 1, -1)
+    v = torch.arange(grid.ny, dtype=dtype, device=dev).view(1, -1, 1)
     du = displacement_cells[:, 0].view(-1, 1, 1)
     dv = displacement_cells[:, 1].view(-1, 1, 1)
     if yaw is None:

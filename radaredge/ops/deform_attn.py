@@ -146,7 +146,8 @@ class MSDeformAttn(nn.Module):
         if padding_mask is not None:
             value = value.masked_fill(padding_mask[..., None], 0.0)
         value = value.reshape(n, value.shape[1], m, self.d_model // m)
-        size_xy = torch.tensor([[w, h] for h, w in _shape_list(spatial_shapes)], dtype=query.dtype)  # [L, 2]
+        size_xy = torch.tensor([[w, h] for h, w in _shape_list(spatial_shapes)], dtype=query.dtype,
+                               device=query.device)                                                  # [L, 2]
         if reference:
             weights = self.attention_weights(query).reshape(n, lq, m, levels * p).softmax(-1)
             weights = weights.reshape(n, lq, m, levels, p)

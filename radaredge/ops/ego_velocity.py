@@ -228,7 +228,7 @@ class EgoVelocityRansac(nn.Module):
         return torch.minimum(torch.stack([r0, r1, r2], 2), torch.clamp(n - 1, min=0).unsqueeze(2))
 
     def forward(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor):
-        frame = torch.zeros(xyz.shape[0], dtype=torch.int64)
+        frame = torch.zeros(xyz.shape[0], dtype=torch.int64, device=xyz.device)
         v_ego, static, ok = self.estimate_frames(xyz, v_r, valid, frame, 1)
         return v_ego[0], static, ok[0]
 
@@ -243,10 +243,11 @@ class EgoVelocityRansac(nn.Module):
         cfg = self.config
         n_in = xyz.shape[0]
         out_dtype = xyz.dtype
+        dev = xyz.device
         # Three padding points keep every reduction non-empty for N = 0; they are never eligible.
-        xyz = torch.cat([xyz.double(), torch.zeros(3, 3, dtype=torch.float64)], 0)
-        v_r = torch.cat([v_r.double(), torch.zeros(3, dtype=torch.float64)], 0)
-        usable = torch.cat([valid, torch.zeros(3, dtype=torch.bool)], 0)
+        xyz = torch.cat([xyz.double(), torch.zeros(3, 3, dtype=torch.float64, device=dev)], 0)
+        v_r = torch.cat([v_r.double(), torch.zeros(3, dtype=torch.float64, device=dev)], 0)
+        usable = torch.cat([valid, torch.zeros(3, dtype=torch.bool, device=dev)], 0)
         usable = usable & torch.isfinite(xyz).all(1) & torch.isfinite(v_r)
         xyz = torch.where(usable.unsqueeze(1), xyz, torch.zeros_like(xyz))
         v_r = torch.where(usable, v_r, torch.zeros_like(v_r))
@@ -257,15 +258,15 @@ class EgoVelocityRansac(nn.Module):
         in_fov = ((x > 0) & (y.abs() <= math.tan(math.radians(cfg.max_azimuth_deg)) * x)
                   & (z.abs() <= math.tan(math.radians(cfg.max_elevation_deg)) * torch.sqrt(x * x + y * y)))
         eligible = usable & (rng >= cfg.min_range) & (rng <= cfg.max_range) & in_fov
-        frame = torch.cat([frame, torch.zeros(3, dtype=torch.int64)], 0)
-        member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64).unsqueeze(1)   # [K, N]
+        frame = torch.cat([frame, torch.zeros(3, dtype=torch.int64, device=dev)], 0)
+        member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)   # [K, N]
         own_eligible = eligible.unsqueeze(0) & member                          # [K, N]
 
         # Indices of eligible points in input order: the sort key puts them first, stably, so
         # scan k's eligible points (scans are concatenated in order) start at the number of
         # eligible points of the scans before it.
         n = xyz.shape[0]
-        pos = torch.arange(n, dtype=torch.int64)
+        pos = torch.arange(n, dtype=torch.int64, device=dev)
         key = torch.where(eligible, pos, pos + n)
         order = torch.topk(key, n, largest=False, sorted=True).indices
         n_elig = own_eligible.long().sum(1)                                    # [K]

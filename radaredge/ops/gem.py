@@ -38,7 +38,7 @@ class GeM(nn.Module):
         return x.clamp(min=self.eps).pow(self.p).mean((-2, -1)).pow(1.0 / self.p)
 
     def extra_repr(self) -> str:
-        return f"p={float(self.p):.4g}, eps={self.eps:g}, learnable={isinstance(self.p, nn.Parameter)}"
+        return f"p={float(self.p.detach()):.4g}, eps={self.eps:g}, learnable={isinstance(self.p, nn.Parameter)}"
 
 
 def gem_reference(x: np.ndarray, p: float, eps: float = 1e-6) -> np.ndarray:

@@ -83,23 +83,54 @@ class PFNLayer(nn.Module):
         self.norm = nn.BatchNorm1d(out_channels, eps=eps, momentum=0.01)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """x [..., in] -> [..., out]."""
+        """x [..., in] -> [..., out]: every row is a slot of the batch (train-mode statistics over all rows)."""
         shape = x.shape
         y = self.linear(x.reshape(-1, shape[-1]))
         return torch.relu(self.norm(y)).reshape(*shape[:-1], y.shape[-1])
 
+    def forward_slots(self, x: torch.Tensor, weight: torch.Tensor, slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points of padded pillars without the padding: x [N, in] (rows with ``weight`` 0 are
+        not points), ``slots`` [] the number of pillar slots the points occupy, OpenPCDet's
+        pillars x ``max_points_per_pillar``. Returns (per-point output [N, out], the output of an
+        all-zero padding slot [1, out]).
+
+        In eval mode the norm uses its running statistics, as :meth:`forward`. In train mode its
+        batch statistics are those of OpenPCDet's padded [pillars, slots] tensor: the points'
+        linear outputs plus ``slots - sum(weight)`` zero rows (a padding slot is an all-zero input
+        and the linear has no bias), and the running statistics are updated from them as
+        BatchNorm1d would (unbiased variance)."""
+        y = self.linear(x)
+        zero = torch.zeros(1, y.shape[1], dtype=y.dtype, device=y.device)
+        if not self.norm.training:
+            return torch.relu(self.norm(y)), torch.relu(self.norm(zero))
+        w = weight.to(y.dtype).unsqueeze(1)
+        rows = torch.clamp(slots.to(y.dtype), min=2.0)
+        mean = (y * w).sum(0) / rows
+        var = torch.clamp((y * y * w).sum(0) / rows - mean * mean, min=0.0)
+        norm = self.norm
+        if norm.track_running_stats:
+            with torch.no_grad():
+                norm.num_batches_tracked.add_(1)
+                # momentum None: the cumulative average, as BatchNorm1d keeps it
+                m = 1.0 / float(norm.num_batches_tracked) if norm.momentum is None else norm.momentum
+                norm.running_mean.mul_(1 - m).add_(m * mean.detach())
+                norm.running_var.mul_(1 - m).add_(m * var.detach() * rows / (rows - 1))
+        scale = norm.weight / torch.sqrt(var + norm.eps)
+        shift = norm.bias - mean * scale
+        return torch.relu(y * scale + shift), torch.relu(zero * scale + shift)
+
 
 def _voxel_coords(xyz: torch.Tensor, config: PillarConfig) -> torch.Tensor:
     """Integer voxel coordinates (ix, iy, iz) [N, 3] in float32 arithmetic (shared by both paths)."""
-    lo = torch.tensor(config.point_cloud_range[:3], dtype=torch.float32)
-    size = torch.tensor(config.voxel_size, dtype=torch.float32)
+    lo = torch.tensor(config.point_cloud_range[:3], dtype=torch.float32, device=xyz.device)
+    size = torch.tensor(config.voxel_size, dtype=torch.float32, device=xyz.device)
     return torch.floor((xyz - lo) / size).to(torch.int64)
 
 
 def _centre_offsets(xyz: torch.Tensor, coords: torch.Tensor, config: PillarConfig) -> torch.Tensor:
     """Offset of each point to the centre of its voxel, [N, 3] metres."""
-    lo = torch.tensor(config.point_cloud_range[:3], dtype=torch.float32)
-    size = torch.tensor(config.voxel_size, dtype=torch.float32)
+    lo = torch.tensor(config.point_cloud_range[:3], dtype=torch.float32, device=xyz.device)
+    size = torch.tensor(config.voxel_size, dtype=torch.float32, device=xyz.device)
     return xyz - (coords.to(torch.float32) * size + (size / 2 + lo))
 
 
@@ -140,11 +171,12 @@ class PillarFeatureNet(nn.Module):
         ncell = nx * ny
         spare = count * ncell                                     # the cell of dropped points
         n = points.shape[0]
+        dev = points.device
         finite = torch.isfinite(points).all(1)
         points = torch.where(finite.unsqueeze(1), points, torch.zeros_like(points))
         xyz = points[:, :3]
         coords = _voxel_coords(xyz, cfg)
-        size = torch.tensor([nx, ny, nz], dtype=torch.int64)
+        size = torch.tensor([nx, ny, nz], dtype=torch.int64, device=dev)
         inside = valid & finite & ((coords >= 0) & (coords < size)).all(1)
         cell = coords[:, 1] * nx + coords[:, 0]
         if frame is not None:
@@ -152,10 +184,10 @@ class PillarFeatureNet(nn.Module):
         cell = torch.where(inside, cell, torch.full_like(coords[:, 0], spare))
 
         # Rank of each point inside its pillar in input order: sort by (cell, index).
-        pos = torch.arange(n, dtype=torch.int64)
+        pos = torch.arange(n, dtype=torch.int64, device=dev)
         order = torch.topk(cell * n + pos, n, largest=False, sorted=True).indices
         sorted_cell = cell[order]
-        first = torch.full((spare + 1,), n, dtype=torch.int64).scatter_reduce(
+        first = torch.full((spare + 1,), n, dtype=torch.int64, device=dev).scatter_reduce(
             0, sorted_cell, pos, reduce="amin", include_self=True)
         rank = torch.zeros_like(pos).scatter(0, order, pos - first[sorted_cell])
         keep = inside & (rank < cfg.max_points_per_pillar)
@@ -165,20 +197,22 @@ class PillarFeatureNet(nn.Module):
         # point: the graph touches the N points, not the ny * nx cells (dropped points sit in
         # the spare cell, with count 0 and zero features).
         w = keep.to(points.dtype)
-        count_per_cell = torch.zeros(spare + 1, dtype=points.dtype).index_add(0, cell, w)
-        sums = torch.zeros(spare + 1, 3, dtype=points.dtype).index_add(0, cell, xyz * w.unsqueeze(1))
+        count_per_cell = torch.zeros(spare + 1, dtype=points.dtype, device=dev).index_add(0, cell, w)
+        sums = torch.zeros(spare + 1, 3, dtype=points.dtype, device=dev).index_add(0, cell, xyz * w.unsqueeze(1))
         count_at_point = count_per_cell[cell]
         mean = sums[cell] / torch.clamp(count_at_point, min=1.0).unsqueeze(1)
         feats = torch.cat([points, xyz - mean, _centre_offsets(xyz, coords, cfg)], 1)
-        feats = self.encode(feats) * w.unsqueeze(1)
+        # OpenPCDet pads every occupied pillar to max_points_per_pillar slots (train-mode norm statistics).
+        slots = (count_per_cell[:spare] > 0).sum() * cfg.max_points_per_pillar
+        feats, pad_value = self.pfn_layers[0].forward_slots(feats, w, slots)
+        feats = feats * w.unsqueeze(1)
         # A pillar with free slots also takes the max with the padding slot's value; max is
         # associative, so each of its points carries that value into the scatter.
-        pad_value = self.encode(torch.zeros(1, self.num_point_features + 6, dtype=feats.dtype))
         has_free_slots = (count_at_point < cfg.max_points_per_pillar).unsqueeze(1)
         feats = torch.where(has_free_slots, torch.maximum(feats, pad_value), feats)
 
         c = feats.shape[1]
-        canvas = torch.zeros(spare + 1, c, dtype=feats.dtype).scatter_reduce(
+        canvas = torch.zeros(spare + 1, c, dtype=feats.dtype, device=dev).scatter_reduce(
             0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
         canvas = canvas[:spare].reshape(count, ncell, c).transpose(1, 2).reshape(count, c, ny, nx)
         return canvas, (count_per_cell[:spare] > 0).reshape(count, ncell)

@@ -10,5 +10,5 @@ import torch
 def concat_scans(scans: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """Scans [N_k, F] (any N_k, 0 allowed) -> (points [sum N_k, F] in scan order, frame [sum N_k]
     int64: the index k of the scan each point came from). Traces with dynamic N_k."""
-    frame = torch.cat([torch.full((s.shape[0],), k, dtype=torch.int64) for k, s in enumerate(scans)])
+    frame = torch.cat([torch.full((s.shape[0],), k, dtype=torch.int64, device=s.device) for k, s in enumerate(scans)])
     return torch.cat(scans, 0), frame

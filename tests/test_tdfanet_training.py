@@ -1,0 +1,325 @@
+"""TDFANet in train mode and `radaredge train`: the loss, the tuples, the lazy gradient pass, batch
+statistics of the pillar net, device-agnostic forward, column lookup by name, the ablation switches,
+resume, bad training data, and a tiny card that learns."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_flatten
+
+import radaredge
+from radaredge.cards import load_card
+from radaredge.data.pr_benchmark import make_pr_benchmark
+from radaredge.data.sequences import load_sequence
+from radaredge.errors import ConfigError, InputError
+from radaredge.exporter import build_model
+from radaredge.models.tdfanet_spec import make_cases
+from radaredge.ops.ego_velocity import estimate_ego_velocity
+from radaredge.ops.pillars import pillar_features_reference, scatter_pillars_reference
+from radaredge.training import tdfanet as T
+from radaredge.training.losses import lazy_quadruplet_loss
+from radaredge.training.places import TupleMiner, load_place_windows
+
+from conftest import TINY_CARD, invoke
+
+
+@pytest.fixture(scope="module")
+def card():
+    return load_card(TINY_CARD)
+
+
+@pytest.fixture(scope="module")
+def town(tmp_path_factory):
+    """One synthetic town driven three times (the last drive held out for validation)."""
+    root = tmp_path_factory.mktemp("train-town")
+    make_pr_benchmark(root / "town-1", drives=3, frames_per_drive=30, seed=1)
+    return root
+
+
+def _window(card, seed=0):
+    feeds = make_cases(card, 1, seed)[0][1]
+    return [torch.from_numpy(feeds[f"points_{k}"]) for k in range(3)], torch.from_numpy(feeds["timestamps"])
+
+
+# ----------------------------------------------------------------------------- eq. 10
+
+
+def _unit(rows):
+    return F.normalize(torch.tensor(rows, dtype=torch.float64), dim=-1)
+
+
+def test_lazy_quadruplet_loss_by_hand():
+    q = _unit([[1.0, 0.0, 0.0]])
+    pos = _unit([[[1.0, 0.1, 0.0], [0.0, 1.0, 0.0]]])          # the best positive is the first
+    neg = _unit([[[0.9, 0.2, 0.0], [0.0, 0.0, 1.0]]])          # the hardest negative is the first
+    star = _unit([[0.95, 0.0, 0.3]])
+    d = lambda a, b: float((a - b).norm())                      # noqa: E731
+    d_pos, d_neg, d_star = d(q[0], pos[0, 0]), d(q[0], neg[0, 0]), d(q[0], star[0])
+    expected = max(0.0, 0.2 + d_pos - d_neg) + max(0.0, 0.1 + d_pos - d_star)
+    assert float(lazy_quadruplet_loss(q, pos, neg, star)) == pytest.approx(expected, abs=1e-12)
+    # PointNetVLAD's second term compares neg* with the negatives instead of the query
+    d_sn = min(d(star[0], neg[0, 0]), d(star[0], neg[0, 1]))
+    expected_pnv = max(0.0, 0.2 + d_pos - d_neg) + max(0.0, 0.1 + d_pos - d_sn)
+    assert float(lazy_quadruplet_loss(q, pos, neg, star, second_term="pointnetvlad")) == pytest.approx(expected_pnv)
+    # a tuple that satisfies both margins costs nothing
+    far = _unit([[[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]])
+    assert float(lazy_quadruplet_loss(q, pos[:, :1], far, _unit([[0.0, 0.0, -1.0]]))) == 0.0
+
+
+def test_tuples_follow_the_radii(card, town):
+    data = load_place_windows(town, 3)
+    miner = TupleMiner(data, positives=2, negatives=6, hard=3)
+    rng = np.random.default_rng(0)
+    miner.set_descriptors(np.random.default_rng(1).normal(size=(len(data), 8)))
+    for q in miner.queries[::9]:
+        t = miner.tuple_for(int(q), rng)
+        dist = data.distances(t.query)
+        assert all(dist[p] <= 5.0 and data.drive[p] != data.drive[t.query] for p in t.positives)
+        assert all(dist[n] > 10.0 for n in t.negatives) and len(set(t.negatives)) == 6
+        assert dist[t.other_negative] > 10.0
+        apart = lambda i: all(np.linalg.norm(data.positions[i] - data.positions[n]) > 10.0 for n in t.negatives)  # noqa: E731
+        if any(apart(i) for i in np.flatnonzero(~data.validation) if dist[i] > 10.0):
+            assert apart(t.other_negative)       # neg* is a negative of every negative when one exists
+        assert not any(data.validation[[t.query, *t.positives, *t.negatives, t.other_negative]])
+
+
+# ----------------------------------------------------------------------------- train mode
+
+
+def test_tuple_loss_is_the_full_tuples_loss_and_gradient(card, town):
+    """Describing only the windows the loss reaches (lazy pass) gives bitwise the loss, the gradient,
+    the BatchNorm running statistics and the random state of describing every window with gradients."""
+    data = load_place_windows(town, 3)
+    model = build_model(card)
+    prepared = T.prepare_windows(model, data, torch.device("cpu"))
+    miner = TupleMiner(data, 2, 6, 0)
+    rng = np.random.default_rng(0)
+    recipe = T.PlaceRecipe(negatives=6, hard_negatives=0)
+    for trial in range(3):
+        tup = miner.tuple_for(int(miner.queries[trial * 11]), rng)
+        start = {k: v.clone() for k, v in model.state_dict().items()}
+        runs = []
+        for lazy in (False, True):
+            model.load_state_dict(start)
+            model.train()
+            model.zero_grad()
+            torch.manual_seed(trial)
+            if lazy:
+                loss, active = T.tuple_loss(model, prepared, tup, recipe)
+                assert 0 < active <= 4
+            else:
+                idx = [tup.query, *tup.positives, *tup.negatives, tup.other_negative]
+                d = F.normalize(torch.cat([model.describe([prepared[i]]) for i in idx]), dim=1)
+                loss = lazy_quadruplet_loss(d[:1], d[1:3][None], d[3:9][None], d[-1:])
+            loss.backward()
+            runs.append((loss.detach(), [p.grad.clone() for p in model.parameters()],
+                         {k: v.clone() for k, v in model.state_dict().items()}, torch.get_rng_state()))
+        (l0, g0, s0, r0), (l1, g1, s1, r1) = runs
+        assert torch.equal(l0, l1) and float(l0) > 0
+        assert all(torch.equal(a, b) for a, b in zip(g0, g1))
+        assert all(torch.equal(s0[k], s1[k]) for k in s0)
+        assert torch.equal(r0, r1)
+
+
+def test_pillar_batch_statistics_are_openpcdets_padded_ones(card):
+    """In train mode the point-wise pillar net normalises with the statistics of OpenPCDet's padded
+    [pillars, slots] tensor, and updates its running statistics as BatchNorm1d does on it."""
+    frames, _ = _window(card)
+    points = frames[-1]
+    a, b = build_model(card), build_model(card)
+    a.vfe.train()
+    b.vfe.train()
+    canvas = a.vfe(points, torch.ones(len(points), dtype=torch.bool))
+    feats, coords = pillar_features_reference(b.vfe, points.numpy())          # nn.BatchNorm1d on every slot
+    reference = scatter_pillars_reference(feats, coords, b.vfe.config)
+    torch.testing.assert_close(canvas, reference, atol=2e-5, rtol=1e-5)
+    for name in ("running_mean", "running_var"):
+        torch.testing.assert_close(getattr(a.vfe.pfn_layers[0].norm, name), getattr(b.vfe.pfn_layers[0].norm, name))
+    a.eval()                                   # eval outputs are those of the running statistics
+    b.eval()
+    torch.testing.assert_close(a.vfe(points, torch.ones(len(points), dtype=torch.bool)),
+                               scatter_pillars_reference(*pillar_features_reference(b.vfe, points.numpy()), b.vfe.config),
+                               atol=2e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["tdfanet", "tdfanet-edge"])
+def test_train_mode_and_backward_on_the_full_cards(name):
+    model = build_model(load_card(name)).train()
+    frames, ts = _window(load_card(name))
+    out = model.run([f[:150] for f in frames], ts)
+    out["descriptor_normalized"].sum().backward()
+    grads = {n: p.grad for n, p in model.named_parameters()}
+    assert all(g is not None and torch.isfinite(g).all() for g in grads.values())
+    assert grads["vfe.pfn_layers.0.linear.weight"].abs().sum() > 0 and grads["gem.p"].abs().sum() > 0
+
+
+class _CpuTensors(TorchDispatchMode):
+    """Records every op that returns a CPU tensor."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        if any(isinstance(t, torch.Tensor) and t.device.type == "cpu" for t in tree_flatten(out)[0]):
+            self.ops.append(str(func))
+        return out
+
+
+def test_forward_creates_no_cpu_tensor_on_another_device(card):
+    """The meta device stands in for CUDA: every tensor made inside forward takes its device from the input."""
+    frames, ts = _window(card)
+    model = build_model(load_card("tdfanet-edge")).to("meta")
+    with _CpuTensors() as watch:
+        torch.zeros(3)                         # the watch sees a CPU tensor when one is made
+    assert watch.ops
+    with _CpuTensors() as watch:
+        out = model.run([f.to("meta") for f in frames], ts.to("meta"))
+        model.train()
+        model.describe([model.prepare([f.to("meta") for f in frames], ts.to("meta"))])
+    assert watch.ops == [] and all(v.device.type == "meta" for v in out.values())
+
+
+# ----------------------------------------------------------------------------- columns by name
+
+
+def test_doppler_column_is_looked_up_by_name(card, tmp_path):
+    swapped = tmp_path / "swapped.yaml"
+    swapped.write_text(TINY_CARD.read_text().replace("features: [x, y, z, v_r, rcs]", "features: [x, y, z, rcs, v_r]"))
+    frames, ts = _window(card, seed=2)
+    plain, other = build_model(card), build_model(load_card(swapped))
+    with torch.no_grad():
+        a = plain.run(frames, ts)
+        b = other.run([f[:, [0, 1, 2, 4, 3]] for f in frames], ts)
+        c = other.run([f[:, [0, 1, 2, 4, 3]] for f in frames], ts, reference=True)
+    assert bool(a["ego_valid"].all())
+    torch.testing.assert_close(a["ego_velocity"], b["ego_velocity"], atol=1e-4, rtol=0)
+    torch.testing.assert_close(a["ego_velocity"], c["ego_velocity"], atol=1e-4, rtol=0)
+    v_ref, _, _ = estimate_ego_velocity(frames[-1][:, :3].numpy(), frames[-1][:, 3].numpy())
+    np.testing.assert_allclose(b["ego_velocity"][-1].numpy(), v_ref, atol=1e-4)
+    for features in ("[x, y, z, rcs]", "[v_r, x, y, z, rcs]"):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(TINY_CARD.read_text().replace("features: [x, y, z, v_r, rcs]", f"features: {features}"))
+        with pytest.raises(ConfigError, match="v_r"):
+            build_model(load_card(bad))
+
+
+# ----------------------------------------------------------------------------- ablations (Table II)
+
+
+@pytest.mark.parametrize("switch", ["remove_dynamic: false", "align: false", "aggregation: sum"])
+def test_ablation_switches_export_with_parity(switch, tmp_path):
+    path = tmp_path / "ablation.yaml"
+    text = TINY_CARD.read_text().replace("network: {", f"network: {{{switch}, ")
+    path.write_text(text)
+    card = load_card(path)
+    model = build_model(card)
+    res = radaredge.export(card, tmp_path / "a.onnx", model=model)
+    report = radaredge.parity(card, res.path, model=model, cases=4)
+    assert report, report.to_dict()
+    frames, ts = _window(card)
+    full = build_model(load_card(TINY_CARD))
+    with torch.no_grad():
+        prepared, reference = model.prepare(frames, ts), full.prepare(frames, ts)
+    if switch.startswith("remove_dynamic"):
+        assert bool(prepared.keep.all()) and not bool(reference.keep.all())
+    if switch.startswith("align"):
+        assert float(prepared.cells.abs().max()) == 0.0 and float(reference.cells.abs().max()) > 0.1
+    if switch.startswith("aggregation"):
+        assert not hasattr(model, "pyramid") and not hasattr(model, "dfa")
+
+
+# ----------------------------------------------------------------------------- training runs
+
+
+def _train(town, out, epochs, *extra):
+    return invoke("train", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--data", town, "--output", out,
+                  "--epochs", epochs, "--set", "negatives=6", "--set", "hard_negatives=3", *extra)
+
+
+def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_path):
+    first = _train(town, tmp_path / "a", 1)
+    assert first.exit_code == 0, first.output
+    resumed = _train(town, tmp_path / "a", 2, "--resume")
+    assert resumed.exit_code == 0, resumed.output
+    straight = _train(town, tmp_path / "b", 2, "--json")
+    assert straight.exit_code == 0, straight.output
+    log_a = json.loads((tmp_path / "a" / "train-log.json").read_text())
+    log_b = json.loads(straight.stdout)
+    untimed = lambda log: [{k: v for k, v in e.items() if k != "seconds"} for e in log["epochs"]]  # noqa: E731
+    assert [e["epoch"] for e in log_a["epochs"]] == [0, 1, 2] and untimed(log_a) == untimed(log_b)
+    a = torch.load(tmp_path / "a" / "last.pth", weights_only=True)["model_state"]
+    b = torch.load(tmp_path / "b" / "last.pth", weights_only=True)["model_state"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--checkpoint",
+                 tmp_path / "b" / "best.pth", "--output", tmp_path / "t.onnx")
+    assert res.exit_code == 0, res.output
+    par = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--checkpoint",
+                 tmp_path / "b" / "best.pth", "--onnx", tmp_path / "t.onnx", "--cases", 4)
+    assert par.exit_code == 0, par.output
+    again = _train(town, tmp_path / "a", 2, "--resume")
+    assert again.exit_code == 2 and "already holds epoch 2" in again.output
+
+
+def test_a_tiny_card_learns(card, tmp_path):
+    """A few dozen steps on a seeded town: the loss falls and the held-out drive's recall rises."""
+    root = tmp_path / "data"
+    make_pr_benchmark(root / "town-2", drives=3, frames_per_drive=40, seed=2)
+    model = build_model(card)
+    recipe = T.PlaceRecipe(epochs=3, negatives=6, hard_negatives=3, lr=2e-3)
+    report = T.train_places(card, model, root, tmp_path / "run", recipe)
+    epochs = report.epochs
+    assert [e["epoch"] for e in epochs] == [0, 1, 2, 3]
+    assert epochs[-1]["loss"] < epochs[1]["loss"]
+    assert epochs[-1]["val_R@1"] > epochs[0]["val_R@1"] + 10.0, epochs
+
+
+@pytest.mark.parametrize("damage, says", [
+    ("no-gps", "gps.csv: no such file"),
+    ("empty-scans", "no .npy scan files"),
+    ("apart", "too few positives"),
+])
+def test_bad_training_data_is_one_error_line_naming_the_drive(tmp_path, damage, says):
+    root = tmp_path / "data"
+    make_pr_benchmark(root / "town-1", drives=4, frames_per_drive=8, seed=1)     # drive-03 validates
+    drive = root / "town-1" / "queries" / "drive-01"
+    if damage == "no-gps":
+        (drive / "gps.csv").unlink()
+    elif damage == "empty-scans":
+        for f in (drive / "scans").iterdir():
+            f.unlink()
+    else:
+        lines = (drive / "gps.csv").read_text().splitlines()
+        shifted = [lines[0]] + [",".join([r.split(",")[0], str(float(r.split(",")[1]) + 500.0), r.split(",")[2]])
+                                for r in lines[1:]]
+        (drive / "gps.csv").write_text("\n".join(shifted) + "\n")
+    res = _train(root, tmp_path / "run", 1)
+    assert res.exit_code == 2
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "drive-01" in lines[0] and says in lines[0], res.output
+
+
+def test_transloc4d_layout_matches_rows_to_timestamp_named_files(tmp_path):
+    drive = tmp_path / "query"
+    (drive / "pointclouds").mkdir(parents=True)
+    stamps = [1646303235000000 + 100_000 * i for i in range(5)]
+    for i, s in enumerate(stamps):
+        np.save(drive / "pointclouds" / f"{s}.npy", np.full((4, 5), i, np.float32))
+    np.save(drive / "pointclouds" / "1646303299000000.npy", np.zeros((4, 5), np.float32))   # no row: ignored
+    rows = ["timestamp,northing,easting,yaw"] + [f"{s},{100 + i},{200 - i},0.1" for i, s in enumerate(stamps)]
+    (drive / "gps.csv").write_text("\n".join(rows) + "\n")
+    seq = load_sequence(drive)
+    np.testing.assert_allclose(np.diff(seq.timestamps), 0.1)
+    assert seq.scan(3, ["x", "v_r"]).tolist() == [[3.0, 3.0]] * 4
+    np.testing.assert_allclose(seq.positions[2], [102.0, 198.0])
+    (drive / "pointclouds" / f"{stamps[2]}.npy").unlink()
+    with pytest.raises(InputError, match="row 2 .* has no scan"):
+        load_sequence(drive)
