@@ -270,6 +270,12 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
     if not all(p.exists() for p in paths.values()):
         say(f"{onnx} missing: exporting it first")
         export_graphs(card, spec, model, onnx)
+    from . import runtime as rt
+    for p in paths.values():                 # a file that is no export of this card is bad input, not a failed backend
+        exported = rt.load(p, threads=1)
+        if exported.card.name != card.name:
+            raise ConfigError(f"{p} is an export of card {exported.card.name!r}, not {card.name!r}; pass the "
+                              f"--model/--config it was exported with")
     int8_paths = {}
     for name, p in paths.items():
         candidate = Path(int8) if (int8 is not None and not spec.multi_graph) else p.with_suffix(".int8.onnx")

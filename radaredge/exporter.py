@@ -93,10 +93,10 @@ def _read_state(path: str | Path) -> dict:
     except IsADirectoryError:
         raise ConfigError(f"checkpoint {path} is a directory, not a .pth file") from None
     except Exception as exc:
-        if not zipfile.is_zipfile(path):
-            why = "not a file written by torch.save (truncated, or another format)"
-        elif "weights_only" in str(exc) or "Unsupported global" in str(exc):
+        if "weights_only" in str(exc) or "Unsupported global" in str(exc):
             why = "a pickle of objects other than tensors and plain containers (radaredge runs no pickled code)"
+        elif not zipfile.is_zipfile(path):
+            why = "not a file written by torch.save (truncated, or another format)"
         else:
             why = f"damaged ({type(exc).__name__})"
         raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: {why}") from None
@@ -108,6 +108,11 @@ def _read_state(path: str | Path) -> dict:
     bad = [f"{k!r} ({type(v).__name__})" for k, v in obj.items() if not isinstance(k, str) or not torch.is_tensor(v)]
     if bad:
         raise ConfigError(f"checkpoint {path}: state_dict entries must be named tensors; not so: {', '.join(bad[:5])}")
+    broken = [k for k, v in obj.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if broken:
+        more = f" and {len(broken) - 5} more" if len(broken) > 5 else ""
+        raise ConfigError(f"checkpoint {path}: values are not finite (NaN or Inf) in {', '.join(broken[:5])}{more}; "
+                          f"a diverged training run writes such weights")
     return obj
 
 

@@ -152,3 +152,15 @@ def test_relative_links_resolve(doc):
         elif anchor and dest.is_file() and dest.suffix == ".md" and anchor not in _anchors(dest):
             broken.append(f"{target} (no heading #{anchor} in {dest.relative_to(ROOT)})")
     assert not broken, f"{doc.relative_to(ROOT)}: broken links: {broken}"
+
+
+def test_readme_states_the_bad_input_catalogue_size():
+    """The README's count of catalogued bad inputs is the catalogue's (collected, not guessed)."""
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+                          str(ROOT / "tests" / "test_bad_input.py")], capture_output=True, text=True, cwd=ROOT)
+    cases = sum(1 for line in out.stdout.splitlines() if "::test_" in line and "catalogue_holds" not in line
+                and "good_pickle" not in line)
+    stated = re.search(r"catalogue of (\d+) bad inputs", " ".join(README.read_text().split()))
+    assert stated and int(stated.group(1)) == cases, (stated and stated.group(0), cases)

@@ -100,6 +100,25 @@ def test_absolute_timestamps_give_the_outputs_of_relative_ones(onnx_path, frames
         m.run(frames[0], 1e9 + np.array([0.0, 0.2, 0.1]))
 
 
+def test_ros_epoch_stamps_straight_from_a_bag(onnx_path, frames, tmp_path):
+    """Scans and header stamps read from a ROS bag go to the runtime as they come: the outputs are
+    bitwise those of the same window with relative stamps."""
+    from test_readers import ROS1, pointcloud2, write_bag
+    stamps = [(1732500000, 123456789 + 100_000_000 * k) for k in range(3)]
+    clouds = [pointcloud2(ROS1, st, {c: f[:, i] for i, c in enumerate(("x", "y", "z", "v_r", "rcs"))})
+              for st, f in zip(stamps, frames[0])]
+    bag = write_bag(tmp_path / "drive.bag", True, {"/radar": ("sensor_msgs/msg/PointCloud2", clouds)})
+    from radaredge.data.readers import read_rosbag
+    read = read_rosbag(bag, "/radar", ["x", "y", "z", "v_r", "rcs"])
+    t = np.array([s for s, _ in read])
+    scans = [a for _, a in read]
+    assert t[0] > 1.7e9
+    m = runtime.load(onnx_path)
+    out, rel = m.run(scans, t), m.run(scans, t - t[0])
+    for k in out:
+        np.testing.assert_array_equal(out[k], rel[k], err_msg=k)
+
+
 def test_empty_frames_are_valid_input(onnx_path, frames):
     m = runtime.load(onnx_path)
     out = m.run([np.zeros((0, 5), np.float32), frames[0][1], np.zeros((0, 5), np.float32)])

@@ -98,12 +98,15 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
     if feats[:3] != ["x", "y", "z"]:
         raise ConfigError(f"{where}: features must start with x, y, z (radar frame, metres); got {feats[:3]}")
     if len(set(feats)) != len(feats):
-        raise ConfigError(f"{where}: duplicate feature names in {feats}")
+        raise ConfigError(f"{where}: features: duplicate column names in {feats}")
     for key in ("name", "description", "model"):
         if not isinstance(data[key], str) or not data[key]:
             raise ConfigError(f"{where}: {key} must be a non-empty string, got {data[key]!r}")
     for key, (rng, integral) in TOP_LEVEL_NUMBERS.items():
         if key in data:
+            if isinstance(data[key], (list, tuple, dict)):
+                raise ConfigError(f"{where}: {key}: expected {'an integer' if integral else 'a number'} in {rng}, "
+                                  f"got {data[key]!r}")
             check_numbers(data[key], rng, integral, f"{where}: {key}")
     classes = data.get("classes", [])
     if not isinstance(classes, list) or not all(isinstance(c, str) and c for c in classes):

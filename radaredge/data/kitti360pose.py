@@ -1,6 +1,7 @@
 """KITTI360Pose reader (Text2Loc's ``cells/<scene>.pkl`` and ``poses/<scene>.pkl``), safely.
 
-The dataset ships Python pickles of Text2Loc's classes (``datapreparation.kitti360pose.imports``:
+The dataset ships Python pickles of Text2Loc's classes (``datapreparation.kitti360pose.imports``,
+or its older path ``datapreparation.kitti360.imports``, which Text2Loc maps onto it:
 ``Cell``, ``Object3d``, ``Pose``, ``DescriptionPoseCell``, ``DescriptionBestCell``) holding numpy
 arrays. Unpickling can execute arbitrary code, so :class:`RestrictedUnpickler` resolves only
 those class names (to plain stand-ins that receive the attributes) and the few numpy / copyreg
@@ -28,6 +29,8 @@ import numpy as np
 from ..errors import InputError
 
 TEXT2LOC_MODULE = "datapreparation.kitti360pose.imports"
+# Text2Loc maps this older module path onto the one above for data generated before a rename.
+TEXT2LOC_OLD_MODULE = "datapreparation.kitti360.imports"
 
 
 class _Record:
@@ -46,21 +49,28 @@ _CLASSES = {name: type(name, (_Record,), {}) for name in
 
 
 def _numpy_globals() -> dict:
+    """Array reconstruction by both of numpy's module paths: pickles written under numpy 1 name
+    ``numpy.core``, under numpy 2 ``numpy._core``; either resolves to this numpy's functions."""
     import copyreg
+    import importlib
+    core = "numpy._core" if hasattr(np, "_core") else "numpy.core"
+    multiarray = importlib.import_module(f"{core}.multiarray")
+    numeric = importlib.import_module(f"{core}.numeric")
     out = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype,
            ("copyreg", "_reconstructor"): copyreg._reconstructor, ("builtins", "object"): object}
     for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
-        out[(mod, "_reconstruct")] = np._core.multiarray._reconstruct
-        out[(mod, "scalar")] = np._core.multiarray.scalar
+        out[(mod, "_reconstruct")] = multiarray._reconstruct
+        out[(mod, "scalar")] = multiarray.scalar
     for mod in ("numpy.core.numeric", "numpy._core.numeric"):
-        out[(mod, "_frombuffer")] = np._core.numeric._frombuffer
+        out[(mod, "_frombuffer")] = numeric._frombuffer
     return out
 
 
 class RestrictedUnpickler(pickle.Unpickler):
     """Resolves only Text2Loc's data classes and numpy's array reconstruction."""
 
-    allowed = {**{(TEXT2LOC_MODULE, n): c for n, c in _CLASSES.items()}, **_numpy_globals()}
+    allowed = {**{(module, n): c for module in (TEXT2LOC_MODULE, TEXT2LOC_OLD_MODULE) for n, c in _CLASSES.items()},
+               **_numpy_globals()}
 
     def find_class(self, module, name):
         try:
@@ -89,6 +99,33 @@ def _get(obj, attr: str, where: str):
     return getattr(obj, attr)
 
 
+def _text(obj, attr: str, where: str) -> str:
+    """A text field (ids, labels, names): a str, or a number written as one."""
+    value = _get(obj, attr, where)
+    if not isinstance(value, (str, int, np.integer, np.str_)) or isinstance(value, bool):
+        raise InputError(f"{where}: {attr} must be text, got {type(value).__name__}")
+    return str(value)
+
+
+def _array(obj, attr: str, where: str, shape: tuple) -> np.ndarray:
+    """A finite float64 array field whose shape matches ``shape`` (None: any length)."""
+    value = _get(obj, attr, where)
+    try:
+        arr = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: {attr} must be numbers of shape {_shape_text(shape)}, got "
+                         f"{type(value).__name__}") from None
+    if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)) \
+            or not np.isfinite(arr).all():
+        raise InputError(f"{where}: {attr} must be finite numbers of shape {_shape_text(shape)}, got shape "
+                         f"{arr.shape}" + ("" if np.isfinite(arr).all() else " with NaN/Inf"))
+    return arr
+
+
+def _shape_text(shape: tuple) -> str:
+    return "[" + ", ".join("N" if s is None else str(s) for s in shape) + "]"
+
+
 def hint_text(description) -> str:
     """Text2Loc's rendering of one hint."""
     return (f"The pose is {description.direction} of a {description.object_color_text} "
@@ -105,14 +142,22 @@ def read_cells(path: str | Path) -> list[dict]:
     raw = []
     for i, c in enumerate(cells):
         where = f"{path}: cell {i}"
-        cid = str(_get(c, "id", where))
-        bbox = np.asarray(_get(c, "bbox_w", where), np.float64)
-        if bbox.shape != (6,):
-            raise InputError(f"{path}: cell {cid}: bbox_w must hold 6 values, got shape {bbox.shape}")
-        objs = [{"xyz": _get(o, "xyz", f"{path}: cell {cid}, object {j}"), "rgb": _get(o, "rgb", cid),
-                 "label": str(_get(o, "label", cid))} for j, o in enumerate(_get(c, "objects", where))]
-        raw.append({"id": cid, "scene": str(_get(c, "scene_name", where)), "origin": bbox[:2],
-                    "size": float(_get(c, "cell_size", where)), "objects": objs})
+        cid = _text(c, "id", where)
+        where = f"{path}: cell {cid}"
+        bbox = _array(c, "bbox_w", where, (6,))
+        size = _array(c, "cell_size", where, ())
+        if size <= 0:
+            raise InputError(f"{where}: cell_size must be > 0 m, got {float(size)!r}")
+        objects = _get(c, "objects", where)
+        if not isinstance(objects, (list, tuple)):
+            raise InputError(f"{where}: objects must be a list, got {type(objects).__name__}")
+        objs = []
+        for j, o in enumerate(objects):
+            at = f"{where}, object {j}"
+            xyz = _array(o, "xyz", at, (None, 3))
+            objs.append({"xyz": xyz, "rgb": _array(o, "rgb", at, (len(xyz), 3)), "label": _text(o, "label", at)})
+        raw.append({"id": cid, "scene": _text(c, "scene_name", where), "origin": bbox[:2], "size": float(size),
+                    "objects": objs})
     return raw
 
 
@@ -122,9 +167,22 @@ def read_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     poses = read_pickle(path)
     if not isinstance(poses, list):
         raise InputError(f"{path}: expected a list of poses, got {type(poses).__name__}")
-    pose_w = np.array([np.asarray(_get(p, "pose_w", f"{path}: pose {i}"), np.float64)[:2]
-                       for i, p in enumerate(poses)]).reshape(-1, 2)
-    pose_cell = np.array([str(_get(p, "cell_id", str(path))) for p in poses], dtype=str)
-    pose_text = np.array([" ".join(hint_text(d) for d in _get(p, "descriptions", str(path))) for p in poses],
-                         dtype=str)
-    return pose_w, pose_cell, pose_text
+    pose_w, pose_cell, pose_text = [], [], []
+    for i, p in enumerate(poses):
+        where = f"{path}: pose {i}"
+        pose_w.append(_array(p, "pose_w", where, (None,))[:2])
+        if len(pose_w[-1]) != 2:
+            raise InputError(f"{where}: pose_w must hold x, y (and z) in m, got {len(pose_w[-1])} value(s)")
+        pose_cell.append(_text(p, "cell_id", where))
+        descriptions = _get(p, "descriptions", where)
+        if not isinstance(descriptions, (list, tuple)):
+            raise InputError(f"{where}: descriptions must be a list, got {type(descriptions).__name__}")
+        hints = []
+        for j, d in enumerate(descriptions):
+            at = f"{where}, description {j}"
+            for attr in ("direction", "object_color_text", "object_label"):
+                _text(d, attr, at)
+            hints.append(hint_text(d))
+        pose_text.append(" ".join(hints))
+    return (np.array(pose_w, np.float64).reshape(-1, 2), np.array(pose_cell, dtype=str),
+            np.array(pose_text, dtype=str))

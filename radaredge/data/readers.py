@@ -403,8 +403,13 @@ def iter_rosbag(path: str | os.PathLike, topic: str, features: Sequence[str],
                 msg = reader.deserialize(raw, connection.msgtype)
                 decode = _DECODERS[connection.msgtype]
                 yield _stamp_seconds(msg), decode(msg, features, field_map, f"{path}: topic {topic!r}")
+    except InputError:
+        raise
     except AnyReaderError as exc:
         raise InputError(f"{path}: cannot read the ROS bag: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - a damaged bag fails anywhere inside rosbags' parsers
+        raise InputError(f"{path}: cannot read the ROS bag, it is damaged or not a bag "
+                         f"({type(exc).__name__}: {str(exc)[:200]})") from exc
 
 
 def read_rosbag(path: str | os.PathLike, topic: str, features: Sequence[str],

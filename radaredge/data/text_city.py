@@ -93,7 +93,9 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
     """The synthetic city as a :class:`CellMap` in the model's slot layout, with query poses.
     ConfigError for a city that cannot hold a cell (no objects, a world smaller than a cell)."""
     from ..errors import ConfigError
-    if objects < 1 or poses < 0 or not size <= world or stride <= 0:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
+    if not np.isfinite(world) or objects < 1 or poses < 0 or not size <= world or stride <= 0:
         raise ConfigError(f"a synthetic city needs objects >= 1, poses >= 0, a world edge >= the cell size "
                           f"({size:g} m) and a positive stride; got objects={objects}, poses={poses}, "
                           f"world={world:g} m, stride={stride:g} m")
@@ -137,7 +139,10 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
 def make_city_for_card(card, seed: int = 0, world: float = 90.0, objects: int = 70, poses: int = 40) -> CellMap:
     """:func:`make_city` in the layout of a Des4Pos ``card``: its object slots, points per object,
     cell size and stride (m), and descriptions of at most its ``text.max_hints`` hints."""
+    from ..errors import ConfigError
     from ..models.des4pos_config import CellConfig, TextConfig
+    if card.model != "des4pos":
+        raise ConfigError(f"{card.name} is a {card.model} card; a synthetic city is Des4Pos's map (--model des4pos)")
     c, t = card.section("cell", CellConfig), card.section("text", TextConfig)
     return make_city(c.max_objects, c.points_per_object, seed=seed, world=world, size=c.size, stride=c.stride,
                      objects=objects, poses=poses, max_hints=min(6, t.max_hints))

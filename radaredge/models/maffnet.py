@@ -110,10 +110,11 @@ class BackboneConfig:
     num_upsample_filters: tuple = (128, 128, 128)
 
     def __post_init__(self):
-        n = len(self.layer_nums)
-        if not (len(self.layer_strides) == len(self.num_filters) == len(self.upsample_strides)
-                == len(self.num_upsample_filters) == n):
-            raise ValueError("backbone_2d lists must all have the same length")
+        lengths = {f: len(getattr(self, f)) for f in ("layer_nums", "layer_strides", "num_filters",
+                                                        "upsample_strides", "num_upsample_filters")}
+        if len(set(lengths.values())) != 1 or not lengths["layer_nums"]:
+            raise ValueError(f"the lists {', '.join(f'{k} ({v})' for k, v in lengths.items())} must have one "
+                             f"length, one entry per backbone block (at least one)")
 
 
 @card_ranges(anchor_sizes=positive(1000.0), anchor_rotations=(-7.0, 7.0), anchor_bottom_heights=(-1000.0, 1000.0),

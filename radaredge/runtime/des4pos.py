@@ -247,6 +247,16 @@ def locate_description(directory: str | Path, map_path: str | Path, text: str, t
     ``cache``), the top-k cells retrieved, the fine stage's position in each. ``model``, when
     given, must be the export's card name (or ``des4pos``)."""
     import time
+    from .session import checked_threads
+    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+        raise ConfigError(f"--top-k: expected an integer >= 1 (candidate cells), got {top_k!r}")
+    checked_threads(threads)
+    if not Path(map_path).is_file():
+        raise InputError(f"--map: {map_path} does not exist; make one with `radaredge make-city` or pass a KITTI360Pose "
+                         f"cells/<scene>.pkl")
+    if not split_hints(text):
+        raise InputError("--text: the description is empty; give one or more sentences, e.g. "
+                         "\"The pose is north of a red car.\"")
     bundle = Des4PosBundle(directory, threads=threads,
                            text_encoder=Path(directory) / "text_encoder.int8.onnx" if int8_text else None)
     if bundle.card.model != "des4pos" or (model not in (None, "des4pos", bundle.card.name)):

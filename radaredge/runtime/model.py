@@ -55,7 +55,10 @@ class FrameFeeds:
         cols = len(self.features)
         out = []
         for k, f in enumerate(frames):
-            a = np.asarray(f)
+            try:
+                a = np.asarray(f)
+            except (ValueError, TypeError) as exc:
+                raise InputError(f"frame {k}: not an array of points ({str(exc).splitlines()[0][:120]})") from None
             if a.dtype.kind not in "fiu":
                 raise InputError(f"frame {k}: expected a numeric array of points, got dtype {a.dtype}")
             if a.ndim != 2 or a.shape[1] != cols:
