@@ -141,9 +141,11 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
                                       "--calibration-format": calibration_format,
                                       "--calibration-windows": calibration_windows})
     if calibration is not None:                 # a wrong recording fails before the export, not after it
-        from .calibration import DEFAULT_WINDOWS, check_recording
-        check_recording(calibration, len(spec.graph().frame_inputs(card)), calibration_windows or DEFAULT_WINDOWS,
-                        calibration_format)
+        from .calibration import DEFAULT_WINDOWS, recorded_feeds
+        from .runtime.model import FrameFeeds
+        graph = spec.graph()
+        recorded_feeds(FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input), calibration,
+                       calibration_windows or DEFAULT_WINDOWS, calibration_format)
     output = Path(output) if output is not None else default_output(card, spec)
     check_output(card, spec, output)
     check_writable_dir(output if spec.multi_graph else output.parent, "--output")   # before a long export

@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .cards import ModelCard
-from .data.sequences import RadarSequence, is_drive, load_sequence, window_positions, windows
+from .data.sequences import RadarSequence, is_drive, load_sequence, name_the_scan, window_positions, windows
 from .errors import ConfigError, InputError
 
 RECALL_NS = (1, 5, 10)
@@ -206,6 +206,11 @@ class WindowSet:
         t = seq.timestamps[frames]
         return [seq.scan(f, features) for f in frames], t - t[0]
 
+    def locate_error(self, i: int, message: str) -> str:
+        """``message`` about window ``i`` naming its scan's file (:func:`name_the_scan`)."""
+        row, frames = self.items[i]
+        return name_the_scan(self.sequences[row], frames, message)
+
     def window_info(self, i: int) -> dict:
         """Drive name, last frame, timestamp (s) and position (northing, easting m) of window ``i``."""
         drive, frames = self.items[i]
@@ -236,7 +241,10 @@ def describe_windows(window_set: WindowSet, features: Sequence[str], backend: Ba
     timestamps) returning a descriptor; ``progress`` optionally wraps the window loop."""
     descs = []
     for i in (progress or iter)(range(len(window_set))):
-        descs.append(np.asarray(backend(*window_set.inputs(i, features)), dtype=np.float32))
+        try:
+            descs.append(np.asarray(backend(*window_set.inputs(i, features)), dtype=np.float32))
+        except InputError as exc:
+            raise InputError(window_set.locate_error(i, str(exc))) from None
     return np.stack(descs)
 
 

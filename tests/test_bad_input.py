@@ -143,6 +143,17 @@ def files(tmp_path_factory, tiny_export):
     shutil.copytree(town / "database" / "drive-00", bingps / "drive-00")
     (bingps / "drive-00" / "gps.csv").write_bytes(np.random.default_rng(2).bytes(500))
     (d / "random.npz").write_bytes(np.random.default_rng(3).bytes(900))
+    cal = d / "recording"
+    cal.mkdir()
+    for i in range(6):
+        np.random.default_rng(i).normal(size=(40, 7)).astype("<f4").tofile(cal / f"{i:06d}.bin")
+    (cal / "000003.bin").write_bytes((cal / "000002.bin").read_bytes()[:50])
+    nan = d / "nan-town"
+    shutil.copytree(town, nan)
+    scan = nan / "queries" / "drive-01" / "scans" / "000003.npy"
+    values = np.load(scan)
+    values[2, 3] = np.nan
+    np.save(scan, values)
     return d
 
 
@@ -192,6 +203,10 @@ CLI = [
     ("export-calibration-format", ["export", "--model", "tdfanet", "--calibration-format", "x"], "--calibration-format"),
     ("export-calibration-missing", ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration",
                                     "{f}/nowhere"], "nowhere"),
+    ("export-calibration-truncated-scan", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
+                                           "--quantize", "int8", "--calibration", "{f}/recording", "--calibration-format",
+                                           "vod", "--calibration-windows", "4", "--output", "out/t.onnx"],
+     "recording/000003.bin: 50 bytes"),
     ("export-output-under-file", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output",
                                   "{f}/a-file/x.onnx"], "a-file"),
     ("export-config-missing", ["export", "--model", "x", "--config", "{f}/nowhere.yaml"], "nowhere.yaml"),
@@ -226,6 +241,9 @@ CLI = [
                          "--database", "{f}/binary-gps", "--queries", "{f}/town/queries"], "not a text CSV"),
     ("eval-other-town", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
                          "--database", "{f}/town/database", "--queries", "{f}/far-town/queries"], "within 5 m"),
+    ("eval-nan-in-a-scan", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
+                            "--database", "{f}/nan-town/database", "--queries", "{f}/nan-town/queries"],
+     "queries/drive-01/scans/000003.npy: non-finite value nan at point 2, column 'v_r'"),
     ("eval-radius-0", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
                        "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "0"], "radius"),
     ("eval-radius-nan", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",

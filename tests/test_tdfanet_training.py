@@ -286,6 +286,7 @@ def test_a_tiny_card_learns(card, tmp_path):
     ("no-gps", "gps.csv: no such file"),
     ("empty-scans", "no .npy scan files"),
     ("apart", "too few positives"),
+    ("nan", "scans/000004.npy: non-finite value nan at point 1, column 'rcs'"),
 ])
 def test_bad_training_data_is_one_error_line_naming_the_drive(tmp_path, damage, says):
     root = tmp_path / "data"
@@ -296,15 +297,21 @@ def test_bad_training_data_is_one_error_line_naming_the_drive(tmp_path, damage, 
     elif damage == "empty-scans":
         for f in (drive / "scans").iterdir():
             f.unlink()
+    elif damage == "nan":
+        values = np.load(drive / "scans" / "000004.npy")
+        values[1, 4] = np.nan
+        np.save(drive / "scans" / "000004.npy", values)
     else:
         lines = (drive / "gps.csv").read_text().splitlines()
         shifted = [lines[0]] + [",".join([r.split(",")[0], str(float(r.split(",")[1]) + 500.0), r.split(",")[2]])
                                 for r in lines[1:]]
         (drive / "gps.csv").write_text("\n".join(shifted) + "\n")
     res = _train(root, tmp_path / "run", 1)
-    assert res.exit_code == 2
-    lines = [line for line in res.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error:") and "drive-01" in lines[0] and says in lines[0], res.output
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    errors = [line for line in res.stderr.splitlines() if line.startswith("error:")]
+    last = res.stderr.strip().splitlines()[-1]      # progress lines may come first; the error ends the run
+    assert errors == [last] and "drive-01" in last and says in last, res.output
+    assert not (tmp_path / "run").exists()
 
 
 def test_transloc4d_layout_matches_rows_to_timestamp_named_files(tmp_path):

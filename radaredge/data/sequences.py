@@ -31,6 +31,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -218,6 +219,16 @@ def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> Radar
         raise InputError(f"{directory}: gps.csv has {len(timestamps)} rows but scans/ holds {len(paths)} "
                          f"{FILE_SUFFIX[fmt]} scan files; expected one row per scan")
     return RadarSequence(directory.name, paths, timestamps, positions, fmt)
+
+
+def name_the_scan(sequence: RadarSequence, frames: np.ndarray, message: str) -> str:
+    """An error ``message`` about one window (its frames ``frames`` of ``sequence``, oldest first)
+    with a leading "frame k:" (the window's k-th scan, as the runtime numbers it) replaced by
+    that scan's file, so the message names the drive and the file."""
+    m = re.match(r"frame (\d+): (.*)", message, re.S)
+    if m and int(m.group(1)) < len(frames):
+        return f"{sequence.scan_paths[frames[int(m.group(1))]]}: {m.group(2)}"
+    return f"{sequence.name}, window ending at frame {int(frames[-1])}: {message}"
 
 
 def _check_window(k: int) -> int:

@@ -36,7 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data.bag_drives import BagSource, is_bag, load_bag_sequence
-from ..data.sequences import RadarSequence, is_drive, load_sequence, windows
+from ..data.sequences import RadarSequence, is_drive, load_sequence, name_the_scan, windows
 from ..errors import InputError
 
 MAX_DEPTH = 4
@@ -98,6 +98,11 @@ class PlaceWindows:
         seq = self.sequences[row]
         t = seq.timestamps[frames]
         return [seq.scan(f, features) for f in frames], t - t[0]
+
+    def locate_error(self, i: int, message: str) -> str:
+        """``message`` about window ``i`` naming its scan's file (:func:`name_the_scan`)."""
+        row, frames = self.items[i]
+        return name_the_scan(self.sequences[row], frames, message)
 
     def distances(self, i: int, among: np.ndarray | None = None) -> np.ndarray:
         """Planar distance (m) from window ``i``'s place to every window (or to ``among``)."""

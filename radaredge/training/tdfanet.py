@@ -42,7 +42,7 @@ import torch.nn.functional as F
 
 from ..cards import ModelCard
 from ..config import card_ranges, check_numbers, field_range, positive, Range
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..data.bag_drives import BagSource
 from ..evaluation import RECALL_NS, recall_at_n
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
@@ -117,6 +117,12 @@ def prepare_windows(model, data: PlaceWindows, device: torch.device, progress=no
     with torch.no_grad():
         for i in range(len(data)):
             scans, t = data.inputs(i, model.features)
+            for k, scan in enumerate(scans):
+                bad = ~np.isfinite(scan)
+                if bad.any():
+                    point, column = (int(x[0]) for x in np.nonzero(bad))
+                    raise InputError(data.locate_error(i, f"frame {k}: non-finite value {scan[point, column]} at point "
+                                                          f"{point}, column {model.features[column]!r}"))
             out.append(model.prepare([torch.from_numpy(s).to(device) for s in scans],
                                      torch.as_tensor(t, dtype=torch.float32, device=device)))
             bar.update()
