@@ -198,7 +198,8 @@ class Tuple:
 
 
 class TupleMiner:
-    """Draws training tuples from :class:`PlaceWindows` (training windows only).
+    """Draws training tuples from :class:`PlaceWindows` (training windows only). The queries are
+    the training windows that have a positive and enough true negatives for a tuple.
 
     Positives: ``positives`` windows of other drives within ``positive_radius`` m, drawn at
     random (with repetition when fewer exist). Negatives: ``negatives`` windows beyond
@@ -214,10 +215,13 @@ class TupleMiner:
         self.pos_r, self.neg_r, self.pool = positive_radius, negative_radius, hard_pool
         self.train = np.flatnonzero(~data.validation)
         self.descriptors: np.ndarray | None = None
-        self.queries = np.array([i for i in self.train if len(self._positives(i))], dtype=np.int64)
+        # a query needs a positive and negatives + 1 true negatives (the negatives and neg*)
+        self.queries = np.array([i for i in self.train if len(self._positives(i))
+                                 and len(self._negatives(i)) > self.n], dtype=np.int64)
         if not len(self.queries):
-            raise InputError(f"{data.root}: no training window has a window of another training drive within "
-                             f"{positive_radius:g} m (too few positives); the drives share no place")
+            raise InputError(f"{data.root}: no training window has both a window of another training drive within "
+                             f"{positive_radius:g} m and {self.n + 1} training windows beyond {negative_radius:g} m; "
+                             f"the drives share no place, or cover too little ground for the negatives")
 
     def _positives(self, i: int) -> np.ndarray:
         d = self.data
