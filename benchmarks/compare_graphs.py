@@ -47,7 +47,7 @@ def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int 
     results = {r.backend: r for r in require_ok(benchmark(backends, cases, runs))}
     graphs = {str(p): onnx.load(str(p), load_external_data=False) for p in (a, b)}
     passes: dict[str, list[dict]] = {str(p): [] for p in (a, b)}
-    for _ in range(rounds):
+    for _ in range(rounds if spec.onnx_stages else 0):       # a card without stages: whole-graph times only
         for path in (a, b):
             events = profile_runs(path, cases, threads, len(cases))
             passes[str(path)].append(stage_times_from_profile(events, graphs[str(path)], list(spec.onnx_stages),
@@ -65,11 +65,11 @@ def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int 
 
 def table(result: dict) -> str:
     names = list(dict.fromkeys(k for g in result["graphs"] for k in g["stage_ms"]))
-    lines = ["| graph | p50 ms | p90 ms | " + " | ".join(names) + " |",
+    lines = ["| graph | p50 ms | p90 ms |" + "".join(f" {n} |" for n in names),
              "|---|---:|---:|" + "---:|" * len(names)]
     for g in result["graphs"]:
-        stages = " | ".join(f"{g['stage_ms'].get(k, 0.0):.1f}" for k in names)
-        lines.append(f"| {Path(g['onnx']).name} | {g['p50_ms']:.1f} | {g['p90_ms']:.1f} | {stages} |")
+        stages = "".join(f" {g['stage_ms'].get(k, 0.0):.1f} |" for k in names)
+        lines.append(f"| {Path(g['onnx']).name} | {g['p50_ms']:.1f} | {g['p90_ms']:.1f} |{stages}")
     return "\n".join(lines)
 
 

@@ -151,20 +151,37 @@ def list_cmd(as_json):
 
 @main.command()
 @click.argument("onnx_path", type=click.Path())
+@click.option("--targets", help="Also list what deployment targets do not support, comma-separated from "
+                                "onnxruntime, tensorrt, openvino, ort-mobile, or all (needs the export extra).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
-def inspect(onnx_path, as_json):
-    """Show an exported graph's (or a multi-graph export directory's) inputs, outputs, card and versions."""
+def inspect(onnx_path, targets, as_json):
+    """Show an exported graph's (or a multi-graph export directory's) inputs, outputs, card and versions;
+    with --targets, the ops a deployment target does not support (exit 1 when one does not)."""
     from .runtime import inspect_export
-    info = inspect_export(onnx_path)
+    chosen = ()
+    if targets is not None:
+        from .targets import parse_targets      # needs onnx (the export extra)
+        chosen = parse_targets(targets)
+    info = inspect_export(onnx_path, chosen)
     if as_json:
         click.echo(json.dumps(info, indent=2))
-        return
-    for i, graph in enumerate(info["graphs"]):
-        if i:
-            click.echo("")
-        for k, v in graph.items():
-            click.echo(f"{k:>15}: {v}")
+    else:
+        for i, graph in enumerate(info["graphs"]):
+            if i:
+                click.echo("")
+            for k, v in graph.items():
+                if k != "targets":
+                    click.echo(f"{k:>15}: {v}")
+            for target, found in graph.get("targets", {}).items():
+                bad = [f for f in found if f["level"] == "unsupported"]
+                click.echo(f"{'target ' + target:>15}: " + ("unsupported: " + "; ".join(
+                    f"{f['op']} x{f['count']} ({f['message']})" for f in bad) if bad else "parses") +
+                    "".join(f"\n{'':>17}note: {f['op']} x{f['count']}: {f['message']}" for f in found
+                            if f["level"] == "note"))
+    refused = any(f["level"] == "unsupported" for g in info["graphs"] for fs in g.get("targets", {}).values()
+                  for f in fs)
+    sys.exit(1 if refused else 0)
 
 
 @main.command()

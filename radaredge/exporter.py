@@ -26,6 +26,7 @@ from .cards import ModelCard
 from .errors import ConfigError, ExportError
 from .models.spec import GraphSpec, ModelSpec
 from .onnx_export import DEFAULT_OPSET, export_onnx
+from .runtime.flags import BITS as FLAG_BITS, OUTPUT as FLAGS_OUTPUT
 from .registry import model_spec
 from .runtime import RadarModel
 from .runtime.metadata import GraphMetadata
@@ -208,7 +209,9 @@ def graph_metadata(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: t
         output_names=graph.output_names(card), weights_sha256=weights_hash(module),
         versions={"radaredge": __version__, "torch": torch.__version__, "onnx": onnx.__version__,
                   "onnxruntime": onnxruntime.__version__, "opset": opset},
-        checks=list(spec.runtime_checks(card)), part=part, bundle_weights_sha256=bundle_hash)
+        checks=list(spec.runtime_checks(card)), part=part, bundle_weights_sha256=bundle_hash,
+        input_flags={str(bit): text for bit, text in FLAG_BITS.items()} if FLAGS_OUTPUT in graph.output_names(card)
+        else None)
 
 
 def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, output: str | Path,

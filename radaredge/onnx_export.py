@@ -99,8 +99,7 @@ def export_onnx(
         path.unlink(missing_ok=True)
         raise ExportError(f"opset {opset}: torch's exporter could not convert this graph to it and "
                           f"kept opset {actual}; export with --opset {actual} (radaredge's default is {DEFAULT_OPSET})")
-    if dynamic_axes:
-        _name_dynamic_dims(path, dynamic_axes)
+    _finish(path, dynamic_axes or {})
     return path
 
 
@@ -141,10 +140,47 @@ def _fill_size(node) -> int | None:
         return None
 
 
-def _name_dynamic_dims(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:
+def _finish(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:
+    """Rewrite the saved graph: our names for the dynamic dimensions, and no provenance."""
+    proto = onnx.load(str(path))
+    _name_dynamic_dims(proto, dynamic_axes)
+    strip_provenance(proto.graph)
+    onnx.save(proto, str(path))
+
+
+KEPT_NODE_METADATA = ("pkg.torch.onnx.name_scopes",)   # module paths: profiling and int8 read them
+
+
+def strip_provenance(graph: onnx.GraphProto) -> None:
+    """Drop what the exporter records about where each node came from (torch's stack traces
+    with the absolute paths of the installed sources, FX node text, class hierarchies), in
+    subgraphs too, and value and initializer metadata and doc strings. Each node keeps only its
+    module scopes (:data:`KEPT_NODE_METADATA`, e.g. ``model.dfa.0.attn``), which the per-stage
+    profile and int8's ``keep_fp32`` patterns read. The graph computes the same; exports of one
+    card and checkpoint become byte-identical wherever radaredge is installed."""
+    for node in graph.node:
+        kept = [(p.key, p.value) for p in node.metadata_props if p.key in KEPT_NODE_METADATA]
+        del node.metadata_props[:]
+        for key, value in kept:
+            node.metadata_props.add(key=key, value=value)
+        node.doc_string = ""
+        for attr in node.attribute:
+            if attr.type == onnx.AttributeProto.GRAPH:
+                strip_provenance(attr.g)
+            for sub in attr.graphs:
+                strip_provenance(sub)
+    for info in list(graph.value_info) + list(graph.input) + list(graph.output):
+        del info.metadata_props[:]
+        info.doc_string = ""
+    for init in graph.initializer:
+        del init.metadata_props[:]
+        init.doc_string = ""
+    del graph.metadata_props[:]
+
+
+def _name_dynamic_dims(proto: onnx.ModelProto, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:
     """Replace the exporter's generic symbols (s0, s1, ...) by our names (num_points_0, ...)
     everywhere in the graph, so the signature reads as the card documents it."""
-    proto = onnx.load(str(path))
     rename: dict[str, str] = {}
     for inp in proto.graph.input:
         dims = inp.type.tensor_type.shape.dim
@@ -155,4 +191,3 @@ def _name_dynamic_dims(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]
         for dim in info.type.tensor_type.shape.dim:
             if dim.dim_param in rename:
                 dim.dim_param = rename[dim.dim_param]
-    onnx.save(proto, str(path))

@@ -1,11 +1,14 @@
 """The one exporter entry point: its constant-folding policy keeps tensor generators out of the file."""
 
+import os
+from pathlib import Path
+
 import numpy as np
 import onnx
 import torch
 from torch import nn
 
-from conftest import assert_close
+from conftest import TINY_CARD, assert_close
 
 CELLS = 30000      # 30000 x 8 = 240k floats: under the optimiser's 262144-element folding limit
 
@@ -78,3 +81,29 @@ def test_the_graph_has_the_opset_asked_for_or_none_is_written(tmp_path):
     assert res.exit_code == 2
     assert "error: opset 17: torch's exporter could not convert this graph to it and kept opset 18" in res.output
     assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_exports_are_byte_identical_across_install_locations(tmp_path):
+    """Two copies of radaredge in two directories export one card to the same bytes: no absolute
+    path, stack trace or other provenance stays in the graph."""
+    import hashlib
+    import shutil
+    import subprocess
+    import sys
+
+    import radaredge
+    digests = []
+    for where in ("one", "two/deeper"):
+        src = tmp_path / where / "src"
+        shutil.copytree(Path(radaredge.__file__).parent, src / "radaredge",
+                        ignore=shutil.ignore_patterns("__pycache__"))
+        out = tmp_path / where / "tiny.onnx"
+        code = "import sys; from radaredge.cli import main; sys.exit(main())"
+        subprocess.run([sys.executable, "-c", code, "export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
+                        "--output", str(out)], check=True, capture_output=True, cwd=tmp_path / where,
+                       env={**os.environ, "PYTHONPATH": str(src)})
+        digests.append(hashlib.sha256(out.read_bytes()).hexdigest())
+        proto = onnx.load(str(out))
+        assert {p.key for n in proto.graph.node for p in n.metadata_props} <= {"pkg.torch.onnx.name_scopes"}
+        assert str(tmp_path).encode() not in out.read_bytes()
+    assert digests[0] == digests[1]

@@ -45,7 +45,9 @@ from ..ops.dbscan import DbscanConfig, cqca_cfa_map, cqca_cfa_map_reference
 from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
 from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
-from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_features_reference, scatter_pillars_reference
+from ..ops.input_flags import frame_flags, frame_flags_reference
+from ..ops.pillars import (PillarConfig, PillarFeatureNet, outside_grid, pillar_features_reference,
+                           point_drops_reference, scatter_pillars_reference)
 from . import maffnet_rcnn as two
 from .maffnet_fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
 
@@ -53,10 +55,10 @@ from .maffnet_fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
 # ----------------------------------------------------------------------------- configuration
 
 
-@card_ranges(capacity=(1, 2**20))
+@card_ranges(capacity=(1, 3839))
 @dataclass(frozen=True)
 class SpaConfig:
-    """Card section ``spa``."""
+    """Card section ``spa``. The capacity is a TopK's K in the graph, which TensorRT caps below 3840."""
 
     enabled: bool = True          # upstream IS_SPA
     capacity: int = 1024          # pillar slots of the exported attention; more pillars are reported
@@ -324,6 +326,7 @@ class MAFFNet(nn.Module):
             raise ConfigError(f"{section} is {rows} x {cols} cells but the pillar grid is {ny} x {nx}")
         self.features, self.classes = list(features), list(classes)
         self.velocity_index = features.index(cfa.velocity_feature)
+        self.cfa_method = "dbscan" if isinstance(grid, DbscanConfig) else "grid_density"
         self.spa_config, self.head_config, self.nms_config = spa, head, nms
         self.vfe = PillarFeatureNet(len(features), pillars)
         self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
@@ -358,13 +361,15 @@ class MAFFNet(nn.Module):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
 
     # -- stages ---------------------------------------------------------------------
-    def pillar_stage(self, points: torch.Tensor, reference: bool):
-        """VFE + SPA: (canvas [C, ny, nx], num_pillars [] int64, overflow [] bool)."""
+    def pillar_stage(self, points: torch.Tensor, reference: bool, drops: dict | None = None):
+        """VFE + SPA: (canvas [C, ny, nx], num_pillars [] int64, overflow [] bool); ``drops``
+        receives the export formulation's left-out points (:meth:`PillarFeatureNet.scatter_frames`)."""
         if not reference:
-            canvas, occupied = self.vfe.scatter(points, torch.ones(points.shape[0], dtype=torch.bool))
+            canvas, occupied = self.vfe.scatter(points, torch.ones(points.shape[0], dtype=torch.bool,
+                                                                   device=points.device), drops)
             if self.map_to_bev_module is None:
                 num = occupied.sum()
-                return canvas, num, torch.zeros((), dtype=torch.bool)
+                return canvas, num, torch.zeros((), dtype=torch.bool, device=points.device)
             return self.map_to_bev_module(canvas, occupied, points.shape[0])
         cfg = self.vfe.config
         nx, ny, _ = cfg.grid_size
@@ -388,6 +393,22 @@ class MAFFNet(nn.Module):
         cfa = self.image_backbone
         bev, mask, converged = cfa.reference(xyv, scan) if reference else cfa(xyv, scan)
         return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged, mask
+
+    def input_flags(self, points: torch.Tensor, reference: bool, drops: dict, overflow: torch.Tensor,
+                    converged: torch.Tensor) -> torch.Tensor:
+        """int32 [1]: :mod:`radaredge.runtime.flags` of the scan. A DBSCAN map that did not converge
+        left points beyond its capacity out (``capacity``); a GridDensityBEV map stopped its
+        components short (``not_converged``)."""
+        dbscan = self.cfa_method == "dbscan"
+        capacity = overflow | (~converged if dbscan else torch.zeros_like(converged))
+        not_converged = torch.zeros_like(converged) if dbscan else ~converged
+        cfg = self.vfe.config
+        if reference:
+            outside, full = point_drops_reference(points.numpy(), cfg)
+            return frame_flags_reference([points.numpy()], None, [outside], [full], capacity.numpy(),
+                                         not_converged.numpy())
+        frame = torch.zeros(points.shape[0], dtype=torch.int64, device=points.device)
+        return frame_flags(points, frame, 1, None, outside_grid(points, cfg), drops["full"], capacity, not_converged)
 
     def head_stage(self, fused: torch.Tensor):
         """Backbone + head + decoding: (class logits [A, classes], boxes [A, 7])."""
@@ -414,7 +435,8 @@ class MAFFNet(nn.Module):
 
     def run(self, points: torch.Tensor, reference: bool = False, trace: dict | None = None) -> dict[str, torch.Tensor]:
         """Both formulations; ``trace`` (a dict) receives intermediates for divergence reports."""
-        pillar, num_pillars, overflow = self.pillar_stage(points, reference)
+        drops: dict = {}
+        pillar, num_pillars, overflow = self.pillar_stage(points, reference, drops)
         cfa, cfa_map, converged, cluster = self.cfa_stage(points, reference)
         fused = self.fuser(pillar.unsqueeze(0), cfa)
         logits, boxes = self.head_stage(fused)
@@ -422,7 +444,7 @@ class MAFFNet(nn.Module):
         if trace is not None:
             trace.update(pillar_bev=pillar, cfa_map=cfa_map, cfa_features=cfa, fused=fused)
         out = {"anchor_scores": scores, "anchor_boxes": boxes, "num_pillars": num_pillars, "spa_overflow": overflow,
-               "cfa_converged": converged}
+               "cfa_converged": converged, "input_flags": self.input_flags(points, reference, drops, overflow, converged)}
         if self.stage_two_config is None:
             out["boxes"], out["scores"], out["labels"] = self.postprocess(scores, boxes, reference)
         else:
@@ -461,7 +483,7 @@ def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[s
 
 
 OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "num_pillars", "spa_overflow",
-                "cfa_converged")
+                "cfa_converged", "input_flags")
 
 
 def output_names(stage_two: bool) -> tuple[str, ...]:

@@ -141,6 +141,7 @@ def _comparators(stage_two: bool = False) -> tuple[Comparator, ...]:
         "num_pillars": Exact("num_pillars"),
         "spa_overflow": Exact("spa_overflow"),
         "cfa_converged": Exact("cfa_converged"),
+        "input_flags": Exact("input_flags"),
         # stage two (cards with ``stage_two``): rois as decoded by stage one, hence its tolerance
         "rois": Dense("rois", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, **angle),
         "roi_labels": Exact("roi_labels"),

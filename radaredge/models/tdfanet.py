@@ -39,7 +39,8 @@ from ..ops.alignment import BevGrid, align_bev, align_bev_reference, grid_displa
 from ..ops.deform_attn import MSDeformAttn
 from ..ops.ego_velocity import EgoVelocityRansac, RansacConfig, estimate_ego_velocity_reference
 from ..ops.gem import GeM
-from ..ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference
+from ..ops.input_flags import frame_flags, frame_flags_reference
+from ..ops.pillars import PillarConfig, PillarFeatureNet, outside_grid, pillar_scatter_reference, point_drops_reference
 from ..ops.scan_batch import concat_scans
 
 
@@ -224,10 +225,12 @@ class TDFANet(nn.Module):
             cells = torch.zeros_like(cells)
         return PreparedWindow(pts, frame, keep, cells, v_ego, ok)
 
-    def describe(self, windows: Sequence[PreparedWindow], trace: dict | None = None) -> torch.Tensor:
+    def describe(self, windows: Sequence[PreparedWindow], trace: dict | None = None,
+                 drops: dict | None = None) -> torch.Tensor:
         """Descriptors [B, D] (before L2 normalisation) of B prepared windows in one batched pass:
         one pillar scatter over their B*K scans, then the aggregation. In train mode BatchNorm
-        takes its statistics over the whole batch, as a batch of tuples trains."""
+        takes its statistics over the whole batch, as a batch of tuples trains. ``drops`` receives
+        the pillar scatter's left-out points (:meth:`PillarFeatureNet.scatter_frames`)."""
         if len(windows) == 1:
             w = windows[0]
             pts, frame, keep, cells = w.points, w.frame, w.keep, w.cells
@@ -236,7 +239,7 @@ class TDFANet(nn.Module):
             frame = torch.cat([w.frame + i * self.frames for i, w in enumerate(windows)])
             keep = torch.cat([w.keep for w in windows])
             cells = torch.cat([w.cells for w in windows])
-        bev = self.vfe.scatter_frames(pts, keep, frame, len(windows) * self.frames)[0]
+        bev = self.vfe.scatter_frames(pts, keep, frame, len(windows) * self.frames, drops)[0]
         if trace is not None:
             trace["bev"] = bev
         return self.aggregate(bev, cells, False, trace)
@@ -244,16 +247,18 @@ class TDFANet(nn.Module):
     # -- the two formulations --------------------------------------------------------------
     def forward(self, *inputs: torch.Tensor):
         """Export formulation: (points_0 [N0, F], ..., points_{K-1} [N, F], timestamps [K] s) ->
-        (descriptor [D], descriptor_normalized [D], ego_velocity [K, 3] m/s, ego_valid [K] bool)."""
+        (descriptor [D], descriptor_normalized [D], ego_velocity [K, 3] m/s, ego_valid [K] bool,
+        input_flags [K] int32, :mod:`radaredge.ops.input_flags`)."""
         out = self.run(list(inputs[: self.frames]), inputs[self.frames])
-        return out["descriptor"], out["descriptor_normalized"], out["ego_velocity"], out["ego_valid"]
+        return out["descriptor"], out["descriptor_normalized"], out["ego_velocity"], out["ego_valid"], out["input_flags"]
 
     def run(self, frames: list[torch.Tensor], timestamps: torch.Tensor, reference: bool = False,
             trace: dict | None = None) -> dict[str, torch.Tensor]:
         """Both formulations: ``reference=True`` uses the reference ops. Returns named outputs;
         ``trace`` (a dict) receives intermediate tensors for divergence reports."""
+        cfg = self.vfe.config
         if reference:
-            vels, valids, bevs = [], [], []
+            vels, valids, bevs, outside, full = [], [], [], [], []
             for pts in frames:
                 v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, self.v_column].numpy(),
                                                                 self.ransac.config)
@@ -261,15 +266,21 @@ class TDFANet(nn.Module):
                 valids.append(torch.tensor(ok))
                 keep = static if self.net_config.remove_dynamic else None
                 bevs.append(pillar_scatter_reference(self.vfe, pts.numpy(), keep))
+                outside.append(point_drops_reference(pts.numpy(), cfg)[0])
+                full.append(point_drops_reference(pts.numpy(), cfg, keep)[1])
             v_ego, ok, bev = torch.stack(vels), torch.stack(valids), torch.stack(bevs)
-            cells = grid_displacement(v_ego, self.vfe.config.voxel_size, timestamps=timestamps)
+            cells = grid_displacement(v_ego, cfg.voxel_size, timestamps=timestamps)
             if trace is not None:
                 trace["bev"] = bev
             desc = self.aggregate(bev, cells, True, trace)[0]
+            flags = frame_flags_reference([f.numpy() for f in frames], timestamps.numpy(), outside, full)
         else:
             prepared = self.prepare(frames, timestamps)
             v_ego, ok = prepared.ego_velocity, prepared.ego_valid
-            desc = self.describe([prepared], trace)[0]
+            drops: dict = {}
+            desc = self.describe([prepared], trace, drops)[0]
+            flags = frame_flags(prepared.points, prepared.frame, len(frames), timestamps,
+                                outside_grid(prepared.points, cfg), drops["full"])
         if trace is not None:
             trace["ego_velocity"] = v_ego
         return {
@@ -277,6 +288,7 @@ class TDFANet(nn.Module):
             "descriptor_normalized": desc / torch.clamp(torch.linalg.vector_norm(desc), min=1e-12),
             "ego_velocity": v_ego,
             "ego_valid": ok,
+            "input_flags": flags,
         }
 
 

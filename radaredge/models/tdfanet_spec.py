@@ -122,6 +122,7 @@ OUTPUTS = (
     Descriptor("descriptor_normalized", min_cosine=0.9999),
     Dense("ego_velocity", unit="m/s", atol=1e-4, rtol=0.0),
     Exact("ego_valid"),
+    Exact("input_flags"),
 )
 
 TDFANET_SPEC = ModelSpec(

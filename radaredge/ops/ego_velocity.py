@@ -262,15 +262,19 @@ class EgoVelocityRansac(nn.Module):
         member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)   # [K, N]
         own_eligible = eligible.unsqueeze(0) & member                          # [K, N]
 
-        # Indices of eligible points in input order: the sort key puts them first, stably, so
-        # scan k's eligible points (scans are concatenated in order) start at the number of
-        # eligible points of the scans before it.
+        # Indices of eligible points in input order, without a sort (TensorRT's TopK stops at
+        # K = 3839): each eligible point's rank among them (a float32 CumSum, exact below 2**24
+        # points) is where its index is written; the rest write to a spare slot. Scan k's
+        # eligible points (scans are concatenated in order) start at the number of eligible
+        # points of the scans before it.
         n = xyz.shape[0]
         pos = torch.arange(n, dtype=torch.int64, device=dev)
-        key = torch.where(eligible, pos, pos + n)
-        order = torch.topk(key, n, largest=False, sorted=True).indices
+        rank = (torch.cumsum(eligible.to(torch.float32), 0) - 1.0).to(torch.int64)
+        slot = torch.where(eligible, rank, torch.full_like(rank, n))
+        order = torch.zeros(n + 1, dtype=torch.int64, device=dev).scatter(0, slot, pos)[:n]
         n_elig = own_eligible.long().sum(1)                                    # [K]
-        first = torch.cumsum(n_elig, 0) - n_elig                               # [K]
+        counts = n_elig.to(torch.float32)
+        first = (torch.cumsum(counts, 0) - counts).to(torch.int64)             # [K]
         sample = order[first.view(-1, 1, 1) + self._ranks(n_elig)]             # [K, H, 3]
 
         rows = dirs[sample]                                                    # [K, H, 3, 3]

@@ -116,8 +116,9 @@ class GridDensityBEV(nn.Module):
         cell = torch.where(inside, grid[:, 1] * w + grid[:, 0], h * w)        # h*w = dropped
 
         weight = inside.to(torch.float32)
-        count = torch.zeros(h * w + 1).index_add(0, cell, weight)[: h * w].view(h, w)
-        vel_sum = torch.zeros(h * w + 1).index_add(0, cell, points[:, 2] * weight)[: h * w].view(h, w)
+        zeros = torch.zeros(h * w + 1, device=cell.device)
+        count = zeros.scatter_add(0, cell, weight)[: h * w].view(h, w)
+        vel_sum = zeros.scatter_add(0, cell, points[:, 2] * weight)[: h * w].view(h, w)
         pad = cfg.kernel_size // 2
         density = F.conv2d(count.view(1, 1, h, w), self.density_kernel, padding=pad).view(h, w)
         keep = (density >= cfg.min_density) & (density <= cfg.max_density)

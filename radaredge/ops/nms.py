@@ -32,6 +32,7 @@ import torch
 
 from .box_iou import bev_iou_paired, bev_iou_reference
 from .loops import fixed_point_loop
+from .topk import topk_indices
 from ..config import card_ranges
 
 
@@ -107,7 +108,7 @@ def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsCon
     step = 2.0 ** -26 * max(config.score_thresh, 1e-3) / max(a, 1)
     key = torch.where(above, scores.to(torch.float64), torch.full_like(scores, -1.0, dtype=torch.float64))
     key = key - torch.arange(a, dtype=torch.float64) * step
-    order = torch.topk(key, min(config.pre_max, a)).indices
+    order = topk_indices(key, min(config.pre_max, a))
     # The boxes above the threshold come first in ``order``; keep only them (n, data-dependent)
     # plus 8 invalid padding rows, so the K x K work is (n + 8)^2 rather than pre_max^2.
     order = order[torch.nonzero(above[order]).squeeze(1)]                      # [n]

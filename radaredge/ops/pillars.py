@@ -32,6 +32,7 @@ from torch import nn
 
 from ..config import card_ranges, positive
 from ..errors import CapacityError
+from .loops import fixed_point_loop
 
 
 MAX_GRID_CELLS = 2**22     # BEV cells (x * y * z) a card may ask for: 4.2 M, 64 channels = 1 GiB float32
@@ -134,6 +135,14 @@ def _centre_offsets(xyz: torch.Tensor, coords: torch.Tensor, config: PillarConfi
     return xyz - (coords.to(torch.float32) * size + (size / 2 + lo))
 
 
+def outside_grid(points: torch.Tensor, config: PillarConfig) -> torch.Tensor:
+    """[N] bool: finite points whose voxel lies outside the grid (the points every formulation drops)."""
+    finite = torch.isfinite(points).all(1)
+    coords = _voxel_coords(torch.where(finite.unsqueeze(1), points, torch.zeros_like(points))[:, :3], config)
+    size = torch.tensor(config.grid_size, dtype=torch.int64, device=points.device)
+    return finite & ~((coords >= 0) & (coords < size)).all(1)
+
+
 class PillarFeatureNet(nn.Module):
     """Export formulation: fixed-shape pillar encoding of one scan for any N (dynamic axis).
 
@@ -154,18 +163,55 @@ class PillarFeatureNet(nn.Module):
     def forward(self, points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         return self.scatter(points, valid)[0]
 
-    def scatter(self, points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(canvas [C, ny, nx], occupied [ny * nx] bool: the pillar holds at least one kept point)."""
-        canvas, occupied = self.scatter_frames(points, valid, None, 1)
+    def scatter(self, points: torch.Tensor, valid: torch.Tensor, drops: dict | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(canvas [C, ny, nx], occupied [ny * nx] bool: the pillar holds at least one kept point);
+        ``drops`` as in :meth:`scatter_frames`."""
+        canvas, occupied = self.scatter_frames(points, valid, None, 1, drops)
         return canvas[0], occupied[0]
 
+    def _first_points(self, cell: torch.Tensor, inside: torch.Tensor, spare: int) -> torch.Tensor:
+        """[N] bool: the points among the first ``max_points_per_pillar`` of their pillar in input
+        order (``cell`` [N] int64, points not ``inside`` in the ``spare`` cell).
+
+        Without a sort (TensorRT's TopK stops at K = 3839): a pillar holding at most
+        ``max_points_per_pillar`` points keeps them all; in a fuller pillar the earliest remaining
+        point is peeled off ``max_points_per_pillar`` times (a scatter-min per peel, over the
+        pillars labelled by the index of their first point), and a point survives the peels
+        exactly when that many points of its pillar come before it. The peels are one ONNX Loop
+        that runs no round at all for a scan without full pillars, the usual radar scan."""
+        n = cell.shape[0]
+        dev = cell.device
+        cap = self.config.max_points_per_pillar
+        pos = torch.arange(n, dtype=torch.int64, device=dev)
+        first = torch.full((spare + 1,), n, dtype=torch.int64, device=dev).scatter_reduce(
+            0, cell, pos, reduce="amin", include_self=True)
+        label = first[cell]                                             # [N] in [0, N): the pillar's id
+        held = torch.zeros(n + 1, dtype=torch.float32, device=dev).scatter_add(0, label, inside.to(torch.float32))
+        crowded = inside & (held[label] > cap)
+        none = torch.full((n + 1,), n, dtype=torch.int64, device=dev)
+
+        def more(rounds, remaining, keep):
+            return (rounds < cap) & remaining.any()
+
+        def peel(rounds, remaining, keep):
+            head = none.scatter_reduce(0, torch.where(remaining, label, n), torch.where(remaining, pos, n),
+                                       reduce="amin", include_self=True)
+            peeled = remaining & (head[label] == pos)
+            return rounds + 1, remaining & ~peeled, keep | peeled
+
+        start = (torch.zeros((), dtype=torch.int64, device=dev), crowded, inside & ~crowded)
+        return fixed_point_loop(more, peel, start)[2]
+
     def scatter_frames(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
-                       count: int) -> tuple[torch.Tensor, torch.Tensor]:
+                       count: int, drops: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``count`` scans concatenated along N (``frame`` [N] int64: the scan of each point, as
         :func:`radaredge.ops.scan_batch.concat_scans` gives it; None: all scan 0) ->
         (canvases [count, C, ny, nx], occupied [count, ny * nx] bool), each scan's
         canvas exactly as if it were encoded alone. Scan k's pillars are cells k * ny * nx + cell
-        of one canvas, so all scans share one sort and one scatter instead of a graph each."""
+        of one canvas, so all scans share one sort and one scatter instead of a graph each.
+        ``drops``, when given, receives ``full`` [N] bool: the points inside the range left out
+        because their pillar already held ``max_points_per_pillar`` points."""
         cfg = self.config
         nx, ny, nz = cfg.grid_size
         ncell = nx * ny
@@ -183,22 +229,18 @@ class PillarFeatureNet(nn.Module):
             cell = cell + frame * ncell
         cell = torch.where(inside, cell, torch.full_like(coords[:, 0], spare))
 
-        # Rank of each point inside its pillar in input order: sort by (cell, index).
-        pos = torch.arange(n, dtype=torch.int64, device=dev)
-        order = torch.topk(cell * n + pos, n, largest=False, sorted=True).indices
-        sorted_cell = cell[order]
-        first = torch.full((spare + 1,), n, dtype=torch.int64, device=dev).scatter_reduce(
-            0, sorted_cell, pos, reduce="amin", include_self=True)
-        rank = torch.zeros_like(pos).scatter(0, order, pos - first[sorted_cell])
-        keep = inside & (rank < cfg.max_points_per_pillar)
+        keep = self._first_points(cell, inside, spare)
         cell = torch.where(keep, cell, torch.full_like(cell, spare))
+        if drops is not None:
+            drops["full"] = inside & ~keep
 
         # Per-pillar statistics are gathered back to the points and everything after runs per
         # point: the graph touches the N points, not the ny * nx cells (dropped points sit in
         # the spare cell, with count 0 and zero features).
         w = keep.to(points.dtype)
-        count_per_cell = torch.zeros(spare + 1, dtype=points.dtype, device=dev).index_add(0, cell, w)
-        sums = torch.zeros(spare + 1, 3, dtype=points.dtype, device=dev).index_add(0, cell, xyz * w.unsqueeze(1))
+        count_per_cell = torch.zeros(spare + 1, dtype=points.dtype, device=dev).scatter_add(0, cell, w)
+        sums = torch.zeros(spare + 1, 3, dtype=points.dtype, device=dev).scatter_add(
+            0, cell.unsqueeze(1).expand(-1, 3), xyz * w.unsqueeze(1))
         count_at_point = count_per_cell[cell]
         mean = sums[cell] / torch.clamp(count_at_point, min=1.0).unsqueeze(1)
         feats = torch.cat([points, xyz - mean, _centre_offsets(xyz, coords, cfg)], 1)
@@ -253,6 +295,27 @@ def voxelize_reference(points: np.ndarray, config: PillarConfig, valid: np.ndarr
         num[k] = len(idx)
         vcoords[k] = key
     return voxels, num, vcoords
+
+
+def point_drops_reference(points: np.ndarray, config: PillarConfig, valid: np.ndarray | None = None):
+    """(outside, full) [N] bool: the finite, valid points outside the grid, and the points inside
+    it that arrive after their pillar holds ``max_points_per_pillar`` (input order), by loops."""
+    points = np.asarray(points, np.float32)
+    nx, ny, nz = config.grid_size
+    usable = np.isfinite(points).all(1) if valid is None else (np.asarray(valid, bool) & np.isfinite(points).all(1))
+    coords = _voxel_coords(torch.from_numpy(np.where(usable[:, None], points, 0)[:, :3]), config).numpy()
+    outside, full = np.zeros(len(points), bool), np.zeros(len(points), bool)
+    held: dict[tuple[int, int], int] = {}
+    for i in range(len(points)):
+        if not usable[i]:
+            continue
+        ix, iy, iz = (int(c) for c in coords[i])
+        if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+            outside[i] = True
+            continue
+        held[(ix, iy)] = held.get((ix, iy), 0) + 1
+        full[i] = held[(ix, iy)] > config.max_points_per_pillar
+    return outside, full
 
 
 def pillar_features_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None):

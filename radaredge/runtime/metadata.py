@@ -16,6 +16,7 @@ Standard library only (no numpy, no torch). Every key is named here; nothing els
 | ``radaredge.part`` | graph name inside a multi-graph model (absent for one-graph models) |
 | ``radaredge.bundle_weights_sha256`` | hash of the whole multi-graph model's weights |
 | ``radaredge.quantization`` | JSON: how an int8 copy was made (absent in fp32 graphs) |
+| ``radaredge.input_flags`` | JSON: bit (as a string) -> meaning, for a graph with an ``input_flags`` output (:mod:`radaredge.ops.input_flags`) |
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ VERSIONS = PREFIX + "versions"
 PART = PREFIX + "part"
 BUNDLE_WEIGHTS_SHA256 = PREFIX + "bundle_weights_sha256"
 QUANTIZATION = PREFIX + "quantization"
+INPUT_FLAGS = PREFIX + "input_flags"
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,7 @@ class GraphMetadata:
     part: str | None = None
     bundle_weights_sha256: str | None = None
     quantization: dict | None = None
+    input_flags: dict[str, str] | None = None
 
     def to_props(self) -> dict[str, str]:
         """``metadata_props`` entries, key -> string value."""
@@ -121,6 +124,8 @@ class GraphMetadata:
             props[BUNDLE_WEIGHTS_SHA256] = self.bundle_weights_sha256
         if self.quantization is not None:
             props[QUANTIZATION] = json.dumps(self.quantization)
+        if self.input_flags is not None:
+            props[INPUT_FLAGS] = json.dumps(self.input_flags)
         return props
 
     @classmethod
@@ -142,7 +147,8 @@ class GraphMetadata:
                 versions=json.loads(props.get(VERSIONS, "{}")),
                 checks=[OutputCheck(**c) for c in json.loads(props.get(CHECKS, "[]"))],
                 part=props.get(PART), bundle_weights_sha256=props.get(BUNDLE_WEIGHTS_SHA256),
-                quantization=json.loads(props[QUANTIZATION]) if QUANTIZATION in props else None)
+                quantization=json.loads(props[QUANTIZATION]) if QUANTIZATION in props else None,
+                input_flags=json.loads(props[INPUT_FLAGS]) if INPUT_FLAGS in props else None)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{where}: unreadable radaredge metadata ({type(exc).__name__}: {exc}); "
                              f"re-export it with this radaredge") from None

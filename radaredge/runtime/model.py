@@ -12,6 +12,7 @@ import onnxruntime as ort
 
 from ..cards import ModelCard, card_from_yaml
 from ..errors import CapacityError, InputError
+from .flags import INPUT_ERRORS, OUTPUT as FLAGS_OUTPUT, describe
 from .metadata import GraphMetadata
 from .session import make_session, run_session
 
@@ -134,6 +135,10 @@ class RadarModel:
         out = run_session(self.session, self.feeds(frames, timestamps))
         for check in self.info.checks:        # declared by the model at export (capacity flags)
             check.apply(out)
+        refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & INPUT_ERRORS
+        if refused.any():                      # the checks above let no such input through; the graph agrees
+            k = int(np.flatnonzero(refused.ravel())[0])
+            raise InputError(f"{self.path}: frame {k}: the graph flagged its input: {'; '.join(describe(refused.ravel()[k]))}")
         return out
 
 
@@ -143,10 +148,12 @@ def load(path: str | Path, threads: int = 2) -> RadarModel:
     return RadarModel(make_session(path, threads=threads), path)
 
 
-def inspect_export(path: str | Path) -> dict:
+def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
     """What an export holds: for a graph file, or each graph of a multi-graph export directory
     (its ``bundle.json`` lists them), the card name, graph name, feature columns, frame inputs,
-    inputs and outputs with their shapes, runtime checks, weights hash and versions."""
+    inputs and outputs with their shapes, runtime checks, input flag bits, weights hash and
+    versions; with ``targets``, what each deployment target does not support
+    (:mod:`radaredge.targets`, which needs the onnx package)."""
     path = Path(path)
     if path.is_dir():
         manifest = path / "bundle.json"
@@ -169,7 +176,11 @@ def inspect_export(path: str | Path) -> dict:
             "inputs": {i.name: i.shape for i in m.session.get_inputs()},
             "outputs": {o.name: o.shape for o in m.session.get_outputs()},
             "checks": [c.output for c in m.info.checks],
+            "input_flags": m.info.input_flags,
             "quantization": m.info.quantization,
             "weights_sha256": m.weights_sha256, "versions": m.info.versions,
         })
+        if targets:
+            from ..targets import check_graph
+            graphs[-1]["targets"] = {t: [x.to_dict() for x in found] for t, found in check_graph(f, targets).items()}
     return {"path": str(path), "graphs": graphs}
