@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import hashlib
 import json
+import pickletools
 import warnings
 import zipfile
 from dataclasses import dataclass, field
@@ -82,6 +83,21 @@ class LoadReport:
         return "; ".join(parts)
 
 
+_CODE_OPCODES = {"GLOBAL", "STACK_GLOBAL", "INST", "OBJ", "REDUCE", "NEWOBJ", "NEWOBJ_EX", "BUILD"}
+
+
+def _pickle_calls_code(path: str | Path) -> bool:
+    """Whether a bare (non-zip) pickle file imports or calls anything, read opcode by opcode
+    without running it; False for a zip archive or a file that is no pickle at all."""
+    if zipfile.is_zipfile(path):
+        return False
+    try:
+        with open(path, "rb") as f:
+            return any(op.name in _CODE_OPCODES for op, _, _ in pickletools.genops(f))
+    except Exception:                        # not a pickle, or a truncated one
+        return False
+
+
 def _read_state(path: str | Path) -> dict:
     """The state_dict inside a ``.pth`` (bare, or under OpenPCDet's ``model_state``, ``state_dict`` or
     ``model``), its values tensors; ConfigError naming the file and the problem otherwise."""
@@ -94,7 +110,7 @@ def _read_state(path: str | Path) -> dict:
     except IsADirectoryError:
         raise ConfigError(f"checkpoint {path} is a directory, not a .pth file") from None
     except Exception as exc:
-        if "weights_only" in str(exc) or "Unsupported global" in str(exc):
+        if "Unsupported global" in str(exc) or _pickle_calls_code(path):
             why = "a pickle of objects other than tensors and plain containers (radaredge runs no pickled code)"
         elif not zipfile.is_zipfile(path):
             why = "not a file written by torch.save (truncated, or another format)"

@@ -185,7 +185,7 @@ def test_onnx_nodes_attributed_to_stages(tiny_onnx):
     by_op = {}
     for name, s in stage.items():
         by_op.setdefault(nodes[name].op_type, set()).add(s)
-    assert by_op["Loop"] == {"NMS"}                               # the greedy fixed point
+    assert by_op["Loop"] == {"VFE+SPA", "NMS"}                    # full pillars' peels, the greedy fixed point
     assert by_op["ConvTranspose"] == {"backbone+head"}             # the deblocks
     assert "CFA" in by_op["MaxPool"]                               # GridDensityBEV's components
     producers = {o: nodes[n] for n in nodes for o in nodes[n].output}

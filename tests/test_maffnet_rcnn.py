@@ -277,8 +277,8 @@ def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):
     nodes = {n.name: n for n in model.graph.node}
     producers = {o: nodes[n] for n in nodes for o in nodes[n].output}
     loops = sorted(stage[n] for n in nodes if nodes[n].op_type == "Loop")
-    # proposal NMS, FPS over the cylinder points (above K), FPS fill over the scan; final NMS
-    assert loops == ["final NMS", "proposals+CDA", "proposals+CDA", "proposals+CDA"], loops
+    # full pillars' peels, proposal NMS, FPS over the cylinder points (above K), FPS fill over the scan; final NMS
+    assert loops == ["VFE+SPA", "final NMS", "proposals+CDA", "proposals+CDA", "proposals+CDA"], loops
     assert stage[producers["rois"].name] == "proposals+CDA"
     assert stage[producers["keypoints"].name] == "proposals+CDA"
     assert stage[producers["rcnn_scores"].name] == "ROI head"

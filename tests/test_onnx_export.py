@@ -107,3 +107,22 @@ def test_exports_are_byte_identical_across_install_locations(tmp_path):
         assert {p.key for n in proto.graph.node for p in n.metadata_props} <= {"pkg.torch.onnx.name_scopes"}
         assert str(tmp_path).encode() not in out.read_bytes()
     assert digests[0] == digests[1]
+
+
+class AnyOfPoints(nn.Module):
+    """Whether any of N values is positive, per row of a [2, N] table and over all of it."""
+
+    def forward(self, x: torch.Tensor):
+        from radaredge.ops.reduce import any_true
+        m = x > 0
+        return any_true(m, 1), any_true(m)
+
+
+def test_any_true_is_false_on_an_empty_axis_in_the_graph(onnx_roundtrip):
+    """torch's ``any`` exports as a ReduceMax, which onnxruntime answers True over zero elements;
+    ``any_true`` is False there, as in eager torch (an empty scan once set every input flag)."""
+    rt = onnx_roundtrip(AnyOfPoints(), {"x": torch.tensor([[1.0, -1.0, 2.0], [-1.0, -2.0, -3.0]])},
+                        ["rows", "all"], {"x": {1: "N"}})
+    for x in (torch.tensor([[1.0, -1.0], [-1.0, -2.0]]), torch.zeros(2, 0)):
+        ref, got = rt({"x": x})
+        assert got["rows"].tolist() == ref["rows"].tolist() and bool(got["all"]) == bool(ref["all"])

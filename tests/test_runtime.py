@@ -51,8 +51,8 @@ def test_runtime_runs_without_torch(onnx_path, frames, tmp_path):
 def test_runtime_matches_session_outputs(onnx_path, frames):
     m = runtime.load(onnx_path)
     out = m.run(frames[0], frames[1])
-    assert set(out) == {"descriptor", "descriptor_normalized", "ego_velocity", "ego_valid"}
-    assert m.card.name == "tdfanet-tiny" and m.features == ["x", "y", "z", "v_r", "rcs"]
+    assert set(out) == {"descriptor", "descriptor_normalized", "ego_velocity", "ego_valid", "input_flags"}
+    assert out["input_flags"].shape == (3,) and m.card.name == "tdfanet-tiny" and m.features == ["x", "y", "z", "v_r", "rcs"]
 
 
 @pytest.mark.parametrize("mutate, message", [

@@ -61,7 +61,9 @@ Pairs, as ``module``: export <-> reference, then the tests (``tests/``) that pro
   ``test_sa_module_matches_reference``.
 
 Helpers without a reference of their own, tested through the ops that use them:
-``loops.fixed_point_loop`` (the ONNX ``Loop`` of ``nms`` and the masked FPS),
+``loops.fixed_point_loop`` (the ONNX ``Loop`` of ``nms``, the masked FPS and the full pillars'
+peels), ``reduce.any_true`` (an ``any`` that exports right on an empty axis; test_onnx_export.py
+``test_any_true_is_false_on_an_empty_axis_in_the_graph``),
 ``scan_batch.concat_scans`` (K scans as one point set), ``alignment.grid_displacement`` and
 ``BevGrid`` (test_alignment.py ``test_grid_displacement_follows_eq_4_and_5``),
 ``components.exact_schedule`` / ``hook_roots`` (shared with ``dbscan``; test_components.py

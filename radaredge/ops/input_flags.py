@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ..runtime.flags import CAPACITY, NON_FINITE, NOT_CONVERGED, OUT_OF_RANGE, TIME_ORDER
+from .reduce import any_true
 
 
 def frame_flags(points: torch.Tensor, frame: torch.Tensor, count: int, timestamps: torch.Tensor | None = None,
@@ -25,7 +26,7 @@ def frame_flags(points: torch.Tensor, frame: torch.Tensor, count: int, timestamp
     member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)   # [K, N]
 
     def any_point(mask: torch.Tensor) -> torch.Tensor:
-        return (member & mask.unsqueeze(0)).any(1).to(torch.int32)
+        return any_true(member & mask.unsqueeze(0), 1).to(torch.int32)
 
     flags = any_point(~torch.isfinite(points).all(1)) * NON_FINITE
     if timestamps is not None:

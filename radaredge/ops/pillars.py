@@ -33,6 +33,7 @@ from torch import nn
 from ..config import card_ranges, positive
 from ..errors import CapacityError
 from .loops import fixed_point_loop
+from .reduce import any_true
 
 
 MAX_GRID_CELLS = 2**22     # BEV cells (x * y * z) a card may ask for: 4.2 M, 64 channels = 1 GiB float32
@@ -189,19 +190,21 @@ class PillarFeatureNet(nn.Module):
         label = first[cell]                                             # [N] in [0, N): the pillar's id
         held = torch.zeros(n + 1, dtype=torch.float32, device=dev).scatter_add(0, label, inside.to(torch.float32))
         crowded = inside & (held[label] > cap)
-        none = torch.full((n + 1,), n, dtype=torch.int64, device=dev)
 
         def more(rounds, remaining, keep):
-            return (rounds < cap) & remaining.any()
+            return (rounds < cap) & any_true(remaining)
 
         def peel(rounds, remaining, keep):
+            # made in the body: OpenVINO's CPU plugin scatters in place into a tensor captured
+            # from outside a Loop, so a captured buffer would carry the earlier rounds' heads
+            none = torch.full((n + 1,), n, dtype=torch.int64, device=dev)
             head = none.scatter_reduce(0, torch.where(remaining, label, n), torch.where(remaining, pos, n),
                                        reduce="amin", include_self=True)
             peeled = remaining & (head[label] == pos)
             return rounds + 1, remaining & ~peeled, keep | peeled
 
         start = (torch.zeros((), dtype=torch.int64, device=dev), crowded, inside & ~crowded)
-        return fixed_point_loop(more, peel, start)[2]
+        return fixed_point_loop(more, peel, start, max_rounds=cap)[2]
 
     def scatter_frames(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
                        count: int, drops: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
