@@ -318,8 +318,9 @@ def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
               help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.")
 @click.option("--queries", type=click.Path(file_okay=False),
               help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.")
-@click.option("--map", "map_path", type=click.Path(dir_okay=False),
-              help="Localisation (des4pos): a cell map with described poses (`radaredge make-city`).")
+@click.option("--map", "map_path", type=click.Path(),
+              help="Localisation (des4pos): a cell map with described poses (`radaredge make-city`), or a "
+                   "directory of maps (one database of all their cells, every described pose a query).")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
 @click.option("--radius", default=5.0, show_default=True, type=float,
@@ -334,8 +335,8 @@ def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
 def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, radius, no_reference, report_path,
              plot_path, as_json):
     """The model's task metric: place-recognition Recall@1/5/10 of the ONNX and the torch reference
-    over query drives against database drives (TDFANet), or localisation recall at top-k cells and
-    5/10/15 m over a map's described poses (Des4Pos)."""
+    over query drives against database drives (TDFANet), or localisation recall at top-1/5/10 cells
+    and 5/10/15 m and cell-retrieval recall@1/3/5 over maps' described poses (Des4Pos)."""
     from .api import evaluate
     from .config import check_writable_dir
     base = Path(onnx_path)
@@ -360,20 +361,21 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
 @click.option("--model", required=True, help="Model card name (see `radaredge list`).")
 @click.option("--data", "data_dir", required=True, type=click.Path(),
               help="Training data. TDFANet: a directory of drives (scans/ + gps.csv, or TransLoc4D-style "
-                   "pointclouds/ + gps.csv), e.g. several `radaredge make-benchmark` towns.")
+                   "pointclouds/ + gps.csv), e.g. several `radaredge make-benchmark` towns. Des4Pos: cell maps "
+                   "with described poses (`radaredge make-city --cities N`, KITTI360Pose cells/ + poses/).")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--output", type=click.Path(file_okay=False),
               help="Run directory: best.pth, last.pth, train-log.json  [default: runs/<model>]")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Initial weights (fine-tuning); default: seeded.")
 @click.option("--epochs", type=int, help="Epochs to train (the recipe's default otherwise).")
-@click.option("--batch-size", type=int, help="Training tuples per optimiser step (TDFANet paper: 1).")
-@click.option("--lr", type=float, help="Initial learning rate (TDFANet paper: 8e-4).")
+@click.option("--batch-size", type=int, help="Training tuples (TDFANet paper: 1) or descriptions (Des4Pos coarse: 64) per step.")
+@click.option("--lr", type=float, help="Initial learning rate (TDFANet paper: 8e-4; Des4Pos coarse: 5e-4).")
 @click.option("--seed", type=int, help="Seeds the tuple order, the mining and dropout.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Any other recipe option, e.g. --set negatives=8 (the docs of the model list them).")
-@click.option("--validation", multiple=True, metavar="DRIVE",
-              help="A held-out drive, relative to --data (repeat for several); default: the last drive of "
-                   "every directory of drives.")
+@click.option("--validation", multiple=True, metavar="NAME",
+              help="A held-out drive relative to --data, or a held-out map (scene) by name (repeat for several); "
+                   "default: the last drive of every directory of drives, the last map by name.")
 @click.option("--format", "data_format", type=click.Choice(["transloc", "vod", "tj4d"]),
               help="Scan file format of every drive (default: inferred from the files).")
 @click.option("--radar-topic", help="ROS bag drives: the radar's point-cloud topic  [default: /radar_enhanced_pcl]")
@@ -389,7 +391,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
 def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, seed, settings, validation,
           data_format, radar_topic, gps_topic, field_map, doppler_sign, device, resume, as_json):
     """Train a model with its paper's recipe (TDFANet: the lazy quadruplet loss, Adam 8e-4 decayed 0.9
-    per epoch), validate every epoch and keep the best checkpoint for `radaredge export --checkpoint`."""
+    per epoch; Des4Pos: object, prior, coarse InfoNCE and fine stages), validate every epoch and keep
+    the best checkpoint for `radaredge export --checkpoint`."""
     from .api import train as train_verb
     options = {k.replace("-", "_"): v for k, v in _options(settings).items()}
     options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed))
@@ -405,29 +408,39 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
 
 
 @main.command("make-city")
-@click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False), help="The map to write (.npz).")
+@click.option("--out", "out_path", required=True, type=click.Path(),
+              help="The map to write (.npz); with --cities N > 1 a directory of OUT/city-<seed>.npz.")
 @click.option("--model", default="des4pos", show_default=True, help="Card whose object slots / points the map uses.")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--cities", default=1, show_default=True, type=int,
+              help="Cities of seeds SEED, SEED+1, ... (training data for `radaredge train --model des4pos`).")
 @click.option("--world", default=90.0, show_default=True, type=float, help="m, edge of the square city.")
 @click.option("--objects", default=70, show_default=True, type=int)
-@click.option("--poses", default=40, show_default=True, type=int, help="Query poses with descriptions.")
+@click.option("--poses", default=40, show_default=True, type=int, help="Query poses with descriptions, per city.")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def make_city_cmd(out_path, model, config, seed, world, objects, poses, as_json):
+def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, as_json):
     """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
-    query poses with template descriptions ("The pose is north of a red car.")."""
-    from .data.text_city import make_city_for_card
-    m = make_city_for_card(_card(model, config), seed=seed, world=world, objects=objects, poses=poses)
-    m.save(out_path)
-    info = {"map": str(out_path), "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
-            "example": str(m.pose_text[0]) if len(m.pose_text) else None}
+    query poses with template descriptions ("The pose is north of a red box.")."""
+    from .data.text_city import make_city_for_card, write_cities
+    card = _card(model, config)
+    if cities == 1:
+        m = make_city_for_card(card, seed=seed, world=world, objects=objects, poses=poses)
+        m.save(out_path)
+        written = [(str(out_path), m)]
+    else:
+        written = write_cities(out_path, card, cities, seed=seed, world=world, objects=objects, poses=poses)
+    rows = [{"map": p, "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
+             "example": str(m.pose_text[0]) if len(m.pose_text) else None} for p, m in written]
     if as_json:
-        click.echo(json.dumps(info, indent=2))
+        click.echo(json.dumps(rows[0] if cities == 1 else {"out": str(out_path), "seed": seed, "maps": rows}, indent=2))
         return
-    click.echo(f"wrote {out_path}: {info['cells']} cells, {info['objects']} objects, {info['poses']} described poses")
-    if info["example"]:
-        click.echo(f"e.g. pose 0 at {m.pose_w[0].round(1).tolist()} m: {info['example']}")
+    for r in rows:
+        click.echo(f"wrote {r['map']}: {r['cells']} cells, {r['objects']} objects, {r['poses']} described poses")
+    m = written[0][1]
+    if len(m.pose_text):
+        click.echo(f"e.g. pose 0 at {m.pose_w[0].round(1).tolist()} m: {m.pose_text[0]}")
 
 
 @main.command()

@@ -19,6 +19,7 @@ import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import onnx
 import torch
 
@@ -98,7 +99,7 @@ def _pickle_calls_code(path: str | Path) -> bool:
         return False
 
 
-def _read_state(path: str | Path) -> dict:
+def read_state_dict(path: str | Path) -> dict:
     """The state_dict inside a ``.pth`` (bare, or under OpenPCDet's ``model_state``, ``state_dict`` or
     ``model``), its values tensors; ConfigError naming the file and the problem otherwise."""
     try:
@@ -142,7 +143,7 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
     ignored. Any other missing, unexpected or shape-mismatched key is a one-line ConfigError
     naming the keys.
     """
-    obj = _read_state(path)
+    obj = read_state_dict(path)
     rules = model.checkpoint_drop_rules() if hasattr(model, "checkpoint_drop_rules") else []
     own = model.state_dict()
     report = LoadReport(str(path), 0)
@@ -230,6 +231,16 @@ def graph_metadata(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: t
         else None)
 
 
+def export_example(card: ModelCard, graph: GraphSpec, candidates: int = 4) -> dict:
+    """The inputs the export traces with: the first of the graph's first ``candidates`` parity
+    cases whose dynamic axes are all at least 2 long (torch.export specialises a dimension of
+    size 1, so a one-hint example would bake a single hint into the graph), else the first."""
+    cases = [feeds for _, feeds in graph.make_cases(card, candidates, 0)]
+    axes = graph.dynamic_axes(card)
+    wide = [feeds for feeds in cases if all(np.shape(feeds[name])[d] >= 2 for name, dims in axes.items() for d in dims)]
+    return (wide or cases)[0]
+
+
 def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, output: str | Path,
                  opset: int = DEFAULT_OPSET, debug: bool = False, part: str | None = None,
                  bundle_hash: str | None = None) -> GraphExport:
@@ -240,7 +251,7 @@ def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: tor
     ``debug.<name>``. ``part`` and ``bundle_hash`` mark a graph of a multi-graph model.
     """
     names = graph.input_names(card)
-    _, example = graph.make_cases(card, 1, 0)[0]
+    example = export_example(card, graph)
     args = tuple(torch.from_numpy(example[n]) for n in names)
     wrapper = _PipelineWrapper(module, graph, card, debug)
     out_names = graph.output_names(card) + ([DEBUG_PREFIX + n for n in graph.trace_order(card)] if debug else [])

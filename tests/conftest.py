@@ -96,3 +96,12 @@ def summary_of(report: dict, graph: str | None = None) -> dict:
     """The per-output summary of one graph in a parity report's JSON (the only graph by default)."""
     graphs = report["graphs"]
     return (graphs[graph] if graph is not None else next(iter(graphs.values())))["summary"]
+
+
+def assert_parses_in_tensorrt(path: Path) -> None:
+    """``radaredge inspect --targets tensorrt`` finds nothing TensorRT 10 refuses in the export."""
+    res = invoke("inspect", str(path), "--targets", "tensorrt", "--json")
+    import json
+    info = json.loads(res.stdout)
+    refused = [f for g in info["graphs"] for f in g["targets"]["tensorrt"] if f["level"] == "unsupported"]
+    assert res.exit_code == 0 and not refused, refused

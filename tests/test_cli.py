@@ -7,7 +7,7 @@ from click.testing import CliRunner
 
 from radaredge.cli import main
 
-from conftest import TINY_CARD, summary_of
+from conftest import TINY_CARD, assert_parses_in_tensorrt, summary_of
 
 TINY = str(TINY_CARD)
 
@@ -43,6 +43,7 @@ def test_full_card_export_and_parity(model, tmp_path):
     assert side["model"] == model and side["op_histogram"]
     assert side["inputs"][0] == {"name": "points_0", "shape": ["num_points_0", 5]}
     assert side["inputs"][-1] == {"name": "timestamps", "shape": [3]}
+    assert_parses_in_tensorrt(onnx)
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", "4", "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output

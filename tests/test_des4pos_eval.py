@@ -7,12 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from conftest import invoke
+from radaredge.cards import load_card
 from radaredge.data.cellmap import load_map
 from radaredge.data.text_city import make_city
 from radaredge.des4pos_eval import evaluate_localization
 from radaredge.errors import ConfigError, InputError
+from radaredge.exporter import build_model
 from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -37,38 +40,69 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
     report = evaluate_localization(bundle, city, progress=lambda desc: loops.append(desc) or iter)
     m = load_map(city)
     assert (report.model, report.cells, report.queries) == ("des4pos-tiny", len(m), 6)
-    assert report.ks == (1, 5, 10) and report.thresholds == (5.0, 10.0, 15.0) and loops == ["cells", "poses"]
+    assert report.ks == (1, 5, 10) and report.thresholds == (5.0, 10.0, 15.0) and report.retrieval_ks == (1, 3, 5)
+    assert loops == ["cells of city.npz", "poses"] and list(report.results) == ["onnxruntime"]
     # the same poses located one by one: recall at (k, t) is the share with a position within t m in the top k
     b = Des4PosBundle(bundle)
     index = MapIndex.build(b, city, cells=m)
-    pred = np.array([[h["position"] for h in b.locate(str(t), index, top_k=10)] for t in m.pose_text])
+    hits = [b.locate(str(t), index, top_k=10) for t in m.pose_text]
+    pred = np.array([[h["position"] for h in row] for row in hits])
     dist = np.linalg.norm(pred - m.pose_w[:, None], axis=2)
     for k in report.ks:
         for t in report.thresholds:
             assert report.recall[k][t] == pytest.approx((dist[:, :k] <= t).any(1).mean())
+    # Table II: the pose's best cell among the first k retrieved
+    retrieved = np.array([[h["cell"] for h in row] for row in hits])
+    for k in report.retrieval_ks:
+        assert report.retrieval[k] == pytest.approx((retrieved[:, :k] == m.pose_cell[:, None]).any(1).mean())
     assert not report.from_cache
-    again = evaluate_localization(bundle, city, top_k=(1, 3), thresholds=(30.0,))
-    assert again.from_cache and list(again.recall) == [1, 3]
+    again = evaluate_localization(bundle, city, top_k=(1, 3), thresholds=(30.0,), retrieval_ks=(2,))
+    assert again.from_cache and list(again.recall) == [1, 3] and list(again.retrieval) == [2]
     assert again.recall[3][30.0] == pytest.approx((dist[:, :3] <= 30.0).any(1).mean())
     out = json.loads(json.dumps(report.to_dict()))
-    assert out["queries"] == 6 and set(out["recall"]) == {"1", "5", "10"}
-    assert set(out["recall"]["5"]) == {"5", "10", "15"}
-    assert report.table().splitlines()[1].split()[0] == "top-1"
+    res = out["results"]["onnxruntime"]
+    assert out["queries"] == 6 and set(res["localization"]) == {"1", "5", "10"}
+    assert set(res["localization"]["5"]) == {"5", "10", "15"} and set(res["retrieval"]) == {"1", "3", "5"}
+    lines = report.lines()
+    assert lines[1].startswith("Table I") and lines[3].split()[0] == "top-1" and lines[6].startswith("Table II")
+
+
+def test_the_torch_reference_agrees_and_the_database_spans_maps(bundle, city, tmp_path):
+    """Two maps are one database (cells of both, poses of both); the torch reference formulation
+    with the bundle's weights retrieves the same cells and lands within float noise."""
+    d = tmp_path / "maps"
+    d.mkdir()
+    for seed in (3, 4):
+        make_city(6, 32, seed=seed, objects=30, poses=5, max_hints=5).save(d / f"city-{seed}.npz")
+    report = evaluate_localization(bundle, d, reference=True)
+    assert report.cells == sum(len(load_map(p)) for p in sorted(d.glob("city-?.npz"))) and report.queries == 10
+    assert list(report.results) == ["onnxruntime", "torch reference"]
+    onnx, ref = report.results["onnxruntime"], report.results["torch reference"]
+    assert onnx["retrieval"] == ref["retrieval"] and onnx["localization"] == ref["localization"]
+    assert "recall (torch reference)" in report.retrieval_table()
+    again = evaluate_localization(bundle, d)                      # the caches beside the maps are not maps
+    assert again.from_cache and again.cells == report.cells
+    model = build_model(load_card(TINY))
+    with torch.no_grad():
+        model.fine.offset[0].bias.add_(1.0)
+    torch.save(model.state_dict(), tmp_path / "other.pth")
+    with pytest.raises(ConfigError, match="exported with other weights than checkpoint"):
+        evaluate_localization(bundle, d, reference=True, checkpoint=tmp_path / "other.pth")
 
 
 def test_errors_name_the_map_and_pose(bundle, city, tmp_path):
     with pytest.raises(ConfigError, match="thresholds must be positive"):
         evaluate_localization(bundle, city, thresholds=(0.0,))
     bare = make_city(6, 32, seed=3, objects=30, poses=0).save(tmp_path / "bare.npz")
-    with pytest.raises(InputError, match="holds no described pose; make a map with poses"):
+    with pytest.raises(InputError, match="bare.npz: no described pose; make maps with poses"):
         evaluate_localization(bundle, bare)
     m = load_map(city)
     m.pose_text[2] = "A. B. C. D. E. F."
-    with pytest.raises(InputError, match=r"pose 2: the description has 6 hint sentences; this model takes at most 5"):
+    with pytest.raises(InputError, match=r"long.npz: pose 2 has 6 hint sentence\(s\); the card takes 1 to 5"):
         evaluate_localization(bundle, m.save(tmp_path / "long.npz"))
     m = load_map(city)
     m.pose_cell[0] = "elsewhere"
-    with pytest.raises(InputError, match="pose best cell elsewhere is not a cell of the map"):
+    with pytest.raises(InputError, match="lost.npz: pose 0's best cell elsewhere is not a cell of the map"):
         evaluate_localization(bundle, m.save(tmp_path / "lost.npz"))
 
 
@@ -82,7 +116,8 @@ def test_eval_command_runs_the_models_own_metric(bundle, tmp_path):
     res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city, "--json")
     assert res.exit_code == 0, res.output
     out = json.loads(res.stdout)
-    assert out["queries"] == 5 and set(out["recall"]) == {"1", "5", "10"}
+    assert out["queries"] == 5 and list(out["results"]) == ["onnxruntime", "torch reference"]
+    assert set(out["results"]["torch reference"]["retrieval"]) == {"1", "3", "5"}
     assert json.loads(bundle.with_name("bundle.eval.json").read_text()) == out
     res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city,
                  "--database", tmp_path)

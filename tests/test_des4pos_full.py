@@ -6,11 +6,14 @@ from click.testing import CliRunner
 
 from radaredge.cli import main
 
+from conftest import assert_parses_in_tensorrt
+
 
 def test_full_card_bundle_export_and_parity(tmp_path):
     out = tmp_path / "des4pos"
     res = CliRunner().invoke(main, ["export", "--model", "des4pos", "--output", str(out)], catch_exceptions=False)
     assert res.exit_code == 0, res.output
+    assert_parses_in_tensorrt(out)
     manifest = json.loads((out / "bundle.json").read_text())
     assert manifest["card"]["cell"]["max_objects"] == 28 and manifest["card"]["submap"]["embed_dim"] == 256
     side = json.loads((out / "submap_encoder.json").read_text())

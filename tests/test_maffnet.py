@@ -16,7 +16,7 @@ from radaredge.errors import CapacityError, ConfigError
 from radaredge.exporter import build_model, load_checkpoint
 from radaredge.models.maffnet import HeadConfig, decode_boxes
 from radaredge.models.maffnet_spec import STAGE_ONE_GRAPH
-from conftest import assert_close, export_with_cli, invoke, summary_of
+from conftest import assert_close, assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
@@ -148,6 +148,7 @@ def test_full_card_export_and_parity(model, tmp_path):
     onnx = tmp_path / f"{model}.onnx"
     res = invoke("export", "--model", model, "--output", str(onnx))
     assert res.exit_code == 0, res.output
+    assert_parses_in_tensorrt(onnx)
     cases = "5" if model == "maffnet-vod" else "2"        # VoD's fifth case is a dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", cases, "--json")
     report = json.loads(res.stdout)

@@ -22,7 +22,7 @@ from radaredge.models.maffnet_spec import five_frame_points
 from radaredge.registry import model_spec
 from references.maffnet_upstream import upstream_scan_mask
 from references.sklearn_cqca_cfa import upstream_map
-from conftest import export_with_cli, invoke, summary_of
+from conftest import assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "cards" / "maffnet-tiny-full-dbscan.yaml"
@@ -128,6 +128,7 @@ def test_full_dbscan_cards_export_and_parity(model, tmp_path):
     onnx_path = tmp_path / f"{model}.onnx"
     res = invoke("export", "--model", model, "--output", onnx_path)
     assert res.exit_code == 0, res.output
+    assert_parses_in_tensorrt(onnx_path)
     cases = "5" if "vod" in model else "2"                # VoD's fifth case is the dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", onnx_path, "--cases", cases, "--json")
     report = json.loads(res.stdout)

@@ -18,7 +18,7 @@ from radaredge.exporter import build_model
 from radaredge.models.maffnet_rcnn import (CDAKeypointSampler, KeypointConfig, ProposalConfig, ProposalLayer,
                                            decode_roi_residuals)
 from radaredge.registry import model_spec
-from conftest import assert_close, export_with_cli, invoke, summary_of
+from conftest import assert_close, assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_FULL = Path(__file__).parent / "cards" / "maffnet-tiny-full.yaml"
@@ -371,6 +371,7 @@ def vod_full_onnx(tmp_path_factory):
 
 
 def test_vod_full_export_and_parity(vod_full_onnx):
+    assert_parses_in_tensorrt(vod_full_onnx)
     res = invoke("parity-check", "--model", "maffnet-vod-full", "--onnx", str(vod_full_onnx), "--cases", "5",
                  "--checkpoint", vod_full_onnx.parent / "upstream.pth", "--json")
     report = json.loads(res.stdout)
@@ -382,6 +383,7 @@ def test_tj4d_full_export_and_parity(tmp_path):
     onnx_path = tmp_path / "maffnet-tj4d-full.onnx"
     res = invoke("export", "--model", "maffnet-tj4d-full", "--output", onnx_path)
     assert res.exit_code == 0, res.output
+    assert_parses_in_tensorrt(onnx_path)
     res = invoke("parity-check", "--model", "maffnet-tj4d-full", "--onnx", onnx_path, "--cases", "2", "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output

@@ -1,7 +1,8 @@
 """A seeded synthetic city for text-to-point-cloud localisation: objects, cells, poses, hints.
 
-Objects (buildings, cars, poles, traffic signs, trees, fences, trash bins) stand on a flat
-ground in a square world; each is a set of coloured surface points (xyz in m, rgb in [0, 1]).
+Objects (buildings, boxes, poles, traffic signs, vegetation, fences, trash bins: KITTI360Pose
+classes) stand on a flat ground in a square world; each is a set of coloured surface points
+(xyz in m, rgb in [0, 1]).
 Cells are ``size`` x ``size`` m squares on a ``stride`` grid (Des4Pos / Text2Loc: 30 m, 10 m);
 each holds the parts of the objects inside it (at least ``min_points`` points), with xyz
 normalised to the cell as in KITTI360Pose. Query poses are random ground positions; each is
@@ -19,13 +20,14 @@ from .cellmap import CellMap, pack_cells
 COLOURS = {"red": (0.80, 0.12, 0.10), "gray": (0.50, 0.50, 0.50), "green": (0.15, 0.60, 0.20),
            "white": (0.92, 0.92, 0.90), "black": (0.08, 0.08, 0.08), "blue": (0.12, 0.25, 0.75),
            "beige": (0.80, 0.72, 0.55), "yellow": (0.90, 0.80, 0.10)}
-# label -> (footprint x, y range m, height range m, points per m^2 of surface, shape, colours)
+# label -> (footprint x, y range m, height range m, points per m^2 of surface, shape, colours). The
+# labels are KITTI360Pose's (Text2Pos's classes), so a model's object classes cover them.
 CLASSES = {
     "building": ((8, 16), (8, 16), (6, 15), 3.0, "box", ("gray", "beige", "white", "red")),
-    "car": ((4.0, 4.8), (1.7, 2.0), (1.4, 1.6), 25.0, "box", ("red", "blue", "black", "white", "gray")),
+    "box": ((1.0, 1.6), (0.8, 1.2), (1.0, 1.4), 60.0, "box", ("red", "blue", "black", "white", "gray")),
     "pole": ((0.2, 0.3), (0.2, 0.3), (4, 8), 120.0, "cylinder", ("gray", "black")),
     "traffic sign": ((0.6, 0.9), (0.1, 0.2), (2.2, 2.8), 120.0, "box", ("blue", "red", "yellow")),
-    "tree": ((3, 6), (3, 6), (4, 8), 8.0, "ellipsoid", ("green",)),
+    "vegetation": ((3, 6), (3, 6), (4, 8), 8.0, "ellipsoid", ("green",)),
     "fence": ((6, 14), (0.1, 0.2), (1.0, 1.8), 12.0, "box", ("gray", "white", "beige")),
     "trash bin": ((0.6, 0.8), (0.6, 0.8), (0.9, 1.2), 150.0, "box", ("green", "black", "gray")),
 }
@@ -146,3 +148,23 @@ def make_city_for_card(card, seed: int = 0, world: float = 90.0, objects: int = 
     c, t = card.section("cell", CellConfig), card.section("text", TextConfig)
     return make_city(c.max_objects, c.points_per_object, seed=seed, world=world, size=c.size, stride=c.stride,
                      objects=objects, poses=poses, max_hints=min(6, t.max_hints))
+
+
+def write_cities(out_dir, card, cities: int, seed: int = 0, world: float = 90.0, objects: int = 70,
+                 poses: int = 40) -> list[tuple[str, CellMap]]:
+    """``cities`` synthetic cities of seeds ``seed``, ``seed + 1``, ... in the layout of ``card``
+    (:func:`make_city_for_card`), written as ``out_dir/city-<seed>.npz``: one scene each, the
+    training data of ``radaredge train --model des4pos`` (the last by name validates). Returns
+    (path, map) pairs."""
+    from pathlib import Path
+
+    from ..errors import ConfigError
+    if isinstance(cities, bool) or not isinstance(cities, int) or cities < 1:
+        raise ConfigError(f"--cities must be an integer >= 1, got {cities!r}")
+    out = []
+    for s in range(seed, seed + cities):
+        m = make_city_for_card(card, seed=s, world=world, objects=objects, poses=poses)
+        path = Path(out_dir) / f"city-{s:04d}.npz"
+        m.save(path)
+        out.append((str(path), m))
+    return out

@@ -3,14 +3,16 @@
 Three parts, exported as three graphs that share one set of weights:
 
 1. **Submap (cell) encoder** (III-B.1). Per object of a cell: 256 points (x, y, z normalised to
-   the cell, r, g, b in [0, 1]). A PointNet++ encoder (two set-abstraction levels + a global
-   one, eq. 2) on the object's points, scaled to its unit sphere; colour, position (centre in
-   the cell) and point-count encoders; the four embeddings, each L2-normalised, fused by
-   ``ReLU(W [f, c, p, r] + b)`` (eq. 3) into s_i. MFAM (eq. 4-5): 1-, 3- and 5-wide
-   convolutions along the object sequence with residuals, multi-head self-attention per branch,
-   then softmax(F3 F1^T) * softmax(F3 F5^T) as the attention weight on F3. A bidirectional
-   LSTM (eq. 6) over the objects, strided downsampling of the hidden states (eq. 7: every
-   k-th object from the first) and a max over the kept states -> the L2-normalised descriptor.
+   the cell, r, g, b in [0, 1]). Text2Pos's PointNet++ (three set abstractions, a global layer
+   and two linear layers, eq. 2; the object network Text2Loc and upstream Des4Pos reuse) on the
+   points in the cell frame (``object_frame``); colour, position (centre in the cell) and
+   point-count encoders; the four embeddings, each L2-normalised, fused by Text2Loc's merge MLP
+   (eq. 3) into s_i. MFAM (eq. 4-5): 1-, 3- and 5-wide convolutions along the object sequence
+   with residuals, multi-head self-attention per branch, then softmax(F3 F1^T) * softmax(F3 F5^T)
+   as the attention weight on F3, added to its input (``mfam: residual``, upstream's form) or
+   not (``paper``). A bidirectional LSTM (eq. 6) over the objects, eq. 7's step-k downsampling
+   over the state's channels (``downsample: channels``, upstream: 512 -> 256) or over the
+   objects, a max over the objects -> the L2-normalised descriptor.
 2. **Text encoder** (STE, III-B.2). A frozen sentence backbone (all-MiniLM-L6-v2 by default,
    a T5 encoder from a local directory) on every hint sentence; the cross-modal prior head
    (Transformer layers + MLP on the tokens; its max-pooled output is what stage 1 aligns to
@@ -43,7 +45,7 @@ from torch import nn
 from ..cards import ModelCard
 from ..config import card_ranges, positive
 from ..errors import ConfigError
-from ..ops.point_sampling import (ball_query, ball_query_reference, farthest_point_sample,
+from ..ops.point_sampling import (ball_query_masked, ball_query_masked_reference, farthest_point_sample,
                                   farthest_point_sample_reference, group_points, group_points_reference)
 from .des4pos_config import CellConfig, TextConfig
 from .minilm import NEG, _attend, load_backbone
@@ -54,28 +56,61 @@ POINT_COLUMNS = ("x", "y", "z", "r", "g", "b")
 # ----------------------------------------------------------------------------- configuration
 
 
-@card_ranges(embed_dim=(1, 4096), sa1_npoint=(1, 65_536), sa1_radius=positive(100.0), sa1_nsample=(1, 1024),
-             sa1_mlp=(1, 4096), sa2_npoint=(1, 65_536), sa2_radius=positive(100.0), sa2_nsample=(1, 1024),
-             sa2_mlp=(1, 4096), global_mlp=(1, 4096), encoder_hidden=(1, 4096), heads=(1, 64), lstm_hidden=(1, 4096),
-             downsample_stride=(1, 64))
+# Text2Pos's object classes (datapreparation/kitti360pose/utils.py CLASS_TO_INDEX, "pad" included):
+# the class head of its pretrained PointNet++ has one output each.
+TEXT2POS_CLASSES = ("building", "pole", "traffic light", "traffic sign", "garage", "stop", "smallpole", "lamp",
+                    "trash bin", "vending machine", "box", "road", "sidewalk", "parking", "wall", "fence",
+                    "guard rail", "bridge", "tunnel", "vegetation", "terrain", "pad")
+OBJECT_FRAMES = ("cell", "unit_sphere")
+MFAM_FORMS = ("residual", "paper")
+DOWNSAMPLES = ("channels", "objects")
+
+
+@card_ranges(embed_dim=(1, 4096), sa_npoint=(1, 65_536), sa_radius=positive(100.0), sa_nsample=(1, 1024),
+             sa_mlp=(1, 4096), global_mlp=(1, 4096), head_mlp=(1, 4096), object_colors=(1, 1024),
+             encoder_hidden=(1, 4096), heads=(1, 64), lstm_hidden=(1, 4096), downsample_stride=(1, 64))
 @dataclass(frozen=True)
 class SubmapConfig:
-    """Card section ``submap``."""
+    """Card section ``submap``. The object encoder is Text2Pos's (which Text2Loc and upstream
+    Des4Pos reuse): PointNet++ with set abstractions ``sa_*`` (every MLP layer Linear +
+    BatchNorm + ReLU), a global layer ``global_mlp``, two linear layers ``head_mlp`` to the
+    geometry feature, and class / colour heads (used by the object pretraining stage and by
+    Text2Pos's published weights)."""
 
     embed_dim: int = 256
-    sa1_npoint: int = 128
-    sa1_radius: float = 0.2
-    sa1_nsample: int = 32
-    sa1_mlp: tuple = (32, 32, 64)
-    sa2_npoint: int = 32
-    sa2_radius: float = 0.4
-    sa2_nsample: int = 32
-    sa2_mlp: tuple = (64, 64, 128)
-    global_mlp: tuple = (128, 256)
-    encoder_hidden: int = 64           # hidden width of the colour / position / count MLPs
-    heads: int = 4                     # MFAM self-attention heads
-    lstm_hidden: int = 128             # per direction; descriptor = 2 x lstm_hidden
-    downsample_stride: int = 2         # eq. 7 step k
+    object_frame: str = "cell"          # "cell": xyz as stored, normalised to the cell (Text2Loc's --no_pc_augment);
+                                        # "unit_sphere": centred and scaled (Text2Pos's NormalizeScale)
+    sa_npoint: tuple = (128, 64, 32)    # Text2Pos: FPS ratio 0.5 per level from 256 points
+    sa_radius: tuple = (0.2, 0.3, 0.4)
+    sa_nsample: tuple = (32, 32, 32)    # PyG radius(): at most 32 neighbours, the first in point order
+    sa_mlp: tuple = ((32, 64), (128, 128), (256, 256))
+    global_mlp: tuple = (512, 1024)
+    head_mlp: tuple = (512, 256)        # lin1, lin2 -> the 256-d geometry feature (Text2Pos features2)
+    object_classes: tuple = TEXT2POS_CLASSES
+    object_colors: int = 8              # Text2Pos's colour head (never trained upstream)
+    encoder_hidden: int = 64            # colour / position / count MLPs [3 or 1, 64, d] (Text2Loc)
+    heads: int = 4                      # MFAM self-attention heads
+    mfam: str = "residual"              # "residual": s + MFAM(s) (upstream's ConvBlock); "paper": eq. 4-5 as printed
+    lstm_hidden: int = 256              # per direction
+    downsample: str = "channels"        # eq. 7: every k-th channel of the BiLSTM state (upstream) or every k-th object
+    downsample_stride: int = 2          # eq. 7 step k
+
+    def __post_init__(self):
+        for name, allowed in (("object_frame", OBJECT_FRAMES), ("mfam", MFAM_FORMS), ("downsample", DOWNSAMPLES)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {list(allowed)}, got {getattr(self, name)!r}")
+        levels = len(self.sa_npoint)
+        if not levels or not len(self.sa_radius) == len(self.sa_nsample) == len(self.sa_mlp) == levels:
+            raise ValueError(f"sa_npoint, sa_radius, sa_nsample and sa_mlp need one entry per set-abstraction level; "
+                             f"got {len(self.sa_npoint)}, {len(self.sa_radius)}, {len(self.sa_nsample)}, {len(self.sa_mlp)}")
+        if any(not isinstance(m, tuple) or not m for m in self.sa_mlp):
+            raise ValueError("sa_mlp needs a list of layer widths per level, e.g. [[32, 64], [128, 128]]")
+        if not self.object_classes or not all(isinstance(c, str) and c for c in self.object_classes):
+            raise ValueError("object_classes must be a list of class names")
+        width = 2 * self.lstm_hidden // (self.downsample_stride if self.downsample == "channels" else 1)
+        if width != self.embed_dim or (self.downsample == "channels" and 2 * self.lstm_hidden % self.downsample_stride):
+            rule = ("2 x lstm_hidden / downsample_stride" if self.downsample == "channels" else "2 x lstm_hidden")
+            raise ValueError(f"the cell descriptor is {rule} = {width} wide, but embed_dim is {self.embed_dim}")
 
 
 @card_ranges(cra_layers=(1, 32), heads=(1, 64), mlp_hidden=(1, 4096))
@@ -98,6 +133,19 @@ def mlp(dims, last_act: bool = False) -> nn.Sequential:
         if i < len(dims) - 2 or last_act:
             layers.append(nn.ReLU())
     return nn.Sequential(*layers)
+
+
+class BatchNormMLP(nn.Sequential):
+    """Text2Pos's ``get_mlp``: every layer Linear + BatchNorm1d + ReLU (the last one too), on the
+    last axis of any [..., C] tensor; keys ``<i>.0`` (Linear) and ``<i>.1`` (BatchNorm) as upstream."""
+
+    def __init__(self, dims):
+        super().__init__(*[nn.Sequential(nn.Linear(a, b), nn.BatchNorm1d(b), nn.ReLU()) for a, b in zip(dims[:-1], dims[1:])])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = x.shape
+        y = super().forward(x.reshape(-1, shape[-1]))
+        return y.reshape(*shape[:-1], y.shape[-1])
 
 
 class Attention(nn.Module):
@@ -137,46 +185,102 @@ def masked_max(x: torch.Tensor, mask: torch.Tensor | None, dim: int) -> torch.Te
 # ----------------------------------------------------------------------------- submap encoder
 
 
+class _PointConv(nn.Module):
+    """Holds ``local_nn`` under PyG PointConv's attribute name (Text2Pos keys ``sa<i>.point_conv.local_nn``)."""
+
+    def __init__(self, local_nn: nn.Module):
+        super().__init__()
+        self.local_nn = local_nn
+
+
 class SetAbstraction(nn.Module):
-    """PointNet++ set abstraction: FPS -> ball query -> shared MLP on [dxyz, features] -> max."""
+    """PointNet++ set abstraction as Text2Pos runs it through PyG: FPS -> radius neighbours
+    (distance < r, the first ``nsample`` in point order) -> ``local_nn([x_j, pos_j - pos_i])`` ->
+    max over the neighbours. FPS starts at point 0 (PyG's ``fps`` starts at random)."""
 
     def __init__(self, cin: int, dims, npoint: int, radius: float, nsample: int):
         super().__init__()
         self.npoint, self.radius, self.nsample = npoint, radius, nsample
-        self.mlp = mlp([cin + 3, *dims], last_act=True)
+        self.point_conv = _PointConv(BatchNormMLP([cin + 3, *dims]))
 
     def forward(self, xyz: torch.Tensor, feats: torch.Tensor):
         """Export: xyz [G, N, 3], feats [G, N, C] -> centres [G, S, 3], features [G, S, C']."""
-        idx = farthest_point_sample(xyz, self.npoint)
+        idx = farthest_point_sample(xyz, min(self.npoint, xyz.shape[1]))
         centres = torch.gather(xyz, 1, idx.unsqueeze(-1).expand(-1, -1, 3))
-        nb = ball_query(xyz, centres, self.radius, self.nsample)
-        grouped = torch.cat([group_points(xyz, nb) - centres.unsqueeze(2), group_points(feats, nb)], -1)
-        return centres, self.mlp(grouped).max(2).values
+        nb = ball_query_masked(xyz, None, centres, self.radius, self.nsample, strict=True)[0]
+        grouped = torch.cat([group_points(feats, nb), group_points(xyz, nb) - centres.unsqueeze(2)], -1)
+        return centres, self.point_conv.local_nn(grouped).max(2).values
 
     def reference(self, xyz: np.ndarray, feats: torch.Tensor):
         """Reference on one object: xyz [N, 3] numpy, feats [N, C] -> ([S, 3] numpy, [S, C'])."""
-        idx = farthest_point_sample_reference(xyz, self.npoint)
+        idx = farthest_point_sample_reference(xyz, min(self.npoint, len(xyz)))
         centres = xyz[idx]
-        nb = ball_query_reference(xyz, centres, self.radius, self.nsample)
+        nb = ball_query_masked_reference(xyz, None, centres, self.radius, self.nsample, strict=True)[0]
         rel = group_points_reference(xyz, nb) - centres[:, None, :]
-        grouped = torch.cat([torch.from_numpy(rel), torch.from_numpy(group_points_reference(feats.numpy(), nb))], -1)
-        return centres, self.mlp(grouped).max(1).values
+        grouped = torch.cat([torch.from_numpy(group_points_reference(feats.numpy(), nb)), torch.from_numpy(rel)], -1)
+        return centres, self.point_conv.local_nn(grouped).max(1).values
+
+
+class _GlobalSA(nn.Module):
+    def __init__(self, cin: int, dims):
+        super().__init__()
+        self.mlp = BatchNormMLP([cin + 3, *dims])
+
+
+class PointNet2(nn.Module):
+    """Text2Pos's PointNet++ object network (module names and shapes as its state_dict, so its
+    published weights load): set abstractions ``sa1``.., the global layer ``ga`` (MLP on
+    [features, xyz], max over points), ``lin1`` / ``lin2`` with ReLU to the geometry feature, and
+    the ``class_classifier`` / ``color_classifier`` heads."""
+
+    def __init__(self, cfg: SubmapConfig):
+        super().__init__()
+        cin = 3                                                     # rgb
+        for i, (npoint, radius, nsample, dims) in enumerate(zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample,
+                                                                 cfg.sa_mlp), 1):
+            setattr(self, f"sa{i}", SetAbstraction(cin, dims, npoint, radius, nsample))
+            cin = dims[-1]
+        self.levels = len(cfg.sa_npoint)
+        self.ga = _GlobalSA(cin, cfg.global_mlp)
+        self.lin1 = nn.Linear(cfg.global_mlp[-1], cfg.head_mlp[0])
+        self.lin2 = nn.Linear(cfg.head_mlp[0], cfg.head_mlp[1])
+        self.class_classifier = nn.Linear(cfg.head_mlp[1], len(cfg.object_classes))
+        self.color_classifier = nn.Linear(cfg.head_mlp[1], cfg.object_colors)
+
+    def _head(self, xyz, feats, reduce):
+        g = reduce(self.ga.mlp(torch.cat([feats, xyz], -1)))
+        return torch.relu(self.lin2(torch.relu(self.lin1(g))))
+
+    def forward(self, xyz: torch.Tensor, rgb: torch.Tensor) -> torch.Tensor:
+        """Export: xyz [G, P, 3], rgb [G, P, 3] -> geometry features [G, head_mlp[-1]]."""
+        feats = rgb
+        for i in range(1, self.levels + 1):
+            xyz, feats = getattr(self, f"sa{i}")(xyz, feats)
+        return self._head(xyz, feats, lambda x: x.max(1).values)
+
+    def reference(self, xyz: np.ndarray, rgb: torch.Tensor) -> torch.Tensor:
+        """Reference on one object: xyz [P, 3] numpy, rgb [P, 3] -> [head_mlp[-1]]."""
+        feats = rgb
+        for i in range(1, self.levels + 1):
+            xyz, feats = getattr(self, f"sa{i}").reference(xyz, feats)
+        return self._head(torch.from_numpy(xyz), feats, lambda x: x.max(0).values)
 
 
 class ObjectEncoder(nn.Module):
-    """Per-object embedding s_i (eq. 2-3) from [.., P, 6] points and the object's point count."""
+    """Per-object embedding s_i (eq. 2-3) as Text2Loc's ObjectEncoder (module names as its
+    state_dict): ``mlp_pointnet`` on the PointNet++ geometry feature, ``color_encoder`` on the mean
+    colour, ``pos_encoder`` on the mean position in the cell, ``num_encoder`` on the normalised
+    point count, each L2-normalised, then ``mlp_merge`` (eq. 3, sigma(W[f, c, p, r] + b))."""
 
     def __init__(self, cell: CellConfig, cfg: SubmapConfig):
         super().__init__()
-        self.cell, d, h = cell, cfg.embed_dim, cfg.encoder_hidden
-        self.sa1 = SetAbstraction(3, cfg.sa1_mlp, cfg.sa1_npoint, cfg.sa1_radius, cfg.sa1_nsample)
-        self.sa2 = SetAbstraction(cfg.sa1_mlp[-1], cfg.sa2_mlp, cfg.sa2_npoint, cfg.sa2_radius, cfg.sa2_nsample)
-        self.h = mlp([cfg.sa2_mlp[-1] + 3, *cfg.global_mlp], last_act=True)      # eq. 2 h(.)
-        self.gamma = mlp([cfg.global_mlp[-1], d, d])                              # eq. 2 gamma(.)
-        self.color = mlp([3, h, d])
-        self.position = mlp([3, h, d])
-        self.count = mlp([1, h, d])
-        self.fuse = nn.Linear(4 * d, d)                                           # eq. 3
+        self.cell, self.frame, d, h = cell, cfg.object_frame, cfg.embed_dim, cfg.encoder_hidden
+        self.pointnet = PointNet2(cfg)
+        self.mlp_pointnet = BatchNormMLP([cfg.head_mlp[-1], d])
+        self.color_encoder = BatchNormMLP([3, h, d])
+        self.pos_encoder = BatchNormMLP([3, h, d])
+        self.num_encoder = BatchNormMLP([1, h, d])
+        self.mlp_merge = BatchNormMLP([4 * d, d])
 
     @staticmethod
     def unit_sphere(xyz: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
@@ -185,19 +289,21 @@ class ObjectEncoder(nn.Module):
         scale = rel.abs().amax(dim=(-2, -1), keepdim=True).clamp(min=1e-6)
         return rel / scale
 
+    def local(self, xyz: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+        """The object's points in the frame PointNet++ sees (``object_frame``)."""
+        return xyz if self.frame == "cell" else self.unit_sphere(xyz, centre)
+
     def fuse_embeddings(self, geom, rgb_mean, centre, count):
         c = (torch.as_tensor(count, dtype=torch.float32).unsqueeze(-1) - self.cell.count_mean) / self.cell.count_std
-        parts = [self.gamma(geom), self.color(rgb_mean), self.position(centre), self.count(c)]
-        return torch.relu(self.fuse(torch.cat([F.normalize(p, dim=-1) for p in parts], -1)))
+        parts = [self.mlp_pointnet(geom), self.color_encoder(rgb_mean), self.pos_encoder(centre), self.num_encoder(c)]
+        return self.mlp_merge(torch.cat([F.normalize(p, dim=-1) for p in parts], -1))
 
-    def forward(self, points: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
-        """Export: points [G, P, 6], counts [G] -> s [G, D]."""
+    def forward(self, points: torch.Tensor, counts: torch.Tensor, geometry: torch.Tensor | None = None) -> torch.Tensor:
+        """Export: points [G, P, 6], counts [G] -> s [G, D]. ``geometry`` [G, 256], when given,
+        replaces the PointNet++ pass (its output, computed once while it stays frozen)."""
         xyz, rgb = points[..., :3], points[..., 3:]
         centre = xyz.mean(1, keepdim=True)
-        local = self.unit_sphere(xyz, centre)
-        c1, f1 = self.sa1(local, rgb)
-        c2, f2 = self.sa2(c1, f1)
-        geom = self.h(torch.cat([c2, f2], -1)).max(1).values
+        geom = self.pointnet(self.local(xyz, centre), rgb) if geometry is None else geometry
         return self.fuse_embeddings(geom, rgb.mean(1), centre[:, 0], counts)
 
     def reference(self, points: np.ndarray, count: float) -> torch.Tensor:
@@ -205,18 +311,24 @@ class ObjectEncoder(nn.Module):
         pts = torch.from_numpy(np.ascontiguousarray(points, np.float32))
         xyz, rgb = pts[:, :3], pts[:, 3:]
         centre = xyz.mean(0, keepdim=True)
-        local = self.unit_sphere(xyz, centre).numpy()
-        c1, f1 = self.sa1.reference(local, rgb)
-        c2, f2 = self.sa2.reference(c1, f1)
-        geom = self.h(torch.cat([torch.from_numpy(c2), f2], -1)).max(0).values
+        geom = self.pointnet.reference(self.local(xyz, centre).numpy(), rgb)
         return self.fuse_embeddings(geom[None], rgb.mean(0)[None], centre, torch.tensor([count]))[0]
 
 
 class MFAM(nn.Module):
-    """Multi-scale fusion attention (eq. 4-5) over the object sequence [B, T, D]."""
+    """Multi-scale fusion attention (eq. 4-5) over the object sequence [B, T, D].
 
-    def __init__(self, d: int, heads: int):
+    ``form`` "paper": eq. 4-5 as printed, F_k = MHSA(ReLU(Conv_k(s)) + s) for k = 1, 3, 5 (convolutions
+    along the object sequence), R3 = softmax(F3 F1^T / sqrt(d)) * softmax(F3 F5^T / sqrt(d)), out =
+    R3 V(F3). Each row of R3 sums to far less than 1 and mixes every object, so the output
+    barely depends on any one object (a test measures it). ``form`` "residual" (default) adds the
+    input back, s + eq. 5, as upstream's ConvBlock wraps its fusion; the per-object information
+    then survives.
+    """
+
+    def __init__(self, d: int, heads: int, form: str = "residual"):
         super().__init__()
+        self.form = form
         self.convs = nn.ModuleList(nn.Conv1d(d, d, k, padding=k // 2) for k in (1, 3, 5))
         self.self_attn = nn.ModuleList(Attention(d, heads) for _ in range(3))
         self.q1, self.k1, self.q5, self.k5 = (nn.Linear(d, d) for _ in range(4))
@@ -225,14 +337,14 @@ class MFAM(nn.Module):
 
     def forward(self, s: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """s [B, T, D]; ``mask`` [B, T] (real objects first) or None (reference: all real)."""
-        keep = mask.unsqueeze(-1).to(s.dtype) if mask is not None else None
-        if keep is not None:
-            s = s * keep                       # padding is zero, exactly like the convolution's border
+        keep = mask.unsqueeze(-1) if mask is not None else None
+        if keep is not None:                   # padding is zero, exactly like the convolution's border
+            s = torch.where(keep, s, torch.zeros_like(s))      # (a NaN in a padding slot stays out)
         feats = []
         for conv, attn in zip(self.convs, self.self_attn):
             x = torch.relu(conv(s.transpose(1, 2)).transpose(1, 2)) + s          # eq. 4
             if keep is not None:
-                x = x * keep
+                x = torch.where(keep, x, torch.zeros_like(x))
             feats.append(attn(x, x, mask))
         f1, f3, f5 = feats
 
@@ -243,7 +355,8 @@ class MFAM(nn.Module):
             return torch.softmax(a, -1)
 
         r3 = weights(self.q1(f3), self.k1(f1)) * weights(self.q5(f3), self.k5(f5))   # R3 = R1 * R2
-        return self.o(r3 @ self.v(f3))                                               # eq. 5
+        out = self.o(r3 @ self.v(f3))                                                # eq. 5
+        return s + out if self.form == "residual" else out
 
 
 def _lstm_unrolled(x, w_ih, w_hh, b_ih, b_hh):
@@ -268,20 +381,38 @@ class SubmapEncoder(nn.Module):
 
     def __init__(self, cell: CellConfig, cfg: SubmapConfig):
         super().__init__()
-        if 2 * cfg.lstm_hidden != cfg.embed_dim:
-            raise ConfigError(f"submap.lstm_hidden ({cfg.lstm_hidden}) must be half of submap.embed_dim "
-                              f"({cfg.embed_dim}): the bidirectional states are the descriptor")
         self.cell, self.cfg = cell, cfg
         self.objects = ObjectEncoder(cell, cfg)
-        self.mfam = MFAM(cfg.embed_dim, cfg.heads)
+        self.mfam = MFAM(cfg.embed_dim, cfg.heads, cfg.mfam)
         self.lstm = nn.LSTM(cfg.embed_dim, cfg.lstm_hidden, batch_first=True, bidirectional=True)
 
     def _select(self, t: int) -> torch.Tensor:
-        return torch.arange(t) % self.cfg.downsample_stride == 0                  # eq. 7: 1, 1+k, 1+2k ...
+        """Objects kept by eq. 7: all (``downsample: channels``) or 1, 1+k, 1+2k ... (``objects``)."""
+        if self.cfg.downsample == "channels":
+            return torch.ones(t, dtype=torch.bool)
+        return torch.arange(t) % self.cfg.downsample_stride == 0
 
-    def forward(self, points, num_points, object_mask, trace=None):
+    def _channels(self, h: torch.Tensor) -> torch.Tensor:
+        """Eq. 7 over channels (``downsample: channels``, upstream's reading): every k-th channel
+        of the [forward, backward] state, e.g. 512 -> 256; the identity for ``objects``."""
+        return h[..., :: self.cfg.downsample_stride] if self.cfg.downsample == "channels" else h
+
+    def _objects(self, points, counts, real, geometry):
+        """s of every slot [G, D]. In train mode only the real objects go through the object
+        encoder (its BatchNorm statistics never see a padding slot, as Text2Loc's flat object
+        batch) and padding slots are zero; in eval mode every slot, fixed shapes for the export."""
+        if not self.training:
+            return self.objects(points, counts, geometry)
+        s_real = self.objects(points[real], counts[real], None if geometry is None else geometry[real])
+        s = s_real.new_zeros(len(real), s_real.shape[-1])
+        s[real] = s_real
+        return s
+
+    def forward(self, points, num_points, object_mask, trace=None, geometry=None):
         """Export: points [B, T, P, 6], num_points [B, T], object_mask [B, T] bool ->
-        descriptor [B, D] (L2-normalised), object_features [B, T, D] (zero at padding slots)."""
+        descriptor [B, D] (L2-normalised), object_features [B, T, D] (zero at padding slots).
+        ``geometry`` [B, T, 256], when given, is the PointNet++ output of every slot (training with
+        a frozen PointNet++ computes it once)."""
         b, t, p, _ = points.shape
         ar = torch.arange(t, dtype=torch.int64).unsqueeze(0)
         order = torch.argsort(torch.where(object_mask, ar, ar + t), dim=1)        # real objects first
@@ -289,7 +420,9 @@ class SubmapEncoder(nn.Module):
         mask = torch.gather(object_mask, 1, order)
         pts = torch.gather(points, 1, order.view(b, t, 1, 1).expand(b, t, p, 6))
         cnt = torch.gather(num_points, 1, order)
-        s = self.objects(pts.reshape(b * t, p, 6), cnt.reshape(b * t)).reshape(b, t, -1)
+        if geometry is not None:
+            geometry = torch.gather(geometry, 1, order.unsqueeze(-1).expand_as(geometry)).reshape(b * t, -1)
+        s = self._objects(pts.reshape(b * t, p, 6), cnt.reshape(b * t), mask.reshape(b * t), geometry).reshape(b, t, -1)
         d = self.mfam(s, mask)
         n = mask.sum(1, keepdim=True)
         rev = torch.where(ar < n, n - 1 - ar, ar)                                  # prefix reversal
@@ -299,7 +432,7 @@ class SubmapEncoder(nn.Module):
         bwd = _lstm_unrolled(d_rev, lstm.weight_ih_l0_reverse, lstm.weight_hh_l0_reverse,
                              lstm.bias_ih_l0_reverse, lstm.bias_hh_l0_reverse)
         bwd = torch.gather(bwd, 1, rev.unsqueeze(-1).expand_as(bwd))
-        h = torch.cat([fwd, bwd], -1) * mask.unsqueeze(-1).to(d.dtype)
+        h = self._channels(torch.cat([fwd, bwd], -1)) * mask.unsqueeze(-1).to(d.dtype)
         desc = F.normalize(masked_max(h, mask & self._select(t).unsqueeze(0), 1), dim=-1)
         if trace is not None:
             trace.update(objects=s, mfam=d, lstm=h)
@@ -312,7 +445,7 @@ class SubmapEncoder(nn.Module):
             raise ConfigError("a cell needs at least one object")
         s = torch.stack([self.objects.reference(o, c) for o, c in zip(points, num_points)])
         d = self.mfam(s[None])
-        h = self.lstm(d)[0][0]                                                     # packed: no padding at all
+        h = self._channels(self.lstm(d)[0][0])                                     # packed: no padding at all
         desc = F.normalize(h[self._select(len(h))].max(0).values, dim=-1)
         return desc, h
 
@@ -339,16 +472,29 @@ class TextEncoder(nn.Module):
     def _hints(self, input_ids, attention_mask):
         """Token ids [H, L] -> (pre-MLP coarse per-hint vectors, fine per-hint features)."""
         mask = attention_mask > 0
-        x = self.backbone(input_ids, attention_mask)
+        return self.heads(self.prior_tokens(self.backbone(input_ids, attention_mask), mask), mask)
+
+    def prior_tokens(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The cross-modal prior head on backbone token features x [H, L, C] -> [H, L, prior_dim];
+        its max over the real tokens is what stage 1 aligns to the teacher (eq. 8)."""
         for layer in self.prior:
             x = layer(x, mask)
-        x = self.prior_mlp(x)                                                      # prior token features
+        return self.prior_mlp(x)
+
+    def heads(self, x: torch.Tensor, mask: torch.Tensor):
+        """Prior token features [H, L, prior_dim] -> (coarse per-hint vectors [H, D] before the
+        across-hint Transformer, fine per-hint features [H, D])."""
         coarse = self.align_mlp(masked_max(self.align_words(x, mask), mask, 1))
         fine = self.fine_mlp(masked_max(self.fine_words(x, mask), mask, 1))
         return coarse, fine
 
+    def pool(self, coarse: torch.Tensor, hint_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-hint vectors of B descriptions [B, H, D] (``hint_mask`` [B, H], None: all real) ->
+        their L2-normalised descriptors [B, D]: the across-hint Transformer, then a max."""
+        return F.normalize(masked_max(self.align_hints(coarse, hint_mask), hint_mask, 1), dim=-1)
+
     def _pool(self, coarse):
-        return F.normalize(self.align_hints(coarse[None])[0].max(0).values, dim=-1)
+        return self.pool(coarse[None])[0]
 
     def forward(self, input_ids, attention_mask):
         """Export: input_ids [H, L] int64, attention_mask [H, L] int64 ->
@@ -379,10 +525,10 @@ class FineStage(nn.Module):
         self.attn = nn.ModuleList(Attention(d, cfg.heads) for _ in range(cfg.cra_layers))
         self.offset = mlp([d, cfg.mlp_hidden, 2])
 
-    def offsets(self, objects, object_mask, hints):
-        """objects [K, T, D] (mask [K, T] or None), hints [K, H, D] -> offset [K, 2] (cell units from
-        the cell centre)."""
-        seq = [(hints, None), (objects, object_mask)]                             # R_-1 = T, R_0 = N
+    def offsets(self, objects, object_mask, hints, hint_mask=None):
+        """objects [K, T, D] (mask [K, T] or None), hints [K, H, D] (mask [K, H] or None) -> offset
+        [K, 2] (cell units from the cell centre)."""
+        seq = [(hints, hint_mask), (objects, object_mask)]                        # R_-1 = T, R_0 = N
         for attn in self.attn:
             (q, qmask), (kv, kvmask) = seq[-2], seq[-1]
             seq.append((attn(q, kv, kvmask) + q, qmask))                           # Residual(Attention(...), query)

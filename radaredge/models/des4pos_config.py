@@ -38,7 +38,7 @@ class TextConfig:
     max_hints: int = 8
     prior_layers: int = 2
     prior_heads: int = 4
-    prior_dim: int = 512               # CLIP ViT-B/32 text width, what stage 1 aligns to
+    prior_dim: int = 384               # stage 1's teacher width (eq. 8): the backbone's sentence embedding
     align_heads: int = 4
     ffn_ratio: int = 4
 

@@ -28,7 +28,7 @@ from ..runtime.text_tokens import encode_hints, load_tokenizer, split_hints
 from .des4pos import Des4Pos, build_des4pos
 from .des4pos_config import CellConfig, TextConfig
 from .minilm import backbone_dir
-from .spec import EvalInputs, GraphSpec, ModelSpec
+from .spec import EvalInputs, GraphSpec, ModelSpec, TrainInputs
 
 
 
@@ -311,11 +311,28 @@ def bench_tasks(card: ModelCard, model: Des4Pos, paths: dict, options) -> list:
 
 
 def evaluate_localization(card: ModelCard, onnx, inputs: EvalInputs):
-    """Localisation recall of the export over a cell map's described poses
+    """Table I (localisation recall) and Table II (cell-retrieval recall) of the export, and of the
+    torch reference unless ``--no-reference``, over the cell maps at ``--map``
     (:func:`radaredge.des4pos_eval.evaluate_localization`)."""
     from ..des4pos_eval import evaluate_localization as localize
-    inputs.require("localisation recall", ("map",), card.name)
-    return localize(onnx, inputs.map, progress=inputs.progress, model=card.name)
+    inputs.require("localisation recall", ("map",), card.name, ("checkpoint", "reference"))
+    return localize(onnx, inputs.map, progress=inputs.progress, model=card.name, reference=inputs.reference,
+                    checkpoint=inputs.checkpoint)
+
+
+def train_text(card: ModelCard, model: Des4Pos, data, inputs: TrainInputs):
+    """Des4Pos's training stages (:mod:`radaredge.training.des4pos`) on the cell maps under ``data``."""
+    from ..training.des4pos import TextRecipe, train_text as run
+    from ..training.run import no_progress
+    drive_only = [f"--{k.replace('_', '-')}" for k, v in (inputs.bag or {}).items() if v is not None]
+    if inputs.data_format:
+        drive_only.append("--format")
+    if drive_only:
+        raise ConfigError(f"{', '.join(drive_only)} describe radar drives; {card.name} trains on cell maps with "
+                          f"described poses (`radaredge make-city`, KITTI360Pose cells/ + poses/)")
+    recipe = TextRecipe.from_options(inputs.options or {})
+    return run(card, model, data, inputs.output, recipe, inputs.device, inputs.resume, inputs.validation,
+               inputs.progress or no_progress, inputs.log or (lambda line: None))
 
 
 DES4POS_SPEC = ModelSpec(
@@ -326,4 +343,5 @@ DES4POS_SPEC = ModelSpec(
     int8_calibrated=False,
     bench_tasks=bench_tasks,
     evaluate=evaluate_localization,
+    train=train_text,
 )

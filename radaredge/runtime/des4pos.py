@@ -29,6 +29,7 @@ from .model import load as load_graph
 from .text_tokens import encode_hints, load_tokenizer, split_hints
 
 PARTS = ("submap_encoder", "text_encoder", "fine_stage")
+INDEX_CACHE_TAG = ".des4pos-"  # <map file name><tag><key>.npz: a MapIndex cache beside the map
 
 
 class Des4PosBundle:
@@ -152,7 +153,7 @@ class MapIndex:
         with open(map_path, "rb") as f:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
-        path = map_path.with_name(f"{map_path.name}.des4pos-{h.hexdigest()[:16]}.npz")
+        path = map_path.with_name(f"{map_path.name}{INDEX_CACHE_TAG}{h.hexdigest()[:16]}.npz")
         common = dict(ids=cells.ids, origins=cells.origins, sizes=cells.sizes, object_mask=cells.object_mask)
         if cache and path.is_file():
             arrays = _read_cache(path, len(cells), cells.object_mask.shape[1])
@@ -161,6 +162,11 @@ class MapIndex:
         desc, objs = bundle.encode_cells(cells, progress=progress)
         written = cache and _write_cache(path, desc, objs)
         return cls(**common, descriptors=desc, object_features=objs, cache=path if written else None)
+
+
+def is_index_cache(path: str | Path) -> bool:
+    """True for a cell-descriptor cache that :meth:`MapIndex.build` wrote beside a map."""
+    return INDEX_CACHE_TAG in Path(path).name
 
 
 def _digest(descriptors: np.ndarray, object_features: np.ndarray) -> str:

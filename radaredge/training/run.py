@@ -139,6 +139,7 @@ class TrainReport:
     metric: str                                   # the validation metric that picks the best epoch
     epochs: list[dict] = field(default_factory=list)
     best_epoch: int | None = None
+    stage_best: dict = field(default_factory=dict)   # staged recipes: stage -> its best epoch (kept weights)
     data: dict = field(default_factory=dict)
     options: dict = field(default_factory=dict)
     seconds: float = 0.0
@@ -150,20 +151,30 @@ class TrainReport:
     def to_dict(self) -> dict:
         return {"model": self.model, "output": str(self.output), "best_checkpoint": str(Path(self.output) / BEST),
                 "last_state": str(Path(self.output) / LAST), "metric": self.metric, "best_epoch": self.best_epoch,
+                **({"stage_best": self.stage_best} if self.stage_best else {}),
                 "seconds": round(self.seconds, 1), "data": self.data, "options": self.options, "epochs": self.epochs}
 
     def lines(self) -> list[str]:
         out = [f"train {self.model}: {len(self.epochs)} epoch(s) in {self.seconds / 60:.1f} min; data: "
                + ", ".join(f"{k} {v}" for k, v in self.data.items() if not isinstance(v, (list, dict)))]
-        keys = [k for k in (self.epochs[0] if self.epochs else {}) if k not in ("epoch", "seconds")]
-        out.append(f"{'epoch':>5}" + "".join(f"{k:>12}" for k in keys))
-        for e in self.epochs:
-            mark = "  *" if e["epoch"] == self.best_epoch else ""
-            out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e[k]):>12}" for k in keys) + mark)
-        if self.best is not None:
-            out.append(f"best epoch {self.best_epoch} ({self.metric} {_fmt(self.best[self.metric])}): "
-                       f"{Path(self.output) / BEST}; export it with `radaredge export --model {self.model} "
-                       f"--checkpoint {Path(self.output) / BEST}`")
+        bests = []
+        for stage in dict.fromkeys(e.get("stage") for e in self.epochs):      # rows of a staged recipe by stage
+            rows = [e for e in self.epochs if e.get("stage") == stage]
+            keys = [k for k in rows[0] if k not in ("stage", "epoch", "seconds")]
+            best, metric = (self.stage_best.get(stage), None) if stage else (self.best_epoch, self.metric)
+            if stage:
+                out.append(f"stage {stage}:")
+            width = [max(12, len(k) + 2) for k in keys]
+            out.append(f"{'epoch':>5}" + "".join(f"{k:>{w}}" for k, w in zip(keys, width)))
+            for e in rows:
+                mark = "  *" if e["epoch"] == best else ""
+                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e[k]):>{w}}" for k, w in zip(keys, width)) + mark)
+                if mark:
+                    metric = metric or keys[1]
+                    bests.append(f"{stage + ' ' if stage else ''}epoch {best} ({metric} {_fmt(e[metric])})")
+        if bests:
+            out.append(f"best {', '.join(bests)}: {Path(self.output) / BEST}; export it with `radaredge export "
+                       f"--model {self.model} --checkpoint {Path(self.output) / BEST}`")
         return out
 
 

@@ -1,0 +1,96 @@
+"""Des4Pos training (radaredge/training/des4pos.py) on a tiny card and a small synthetic city."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import radaredge
+from radaredge.cards import load_card
+from radaredge.data.text_city import write_cities
+from radaredge.data.text_maps import load_text_maps
+from radaredge.errors import ConfigError
+from radaredge.exporter import build_model
+from radaredge.training.des4pos import (TextRecipe, backbone_features, coarse_metrics, geometry_features, hint_table,
+                                        info_nce)
+
+TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
+
+
+@pytest.fixture(scope="module")
+def card():
+    return load_card(TINY)
+
+
+@pytest.fixture(scope="module")
+def city_dir(tmp_path_factory, card):
+    d = tmp_path_factory.mktemp("cities")
+    write_cities(d, card, 1, seed=7, poses=160)
+    return d
+
+
+def _training_recall(card, model, root) -> float:
+    """Cell-retrieval recall@1 (%) of the training descriptions among the city's cells."""
+    cell, text = model.cell_config, model.text_config
+    maps = load_text_maps(root, cell.max_objects, cell.points_per_object, text.max_hints, None, 0)
+    table = hint_table(card, maps)
+    tokens, tmask = backbone_features(model, table, "cpu")
+    with torch.no_grad():
+        prior = model.text.prior_tokens(tokens, tmask)
+    geometry = geometry_features(model, maps, "cpu")
+    train_q = np.flatnonzero(~maps.validation)
+    cells = np.arange(len(maps.cells.ids))
+    return coarse_metrics(model, maps, prior, tmask, geometry, train_q, cells, "cpu", table)["cell_R@1"]
+
+
+def test_coarse_stage_lowers_infonce_and_raises_recall(card, city_dir, tmp_path):
+    seeded = build_model(card)
+    before = _training_recall(card, seeded, city_dir)
+    report = radaredge.train(card, city_dir, tmp_path / "run",
+                             options={"stages": "coarse", "coarse_epochs": 5, "coarse_batch": 16, "coarse_lr": 2e-3})
+    rows = [r for r in report.epochs if r["stage"] == "coarse"]
+    assert len(rows) == 5 and report.data["training_poses"] == 144    # 9 steps an epoch, 45 in all
+    assert rows[-1]["loss"] < 0.8 * rows[0]["loss"], [r["loss"] for r in rows]
+    trained = build_model(card, tmp_path / "run" / "best.pth")
+    after = _training_recall(card, trained, city_dir)
+    assert after >= before + 10.0, (before, after)
+    log = json.loads((tmp_path / "run" / "train-log.json").read_text())
+    assert log["stage_best"]["coarse"] == report.best_epoch
+
+
+def test_all_stages_run_resume_and_keep_each_stages_best(card, city_dir, tmp_path):
+    opts = {"object_epochs": 1, "prior_epochs": 1, "coarse_epochs": 1, "fine_epochs": 2, "coarse_batch": 16}
+    report = radaredge.train(card, city_dir, tmp_path / "run", options=opts)
+    assert [r["stage"] for r in report.epochs] == ["objects", "prior", "coarse", "fine", "fine"]
+    assert set(report.stage_best) == {"objects", "prior", "coarse", "fine"}
+    text = "\n".join(report.lines())
+    assert "object_acc" in text and "prior_cosine" in text and "cell_R@1" in text and "fine_error_m" in text
+    more = radaredge.train(card, city_dir, tmp_path / "run", resume=True, options={**opts, "fine_epochs": 3})
+    assert [r["stage"] for r in more.epochs] == ["objects", "prior", "coarse", "fine", "fine", "fine"]
+    best = torch.load(tmp_path / "run" / "best.pth", map_location="cpu", weights_only=False)
+    assert "fine_error_m" in best["metrics"] and "cell_R@1" in best["metrics"]
+
+
+def test_info_nce_masks_copies_of_the_same_cell():
+    text = torch.nn.functional.normalize(torch.randn(4, 8), dim=1)
+    ids = torch.tensor([0, 0, 1, 2])
+    masked = info_nce(text, text.clone(), ids, 0.1, True)
+    counted = info_nce(text, text.clone(), ids, 0.1, False)
+    assert masked < counted                      # the duplicate is no longer a negative
+    # a perfect, well-separated pairing approaches zero loss
+    eye = torch.eye(4)
+    assert float(info_nce(eye, eye, torch.arange(4), 0.01, True)) < 1e-6
+
+
+@pytest.mark.parametrize("options, match", [({"stages": "coarse,warmup"}, "unknown"),
+                                            ({"coarse_lr": -1.0}, "coarse-lr"),
+                                            ({"duplicate_cells": "drop"}, "duplicate_cells"),
+                                            ({"shuffle_hints": 1}, "true or false"),
+                                            ({"negatives": 8}, "unknown Des4Pos training option")])
+def test_recipe_options_are_checked(options, match):
+    with pytest.raises(ConfigError, match=match):
+        TextRecipe.from_options(options)
