@@ -195,7 +195,8 @@ def dbscan_labels(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig, rou
     # canonical numbering: component id = smallest core index, cluster = rank of that index
     low = idx.scatter_reduce(0, parent, idx, reduce="amin", include_self=True).gather(0, parent)
     first = core & (low == idx)
-    rank = torch.cumsum(first.to(torch.int64), 0) - 1
+    # a float32 CumSum (TensorRT refuses integer ones): exact up to 2**24 points, where capacity stops
+    rank = (torch.cumsum(first.to(torch.float32), 0) - 1.0).to(torch.int64)
     cluster = torch.where(core, rank.gather(0, low), m)
     reach = near & core.unsqueeze(0)                   # j is a core point within eps of i
     border = torch.where(reach, cluster.unsqueeze(0), m).amin(1)
