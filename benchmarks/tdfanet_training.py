@@ -34,6 +34,7 @@ import torch
 
 import radaredge
 from radaredge.cards import load_card
+from radaredge.config import parse_settings
 from radaredge.data.pr_benchmark import make_pr_benchmark, make_pr_towns
 from radaredge.timing import cpu_name
 
@@ -60,10 +61,7 @@ def main(argv=None) -> int:
     card = load_card(args.card)
     work = args.work or ROOT / "export" / f"{card.name}-training"
     towns, held, run, graphs = work / "towns", work / "heldout-town", work / "run", work / "graphs"
-    options = {}
-    for pair in args.settings:
-        key, _, value = pair.partition("=")
-        options[key] = float(value) if "." in value or "e" in value else int(value)
+    options = parse_settings(args.settings)
     stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     t0 = time.perf_counter()
     if not towns.exists():

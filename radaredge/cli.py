@@ -70,26 +70,6 @@ def _bar(desc: str, total: int):
     return tqdm(total=total, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
 
 
-def _options(pairs: tuple[str, ...], option: str = "--set", example: str = "negatives=8") -> dict:
-    """``KEY=VALUE`` pairs as a dict, values read as YAML scalars (numbers, true/false, strings)."""
-    import yaml
-    from .errors import ConfigError
-    out = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"{option} {pair!r}: expected KEY=VALUE, e.g. {option} {example}")
-        try:
-            parsed = yaml.safe_load(value) if value.strip() else None
-        except yaml.YAMLError:
-            parsed = value
-        if isinstance(parsed, (dict, list)):
-            raise ConfigError(f"{option} {pair!r}: expected a number, true/false or a word, got a "
-                              f"{type(parsed).__name__}")
-        out[key.strip()] = parsed
-    return out
-
-
 def _log(line: str) -> None:
     click.echo(line, err=True)
 
@@ -394,12 +374,13 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
     per epoch; Des4Pos: object, prior, coarse InfoNCE and fine stages), validate every epoch and keep
     the best checkpoint for `radaredge export --checkpoint`."""
     from .api import train as train_verb
-    options = {k.replace("-", "_"): v for k, v in _options(settings).items()}
+    from .config import parse_settings
+    options = {k.replace("-", "_"): v for k, v in parse_settings(settings).items()}
     options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed))
                     if v is not None})
     bag = {"radar_topic": radar_topic, "gps_topic": gps_topic,
            "field_map": {k: (v if isinstance(v, int) else str(v))
-                         for k, v in _options(field_map, "--field-map", "v_r=0").items()} or None,
+                         for k, v in parse_settings(field_map, "--field-map", "v_r=0").items()} or None,
            "doppler_sign": float(doppler_sign) if doppler_sign else None}
     report = train_verb(_card(model, config), data_dir, output, checkpoint=checkpoint, device=device, resume=resume,
                         validation=validation or None, data_format=data_format, bag=bag, options=options,
@@ -449,7 +430,7 @@ def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, 
               help="The directory `radaredge export --model des4pos` wrote.")
 @click.option("--map", "map_path", required=True, type=click.Path(dir_okay=False),
               help="Cell map: .npz from `radaredge make-city`, or a KITTI360Pose cells/<scene>.pkl.")
-@click.option("--text", required=True, help='The description, e.g. "The pose is north of a red car."')
+@click.option("--text", required=True, help='The description, e.g. "The pose is north of a red box."')
 @click.option("--top-k", default=3, show_default=True, type=int, help="Candidate cells for the fine stage.")
 @click.option("--threads", default=2, show_default=True, type=int)
 @click.option("--int8-text", is_flag=True, help="Use the dynamically quantised text_encoder.int8.onnx of the export.")

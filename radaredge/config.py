@@ -159,3 +159,23 @@ def check_writable_dir(directory, option: str, create: bool = False) -> None:
         raise ConfigError(f"{option}: cannot create {directory}: {existing} is not a directory")
     if not os.access(existing, os.W_OK):
         raise ConfigError(f"{option}: {existing} is not writable")
+
+
+def parse_settings(pairs: tuple[str, ...], option: str = "--set", example: str = "negatives=8") -> dict:
+    """``KEY=VALUE`` pairs (``--set`` options) as a dict, values read as YAML scalars (numbers,
+    true/false, words); ConfigError naming ``option`` for a malformed pair or a list/mapping value."""
+    import yaml
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{option} {pair!r}: expected KEY=VALUE, e.g. {option} {example}")
+        try:
+            parsed = yaml.safe_load(value) if value.strip() else None
+        except yaml.YAMLError:
+            parsed = value
+        if isinstance(parsed, (dict, list)):
+            raise ConfigError(f"{option} {pair!r}: expected a number, true/false or a word, got a "
+                              f"{type(parsed).__name__}")
+        out[key.strip()] = parsed
+    return out

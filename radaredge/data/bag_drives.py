@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import InputError
 from .geodesy import utm_from_latlon
-from .readers import iter_rosbag
+from .readers import bag_topic, iter_rosbag
 from .sequences import RadarSequence
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
@@ -59,34 +59,16 @@ def is_bag(path: str | os.PathLike) -> bool:
 def read_fixes(path: str | os.PathLike, topic: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(header stamps s, latitudes deg, longitudes deg) of the valid fixes (status >= 0, finite)
     on ``topic`` (``sensor_msgs/NavSatFix``) of a ROS 1 or ROS 2 bag, in recording order."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
-
     path = Path(path)
     stamps, lat, lon = [], [], []
-    try:
-        with AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
-            connections = [c for c in reader.connections if c.topic == topic]
-            if not connections:
-                present = ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(reader.topics.items()))
-                raise InputError(f"{path}: no GNSS topic {topic!r}; the bag has: {present or 'no topics'}")
-            wrong = sorted({c.msgtype for c in connections} - {NAVSATFIX})
-            if wrong:
-                raise InputError(f"{path}: topic {topic!r} carries {', '.join(wrong)}; expected {NAVSATFIX}")
-            for connection, _, raw in reader.messages(connections=connections):
-                msg = reader.deserialize(raw, connection.msgtype)
-                if msg.status.status < 0 or not (np.isfinite(msg.latitude) and np.isfinite(msg.longitude)):
-                    continue
-                stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
-                lat.append(msg.latitude)
-                lon.append(msg.longitude)
-    except InputError:
-        raise
-    except AnyReaderError as exc:
-        raise InputError(f"{path}: cannot read the ROS bag: {exc}") from exc
-    except Exception as exc:  # noqa: BLE001 - a damaged bag fails anywhere inside rosbags' parsers
-        raise InputError(f"{path}: cannot read the ROS bag, it is damaged or not a bag "
-                         f"({type(exc).__name__}: {str(exc)[:200]})") from exc
+    with bag_topic(path, topic, [NAVSATFIX], "GNSS ") as (reader, connections):
+        for connection, _, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            if msg.status.status < 0 or not (np.isfinite(msg.latitude) and np.isfinite(msg.longitude)):
+                continue
+            stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+            lat.append(msg.latitude)
+            lon.append(msg.longitude)
     return np.asarray(stamps, np.float64), np.asarray(lat, np.float64), np.asarray(lon, np.float64)
 
 

@@ -57,6 +57,7 @@ stand-in).
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -376,10 +377,6 @@ def iter_rosbag(path: str | os.PathLike, topic: str, features: Sequence[str],
     or index instead. A generator: the bag is opened, and problems (missing bag or topic,
     unsupported type, unmappable feature) raise :class:`InputError`, on the first iteration.
     """
-    # rosbags is imported here, not at module level, so reading scan files stays numpy-only.
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
-
     features = _check_features(features)
     field_map = dict(field_map or {})
     unknown = sorted(set(field_map) - set(features))
@@ -388,21 +385,34 @@ def iter_rosbag(path: str | os.PathLike, topic: str, features: Sequence[str],
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such ROS bag")
+    with bag_topic(path, topic, list(_DECODERS)) as (reader, connections):
+        for connection, _, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            decode = _DECODERS[connection.msgtype]
+            yield _stamp_seconds(msg), decode(msg, features, field_map, f"{path}: topic {topic!r}")
+
+
+@contextlib.contextmanager
+def bag_topic(path: Path, topic: str, msgtypes: Sequence[str], what: str = ""):
+    """(reader, connections) of ``topic`` in the ROS 1 or ROS 2 bag ``path`` (rosbags'
+    ``AnyReader``), its message types among ``msgtypes``; a missing topic, another type, or a
+    damaged bag anywhere while the caller reads it is one InputError naming the file. ``what``
+    names the topic's role in the message ("GNSS ")."""
+    # rosbags is imported here, not at module level, so reading scan files stays numpy-only.
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
     try:
         # The default typestore decodes ROS 2 bags that were recorded without message definitions.
         with AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
             connections = [c for c in reader.connections if c.topic == topic]
             if not connections:
                 present = ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(reader.topics.items()))
-                raise InputError(f"{path}: no topic {topic!r}; the bag has: {present or 'no topics'}")
-            unsupported = sorted({c.msgtype for c in connections} - set(_DECODERS))
+                raise InputError(f"{path}: no {what}topic {topic!r}; the bag has: {present or 'no topics'}")
+            unsupported = sorted({c.msgtype for c in connections} - set(msgtypes))
             if unsupported:
                 raise InputError(f"{path}: topic {topic!r} carries {', '.join(unsupported)}; expected "
-                                 f"{_POINTCLOUD2} or {_POINTCLOUD}")
-            for connection, _, raw in reader.messages(connections=connections):
-                msg = reader.deserialize(raw, connection.msgtype)
-                decode = _DECODERS[connection.msgtype]
-                yield _stamp_seconds(msg), decode(msg, features, field_map, f"{path}: topic {topic!r}")
+                                 f"{' or '.join(msgtypes)}")
+            yield reader, connections
     except InputError:
         raise
     except AnyReaderError as exc:

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from ..errors import ConfigError
-from ..exporter import read_state_dict
+from ..checkpoints import read_state_dict
 
 T2L_PREFIX = "object_encoder."
 # Text2Loc ObjectEncoder entries used only by its ablations (class / colour embeddings of the labels).
