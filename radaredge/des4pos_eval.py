@@ -218,11 +218,11 @@ def evaluate_localization(bundle_dir: str | os.PathLike, maps_path: str | os.Pat
         raise ConfigError(f"{bundle_dir} is an export of card {bundle.card.name!r}, not {model!r}; pass the "
                           f"--model/--config it was exported with")
     maps = load_text_maps(maps_path, bundle.slots, bundle.points, bundle.max_hints, split=False)
-    fine_k = min(max(ks), len(maps.cells.ids))
+    fine_k = max(ks)
     depth = max(fine_k, max(r_ks))
     if depth > len(maps.cells.ids):
-        raise ConfigError(f"recall@{max(r_ks)} needs at least {max(r_ks)} database cells; {maps_path} has "
-                          f"{len(maps.cells.ids)}")
+        raise ConfigError(f"top-{depth} recall needs at least {depth} database cells; {maps_path} has "
+                          f"{len(maps.cells.ids)} (use a larger database, or smaller k)")
     retrieved, positions, cached = _onnx_backend(bundle, maps, depth, fine_k, cache, wrap)
     results = {ONNX: _scores(retrieved, positions, maps, ks, thresholds, r_ks)}
     if reference:

@@ -454,8 +454,8 @@ def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
     first (world x, y m); ``pose_w`` [Q, 2]: the ground-truth pose. A query counts at (k, t) when
     one of its first k predictions lies within t m of the pose (planar Euclidean, boundary
     included). Predictions in cells of another scene than the query's (``same_scene`` [Q, K]
-    False) never count, however close. Returns {k: {t: fraction of queries in [0, 1]}}; k larger
-    than K uses all K predictions.
+    False) never count, however close. Returns {k: {t: fraction of queries in [0, 1]}}; a k larger
+    than K is an InputError (it would silently be recall at K).
     """
     pred = np.asarray(pred_w, np.float64)
     pose = np.asarray(pose_w, np.float64)
@@ -470,5 +470,7 @@ def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
         if same.shape != dist.shape:
             raise InputError(f"same_scene must be [Q, K] = {dist.shape}, got {same.shape}")
         dist = np.where(same, dist, np.inf)
+    if max(ks) > pred.shape[1]:
+        raise InputError(f"top-{max(ks)} recall needs {max(ks)} predictions per query; {pred.shape[1]} were given")
     best = np.minimum.accumulate(dist, axis=1)                             # min over the first k
-    return {k: {t: float((best[:, min(k, dist.shape[1]) - 1] <= t).mean()) for t in thresholds} for k in ks}
+    return {k: {t: float((best[:, k - 1] <= t).mean()) for t in thresholds} for k in ks}

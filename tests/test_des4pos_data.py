@@ -107,11 +107,12 @@ def test_localization_recall_hand_made():
         [[0.0, 20.0], [16.0, 0.0], [0.0, 1.0]],          # 1 m only at rank 3, but in another scene
     ])
     same = np.array([[True, True, True], [True, True, True], [True, True, False]])
-    r = localization_recall(pred, pose, ks=(1, 2, 3, 5), thresholds=(5, 10, 15), same_scene=same)
+    r = localization_recall(pred, pose, ks=(1, 2, 3), thresholds=(5, 10, 15), same_scene=same)
     assert r[1] == {5.0: 1 / 3, 10.0: 1 / 3, 15.0: 2 / 3}
     assert r[2] == {5.0: 1 / 3, 10.0: 2 / 3, 15.0: 2 / 3}
     assert r[3] == {5.0: 2 / 3, 10.0: 2 / 3, 15.0: 2 / 3}
-    assert r[5] == r[3]                                   # k beyond the candidates uses all of them
+    with pytest.raises(InputError, match="top-5 recall needs 5 predictions per query; 3 were given"):
+        localization_recall(pred, pose, ks=(1, 5), same_scene=same)
     no_scene = localization_recall(pred, pose, ks=(3,), thresholds=(5,))
     assert no_scene[3][5.0] == 1.0
 

@@ -93,6 +93,9 @@ def test_the_torch_reference_agrees_and_the_database_spans_maps(bundle, city, tm
 def test_errors_name_the_map_and_pose(bundle, city, tmp_path):
     with pytest.raises(ConfigError, match="thresholds must be positive"):
         evaluate_localization(bundle, city, thresholds=(0.0,))
+    small = make_city(6, 32, seed=3, world=40.0, objects=10, poses=3, max_hints=5).save(tmp_path / "small.npz")
+    with pytest.raises(ConfigError, match="top-10 recall needs at least 10 database cells; .*small.npz has 4"):
+        evaluate_localization(bundle, small)            # not silently recall over the 4 cells there are
     bare = make_city(6, 32, seed=3, objects=30, poses=0).save(tmp_path / "bare.npz")
     with pytest.raises(InputError, match="bare.npz: no described pose; make maps with poses"):
         evaluate_localization(bundle, bare)

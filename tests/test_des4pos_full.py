@@ -18,10 +18,12 @@ def test_full_card_bundle_export_and_parity(tmp_path):
     assert manifest["card"]["cell"]["max_objects"] == 28 and manifest["card"]["submap"]["embed_dim"] == 256
     side = json.loads((out / "submap_encoder.json").read_text())
     assert side["inputs"][0] == {"name": "points", "shape": ["cells", 28, 256, 6]}
-    res = CliRunner().invoke(main, ["parity-check", "--model", "des4pos", "--onnx", str(out), "--cases", "2", "--json"],
+    # the command's default case set (20 cases): distinct descriptions, each retrieving its own
+    res = CliRunner().invoke(main, ["parity-check", "--model", "des4pos", "--onnx", str(out), "--json"],
                              catch_exceptions=False)
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     assert report["graphs"]["submap_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
     assert report["graphs"]["text_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999
+    assert report["graphs"]["text_encoder"]["summary"]["descriptor"]["retrieval_top1"] == 1.0
     assert report["graphs"]["fine_stage"]["summary"]["position"]["max_abs"] <= 1e-3

@@ -3,6 +3,7 @@ into the full Des4Pos card key for key; files that do not fit are named with the
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -10,6 +11,7 @@ from radaredge.cards import load_card
 from radaredge.errors import ConfigError
 from radaredge.exporter import build_model
 from radaredge.models.des4pos_weights import load_object_weights
+from references import text2pos_pointnet as text2pos
 
 
 def _bn_mlp(prefix: str, dims: list[int], g: torch.Generator) -> dict:
@@ -86,3 +88,29 @@ def test_weights_that_do_not_fit_name_their_keys(model, tmp_path):
     torch.save({"backbone.conv.weight": torch.zeros(2)}, path)
     with pytest.raises(ConfigError, match="neither Text2Pos PointNet"):
         load_object_weights(model, path)
+
+
+def test_text2pos_weights_compute_text2pos_features(model, tmp_path):
+    """With Text2Pos's weights loaded, both formulations of the object network give the 256-d
+    feature of the upstream reference (tests/references/text2pos_pointnet.py, written from
+    Text2Pos's PointNet2 and PyG's fps / radius / PointConv) for objects in cell units."""
+    sd = text2pos_pointnet(seed=4)
+    for k, v in sd.items():                      # weights of a scale a trained net has: activations stay O(1)
+        if k.endswith(".0.weight") or k.startswith(("lin1", "lin2")) and k.endswith("weight"):
+            sd[k] = v / v.shape[1] ** 0.5
+    path = tmp_path / "pointnet.pth"
+    torch.save(sd, path)
+    load_object_weights(model, path)
+    net = model.submap.objects.pointnet.eval()
+    rng = np.random.default_rng(7)
+    for size in (0.12, 0.35):                                 # a pole-sized and a box-sized object
+        xyz = (rng.uniform(0.3, 0.3 + size, (256, 3))).astype(np.float32)
+        rgb = rng.uniform(0, 1, (256, 3)).astype(np.float32)
+        want = text2pos.features2(xyz, rgb, sd)
+        with torch.no_grad():
+            export = net(torch.from_numpy(xyz)[None], torch.from_numpy(rgb)[None])[0].numpy()
+            reference = net.reference(xyz, torch.from_numpy(rgb)).numpy()
+        scale = np.abs(want).max()
+        assert scale > 0.1
+        for got in (export, reference):
+            assert np.abs(got - want).max() <= 1e-4 * scale, (size, np.abs(got - want).max(), scale)

@@ -7,18 +7,20 @@ Three parts, exported as three graphs that share one set of weights:
    and two linear layers, eq. 2; the object network Text2Loc and upstream Des4Pos reuse) on the
    points in the cell frame (``object_frame``); colour, position (centre in the cell) and
    point-count encoders; the four embeddings, each L2-normalised, fused by Text2Loc's merge MLP
-   (eq. 3) into s_i. MFAM (eq. 4-5): 1-, 3- and 5-wide convolutions along the object sequence
-   with residuals, multi-head self-attention per branch, then softmax(F3 F1^T) * softmax(F3 F5^T)
-   as the attention weight on F3, added to its input (``mfam: residual``, upstream's form) or
-   not (``paper``). A bidirectional LSTM (eq. 6) over the objects, eq. 7's step-k downsampling
+   (eq. 3) into s_i, L2-normalised as upstream does. MFAM (eq. 4-5): 1-, 3- and 5-wide
+   convolutions along the object sequence with residuals, multi-head self-attention per branch,
+   then softmax(F3 F1^T) * softmax(F3 F5^T) as the attention weight on F3, added to its input
+   (``mfam: residual``; upstream's ConvBlock also adds its input back, around a fusion of its
+   own: docs/models/des4pos.md) or not (``paper``). A bidirectional LSTM (eq. 6) over the objects, eq. 7's step-k downsampling
    over the state's channels (``downsample: channels``, upstream: 512 -> 256) or over the
    objects, a max over the objects -> the L2-normalised descriptor.
 2. **Text encoder** (STE, III-B.2). A frozen sentence backbone (all-MiniLM-L6-v2 by default,
    a T5 encoder from a local directory) on every hint sentence; the cross-modal prior head
    (Transformer layers + MLP on the tokens; its max-pooled output is what stage 1 aligns to
-   CLIP); the alignment head Transformer (word level) -> max over tokens -> MLP -> Transformer
-   (across hints) -> max over hints -> L2-normalised descriptor. The fine-stage text branch
-   (a Transformer layer + max pooling, III-C) gives one feature per hint.
+   the teacher: CLIP in the paper, the backbone's own sentence embedding here); the alignment
+   head Transformer (word level) -> max over tokens -> MLP -> Transformer (across hints) -> max
+   over hints -> L2-normalised descriptor. The fine-stage text branch (a Transformer layer +
+   max pooling, III-C) gives one feature per hint.
 3. **Fine stage** (CRA, III-C, eq. 10-12): R1 = Attn(T, N, N) + T, R2 = Attn(N, R1, R1) + N,
    R_i = Attn(R_i-2, R_i-1, R_i-1) + R_i-2; a max over the last R and an MLP give the offset
    of the pose from the cell centre in cell units; position = cell origin + (0.5 + offset) *
@@ -270,7 +272,8 @@ class ObjectEncoder(nn.Module):
     """Per-object embedding s_i (eq. 2-3) as Text2Loc's ObjectEncoder (module names as its
     state_dict): ``mlp_pointnet`` on the PointNet++ geometry feature, ``color_encoder`` on the mean
     colour, ``pos_encoder`` on the mean position in the cell, ``num_encoder`` on the normalised
-    point count, each L2-normalised, then ``mlp_merge`` (eq. 3, sigma(W[f, c, p, r] + b))."""
+    point count, each L2-normalised, then ``mlp_merge`` (eq. 3, sigma(W[f, c, p, r] + b)) and an
+    L2 normalisation of s_i (upstream's cell encoder; the paper does not say)."""
 
     def __init__(self, cell: CellConfig, cfg: SubmapConfig):
         super().__init__()
@@ -296,7 +299,9 @@ class ObjectEncoder(nn.Module):
     def fuse_embeddings(self, geom, rgb_mean, centre, count):
         c = (torch.as_tensor(count, dtype=torch.float32).unsqueeze(-1) - self.cell.count_mean) / self.cell.count_std
         parts = [self.mlp_pointnet(geom), self.color_encoder(rgb_mean), self.pos_encoder(centre), self.num_encoder(c)]
-        return self.mlp_merge(torch.cat([F.normalize(p, dim=-1) for p in parts], -1))
+        # s_i is L2-normalised after the merge, as Text2Loc's and upstream Des4Pos's cell encoders
+        # do before the object sequence goes on (the paper's eq. 3 stops at the merge)
+        return F.normalize(self.mlp_merge(torch.cat([F.normalize(p, dim=-1) for p in parts], -1)), dim=-1)
 
     def forward(self, points: torch.Tensor, counts: torch.Tensor, geometry: torch.Tensor | None = None) -> torch.Tensor:
         """Export: points [G, P, 6], counts [G] -> s [G, D]. ``geometry`` [G, 256], when given,

@@ -112,15 +112,27 @@ SUBMAP_GRAPH = GraphSpec(
 # ----------------------------------------------------------------------------- text encoder
 
 
+EXTRA_DESCRIPTIONS = (
+    "The pose is north of a red car.",
+    "The pose is on-top of a gray road. The pose is west of a tall white building with a flat roof.",
+    "A lamp.",
+    "The pose is east of a small yellow vending machine standing next to the entrance of a large garage.",
+)
+
+
 def descriptions(card: ModelCard, n: int, seed: int) -> list[str]:
-    """``n`` descriptions of 1 .. max_hints hints: synthetic-city poses plus short and long ones."""
+    """``n`` distinct descriptions of 1 .. max_hints hints: synthetic-city poses, every fifth one
+    of other wordings and lengths (short, long, beyond the city's templates). Distinct, so that a
+    case set's retrieval agreement compares different texts."""
     t = _text(card)
-    city = make_city(max(16, t.max_hints), 8, seed=seed, poses=max(n, 4), min_hints=1, max_hints=t.max_hints, objects=60)
-    extra = ["The pose is north of a red car.",
-             "The pose is on-top of a gray road. The pose is west of a tall white building with a flat roof."]
-    out = []
+    city = make_city(max(16, t.max_hints), 8, seed=seed, poses=2 * max(n, 4), min_hints=1, max_hints=t.max_hints,
+                     objects=60)
+    poses = iter(dict.fromkeys(str(text) for text in city.pose_text))
+    extra = iter(EXTRA_DESCRIPTIONS)
+    out: list[str] = []
     for i in range(n):
-        out.append(extra[i // 5 % 2] if i % 5 == 4 else str(city.pose_text[i]))
+        out.append(next(extra, None) if i % 5 == 4 else None)
+        out[-1] = out[-1] or next(poses)
     return out
 
 

@@ -3,7 +3,7 @@
     from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
     bundle = Des4PosBundle("export/des4pos")            # three graphs + tokenizer.json + bundle.json
     index = MapIndex.build(bundle, "city.npz")          # encodes every cell once (cached beside the map)
-    for hit in bundle.locate("The pose is north of a red car.", index, top_k=3):
+    for hit in bundle.locate("The pose is north of a red box.", index, top_k=3):
         print(hit["cell"], hit["score"], hit["position"])
 
 Coarse stage: the text descriptor's inner product with the L2-normalised cell descriptors (a FAISS
@@ -262,7 +262,7 @@ def locate_description(directory: str | Path, map_path: str | Path, text: str, t
                          f"cells/<scene>.pkl")
     if not split_hints(text):
         raise InputError("--text: the description is empty; give one or more sentences, e.g. "
-                         "\"The pose is north of a red car.\"")
+                         "\"The pose is north of a red box.\"")
     bundle = Des4PosBundle(directory, threads=threads,
                            text_encoder=Path(directory) / "text_encoder.int8.onnx" if int8_text else None)
     if bundle.card.model != "des4pos" or (model not in (None, "des4pos", bundle.card.name)):

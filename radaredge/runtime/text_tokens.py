@@ -47,7 +47,7 @@ def encode_hints(tokenizer, hints: list[str], max_tokens: int, max_hints: int) -
     ``max_tokens`` tokens (named by number and text, with its token count).
     """
     if not hints:
-        raise InputError("the description has no hint sentence; e.g. \"The pose is north of a red car.\"")
+        raise InputError("the description has no hint sentence; e.g. \"The pose is north of a red box.\"")
     if len(hints) > max_hints:
         raise InputError(f"the description has {len(hints)} hint sentences; this model takes at most {max_hints}")
     rows = []

@@ -26,7 +26,8 @@ Stages, in order (``stages``; each keeps the weights of its best validation epoc
 
 Validation is by scene (:mod:`.text_maps`): object accuracy, prior cosine, cell retrieval recall
 @1/3/5 (the best cell among the top k of the validation scenes' cells; the epoch with the best
-@1, then @5, is kept) and the fine stage's mean position error in the best cell (m).
+@1, then @5, is kept) and the fine stage's mean position error in the best cell (m), beside
+the error of the cell centre alone (``centre_error_m``), which the fine stage has to beat.
 
 Frozen parts run once, not every step: the text backbone on every distinct hint, the prior head
 after its stage, the PointNet++ after its stage, and the whole coarse encoder in the fine stage.
@@ -599,6 +600,9 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
     size = torch.from_numpy(maps.cells.sizes).to(dev)
     target_all = ((torch.from_numpy(maps.pose_w).to(dev) - origin[maps.pose_cell]) / size[maps.pose_cell, None]
                   - 0.5).float()
+    # what the cell centre alone (a zero offset, the coarse stage's answer) misses by: the bar to beat
+    centre_m = float((target_all[torch.from_numpy(val_q).to(dev)].double().norm(dim=1)
+                      * size[maps.pose_cell[val_q]]).mean())
     names = ["fine", "text.fine_words", "text.fine_mlp"]
     stage = _Stage("fine", _set_trainable(model, names), recipe.fine_lr, epochs)
     keeper = keep(names, lambda m, b: m["fine_error_m"] < b["fine_error_m"])
@@ -632,7 +636,8 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
                 e = (predict(poses, None) - target_all[torch.from_numpy(poses).to(dev)]).double()
                 errs.append((e.norm(dim=1) * size[maps.pose_cell[poses]]).cpu().numpy())
             err_m = np.concatenate(errs)
-        metrics = {"fine_error_m": float(err_m.mean()), "fine_within_5m": 100.0 * float((err_m <= 5).mean())}
+        metrics = {"fine_error_m": float(err_m.mean()), "fine_within_5m": 100.0 * float((err_m <= 5).mean()),
+                   "centre_error_m": centre_m}
         epoch_row("fine", epoch, float(np.mean(losses)), metrics)
         keeper.offer(epoch, metrics)
         checkpoint("fine", epoch)
