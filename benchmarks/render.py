@@ -12,8 +12,8 @@ Files it knows, by name (``<kind>-<YYYY-MM-DD>.json``):
 - ``compare-<label>-<date>.json``: ``benchmarks/compare_graphs.py``, two graphs alternately;
 - ``maffnet-capacity-<date>.json``: ``benchmarks/maffnet_capacity.py``;
 - ``cfa-speedup-<date>.json``: ``benchmarks/cfa_speedup.py``;
-- ``<card>-training-<date>.json``: ``benchmarks/tdfanet_training.py``, a training run and its
-  held-out recall.
+- ``<card>-training-<date>.json``: ``benchmarks/tdfanet_training.py`` or
+  ``benchmarks/des4pos_training.py``, a training run and its held-out recall.
 
 The newest file of each kind is rendered in full; older ones are listed under "History".
 
@@ -368,6 +368,9 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
     out = []
     for r in results:
         d = r.data
+        if "heldout" in d:
+            out += des4pos_training_section(r, results_dir)
+            continue
         train, held = d["train"], d["heldout_town"]
         m = d.get("machine", {})
         data = train.get("data", {})
@@ -394,6 +397,49 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
                 f"int8 budget {'PASSED' if p8.get('passed') else 'FAILED'}. int8 retrieves the same top-1 window "
                 f"as fp32 for {100 * agree.get('same_window', float('nan')):.1f} % of the queries and a window "
                 f"within 5 m of it for {100 * agree.get('within_radius', float('nan')):.1f} %.", ""]
+    return out
+
+
+def _stage_metrics(rows: list[dict]) -> list[str]:
+    return [k for k in rows[0] if k not in ("stage", "epoch", "loss", "seconds")]
+
+
+def des4pos_training_section(r: Result, results_dir: Path) -> list[str]:
+    """A Des4Pos training run (benchmarks/des4pos_training.py): the stages' epochs, parity on the
+    trained weights, and Tables I and II on held-out cities, seeded vs trained, both backends."""
+    d = r.data
+    train, held = d["train"], d["heldout"]
+    m, data = d.get("machine", {}), train.get("data", {})
+    out = ["## Des4Pos training", "",
+           f"`benchmarks/des4pos_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+           f"`{d['command']}`: {data.get('maps', '?')} cities, {data.get('cells', '?')} cells, "
+           f"{data.get('training_poses', '?')} training and {data.get('validation_poses', '?')} validation described "
+           f"poses. Training took {d['train_seconds'] / 60:.1f} min. JSON: {_link(r, results_dir)}.", ""]
+    best = train.get("stage_best", {})
+    for stage in dict.fromkeys(e["stage"] for e in train["epochs"]):
+        rows = [e for e in train["epochs"] if e["stage"] == stage]
+        keys = _stage_metrics(rows)
+        body = [[str(e["epoch"]), f"{e['loss']:.4f}", *(_num(e[k], ".2f") for k in keys), _num(e["seconds"] / 60),
+                 "kept" if e["epoch"] == best.get(stage) else ""] for e in rows]
+        out += [f"Stage `{stage}`:", ""]
+        out += _table(["epoch", "loss", *keys, "min", ""], body, ["---:"] * (len(keys) + 3) + ["---"]) + [""]
+    verdict = lambda p: "PASSED" if p.get("passed") else "FAILED"  # noqa: E731
+    par = d.get("parity", {})
+    out += [f"Parity of the exported bundle (three graphs) against the torch reference: trained weights "
+            f"{verdict(par.get('trained', {}))}, seeded weights {verdict(par.get('seeded', {}))}.", "",
+            f"Held-out cities (`{d.get('eval_command', '?')}`): {held['cells']} cells of {len(held['maps'])} "
+            f"cities in one database, {held['queries']} described poses as queries. Table I, localisation "
+            f"accuracy (a position within t m among the top-k cells), %:", ""]
+    runs = [(w, b) for w in ("seeded", "trained") for b in held.get(w, {})]
+    ks = sorted({int(k) for w, b in runs for k in held[w][b]["localization"]})
+    ts = sorted({float(t) for w, b in runs for k in held[w][b]["localization"].values() for t in k}, key=float)
+    head = ["weights", "backend"] + [f"top-{k} {t:g} m" for k in ks for t in ts]
+    body = [[w, b, *(_num(held[w][b]["localization"][str(k)][f"{t:g}"]) for k in ks for t in ts)] for w, b in runs]
+    out += _table(head, body, ["---", "---"] + ["---:"] * (len(head) - 2)) + [""]
+    out += ["Table II, cell-retrieval recall (the pose's best cell among the top k), %:", ""]
+    rk = sorted({int(k) for w, b in runs for k in held[w][b]["retrieval"]})
+    body = [[w, b, *(_num(held[w][b]["retrieval"][str(k)]) for k in rk)] for w, b in runs]
+    out += _table(["weights", "backend"] + [f"R@{k}" for k in rk], body, ["---", "---"] + ["---:"] * len(rk)) + [""]
     return out
 
 

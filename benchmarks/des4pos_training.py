@@ -1,0 +1,126 @@
+"""Train Des4Pos on synthetic text cities and localise descriptions in cities it never saw.
+
+The same steps as the commands in docs/models/des4pos.md ("Training"), through the library
+verbs, with their times:
+
+1. training cities: ``radaredge make-city --out <work>/cities --cities C --seed 1 --poses P``
+   (one scene each; the last by name validates);
+2. ``radaredge train --model des4pos --data <work>/cities`` with the recipe's defaults unless
+   ``--set`` says otherwise (object, prior, coarse and fine stages);
+3. ``radaredge export --checkpoint best.pth`` and ``parity-check`` of the bundle on the trained
+   weights (and of the seeded bundle);
+4. held-out cities ``radaredge make-city --out <work>/heldout --cities H --seed 100``: one
+   database of all their cells, every described pose a query; ``radaredge eval`` of the seeded
+   and the trained bundle, onnxruntime and the torch reference side by side (Table I and II).
+
+Writes benchmarks/results/des4pos-training-<date>.json (rendered into benchmarks/README.md by
+benchmarks/render.py) and keeps the run directory and exports under --work (default
+export/des4pos-training).
+
+    python benchmarks/des4pos_training.py          # 12 cities x 200 described poses, 2 held out
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+import radaredge
+from radaredge.cards import load_card
+from radaredge.config import parse_settings
+from radaredge.data.text_city import write_cities
+from radaredge.timing import cpu_name
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _tables(report) -> dict:
+    """Table I and II of every backend of a localisation report, in % (JSON keys as strings)."""
+    return {name: {"localization": {str(k): {f"{t:g}": 100 * r for t, r in by_t.items()}
+                                    for k, by_t in res["localization"].items()},
+                   "retrieval": {str(k): 100 * r for k, r in res["retrieval"].items()}}
+            for name, res in report.results.items()}
+
+
+def _parity(report) -> dict:
+    out = {"passed": bool(report), "graphs": {}}
+    for name, graph in report.to_dict()["graphs"].items():
+        out["graphs"][name] = {k: {f: v.get(f) for f in ("passed", "max_abs", "min_cosine", "retrieval_top1")}
+                               for k, v in graph["summary"].items()}
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python benchmarks/des4pos_training.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--card", default="des4pos")
+    ap.add_argument("--cities", type=int, default=12)
+    ap.add_argument("--poses", type=int, default=200, help="described poses per city")
+    ap.add_argument("--heldout", type=int, default=2, help="held-out cities (one database)")
+    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
+                    help="recipe option, as `radaredge train --set`")
+    ap.add_argument("--work", type=Path, help="default export/<card>-training")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    card = load_card(args.card)
+    work = args.work or ROOT / "export" / f"{card.name}-training"
+    cities, held, run, graphs = work / "cities", work / "heldout", work / "run", work / "graphs"
+    options = parse_settings(args.settings)
+    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    t0 = time.perf_counter()
+    if not cities.exists():
+        write_cities(cities, card, args.cities, seed=1, poses=args.poses)
+    if not held.exists():
+        write_cities(held, card, args.heldout, seed=100, poses=args.poses)
+    t_data = time.perf_counter() - t0
+    print(f"data: {args.cities} cities x {args.poses} described poses, {args.heldout} held out ({t_data:.0f} s)",
+          flush=True)
+    t0 = time.perf_counter()
+    report = radaredge.train(card, cities, run, options=options, log=lambda line: print(line, flush=True))
+    t_train = time.perf_counter() - t0
+    best = run / "best.pth"
+    trained, seeded = graphs / "trained", graphs / "seeded"
+    radaredge.export(card, trained, checkpoint=best)
+    radaredge.export(card, seeded)
+    parity = {"trained": radaredge.parity(card, trained, checkpoint=best), "seeded": radaredge.parity(card, seeded)}
+    for name, p in parity.items():
+        print(f"parity, {name} weights: {'PASSED' if p else 'FAILED'}", flush=True)
+    t0 = time.perf_counter()
+    evals = {"seeded": radaredge.evaluate(card, seeded, map_path=held),
+             "trained": radaredge.evaluate(card, trained, map_path=held, checkpoint=best)}
+    t_eval = time.perf_counter() - t0
+    for name, r in evals.items():
+        print(f"held-out cities, {name}:", flush=True)
+        for line in r.lines()[1:]:
+            print("  " + line, flush=True)
+    first = next(iter(evals.values()))
+    out = {
+        "date": stamp, "card": card.name,
+        "machine": {"cpu": cpu_name(), "threads": 2, "python": platform.python_version(), "torch": torch.__version__,
+                    "cores": os.cpu_count()},
+        "command": f"radaredge make-city --out cities --cities {args.cities} --seed 1 --poses {args.poses}; "
+                   f"radaredge train --model {card.name} --data cities"
+                   + "".join(f" --set {k}={v}" for k, v in options.items()),
+        "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 --poses {args.poses}; "
+                        f"radaredge eval --model {card.name} --onnx-dir <bundle> --map heldout",
+        "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1), "eval_seconds": round(t_eval, 1),
+        "train": report.to_dict(),
+        "parity": {name: _parity(p) for name, p in parity.items()},
+        "heldout": {"seed": 100, "maps": first.maps, "cells": first.cells, "queries": first.queries,
+                    **{name: _tables(r) for name, r in evals.items()}},
+    }
+    path = ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json"
+    path.write_text(json.dumps(out, indent=2, default=str) + "\n")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
