@@ -374,7 +374,7 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
         train, held = d["train"], d["heldout_town"]
         m = d.get("machine", {})
         data = train.get("data", {})
-        out += [f"## TDFANet training", "",
+        out += ["## TDFANet training", "",
                 f"`benchmarks/tdfanet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
                 f"`{d['command']}`: {data.get('drives', '?')} drives, {data.get('training_windows', '?')} training and "
                 f"{data.get('validation_windows', '?')} validation windows, {data.get('queries_per_epoch', '?')} tuples "

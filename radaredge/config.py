@@ -118,6 +118,9 @@ def config_from_dict(cls: Type[T], data: Mapping[str, Any] | None, where: str) -
         if isinstance(default, tuple) and not isinstance(value, tuple):
             raise ConfigError(f"{where}.{name}: expected a list, got {value!r}")
         if isinstance(default, (int, float)) and not isinstance(default, bool):
+            if isinstance(value, (list, tuple, dict)):
+                kind = "an integer" if isinstance(default, int) else "a number"
+                raise ConfigError(f"{where}.{name}: expected {kind}{f' in {rng}' if rng else ''}, got {value!r}")
             check_numbers(value, rng, isinstance(default, int), f"{where}.{name}")
             value = float(value) if isinstance(default, float) else int(value)
         elif rng is not None or (isinstance(default, tuple) and default and _numbers(default)

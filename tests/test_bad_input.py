@@ -16,11 +16,9 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
-import resource
 import shutil
 import threading
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +28,6 @@ import torch
 import yaml
 
 from radaredge import runtime
-from radaredge.cards import load_card
 from radaredge.config import field_range
 from radaredge.data.readers import read_rosbag, read_scan
 from radaredge.data.sequences import load_sequence
@@ -379,6 +376,8 @@ def _bad_values(cls, name: str):
               ("above", above), ("word", "many"), ("bool", True)]
     if isinstance(default, tuple):
         values = [(k, [v] * len(default)) for k, v in values] + [("scalar", 1.0), ("short", [])]
+    else:
+        values += [("list", [])]               # an empty list passed the per-number checks (fuzzing found it)
     return values
 
 

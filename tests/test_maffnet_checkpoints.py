@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from radaredge.cards import load_card
-from radaredge.errors import ConfigError
 from radaredge.exporter import build_model, load_checkpoint
 from radaredge.models.maffnet import STAGE_TWO_PREFIXES, UNUSED_FUSER_KEYS, UNUSED_VFE_KEYS
 from references.maffnet_upstream_keys import openpcdet_checkpoint, upstream_state_dict, upstream_state_dict_shapes

@@ -5,7 +5,6 @@ resume, bad training data, and a tiny card that learns."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -129,11 +129,7 @@ def descriptions(card: ModelCard, n: int, seed: int) -> list[str]:
                      objects=60)
     poses = iter(dict.fromkeys(str(text) for text in city.pose_text))
     extra = iter(EXTRA_DESCRIPTIONS)
-    out: list[str] = []
-    for i in range(n):
-        out.append(next(extra, None) if i % 5 == 4 else None)
-        out[-1] = out[-1] or next(poses)
-    return out
+    return [(next(extra, None) if i % 5 == 4 else None) or next(poses) for i in range(n)]
 
 
 def text_cases(card: ModelCard, n: int, seed: int):

@@ -219,7 +219,6 @@ class PillarFeatureNet(nn.Module):
         nx, ny, nz = cfg.grid_size
         ncell = nx * ny
         spare = count * ncell                                     # the cell of dropped points
-        n = points.shape[0]
         dev = points.device
         finite = torch.isfinite(points).all(1)
         points = torch.where(finite.unsqueeze(1), points, torch.zeros_like(points))
