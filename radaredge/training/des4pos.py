@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -264,11 +265,39 @@ def retrieval_recall(text: torch.Tensor, cells: torch.Tensor, truth: np.ndarray,
 class _Stage:
     """One stage's optimiser, scheduler, epochs and validation; the best epoch's weights kept."""
 
-    def __init__(self, name: str, params, lr: float, epochs: int, step: int | None = None, gamma: float = 1.0):
+    def __init__(self, name: str, params, lr: float, epochs: int, start: int, step: int | None = None,
+                 gamma: float = 1.0):
         self.name, self.epochs = name, epochs
         self.params = [p for p in params if p.requires_grad]
         self.opt = torch.optim.Adam(self.params, lr=lr)
         self.sched = torch.optim.lr_scheduler.StepLR(self.opt, step_size=step or 10**9, gamma=gamma)
+        with warnings.catch_warnings():               # --resume: the learning rate of the epoch it resumes at
+            warnings.filterwarnings("ignore", "Detected call of `lr_scheduler.step", UserWarning)
+            for _ in range(1, start):
+                self.sched.step()
+
+    def run_epoch(self, model, epoch: int, order: np.ndarray, batch: int, loss_of: Callable, progress) -> float:
+        """One training epoch over ``order`` in chunks of ``batch``: ``loss_of(indices)`` is the
+        chunk's loss (None skips the chunk); returns the mean loss."""
+        model.train()
+        bar = progress(f"{self.name} epoch {epoch}/{self.epochs}", len(order))
+        losses = []
+        for sl in _chunks(len(order), batch):
+            loss = loss_of(order[sl])
+            if loss is not None:
+                self.opt.zero_grad()
+                loss.backward()
+                self.opt.step()
+                losses.append(float(loss.detach()))
+                bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
+            bar.update(sl.stop - sl.start)
+        bar.close()
+        self.sched.step()
+        model.eval()
+        if not losses:
+            raise InputError(f"stage {self.name}: {len(order)} training item(s) make no batch of {batch}; "
+                             f"more training data is needed")
+        return float(np.mean(losses))
 
 
 def _set_trainable(model, names: Sequence[str]) -> list:
@@ -429,7 +458,7 @@ def _objects_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch
     if not len(val_i):
         val_i = train_i[:: 10]
     names = ["submap.objects.pointnet"]
-    stage = _Stage("objects", _set_trainable(model, names), recipe.object_lr, epochs, 1, 0.9)
+    stage = _Stage("objects", _set_trainable(model, names), recipe.object_lr, epochs, start, 1, 0.9)
     keeper = keep(names, lambda m, b: m["object_acc"] > b["object_acc"])
 
     def batch(idx):
@@ -438,30 +467,14 @@ def _objects_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch
         feats = enc.pointnet(enc.local(xyz, xyz.mean(1, keepdim=True)), rgb)
         return enc.pointnet.class_classifier(feats), torch.from_numpy(labels[idx]).to(dev)
 
-    for _ in range(1, start):
-        stage.sched.step()
     for epoch in range(start, epochs + 1):
-        model.train()
-        order = rng.permutation(train_i)
-        bar = progress(f"objects epoch {epoch}/{epochs}", len(order))
-        losses = []
-        for sl in _chunks(len(order), recipe.object_batch):
-            logits, y = batch(order[sl])
-            loss = F.cross_entropy(logits, y)
-            stage.opt.zero_grad()
-            loss.backward()
-            stage.opt.step()
-            losses.append(float(loss.detach()))
-            bar.update(sl.stop - sl.start)
-            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
-        bar.close()
-        stage.sched.step()
-        model.eval()
+        loss = stage.run_epoch(model, epoch, rng.permutation(train_i), recipe.object_batch,
+                               lambda idx: F.cross_entropy(*batch(idx)), progress)
         with torch.no_grad():
             correct = sum(int((batch(val_i[sl])[0].argmax(1).cpu() == torch.from_numpy(labels[val_i[sl]])).sum())
                           for sl in _chunks(len(val_i), 64))
         metrics = {"object_acc": 100.0 * correct / len(val_i)}
-        epoch_row("objects", epoch, float(np.mean(losses)), metrics)
+        epoch_row("objects", epoch, loss, metrics)
         keeper.offer(epoch, metrics)
         checkpoint("objects", epoch)
     return keeper.restore()
@@ -478,7 +491,7 @@ def _prior_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_r
     train_rows = np.array(sorted(set(range(len(table.sentences))) - set(val_rows)) or val_rows)
     val_rows = np.array(val_rows or train_rows[::10])
     names = ["text.prior", "text.prior_mlp"]
-    stage = _Stage("prior", _set_trainable(model, names), recipe.prior_lr, epochs)
+    stage = _Stage("prior", _set_trainable(model, names), recipe.prior_lr, epochs, start)
     keeper = keep(names, lambda m, b: m["prior_cosine"] > b["prior_cosine"])
 
     def cosine(rows):
@@ -486,22 +499,11 @@ def _prior_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_r
         return F.cosine_similarity(pooled, teacher[rows], dim=-1)
 
     for epoch in range(start, epochs + 1):
-        model.train()
-        order = rng.permutation(train_rows)
-        bar = progress(f"prior epoch {epoch}/{epochs}", len(order))
-        losses = []
-        for sl in _chunks(len(order), recipe.prior_batch):
-            loss = (1.0 - cosine(torch.from_numpy(order[sl]).to(dev))).mean()
-            stage.opt.zero_grad()
-            loss.backward()
-            stage.opt.step()
-            losses.append(float(loss.detach()))
-            bar.update(sl.stop - sl.start)
-        bar.close()
-        model.eval()
+        loss = stage.run_epoch(model, epoch, rng.permutation(train_rows), recipe.prior_batch,
+                               lambda rows: (1.0 - cosine(torch.from_numpy(rows).to(dev))).mean(), progress)
         with torch.no_grad():
             metrics = {"prior_cosine": float(cosine(torch.from_numpy(val_rows).to(dev)).mean())}
-        epoch_row("prior", epoch, float(np.mean(losses)), metrics)
+        epoch_row("prior", epoch, loss, metrics)
         keeper.offer(epoch, metrics)
         checkpoint("prior", epoch)
     return keeper.restore()
@@ -515,38 +517,25 @@ def _coarse_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_
     if not recipe.train_pointnet:
         for p in model.submap.objects.pointnet.parameters():
             p.requires_grad_(False)
-    stage = _Stage("coarse", [p for p in params if p.requires_grad], recipe.coarse_lr, epochs, recipe.lr_step,
-                   recipe.lr_gamma)
+    stage = _Stage("coarse", [p for p in params if p.requires_grad], recipe.coarse_lr, epochs, start,
+                   recipe.lr_step, recipe.lr_gamma)
     rank = lambda m: (m["cell_R@1"], m["cell_R@5"])  # noqa: E731
     keeper = keep(names, lambda m, b: rank(m) > rank(b))
-    for _ in range(1, start):
-        stage.sched.step()
+
+    def loss_of(poses):
+        if len(poses) < 2:                            # InfoNCE needs a negative
+            return None
+        rows, hmask = _padded_hints(maps, table, poses, rng if recipe.shuffle_hints else None)
+        t = text_descriptors(model, prior, tmask, rows.to(dev), hmask)
+        cells, inverse = np.unique(maps.pose_cell[poses], return_inverse=True)
+        c, _ = cell_descriptors(model, maps, cells, geometry, dev)
+        return info_nce(t, c[torch.from_numpy(inverse).to(dev)], torch.from_numpy(maps.pose_cell[poses]).to(dev),
+                        recipe.temperature, recipe.duplicate_cells == "mask")
+
     for epoch in range(start, epochs + 1):
-        model.train()
-        order = rng.permutation(train_q)
-        bar = progress(f"coarse epoch {epoch}/{epochs}", len(order))
-        losses = []
-        for sl in _chunks(len(order), recipe.coarse_batch):
-            poses = order[sl]
-            if len(poses) < 2:
-                continue
-            rows, hmask = _padded_hints(maps, table, poses, rng if recipe.shuffle_hints else None)
-            t = text_descriptors(model, prior, tmask, rows.to(dev), hmask)
-            cells, inverse = np.unique(maps.pose_cell[poses], return_inverse=True)
-            c, _ = cell_descriptors(model, maps, cells, geometry, dev)
-            c = c[torch.from_numpy(inverse).to(dev)]
-            loss = info_nce(t, c, torch.from_numpy(maps.pose_cell[poses]).to(dev), recipe.temperature,
-                            recipe.duplicate_cells == "mask")
-            stage.opt.zero_grad()
-            loss.backward()
-            stage.opt.step()
-            losses.append(float(loss.detach()))
-            bar.update(len(poses))
-            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
-        bar.close()
-        stage.sched.step()
+        loss = stage.run_epoch(model, epoch, rng.permutation(train_q), recipe.coarse_batch, loss_of, progress)
         metrics = coarse_metrics(model, maps, prior, tmask, geometry, val_q, val_cells, dev, table)
-        epoch_row("coarse", epoch, float(np.mean(losses)), metrics)
+        epoch_row("coarse", epoch, loss, metrics)
         keeper.offer(epoch, metrics)
         checkpoint("coarse", epoch)
     return keeper.restore()
@@ -604,41 +593,31 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
     centre_m = float((target_all[torch.from_numpy(val_q).to(dev)].double().norm(dim=1)
                       * size[maps.pose_cell[val_q]]).mean())
     names = ["fine", "text.fine_words", "text.fine_mlp"]
-    stage = _Stage("fine", _set_trainable(model, names), recipe.fine_lr, epochs)
+    stage = _Stage("fine", _set_trainable(model, names), recipe.fine_lr, epochs, start)
     keeper = keep(names, lambda m, b: m["fine_error_m"] < b["fine_error_m"])
 
-    def predict(poses, rng_):
-        rows, hmask = _padded_hints(maps, table, poses, rng_)
+    def predict(poses):
+        rows, hmask = _padded_hints(maps, table, poses, None)
         hints = hint_fine_features(model, prior, tmask, rows.to(dev))
         cells = torch.from_numpy(maps.pose_cell[poses]).to(dev)
         return model.fine.offsets(objects[cells], object_mask[cells], hints, hmask.to(dev))
 
+    def loss_of(poses):
+        err = predict(poses) - target_all[torch.from_numpy(poses).to(dev)]
+        return err.norm(dim=1).mean() if recipe.fine_loss == "l2" else 5.0 * (err ** 2).mean()
+
     for epoch in range(start, epochs + 1):
-        model.train()
-        order = rng.permutation(train_q)
-        bar = progress(f"fine epoch {epoch}/{epochs}", len(order))
-        losses = []
-        for sl in _chunks(len(order), recipe.fine_batch):
-            poses = order[sl]
-            err = predict(poses, None) - target_all[torch.from_numpy(poses).to(dev)]
-            loss = err.norm(dim=1).mean() if recipe.fine_loss == "l2" else 5.0 * (err ** 2).mean()
-            stage.opt.zero_grad()
-            loss.backward()
-            stage.opt.step()
-            losses.append(float(loss.detach()))
-            bar.update(len(poses))
-        bar.close()
-        model.eval()
+        loss = stage.run_epoch(model, epoch, rng.permutation(train_q), recipe.fine_batch, loss_of, progress)
         with torch.no_grad():
             errs = []
             for sl in _chunks(len(val_q), 128):
                 poses = val_q[sl]
-                e = (predict(poses, None) - target_all[torch.from_numpy(poses).to(dev)]).double()
+                e = (predict(poses) - target_all[torch.from_numpy(poses).to(dev)]).double()
                 errs.append((e.norm(dim=1) * size[maps.pose_cell[poses]]).cpu().numpy())
             err_m = np.concatenate(errs)
         metrics = {"fine_error_m": float(err_m.mean()), "fine_within_5m": 100.0 * float((err_m <= 5).mean()),
                    "centre_error_m": centre_m}
-        epoch_row("fine", epoch, float(np.mean(losses)), metrics)
+        epoch_row("fine", epoch, loss, metrics)
         keeper.offer(epoch, metrics)
         checkpoint("fine", epoch)
     return keeper.restore()
