@@ -107,6 +107,14 @@ def _text(obj, attr: str, where: str) -> str:
     return str(value)
 
 
+def _list(obj, attr: str, where: str) -> list | tuple:
+    """A list field (a cell's objects, a pose's descriptions)."""
+    value = _get(obj, attr, where)
+    if not isinstance(value, (list, tuple)):
+        raise InputError(f"{where}: {attr} must be a list, got {type(value).__name__}")
+    return value
+
+
 def _array(obj, attr: str, where: str, shape: tuple) -> np.ndarray:
     """A finite float64 array field whose shape matches ``shape`` (None: any length)."""
     value = _get(obj, attr, where)
@@ -148,11 +156,8 @@ def read_cells(path: str | Path) -> list[dict]:
         size = _array(c, "cell_size", where, ())
         if size <= 0:
             raise InputError(f"{where}: cell_size must be > 0 m, got {float(size)!r}")
-        objects = _get(c, "objects", where)
-        if not isinstance(objects, (list, tuple)):
-            raise InputError(f"{where}: objects must be a list, got {type(objects).__name__}")
         objs = []
-        for j, o in enumerate(objects):
+        for j, o in enumerate(_list(c, "objects", where)):
             at = f"{where}, object {j}"
             xyz = _array(o, "xyz", at, (None, 3))
             objs.append({"xyz": xyz, "rgb": _array(o, "rgb", at, (len(xyz), 3)), "label": _text(o, "label", at)})
@@ -174,11 +179,8 @@ def read_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if len(pose_w[-1]) != 2:
             raise InputError(f"{where}: pose_w must hold x, y (and z) in m, got {len(pose_w[-1])} value(s)")
         pose_cell.append(_text(p, "cell_id", where))
-        descriptions = _get(p, "descriptions", where)
-        if not isinstance(descriptions, (list, tuple)):
-            raise InputError(f"{where}: descriptions must be a list, got {type(descriptions).__name__}")
         hints = []
-        for j, d in enumerate(descriptions):
+        for j, d in enumerate(_list(p, "descriptions", where)):
             at = f"{where}, description {j}"
             for attr in ("direction", "object_color_text", "object_label"):
                 _text(d, attr, at)

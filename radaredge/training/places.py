@@ -36,8 +36,9 @@ from typing import Sequence
 import numpy as np
 
 from ..data.bag_drives import BagSource, is_bag, load_bag_sequence
-from ..data.sequences import RadarSequence, is_drive, load_sequence, name_the_scan, windows
+from ..data.sequences import RadarSequence, is_drive, load_sequence, windows
 from ..errors import InputError
+from ..evaluation import WindowSet
 
 MAX_DEPTH = 4
 MAX_WINDOW_GAP_S = 1.0      # s: a window whose consecutive scans lie further apart is skipped
@@ -74,35 +75,14 @@ def default_validation(drives: Sequence[Path]) -> list[Path]:
 
 
 @dataclass
-class PlaceWindows:
-    """The K-frame windows of a set of drives: ``items`` (drive row, frame indices oldest first),
-    ``positions`` [W, 2] (northing, easting) m of each window's last scan, ``drive`` [W] the
-    drive row of each window, ``validation`` [W] bool (window of a validation drive)."""
+class PlaceWindows(WindowSet):
+    """The K-frame windows of a set of training drives under ``path``: besides a
+    :class:`~radaredge.evaluation.WindowSet`'s fields, ``names`` the drive names, ``drive`` [W]
+    the drive row of each window and ``validation`` [W] bool (window of a validation drive)."""
 
-    root: Path
-    k: int
-    sequences: list[RadarSequence]
     names: list[str]
-    items: list[tuple[int, np.ndarray]]
-    positions: np.ndarray
     drive: np.ndarray
     validation: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.items)
-
-    def inputs(self, i: int, features: Sequence[str]) -> tuple[list[np.ndarray], np.ndarray]:
-        """Window ``i``: its K scans (float32 [N_k, F], columns ``features``, oldest first) and
-        their timestamps relative to the oldest (float64, s)."""
-        row, frames = self.items[i]
-        seq = self.sequences[row]
-        t = seq.timestamps[frames]
-        return [seq.scan(f, features) for f in frames], t - t[0]
-
-    def locate_error(self, i: int, message: str) -> str:
-        """``message`` about window ``i`` naming its scan's file (:func:`name_the_scan`)."""
-        row, frames = self.items[i]
-        return name_the_scan(self.sequences[row], frames, message)
 
     def distances(self, i: int, among: np.ndarray | None = None) -> np.ndarray:
         """Planar distance (m) from window ``i``'s place to every window (or to ``among``)."""
@@ -160,8 +140,8 @@ def load_place_windows(root: str | os.PathLike, k: int, validation: Sequence[str
         if row not in drive:
             raise InputError(f"{drives[row]}: no {k} consecutive scans lie within {MAX_WINDOW_GAP_S:g} s of each "
                              f"other (gps.csv timestamps); no window can be formed")
-    out = PlaceWindows(root, k, sequences, names, items, np.asarray(positions, np.float64),
-                       np.asarray(drive), np.array([names[r] in held for r in drive]))
+    out = PlaceWindows(root, k, sequences, items, np.asarray(positions, np.float64), names, np.asarray(drive),
+                       np.array([names[r] in held for r in drive]))
     _check_overlap(out, positive_radius)
     return out
 
@@ -172,7 +152,7 @@ def _check_overlap(data: PlaceWindows, radius: float) -> None:
     the first drive that has none."""
     train = ~data.validation
     if len(set(data.drive[train])) < 2:
-        raise InputError(f"{data.root}: training needs two or more training drives of the same places; "
+        raise InputError(f"{data.path}: training needs two or more training drives of the same places; "
                          f"found {sorted({data.names[r] for r in data.drive[train]})} "
                          f"(validation: {sorted({data.names[r] for r in data.drive[data.validation]})})")
     for row, name in enumerate(data.names):
@@ -181,7 +161,7 @@ def _check_overlap(data: PlaceWindows, radius: float) -> None:
         near = np.array([(data.distances(i, others) <= radius).any() for i in mine])
         if not near.any():
             role = "validation" if data.validation[mine[0]] else "training"
-            raise InputError(f"{data.root / name}: none of this {role} drive's {len(mine)} windows lies within "
+            raise InputError(f"{data.path / name}: none of this {role} drive's {len(mine)} windows lies within "
                              f"{radius:g} m of a window of another training drive (too few positives: it shares "
                              f"no place with the others; check its gps.csv)")
 
@@ -219,7 +199,7 @@ class TupleMiner:
         self.queries = np.array([i for i in self.train if len(self._positives(i))
                                  and len(self._negatives(i)) > self.n], dtype=np.int64)
         if not len(self.queries):
-            raise InputError(f"{data.root}: no training window has both a window of another training drive within "
+            raise InputError(f"{data.path}: no training window has both a window of another training drive within "
                              f"{positive_radius:g} m and {self.n + 1} training windows beyond {negative_radius:g} m; "
                              f"the drives share no place, or cover too little ground for the negatives")
 

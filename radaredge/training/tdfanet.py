@@ -150,7 +150,7 @@ def ego_motion_summary(data: PlaceWindows, prepared: Sequence) -> list[str]:
     for row, name in enumerate(data.names):
         mine = ok & (data.drive == row)
         if mine.sum() >= 3 and np.median(v[mine, 0]) < -0.5:
-            lines.append(f"warning: {data.root / name}: the radar moves backwards in its RANSAC fits (median v_x "
+            lines.append(f"warning: {data.path / name}: the radar moves backwards in its RANSAC fits (median v_x "
                          f"{np.median(v[mine, 0]):.1f} m/s); if the car drove forwards, its Doppler sign is reversed "
                          f"(positive approaching; radaredge's v_r is positive moving away)")
     return lines
@@ -281,7 +281,7 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
 def _signature(card: ModelCard, data: PlaceWindows, recipe: PlaceRecipe) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
     keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k != "epochs"}
-    return {"card": card.data, "data": str(Path(data.root).resolve()), "windows": len(data),
+    return {"card": card.data, "data": str(Path(data.path).resolve()), "windows": len(data),
             "validation": sorted({data.names[r] for r in data.drive[data.validation]}), "recipe": keep}
 
 
