@@ -109,7 +109,7 @@ def main(argv=None) -> int:
                    f"radaredge train --model {card.name} --data cities"
                    + "".join(f" --set {k}={v}" for k, v in options.items()),
         "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 --poses {args.poses}; "
-                        f"radaredge eval --model {card.name} --onnx-dir <bundle> --map heldout",
+                        f"radaredge eval --model {card.name} --onnx <bundle> --map heldout",
         "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1), "eval_seconds": round(t_eval, 1),
         "train": report.to_dict(),
         "parity": {name: _parity(p) for name, p in parity.items()},
