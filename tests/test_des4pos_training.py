@@ -15,8 +15,8 @@ from radaredge.data.text_city import write_cities
 from radaredge.data.text_maps import load_text_maps
 from radaredge.errors import ConfigError
 from radaredge.exporter import build_model
-from radaredge.training.des4pos import (TextRecipe, backbone_features, coarse_metrics, geometry_features, hint_table,
-                                        info_nce)
+from radaredge.training.des4pos import (TextRecipe, _padded_hints, backbone_features, cell_descriptors, coarse_metrics,
+                                        geometry_features, hint_fine_features, hint_table, info_nce, text_descriptors)
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
 
@@ -75,6 +75,22 @@ def test_all_stages_run_resume_and_keep_each_stages_best(card, city_dir, tmp_pat
     assert "fine_error_m" in best["metrics"] and "cell_R@1" in best["metrics"]
 
 
+def test_resume_continues_as_the_uninterrupted_run(card, city_dir, tmp_path):
+    """A stage stopped after epoch 2 and resumed runs epoch 3 as the run that never stopped
+    (weights, Adam moments, random states); a finished stage resumed with more epochs keeps its
+    best epoch unless a new one beats it."""
+    opts = {"stages": "fine", "fine_lr": 3e-3}
+    straight = radaredge.train(card, city_dir, tmp_path / "a", options={**opts, "fine_epochs": 3})
+    radaredge.train(card, city_dir, tmp_path / "b", options={**opts, "fine_epochs": 2})
+    resumed = radaredge.train(card, city_dir, tmp_path / "b", resume=True, options={**opts, "fine_epochs": 3})
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "seconds"} for r in rows]  # noqa: E731
+    assert strip(resumed.epochs) == strip(straight.epochs)
+    assert resumed.stage_best == straight.stage_best
+    more = radaredge.train(card, city_dir, tmp_path / "b", resume=True, options={**opts, "fine_epochs": 4})
+    errors = {r["epoch"]: r["fine_error_m"] for r in more.epochs}
+    assert more.stage_best["fine"] == min(errors, key=errors.get), errors
+
+
 def test_info_nce_masks_copies_of_the_same_cell():
     text = torch.nn.functional.normalize(torch.randn(4, 8), dim=1)
     ids = torch.tensor([0, 0, 1, 2])
@@ -94,3 +110,31 @@ def test_info_nce_masks_copies_of_the_same_cell():
 def test_recipe_options_are_checked(options, match):
     with pytest.raises(ConfigError, match=match):
         TextRecipe.from_options(options)
+
+
+def test_tensors_made_in_the_training_path_follow_the_input_device(card, city_dir):
+    """Every tensor the model and the training helpers make takes its device from their inputs
+    (CUDA training): with meta as the default device, a tensor made without one lands on meta and
+    mixing it with the CPU inputs fails, so CPU results prove none was made."""
+    model = build_model(card)
+    cell, text = model.cell_config, model.text_config
+    maps = load_text_maps(city_dir, cell.max_objects, cell.points_per_object, text.max_hints, None, 0)
+    table = hint_table(card, maps)
+    cells = np.arange(4)
+    with torch.device("meta"):
+        tokens, tmask = backbone_features(model, table, "cpu")
+        prior = model.text.prior_tokens(tokens, tmask)
+        geometry = geometry_features(model, maps, "cpu")
+        outs = [*cell_descriptors(model, maps, cells, geometry, "cpu"), *cell_descriptors(model, maps, cells, None, "cpu")]
+        model.train()
+        desc, objects = cell_descriptors(model, maps, cells, None, "cpu")
+        rows, hmask = _padded_hints(maps, table, np.flatnonzero(~maps.validation)[:4], None)
+        t = text_descriptors(model, prior, tmask, rows, hmask)
+        fine = hint_fine_features(model, prior, tmask, rows)
+        offsets = model.fine.offsets(objects, torch.from_numpy(maps.cells.object_mask[cells]), fine, hmask)
+        (desc.sum() + t.sum() + offsets.sum()).backward()
+        model.eval()
+    outs += [tokens, prior, geometry, desc, t, offsets]
+    assert all(o.device.type == "cpu" and torch.isfinite(o).all() for o in outs)
+    grads = {n: p.grad for n, p in model.submap.named_parameters() if p.grad is not None}
+    assert {"mfam.o.weight", "lstm.weight_hh_l0", "objects.mlp_merge.0.0.weight"} <= set(grads) and all(g.device.type == "cpu" for g in grads.values()), sorted(grads)

@@ -86,7 +86,7 @@ def load_text_maps(root: str | os.PathLike, slots: int, points: int, max_hints: 
             raise InputError(f"validation scene(s) {unknown} are not maps under {root}; maps: {names}")
         held = set(validation)
     else:
-        held = {names[-1]} if len(names) > 1 else set()
+        held = {max(names)} if len(names) > 1 else set()       # the last map by name
     if not split:
         held = set()
     maps, map_of_cell, pose_w, pose_id, pose_cell, hints, val = [], [], [], [], [], [], []

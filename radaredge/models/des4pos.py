@@ -297,7 +297,7 @@ class ObjectEncoder(nn.Module):
         return xyz if self.frame == "cell" else self.unit_sphere(xyz, centre)
 
     def fuse_embeddings(self, geom, rgb_mean, centre, count):
-        c = (torch.as_tensor(count, dtype=torch.float32).unsqueeze(-1) - self.cell.count_mean) / self.cell.count_std
+        c = (count.to(torch.float32).unsqueeze(-1) - self.cell.count_mean) / self.cell.count_std
         parts = [self.mlp_pointnet(geom), self.color_encoder(rgb_mean), self.pos_encoder(centre), self.num_encoder(c)]
         # s_i is L2-normalised after the merge, as Text2Loc's and upstream Des4Pos's cell encoders
         # do before the object sequence goes on (the paper's eq. 3 stops at the merge)
@@ -391,11 +391,11 @@ class SubmapEncoder(nn.Module):
         self.mfam = MFAM(cfg.embed_dim, cfg.heads, cfg.mfam)
         self.lstm = nn.LSTM(cfg.embed_dim, cfg.lstm_hidden, batch_first=True, bidirectional=True)
 
-    def _select(self, t: int) -> torch.Tensor:
+    def _select(self, t: int, device=None) -> torch.Tensor:
         """Objects kept by eq. 7: all (``downsample: channels``) or 1, 1+k, 1+2k ... (``objects``)."""
         if self.cfg.downsample == "channels":
-            return torch.ones(t, dtype=torch.bool)
-        return torch.arange(t) % self.cfg.downsample_stride == 0
+            return torch.ones(t, dtype=torch.bool, device=device)
+        return torch.arange(t, device=device) % self.cfg.downsample_stride == 0
 
     def _channels(self, h: torch.Tensor) -> torch.Tensor:
         """Eq. 7 over channels (``downsample: channels``, upstream's reading): every k-th channel
@@ -419,7 +419,7 @@ class SubmapEncoder(nn.Module):
         ``geometry`` [B, T, 256], when given, is the PointNet++ output of every slot (training with
         a frozen PointNet++ computes it once)."""
         b, t, p, _ = points.shape
-        ar = torch.arange(t, dtype=torch.int64).unsqueeze(0)
+        ar = torch.arange(t, dtype=torch.int64, device=points.device).unsqueeze(0)
         order = torch.argsort(torch.where(object_mask, ar, ar + t), dim=1)        # real objects first
         inverse = torch.argsort(order, dim=1)
         mask = torch.gather(object_mask, 1, order)
@@ -438,7 +438,7 @@ class SubmapEncoder(nn.Module):
                              lstm.bias_ih_l0_reverse, lstm.bias_hh_l0_reverse)
         bwd = torch.gather(bwd, 1, rev.unsqueeze(-1).expand_as(bwd))
         h = self._channels(torch.cat([fwd, bwd], -1)) * mask.unsqueeze(-1).to(d.dtype)
-        desc = F.normalize(masked_max(h, mask & self._select(t).unsqueeze(0), 1), dim=-1)
+        desc = F.normalize(masked_max(h, mask & self._select(t, mask.device).unsqueeze(0), 1), dim=-1)
         if trace is not None:
             trace.update(objects=s, mfam=d, lstm=h)
         return desc, torch.gather(h, 1, inverse.unsqueeze(-1).expand_as(h))

@@ -142,7 +142,7 @@ class MiniLMEncoder(nn.Module):
     def forward(self, input_ids: torch.Tensor, attention_mask: torch.Tensor) -> torch.Tensor:
         e = self.embeddings
         length = input_ids.shape[1]
-        pos = torch.arange(length, dtype=torch.int64).unsqueeze(0)
+        pos = torch.arange(length, dtype=torch.int64, device=input_ids.device).unsqueeze(0)
         x = e.word_embeddings(input_ids) + e.position_embeddings(pos) + e.token_type_embeddings.weight[0]
         x = e.LayerNorm(x)
         mask = attention_mask > 0
@@ -238,7 +238,7 @@ class T5Encoder(nn.Module):
 
     def forward(self, input_ids: torch.Tensor, attention_mask: torch.Tensor) -> torch.Tensor:
         length = input_ids.shape[1]
-        pos = torch.arange(length, dtype=torch.int64)
+        pos = torch.arange(length, dtype=torch.int64, device=input_ids.device)
         bias = self.rel_bias(self._bucket(pos[None, :] - pos[:, None])).permute(2, 0, 1).unsqueeze(0)  # [1,h,L,L]
         mask = attention_mask > 0
         x = self.embed(input_ids)

@@ -57,9 +57,10 @@ def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
     A fixed loop of ``npoint`` - 1 argmax steps (unrolled when traced), start index 0.
     """
     g, n, _ = xyz.shape
-    idx = torch.zeros(g, 1, dtype=torch.int64)
-    far = torch.zeros(g, dtype=torch.int64)
-    dist = torch.full((g, n), float("inf"), dtype=xyz.dtype)
+    dev = xyz.device
+    idx = torch.zeros(g, 1, dtype=torch.int64, device=dev)
+    far = torch.zeros(g, dtype=torch.int64, device=dev)
+    dist = torch.full((g, n), float("inf"), dtype=xyz.dtype, device=dev)
     chosen = [idx]
     for _ in range(npoint - 1):
         centre = torch.gather(xyz, 1, far.view(g, 1, 1).expand(g, 1, 3))        # [G, 1, 3]
@@ -97,13 +98,14 @@ def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint:
     ``picks`` (a 0-d int64 tensor), when given, stops the loop after that many slots: the later
     slots hold the start index (callers that need fewer picks than ``npoint`` at run time).
     """
-    n = xyz.shape[0]
-    start = torch.argmax(torch.cat([valid, torch.zeros(1, dtype=torch.bool)]).to(torch.int64))  # first valid
-    start = torch.where(start < n, start, 0)                                    # (0 if none; N = 0 too)
-    dist = torch.where(valid, torch.full((n,), float("inf")), torch.full((n,), -1.0))
-    slots = torch.arange(npoint, dtype=torch.int64)
-    out = torch.zeros(npoint, dtype=torch.int64) + start
-    limit = torch.full((), npoint, dtype=torch.int64) if picks is None else torch.clamp(picks, max=npoint)
+    n, dev = xyz.shape[0], xyz.device
+    start = torch.argmax(torch.cat([valid, torch.zeros(1, dtype=torch.bool, device=dev)]).to(torch.int64))
+    start = torch.where(start < n, start, 0)                    # the first valid point (0 if none; N = 0 too)
+    dist = torch.where(valid, torch.full((n,), float("inf"), device=dev), torch.full((n,), -1.0, device=dev))
+    slots = torch.arange(npoint, dtype=torch.int64, device=dev)
+    out = torch.zeros(npoint, dtype=torch.int64, device=dev) + start
+    limit = (torch.full((), npoint, dtype=torch.int64, device=dev) if picks is None
+             else torch.clamp(picks, max=npoint))
 
     def not_done(i, far, dist, out, limit):
         return i < limit
@@ -114,7 +116,7 @@ def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint:
         far = torch.argmax(dist)
         return i + 1, far, dist, torch.where(slots == i, far, out), limit.clone()
 
-    state = (torch.ones((), dtype=torch.int64), start, dist, out, limit)
+    state = (torch.ones((), dtype=torch.int64, device=dev), start, dist, out, limit)
     return fixed_point_loop(not_done, step, state)[3]
 
 
@@ -155,7 +157,7 @@ def ball_query_masked(xyz: torch.Tensor, valid: torch.Tensor | None, centres: to
     hit = d2 < radius * radius if strict else d2 <= radius * radius
     if valid is not None:
         hit = hit & valid.unsqueeze(1)
-    ar = torch.arange(n, dtype=torch.float32).view(1, 1, n)
+    ar = torch.arange(n, dtype=torch.float32, device=xyz.device).view(1, 1, n)
     key = torch.where(hit, ar, ar + n)
     k = min(nsample, n)
     first = torch.topk(key, k, dim=2, largest=False, sorted=True).values.to(torch.int64)   # [G, S, k]

@@ -343,29 +343,33 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
                  "recipe": {k: v for k, v in dataclasses.asdict(recipe).items() if not k.endswith("epochs")}}
     done: dict[str, int] = {}
     clock = Stopwatch()
-    saved_keeper: dict = {}
+    saved: dict = {"keepers": {}, "optimizers": {}}
     if resume:
         state = run.load_last(signature)
         model.load_state_dict(state["model_state"])
         restore_random_states(rng, state["random"])
         report.epochs, done = state["history"], dict(state["done"])
-        report.stage_best, saved_keeper = dict(state["stage_best"]), state["keeper"] or {}
+        report.stage_best = dict(state["stage_best"])
+        saved = {"keepers": dict(state.get("keepers", {})), "optimizers": dict(state.get("optimizers", {}))}
         clock = Stopwatch(state["seconds"])
         log(f"resuming after {', '.join(f'{s} epoch {e}' for s, e in done.items())} from {run.last}")
-    current: dict = {"stage": None, "keeper": None}
+    current: dict = {}                                # the running stage's _Stage and _Keeper
 
-    def keep(names, better) -> _Keeper:
-        saved = saved_keeper if saved_keeper.get("stage") == current["stage"] else None
-        current["keeper"] = _Keeper(model, names, better, saved)
+    def keep(stage: _Stage, names, better) -> _Keeper:
+        """The stage's keeper of its best epoch; on --resume both continue where last.pth left them."""
+        if stage.name in saved["optimizers"]:
+            stage.opt.load_state_dict(saved["optimizers"][stage.name])
+        current.update(stage=stage, keeper=_Keeper(model, names, better, saved["keepers"].get(stage.name)))
         return current["keeper"]
 
     def checkpoint(stage: str, epoch: int):
         report.seconds = clock()
-        keeper = current["keeper"]
+        if current:
+            saved["keepers"][stage] = current["keeper"].to_dict()
+            saved["optimizers"][stage] = current["stage"].opt.state_dict()
         run.save_last({"signature": signature, "model_state": model.state_dict(), "random": random_states(rng),
                        "history": report.epochs, "done": {**done, stage: epoch}, "seconds": report.seconds,
-                       "stage_best": report.stage_best,
-                       "keeper": {"stage": stage, **keeper.to_dict()} if keeper is not None else None})
+                       "stage_best": report.stage_best, **saved})
         run.write_log(report.to_dict())
 
     def epoch_row(stage: str, epoch: int, loss: float, metrics: dict):
@@ -387,7 +391,6 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
                 prior = torch.cat([model.text.prior_tokens(tokens[sl], tmask[sl]) for sl in _chunks(len(tokens), 256)])
         if stage in ("coarse", "fine") and geometry is None and not recipe.train_pointnet:
             geometry = geometry_features(model, maps, dev, progress)
-        current["stage"] = stage
         runner = {"objects": _objects_stage, "prior": _prior_stage, "coarse": _coarse_stage, "fine": _fine_stage}[stage]
         best = runner(model, maps, recipe, epochs, done.get(stage, 0) + 1, dev, rng, progress, epoch_row, checkpoint,
                       keep, tokens=tokens, tmask=tmask, prior=prior, table=table, geometry=geometry, train_q=train_q,
@@ -396,8 +399,8 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
         if best is not None:
             report.stage_best[stage] = best
             log(f"{stage}: kept epoch {best}")
-        current["keeper"] = None
         checkpoint(stage, epochs)                     # the stage's best weights, so --resume skips it
+        current.clear()
         if stage == "prior":
             prior = None                          # the prior head changed: its features are recomputed
         if stage == "objects":
@@ -443,7 +446,8 @@ class _Keeper:
 
 def _objects_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, *, val_cells,
                    **_):
-    """Text2Pos's object classification on the objects of the training cells."""
+    """Text2Pos's object classification on the objects of the training cells, its accuracy on the
+    validation cells' objects (with one map, on every 10th object, left out of training)."""
     enc = model.submap.objects
     classes = {c: i for i, c in enumerate(model.submap.cfg.object_classes)}
     cells = maps.cells
@@ -455,11 +459,12 @@ def _objects_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch
                          f"submap.object_classes ({len(classes)} classes); the object stage trains a classifier over them")
     held = maps.cell_validation[slots[:, 0]]
     train_i, val_i = np.flatnonzero(~held), np.flatnonzero(held)
-    if not len(val_i):
+    if not len(val_i):                                # one map: every 10th object is held out instead
         val_i = train_i[:: 10]
+        train_i = np.setdiff1d(train_i, val_i)
     names = ["submap.objects.pointnet"]
     stage = _Stage("objects", _set_trainable(model, names), recipe.object_lr, epochs, start, 1, 0.9)
-    keeper = keep(names, lambda m, b: m["object_acc"] > b["object_acc"])
+    keeper = keep(stage, names, lambda m, b: m["object_acc"] > b["object_acc"])
 
     def batch(idx):
         pts = torch.from_numpy(cells.points[slots[idx, 0], slots[idx, 1]]).to(dev)
@@ -492,7 +497,7 @@ def _prior_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_r
     val_rows = np.array(val_rows or train_rows[::10])
     names = ["text.prior", "text.prior_mlp"]
     stage = _Stage("prior", _set_trainable(model, names), recipe.prior_lr, epochs, start)
-    keeper = keep(names, lambda m, b: m["prior_cosine"] > b["prior_cosine"])
+    keeper = keep(stage, names, lambda m, b: m["prior_cosine"] > b["prior_cosine"])
 
     def cosine(rows):
         pooled = masked_max(model.text.prior_tokens(tokens[rows], tmask[rows]), tmask[rows], 1)
@@ -520,7 +525,7 @@ def _coarse_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_
     stage = _Stage("coarse", [p for p in params if p.requires_grad], recipe.coarse_lr, epochs, start,
                    recipe.lr_step, recipe.lr_gamma)
     rank = lambda m: (m["cell_R@1"], m["cell_R@5"])  # noqa: E731
-    keeper = keep(names, lambda m, b: rank(m) > rank(b))
+    keeper = keep(stage, names, lambda m, b: rank(m) > rank(b))
 
     def loss_of(poses):
         if len(poses) < 2:                            # InfoNCE needs a negative
@@ -594,7 +599,7 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
                       * size[maps.pose_cell[val_q]]).mean())
     names = ["fine", "text.fine_words", "text.fine_mlp"]
     stage = _Stage("fine", _set_trainable(model, names), recipe.fine_lr, epochs, start)
-    keeper = keep(names, lambda m, b: m["fine_error_m"] < b["fine_error_m"])
+    keeper = keep(stage, names, lambda m, b: m["fine_error_m"] < b["fine_error_m"])
 
     def predict(poses):
         rows, hmask = _padded_hints(maps, table, poses, None)

@@ -61,15 +61,33 @@ def _atomic_text(text: str, path: Path) -> Path:
 
 
 def random_states(rng: np.random.Generator) -> dict:
-    """The numpy generator's, Python's and torch's random states (plain containers and tensors)."""
-    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "python": list(random.getstate()[1]),
-            "python_version": random.getstate()[0], "python_gauss": random.getstate()[2]}
+    """The numpy generator's, Python's and torch's random states (plain containers and tensors);
+    torch's CUDA generators' too once CUDA is in use (dropout on a GPU draws from them)."""
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() and torch.cuda.is_initialized() else None
+    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "cuda": cuda,
+            "python": list(random.getstate()[1]), "python_version": random.getstate()[0],
+            "python_gauss": random.getstate()[2]}
 
 
 def restore_random_states(rng: np.random.Generator, states: dict) -> None:
     rng.bit_generator.state = states["numpy"]
     torch.set_rng_state(states["torch"])
+    if states.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
     random.setstate((states["python_version"], tuple(states["python"]), states["python_gauss"]))
+
+
+def torch_rng_state(device: torch.device) -> tuple:
+    """torch's CPU generator state, and that of ``device``'s generator when it is a CUDA device:
+    what random ops (dropout) on ``device`` draw from."""
+    return torch.get_rng_state(), torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+
+
+def set_torch_rng_state(state: tuple, device: torch.device) -> None:
+    """Undo the draws since :func:`torch_rng_state` returned ``state``."""
+    torch.set_rng_state(state[0])
+    if state[1] is not None:
+        torch.cuda.set_rng_state(state[1], device)
 
 
 @dataclass

@@ -55,7 +55,8 @@ from ..data.bag_drives import BagSource
 from ..evaluation import RECALL_NS, recall_at_n
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
 from .places import PlaceWindows, TupleMiner, load_place_windows
-from .run import RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, restore_random_states
+from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, restore_random_states,
+                  set_torch_rng_state, torch_rng_state)
 
 
 BATCH_NORMS = ("frozen", "window")
@@ -257,13 +258,14 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
         return lazy_quadruplet_loss(d[:1], d[1:1 + p][None], d[1 + p:1 + p + n][None], d[-1:], recipe.alpha,
                                     recipe.beta, recipe.second_term)
 
+    dev = next(model.parameters()).device
     states = []
     with torch.no_grad():
         rows = []
         for i in idx:
-            states.append(torch.get_rng_state())
+            states.append(torch_rng_state(dev))
             rows.append(_describe_window(model, prepared[i]))
-    after = torch.get_rng_state()
+    after = torch_rng_state(dev)
     probe = torch.cat(rows).requires_grad_(True)
     loss = score(probe)
     loss.backward()
@@ -272,9 +274,9 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
         return loss.detach(), 0
     with _FrozenNormStatistics(model):     # these batches were counted by the pass above
         for j in active:
-            torch.set_rng_state(states[j])
+            set_torch_rng_state(states[j], dev)
             rows[j] = _describe_window(model, prepared[idx[j]])
-    torch.set_rng_state(after)
+    set_torch_rng_state(after, dev)
     return score(torch.cat(rows)), len(active)
 
 
