@@ -151,6 +151,8 @@ def test_input_flags_from_c_and_from_python(client, graphs, tmp_path):
     raw = {f"points_{k}": f for k, f in enumerate(frames)}
     raw["timestamps"] = np.float32(stamps)
     assert run_session(m.session, raw)["input_flags"].tolist() == flags.tolist()
+    raw["timestamps"] = np.float32([0.0, np.nan, 0.2])   # a NaN compares False: flagged, not taken as ordered
+    assert [f & TIME_ORDER for f in run_session(m.session, raw)["input_flags"].tolist()] == [0, TIME_ORDER, TIME_ORDER]
     with pytest.raises(InputError, match="frame 1: non-finite value nan at point 7, column 'z'"):
         m.run(frames, stamps)                          # the runtime refuses what the graph would mask
     frames[1][7, 2] = 0.0

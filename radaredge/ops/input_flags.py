@@ -30,7 +30,8 @@ def frame_flags(points: torch.Tensor, frame: torch.Tensor, count: int, timestamp
 
     flags = any_point(~torch.isfinite(points).all(1)) * NON_FINITE
     if timestamps is not None:
-        late = torch.cat([torch.zeros(1, dtype=torch.bool, device=dev), timestamps[1:] <= timestamps[:-1]])
+        after = torch.cat([torch.ones(1, dtype=torch.bool, device=dev), timestamps[1:] > timestamps[:-1]])
+        late = ~(after & torch.isfinite(timestamps))         # (a NaN compares False: flagged too)
         flags = flags + late.to(torch.int32) * TIME_ORDER
     if outside is not None:
         flags = flags + any_point(outside) * OUT_OF_RANGE
@@ -53,7 +54,8 @@ def frame_flags_reference(frames: Sequence[np.ndarray], timestamps=None, outside
         bits = 0
         if (~np.isfinite(np.asarray(f))).any():
             bits |= NON_FINITE
-        if timestamps is not None and k > 0 and not float(timestamps[k]) > float(timestamps[k - 1]):
+        if timestamps is not None and (not np.isfinite(float(timestamps[k]))
+                                       or k > 0 and not float(timestamps[k]) > float(timestamps[k - 1])):
             bits |= TIME_ORDER
         if outside is not None and np.asarray(outside[k]).any():
             bits |= OUT_OF_RANGE

@@ -10,7 +10,7 @@ bits in its metadata (``radaredge.input_flags``):
 bit    name                 set for a frame when
 =====  ===================  ===============================================================
 1      ``non_finite``       a point had a NaN or Inf value in some column; it was left out
-2      ``time_order``       its timestamp is not after the previous frame's (frame k > 0)
+2      ``time_order``       its timestamp is not finite, or not after the previous frame's
 4      ``out_of_range``     a finite point lay outside the card's point_cloud_range; dropped
 8      ``capacity``         a fixed capacity overflowed: a pillar already held
                             ``max_points_per_pillar`` points (later ones dropped), or a
@@ -29,7 +29,7 @@ from __future__ import annotations
 NON_FINITE, TIME_ORDER, OUT_OF_RANGE, CAPACITY, NOT_CONVERGED = 1, 2, 4, 8, 16
 BITS = {
     NON_FINITE: "non_finite: a point had a NaN or Inf value; it was left out",
-    TIME_ORDER: "time_order: the frame's timestamp is not after the previous frame's",
+    TIME_ORDER: "time_order: the frame's timestamp is not finite, or not after the previous frame's",
     OUT_OF_RANGE: "out_of_range: points outside the card's point_cloud_range were dropped",
     CAPACITY: "capacity: a fixed capacity overflowed (points beyond max_points_per_pillar in a pillar, or a "
               "model's pillar or clustering capacity); what did not fit was left out",
