@@ -18,7 +18,7 @@ import pytest
 import radaredge
 from radaredge import runtime
 from radaredge.cards import load_card
-from radaredge.errors import InputError
+from radaredge.errors import CapacityError, InputError
 from radaredge.exporter import build_model
 from radaredge.runtime.flags import CAPACITY, NON_FINITE, OUT_OF_RANGE, TIME_ORDER
 from radaredge.runtime.session import run_session
@@ -120,6 +120,25 @@ def test_the_c_client_refuses_bad_input_like_the_runtime(client, graphs, tmp_pat
     assert res.returncode == 2 and "timestamps must increase strictly" in res.stderr
 
 
+def test_the_c_client_acts_on_the_declared_checks_like_the_runtime(client, graphs, tmp_path):
+    """MAFF-Net declares spa_overflow an error (radaredge.checks): 600 points on distinct pillars
+    overflow the tiny card's 256 sparse-attention slots; the runtime raises, the client fails
+    with the same message and writes nothing; --no-checks writes the outputs."""
+    rng = np.random.default_rng(0)
+    pts = np.zeros((600, 7), np.float32)
+    cells = rng.choice(1600, 600, replace=False)
+    pts[:, 0] = (cells % 40) * 0.32 + 0.16
+    pts[:, 1] = -6.4 + (cells // 40) * 0.32 + 0.16
+    with pytest.raises(CapacityError) as raised:
+        runtime.load(graphs["maffnet"]).run([pts])
+    scans = _scans(tmp_path, [pts])
+    res = _run(client, graphs["maffnet"], scans, tmp_path / "a")
+    assert res.returncode == 2 and res.stderr.strip().splitlines()[-1] == f"error: {raised.value}"
+    assert "600 non-empty pillars" in res.stderr and not (tmp_path / "a" / "summary.json").exists()
+    res = _run(client, graphs["maffnet"], scans, tmp_path / "b", "--no-checks")
+    assert res.returncode == 0 and _outputs(tmp_path / "b")["spa_overflow"].item()
+
+
 def _flag_cases():
     """TDFANet frames with a NaN point (frame 1), a pillar holding more than max_points_per_pillar
     points (frame 2; the tiny card keeps 8) and one point out of range (frame 0), plus timestamps
@@ -174,3 +193,8 @@ def test_sanitizers(graphs, tmp_path_factory, tmp_path):
                              capture_output=True, text=True, env=env)
         assert res.returncode == code, res.stderr[-3000:]
         assert "Sanitizer" not in res.stderr, res.stderr[-3000:]
+    out = tmp_path / "maffnet"                   # the declared checks' metadata read and applied
+    out.mkdir()
+    res = subprocess.run([str(asan), "--out", str(out), str(graphs["maffnet"]),
+                          *map(str, _scans(out, _maffnet_frames()))], capture_output=True, text=True, env=env)
+    assert res.returncode == 0 and "Sanitizer" not in res.stderr, res.stderr[-3000:]

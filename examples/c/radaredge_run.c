@@ -13,14 +13,18 @@
  * points) and the timestamps (strictly increasing), naming the file, point and column of a
  * problem; runs one onnxruntime session with radaredge's options (intra-op threads N, one
  * inter-op thread, sequential, all graph optimisations, session.force_spinning_stop = 1); reports
- * the graph's input_flags output bit by bit (radaredge.input_flags in the metadata); writes each
- * output as DIR/<name>.bin (raw, native byte order) and DIR/summary.json (names, types, shapes).
- * --no-checks skips the client's own checks, so the graph's input_flags show what it masked.
+ * the graph's input_flags output bit by bit (radaredge.input_flags in the metadata); acts on the
+ * flag outputs the model declares (radaredge.checks: e.g. MAFF-Net's spa_overflow is an error,
+ * as radaredge.runtime's CapacityError, and a warning is printed); writes each output as
+ * DIR/<name>.bin (raw, native byte order) and DIR/summary.json (names, types, shapes).
+ * --no-checks skips the client's own checks and the declared ones, so the outputs and the
+ * graph's input_flags show what it did.
  *
- * Exit codes: 0 success (input_flags bits that only inform, e.g. points out of range, are
- * printed on stderr), 1 the graph flagged wrong input (bit 1 non_finite or 2 time_order, which
- * reach the graph only with --no-checks), 2 bad input or a model that is not a radaredge export,
- * reported as one "error: ..." line on stderr.
+ * Exit codes: 0 success (input_flags bits that only inform, e.g. points out of range, and
+ * declared warnings are printed on stderr), 1 the graph flagged wrong input (bit 1 non_finite
+ * or 2 time_order, which reach the graph only with --no-checks), 2 bad input, an error a
+ * declared check raised (no outputs are written then) or a model that is not a radaredge
+ * export, reported as one "error: ..." line on stderr.
  */
 #include <errno.h>
 #include <math.h>
@@ -29,6 +33,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 #include <onnxruntime_c_api.h>
 
@@ -105,6 +110,83 @@ static void json_string(const char *json, const char *key, char *out, size_t siz
     out[end - p - 1] = '\0';
 }
 
+/* The JSON string that starts at p (at its opening quote) decoded into out (\uXXXX outside ASCII
+ * as '?'); the position after its closing quote, or NULL when it is not a whole string. */
+static const char *json_decode(const char *p, char *out, size_t size) {
+    size_t n = 0;
+    if (*p != '"') return NULL;
+    for (p++; *p != '\0' && *p != '"'; p++) {
+        char c = *p;
+        if (c == '\\') {
+            p++;
+            switch (*p) {
+            case 'n': c = '\n'; break;
+            case 't': c = '\t'; break;
+            case 'u': {
+                unsigned code = 0;
+                for (int i = 1; i <= 4; i++) {
+                    char h = p[i];
+                    if (!((h >= '0' && h <= '9') || (h >= 'a' && h <= 'f') || (h >= 'A' && h <= 'F'))) return NULL;
+                    code = code * 16 + (unsigned)(h <= '9' ? h - '0' : (h | 32) - 'a' + 10);
+                }
+                c = (code < 128) ? (char)code : '?';
+                p += 4;
+                break;
+            }
+            case '\0': return NULL;
+            default: c = *p;          /* \" \\ \/ */
+            }
+        }
+        if (n + 1 < size) out[n++] = c;
+    }
+    out[n] = '\0';
+    return *p == '"' ? p + 1 : NULL;
+}
+
+/* A flag output the runtime acts on (radaredge.checks): when output `output` equals
+ * `fails_when`, `message` is an error (severity "error") or a warning. */
+typedef struct {
+    char output[MAX_NAME], severity[16], message[1024];
+    int fails_when;
+} Check;
+
+static const char *skip_space(const char *p) {
+    while (*p == ' ' || *p == ',' || *p == '\n') p++;
+    return p;
+}
+
+/* The checks of the radaredge.checks JSON list (objects of output, fails_when, severity and
+ * message); -1 when it cannot be read. */
+static int read_checks(const char *json, Check *out, int max) {
+    const char *p = skip_space(json);
+    int n = 0;
+    if (*p++ != '[') return -1;
+    for (p = skip_space(p); *p == '{'; p = skip_space(p)) {
+        if (n == max) return -1;
+        Check *c = &out[n];
+        memset(c, 0, sizeof *c);
+        for (p = skip_space(p + 1); *p != '}'; p = skip_space(p)) {
+            char key[32];
+            p = json_decode(p, key, sizeof key);
+            if (p == NULL) return -1;
+            p = skip_space(p);
+            if (*p++ != ':') return -1;
+            while (*p == ' ') p++;
+            if (strcmp(key, "output") == 0) p = json_decode(p, c->output, sizeof c->output);
+            else if (strcmp(key, "severity") == 0) p = json_decode(p, c->severity, sizeof c->severity);
+            else if (strcmp(key, "message") == 0) p = json_decode(p, c->message, sizeof c->message);
+            else if (strcmp(key, "fails_when") == 0 && strncmp(p, "true", 4) == 0) c->fails_when = 1, p += 4;
+            else if (strcmp(key, "fails_when") == 0 && strncmp(p, "false", 5) == 0) c->fails_when = 0, p += 5;
+            else return -1;
+            if (p == NULL) return -1;
+        }
+        if (c->output[0] == '\0' || (strcmp(c->severity, "error") != 0 && strcmp(c->severity, "warn") != 0)) return -1;
+        n++;
+        p++;
+    }
+    return *p == ']' ? n : -1;
+}
+
 /* A top-level number "key: value" of the card's YAML, or fallback when the card has none. */
 static double card_number(const char *yaml, const char *key, double fallback) {
     size_t n = strlen(key);
@@ -113,6 +195,67 @@ static double card_number(const char *yaml, const char *key, double fallback) {
         if (strncmp(line, key, n) == 0 && line[n] == ':') return strtod(line + n + 1, NULL);
     }
     return fallback;
+}
+
+/* The value of a one-element output as a double; 0 (and *ok = 0) when it has more elements or a
+ * type this client does not read. */
+static double output_scalar(OrtValue *value, int *is_integer, int *ok) {
+    OrtTensorTypeAndShapeInfo *info;
+    ONNXTensorElementDataType type;
+    size_t count;
+    void *data;
+    check(ort->GetTensorTypeAndShape(value, &info), "output type");
+    check(ort->GetTensorElementType(info, &type), "output type");
+    check(ort->GetTensorShapeElementCount(info, &count), "output shape");
+    ort->ReleaseTensorTypeAndShapeInfo(info);
+    check(ort->GetTensorMutableData(value, &data), "output data");
+    *ok = count == 1;
+    *is_integer = 1;
+    if (count != 1) return 0.0;
+    switch (type) {
+    case ONNX_TENSOR_ELEMENT_DATA_TYPE_BOOL: return *(const uint8_t *)data ? 1.0 : 0.0;
+    case ONNX_TENSOR_ELEMENT_DATA_TYPE_INT32: return *(const int32_t *)data;
+    case ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64: return (double)*(const int64_t *)data;
+    case ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT: *is_integer = 0; return *(const float *)data;
+    case ONNX_TENSOR_ELEMENT_DATA_TYPE_DOUBLE: *is_integer = 0; return *(const double *)data;
+    default: *ok = 0; return 0.0;
+    }
+}
+
+/* Acts on the declared checks after a run, as radaredge.runtime does: a check whose output equals
+ * fails_when fails (severity error) or prints a warning; "{name}" in its message becomes the
+ * value of the one-element output `name`. */
+static void apply_checks(const Check *checks, int n_checks, char **names, OrtValue **outputs, size_t n_out) {
+    for (int c = 0; c < n_checks; c++) {
+        size_t i = 0;
+        while (i < n_out && strcmp(names[i], checks[c].output) != 0) i++;
+        int is_integer, ok;
+        if (i == n_out) continue;                                     /* the output is absent: no check */
+        double flag = output_scalar(outputs[i], &is_integer, &ok);
+        if (!ok || (flag != 0.0) != checks[c].fails_when) continue;
+        char message[2048];
+        size_t n = 0;
+        for (const char *p = checks[c].message; *p != '\0' && n + 64 < sizeof message; p++) {
+            const char *close = (*p == '{') ? strchr(p, '}') : NULL;
+            size_t j = n_out;
+            if (close != NULL && (size_t)(close - p - 1) < MAX_NAME) {
+                char name[MAX_NAME];
+                memcpy(name, p + 1, (size_t)(close - p - 1));
+                name[close - p - 1] = '\0';
+                for (j = 0; j < n_out && strcmp(names[j], name) != 0; j++) {}
+            }
+            double v = (j < n_out) ? output_scalar(outputs[j], &is_integer, &ok) : 0.0;
+            if (j < n_out && ok) {
+                n += (size_t)snprintf(message + n, sizeof message - n, is_integer ? "%.0f" : "%.9g", v);
+                p = close;
+            } else {
+                message[n++] = *p;
+            }
+        }
+        message[n] = '\0';
+        if (strcmp(checks[c].severity, "error") == 0) fail("%s", message);
+        fprintf(stderr, "warning: %s\n", message);
+    }
 }
 
 static char *metadata(OrtModelMetadata *meta, OrtAllocator *alloc, const char *key, const char *model, int required) {
@@ -183,7 +326,10 @@ int main(int argc, char **argv) {
         if (strcmp(argv[arg], "--threads") == 0 && arg + 1 < argc) {
             char *end;
             long t = strtol(argv[++arg], &end, 10);
-            if (*end != '\0' || t < 1 || t > 256) fail("--threads: expected an integer from 1 to 256, got %s", argv[arg]);
+            long most = 4 * sysconf(_SC_NPROCESSORS_ONLN);          /* radaredge's bound: 4 x the cores */
+            if (most < 4) most = 4;
+            if (*end != '\0' || t < 1 || t > most)
+                fail("--threads: expected an integer from 1 to %ld (4 x the cores), got %s", most, argv[arg]);
             threads = (int)t;
         } else if (strcmp(argv[arg], "--timestamps") == 0 && arg + 1 < argc) {
             for (char *p = argv[++arg]; *p != '\0' && n_stamps < MAX_ITEMS;) {
@@ -230,6 +376,10 @@ int main(int argc, char **argv) {
     char *features_json = metadata(meta, alloc, "radaredge.features", model, 1);
     char *inputs_json = metadata(meta, alloc, "radaredge.inputs", model, 1);
     char *flags_json = metadata(meta, alloc, "radaredge.input_flags", model, 0);
+    char *checks_json = metadata(meta, alloc, "radaredge.checks", model, 0);
+    Check declared[8];
+    int n_checks = (checks_json != NULL) ? read_checks(checks_json, declared, 8) : 0;
+    if (n_checks < 0) fail("%s: unreadable radaredge.checks metadata", model);
     char features[MAX_ITEMS][MAX_NAME], frames[MAX_ITEMS][MAX_NAME], stamps_input[MAX_NAME];
     int n_features = json_strings(features_json, NULL, features, MAX_ITEMS);
     int n_frames = json_strings(inputs_json, "frames", frames, MAX_ITEMS);
@@ -237,7 +387,10 @@ int main(int argc, char **argv) {
     if (n_features < 1 || n_frames < 0) fail("%s: unreadable radaredge.features / radaredge.inputs metadata", model);
     if (n_frames == 0) fail("%s takes no point-cloud frames (a Des4Pos text or fine-stage graph)", model);
     double frame_rate = card_number(card, "frame_rate", 10.0);
-    int64_t max_points = (int64_t)card_number(card, "max_points_per_frame", 65536.0);
+    double max_points_card = card_number(card, "max_points_per_frame", 65536.0);
+    if (!(max_points_card >= 1.0 && max_points_card <= 16777216.0))   /* the card parser's range */
+        fail("%s: max_points_per_frame %.9g in its card is outside 1..16777216", model, max_points_card);
+    int64_t max_points = (int64_t)max_points_card;
     printf("model %s: %d frame(s) of [N, %d] float32 columns", model, n_frames, n_features);
     for (int i = 0; i < n_features; i++) printf("%s%s", i ? ", " : " ", features[i]);
     printf("\ncard:\n%s", card);
@@ -290,6 +443,7 @@ int main(int argc, char **argv) {
     for (size_t i = 0; i < n_out; i++) check(ort->SessionGetOutputName(session, i, alloc, &output_names[i]), "output name");
     check(ort->Run(session, NULL, input_names, (const OrtValue *const *)inputs, n_in,
                    (const char *const *)output_names, n_out, outputs), "run");
+    if (checks) apply_checks(declared, n_checks, output_names, outputs, n_out);
 
     char path[4096];
     snprintf(path, sizeof path, "%s/summary.json", out_dir);
@@ -348,6 +502,7 @@ int main(int argc, char **argv) {
     check(ort->AllocatorFree(alloc, features_json), "free");
     check(ort->AllocatorFree(alloc, inputs_json), "free");
     if (flags_json != NULL) check(ort->AllocatorFree(alloc, flags_json), "free");
+    if (checks_json != NULL) check(ort->AllocatorFree(alloc, checks_json), "free");
     ort->ReleaseModelMetadata(meta);
     ort->ReleaseMemoryInfo(mem);
     ort->ReleaseSession(session);
