@@ -404,7 +404,7 @@ for base, model, sections in (
 
 TOP_LEVEL = [(f"tdfanet-tiny-{key}-{label}", TINY_CARD, "tdfanet-tiny", key, value)
              for key, values in (("frames", (0, 1, 65, "three", 2.5, None)), ("frame_rate", (0, -10, "fast")),
-                                 ("seed", (-1, 2**40, "x")), ("max_points_per_frame", (0, -5, 2**30)),
+                                 ("seed", (-1, 2**40, "x")), ("max_points_per_frame", (0, -5, 2**30, 2**24)),
                                  ("features", ([], "xyz", ["y", "x", "z"], ["x", "y", "z", "x"], [1, 2, 3])),
                                  ("name", ("", 5)), ("model", ("", "nope", 3)), ("network", ("deep", [1])),
                                  ("pillars", (3,)), ("classes", ("car",)))
@@ -541,7 +541,7 @@ def _scan(tmp: Path, kind: str) -> tuple[Path, dict]:
 
 
 SCANS = ["truncated-bin", "random-npy", "object-npy", "3d-npy", "columns-npy", "text-npy", "huge-header-npy",
-         "suffix", "missing", "directory", "fmt", "feature"]
+         "suffix", "missing", "directory", "fmt", "feature", "ambiguous-size"]
 
 
 @pytest.mark.parametrize("kind", SCANS)

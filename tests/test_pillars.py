@@ -150,3 +150,9 @@ def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
         ref, got = rt(inputs)
         np.testing.assert_allclose(got["canvas"], ref["canvas"], atol=1e-5)
         assert np.array_equal(got["occupied"], ref["occupied"])
+
+
+@pytest.mark.parametrize("voxel", [(0.0, 0.5, 8.0), (-0.5, 0.5, 8.0), (float("nan"), 0.5, 8.0)])
+def test_a_voxel_size_that_is_not_positive_is_refused_by_name(voxel):
+    with pytest.raises(ValueError, match="voxel_size entries must be > 0"):
+        PillarConfig(**{**SMALL.__dict__, "voxel_size": voxel})

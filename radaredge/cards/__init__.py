@@ -30,6 +30,10 @@ TOP_LEVEL_NUMBERS = {
     "max_points_per_frame": (Range(1, 2**24), True),      # runtime capacity per scan
 }
 
+# a window's points are ranked by a float32 CumSum (RANSAC order; TensorRT takes no integer
+# CumSum), exact up to 2**24; the graph adds at most a few padding rows
+MAX_WINDOW_POINTS = 2**24 - 64
+
 
 def cards_dir() -> Path:
     """Directory searched by card name: $RADAREDGE_CARDS, else the shipped cards (this package)."""
@@ -108,6 +112,11 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
                 raise ConfigError(f"{where}: {key}: expected {'an integer' if integral else 'a number'} in {rng}, "
                                   f"got {data[key]!r}")
             check_numbers(data[key], rng, integral, f"{where}: {key}")
+    window_points = int(data.get("frames", 1)) * int(data.get("max_points_per_frame", 65536))
+    if window_points > MAX_WINDOW_POINTS:
+        raise ConfigError(f"{where}: frames x max_points_per_frame is {window_points:,}; at most "
+                          f"{MAX_WINDOW_POINTS:,} points per window (the graphs count points in float32, "
+                          f"exact to 2**24)")
     classes = data.get("classes", [])
     if not isinstance(classes, list) or not all(isinstance(c, str) and c for c in classes):
         raise ConfigError(f"{where}: classes must be a list of class names, got {classes!r}")

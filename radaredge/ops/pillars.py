@@ -59,13 +59,13 @@ class PillarConfig:
         if not all(a < b for a, b in zip(lo, hi)):
             raise ValueError(f"point_cloud_range must be [x_min, y_min, z_min, x_max, y_max, z_max] with each "
                              f"min < max, got {list(self.point_cloud_range)}")
+        if not all(v > 0 for v in self.voxel_size):       # (NaN too) before the grid divides by them
+            raise ValueError(f"voxel_size entries must be > 0, got {list(self.voxel_size)}")
         if min(self.grid_size) < 1:
             raise ValueError(f"voxel_size {list(self.voxel_size)} is larger than the point_cloud_range it divides")
         cells = math.prod(self.grid_size)
         if cells > MAX_GRID_CELLS:
             raise ValueError(f"point_cloud_range / voxel_size make {cells} grid cells; at most {MAX_GRID_CELLS}")
-        if any(v <= 0 for v in self.voxel_size):
-            raise ValueError("voxel_size entries must be > 0")
         if self.max_points_per_pillar < 1:
             raise ValueError("max_points_per_pillar must be >= 1")
 
