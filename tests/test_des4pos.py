@@ -2,12 +2,14 @@
 passes, and `radaredge locate` runs end to end without torch or network."""
 
 import json
+import shutil
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 from click.testing import CliRunner
@@ -221,6 +223,13 @@ def test_locate_end_to_end_and_cached(bundle, tmp_path):
     q = json.loads(invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", bundle, "--map", city, "--text", text,
                           "--int8-text", "--json").output)
     assert len(q["results"]) == 3
+    other = tmp_path / "other-bundle"             # same weights, another cell-encoder graph: not the cache
+    shutil.copytree(bundle, other)
+    graph = onnx.load(other / "submap_encoder.onnx")
+    graph.doc_string = "another export of the same weights"
+    onnx.save(graph, other / "submap_encoder.onnx")
+    res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", other, "--map", city, "--text", text, "--json")
+    assert res.exit_code == 0 and not json.loads(res.stdout)["from_cache"], res.output
 
 
 def test_locate_runs_without_torch(bundle, tmp_path):

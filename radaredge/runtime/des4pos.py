@@ -141,7 +141,8 @@ class MapIndex:
     def build(cls, bundle: Des4PosBundle, map_path: str | Path, cache: bool = True, progress=None,
               cells: CellMap | None = None) -> "MapIndex":
         """Encode the map's cells with the bundle, or read them from the cache written beside the map
-        (``<map>.des4pos-<key>.npz``; the key hashes the map file and the bundle's weights).
+        (``<map>.des4pos-<key>.npz``; the key hashes the map file, the bundle's weights and its
+        cell-encoder graph).
 
         The cache is written atomically (a temporary file renamed into place) with a hash of its
         arrays; one that is unreadable, of the wrong shape or whose arrays do not match the hash
@@ -150,9 +151,10 @@ class MapIndex:
         map_path = Path(map_path)
         cells = cells if cells is not None else load_map(map_path, bundle.slots, bundle.points)
         h = hashlib.sha256(bundle.weights_sha256.encode())
-        with open(map_path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
+        for source in (bundle.graphs["submap_encoder"].path, map_path):     # weights alone miss a new graph
+            with open(source, "rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
         path = map_path.with_name(f"{map_path.name}{INDEX_CACHE_TAG}{h.hexdigest()[:16]}.npz")
         common = dict(ids=cells.ids, origins=cells.origins, sizes=cells.sizes, object_mask=cells.object_mask)
         if cache and path.is_file():
