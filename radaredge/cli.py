@@ -265,7 +265,7 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 @click.option("--drives", default=3, show_default=True, type=int, help="Drive 0 is the database, the rest queries.")
 @click.option("--frames", default=60, show_default=True, type=int, help="Scans per drive (10 Hz).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
-@click.option("--towns", default=1, show_default=True, type=int,
+@click.option("--towns", default=1, show_default=True, type=click.IntRange(1, 1000),
               help="Towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
@@ -390,11 +390,11 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
 
 @main.command("make-city")
 @click.option("--out", "out_path", required=True, type=click.Path(),
-              help="The map to write (.npz); with --cities N > 1 a directory of OUT/city-<seed>.npz.")
+              help="The map to write (.npz); with --cities N > 1 a directory of OUT/city-NNNN.npz (NNNN: the seed).")
 @click.option("--model", default="des4pos", show_default=True, help="Card whose object slots / points the map uses.")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--cities", default=1, show_default=True, type=int,
+@click.option("--cities", default=1, show_default=True, type=click.IntRange(1, 1000),
               help="Cities of seeds SEED, SEED+1, ... (training data for `radaredge train --model des4pos`).")
 @click.option("--world", default=90.0, show_default=True, type=float, help="m, edge of the square city.")
 @click.option("--objects", default=70, show_default=True, type=int)
