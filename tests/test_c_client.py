@@ -118,6 +118,12 @@ def test_the_c_client_refuses_bad_input_like_the_runtime(client, graphs, tmp_pat
     assert res.returncode == 2 and "takes 3 frame(s)" in res.stderr
     res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / "d", "--timestamps", "1,1,2")
     assert res.returncode == 2 and "timestamps must increase strictly" in res.stderr
+    close = [0.0, 0.1, 0.100000001]                  # increasing in float64, equal in the graph's float32
+    res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / "e", "--timestamps",
+               ",".join(map(repr, close)))
+    assert res.returncode == 2 and "closer than the graph's float32 seconds resolve" in res.stderr
+    with pytest.raises(InputError, match="time_order"):
+        runtime.load(graphs["tdfanet"]).run(_tdfanet_frames(), close)
 
 
 def test_the_c_client_acts_on_the_declared_checks_like_the_runtime(client, graphs, tmp_path):

@@ -409,6 +409,10 @@ int main(int argc, char **argv) {
                 fail("timestamps must increase strictly (oldest frame first), got %.9g after %.9g", stamps[k],
                      stamps[k - 1]);
         for (int k = 0; k < n_frames; k++) rel[k] = (float)(stamps[k] - stamps[0]);     /* differences in double */
+        for (int k = 1; k < n_frames && checks; k++)           /* radaredge.runtime: the graph's flag, an error */
+            if (!(rel[k] > rel[k - 1]))
+                fail("timestamps %.9g and %.9g are closer than the graph's float32 seconds resolve", stamps[k - 1],
+                     stamps[k]);
     }
 
     OrtMemoryInfo *mem;
