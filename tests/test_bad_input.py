@@ -33,10 +33,14 @@ from radaredge.data.readers import read_rosbag, read_scan
 from radaredge.data.sequences import load_sequence
 from radaredge.data.kitti360pose import TEXT2LOC_MODULE, read_cells, read_poses
 from radaredge.errors import RadarEdgeError
+from radaredge.models.des4pos import FineConfig, SubmapConfig
+from radaredge.models.des4pos_config import CellConfig, TextConfig
 from radaredge.models.maffnet import BackboneConfig, SpaConfig
+from radaredge.models.maffnet_rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
 from radaredge.models.maffnet_fuser import CafConfig
 from radaredge.models.tdfanet import TDFANetConfig
 from radaredge.ops.ego_velocity import RansacConfig
+from radaredge.ops.dbscan import DbscanConfig
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.ops.nms import NmsConfig
 from radaredge.ops.pillars import PillarConfig
@@ -44,6 +48,8 @@ from radaredge.ops.pillars import PillarConfig
 from conftest import TINY_CARD, invoke
 
 MAFF_TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
+MAFF_DBSCAN = Path(__file__).parent / "cards" / "maffnet-tiny-full-dbscan.yaml"
+DES4POS_TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
 MAX_SECONDS = 60.0
 MAX_GROWTH_BYTES = 2 * 1024**3
 
@@ -397,7 +403,14 @@ for base, model, sections in (
         (TINY_CARD, "tdfanet-tiny", (("preprocess.ransac", RansacConfig), ("pillars", PillarConfig),
                                      ("network", TDFANetConfig))),
         (MAFF_TINY, "maffnet-tiny", (("spa", SpaConfig), ("cfa.grid", GridDensityConfig), ("caf", CafConfig),
-                                     ("backbone_2d", BackboneConfig), ("post_processing", NmsConfig)))):
+                                     ("backbone_2d", BackboneConfig), ("post_processing", NmsConfig))),
+        (MAFF_DBSCAN, "maffnet-tiny-full-dbscan",
+         (("cfa.dbscan", DbscanConfig), ("stage_two.proposals", ProposalConfig), ("stage_two.keypoints", KeypointConfig),
+          ("stage_two.vsa", VsaConfig), ("stage_two.vsa.sa_clusterpoints", SAConfig),
+          ("stage_two.roi_head", RoiHeadConfig), ("stage_two.roi_head.roi_grid_pool", SAConfig),
+          ("stage_two.post_processing", NmsConfig))),
+        (DES4POS_TINY, "des4pos-tiny", (("cell", CellConfig), ("submap", SubmapConfig), ("text", TextConfig),
+                                        ("fine", FineConfig)))):
     for path, cls in sections:
         for f in dataclasses.fields(cls):
             if field_range(cls, f.name) is None:

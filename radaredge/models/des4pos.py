@@ -107,6 +107,9 @@ class SubmapConfig:
                              f"got {len(self.sa_npoint)}, {len(self.sa_radius)}, {len(self.sa_nsample)}, {len(self.sa_mlp)}")
         if any(not isinstance(m, tuple) or not m for m in self.sa_mlp):
             raise ValueError("sa_mlp needs a list of layer widths per level, e.g. [[32, 64], [128, 128]]")
+        if not self.global_mlp or len(self.head_mlp) != 2:
+            raise ValueError(f"global_mlp needs one layer width or more and head_mlp two (Text2Pos's lin1, lin2); "
+                             f"got {list(self.global_mlp)} and {list(self.head_mlp)}")
         if not self.object_classes or not all(isinstance(c, str) and c for c in self.object_classes):
             raise ValueError("object_classes must be a list of class names")
         width = 2 * self.lstm_hidden // (self.downsample_stride if self.downsample == "channels" else 1)

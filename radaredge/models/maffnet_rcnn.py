@@ -97,6 +97,13 @@ class SAConfig:
     nsample: tuple = (16, 16)
     mlps: tuple = ((16, 16), (16, 16))
 
+    def __post_init__(self):
+        if not len(self.radii) == len(self.nsample) == len(self.mlps) >= 1:
+            raise ValueError(f"radii, nsample and mlps need one entry per scale (one scale or more), got "
+                             f"{len(self.radii)}, {len(self.nsample)} and {len(self.mlps)} entries")
+        if not all(isinstance(m, tuple) and m for m in self.mlps):
+            raise ValueError(f"mlps needs a list of widths per scale, got {list(self.mlps)}")
+
 
 @card_ranges(bev_stride=(1, 64), num_output_features=(1, 4096))
 @dataclass(frozen=True)
@@ -118,6 +125,11 @@ class RoiHeadConfig:
     reg_fc: tuple = (256, 256)      # REG_FC
     dropout: float = 0.3            # DP_RATIO (identity at test time)
     grid_size: int = 6              # ROI_GRID_POOL.GRID_SIZE
+
+    def __post_init__(self):
+        empty = [n for n in ("shared_fc", "cls_fc", "reg_fc") if not getattr(self, n)]
+        if empty:
+            raise ValueError(f"{', '.join(empty)} need one layer width or more (upstream's SHARED_FC, CLS_FC, REG_FC)")
 
 
 @dataclass(frozen=True)
