@@ -22,24 +22,13 @@ export/des4pos-training).
 
 from __future__ import annotations
 
-import argparse
-import datetime as dt
-import json
-import os
-import platform
 import sys
 import time
-from pathlib import Path
-
-import torch
 
 import radaredge
-from radaredge.cards import load_card
-from radaredge.config import parse_settings
 from radaredge.data.text_city import write_cities
-from radaredge.timing import cpu_name
 
-ROOT = Path(__file__).resolve().parent.parent
+import training_run
 
 
 def _tables(report) -> dict:
@@ -59,21 +48,13 @@ def _parity(report) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python benchmarks/des4pos_training.py", description=__doc__.splitlines()[0])
-    ap.add_argument("--card", default="des4pos")
+    ap = training_run.parser("python benchmarks/des4pos_training.py", __doc__, "des4pos")
     ap.add_argument("--cities", type=int, default=12)
     ap.add_argument("--poses", type=int, default=200, help="described poses per city")
     ap.add_argument("--heldout", type=int, default=2, help="held-out cities (one database)")
-    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
-                    help="recipe option, as `radaredge train --set`")
-    ap.add_argument("--work", type=Path, help="default export/<card>-training")
     args = ap.parse_args(argv)
-    torch.set_num_threads(2)
-    card = load_card(args.card)
-    work = args.work or ROOT / "export" / f"{card.name}-training"
+    card, work, options, stamp = training_run.start(args)
     cities, held, run, graphs = work / "cities", work / "heldout", work / "run", work / "graphs"
-    options = parse_settings(args.settings)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     t0 = time.perf_counter()
     if not cities.exists():
         write_cities(cities, card, args.cities, seed=1, poses=args.poses)
@@ -103,11 +84,10 @@ def main(argv=None) -> int:
     first = next(iter(evals.values()))
     out = {
         "date": stamp, "card": card.name,
-        "machine": {"cpu": cpu_name(), "threads": 2, "python": platform.python_version(), "torch": torch.__version__,
-                    "cores": os.cpu_count()},
+        "machine": training_run.machine(),
         "command": f"radaredge make-city --out cities --cities {args.cities} --seed 1 --poses {args.poses}; "
                    f"radaredge train --model {card.name} --data cities"
-                   + "".join(f" --set {k}={v}" for k, v in options.items()),
+                   + training_run.settings_text(options),
         "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 --poses {args.poses}; "
                         f"radaredge eval --model {card.name} --onnx <bundle> --map heldout",
         "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1), "eval_seconds": round(t_eval, 1),
@@ -116,9 +96,7 @@ def main(argv=None) -> int:
         "heldout": {"seed": 100, "maps": first.maps, "cells": first.cells, "queries": first.queries,
                     **{name: _tables(r) for name, r in evals.items()}},
     }
-    path = ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json"
-    path.write_text(json.dumps(out, indent=2, default=str) + "\n")
-    print(f"wrote {path}")
+    training_run.save(card, stamp, out)
     return 0
 
 

@@ -21,24 +21,13 @@ export/<card>-training).
 
 from __future__ import annotations
 
-import argparse
-import datetime as dt
-import json
-import os
-import platform
 import sys
 import time
-from pathlib import Path
-
-import torch
 
 import radaredge
-from radaredge.cards import load_card
-from radaredge.config import parse_settings
 from radaredge.data.pr_benchmark import make_pr_benchmark, make_pr_towns
-from radaredge.timing import cpu_name
 
-ROOT = Path(__file__).resolve().parent.parent
+import training_run
 
 
 def _recall(report) -> dict:
@@ -48,21 +37,13 @@ def _recall(report) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python benchmarks/tdfanet_training.py", description=__doc__.splitlines()[0])
-    ap.add_argument("--card", default="tdfanet-edge")
+    ap = training_run.parser("python benchmarks/tdfanet_training.py", __doc__, "tdfanet-edge")
     ap.add_argument("--towns", type=int, default=6)
     ap.add_argument("--drives", type=int, default=3)
     ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
-                    help="recipe option, as `radaredge train --set`")
-    ap.add_argument("--work", type=Path, help="default export/<card>-training")
     args = ap.parse_args(argv)
-    torch.set_num_threads(2)
-    card = load_card(args.card)
-    work = args.work or ROOT / "export" / f"{card.name}-training"
+    card, work, options, stamp = training_run.start(args)
     towns, held, run, graphs = work / "towns", work / "heldout-town", work / "run", work / "graphs"
-    options = parse_settings(args.settings)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     t0 = time.perf_counter()
     if not towns.exists():
         make_pr_towns(towns, args.towns, args.drives, args.frames, seed=1)
@@ -88,11 +69,10 @@ def main(argv=None) -> int:
     for name, r in evals.items():
         print(f"held-out town, {name}: R@1/5/10 " + " / ".join(f"{v:.1f}" for v in r.recall("onnxruntime").values()))
     out = {
-        "date": stamp, "card": card.name, "machine": {"cpu": cpu_name(), "threads": 2, "python": platform.python_version(),
-                                                      "torch": torch.__version__, "cores": os.cpu_count()},
+        "date": stamp, "card": card.name, "machine": training_run.machine(),
         "command": f"radaredge make-benchmark --out towns --seed 1 --towns {args.towns} --drives {args.drives} "
                    f"--frames {args.frames}; radaredge train --model {card.name} --data towns"
-                   + "".join(f" --set {k}={v}" for k, v in options.items()),
+                   + training_run.settings_text(options),
         "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1),
         "train": report.to_dict(),
         "parity_fp32": {"passed": bool(parity), "summary": parity.to_dict()["graphs"]["tdfanet"]["summary"]},
@@ -100,9 +80,7 @@ def main(argv=None) -> int:
         "heldout_town": {"seed": 0, **{k: _recall(v) for k, v in evals.items()},
                          "int8_top1_agreement_with_fp32": _agreement(evals["trained_fp32"], evals["trained_int8"])},
     }
-    path = ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json"
-    path.write_text(json.dumps(out, indent=2, default=str) + "\n")
-    print(f"wrote {path}")
+    training_run.save(card, stamp, out)
     return 0
 
 
