@@ -127,7 +127,7 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
     synthetic scenes; ``calibration_windows`` windows). ``model`` reuses a built model (its
     weights must be the checkpoint's). ``log`` receives progress lines."""
-    from .exporter import build_model, check_output, default_output, export_graphs, graph_paths
+    from .exporter import build_model, resolve_output, write_export
     from .onnx_export import DEFAULT_OPSET
     from .registry import model_spec
 
@@ -146,29 +146,30 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
         graph = spec.graph()
         recorded_feeds(FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input), calibration,
                        calibration_windows or DEFAULT_WINDOWS, calibration_format)
-    output = Path(output) if output is not None else default_output(card, spec)
-    check_output(card, spec, output)
-    check_writable_dir(output if spec.multi_graph else output.parent, "--output")   # before a long export
     if model is None:
-        model = build_model(card, checkpoint, spec)
+        model = build_model(card, checkpoint, spec)       # card and checkpoint errors first, then the output's
+    output = resolve_output(card, spec, output)
+    check_writable_dir(output if spec.multi_graph else output.parent, "--output")   # before a long export
     report = getattr(model, "checkpoint_report", None)
     if report is not None:
         say(report.summary())
     names = ", ".join(g.name for g in spec.graphs)
     say(f"exporting {card.name}" + (f" ({names}) to {output}/" if spec.multi_graph else "") + " ...")
-    graphs = export_graphs(card, spec, model, output, DEFAULT_OPSET if opset is None else opset, debug=debug,
-                           progress=progress)
-    result = ExportResult(card.name, output, graphs, checkpoint=report)
+    int8 = None
+    if quantize:
+        from .quantize import Int8Options, static_int8
+        hook = spec.int8 or static_int8
+
+        def int8(paths):
+            say(f"quantising {card.name} to int8 ...")
+            return hook(card, spec, paths, Int8Options(calibration_windows, calibration, calibration_format))
+    graphs, int8_paths = write_export(card, spec, model, output, DEFAULT_OPSET if opset is None else opset,
+                                      debug=debug, int8=int8, progress=progress)
+    result = ExportResult(card.name, output, graphs, checkpoint=report, int8=int8_paths)
     result.debug = {n: g.path.with_suffix(".debug.onnx") for n, g in graphs.items()} if debug else {}
     if spec.multi_graph:
         from .exporter import MANIFEST
         result.manifest = output / MANIFEST
-    if quantize:
-        from .quantize import Int8Options, static_int8
-        say(f"quantising {card.name} to int8 ...")
-        hook = spec.int8 or static_int8
-        result.int8 = hook(card, spec, graph_paths(spec, output),
-                           Int8Options(calibration_windows, calibration, calibration_format))
     return result
 
 
@@ -181,6 +182,7 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
     int8 copy, held to each output's int8 budget. Returns a
     :class:`radaredge.parity_check.ParityReport`, whose truth value is the verdict."""
     from . import runtime as rt
+    from .atomic import Staging
     from .exporter import build_model, default_output, export_graph, graph_paths, require_same_weights
     from .parity_check import ParityReport, check_graph
     from .registry import model_spec
@@ -214,8 +216,10 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
             """The debug export beside the .onnx, (re)written unless it holds these weights."""
             debug_path = path.with_suffix(".debug.onnx")
             if not debug_path.exists() or rt.load(debug_path).weights_sha256 != exported.weights_sha256:
-                export_graph(card, spec, graph, module, debug_path, debug=True,
-                             part=exported.info.part, bundle_hash=exported.info.bundle_weights_sha256)
+                with Staging(debug_path.parent) as stage:
+                    export_graph(card, spec, graph, module, stage.path(debug_path), debug=True,
+                                 part=exported.info.part, bundle_hash=exported.info.bundle_weights_sha256)
+                    stage.commit()
             return debug_path
 
         wrap = progress(f"parity {graph.name}") if progress else None

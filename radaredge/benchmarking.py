@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from .cards import ModelCard
+from . import atomic
 from .config import check_count
 from .errors import ConfigError, InputError
 from .timing import BackendResult, BenchTask, benchmark, cpu_name, format_differences, output_differences, \
@@ -108,11 +109,7 @@ class BenchReport:
 
     def save(self, path: str | Path) -> Path:
         """Write :meth:`to_dict` as JSON to ``path`` (parents created); return it."""
-        import json
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        return atomic.write_json(path, self.to_dict())
 
     def to_dict(self) -> dict:
         return {"model": self.model, "threads": self.threads, "cores": self.cores, "cpu": self.cpu, "runs": self.runs,
@@ -259,7 +256,7 @@ def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None
 
 def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino, progress,
            log, cores) -> BenchReport:
-    from .exporter import build_model, default_output, export_graphs, graph_paths
+    from .exporter import build_model, default_output, graph_paths, write_export
     from .profiling import onnxruntime_peak_rss_mb, profile_runs, top_ops
 
     say = log or (lambda line: None)
@@ -269,7 +266,7 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
     paths = graph_paths(spec, onnx)
     if not all(p.exists() for p in paths.values()):
         say(f"{onnx} missing: exporting it first")
-        export_graphs(card, spec, model, onnx)
+        write_export(card, spec, model, onnx)
     from . import runtime as rt
     for p in paths.values():                 # a file that is no export of this card is bad input, not a failed backend
         exported = rt.load(p, threads=1)

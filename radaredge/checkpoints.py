@@ -60,6 +60,9 @@ def read_state_dict(path: str | Path) -> dict:
     bad = [f"{k!r} ({type(v).__name__})" for k, v in obj.items() if not isinstance(k, str) or not torch.is_tensor(v)]
     if bad:
         raise ConfigError(f"checkpoint {path}: state_dict entries must be named tensors; not so: {', '.join(bad[:5])}")
+    complex_ = [k for k, v in obj.items() if v.is_complex()]
+    if complex_:
+        raise ConfigError(f"checkpoint {path}: complex values in {', '.join(complex_[:5])}; network weights are real")
     broken = [k for k, v in obj.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if broken:
         more = f" and {len(broken) - 5} more" if len(broken) > 5 else ""

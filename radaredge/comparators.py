@@ -18,10 +18,14 @@ no verdict), :class:`Boxes` (detections matched one to one by rotated BEV IoU).
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Mapping, Sequence
 
 import numpy as np
+
+from .ops.box_iou import bev_iou_matrix_reference
+from .ops.nms import NmsConfig, describe_tie, near_ties
 
 Outputs = Mapping[str, np.ndarray]
 
@@ -101,10 +105,14 @@ def _worst(name: str, kind: str, tolerance, results: Sequence[CaseResult], case_
 
 @dataclass(frozen=True)
 class Comparator(abc.ABC):
-    """Base: compares output ``name``; subclasses set ``kind`` and the rules."""
+    """Base: compares output ``name``; subclasses set ``kind`` and the rules. ``conditioned``:
+    the output comes after a discrete decision (NMS, proposals, keypoint sampling) and is judged
+    against the reference run on the graph's own inputs to that stage (``post``), when the
+    parity run supplies it."""
 
     name: str
     unit: str = ""
+    conditioned: bool = False
 
     kind = "?"
 
@@ -112,7 +120,11 @@ class Comparator(abc.ABC):
     def uses_post(self) -> bool:
         """True when :meth:`compare` judges against the reference post-processing of the graph's
         own outputs (``post``) where the graph has one."""
-        return False
+        return self.conditioned
+
+    def against(self, ref: Outputs, post: Outputs | None) -> Outputs:
+        """What this output is judged against: ``post`` for a conditioned output that it holds."""
+        return post if self.conditioned and post is not None and self.name in post else ref
 
     @property
     def outputs(self) -> tuple[str, ...]:
@@ -186,7 +198,7 @@ class Dense(Comparator):
     kind = "dense"
 
     def compare(self, got, ref, post=None):
-        g, r, bad = _operands(self, got, ref)
+        g, r, bad = _operands(self, got, self.against(ref, post))
         if bad:
             return bad
         c = CaseResult(self.name, self.kind, True)
@@ -274,7 +286,7 @@ class Exact(Comparator):
     kind = "exact"
 
     def compare(self, got, ref, post=None):
-        g, r, bad = _operands(self, got, ref)
+        g, r, bad = _operands(self, got, self.against(ref, post))
         if bad:
             return bad
         mism = int((g != r).sum())
@@ -298,8 +310,6 @@ def retrieval_top1_agreement(got: np.ndarray, ref: np.ndarray) -> float:
 def match_boxes(got_boxes, got_labels, ref_boxes, ref_labels, min_iou: float):
     """Greedy one-to-one matching of detections [M, 7] by rotated BEV IoU (best pairs first, same
     label, IoU >= min_iou). Returns (pairs [(i_got, j_ref, iou)], unmatched got, unmatched ref)."""
-    from .ops.box_iou import bev_iou_matrix_reference
-
     iou = bev_iou_matrix_reference(got_boxes, ref_boxes) if len(got_boxes) and len(ref_boxes) else \
         np.zeros((len(got_boxes), len(ref_boxes)))
     iou = np.where(np.asarray(got_labels)[:, None] == np.asarray(ref_labels)[None, :], iou, -1.0)
@@ -427,5 +437,122 @@ class Boxes(Comparator):
         if e:
             lines.append(f"end to end vs the full reference: {e['boxes']} vs {e['reference_boxes']} boxes, "
                          f"{e['unmatched']} unmatched" +
-                         (" (decisions within float noise of a threshold)" if e["unmatched"] else ""))
+                         (" (reported, not judged: the NMS is judged on the graph's own inputs above; an "
+                          "earlier decision within float noise changes its input)" if e["unmatched"] else ""))
+        return lines
+
+
+@dataclass(frozen=True)
+class Proposals(Comparator):
+    """A second stage's proposals: rois [R, 7] (m, rad) with ``labels`` [R] and the ``valid`` slot
+    mask [R], as a proposal layer selects them from per-anchor class logits and boxes by
+    class-agnostic NMS (``iou_thresh``, ``pre_max``, ``post_max``).
+
+    Judged where the decision is taken: the graph's rois equal (``max_box_diff``, same labels,
+    same valid slots) the reference proposal layer run on the graph's own ``logits`` and
+    ``anchor_boxes`` (``post``). End to end, the valid rois are matched one to one with the full
+    reference's by rotated BEV IoU >= ``min_iou`` and label; rois left unmatched pass only when
+    the reference's proposal NMS has a decision within float noise (:func:`radaredge.ops.nms.near_ties`,
+    score noise ``score_tol`` = (atol, rtol) of the logits, IoU noise ``iou_tol``), which the
+    report names. The second stage's ``rcnn_scores`` of matched rois are compared end to end too
+    (reported). An int8 graph reports the end-to-end match without judging it.
+    """
+
+    labels: str = "roi_labels"
+    valid: str = "roi_valid"
+    logits: str = "anchor_logits"
+    anchor_boxes: str = "anchor_boxes"
+    rcnn_scores: str = "rcnn_scores"
+    iou_thresh: float = 0.7
+    pre_max: int = 1024
+    post_max: int = 100
+    min_iou: float = 0.99
+    max_box_diff: float = 1e-6
+    score_tol: tuple = (1e-4, 1e-3)
+    iou_tol: float = 1e-3
+    judge_end_to_end: bool = True
+
+    kind = "proposals"
+
+    @property
+    def outputs(self):
+        return (self.name, self.labels, self.valid)
+
+    @property
+    def uses_post(self):
+        return True
+
+    def _conditioned(self, got: Outputs, post: Outputs, c: CaseResult) -> list[str]:
+        gv, pv = np.asarray(got[self.valid], bool), np.asarray(post[self.valid], bool)
+        if gv.shape != pv.shape or not np.array_equal(gv, pv):
+            return [f"{int(gv.sum())} valid rois vs {int(pv.sum())} from the reference proposal layer on the "
+                    f"graph's anchors"]
+        diff = np.abs(np.asarray(got[self.name], np.float64)[gv] - np.asarray(post[self.name], np.float64)[gv])
+        c.max_abs = float(diff.max()) if diff.size else 0.0
+        wrong = int((np.asarray(got[self.labels])[gv] != np.asarray(post[self.labels])[gv]).sum())
+        c.mismatches = wrong + int((diff > self.max_box_diff).any(1).sum()) if diff.size else wrong
+        return [f"{c.mismatches} roi(s) differ from the reference proposal layer on the graph's anchors "
+                f"(max box diff {c.max_abs:.3g})"] if c.mismatches else []
+
+    def _end_to_end(self, got: Outputs, ref: Outputs) -> dict:
+        gv, rv = np.asarray(got[self.valid], bool), np.asarray(ref[self.valid], bool)
+        gi, ri = np.flatnonzero(gv), np.flatnonzero(rv)
+        pairs, lone_g, lone_r = match_boxes(np.asarray(got[self.name])[gv], np.asarray(got[self.labels])[gv],
+                                            np.asarray(ref[self.name])[rv], np.asarray(ref[self.labels])[rv],
+                                            self.min_iou)
+        e = {"rois": len(gi), "reference_rois": len(ri), "unmatched": len(lone_g) + len(lone_r), "near_ties": []}
+        if self.rcnn_scores in got and self.rcnn_scores in ref and pairs:
+            gs, rs = np.asarray(got[self.rcnn_scores]), np.asarray(ref[self.rcnn_scores])
+            e["rcnn_score_diff"] = max(abs(float(gs[gi[i]]) - float(rs[ri[j]])) for i, j, _ in pairs)
+        if e["unmatched"]:
+            config = NmsConfig(score_thresh=-math.inf, iou_thresh=self.iou_thresh, pre_max=self.pre_max,
+                               post_max=self.post_max)
+            e["near_ties"] = near_ties(np.asarray(ref[self.anchor_boxes]), np.asarray(ref[self.logits]).max(-1),
+                                       config, tuple(self.score_tol), self.iou_tol)
+        return e
+
+    def compare(self, got, ref, post=None):
+        c = CaseResult(self.name, self.kind, True)
+        reasons = self._conditioned(got, post, c) if post is not None else []
+        e = self._end_to_end(got, ref)
+        c.end_to_end, c.matched, c.reference = e, e["reference_rois"] - e["unmatched"], e["reference_rois"]
+        if self.judge_end_to_end and e["unmatched"] and not e["near_ties"]:
+            reasons.append(f"{e['unmatched']} roi(s) unmatched end to end, and no decision of the reference's "
+                           f"proposal NMS is within float noise")
+        c.passed, c.reason = not reasons, "; ".join(reasons)
+        return c
+
+    def tolerance(self):
+        return {"max_box_diff": self.max_box_diff, "end_to_end": "matched, or a near tie" if self.judge_end_to_end
+                else "reported", "min_iou": self.min_iou}
+
+    def summarise(self, results, case_names, got=(), ref=()):
+        s = super().summarise(results, case_names)
+        ties = [{"case": name, **t} for name, r in zip(case_names, results) for t in r.end_to_end["near_ties"]]
+        s.end_to_end = {"unmatched": sum(r.end_to_end["unmatched"] for r in results),
+                        "rois": sum(r.end_to_end["rois"] for r in results),
+                        "reference_rois": sum(r.end_to_end["reference_rois"] for r in results),
+                        "cases_with_unmatched": [n for n, r in zip(case_names, results) if r.end_to_end["unmatched"]],
+                        "near_ties": ties,
+                        "rcnn_score_diff": max((r.end_to_end.get("rcnn_score_diff", 0.0) for r in results), default=0.0)}
+        return s
+
+    def quantized(self):
+        return replace(self, judge_end_to_end=False)
+
+    def notes(self, s):
+        lines = [f"rois: the graph's proposal layer vs the reference proposal layer on the graph's {self.logits} "
+                 f"and {self.anchor_boxes}; max abs = box diff, {s.mismatches} differing"]
+        e = s.end_to_end or {}
+        if e:
+            lines.append(f"end to end vs the full reference: {e['rois']} vs {e['reference_rois']} rois, "
+                         f"{e['unmatched']} unmatched; {self.rcnn_scores} of matched rois within "
+                         f"{e['rcnn_score_diff']:.3g}")
+            if e["cases_with_unmatched"]:
+                lines.append(f"near ties in the reference's proposal NMS (score noise atol {self.score_tol[0]:g} + "
+                             f"rtol {self.score_tol[1]:g}, IoU noise {self.iou_tol:g}), in "
+                             f"{', '.join(e['cases_with_unmatched'])}:")
+                lines += [f"  {t['case']}: {describe_tie(t)}" for t in e["near_ties"][:6]]
+                if not e["near_ties"]:
+                    lines.append("  none")
         return lines

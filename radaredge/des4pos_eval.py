@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from . import atomic
 from .data.text_maps import TextMaps, load_text_maps
 from .errors import ConfigError, InputError
 from .evaluation import LOCALIZATION_KS, LOCALIZATION_THRESHOLDS, localization_levels, localization_recall
@@ -92,10 +93,7 @@ class LocalizationReport:
 
     def write_json(self, path: str | os.PathLike) -> Path:
         """Write :meth:`to_dict` to ``path``; return it."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        return atomic.write_json(path, self.to_dict())
 
     def lines(self) -> list[str]:
         """The text report: database, then Table I and Table II with one column per backend."""

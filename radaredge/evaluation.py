@@ -33,6 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .cards import ModelCard
+from . import atomic
 from .data.sequences import RadarSequence, is_drive, load_sequence, name_the_scan, window_positions, windows
 from .errors import ConfigError, InputError
 
@@ -349,10 +350,7 @@ class EvalReport:
         return lines
 
     def write_json(self, path: str | os.PathLike) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        return atomic.write_json(path, self.to_dict())
 
     def plot(self, path: str | os.PathLike) -> Path:
         """PNG: left, the query windows at their (easting, northing) coloured by whether the ONNX
@@ -385,10 +383,9 @@ class EvalReport:
                   xlim=(1, CURVE_NS[-1]), title=f"{self.model}: {self.evaluated} queries")
         right.grid(alpha=0.3)
         right.legend(loc="lower right")
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=100)
-        return path
+        with atomic.atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+        return Path(path)
 
 
 def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.PathLike,

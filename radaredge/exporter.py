@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,11 +23,13 @@ import torch
 
 from . import __version__
 from .cards import ModelCard
+from .atomic import Staging, atomic_path
 from .checkpoints import read_state_dict
 from .errors import ConfigError, ExportError
 from .models.spec import GraphSpec, ModelSpec
+from .ops.gem import GeM
 from .onnx_export import DEFAULT_OPSET, export_onnx
-from .runtime.flags import BITS as FLAG_BITS, OUTPUT as FLAGS_OUTPUT
+from .runtime.flags import BITS as FLAG_BITS, OUTPUT as FLAGS_OUTPUT, input_error_bits
 from .registry import model_spec
 from .runtime import RadarModel
 from .runtime.metadata import GraphMetadata
@@ -55,10 +58,9 @@ def require_same_weights(exported: RadarModel, model: torch.nn.Module, checkpoin
 def save_checkpoint(model: torch.nn.Module, path: str | Path) -> Path:
     """Write the model's state_dict to ``path`` (parent directories created), in the form
     :func:`load_checkpoint` and ``--checkpoint`` read. Returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(model.state_dict(), path)
-    return path
+    with atomic_path(path) as tmp:
+        torch.save(model.state_dict(), tmp)
+    return Path(path)
 
 
 # Entries of an OpenPCDet ``model_state`` that are bookkeeping, not weights (Detector3DTemplate's step counter).
@@ -116,9 +118,45 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
             problems.append(f"{what} ({len(keys)}): {', '.join(keys[:12])}{more}")
     if problems:
         raise ConfigError(f"checkpoint {path} does not fit this card's model: {'; '.join(problems)}")
+    check_weight_values(model, state, path)
     model.load_state_dict(state)
     report.loaded = len(state)
     return report
+
+
+# What a trained network's tensors stay within: learned weights (a larger one drives float32
+# activations to Inf within a few layers) and running statistics (variances of raw inputs in m,
+# m/s, dBsm included).
+MAX_ABS_PARAMETER = 1e6
+MAX_ABS_STATISTIC = 1e12
+
+
+def check_weight_values(model: torch.nn.Module, state: dict, path) -> None:
+    """ConfigError naming the key unless every tensor of ``state`` has values its layer can hold:
+    a real dtype (read_state_dict refuses complex and non-finite values), magnitudes within
+    :data:`MAX_ABS_PARAMETER` (parameters) or :data:`MAX_ABS_STATISTIC` (buffers), BatchNorm
+    running variances >= 0 and GeM exponents p > 0."""
+    params = {name for name, _ in model.named_parameters()}
+    for key, value in state.items():
+        if not value.is_floating_point() or not value.numel():
+            continue
+        bound = MAX_ABS_PARAMETER if key in params else MAX_ABS_STATISTIC
+        peak = float(value.abs().max())
+        if peak > bound:
+            raise ConfigError(f"checkpoint {path}: {key} holds a value of magnitude {peak:.3g}; a trained network's "
+                              f"{'weights' if key in params else 'statistics'} stay within {bound:g} (this one "
+                              f"would overflow float32 activations)")
+    for name, module in model.named_modules():
+        prefix = f"{name}." if name else ""
+        if isinstance(module, torch.nn.modules.batchnorm._NormBase) and f"{prefix}running_var" in state:
+            low = float(state[f"{prefix}running_var"].min()) if state[f"{prefix}running_var"].numel() else 0.0
+            if low < 0:
+                raise ConfigError(f"checkpoint {path}: {prefix}running_var has a negative variance ({low:.3g}); "
+                                  f"BatchNorm variances are >= 0")
+        if isinstance(module, GeM) and f"{prefix}p" in state:
+            p = float(state[f"{prefix}p"].min())
+            if p <= 0:
+                raise ConfigError(f"checkpoint {path}: {prefix}p = {p:.3g}; GeM pooling needs an exponent p > 0")
 
 
 def build_model(card: ModelCard, checkpoint: str | Path | None = None, spec: ModelSpec | None = None) -> torch.nn.Module:
@@ -166,6 +204,7 @@ def graph_metadata(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: t
                    part: str | None = None, bundle_hash: str | None = None) -> GraphMetadata:
     """The metadata written into one graph (:mod:`radaredge.runtime.metadata`)."""
     import onnxruntime
+    flagged = FLAGS_OUTPUT in graph.output_names(card)
     return GraphMetadata(
         model=card.name, card_yaml=card.to_yaml(), features=card.features,
         input_names=graph.input_names(card),
@@ -175,8 +214,8 @@ def graph_metadata(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: t
         versions={"radaredge": __version__, "torch": torch.__version__, "onnx": onnx.__version__,
                   "onnxruntime": onnxruntime.__version__, "opset": opset},
         checks=list(spec.runtime_checks(card)), part=part, bundle_weights_sha256=bundle_hash,
-        input_flags={str(bit): text for bit, text in FLAG_BITS.items()} if FLAGS_OUTPUT in graph.output_names(card)
-        else None)
+        input_flags={str(bit): text for bit, text in FLAG_BITS.items()} if flagged else None,
+        input_errors=input_error_bits(card) if flagged else None)
 
 
 def export_example(card: ModelCard, graph: GraphSpec, candidates: int = 4) -> dict:
@@ -187,6 +226,23 @@ def export_example(card: ModelCard, graph: GraphSpec, candidates: int = 4) -> di
     axes = graph.dynamic_axes(card)
     wide = [feeds for feeds in cases if all(np.shape(feeds[name])[d] >= 2 for name, dims in axes.items() for d in dims)]
     return (wide or cases)[0]
+
+
+def check_finite_outputs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module) -> None:
+    """ExportError unless every graph's export formulation gives finite outputs on the example it
+    is traced with: weights of the right shapes whose values overflow (a checkpoint of another
+    model, or a diverged one that stayed finite) are refused before an export that would only
+    ever output NaN or Inf."""
+    for graph in spec.graphs:
+        feeds = export_example(card, graph)
+        with torch.no_grad():
+            out = graph.run_export(graph.module(model), {k: torch.from_numpy(v) for k, v in feeds.items()})
+        bad = [n for n in graph.output_names(card) if torch.is_tensor(out.get(n)) and out[n].is_floating_point()
+               and not bool(torch.isfinite(out[n]).all())]
+        if bad:
+            raise ExportError(f"{card.name}: with these weights, {', '.join(bad)} of graph {graph.name} are not finite "
+                              f"(NaN or Inf) on a synthetic {', '.join(feeds)} example; the checkpoint's values "
+                              f"overflow float32 in this network")
 
 
 def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, output: str | Path,
@@ -207,6 +263,11 @@ def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: tor
     export_onnx(wrapper, args, path, names, out_names, graph.dynamic_axes(card), opset=opset)
     proto = onnx.load(str(path))
     meta = graph_metadata(card, spec, graph, module, opset, part, bundle_hash)
+    actual = [o.name for o in proto.graph.output]
+    if not debug and actual != meta.output_names:
+        raise ExportError(f"the exported graph's outputs are {actual}, not {meta.output_names}")
+    meta.output_names = actual       # a debug graph: the outputs plus debug.<intermediate> (an intermediate
+                                     # that is also an output keeps one name, its debug one)
     del proto.metadata_props[:]
     for k, v in meta.to_props().items():
         proto.metadata_props.add(key=k, value=v)
@@ -239,6 +300,7 @@ def _shape(value_info) -> list:
 
 
 MANIFEST = "bundle.json"
+ARTIFACT_SUFFIXES = (".int8.onnx", ".debug.onnx")    # copies written beside a graph; not a graph's own name
 
 
 def graph_paths(spec: ModelSpec, output: str | Path) -> dict[str, Path]:
@@ -255,19 +317,42 @@ def default_output(card: ModelCard, spec: ModelSpec) -> Path:
     return Path(f"export/{card.name}") if spec.multi_graph else Path(f"export/{card.name}.onnx")
 
 
-def check_output(card: ModelCard, spec: ModelSpec, output: str | Path) -> None:
-    """ConfigError when a multi-graph model's output directory is an existing file."""
-    if spec.multi_graph and Path(output).exists() and not Path(output).is_dir():
-        raise ConfigError(f"{output} is a file; {card.name} exports {len(spec.graphs)} graphs into a directory "
-                          f"(e.g. export/{card.name}/)")
+def resolve_output(card: ModelCard, spec: ModelSpec, output: str | Path | None) -> Path:
+    """Where ``export --output`` writes, checked before any work: a one-graph model's ``.onnx``
+    (an existing directory, or a path ending in a slash, receives ``<card>.onnx``; any suffix
+    other than .onnx, or a name ending like the int8 or debug copies, is refused); a multi-graph
+    model's directory (an existing file, or a name ending in .onnx, is refused)."""
+    if output is None:
+        return default_output(card, spec)
+    text = str(output)
+    path = Path(output)
+    as_dir = text.endswith(("/", os.sep)) or path.is_dir()
+    if spec.multi_graph:
+        if path.exists() and not path.is_dir():
+            raise ConfigError(f"--output {text}: a file; {card.name} exports {len(spec.graphs)} graphs into a "
+                              f"directory (e.g. export/{card.name}/)")
+        if not as_dir and path.suffix.lower() == ".onnx":
+            raise ConfigError(f"--output {text}: {card.name} exports {len(spec.graphs)} graphs into a directory, "
+                              f"not one .onnx (e.g. export/{card.name}/)")
+        return path
+    if as_dir:
+        return path / f"{card.name}.onnx"
+    if path.suffix.lower() != ".onnx":
+        raise ConfigError(f"--output {text}: a graph is written to a file ending in .onnx (its .json sidecar "
+                          f"goes beside it), e.g. export/{card.name}.onnx")
+    if path.name.lower().endswith(ARTIFACT_SUFFIXES):
+        raise ConfigError(f"--output {text}: names ending in {' or '.join(ARTIFACT_SUFFIXES)} are the int8 and "
+                          f"debug copies export writes beside a graph; name the fp32 graph, e.g. "
+                          f"export/{card.name}.onnx")
+    return path
 
 
 def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, output: str | Path,
                   opset: int = DEFAULT_OPSET, debug: bool = False, progress=None) -> dict[str, GraphExport]:
     """Export every graph of the card's model to :func:`graph_paths` (``debug``: the debug
     graphs to the same paths with suffix .debug.onnx); a multi-graph model also gets its
-    shared files (``spec.files``) and the manifest ``bundle.json`` in ``output``."""
-    check_output(card, spec, output)
+    shared files (``spec.files``) and the manifest ``bundle.json`` in ``output``. Writes in
+    place: :func:`write_export` is the atomic form."""
     paths = graph_paths(spec, output)
     multi = spec.multi_graph
     bundle_hash = weights_hash(model) if multi else None
@@ -283,6 +368,31 @@ def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, outp
     if multi:
         write_manifest(card, spec, Path(output), done, opset, bundle_hash)
     return done
+
+
+def _moved(path: Path, stage: Staging, dest: Path) -> Path:
+    return dest / path.relative_to(stage.dir) if path.is_relative_to(stage.dir) else path
+
+
+def write_export(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, output: str | Path,
+                 opset: int = DEFAULT_OPSET, debug: bool = False, int8=None,
+                 progress=None) -> tuple[dict[str, GraphExport], dict[str, Path]]:
+    """:func:`export_graphs` (and ``int8(paths)`` -> {graph: int8 path}, the model's int8 hook
+    applied to the fp32 graphs) into a staging directory, then every file moved into place at
+    once (:class:`radaredge.atomic.Staging`): a failed or interrupted export leaves the previous
+    files at ``output`` as they were and no partial file. Returns the graphs and int8 copies at
+    their final paths."""
+    output = Path(output)
+    check_finite_outputs(card, spec, model)
+    dest = output if spec.multi_graph else output.parent
+    with Staging(dest) as stage:
+        staged = stage.dir if spec.multi_graph else stage.path(output)
+        graphs = export_graphs(card, spec, model, staged, opset, debug, progress)
+        int8_paths = int8(graph_paths(spec, staged)) if int8 is not None else {}
+        stage.commit()
+    for g in graphs.values():
+        g.path, g.sidecar = _moved(g.path, stage, dest), _moved(g.sidecar, stage, dest)
+    return graphs, {n: _moved(p, stage, dest) for n, p in int8_paths.items()}
 
 
 def write_manifest(card: ModelCard, spec: ModelSpec, out_dir: Path, graphs: dict[str, GraphExport], opset: int,

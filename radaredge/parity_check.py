@@ -1,8 +1,11 @@
 """Parity between exported graphs (onnxruntime or OpenVINO) and the reference formulation (torch).
 
 Per graph, three phases on the same synthetic cases: **run** the graph and the reference,
-**post-process** (the reference NMS on the graph's own dense outputs, where the graph has one),
-**compare** every output with its comparator (:mod:`radaredge.comparators`). A FAILED verdict
+**condition** (each stage that follows a discrete decision -- NMS, proposals, keypoint
+sampling -- run by the reference on the graph's own inputs to that stage, where the graph has
+such stages), **compare** every output with its comparator (:mod:`radaredge.comparators`): a
+decision that flips on float noise is judged where it is taken, and the end-to-end difference
+it causes is reported with the near-tie that explains it. A FAILED verdict
 names the numbers that decided it and, when a debug export is available, the first intermediate
 tensor where the two formulations diverge.
 """
@@ -127,17 +130,19 @@ def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx
     comparators = tuple(c.quantized() for c in graph.comparators(card)) if quantized else tuple(graph.comparators(card))
     run_graph = graph_runner(onnx_path, runtime)
     cases = graph.make_cases(card, cases_n, seed)
-    # phase 1: run the graph and the reference on every case
-    got_all, ref_all = [], []
+    conditioned = graph.postprocess_reference is not None and any(c.uses_post for c in comparators)
+    # phase 1: run the graph and the reference on every case; phase 2: the reference stages that
+    # follow a discrete decision, run on the graph's own inputs to them (see GraphSpec)
+    got_all, ref_all, post_all = [], [], []
     for _, feeds in (progress(cases) if progress else cases):
-        got_all.append(run_graph(feeds))
+        got = run_graph(feeds)
+        trace: dict = {}
         with torch.no_grad():
-            ref_all.append(_numpy(graph.run_reference(module, feeds)))
-    # phase 2: the reference post-processing of the graph's own dense outputs
-    post_all: list[dict | None] = [None] * len(cases)
-    if graph.postprocess_reference is not None and any(c.uses_post for c in comparators):
-        with torch.no_grad():
-            post_all = [_numpy(graph.postprocess_reference(module, got)) for got in got_all]
+            ref = _numpy(graph.run_reference(module, feeds, trace if conditioned else None))
+            post = _numpy(graph.postprocess_reference(module, feeds, got, ref, trace)) if conditioned else None
+        got_all.append(got)
+        ref_all.append(ref)
+        post_all.append(post)
     # phase 3: compare
     report = GraphParity(graph.name, str(onnx_path), comparators)
     names = [name for name, _ in cases]

@@ -20,7 +20,7 @@ from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, InputError
 from radaredge.exporter import build_model
-from radaredge.runtime.flags import CAPACITY, NON_FINITE, OUT_OF_RANGE, TIME_ORDER
+from radaredge.runtime.flags import CAPACITY, IMPLAUSIBLE, NON_FINITE, OUT_OF_RANGE, TIME_ORDER
 from radaredge.runtime.session import run_session
 
 from conftest import TINY_CARD
@@ -121,9 +121,16 @@ def test_the_c_client_refuses_bad_input_like_the_runtime(client, graphs, tmp_pat
     close = [0.0, 0.1, 0.100000001]                  # increasing in float64, equal in the graph's float32
     res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / "e", "--timestamps",
                ",".join(map(repr, close)))
-    assert res.returncode == 2 and "closer than the graph's float32 seconds resolve" in res.stderr
-    with pytest.raises(InputError, match="time_order"):
+    assert res.returncode == 2 and "frames 1 and 2 are 1e-09 s apart" in res.stderr
+    with pytest.raises(InputError, match="frames 1 and 2 are 1e-09 s apart"):
         runtime.load(graphs["tdfanet"]).run(_tdfanet_frames(), close)
+    for unit, scale in (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9)):   # not seconds
+        stamps = [1732500000.0 * scale + k * 0.1 * scale for k in range(3)]
+        res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / unit, "--timestamps",
+                   ",".join(map(repr, stamps)))
+        assert res.returncode == 2 and "off its period are refused" in res.stderr, res.stderr
+        with pytest.raises(InputError, match=f"they look like {unit}: pass seconds"):
+            runtime.load(graphs["tdfanet"]).run(_tdfanet_frames(), stamps)
 
 
 def test_the_c_client_acts_on_the_declared_checks_like_the_runtime(client, graphs, tmp_path):
@@ -147,8 +154,9 @@ def test_the_c_client_acts_on_the_declared_checks_like_the_runtime(client, graph
 
 def _flag_cases():
     """TDFANet frames with a NaN point (frame 1), a pillar holding more than max_points_per_pillar
-    points (frame 2; the tiny card keeps 8) and one point out of range (frame 0), plus timestamps
-    that run backwards into frame 2."""
+    points (frame 2; the tiny card keeps 8), one point out of range and one with a radial velocity
+    of 1e4 m/s, outside the card's plausible range (frame 0), plus timestamps that run backwards
+    into frame 2."""
     rng = np.random.default_rng(1)
 
     def static_scan(xyz):                       # a static world seen from a radar driving at 8 m/s
@@ -157,6 +165,7 @@ def _flag_cases():
 
     frames = [static_scan(rng.uniform([5, -12, -1], [30, 12, 1], size=(40, 3))) for _ in range(3)]
     frames[0][0, :3] = [500.0, 0.0, 0.0]
+    frames[0][1, 3] = 1e4
     frames[1][7, 2] = np.nan
     frames[2][:12] = static_scan(np.column_stack([5.5 + 0.02 * np.arange(12), np.full(12, 0.5), np.zeros(12)]))
     return frames, [0.0, 0.1, 0.05]
@@ -168,10 +177,11 @@ def test_input_flags_from_c_and_from_python(client, graphs, tmp_path):
                "--timestamps", ",".join(map(str, stamps)))
     assert res.returncode == 1, res.stderr
     flags = _outputs(tmp_path / "out")["input_flags"]
-    assert flags.tolist() == [OUT_OF_RANGE, NON_FINITE, TIME_ORDER | CAPACITY]
+    assert flags.tolist() == [OUT_OF_RANGE | IMPLAUSIBLE, NON_FINITE, TIME_ORDER | CAPACITY]
     assert "frame 1: bit 0 (1): non_finite" in res.stderr and "frame 2: bit 3 (8): capacity" in res.stderr
+    assert "frame 0: bit 5 (32): implausible" in res.stderr
     meta = json.loads(runtime.load(graphs["tdfanet"]).metadata["radaredge.input_flags"])
-    assert set(meta) == {"1", "2", "4", "8", "16"}
+    assert set(meta) == {"1", "2", "4", "8", "16", "32"}
     m = runtime.load(graphs["tdfanet"], threads=1)     # the graph itself, fed directly as a C app does
     raw = {f"points_{k}": f for k, f in enumerate(frames)}
     raw["timestamps"] = np.float32(stamps)
@@ -183,7 +193,7 @@ def test_input_flags_from_c_and_from_python(client, graphs, tmp_path):
     frames[1][7, 2] = 0.0
     with pytest.raises(InputError, match="timestamps must increase strictly"):
         m.run(frames, stamps)
-    assert m.run(frames)["input_flags"].tolist() == [OUT_OF_RANGE, 0, CAPACITY]
+    assert m.run(frames)["input_flags"].tolist() == [OUT_OF_RANGE | IMPLAUSIBLE, 0, CAPACITY]
 
 
 def test_sanitizers(graphs, tmp_path_factory, tmp_path):

@@ -22,7 +22,8 @@
  *
  * Exit codes: 0 success (input_flags bits that only inform, e.g. points out of range, and
  * declared warnings are printed on stderr), 1 the graph flagged wrong input (bit 1 non_finite
- * or 2 time_order, which reach the graph only with --no-checks), 2 bad input, an error a
+ * or 2 time_order, which reach the graph only with --no-checks, or a bit the graph's
+ * radaredge.input_errors adds, e.g. 32 implausible for a card that refuses such points), 2 bad input, an error a
  * declared check raised (no outputs are written then) or a model that is not a radaredge
  * export, reported as one "error: ..." line on stderr.
  */
@@ -38,7 +39,9 @@
 #include <onnxruntime_c_api.h>
 
 #define MAX_ITEMS 64
-#define INPUT_ERRORS 3      /* input_flags bits 1 (non_finite) and 2 (time_order): the input was wrong */
+#define INPUT_ERRORS 3      /* input_flags bits 1 (non_finite) and 2 (time_order): the input was wrong,
+                               unless the graph's radaredge.input_errors names other bits */
+#define PERIOD_FACTOR 10.0  /* radaredge.runtime's: frame times this far off the card's period are refused */
 #define MAX_NAME 128
 
 static const OrtApi *ort;
@@ -377,6 +380,15 @@ int main(int argc, char **argv) {
     char *inputs_json = metadata(meta, alloc, "radaredge.inputs", model, 1);
     char *flags_json = metadata(meta, alloc, "radaredge.input_flags", model, 0);
     char *checks_json = metadata(meta, alloc, "radaredge.checks", model, 0);
+    char *errors_text = metadata(meta, alloc, "radaredge.input_errors", model, 0);
+    long input_errors = INPUT_ERRORS;
+    if (errors_text != NULL) {
+        char *end;
+        input_errors = strtol(errors_text, &end, 10);
+        if (*end != '\0' || input_errors < 0 || input_errors > 0x7fffffffL)
+            fail("%s: unreadable radaredge.input_errors metadata '%s'", model, errors_text);
+        check(ort->AllocatorFree(alloc, errors_text), "free");
+    }
     Check declared[8];
     int n_checks = (checks_json != NULL) ? read_checks(checks_json, declared, 8) : 0;
     if (n_checks < 0) fail("%s: unreadable radaredge.checks metadata", model);
@@ -408,6 +420,13 @@ int main(int argc, char **argv) {
             if (!(stamps[k] > stamps[k - 1]))
                 fail("timestamps must increase strictly (oldest frame first), got %.9g after %.9g", stamps[k],
                      stamps[k - 1]);
+        for (int k = 1; k < n_frames && checks; k++) {         /* radaredge.runtime: PERIOD_FACTOR, seconds */
+            double gap = stamps[k] - stamps[k - 1], period = 1.0 / frame_rate;
+            if (gap > period * PERIOD_FACTOR || gap < period / PERIOD_FACTOR)
+                fail("timestamps: frames %d and %d are %g s apart; the card records at %g Hz, and frame times more "
+                     "than %gx off its period are refused (timestamps are seconds)", k - 1, k, gap, frame_rate,
+                     PERIOD_FACTOR);
+        }
         for (int k = 0; k < n_frames; k++) rel[k] = (float)(stamps[k] - stamps[0]);     /* differences in double */
         for (int k = 1; k < n_frames && checks; k++)           /* radaredge.runtime: the graph's flag, an error */
             if (!(rel[k] > rel[k - 1]))
@@ -487,7 +506,7 @@ int main(int argc, char **argv) {
                     snprintf(key, sizeof key, "%d", 1 << bit);
                     if (flags_json != NULL) json_string(flags_json, key, meaning, sizeof meaning);
                     fprintf(stderr, "input_flags: frame %zu: bit %d (%s): %s\n", k, bit, key, meaning);
-                    if ((1 << bit) & INPUT_ERRORS) flagged = 1;
+                    if ((1L << bit) & input_errors) flagged = 1;
                 }
             }
         }

@@ -30,6 +30,27 @@ TOP_LEVEL_NUMBERS = {
     "max_points_per_frame": (Range(1, 2**24), True),      # runtime capacity per scan
 }
 
+# The values a sensor can return in each named point column (units as in radaredge.data.readers):
+# a point with a value outside its column's range is left out by the graph (input_flags bit
+# ``implausible``) or refused by the runtime (the card's ``implausible: refuse``). A card's
+# ``plausible`` section overrides these per column; a column named neither here nor there is an
+# error. x, y, z are bounded by each model's point_cloud_range, which drops what lies outside.
+PLAUSIBLE_DEFAULTS = {
+    "v_r": (-100.0, 100.0),        # m/s: radial velocity; automotive radars measure well within it
+    "v_r_comp": (-100.0, 100.0),   # m/s: ego-motion compensated radial velocity
+    "rcs": (-100.0, 100.0),        # dBsm (or the power/intensity stand-in, see readers)
+    "snr": (-100.0, 200.0),        # dB
+    "power": (-100.0, 200.0),      # dB
+    "range": (0.0, 1000.0),        # m
+    "alpha": (-360.0, 360.0),      # azimuth angle (degrees or radians)
+    "beta": (-360.0, 360.0),       # elevation angle (degrees or radians)
+    "time": (-10.0, 10.0),         # s: a point's time relative to its scan (VoD radar_5frames)
+    "r": (0.0, 1.0), "g": (0.0, 1.0), "b": (0.0, 1.0),    # colour of a map object's points (Des4Pos)
+}
+COORDINATES = ("x", "y", "z")
+IMPLAUSIBLE_POLICIES = ("drop", "refuse")
+MAX_PLAUSIBLE = 3.0e38               # inside float32: the graphs compare in float32
+
 # a window's points are ranked by a float32 CumSum (RANSAC order; TensorRT takes no integer
 # CumSum), exact up to 2**24; the graph adds at most a few padding rows
 MAX_WINDOW_POINTS = 2**24 - 64
@@ -120,7 +141,60 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
     classes = data.get("classes", [])
     if not isinstance(classes, list) or not all(isinstance(c, str) and c for c in classes):
         raise ConfigError(f"{where}: classes must be a list of class names, got {classes!r}")
-    return ModelCard(data=data, path=path)
+    card = ModelCard(data=data, path=path)
+    _given_ranges(card)
+    implausible_policy(card)
+    return card
+
+
+def _given_ranges(card: ModelCard) -> dict[str, tuple[float, float]]:
+    """The card's ``plausible`` section, checked: feature column -> (low, high)."""
+    where = card.where
+    given = card.data.get("plausible", {})
+    if not isinstance(given, dict):
+        raise ConfigError(f"{where}: plausible must map feature columns to [low, high], got {given!r}")
+    unknown = sorted(set(given) - set(card.features) - set(COORDINATES))
+    if unknown or any(k in COORDINATES for k in given):
+        bad = unknown or [k for k in given if k in COORDINATES]
+        raise ConfigError(f"{where}: plausible: {bad} are not bounded here; name non-coordinate feature columns "
+                          f"of {card.features} (x, y, z are bounded by the point_cloud_range)")
+    out = {}
+    for name, pair in given.items():
+        if not (isinstance(pair, list) and len(pair) == 2):
+            raise ConfigError(f"{where}: plausible.{name}: expected [low, high], got {pair!r}")
+        check_numbers(pair, Range(-MAX_PLAUSIBLE, MAX_PLAUSIBLE), False, f"{where}: plausible.{name}")
+        if not pair[0] < pair[1]:
+            raise ConfigError(f"{where}: plausible.{name}: low {pair[0]!r} must be below high {pair[1]!r}")
+        out[name] = (float(pair[0]), float(pair[1]))
+    return out
+
+
+def plausible_ranges(card: ModelCard) -> dict[str, tuple[float, float]]:
+    """Each non-coordinate feature column's plausible (low, high), in card order: the card's
+    ``plausible`` entry, else :data:`PLAUSIBLE_DEFAULTS`; ConfigError naming the column when it
+    has neither (asked by the models that take point frames, and by the runtime)."""
+    given = _given_ranges(card)
+    out = {}
+    for name in card.features:
+        if name in COORDINATES:
+            continue
+        if name in given:
+            out[name] = given[name]
+        elif name in PLAUSIBLE_DEFAULTS:
+            out[name] = PLAUSIBLE_DEFAULTS[name]
+        else:
+            raise ConfigError(f"{card.where}: features: column {name!r} has no plausible range; add "
+                              f"plausible: {{{name}: [low, high]}} (the values your sensor returns in it)")
+    return out
+
+
+def implausible_policy(card: ModelCard) -> str:
+    """The card's ``implausible``: ``drop`` (default: the graph leaves such points out and sets
+    the ``implausible`` input flag) or ``refuse`` (the runtime refuses the frame)."""
+    policy = card.data.get("implausible", "drop")
+    if policy not in IMPLAUSIBLE_POLICIES:
+        raise ConfigError(f"{card.where}: implausible must be one of {list(IMPLAUSIBLE_POLICIES)}, got {policy!r}")
+    return policy
 
 
 def load_card(name_or_path: str | Path) -> ModelCard:

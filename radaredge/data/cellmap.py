@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..errors import InputError
 from . import kitti360pose
 
@@ -45,10 +46,9 @@ class CellMap:
         return self.points.shape[1], self.points.shape[2]
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, **{k: np.asarray(v) for k, v in self.__dict__.items()})
-        return path
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in self.__dict__.items()})
+        return Path(path)
 
 
 def load_map(path: str | Path, slots: int | None = None, points: int | None = None) -> CellMap:

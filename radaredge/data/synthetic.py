@@ -67,6 +67,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..errors import ConfigError, InputError
 
 COLUMNS = ("x", "y", "z", "v_r", "rcs")
@@ -848,9 +849,9 @@ def generate_scan(config: SceneConfig | None = None, *, seed: int | None = None,
 
 
 def _write_table(path: str | os.PathLike, table: np.ndarray) -> Path:
-    path = Path(path)
-    np.ascontiguousarray(table, dtype="<f4").tofile(path)
-    return path
+    with atomic_path(path) as tmp:
+        np.ascontiguousarray(table, dtype="<f4").tofile(tmp)
+    return Path(path)
 
 
 def vod_table(scan: RadarScan) -> np.ndarray:

@@ -45,7 +45,8 @@ from ..ops.dbscan import DbscanConfig, cqca_cfa_map, cqca_cfa_map_reference
 from ..ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
 from ..ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
 from ..ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
-from ..ops.input_flags import frame_flags, frame_flags_reference
+from ..ops.input_flags import (column_bounds, drop_implausible, drop_implausible_reference, frame_flags,
+                               frame_flags_reference)
 from ..ops.pillars import (PillarConfig, PillarFeatureNet, outside_grid, pillar_features_reference,
                            point_drops_reference, scatter_pillars_reference)
 from . import maffnet_rcnn as two
@@ -328,6 +329,7 @@ class MAFFNet(nn.Module):
         self.velocity_index = features.index(cfa.velocity_feature)
         self.cfa_method = "dbscan" if isinstance(grid, DbscanConfig) else "grid_density"
         self.spa_config, self.head_config, self.nms_config = spa, head, nms
+        self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))   # build: the card's plausible
         self.vfe = PillarFeatureNet(len(features), pillars)
         self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
         self.image_backbone = (ClusteringFeatureAssist(dbscan=grid) if isinstance(grid, DbscanConfig)
@@ -395,10 +397,11 @@ class MAFFNet(nn.Module):
         return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged, mask
 
     def input_flags(self, points: torch.Tensor, reference: bool, drops: dict, overflow: torch.Tensor,
-                    converged: torch.Tensor) -> torch.Tensor:
+                    converged: torch.Tensor, implausible: torch.Tensor) -> torch.Tensor:
         """int32 [1]: :mod:`radaredge.runtime.flags` of the scan. A DBSCAN map that did not converge
         left points beyond its capacity out (``capacity``); a GridDensityBEV map stopped its
-        components short (``not_converged``)."""
+        components short (``not_converged``); ``implausible`` [N] marks the points
+        :meth:`run` turned into NaN rows."""
         dbscan = self.cfa_method == "dbscan"
         capacity = overflow | (~converged if dbscan else torch.zeros_like(converged))
         not_converged = torch.zeros_like(converged) if dbscan else ~converged
@@ -406,9 +409,10 @@ class MAFFNet(nn.Module):
         if reference:
             outside, full = point_drops_reference(points.numpy(), cfg)
             return frame_flags_reference([points.numpy()], None, [outside], [full], capacity.numpy(),
-                                         not_converged.numpy())
+                                         not_converged.numpy(), [implausible.numpy()])
         frame = torch.zeros(points.shape[0], dtype=torch.int64, device=points.device)
-        return frame_flags(points, frame, 1, None, outside_grid(points, cfg), drops["full"], capacity, not_converged)
+        return frame_flags(points, frame, 1, None, outside_grid(points, cfg), drops["full"], capacity, not_converged,
+                           implausible)
 
     def head_stage(self, fused: torch.Tensor):
         """Backbone + head + decoding: (class logits [A, classes], boxes [A, 7])."""
@@ -428,13 +432,21 @@ class MAFFNet(nn.Module):
     def forward(self, points: torch.Tensor):
         """Export formulation: points [N, F] -> (boxes [M, 7], scores [M], labels [M] int64 1-based,
         anchor_scores [A, classes], anchor_boxes [A, 7], num_pillars [] int64, spa_overflow [] bool,
-        cfa_converged [] bool), then with stage two the STAGE_TWO_OUTPUTS; boxes, scores and labels
-        are then the refined detections."""
+        cfa_converged [] bool, input_flags [1] int32), then with stage two ``anchor_logits``
+        [A, classes] (what the proposal layer ranks) and the STAGE_TWO_OUTPUTS; boxes, scores and
+        labels are then the refined detections."""
         out = self.run(points)
         return tuple(out[k] for k in output_names(self.stage_two_config is not None))
 
     def run(self, points: torch.Tensor, reference: bool = False, trace: dict | None = None) -> dict[str, torch.Tensor]:
-        """Both formulations; ``trace`` (a dict) receives intermediates for divergence reports."""
+        """Both formulations; ``trace`` (a dict) receives intermediates for divergence reports.
+        Points with a value outside the card's plausible range become NaN rows first, which
+        every stage leaves out (:func:`radaredge.ops.input_flags.drop_implausible`)."""
+        if reference:
+            cleaned, bad = drop_implausible_reference(points.numpy(), *self.point_bounds)
+            points, implausible = torch.from_numpy(cleaned), torch.from_numpy(bad)
+        else:
+            points, implausible = drop_implausible(points, *self.point_bounds)
         drops: dict = {}
         pillar, num_pillars, overflow = self.pillar_stage(points, reference, drops)
         cfa, cfa_map, converged, cluster = self.cfa_stage(points, reference)
@@ -442,12 +454,14 @@ class MAFFNet(nn.Module):
         logits, boxes = self.head_stage(fused)
         scores = torch.sigmoid(logits)
         if trace is not None:
-            trace.update(pillar_bev=pillar, cfa_map=cfa_map, cfa_features=cfa, fused=fused)
+            trace.update(pillar_bev=pillar, cfa_map=cfa_map, cfa_features=cfa, fused=fused, cluster_points=cluster)
         out = {"anchor_scores": scores, "anchor_boxes": boxes, "num_pillars": num_pillars, "spa_overflow": overflow,
-               "cfa_converged": converged, "input_flags": self.input_flags(points, reference, drops, overflow, converged)}
+               "cfa_converged": converged,
+               "input_flags": self.input_flags(points, reference, drops, overflow, converged, implausible)}
         if self.stage_two_config is None:
             out["boxes"], out["scores"], out["labels"] = self.postprocess(scores, boxes, reference)
         else:
+            out["anchor_logits"] = logits
             out.update(two.run_stage_two(self, points, fused[0], cluster, logits, boxes, reference, trace))
         return out
 
@@ -487,8 +501,9 @@ OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "n
 
 
 def output_names(stage_two: bool) -> tuple[str, ...]:
-    """Graph outputs: stage one's, plus the stage-two outputs (maffnet_rcnn.STAGE_TWO_OUTPUTS)."""
-    return OUTPUT_NAMES + two.STAGE_TWO_OUTPUTS if stage_two else OUTPUT_NAMES
+    """Graph outputs: stage one's, plus the class logits the proposal layer ranks and the
+    stage-two outputs (maffnet_rcnn.STAGE_TWO_OUTPUTS)."""
+    return OUTPUT_NAMES + ("anchor_logits",) + two.STAGE_TWO_OUTPUTS if stage_two else OUTPUT_NAMES
 
 
 def read_anchors(card: ModelCard) -> list[AnchorClass]:
@@ -530,6 +545,7 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
         nms=card.section("post_processing", NmsConfig),
         stage_two=two.read_stage_two(card),
     )
+    model.point_bounds = column_bounds(card)      # plausible (low, high) per point column
     init = card.get("init", "torch")
     if init == "kaiming":
         model.init_kaiming()

@@ -382,11 +382,6 @@ class PointHeadSimple(nn.Module):
 # ----------------------------------------------------------------------------- ROI head
 
 
-def roi_trig(rois: torch.Tensor):
-    """cos and sin of the roi headings [R] (computed once; both formulations share them)."""
-    return torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
-
-
 def decode_roi_residuals(reg: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
     """Refined boxes [R, 7]: ResidualCoder.decode against the roi with its centre zeroed, then the
     centre rotated by the roi heading (x' = x cos - y sin, y' = x sin + y cos) plus the roi centre."""
@@ -394,7 +389,7 @@ def decode_roi_residuals(reg: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
     dxa, dya, dza, ra = rois[:, 3], rois[:, 4], rois[:, 5], rois[:, 6]
     diag = torch.sqrt(dxa ** 2 + dya ** 2)
     x, y = xt * diag, yt * diag
-    c, s = roi_trig(rois)
+    c, s = torch.cos(ra), torch.sin(ra)
     return torch.stack([x * c - y * s + rois[:, 0], x * s + y * c + rois[:, 1], zt * dza + rois[:, 2],
                         torch.exp(dxt) * dxa, torch.exp(dyt) * dya, torch.exp(dzt) * dza, rt + ra], -1)
 
@@ -403,8 +398,12 @@ class PVRCNNHead(nn.Module):
     """Upstream ``roi_head`` (PVRCNNHead): ROI-grid pooling, shared FCs, cls and reg layers.
 
     The grid point g = ix * G^2 + iy * G + iz of a roi sits at local (i + 0.5) / G * size - size / 2
-    (per axis, m), rotated by the roi heading about z and moved to the roi centre. Pooled features
-    [R, G^3, C] are flattened channel-major (c * G^3 + g) as upstream's view/permute does.
+    (per axis, m), rotated by the roi heading about z and moved to the roi centre. Both
+    formulations compute the grid in float64 and round it to float32 once: cos and sin differ in
+    their last float32 bit between libraries, and a grid point one bit off can move a keypoint
+    across a ball-query radius, so the grid must not depend on the runtime's trigonometry.
+    Pooled features [R, G^3, C] are flattened channel-major (c * G^3 + g) as upstream's
+    view/permute does.
     """
 
     def __init__(self, point_channels: int, cfg: RoiHeadConfig, pool: SAConfig):
@@ -430,26 +429,29 @@ class PVRCNNHead(nn.Module):
         nn.init.normal_(self.reg_layers[-1].weight, mean=0.0, std=0.001)
 
     def grid_points(self, rois: torch.Tensor) -> torch.Tensor:
-        """Export formulation: grid points [R, G^3, 3] of rois [R, 7]."""
-        size = rois[:, None, 3:6]
-        local = (self.dense_idx + 0.5) / self.grid_size * size - size / 2                 # [R, G^3, 3]
-        c, s = (t[:, None] for t in roi_trig(rois))
+        """Export formulation: grid points [R, G^3, 3] float32 of rois [R, 7] (float64 inside)."""
+        r64 = rois.to(torch.float64)
+        size = r64[:, None, 3:6]
+        local = (self.dense_idx.to(torch.float64) + 0.5) / self.grid_size * size - size / 2   # [R, G^3, 3]
+        c, s = torch.cos(r64[:, 6:7]), torch.sin(r64[:, 6:7])
         lx, ly = local[..., 0], local[..., 1]
-        return torch.stack([lx * c - ly * s, lx * s + ly * c, local[..., 2]], -1) + rois[:, None, :3]
+        grid = torch.stack([lx * c - ly * s, lx * s + ly * c, local[..., 2]], -1) + r64[:, None, :3]
+        return grid.to(torch.float32)
 
-    def grid_points_reference(self, rois: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
-        """Reference: the grid of one roi at a time, grid point by grid point (float32)."""
-        f32, n = np.float32, self.grid_size
+    def grid_points_reference(self, rois: np.ndarray) -> np.ndarray:
+        """Reference: the grid of one roi at a time, grid point by grid point, in float64 rounded
+        to float32 once."""
+        n = self.grid_size
         out = np.zeros((len(rois), n ** 3, 3), np.float32)
-        for r, roi in enumerate(rois):
+        for r, roi in enumerate(np.asarray(rois, np.float64)):
+            cos, sin = np.cos(roi[6]), np.sin(roi[6])
             for ix in range(n):
                 for iy in range(n):
                     for iz in range(n):
-                        local = [(f32(i) + f32(0.5)) / f32(n) * roi[3 + a] - roi[3 + a] / f32(2)
-                                 for a, i in enumerate((ix, iy, iz))]
-                        g = ix * n * n + iy * n + iz
-                        out[r, g] = [local[0] * cos[r] - local[1] * sin[r] + roi[0],
-                                     local[0] * sin[r] + local[1] * cos[r] + roi[1], local[2] + roi[2]]
+                        local = [(i + 0.5) / n * roi[3 + a] - roi[3 + a] / 2 for a, i in enumerate((ix, iy, iz))]
+                        out[r, ix * n * n + iy * n + iz] = [local[0] * cos - local[1] * sin + roi[0],
+                                                            local[0] * sin + local[1] * cos + roi[1],
+                                                            local[2] + roi[2]]
         return out
 
     def _head(self, pooled: torch.Tensor):
@@ -466,8 +468,7 @@ class PVRCNNHead(nn.Module):
         return self._head(pooled.reshape(r, self.grid_size ** 3, -1).transpose(1, 2).reshape(r, -1))
 
     def reference(self, rois, keypoints, keypoint_valid, features):
-        cos, sin = (t.numpy() for t in roi_trig(rois))
-        grids = self.grid_points_reference(rois.numpy(), cos, sin)
+        grids = self.grid_points_reference(rois.numpy())
         pooled = []
         for grid in grids:                                                                  # one roi at a time
             p = self.roi_grid_pool_layer.reference(keypoints.numpy(), keypoint_valid.numpy(),

@@ -97,9 +97,11 @@ class GraphSpec:
     - ``trace_order(card)``: intermediate tensor names in pipeline order (divergence reports);
     - ``module(model)``: the sub-module of the model this graph runs (the whole model by default).
 
-    Optional: ``postprocess_reference(module, graph outputs)`` -> the reference post-processing
-    (NMS) of the graph's own dense outputs, which detections are judged against (see
-    :class:`radaredge.comparators.Boxes`); ``stage_times(module, feeds, reference)`` ->
+    Optional: ``postprocess_reference(module, feeds, graph outputs, reference outputs, reference
+    trace)`` -> each stage that follows a discrete decision (NMS, proposals, keypoint sampling)
+    run by the reference on the graph's own inputs to that stage, which the comparators with
+    ``uses_post`` judge the graph against: a decision within float noise of a tie cannot then
+    flip the verdict (see :class:`radaredge.comparators.Boxes`); ``stage_times(module, feeds, reference)`` ->
     {stage: s} for one torch run; ``onnx_stages`` (stage, module prefixes) and
     ``onnx_post_outputs``, the same stages inside onnxruntime (:mod:`radaredge.profiling`).
     """

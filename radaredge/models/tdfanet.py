@@ -25,6 +25,7 @@ and no deformable attention).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -39,7 +40,8 @@ from ..ops.alignment import BevGrid, align_bev, align_bev_reference, grid_displa
 from ..ops.deform_attn import MSDeformAttn
 from ..ops.ego_velocity import EgoVelocityRansac, RansacConfig, estimate_ego_velocity_reference
 from ..ops.gem import GeM
-from ..ops.input_flags import frame_flags, frame_flags_reference
+from ..ops.input_flags import (column_bounds, drop_implausible, drop_implausible_reference, frame_flags,
+                               frame_flags_reference)
 from ..ops.pillars import PillarConfig, PillarFeatureNet, outside_grid, pillar_scatter_reference, point_drops_reference
 from ..ops.scan_batch import concat_scans
 
@@ -80,7 +82,9 @@ class PreparedWindow:
     [N, F] its K scans concatenated (oldest first), ``frame`` [N] int64 the scan of each point,
     ``keep`` [N] bool the points that enter the BEV maps (RANSAC inliers, or every point without
     dynamic-point removal), ``cells`` [K, 2] the grid displacement of each scan to the last one
-    (eq. 5, cells; zero without alignment), ``ego_velocity`` [K, 3] m/s and ``ego_valid`` [K]."""
+    (eq. 5, cells; zero without alignment), ``ego_velocity`` [K, 3] m/s and ``ego_valid`` [K];
+    ``implausible`` [N] bool the points whose values left the card's plausible range (their rows
+    in ``points`` are NaN and left out everywhere)."""
 
     points: torch.Tensor
     frame: torch.Tensor
@@ -88,10 +92,11 @@ class PreparedWindow:
     cells: torch.Tensor
     ego_velocity: torch.Tensor
     ego_valid: torch.Tensor
+    implausible: torch.Tensor
 
     def to(self, device) -> "PreparedWindow":
         return PreparedWindow(*(t.to(device) for t in (self.points, self.frame, self.keep, self.cells,
-                                                        self.ego_velocity, self.ego_valid)))
+                                                        self.ego_velocity, self.ego_valid, self.implausible)))
 
 
 class ResidualStage(nn.Module):
@@ -165,6 +170,7 @@ class TDFANet(nn.Module):
                               f"the RANSAC reads, m/s); got {features}")
         self.features = features
         self.v_column = features.index("v_r")
+        self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))   # build: the card's plausible
         self.frames, self.frame_rate, self.net_config = frames, frame_rate, net
         self.ransac = EgoVelocityRansac(ransac)
         self.vfe = PillarFeatureNet(len(features), pillars)
@@ -217,13 +223,14 @@ class TDFANet(nn.Module):
         # The K scans run through one RANSAC and one pillar scatter, concatenated: the same
         # per-scan results as K separate passes, with a third of their nodes in the graph.
         pts, frame = concat_scans(frames)
+        pts, implausible = drop_implausible(pts, *self.point_bounds)
         valid = torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device)
         v_ego, static, ok = self.ransac.estimate_frames(pts[:, :3], pts[:, self.v_column], valid, frame, len(frames))
         keep = static if self.net_config.remove_dynamic else valid
         cells = grid_displacement(v_ego, self.vfe.config.voxel_size, timestamps=timestamps)
         if not self.net_config.align:
             cells = torch.zeros_like(cells)
-        return PreparedWindow(pts, frame, keep, cells, v_ego, ok)
+        return PreparedWindow(pts, frame, keep, cells, v_ego, ok, implausible)
 
     def describe(self, windows: Sequence[PreparedWindow], trace: dict | None = None,
                  drops: dict | None = None) -> torch.Tensor:
@@ -255,11 +262,16 @@ class TDFANet(nn.Module):
     def run(self, frames: list[torch.Tensor], timestamps: torch.Tensor, reference: bool = False,
             trace: dict | None = None) -> dict[str, torch.Tensor]:
         """Both formulations: ``reference=True`` uses the reference ops. Returns named outputs;
-        ``trace`` (a dict) receives intermediate tensors for divergence reports."""
+        ``trace`` (a dict) receives intermediate tensors for divergence reports. Points with a
+        value outside the card's plausible range become NaN rows first, which every stage leaves
+        out (:func:`radaredge.ops.input_flags.drop_implausible`)."""
         cfg = self.vfe.config
         if reference:
-            vels, valids, bevs, outside, full = [], [], [], [], []
-            for pts in frames:
+            vels, valids, bevs, outside, full, implausible = [], [], [], [], [], []
+            for raw in frames:
+                cleaned, bad = drop_implausible_reference(raw.numpy(), *self.point_bounds)
+                pts = torch.from_numpy(cleaned)
+                implausible.append(bad)
                 v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, self.v_column].numpy(),
                                                                 self.ransac.config)
                 vels.append(torch.tensor(v, dtype=torch.float32))
@@ -273,14 +285,15 @@ class TDFANet(nn.Module):
             if trace is not None:
                 trace["bev"] = bev
             desc = self.aggregate(bev, cells, True, trace)[0]
-            flags = frame_flags_reference([f.numpy() for f in frames], timestamps.numpy(), outside, full)
+            flags = frame_flags_reference([f.numpy() for f in frames], timestamps.numpy(), outside, full,
+                                          implausible=implausible)
         else:
             prepared = self.prepare(frames, timestamps)
             v_ego, ok = prepared.ego_velocity, prepared.ego_valid
             drops: dict = {}
             desc = self.describe([prepared], trace, drops)[0]
             flags = frame_flags(prepared.points, prepared.frame, len(frames), timestamps,
-                                outside_grid(prepared.points, cfg), drops["full"])
+                                outside_grid(prepared.points, cfg), drops["full"], implausible=prepared.implausible)
         if trace is not None:
             trace["ego_velocity"] = v_ego
         return {
@@ -303,4 +316,5 @@ def build_tdfanet(card: ModelCard) -> TDFANet:
         pillars=card.section("pillars", PillarConfig),
         net=card.section("network", TDFANetConfig),
     )
+    model.point_bounds = column_bounds(card)      # plausible (low, high) per point column
     return model.eval()

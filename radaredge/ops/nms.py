@@ -25,6 +25,7 @@ in Python with :func:`radaredge.ops.box_iou.bev_iou_reference`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,3 +149,91 @@ def class_agnostic_nms_reference(boxes: np.ndarray, scores: np.ndarray, config: 
     order = above[: config.pre_max]
     kept = greedy_nms_reference(boxes[order], config.iou_thresh) if order else []
     return np.array([order[j] for j in kept[: config.post_max]], np.int64)
+
+
+# ----------------------------------------------------------------------------- near ties
+
+
+def near_ties(boxes: np.ndarray, scores: np.ndarray, config: NmsConfig, score_tol: tuple[float, float],
+              iou_tol: float, limit: int = 20) -> list[dict]:
+    """The decisions of :func:`class_agnostic_nms_reference` on ``boxes`` [A, 7] and ``scores``
+    [A] that inputs perturbed by float noise could take the other way: the evidence a parity
+    report needs before it calls an end-to-end difference a near tie.
+
+    Noise of a score s is ``score_tol`` = (atol, rtol): atol + rtol * |s|; two scores can swap
+    when they are within twice that of each other. An IoU can cross ``iou_thresh`` when it is
+    within ``iou_tol`` of it. Decisions (at most ``limit``, each a dict with ``decision``,
+    ``anchors``, ``values`` and ``threshold``):
+
+    - ``score threshold``: a score within noise of ``score_thresh``;
+    - ``pre_max cut``: the last score kept by the top-``pre_max`` and the first one left out;
+    - ``order``: two candidates within noise of each other whose boxes overlap beyond
+      ``iou_thresh`` (minus ``iou_tol``): whichever ranks first suppresses the other;
+    - ``overlap``: a kept box and a later candidate whose IoU is within ``iou_tol`` of ``iou_thresh``;
+    - ``post_max cut``: the last kept box within ``post_max`` and the next one kept after it.
+    """
+    boxes = np.asarray(boxes, np.float64)
+    scores = np.asarray(scores, np.float32)
+    atol, rtol = score_tol
+
+    def swap(a: float, b: float) -> bool:
+        return abs(a - b) <= 2 * (atol + rtol * max(abs(a), abs(b)))
+
+    ties: list[dict] = []
+
+    def add(decision, anchors, values, threshold):
+        if len(ties) < limit:
+            ties.append({"decision": decision, "anchors": [int(a) for a in anchors],
+                         "values": [float(v) for v in values], "threshold": float(threshold)})
+
+    thresh = np.float32(config.score_thresh)
+    order = sorted((i for i in range(len(scores)) if scores[i] >= thresh), key=lambda i: (-float(scores[i]), i))
+    if math.isfinite(float(thresh)):
+        for i in range(len(scores)):
+            if abs(float(scores[i]) - float(thresh)) <= atol + rtol * abs(float(thresh)):
+                add("score threshold", [i], [scores[i]], thresh)
+    k = min(config.pre_max, len(order))
+    if len(order) > k and swap(float(scores[order[k - 1]]), float(scores[order[k]])):
+        add("pre_max cut", [order[k - 1], order[k]], [scores[order[k - 1]], scores[order[k]]], config.pre_max)
+    cand = order[: k + 1]
+    centre, radius = boxes[:, :2], 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])
+
+    def reach(i, j) -> bool:
+        return float(((centre[i] - centre[j]) ** 2).sum()) <= float(radius[i] + radius[j]) ** 2
+
+    for p, a in enumerate(cand):
+        for b in cand[p + 1:]:
+            if not swap(float(scores[a]), float(scores[b])):
+                break
+            if reach(a, b) and bev_iou_reference(boxes[a], boxes[b]) > config.iou_thresh - iou_tol:
+                add("order", [a, b], [scores[a], scores[b]], config.iou_thresh)
+    kept: list[int] = []
+    for j in order[:k]:
+        suppressed = False
+        for i in kept:
+            if not reach(i, j):
+                continue
+            iou = bev_iou_reference(boxes[i], boxes[j])
+            if abs(iou - config.iou_thresh) <= iou_tol:
+                add("overlap", [i, j], [iou], config.iou_thresh)
+            suppressed |= iou > config.iou_thresh
+        if not suppressed:
+            kept.append(j)
+    if len(kept) > config.post_max and swap(float(scores[kept[config.post_max - 1]]),
+                                            float(scores[kept[config.post_max]])):
+        a, b = kept[config.post_max - 1], kept[config.post_max]
+        add("post_max cut", [a, b], [scores[a], scores[b]], config.post_max)
+    return ties
+
+
+def describe_tie(tie: dict) -> str:
+    """One line for a :func:`near_ties` decision."""
+    a = tie["anchors"]
+    v = ", ".join(f"{x:.7g}" for x in tie["values"])
+    if tie["decision"] == "overlap":
+        return f"overlap of anchors {a[0]} and {a[1]}: IoU {v} vs iou_thresh {tie['threshold']:g}"
+    if tie["decision"] == "order":
+        return f"order of anchors {a[0]} and {a[1]}: scores {v}, overlapping beyond iou_thresh {tie['threshold']:g}"
+    if tie["decision"] == "score threshold":
+        return f"anchor {a[0]}: score {v} vs score_thresh {tie['threshold']:g}"
+    return f"{tie['decision']} {int(tie['threshold'])}: anchors {a[0]} and {a[1]}, scores {v}"

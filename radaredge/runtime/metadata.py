@@ -17,6 +17,7 @@ Standard library only (no numpy, no torch). Every key is named here; nothing els
 | ``radaredge.bundle_weights_sha256`` | hash of the whole multi-graph model's weights |
 | ``radaredge.quantization`` | JSON: how an int8 copy was made (absent in fp32 graphs) |
 | ``radaredge.input_flags`` | JSON: bit (as a string) -> meaning, for a graph with an ``input_flags`` output (:mod:`radaredge.ops.input_flags`) |
+| ``radaredge.input_errors`` | the ``input_flags`` bits (an integer mask) that mean the input was wrong: the caller refuses the frame |
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ PART = PREFIX + "part"
 BUNDLE_WEIGHTS_SHA256 = PREFIX + "bundle_weights_sha256"
 QUANTIZATION = PREFIX + "quantization"
 INPUT_FLAGS = PREFIX + "input_flags"
+INPUT_ERRORS = PREFIX + "input_errors"
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,7 @@ class GraphMetadata:
     bundle_weights_sha256: str | None = None
     quantization: dict | None = None
     input_flags: dict[str, str] | None = None
+    input_errors: int | None = None
 
     def to_props(self) -> dict[str, str]:
         """``metadata_props`` entries, key -> string value."""
@@ -126,6 +129,8 @@ class GraphMetadata:
             props[QUANTIZATION] = json.dumps(self.quantization)
         if self.input_flags is not None:
             props[INPUT_FLAGS] = json.dumps(self.input_flags)
+        if self.input_errors is not None:
+            props[INPUT_ERRORS] = str(self.input_errors)
         return props
 
     @classmethod
@@ -148,7 +153,8 @@ class GraphMetadata:
                 checks=[OutputCheck(**c) for c in json.loads(props.get(CHECKS, "[]"))],
                 part=props.get(PART), bundle_weights_sha256=props.get(BUNDLE_WEIGHTS_SHA256),
                 quantization=json.loads(props[QUANTIZATION]) if QUANTIZATION in props else None,
-                input_flags=json.loads(props[INPUT_FLAGS]) if INPUT_FLAGS in props else None)
+                input_flags=json.loads(props[INPUT_FLAGS]) if INPUT_FLAGS in props else None,
+                input_errors=int(props[INPUT_ERRORS]) if INPUT_ERRORS in props else None)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{where}: unreadable radaredge metadata ({type(exc).__name__}: {exc}); "
                              f"re-export it with this radaredge") from None

@@ -10,7 +10,7 @@ from typing import Sequence
 import numpy as np
 import onnxruntime as ort
 
-from ..cards import ModelCard, card_from_yaml
+from ..cards import ModelCard, card_from_yaml, implausible_policy, plausible_ranges
 from ..errors import CapacityError, InputError
 from .flags import INPUT_ERRORS, OUTPUT as FLAGS_OUTPUT, describe
 from .metadata import GraphMetadata
@@ -26,24 +26,62 @@ def max_points_per_frame(card: ModelCard) -> int:
     return int(card.get("max_points_per_frame", DEFAULT_MAX_POINTS))
 
 
+# Frame times more than this factor apart from the card's frame period (1 / frame_rate), either
+# way, are refused: a dropped frame or two stays well inside it, while stamps in milliseconds,
+# microseconds or nanoseconds are 1e3, 1e6, 1e9 times too far apart.
+PERIOD_FACTOR = 10.0
+_TIME_UNITS = ((1e9, "nanoseconds"), (1e6, "microseconds"), (1e3, "milliseconds"))
+
+
 class FrameFeeds:
     """A point-cloud graph's inputs: checks raw frames against the card's columns and builds the
     graph's feeds. Used by :class:`RadarModel` and by int8 calibration on recordings, so both
-    feed a graph the same way."""
+    feed a graph the same way. ``refuse`` maps the columns whose values are checked against a
+    plausible (low, high) before the graph runs (a card with ``implausible: refuse``)."""
 
     def __init__(self, name: str, features: list[str], frame_inputs: list[str], timestamps_input: str | None,
-                 frame_rate: float = 10.0, where: str = "", max_points: int = DEFAULT_MAX_POINTS):
+                 frame_rate: float = 10.0, where: str = "", max_points: int = DEFAULT_MAX_POINTS,
+                 refuse: dict[str, tuple[float, float]] | None = None):
         self.name, self.features, self.frame_inputs = name, list(features), list(frame_inputs)
         self.timestamps_input, self.frame_rate, self.where = timestamps_input, float(frame_rate), where or name
         self.frames = len(self.frame_inputs)
         self.max_points = max_points
+        self.refuse = dict(refuse or {})
 
     @classmethod
     def of_card(cls, card: ModelCard, frame_inputs: list[str], timestamps_input: str | None,
                 where: str = "") -> "FrameFeeds":
         """The feeds of a graph of ``card`` taking ``frame_inputs`` (and ``timestamps_input``)."""
+        refuse = plausible_ranges(card) if implausible_policy(card) == "refuse" else None
         return cls(card.name, card.features, frame_inputs, timestamps_input, float(card.get("frame_rate", 10.0)),
-                   where, max_points_per_frame(card))
+                   where, max_points_per_frame(card), refuse)
+
+    def _check_plausible(self, k: int, a: np.ndarray) -> None:
+        for col, name in enumerate(self.features):
+            if name not in self.refuse:
+                continue
+            lo, hi = self.refuse[name]
+            bad = np.flatnonzero((a[:, col] < lo) | (a[:, col] > hi))
+            if bad.size:
+                raise InputError(f"frame {k}: point {int(bad[0])}, column '{name}': {float(a[bad[0], col])!r} is "
+                                 f"outside its plausible range [{lo:g}, {hi:g}] ({bad.size} point(s) affected; "
+                                 f"the card's plausible, implausible: refuse)")
+
+    def _check_period(self, ts: np.ndarray) -> None:
+        """InputError when consecutive frame times are not within PERIOD_FACTOR of the card's
+        frame period, naming the unit the stamps look like."""
+        period = 1.0 / self.frame_rate
+        gaps = np.diff(ts)
+        bad = np.flatnonzero((gaps > period * PERIOD_FACTOR) | (gaps < period / PERIOD_FACTOR))
+        if not bad.size:
+            return
+        gap = float(gaps[bad[0]])
+        unit = next((u for f, u in _TIME_UNITS if period * f / PERIOD_FACTOR <= gap <= period * f * PERIOD_FACTOR),
+                    None)
+        hint = f"; they look like {unit}: pass seconds" if unit else ""
+        raise InputError(f"timestamps: frames {int(bad[0])} and {int(bad[0]) + 1} are {gap:g} s apart; {self.name} "
+                         f"records at {self.frame_rate:g} Hz (a frame every {period:g} s), and frame times more than "
+                         f"{PERIOD_FACTOR:g}x off that are refused{hint}")
 
     def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Check frame count, shapes, dtype and finiteness against the card; return float32 copies."""
@@ -74,6 +112,8 @@ class FrameFeeds:
                 row, col = np.argwhere(bad)[0]
                 raise InputError(f"frame {k}: non-finite value {a[row, col]} at point {row}, column "
                                  f"'{self.features[col]}' ({int(bad.any(1).sum())} point(s) affected)")
+            if self.refuse:
+                self._check_plausible(k, a)
             out.append(a)
         return out
 
@@ -98,6 +138,7 @@ class FrameFeeds:
                     raise InputError(f"timestamps: expected {self.frames} finite values in seconds, got {timestamps!r}")
                 if (np.diff(ts) <= 0).any():
                     raise InputError(f"timestamps must increase strictly (oldest frame first), got {ts.tolist()}")
+                self._check_period(ts)
             feeds[self.timestamps_input] = (ts - ts[0]).astype(np.float32)
         return feeds
 
@@ -115,10 +156,10 @@ class RadarModel:
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
         self.weights_sha256: str = self.info.weights_sha256
-        self.inputs = FrameFeeds(self.card.name, self.info.features, self.info.frame_inputs, self.info.timestamps_input,
-                                 float(self.card.get("frame_rate", 10.0)),
-                                 f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})",
-                                 max_points_per_frame(self.card))
+        check_signature(session, self.info, self.card, path)
+        self.inputs = FrameFeeds.of_card(self.card, self.info.frame_inputs, self.info.timestamps_input,
+                                         f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})")
+        self.errors = INPUT_ERRORS if self.info.input_errors is None else self.info.input_errors
         self.frames = self.inputs.frames
         self.frame_rate = self.inputs.frame_rate
 
@@ -135,11 +176,47 @@ class RadarModel:
         out = run_session(self.session, self.feeds(frames, timestamps))
         for check in self.info.checks:        # declared by the model at export (capacity flags)
             check.apply(out)
-        refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & INPUT_ERRORS
+        refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & self.errors
         if refused.any():                      # the checks above let no such input through; the graph agrees
             k = int(np.flatnonzero(refused.ravel())[0])
             raise InputError(f"{self.path}: frame {k}: the graph flagged its input: {'; '.join(describe(refused.ravel()[k]))}")
         return out
+
+
+_ONNX_FLOAT = "tensor(float)"
+
+
+def check_signature(session: ort.InferenceSession, info: GraphMetadata, card: ModelCard, path) -> None:
+    """InputError unless the graph's own inputs and outputs are the ones its radaredge metadata
+    declares: the same names in the same order, float32 point frames [N, F] with F the card's
+    feature count, timestamps [K] float32 (a graph whose metadata was edited, or metadata copied
+    onto another graph, would otherwise fail inside onnxruntime or run on misread columns)."""
+    where = f"{path}: its radaredge metadata does not describe this graph"
+    inputs = {i.name: i for i in session.get_inputs()}
+    outputs = [o.name for o in session.get_outputs()]
+    if list(inputs) != list(info.input_names):
+        raise InputError(f"{where}: the graph's inputs are {list(inputs)}, the metadata declares {info.input_names}; "
+                         f"re-export it with radaredge")
+    if outputs != list(info.output_names):
+        raise InputError(f"{where}: the graph's outputs are {outputs}, the metadata declares {info.output_names}; "
+                         f"re-export it with radaredge")
+    if list(info.features) != card.features:
+        raise InputError(f"{where}: the metadata's feature columns {info.features} differ from its card's "
+                         f"{card.features}")
+    undeclared = [n for n in [*info.frame_inputs, info.timestamps_input] if n is not None and n not in inputs]
+    if undeclared:
+        raise InputError(f"{where}: frame or timestamp input(s) {undeclared} are not inputs of the graph")
+    for name in info.frame_inputs:
+        i = inputs[name]
+        width = i.shape[1] if len(i.shape) == 2 else None
+        if i.type != _ONNX_FLOAT or len(i.shape) != 2 or (isinstance(width, int) and width != len(card.features)):
+            raise InputError(f"{where}: input {name!r} is {i.type} {i.shape}; a point frame is float [N, "
+                             f"{len(card.features)}] (columns {card.features})")
+    if info.timestamps_input is not None:
+        i = inputs[info.timestamps_input]
+        if i.type != _ONNX_FLOAT or len(i.shape) != 1:
+            raise InputError(f"{where}: input {info.timestamps_input!r} is {i.type} {i.shape}; timestamps are "
+                             f"float [{len(info.frame_inputs)}]")
 
 
 def load(path: str | Path, threads: int = 2) -> RadarModel:

@@ -34,11 +34,11 @@ def openvino_installed() -> bool:
 class OpenVinoModel:
     """One ``.onnx`` compiled by OpenVINO for the CPU, run one request at a time."""
 
-    def __init__(self, path: Path, compiled):
+    def __init__(self, path: Path, compiled, output_names: list[str]):
         self.path = path
         self._request = compiled.create_infer_request()
-        self.output_names = [o.get_any_name() for o in compiled.outputs]
-        self._outputs = list(compiled.outputs)
+        self.output_names = output_names        # the graph's names, in order: compilation may merge
+        self._outputs = list(compiled.outputs)  # the names of outputs that share a tensor
 
     def run(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Run on ``feeds`` (input name -> array) and return every output by name (copies:
@@ -66,11 +66,13 @@ def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
         # The ONNX frontend by name: Core.read_model would also probe other formats (TensorFlow's
         # prints parse errors of its own for a file that is not ONNX).
         frontend = FrontEndManager().load_by_framework("onnx")
-        compiled = ov.Core().compile_model(frontend.convert(frontend.load(str(path))), "CPU", {
+        model = frontend.convert(frontend.load(str(path)))
+        names = [o.get_any_name() for o in model.outputs]
+        compiled = ov.Core().compile_model(model, "CPU", {
             "INFERENCE_NUM_THREADS": threads, "NUM_STREAMS": 1,
             "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32"})
     except Exception as exc:      # OpenVINO's errors end with the reason, after where it was raised
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
         raise InputError(f"{path}: OpenVINO cannot compile it for the CPU "
                          f"({lines[-1] if lines else type(exc).__name__})") from None
-    return OpenVinoModel(path, compiled)
+    return OpenVinoModel(path, compiled, names)

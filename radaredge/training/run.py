@@ -16,7 +16,6 @@ truncated checkpoint behind.
 from __future__ import annotations
 
 import json
-import os
 import random
 import time
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ import numpy as np
 import torch
 
 from ..cards import ModelCard
+from ..atomic import atomic_path, write_text
 from ..config import check_writable_dir
 from ..errors import ConfigError
 
@@ -45,18 +45,8 @@ def pick_device(name: str) -> torch.device:
 
 
 def _atomic_save(obj, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-    return path
-
-
-def _atomic_text(text: str, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
     return path
 
 
@@ -121,7 +111,7 @@ class RunDir:
         return _atomic_save(state, self.last)
 
     def write_log(self, log: dict) -> Path:
-        return _atomic_text(json.dumps(log, indent=2), self.log)
+        return write_text(self.log, json.dumps(log, indent=2))
 
     def require_last(self) -> None:
         """ConfigError unless ``last.pth`` exists (``--resume`` needs it)."""

@@ -64,6 +64,7 @@ registration order).
 
 from __future__ import annotations
 
+import math
 from typing import Dict, Tuple
 
 import torch
@@ -488,6 +489,45 @@ def upstream_state_dict(dataset: str, stage_two: bool = True, seed: int = 0) -> 
         else:
             state[key] = torch.randn(shape, generator=g)
     return state
+
+
+# Upstream's last layers of each head, initialised small in upstream (OpenPCDet's init_weights):
+# the box, direction and class convolutions of the dense head and the roi/point heads' outputs.
+HEAD_OUTPUTS = ("dense_head.conv_box.", "dense_head.conv_dir_cls.", "dense_head.conv_cls.",
+                "roi_head.reg_layers.", "roi_head.cls_layers.", "point_head.cls_layers.")
+
+
+def trained_like_state_dict(dataset: str, stage_two: bool = True, seed: int = 0) -> Dict[str, torch.Tensor]:
+    """A random state_dict with upstream's keys and shapes and the value scales of a trained
+    network (unlike :func:`upstream_state_dict`, whose unit-variance weights overflow float32
+    through the 13-layer backbone): He-normal weights of rank >= 2 (std sqrt(2 / fan_in)), the
+    last layer of each head at std 0.01, normalisation scales 1 + 0.1 N, biases and running means
+    0.05 N, running variances uniform in [0.5, 1.5], counters as in :func:`upstream_state_dict`."""
+    g = torch.Generator().manual_seed(seed)
+    state = upstream_state_dict(dataset, stage_two, seed)
+    for key, value in state.items():
+        if not value.is_floating_point():
+            continue
+        n = torch.randn(value.shape, generator=g)
+        if key.endswith("running_var"):
+            state[key] = torch.rand(value.shape, generator=g) + 0.5
+        elif value.dim() >= 2:
+            last = key.startswith(HEAD_OUTPUTS) and (key.startswith("dense_head.") or
+                                                     key.rsplit(".", 2)[-2] == str(_last_index(state, key)))
+            fan_in = value[0].numel()
+            state[key] = n * (0.01 if last else math.sqrt(2.0 / max(fan_in, 1)))
+        elif key.endswith("weight"):
+            state[key] = 1.0 + 0.1 * n
+        else:
+            state[key] = 0.05 * n
+    return state
+
+
+def _last_index(state: Dict[str, torch.Tensor], key: str) -> int:
+    """The highest layer index of the Sequential that ``key`` (``prefix.<i>.weight``) belongs to."""
+    prefix = key.rsplit(".", 2)[0]
+    return max(int(k[len(prefix) + 1:].split(".")[0]) for k in state if k.startswith(prefix + ".")
+               and k[len(prefix) + 1:].split(".")[0].isdigit())
 
 
 def openpcdet_checkpoint(state: Dict[str, torch.Tensor]) -> dict:

@@ -1,0 +1,118 @@
+"""Atomic outputs: every file radaredge writes appears complete or not at all.
+
+A file is written under a temporary name in its own directory (same file system) and renamed
+onto its final name only when it is complete (``os.replace`` is atomic on POSIX and Windows).
+A command that fails or is interrupted (Ctrl-C, SIGTERM) leaves the previous file as it was and
+removes its temporary. Outputs made of several files (an export: graph, sidecar, int8 and debug
+copies; a Des4Pos bundle) are written into a staging directory and moved into place together,
+with SIGINT and SIGTERM held back during the moves, so no interruption leaves a mix of old and
+new files. A process killed outright (SIGKILL, power loss) may leave a hidden temporary behind,
+never a partial file under a final name.
+
+Standard library only (no numpy, no torch): the runtime and the CLI use it too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import tempfile
+import threading
+from pathlib import Path
+from typing import Iterator
+
+_HELD = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back for the duration (main thread only; elsewhere a no-op): a
+    signal that arrives meanwhile is delivered when the block ends."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+def _temporary_name(path: Path) -> Path:
+    """A new hidden file beside ``path`` that keeps its suffix (``np.savez`` appends ``.npz`` to
+    a name without it), with the permissions an ordinary new file gets."""
+    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".partial{path.suffix}", dir=path.parent)
+    os.close(fd)
+    os.chmod(name, 0o666 & ~_UMASK)
+    return Path(name)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write the whole file to; renamed onto ``path`` when
+    the block ends normally, removed when it raises (KeyboardInterrupt included). The parent
+    directory is created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temporary_name(path)
+    try:
+        yield tmp
+        with signals_held():
+            os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically; returns the path."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def write_json(path: str | os.PathLike, obj, indent: int = 2) -> Path:
+    """Write ``obj`` as JSON to ``path`` atomically; returns the path."""
+    return write_text(path, json.dumps(obj, indent=indent))
+
+
+class Staging:
+    """A hidden staging directory beside ``dest`` (a directory, created if missing) whose files
+    :meth:`commit` moves into ``dest`` under the same names, all with signals held back.
+    As a context manager: the staging directory is removed when the block ends, committed or not."""
+
+    def __init__(self, dest: str | os.PathLike):
+        self.dest = Path(dest)
+        self.dest.parent.mkdir(parents=True, exist_ok=True)
+        self.dir = Path(tempfile.mkdtemp(prefix=f".{self.dest.name or 'radaredge'}.", suffix=".staging",
+                                         dir=self.dest.parent))
+
+    def path(self, final: str | os.PathLike) -> Path:
+        """Where to write the file that will become ``final`` (a path inside ``dest``)."""
+        return self.dir / Path(final).name
+
+    def commit(self) -> list[Path]:
+        """Move every staged file into ``dest``; the final paths, in name order."""
+        moved = []
+        with signals_held():
+            self.dest.mkdir(parents=True, exist_ok=True)
+            for f in sorted(self.dir.iterdir()):
+                target = self.dest / f.name
+                os.replace(f, target)
+                moved.append(target)
+        return moved
+
+    def close(self) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+    def __enter__(self) -> "Staging":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

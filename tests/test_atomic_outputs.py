@@ -1,0 +1,120 @@
+"""Atomic outputs: an export appears complete or not at all, a previous good export survives a
+failed or interrupted one, and output paths are checked before the work."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import onnx
+import pytest
+
+from radaredge import atomic, runtime
+
+from conftest import TINY_CARD, invoke
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_atomic_path_renames_on_success_and_keeps_the_old_file_on_failure(tmp_path):
+    target = tmp_path / "sub" / "report.json"
+    atomic.write_json(target, {"a": 1})
+    assert target.read_text().startswith("{") and oct(target.stat().st_mode & 0o777) != "0o600"
+    with pytest.raises(RuntimeError):
+        with atomic.atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("interrupted")
+    assert '"a": 1' in target.read_text()
+    assert sorted(p.name for p in target.parent.iterdir()) == ["report.json"]     # no temporary left
+
+
+def test_staging_commits_every_file_or_none(tmp_path):
+    dest = tmp_path / "bundle"
+    with atomic.Staging(dest) as stage:
+        stage.path(dest / "a.onnx").write_text("a")
+        stage.path(dest / "a.json").write_text("b")
+    assert not dest.exists()                                  # closed without commit: nothing moved
+    with atomic.Staging(dest) as stage:
+        stage.path(dest / "a.onnx").write_text("a")
+        stage.commit()
+    assert [p.name for p in dest.iterdir()] == ["a.onnx"]
+    assert [p.name for p in tmp_path.iterdir()] == ["bundle"]  # the staging directory is gone
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory):
+    """A good tiny export, and its files' hashes."""
+    out = tmp_path_factory.mktemp("good") / "model.onnx"
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(out))
+    assert res.exit_code == 0, res.output
+    return out, {p.name: _sha(p) for p in out.parent.iterdir()}
+
+
+def test_a_failed_export_leaves_the_previous_one(good, tmp_path):
+    out, hashes = good
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(out), "--opset", "10")
+    assert res.exit_code == 2
+    assert {p.name: _sha(p) for p in out.parent.iterdir()} == hashes
+
+
+@pytest.mark.parametrize("output, expect", [
+    ("model.json", "a graph is written to a file ending in .onnx"),
+    ("model.int8.onnx", "are the int8 and debug copies"),
+    ("model.debug.onnx", "are the int8 and debug copies"),
+])
+def test_output_paths_are_checked_first(tmp_path, output, expect):
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(tmp_path / output))
+    assert res.exit_code == 2 and expect in res.output, res.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_directory_output_receives_the_card_name(tmp_path):
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", f"{tmp_path / 'new'}/")
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["tdfanet-tiny.json", "tdfanet-tiny.onnx"]
+    (tmp_path / "existing").mkdir()
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(tmp_path / "existing"))
+    assert res.exit_code == 0 and (tmp_path / "existing" / "tdfanet-tiny.onnx").is_file(), res.output
+
+
+def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(tmp_path):
+    """`radaredge export` interrupted (SIGINT) at moments spread over its run, over a previous
+    good export of other weights (the card with another seed): the files are the previous export
+    byte for byte, or the complete new one as an uninterrupted run writes it; never a mix, a
+    partial file, a graph without its radaredge metadata or a leftover staging directory."""
+    reseeded = tmp_path / "tdfanet-tiny.yaml"
+    reseeded.write_text(TINY_CARD.read_text() + "\nseed: 7\n")
+    run = [sys.executable, "-m", "radaredge.cli", "export", "--model", "tdfanet-tiny"]
+    fresh, work, previous = tmp_path / "fresh", tmp_path / "work", tmp_path / "previous"
+    start = time.perf_counter()
+    subprocess.run(run + ["--config", str(TINY_CARD), "--output", str(fresh / "model.onnx")], check=True,
+                   capture_output=True)
+    full = time.perf_counter() - start
+    subprocess.run(run + ["--config", str(reseeded), "--output", str(previous / "model.onnx")], check=True,
+                   capture_output=True)
+    new = {p.name: _sha(p) for p in fresh.iterdir()}
+    old = {p.name: _sha(p) for p in previous.iterdir()}
+    assert old.keys() == new.keys() and old != new
+    outcomes = []
+    for fraction in (0.1, 0.3, 0.5, 0.7, 0.8, 0.9, 0.97):
+        shutil.rmtree(work, ignore_errors=True)
+        shutil.copytree(previous, work)
+        proc = subprocess.Popen(run + ["--config", str(TINY_CARD), "--output", str(work / "model.onnx")],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        time.sleep(full * fraction)
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=120)
+        now = {p.name: _sha(p) for p in work.iterdir()}
+        assert now in (old, new), f"SIGINT at {fraction:.0%} of the export left {sorted(now)}"
+        graph = onnx.load(str(work / "model.onnx"), load_external_data=False)
+        assert "radaredge.card" in {p.key for p in graph.metadata_props}
+        runtime.load(work / "model.onnx")
+        outcomes.append("kept" if now == old else "replaced")
+    assert "kept" in outcomes                                # most moments fall before the commit
