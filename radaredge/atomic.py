@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -77,9 +78,26 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return Path(path)
 
 
+def finite(obj):
+    """``obj`` with every non-finite float as None: JSON has no NaN or Infinity (Python's json
+    writes them, and strict readers refuse the document)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
+
+
+def dumps(obj, indent: int = 2) -> str:
+    """One strict JSON document (non-finite numbers as null)."""
+    return json.dumps(finite(obj), indent=indent, allow_nan=False, default=str)
+
+
 def write_json(path: str | os.PathLike, obj, indent: int = 2) -> Path:
-    """Write ``obj`` as JSON to ``path`` atomically; returns the path."""
-    return write_text(path, json.dumps(obj, indent=indent))
+    """Write ``obj`` as strict JSON (:func:`dumps`) to ``path`` atomically; returns the path."""
+    return write_text(path, dumps(obj, indent))
 
 
 class Staging:

@@ -254,6 +254,21 @@ def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None
                       progress, log, cores)
 
 
+def require_int8_copy(int8_path: Path, fp32) -> None:
+    """ConfigError unless ``int8_path`` is an int8 copy of the graph ``fp32`` (a loaded
+    :class:`radaredge.runtime.RadarModel`): quantised by radaredge, of the same card and
+    weights, so a row labelled int8 times what its label says."""
+    from . import runtime as rt
+    q = rt.load(int8_path, threads=1)
+    if q.info.quantization is None:
+        raise ConfigError(f"--int8 {int8_path} is not an int8 graph (no radaredge.quantization in its metadata); "
+                          f"write one with `radaredge export --quantize int8`")
+    if q.card.name != fp32.card.name or q.weights_sha256 != fp32.weights_sha256 or q.info.part != fp32.info.part:
+        raise ConfigError(f"--int8 {int8_path} is the int8 copy of another graph ({q.card.name}, weights "
+                          f"{q.weights_sha256[:12]}) than {fp32.path} ({fp32.card.name}, weights "
+                          f"{fp32.weights_sha256[:12]}); export both from the same card and checkpoint")
+
+
 def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino, progress,
            log, cores) -> BenchReport:
     from .exporter import build_model, default_output, graph_paths, write_export
@@ -277,6 +292,7 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
     for name, p in paths.items():
         candidate = Path(int8) if (int8 is not None and not spec.multi_graph) else p.with_suffix(".int8.onnx")
         if candidate.exists():
+            require_int8_copy(candidate, rt.load(p, threads=1))
             int8_paths[name] = candidate
     options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths, say)
     tasks = (spec.bench_tasks or (lambda c, m, p, o: default_tasks(c, spec, m, p, o)))(card, model, paths, options)

@@ -26,6 +26,7 @@ from onnxruntime.quantization import CalibrationDataReader
 
 from .cards import ModelCard
 from .data.readers import FILE_SUFFIX, infer_format, read_scan
+from .data.sequences import frame_order
 from .errors import ConfigError, InputError
 from .runtime import FrameFeeds
 
@@ -51,7 +52,8 @@ def synthetic_feeds(card: ModelCard, n: int, seed: int, graph=None) -> list[dict
 
 
 def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) -> list[Path]:
-    """The scan files of a recording, in file-name order: those directly in ``directory``, else
+    """The scan files of a recording, in frame order (:func:`radaredge.data.sequences.frame_order`):
+    those directly in ``directory``, else
     those in ``directory``/scans. Scan files are .npy and .bin, or only ``fmt``'s suffix when it
     is given. InputError when there are none."""
     directory = Path(directory)
@@ -63,7 +65,7 @@ def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) ->
     suffixes = {FILE_SUFFIX[fmt]} if fmt else set(FILE_SUFFIX.values())
     for folder in (directory, directory / "scans"):
         if folder.is_dir():
-            paths = sorted((p for p in folder.iterdir() if p.suffix in suffixes and p.is_file()), key=lambda p: p.name)
+            paths = frame_order((p for p in folder.iterdir() if p.suffix in suffixes and p.is_file()), folder)
             if paths:
                 return paths
     kinds = " or ".join(sorted(suffixes))

@@ -36,6 +36,13 @@ def _pickle_calls_code(path: str | Path) -> bool:
 def read_state_dict(path: str | Path) -> dict:
     """The state_dict inside a ``.pth`` (bare, or under OpenPCDet's ``model_state``, ``state_dict`` or
     ``model``), its values tensors; ConfigError naming the file and the problem otherwise."""
+    return read_checkpoint(path)[0]
+
+
+def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
+    """(the state_dict of :func:`read_state_dict`, the point feature columns the weights were
+    trained with when the file records them: radaredge's training checkpoints carry their card,
+    whose ``features`` give the column order the first layer's weights expect; None otherwise)."""
     try:
         with warnings.catch_warnings():            # torch warns about pickle protocols before refusing
             warnings.simplefilter("ignore")
@@ -52,6 +59,9 @@ def read_state_dict(path: str | Path) -> dict:
         else:
             why = f"damaged ({type(exc).__name__})"
         raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: {why}") from None
+    features = None
+    if isinstance(obj, dict) and isinstance(obj.get("card"), dict) and isinstance(obj["card"].get("features"), list):
+        features = [str(f) for f in obj["card"]["features"]]
     for key in ("model_state", "state_dict", "model"):
         if isinstance(obj, dict) and isinstance(obj.get(key), dict):
             obj = obj[key]
@@ -68,4 +78,4 @@ def read_state_dict(path: str | Path) -> dict:
         more = f" and {len(broken) - 5} more" if len(broken) > 5 else ""
         raise ConfigError(f"checkpoint {path}: values are not finite (NaN or Inf) in {', '.join(broken[:5])}{more}; "
                           f"a diverged training run writes such weights")
-    return obj
+    return obj, features

@@ -9,12 +9,13 @@ parity check, or a bench whose backend failed, exits 1.
 from __future__ import annotations
 
 import functools
-import json
 import sys
+import warnings
 from pathlib import Path
 
 import click
 
+from . import atomic
 from .errors import RadarEdgeError
 from .runtime.runners import RUNTIMES
 
@@ -25,30 +26,45 @@ EXTRA_OF = {"torch": "export", "onnx": "export", "onnxscript": "export", "tqdm":
             "rosbags": "ros", "openvino": "openvino", "sklearn": "dev", "scipy": "dev"}
 
 
+def _fail(message: str, as_json: bool) -> None:
+    """Exit 2 with ``error: message`` on stderr, and with ``--json`` a JSON error document on
+    stdout, so a script reading stdout always gets one document."""
+    click.echo(f"error: {message}", err=True)
+    if as_json:
+        click.echo(atomic.dumps({"error": message, "exit_code": 2}))
+    sys.exit(2)
+
+
 def _friendly_errors(fn):
     """Turn radaredge errors into one clear line on stderr and exit code 2; a missing optional
-    package into the install command that adds it."""
+    package into the install command that adds it. Warnings raised while the command runs are
+    held back and printed as ``warning:`` lines after it succeeds, so none precedes an error line."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except RadarEdgeError as exc:
-            click.echo(f"error: {exc}", err=True)
-            sys.exit(2)
-        except ModuleNotFoundError as exc:
-            top = (exc.name or "").split(".")[0]
-            if top not in EXTRA_OF:
-                raise
-            click.echo(f"error: this command needs {top}, which the base install leaves out: "
-                       f"pip install 'radaredge[{EXTRA_OF[top]}]'", err=True)
-            sys.exit(2)
-        except OSError as exc:             # a path that cannot be read or written (read-only, not a directory)
-            if exc.filename is None:
-                raise
-            why = "not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or exc
-            click.echo(f"error: {exc.filename}: {why}", err=True)
-            sys.exit(2)
+        as_json = bool(kwargs.get("as_json"))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            try:
+                result = fn(*args, **kwargs)
+            except RadarEdgeError as exc:
+                _fail(str(exc), as_json)
+            except ModuleNotFoundError as exc:
+                top = (exc.name or "").split(".")[0]
+                if top not in EXTRA_OF:
+                    raise
+                _fail(f"this command needs {top}, which the base install leaves out: "
+                      f"pip install 'radaredge[{EXTRA_OF[top]}]'", as_json)
+            except OSError as exc:             # a path that cannot be read or written (read-only, not a directory)
+                if exc.filename is None:
+                    raise
+                why = "not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or exc
+                _fail(f"{exc.filename}: {why}", as_json)
+        for message in dict.fromkeys(str(w.message) for w in caught):
+            click.echo(f"warning: {message}", err=True)
+        return result
     return wrapper
+
+
 
 
 def _progress(desc):
@@ -77,7 +93,7 @@ def _log(line: str) -> None:
 def _emit(as_json: bool, result) -> None:
     """The result as one JSON document (``--json``) or its text lines."""
     if as_json:
-        click.echo(json.dumps(result.to_dict(), indent=2))
+        click.echo(atomic.dumps(result.to_dict()))
     else:
         for line in result.lines():
             click.echo(line)
@@ -100,8 +116,8 @@ class OneLineUsageErrors(click.Group):
             sys.exit(0)
         except click.UsageError as exc:
             where = exc.ctx.command_path if exc.ctx is not None else "radaredge"
-            click.echo(f"error: {exc.format_message()} (`{where} --help` lists the options)", err=True)
-            sys.exit(2)
+            _fail(f"{exc.format_message()} (`{where} --help` lists the options)",
+                  "--json" in (sys.argv[1:] if args is None else list(args)))
         except click.Abort:
             click.echo("aborted", err=True)
             sys.exit(1)
@@ -122,7 +138,7 @@ def list_cmd(as_json):
     from .cards import available_cards, load_card
     cards = [load_card(n) for n in available_cards()]
     if as_json:
-        click.echo(json.dumps([{"name": c.name, "model": c.model, "description": c.description} for c in cards], indent=2))
+        click.echo(atomic.dumps([{"name": c.name, "model": c.model, "description": c.description} for c in cards]))
         return
     width = max((len(c.name) for c in cards), default=0)
     for c in cards:
@@ -145,7 +161,7 @@ def inspect(onnx_path, targets, as_json):
         chosen = parse_targets(targets)
     info = inspect_export(onnx_path, chosen)
     if as_json:
-        click.echo(json.dumps(info, indent=2))
+        click.echo(atomic.dumps(info))
     else:
         for i, graph in enumerate(info["graphs"]):
             if i:
@@ -262,8 +278,9 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 @main.command("make-benchmark")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Writes OUT/database/drive-00 and OUT/queries/drive-01 ...")
-@click.option("--drives", default=3, show_default=True, type=int, help="Drive 0 is the database, the rest queries.")
-@click.option("--frames", default=60, show_default=True, type=int, help="Scans per drive (10 Hz).")
+@click.option("--drives", default=3, show_default=True, type=click.IntRange(2, 64),
+              help="Drive 0 is the database, the rest queries.")
+@click.option("--frames", default=60, show_default=True, type=click.IntRange(1, 20_000), help="Scans per drive (10 Hz).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
 @click.option("--towns", default=1, show_default=True, type=click.IntRange(1, 1000),
               help="Towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
@@ -282,7 +299,7 @@ def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
              "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change}
             for town, ds in plans.items() for d in ds]
     if as_json:
-        click.echo(json.dumps({"out": str(out_dir), "seed": seed, "towns": towns, "drives": rows}, indent=2))
+        click.echo(atomic.dumps({"out": str(out_dir), "seed": seed, "towns": towns, "drives": rows}))
         return
     click.echo(f"wrote {len(plan)} drives of {frames} scans ({towns} town(s), seed {seed}) to {out_dir}:")
     for r in rows:
@@ -330,7 +347,7 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
     if hasattr(report, "plot"):
         written.append(str(report.plot(plot_path)))
     if as_json:
-        click.echo(json.dumps(report.to_dict(), indent=2))
+        click.echo(atomic.dumps(report.to_dict()))
         return
     for line in report.lines():
         click.echo(line)
@@ -396,16 +413,19 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--cities", default=1, show_default=True, type=click.IntRange(1, 1000),
               help="Cities of seeds SEED, SEED+1, ... (training data for `radaredge train --model des4pos`).")
-@click.option("--world", default=90.0, show_default=True, type=float, help="m, edge of the square city.")
-@click.option("--objects", default=70, show_default=True, type=int)
-@click.option("--poses", default=40, show_default=True, type=int, help="Query poses with descriptions, per city.")
+@click.option("--world", default=90.0, show_default=True, type=click.FloatRange(1.0, 5000.0),
+              help="m, edge of the square city.")
+@click.option("--objects", default=70, show_default=True, type=click.IntRange(1, 100_000))
+@click.option("--poses", default=40, show_default=True, type=click.IntRange(0, 100_000),
+              help="Query poses with descriptions, per city.")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
 def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, as_json):
     """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
     query poses with template descriptions ("The pose is north of a red box.")."""
-    from .data.text_city import make_city_for_card, write_cities
+    from .data.text_city import check_city_output, make_city_for_card, write_cities
     card = _card(model, config)
+    check_city_output(out_path, cities)
     if cities == 1:
         m = make_city_for_card(card, seed=seed, world=world, objects=objects, poses=poses)
         m.save(out_path)
@@ -415,7 +435,7 @@ def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, 
     rows = [{"map": p, "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
              "example": str(m.pose_text[0]) if len(m.pose_text) else None} for p, m in written]
     if as_json:
-        click.echo(json.dumps(rows[0] if cities == 1 else {"out": str(out_path), "seed": seed, "maps": rows}, indent=2))
+        click.echo(atomic.dumps(rows[0] if cities == 1 else {"out": str(out_path), "seed": seed, "maps": rows}))
         return
     for r in rows:
         click.echo(f"wrote {r['map']}: {r['cells']} cells, {r['objects']} objects, {r['poses']} described poses")

@@ -20,7 +20,6 @@ and tokens only, one cell and one hint at a time) with the weights the bundle wa
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -24,7 +24,6 @@ windows within the radius of each other).
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path

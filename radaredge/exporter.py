@@ -24,7 +24,7 @@ import torch
 from . import __version__
 from .cards import ModelCard
 from .atomic import Staging, atomic_path
-from .checkpoints import read_state_dict
+from .checkpoints import read_checkpoint
 from .errors import ConfigError, ExportError
 from .models.spec import GraphSpec, ModelSpec
 from .ops.gem import GeM
@@ -93,7 +93,12 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
     ignored. Any other missing, unexpected or shape-mismatched key is a one-line ConfigError
     naming the keys.
     """
-    obj = read_state_dict(path)
+    obj, trained_features = read_checkpoint(path)
+    features = getattr(model, "features", None)
+    if trained_features is not None and features is not None and list(features) != trained_features:
+        raise ConfigError(f"checkpoint {path} was trained on point columns {trained_features}, in that order; this "
+                          f"card's features are {list(features)}. The first layer's weights follow the column "
+                          f"order: list the card's features as the checkpoint's")
     rules = model.checkpoint_drop_rules() if hasattr(model, "checkpoint_drop_rules") else []
     own = model.state_dict()
     report = LoadReport(str(path), 0)
@@ -133,7 +138,7 @@ MAX_ABS_STATISTIC = 1e12
 
 def check_weight_values(model: torch.nn.Module, state: dict, path) -> None:
     """ConfigError naming the key unless every tensor of ``state`` has values its layer can hold:
-    a real dtype (read_state_dict refuses complex and non-finite values), magnitudes within
+    a real dtype (read_checkpoint refuses complex and non-finite values), magnitudes within
     :data:`MAX_ABS_PARAMETER` (parameters) or :data:`MAX_ABS_STATISTIC` (buffers), BatchNorm
     running variances >= 0 and GeM exponents p > 0."""
     params = {name for name, _ in model.named_parameters()}

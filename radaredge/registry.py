@@ -1,4 +1,5 @@
-"""Model name -> builder. One line per model; the card's ``model`` field picks the entry."""
+"""Model name -> builder. One line per model; the card's ``model`` field picks the entry (its
+top-level sections are :data:`radaredge.cards.CARD_SECTIONS`)."""
 
 from __future__ import annotations
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 import radaredge
 from conftest import TINY_CARD, invoke
@@ -172,7 +173,10 @@ def test_a_missing_optional_package_is_one_line_with_the_extra_to_install(monkey
                                   "pip install 'radaredge[export]'")
 
 
-def test_bench_refuses_a_missing_int8_graph_and_reports_a_failing_backend_as_a_row(tiny_export, tmp_path):
+def test_bench_takes_only_the_int8_copy_of_its_own_graph(tiny_export, tmp_path):
+    """--int8 must be an int8 copy of the bench's graph (same card and weights), or the row
+    labelled int8 would time something else: a missing file, a file that is no graph, the fp32
+    graph itself and another card's int8 graph are each one error."""
     _, _, path, _ = tiny_export
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8",
                  tmp_path / "typo.int8.onnx", "--runs", 1)
@@ -181,10 +185,15 @@ def test_bench_refuses_a_missing_int8_graph_and_reports_a_failing_backend_as_a_r
     junk.write_bytes(b"not onnx")
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8", junk,
                  "--runs", 2, "--warmup", 1, "--no-reference", "--no-openvino", "--json")
-    assert res.exit_code == 1, res.output
-    rows = {r["backend"]: r for r in json.loads(res.stdout)["tasks"]["tdfanet"]["rows"]}
-    assert rows["onnxruntime"]["status"] == "ok" and rows["onnxruntime int8"]["status"] == "error"
-    assert "onnxruntime cannot load it" in rows["onnxruntime int8"]["error"]
+    assert res.exit_code == 2 and "onnxruntime cannot load it" in res.output
+    assert json.loads(res.stdout)["exit_code"] == 2                 # --json: a JSON error document on stdout
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8", path, "--runs", 1)
+    assert res.exit_code == 2 and "is not an int8 graph" in res.output
+    reseeded = tmp_path / "tdfanet-tiny.yaml"
+    reseeded.write_text(yaml.safe_dump({**yaml.safe_load(Path(TINY_CARD).read_text()), "seed": 5}))
+    other = radaredge.export(str(reseeded), tmp_path / "other.onnx", quantize="int8").int8["tdfanet"]
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8", other, "--runs", 1)
+    assert res.exit_code == 2 and "is the int8 copy of another graph" in res.output
 
 
 def test_a_multi_graph_export_refuses_a_file_as_its_directory(tmp_path):
@@ -252,4 +261,4 @@ def test_unwritable_outputs_and_impossible_cities_are_one_error_before_any_work(
     res = invoke("make-city", "--out", blocker / "city.npz", "--poses", 2)
     assert res.exit_code == 2 and res.output.strip() == f"error: {blocker}: not a directory"
     res = invoke("make-city", "--out", tmp_path / "city.npz", "--objects", 0)
-    assert res.exit_code == 2 and "a synthetic city needs objects >= 1" in res.output
+    assert res.exit_code == 2 and "Invalid value for '--objects'" in res.output

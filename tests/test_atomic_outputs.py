@@ -13,6 +13,7 @@ from pathlib import Path
 
 import onnx
 import pytest
+import yaml
 
 from radaredge import atomic, runtime
 
@@ -90,7 +91,7 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(tmp_pat
     byte for byte, or the complete new one as an uninterrupted run writes it; never a mix, a
     partial file, a graph without its radaredge metadata or a leftover staging directory."""
     reseeded = tmp_path / "tdfanet-tiny.yaml"
-    reseeded.write_text(TINY_CARD.read_text() + "\nseed: 7\n")
+    reseeded.write_text(yaml.safe_dump({**yaml.safe_load(TINY_CARD.read_text()), "seed": 7}))
     run = [sys.executable, "-m", "radaredge.cli", "export", "--model", "tdfanet-tiny"]
     fresh, work, previous = tmp_path / "fresh", tmp_path / "work", tmp_path / "previous"
     start = time.perf_counter()

@@ -32,7 +32,7 @@ from radaredge.config import field_range
 from radaredge.data.readers import read_rosbag, read_scan
 from radaredge.data.sequences import load_sequence
 from radaredge.data.kitti360pose import TEXT2LOC_MODULE, read_cells, read_poses
-from radaredge.errors import RadarEdgeError
+from radaredge.errors import InputError, RadarEdgeError
 from radaredge.models.des4pos import FineConfig, SubmapConfig
 from radaredge.models.des4pos_config import CellConfig, TextConfig
 from radaredge.models.maffnet import BackboneConfig, SpaConfig
@@ -711,3 +711,410 @@ def test_the_catalogue_holds_at_least_250_cases():
     n = len(CLI) + len(SECTION_FIELDS) + len(TOP_LEVEL) + len(FRAMES) + len(TIMESTAMPS) + 6 + len(SCANS) + len(GPS) \
         + len(PICKLES) + len(BAGS)
     assert n >= 250, n
+
+
+# ----------------------------------------------------------------------------- classes, by generator
+# Each class of bad input below is generated: many variants of one mistake, rather than the one
+# case somebody first tried (#35). The promise is the same as above.
+
+
+
+
+def _cli(workdir, args, expect=""):
+    before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
+    res = invoke(*args)
+    assert_one_error_line(res, workdir, before, expect)
+    return res
+
+
+# -- output paths an export would have written wrongly (or over a good export)
+OUTPUT_PATHS = [(f"single-{suffix or 'none'}", "tdfanet", suffix, "ending in .onnx" if suffix not in
+                 (".int8.onnx", ".debug.onnx") else "int8 and debug copies")
+                for suffix in (".json", ".txt", "", ".onnx.json", ".pth", ".int8.onnx", ".debug.onnx", ".yaml")]
+OUTPUT_PATHS += [("bundle-over-a-file", "des4pos", "file", "exports 3 graphs into a directory"),
+                 ("bundle-as-onnx", "des4pos", ".onnx", "not one .onnx")]
+
+
+@pytest.mark.parametrize("case, model, suffix, expect", OUTPUT_PATHS, ids=[c[0] for c in OUTPUT_PATHS])
+def test_export_output_paths(files, workdir, case, model, suffix, expect):
+    card = str(TINY_CARD) if model == "tdfanet" else str(DES4POS_TINY)
+    target = workdir / f"out{suffix}"
+    if suffix == "file":
+        target = workdir / "taken"
+        target.write_text("x")
+    _cli(workdir, ["export", "--model", f"{model}-tiny", "--config", card, "--output", str(target)], expect)
+
+
+# -- timestamps in another unit than seconds, at several epochs and frame rates
+UNIT_STAMPS = [(unit, scale, epoch) for unit, scale in (("milliseconds", 1e3), ("microseconds", 1e6),
+                                                          ("nanoseconds", 1e9))
+               for epoch in (0.0, 1.7e9, 3.2e4)] + [("too-close", 1e-3, 0.0), ("too-far", 50.0, 0.0)]
+
+
+@pytest.mark.parametrize("unit, scale, epoch", UNIT_STAMPS, ids=[f"{u}-{e:g}" for u, _, e in UNIT_STAMPS])
+def test_runtime_timestamps_in_other_units(exported, unit, scale, epoch):
+    model, good = exported
+    stamps = [epoch * (scale if scale > 1 else 1) + k * scale / model.frame_rate for k in range(3)]
+    with pytest.raises(InputError) as err:
+        model.run(good, stamps)
+    message = str(err.value)
+    assert "\n" not in message and "apart" in message
+    if scale > 1 and unit.endswith("seconds"):
+        assert f"they look like {unit}" in message
+
+
+# -- gps.csv whose timestamps or positions are not seconds and metres
+GPS_UNITS = [(f"stamps-{unit}", ("t", scale)) for unit, scale in (("ms", 1e3), ("us", 1e6), ("ns", 1e9))]
+GPS_UNITS += [(f"latlon-{city}", ("latlon", lat, lon)) for city, lat, lon in
+              (("delft", 52.0116, 4.3571), ("beijing", 39.9042, 116.4074), ("sydney", -33.8688, 151.2093),
+               ("quito", -0.1807, -78.4678))]
+GPS_UNITS += [("positions-beyond-the-earth", ("offset", 3e7)), ("positions-1e30", ("offset", 1e30))]
+
+
+@pytest.mark.parametrize("case, how", GPS_UNITS, ids=[g[0] for g in GPS_UNITS])
+def test_gps_units(files, tmp_path, case, how):
+    drive = tmp_path / "drive"
+    shutil.copytree(files / "town" / "database" / "drive-00", drive)
+    rows = np.loadtxt(drive / "gps.csv", delimiter=",", skiprows=1)
+    if how[0] == "t":
+        rows[:, 0] = 1.7e9 * how[1] + (rows[:, 0] - rows[0, 0]) * how[1]
+    elif how[0] == "latlon":
+        rows[:, 1] = how[1] + (rows[:, 1] - rows[0, 1]) / 111_000
+        rows[:, 2] = how[2] + (rows[:, 2] - rows[0, 2]) / 111_000
+    else:
+        rows[:, 1:] += how[1]
+    (drive / "gps.csv").write_text("timestamp,northing,easting\n" +
+                                   "".join(f"{t!r},{n!r},{e!r}\n" for t, n, e in rows))
+    with pytest.raises(InputError) as err:
+        load_sequence(drive)
+    assert "\n" not in str(err.value) and "gps.csv" in str(err.value)
+
+
+# -- checkpoints of the right shapes with values no layer can hold
+def _state_edits():
+    from radaredge.cards import load_card
+    from radaredge.exporter import build_model
+    state = build_model(load_card(TINY_CARD)).state_dict()
+    bn = [k for k in state if k.endswith("running_var")]
+    weights = [k for k, v in state.items() if k.endswith("weight") and v.dim() >= 2]
+    edits = [(f"negative-var-{k}", k, "negvar") for k in bn[:: max(1, len(bn) // 6)]]
+    edits += [(f"huge-{k}", k, "huge") for k in weights[:: max(1, len(weights) // 6)]]
+    edits += [(f"complex-{k}", k, "complex") for k in weights[:2]]
+    edits += [(f"gem-p-{v}", "gem.p", v) for v in (0.0, -1.0, -1e-9)]
+    return edits
+
+
+CHECKPOINT_VALUES = _state_edits()
+
+
+@pytest.mark.parametrize("case, key, how", CHECKPOINT_VALUES, ids=[c[0] for c in CHECKPOINT_VALUES])
+def test_checkpoint_values(files, workdir, case, key, how):
+    state = torch.load(files / "good.pth")
+    v = state[key]
+    if how == "negvar":
+        v = v.clone()
+        v.view(-1)[0] = -0.5
+    elif how == "huge":
+        v = v * 1e7 + 1e7
+    elif how == "complex":
+        v = v.to(torch.complex64)
+    else:
+        v = torch.full_like(v, how)
+    torch.save({**state, key: v}, workdir / "bad.pth")
+    expect = "complex" if how == "complex" else key
+    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--checkpoint",
+                   str(workdir / "bad.pth"), "--output", str(workdir / "out" / "x.onnx")], expect)
+
+
+# -- graphs whose radaredge metadata does not describe them
+def _edit_metadata(src: Path, dst: Path, key: str, change) -> Path:
+    proto = onnx.load(str(src))
+    for prop in proto.metadata_props:
+        if prop.key == key:
+            prop.value = change(prop.value)
+    onnx.save(proto, str(dst))
+    return dst
+
+
+def _inputs(change):
+    import json
+
+    def edit(text):
+        d = json.loads(text)
+        change(d)
+        return json.dumps(d)
+    return edit
+
+
+METADATA = [
+    ("input-renamed", "radaredge.inputs", _inputs(lambda d: d["names"].__setitem__(0, "scan_0"))),
+    ("inputs-reordered", "radaredge.inputs", _inputs(lambda d: d["names"].reverse())),
+    ("frame-not-an-input", "radaredge.inputs", _inputs(lambda d: d["frames"].__setitem__(1, "points_9"))),
+    ("timestamps-not-an-input", "radaredge.inputs", _inputs(lambda d: d.__setitem__("timestamps", "time"))),
+    ("timestamps-as-frame", "radaredge.inputs", _inputs(lambda d: d["frames"].__setitem__(2, "timestamps"))),
+    ("output-renamed", "radaredge.outputs", lambda t: t.replace("descriptor_normalized", "embedding")),
+    ("output-dropped", "radaredge.outputs", lambda t: t.replace(', "input_flags"', "")),
+    ("output-added", "radaredge.outputs", lambda t: t.replace("]", ', "boxes"]')),
+    ("features-reordered", "radaredge.features", lambda t: t.replace('"v_r", "rcs"', '"rcs", "v_r"')),
+    ("features-extra", "radaredge.features", lambda t: t.replace("]", ', "snr"]')),
+    ("input-errors-text", "radaredge.input_errors", lambda t: "many"),
+]
+
+
+@pytest.mark.parametrize("case, key, change", METADATA, ids=[m[0] for m in METADATA])
+def test_graph_metadata_that_does_not_describe_the_graph(files, workdir, case, key, change):
+    bad = _edit_metadata(files / "tiny.onnx", workdir / "bad.onnx", key, change)
+    with pytest.raises(InputError) as err:
+        runtime.load(bad)
+    assert "\n" not in str(err.value)
+    for args in (["bench", "--runs", "1"], ["parity-check", "--cases", "1"]):
+        _cli(workdir, [args[0], "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", str(bad), *args[1:]])
+
+
+def test_metadata_copied_onto_a_foreign_graph(files, workdir, tmp_path):
+    """A MAFF-Net graph carrying the TDFANet graph's radaredge metadata."""
+    import radaredge
+    maff = radaredge.export(str(MAFF_TINY), tmp_path / "maff.onnx").path
+    proto, donor = onnx.load(str(maff)), onnx.load(str(files / "tiny.onnx"))
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(donor.metadata_props)
+    onnx.save(proto, str(workdir / "foreign.onnx"))
+    with pytest.raises(InputError, match="does not describe this graph"):
+        runtime.load(workdir / "foreign.onnx")
+    _cli(workdir, ["inspect", str(workdir / "foreign.onnx")], "does not describe this graph")
+
+
+# -- Des4Pos bundles and maps
+@pytest.fixture(scope="module")
+def des4pos_bundle(tmp_path_factory):
+    import radaredge
+    from radaredge.data.text_city import make_city_for_card
+    from radaredge.cards import load_card
+    d = tmp_path_factory.mktemp("des4pos")
+    radaredge.export(str(DES4POS_TINY), d / "bundle")
+    make_city_for_card(load_card(DES4POS_TINY), seed=0, world=60.0, objects=30, poses=3).save(d / "city.npz")
+    return d
+
+
+def _map_edit(path: Path, dst: Path, how: str) -> Path:
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    if how == "no-cells":
+        data = {k: (v[:0] if v.ndim and k not in ("pose_w", "pose_cell", "pose_text") else v) for k, v in data.items()}
+    elif how == "nan-origin":
+        data["origins"][1, 0] = np.nan
+    elif how == "inf-origin":
+        data["origins"][0, 1] = np.inf
+    elif how == "float-mask":
+        data["object_mask"] = data["object_mask"].astype(np.float32)
+    elif how == "string-points":
+        data["points"] = data["points"].astype(str)
+    elif how == "int-ids":
+        data["ids"] = np.arange(len(data["ids"]))
+    elif how == "nan-pose":
+        data["pose_w"][0, 0] = np.nan
+    elif how == "short-pose-text":
+        data["pose_text"] = data["pose_text"][:1]
+    elif how == "zero-size":
+        data["sizes"][0] = 0.0
+    np.savez(dst, **data)
+    return dst
+
+
+MAPS = ["no-cells", "nan-origin", "inf-origin", "float-mask", "string-points", "int-ids", "nan-pose",
+        "short-pose-text", "zero-size"]
+
+
+@pytest.mark.parametrize("how", MAPS)
+def test_des4pos_maps(des4pos_bundle, workdir, how):
+    bad = _map_edit(des4pos_bundle / "city.npz", workdir / "bad.npz", how)
+    before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
+    res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", str(des4pos_bundle / "bundle"), "--map",
+                 str(bad), "--text", "The pose is north of a red box.", "--no-cache")
+    assert_one_error_line(res, workdir, before)
+
+
+BUNDLES = [("manifest-not-json", "bundle.json", b"{parts: nope"), ("manifest-list", "bundle.json", b"[1, 2]"),
+           ("manifest-no-parts", "bundle.json", b'{"weights_sha256": "x"}'),
+           ("manifest-parts-text", "bundle.json", b'{"weights_sha256": "x", "parts": "all"}'),
+           ("manifest-onnx-escapes", "bundle.json",
+            b'{"weights_sha256": "x", "parts": {"submap_encoder": {"onnx": "../x.onnx"}}}'),
+           ("manifest-binary", "bundle.json", b"\xff\xfe\x00" * 20),
+           ("tokenizer-garbage", "tokenizer.json", b"{not a tokenizer"),
+           ("tokenizer-empty", "tokenizer.json", b""),
+           ("tokenizer-binary", "tokenizer.json", b"\x00\x01" * 50)]
+
+
+@pytest.mark.parametrize("case, name, content", BUNDLES, ids=[b[0] for b in BUNDLES])
+def test_des4pos_bundles(des4pos_bundle, workdir, case, name, content):
+    bundle = workdir / "bundle"
+    shutil.copytree(des4pos_bundle / "bundle", bundle)
+    (bundle / name).write_bytes(content)
+    before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
+    res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", str(bundle), "--map",
+                 str(des4pos_bundle / "city.npz"), "--text", "The pose is north of a red box.", "--no-cache")
+    assert_one_error_line(res, workdir, before, name)
+
+
+# -- generators asked for more than a machine holds
+GENERATORS = [(f"make-benchmark-{opt}-{v}", ["make-benchmark", "--out", "b", opt, str(v)], opt)
+              for opt, values in (("--drives", (0, 1, 65, 10**9)), ("--frames", (0, -5, 20_001, 10**12)),
+                                  ("--towns", (0, 1001, 10**9)))
+              for v in values]
+GENERATORS += [(f"make-city-{opt}-{v}", ["make-city", "--out", "c.npz", opt, str(v)], opt.lstrip("-"))
+               for opt, values in (("--world", (0, 0.5, 5001, 1e12, "nan", "inf")), ("--objects", (0, 100_001, 10**12)),
+                                   ("--poses", (-1, 100_001, 10**12)), ("--cities", (0, 1001)))
+               for v in values]
+GENERATORS += [("make-city-world-objects-budget", ["make-city", "--out", "c.npz", "--world", "5000", "--objects",
+                                                    "100000"], "--world"),
+               ("make-city-out-no-npz", ["make-city", "--out", "city"], "name it city.npz"),
+               ("make-city-out-directory", ["make-city", "--out", "d/"], "a directory"),
+               ("make-city-cities-out-file", ["make-city", "--out", "taken.npz", "--cities", "2"], "an existing file")]
+
+
+@pytest.mark.parametrize("case, args, expect", GENERATORS, ids=[g[0] for g in GENERATORS])
+def test_generators_are_bounded(workdir, case, args, expect):
+    if "taken.npz" in args:
+        (workdir / "taken.npz").write_text("x")
+    _cli(workdir, args, expect)
+
+
+# -- scan files whose names do not give one frame order
+ORDERS = [["1.npy", "01.npy"], ["frame_2.npy", "frame_002.npy"], ["0.npy", "00.npy", "1.npy"], ["a7.npy", "a07.npy"]]
+
+
+@pytest.mark.parametrize("names", ORDERS, ids=["+".join(n) for n in ORDERS])
+def test_ambiguous_scan_names(tmp_path, names):
+    (tmp_path / "scans").mkdir()
+    for i, name in enumerate(names):
+        np.save(tmp_path / "scans" / name, np.zeros((3, 5), np.float32))
+    (tmp_path / "gps.csv").write_text("timestamp,northing,easting\n" +
+                                      "".join(f"{i * 0.1},{i},0\n" for i in range(len(names))))
+    with pytest.raises(InputError, match="name the same frame number"):
+        load_sequence(tmp_path)
+
+
+# -- KITTI360Pose pickles of shared references (a few kilobytes naming billions of numbers)
+BOMBS = [(depth, width) for depth in (2, 3, 4) for width in (200, 1000)]
+
+
+@pytest.mark.parametrize("depth, width", BOMBS, ids=[f"depth{d}-width{w}" for d, w in BOMBS])
+def test_pickle_bombs(tmp_path, text2loc, depth, width):
+    def make(name, attrs):
+        obj = getattr(text2loc, name)()
+        obj.__dict__.update(attrs)
+        return obj
+
+    nested = [0.5, 0.5, 0.5]
+    for _ in range(depth):
+        nested = [nested] * width
+    obj = make("Object3d", dict(xyz=nested, rgb=nested, label="car"))
+    cell = make("Cell", dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0), objects=[obj] * width))
+    path = tmp_path / "cells.pkl"
+    path.write_bytes(pickle.dumps([cell] * width))
+    assert path.stat().st_size < 200_000
+    with pytest.raises(InputError) as err:
+        read_cells(path)
+    assert "\n" not in str(err.value)
+
+
+# -- cards taken too loosely
+def _card_text(edit: str) -> str:
+    text = TINY_CARD.read_text()
+    if edit == "duplicate-top":
+        return text + "\nframes: 3\n"
+    if edit == "repeated-section":
+        return text + "\npillars:\n  out_channels: 8\n"
+    if edit == "duplicate-nested":
+        return text.replace("pillars:\n", "pillars:\n  out_channels: 4\n", 1) if "out_channels" in text else \
+            text.replace("pillars:\n", "pillars:\n  bn_eps: 0.001\n  bn_eps: 0.01\n", 1)
+    if edit.startswith("misspelt-"):
+        return text + f"\n{edit.split('-', 1)[1]}:\n  out_channels: 8\n"
+    if edit.startswith("nested-"):
+        depth = int(edit.split("-")[1])
+        return text + "\nextra: " + "[" * depth + "]" * depth + "\n"
+    if edit.startswith("digits-"):
+        return text + "\nmax_points_per_frame: " + "9" * int(edit.split("-")[1]) + "\n"
+    raise AssertionError(edit)
+
+
+CARD_TEXTS = [("duplicate-top", "given twice"), ("repeated-section", "given twice"), ("duplicate-nested", "given twice"),
+              *[(f"misspelt-{name}", name) for name in ("pillarz", "netwrok", "preproces", "pilars", "quantisation")],
+              *[(f"nested-{d}", "nested deeper") for d in (20, 200, 5000)],
+              *[(f"digits-{n}", "digits") for n in (20, 400, 5000)]]
+
+
+@pytest.mark.parametrize("edit, expect", CARD_TEXTS, ids=[c[0] for c in CARD_TEXTS])
+def test_cards_parsed_strictly(files, workdir, edit, expect):
+    card = workdir / "card.yaml"
+    card.write_text(_card_text(edit))
+    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(card), "--output", str(workdir / "o" / "x.onnx")],
+         expect)
+    bad = _edit_metadata(files / "tiny.onnx", workdir / "carded.onnx", "radaredge.card", lambda t: _card_text(edit))
+    _cli(workdir, ["inspect", str(bad)], expect)                   # the card inside a graph, parsed the same way
+
+
+GRIDS = [("tdfanet-voxel-0.05", TINY_CARD, lambda d: d["pillars"].update(voxel_size=[0.05, 0.05, 5.0],
+                                                                         point_cloud_range=[0, -40, -3, 70, 40, 2],
+                                                                         out_channels=64), "MiB BEV map"),
+         ("tdfanet-channels", TINY_CARD, lambda d: d["pillars"].update(point_cloud_range=[0, -40, -3, 70, 40, 2],
+                                                                       voxel_size=[0.1, 0.1, 5.0], out_channels=512),
+          "MiB BEV map"),
+         ("maffnet-cfa-map", MAFF_TINY, lambda d: d["cfa"]["grid"].update(map_h=4096, map_w=4096), "cells"),
+         ("dbscan-map", MAFF_DBSCAN, lambda d: d["cfa"]["dbscan"].update(map_rows=2048, map_cols=2048), "cells")]
+
+
+@pytest.mark.parametrize("case, base, edit, expect", GRIDS, ids=[g[0] for g in GRIDS])
+def test_grids_the_runtime_cannot_allocate(workdir, case, base, edit, expect):
+    card = _card_with(base, workdir / "card.yaml", edit)
+    model = yaml.safe_load(card.read_text())["name"]
+    _cli(workdir, ["export", "--model", model, "--config", str(card), "--output", str(workdir / "o" / "x.onnx")], expect)
+
+
+def test_features_reordered_against_a_trained_checkpoint(files, workdir):
+    """A training checkpoint records its card: a card that lists the same columns in another order
+    is refused (the first layer's weights follow the column order)."""
+    state = torch.load(files / "good.pth")
+    data = yaml.safe_load(TINY_CARD.read_text())
+    torch.save({"model_state": state, "card": data, "epoch": 1}, workdir / "trained.pth")
+    card = _card_with(TINY_CARD, workdir / "card.yaml",
+                      lambda d: d.__setitem__("features", ["x", "y", "z", "rcs", "v_r"]))
+    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(card), "--checkpoint",
+                   str(workdir / "trained.pth"), "--output", str(workdir / "o" / "x.onnx")], "in that order")
+
+
+# -- one implausible value, column by column, on a card that refuses them
+@pytest.fixture(scope="module")
+def refusing(tmp_path_factory):
+    import radaredge
+    d = tmp_path_factory.mktemp("refusing")
+    card = _card_with(MAFF_TINY, d / "maffnet-tiny.yaml", lambda c: c.__setitem__("implausible", "refuse"))
+    return runtime.load(radaredge.export(str(card), d / "m.onnx").path, threads=1)
+
+
+IMPLAUSIBLE_VALUES = [(c, v) for c in range(3, 7) for v in (1e4, -1e4, 3.4e38, -3.4e38, 101.0)]
+
+
+@pytest.mark.parametrize("column, value", IMPLAUSIBLE_VALUES, ids=[f"col{c}-{v:g}" for c, v in IMPLAUSIBLE_VALUES])
+def test_implausible_values_refused(refusing, column, value):
+    points = np.zeros((20, 7), np.float32)
+    points[:, 0] = np.linspace(1, 10, 20)
+    points[7, column] = value
+    if column == 6 and abs(value) == 101.0:
+        points[7, column] = 11.0                                   # time: plausible within +-10 s
+    with pytest.raises(InputError, match=f"point 7, column '{refusing.features[column]}'"):
+        refusing.run(points)
+
+
+# -- --json: one JSON document on stdout, also for a failure
+JSON_FAILURES = [c for c in CLI if c[1] and c[1][0] in ("export", "parity-check", "bench", "eval", "inspect", "locate",
+                                                         "make-city", "make-benchmark", "train")][:40]
+
+
+@pytest.mark.parametrize("case, args, expect", JSON_FAILURES, ids=[c[0] for c in JSON_FAILURES])
+def test_json_failures_print_a_json_document(files, workdir, case, args, expect):
+    import json
+    res = invoke(*[a.format(f=files) for a in args], "--json")
+    assert res.exit_code == 2, res.output
+    doc = json.loads(res.stdout)
+    assert doc["exit_code"] == 2 and doc["error"]

@@ -129,3 +129,31 @@ def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx), "--runs", "2",
                  "--warmup", "1", "--no-reference")
     assert res.exit_code == 0 and "| onnxruntime int8 |" in res.output and "int8 vs fp32" in res.output
+
+
+def test_warnings_wait_for_success_and_never_precede_an_error(monkeypatch):
+    """A RuntimeWarning raised while a command runs is printed after it succeeds, as one
+    ``warning:`` line; when the command then fails, stderr holds the error line alone."""
+    import warnings
+
+    import radaredge.api
+    from radaredge.errors import ConfigError
+
+    def noisy(*args, **kwargs):
+        warnings.warn("overflow encountered in multiply", RuntimeWarning)
+        warnings.warn("overflow encountered in multiply", RuntimeWarning)
+        raise ConfigError("the card is wrong")
+
+    monkeypatch.setattr(radaredge.api, "export", noisy)
+    res = CliRunner().invoke(main, ["export", "--model", "tdfanet-tiny", "--config", TINY])
+    assert res.exit_code == 2 and res.stderr == "error: the card is wrong\n"
+    res = CliRunner().invoke(main, ["export", "--model", "tdfanet-tiny", "--config", TINY, "--json"])
+    assert res.exit_code == 2 and json.loads(res.stdout) == {"error": "the card is wrong", "exit_code": 2}
+
+
+def test_json_documents_are_strict_json():
+    """Non-finite numbers (a training metric before the first validation) become null."""
+    from radaredge.atomic import dumps as _dumps
+    text = _dumps({"loss": float("nan"), "recall": [float("inf"), 1.0], "n": 3})
+    assert json.loads(text) == {"loss": None, "recall": [None, 1.0], "n": 3}
+    assert "NaN" not in text and "Infinity" not in text

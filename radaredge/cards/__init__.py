@@ -10,6 +10,7 @@ of any card file; ``$RADAREDGE_CARDS`` points the by-name lookup at another dire
 
 from __future__ import annotations
 
+import difflib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +55,19 @@ MAX_PLAUSIBLE = 3.0e38               # inside float32: the graphs compare in flo
 # a window's points are ranked by a float32 CumSum (RANSAC order; TensorRT takes no integer
 # CumSum), exact up to 2**24; the graph adds at most a few padding rows
 MAX_WINDOW_POINTS = 2**24 - 64
+
+
+# Top-level card fields every model takes, and each model's own sections: any other field of a
+# card of that model is refused, so a misspelt section is an error rather than a section left
+# silently at its defaults.
+COMMON_FIELDS = ("name", "description", "model", "features", "seed", "frames", "frame_rate", "max_points_per_frame",
+                 "classes", "plausible", "implausible", "quantization")
+CARD_SECTIONS = {
+    "tdfanet": ("preprocess", "pillars", "network"),
+    "maffnet": ("pillars", "spa", "cfa", "caf", "backbone_2d", "dense_head", "post_processing", "stage_two", "input",
+                "init"),
+    "des4pos": ("cell", "submap", "text", "fine"),
+}
 
 
 def cards_dir() -> Path:
@@ -141,6 +155,13 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
     classes = data.get("classes", [])
     if not isinstance(classes, list) or not all(isinstance(c, str) and c for c in classes):
         raise ConfigError(f"{where}: classes must be a list of class names, got {classes!r}")
+    known = COMMON_FIELDS + CARD_SECTIONS.get(data["model"], ())
+    unknown = [k for k in data if k not in known]
+    if unknown and data["model"] in CARD_SECTIONS:
+        hints = [f"{k!r} (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(str(k), known, 1))
+                 else repr(k) for k in unknown]
+        raise ConfigError(f"{where}: unknown top-level field(s) {', '.join(hints)}; a {data['model']} card takes "
+                          f"{', '.join(known)}")
     card = ModelCard(data=data, path=path)
     _given_ranges(card)
     implausible_policy(card)
@@ -218,16 +239,52 @@ def load_card(name_or_path: str | Path) -> ModelCard:
 MAX_CARD_BYTES = 256 * 1024      # the largest shipped card is a few KiB
 
 
+MAX_CARD_DEPTH = 16       # nesting levels; the shipped cards use 5
+MAX_INT_DIGITS = 19       # a card's integers are counts and sizes: 64-bit at most
+
+
 class _NoAliasLoader(yaml.SafeLoader):
-    """PyYAML's safe loader without anchors and aliases: cards never need them, and a few nested
-    aliases expand to gigabytes (a "billion laughs" card inside an .onnx's metadata)."""
+    """PyYAML's safe loader, strict: no anchors and aliases (cards never need them, and a few
+    nested aliases expand to gigabytes: a "billion laughs" card inside an .onnx's metadata), no
+    key given twice in one mapping (YAML's last one would win silently, a repeated section
+    included), at most :data:`MAX_CARD_DEPTH` levels of nesting and integers of at most
+    :data:`MAX_INT_DIGITS` digits."""
 
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
             raise yaml.composer.ComposerError(None, None, "anchors and aliases are not allowed in a model card",
                                               event.start_mark)
-        return super().compose_node(parent, index)
+        self._depth = getattr(self, "_depth", 0) + 1
+        try:
+            if self._depth > MAX_CARD_DEPTH:
+                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_CARD_DEPTH} levels",
+                                                  self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice in one mapping (first at line {seen[key] + 1}); "
+                    "a card names each field once", key_node.start_mark)
+            if isinstance(key, (str, int, float, bool)):
+                seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep)
+
+    def construct_yaml_int(self, node):
+        digits = sum(c.isdigit() for c in str(node.value))
+        if digits > MAX_INT_DIGITS:
+            raise yaml.constructor.ConstructorError(None, None, f"an integer of {digits} digits; a card's integers "
+                                                    f"have at most {MAX_INT_DIGITS}", node.start_mark)
+        return super().construct_yaml_int(node)
+
+
+_NoAliasLoader.add_constructor("tag:yaml.org,2002:int", _NoAliasLoader.construct_yaml_int)
 
 
 def read_yaml(text: str, where: str):

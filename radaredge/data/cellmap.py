@@ -46,6 +46,9 @@ class CellMap:
         return self.points.shape[1], self.points.shape[2]
 
     def save(self, path: str | Path) -> Path:
+        """Write the map to ``path`` (a .npz) atomically; returns the path."""
+        if Path(path).suffix != ".npz":
+            raise InputError(f"{path}: a cell map is written to a .npz file")
         with atomic_path(path) as tmp:
             np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in self.__dict__.items()})
         return Path(path)
@@ -82,8 +85,21 @@ def load_map(path: str | Path, slots: int | None = None, points: int | None = No
 
 
 def validate_map(m: CellMap, where: str = "map", slots: tuple[int, int] | None = None) -> None:
-    """InputError naming the cell (and object) that breaks the layout."""
+    """InputError naming the cell (and object) that breaks the layout or holds values of the
+    wrong kind (names as text, positions and points as finite numbers, the object mask boolean)."""
+    kinds = {"ids": "U", "scenes": "U", "labels": "U", "origins": "fiu", "sizes": "fiu", "points": "f",
+             "num_points": "fiu", "object_mask": "b", "pose_w": "fiu", "pose_cell": "U", "pose_text": "U"}
+    for name, kind in kinds.items():
+        value = getattr(m, name)
+        if not isinstance(value, np.ndarray) or value.dtype.kind not in kind:
+            got = value.dtype if isinstance(value, np.ndarray) else type(value).__name__
+            want = {"U": "text", "fiu": "numbers", "f": "floating-point numbers", "b": "booleans"}[kind]
+            raise InputError(f"{where}: {name} must hold {want}, got {got}")
     c = len(m.ids)
+    if c == 0 or m.ids.ndim != 1:
+        raise InputError(f"{where}: the map holds no cell (ids {m.ids.shape}); a map needs at least one cell")
+    if m.scenes.shape != (c,) or m.labels.shape != m.points.shape[:2]:
+        raise InputError(f"{where}: scenes must be [{c}] and labels [{c}, objects]")
     if m.points.ndim != 4 or m.points.shape[0] != c or m.points.shape[3] != 6:
         raise InputError(f"{where}: points must be [cells, objects, points, 6] (x, y, z, r, g, b), got {m.points.shape}")
     if slots is not None and m.points.shape[1:3] != tuple(slots):
@@ -93,6 +109,16 @@ def validate_map(m: CellMap, where: str = "map", slots: tuple[int, int] | None =
         raise InputError(f"{where}: object_mask and num_points must be [{c}, {m.points.shape[1]}]")
     if m.origins.shape != (c, 2) or m.sizes.shape != (c,):
         raise InputError(f"{where}: origins must be [{c}, 2] and sizes [{c}] (m)")
+    if not np.isfinite(m.origins).all():
+        ci = int(np.flatnonzero(~np.isfinite(m.origins).all(1))[0])
+        raise InputError(f"{where}: cell {m.ids[ci]} has a non-finite origin {m.origins[ci].tolist()}")
+    q = len(m.pose_w)
+    if m.pose_w.size == m.pose_cell.size == m.pose_text.size == 0:
+        return
+    if m.pose_w.shape != (q, 2) or m.pose_cell.shape != (q,) or m.pose_text.shape != (q,) \
+            or not np.isfinite(m.pose_w).all():
+        raise InputError(f"{where}: described poses need pose_w [Q, 2] finite m, pose_cell [Q] and pose_text [Q]; got "
+                         f"{m.pose_w.shape}, {m.pose_cell.shape}, {m.pose_text.shape}")
     empty = np.flatnonzero(~m.object_mask.any(1))
     if len(empty):
         raise InputError(f"{where}: cell {m.ids[empty[0]]} has no object ({len(empty)} empty cell(s)); drop empty cells")
@@ -126,11 +152,18 @@ def sample_object(xyz: np.ndarray, rgb: np.ndarray, n: int, key: str) -> np.ndar
     return np.concatenate([xyz[idx], rgb[idx]], 1).astype(np.float32)
 
 
+MAX_PACKED_BYTES = 4 * 2**30      # one map's packed object points (float32)
+
+
 def pack_cells(cells: list[dict], slots: int, points: int, where: str = "map") -> CellMap:
     """Pack cells ``{id, scene, origin, size, objects: [{xyz [N,3], rgb [N,3], label}]}`` into
     slots. Objects beyond ``slots`` are dropped, smallest first (their count is kept in
     ``dropped_objects``). InputError names the cell and object with malformed points."""
     c = len(cells)
+    need = c * slots * points * 6 * 4
+    if need > MAX_PACKED_BYTES:
+        raise InputError(f"{where}: {c} cells of {slots} objects x {points} points pack into {need / 2**30:.1f} GiB; "
+                         f"at most {MAX_PACKED_BYTES / 2**30:g} GiB per map (split the map)")
     out = CellMap(ids=np.array([x["id"] for x in cells], dtype=str), scenes=np.array([x["scene"] for x in cells], dtype=str),
                   origins=np.zeros((c, 2)), sizes=np.zeros(c), points=np.zeros((c, slots, points, 6), np.float32),
                   num_points=np.zeros((c, slots), np.float32), object_mask=np.zeros((c, slots), bool),

@@ -108,16 +108,47 @@ def _text(obj, attr: str, where: str) -> str:
 
 
 def _list(obj, attr: str, where: str) -> list | tuple:
-    """A list field (a cell's objects, a pose's descriptions)."""
+    """A list field (a cell's objects, a pose's descriptions), at most :data:`MAX_ITEMS` long."""
     value = _get(obj, attr, where)
     if not isinstance(value, (list, tuple)):
         raise InputError(f"{where}: {attr} must be a list, got {type(value).__name__}")
+    if len(value) > MAX_ITEMS:
+        raise InputError(f"{where}: {attr} has {len(value):,} entries; at most {MAX_ITEMS:,}")
     return value
+
+
+# What one pickle may make radaredge build: pickle's memo lets a few kilobytes name one list
+# from many places, so nested lists of shared lists describe billions of numbers; they are
+# counted, shared parts as often as they occur, before any array is built.
+MAX_ARRAY_VALUES = 10**7        # numbers in one field (an object's points: a few thousand x 3)
+MAX_ITEMS = 10**6               # cells, objects of a cell, poses, descriptions of a pose
+MAX_FILE_VALUES = 10**8         # numbers in one file's objects (a KITTI360Pose scene holds a few million)
+
+
+def _count_values(value, limit: int, where: str, attr: str) -> None:
+    """InputError when the nested lists/tuples of ``value`` hold more than ``limit`` leaves."""
+    stack, count = [value], 0
+    while stack:
+        v = stack.pop()
+        if isinstance(v, (list, tuple)):
+            count += len(v) if not v or not isinstance(v[0], (list, tuple)) else 0
+            if count > limit:
+                break
+            stack.extend(x for x in v if isinstance(x, (list, tuple)))
+        elif isinstance(v, np.ndarray):
+            count += v.size
+        if count > limit:
+            break
+    if count > limit:
+        raise InputError(f"{where}: {attr} unpacks into more than {limit:,} values (nested references to shared "
+                         f"lists); a KITTI360Pose field holds an object's points at most")
 
 
 def _array(obj, attr: str, where: str, shape: tuple) -> np.ndarray:
     """A finite float64 array field whose shape matches ``shape`` (None: any length)."""
     value = _get(obj, attr, where)
+    if isinstance(value, (list, tuple)):
+        _count_values(value, MAX_ARRAY_VALUES, where, attr)
     try:
         arr = np.asarray(value, np.float64)
     except (TypeError, ValueError):
@@ -147,7 +178,9 @@ def read_cells(path: str | Path) -> list[dict]:
     cells = read_pickle(path)
     if not isinstance(cells, list):
         raise InputError(f"{path}: expected a list of cells, got {type(cells).__name__}")
-    raw = []
+    if len(cells) > MAX_ITEMS:
+        raise InputError(f"{path}: {len(cells):,} cells; at most {MAX_ITEMS:,}")
+    raw, total = [], 0
     for i, c in enumerate(cells):
         where = f"{path}: cell {i}"
         cid = _text(c, "id", where)
@@ -160,6 +193,10 @@ def read_cells(path: str | Path) -> list[dict]:
         for j, o in enumerate(_list(c, "objects", where)):
             at = f"{where}, object {j}"
             xyz = _array(o, "xyz", at, (None, 3))
+            total += 2 * xyz.size
+            if total > MAX_FILE_VALUES:
+                raise InputError(f"{at}: the file's objects hold more than {MAX_FILE_VALUES:,} numbers (nested "
+                                 f"references to shared objects?); a KITTI360Pose scene holds a few million")
             objs.append({"xyz": xyz, "rgb": _array(o, "rgb", at, (len(xyz), 3)), "label": _text(o, "label", at)})
         raw.append({"id": cid, "scene": _text(c, "scene_name", where), "origin": bbox[:2], "size": float(size),
                     "objects": objs})
@@ -172,6 +209,8 @@ def read_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     poses = read_pickle(path)
     if not isinstance(poses, list):
         raise InputError(f"{path}: expected a list of poses, got {type(poses).__name__}")
+    if len(poses) > MAX_ITEMS:
+        raise InputError(f"{path}: {len(poses):,} poses; at most {MAX_ITEMS:,}")
     pose_w, pose_cell, pose_text = [], [], []
     for i, p in enumerate(poses):
         where = f"{path}: pose {i}"

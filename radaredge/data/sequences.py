@@ -3,8 +3,9 @@
 Directory layout of one drive::
 
     DIR/
-      scans/      one scan file per frame, frames in file-name order (zero-pad the numbers:
-                  000000.npy, 000001.npy, ...): .npy for fmt "transloc" (the default),
+      scans/      one scan file per frame, frames in file-name order with the numbers in
+                  names compared as numbers (0.npy, 1.npy, ..., 10.npy; 000000.npy, ...):
+                  .npy for fmt "transloc" (the default),
                   .bin for fmt "vod" or "tj4d"; files with another suffix are ignored
       gps.csv     a header line naming at least the columns timestamp, northing, easting
                   (in any order; other columns are ignored), then one row per scan, in the
@@ -97,13 +98,30 @@ def _check_increasing(timestamps: np.ndarray, where: str) -> None:
                          f"not after row {i - 1}'s {float(timestamps[i - 1])!r} s")
 
 
+def _natural_key(name: str) -> tuple:
+    """``name`` split into text and numbers, numbers compared as numbers: 2.npy before 10.npy."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name) if part)
+
+
+def frame_order(paths, where) -> list[Path]:
+    """Scan files in frame order: by name, with the numbers in names compared as numbers (0.npy,
+    1.npy, ..., 10.npy, not 0, 1, 10, 11, ..., 2); InputError naming both files when two names
+    give the same order (1.npy and 01.npy), which leaves the frame order undefined."""
+    paths = sorted(paths, key=lambda p: (_natural_key(p.name), p.name))
+    for a, b in zip(paths, paths[1:]):
+        if _natural_key(a.name) == _natural_key(b.name):
+            raise InputError(f"{where}: {a.name} and {b.name} name the same frame number; name scans by frame "
+                             f"(000000{a.suffix}, 000001{a.suffix}, ...)")
+    return paths
+
+
 def _scan_files(directory: Path, fmt: str) -> list[Path]:
-    """The scan files in ``directory/scans``, sorted by file name."""
+    """The scan files in ``directory/scans``, in frame order (:func:`frame_order`)."""
     scans = directory / "scans"
     if not scans.is_dir():
         raise InputError(f"{directory}: no scans/ directory; expected one scan file per frame in {scans}")
     suffix = FILE_SUFFIX[fmt]
-    paths = sorted((p for p in scans.iterdir() if p.is_file() and p.suffix == suffix), key=lambda p: p.name)
+    paths = frame_order((p for p in scans.iterdir() if p.is_file() and p.suffix == suffix), scans)
     if not paths:
         found = sorted({p.suffix for p in scans.iterdir() if p.is_file()})
         raise InputError(f"{scans}: no {suffix} scan files for fmt {fmt!r}; suffixes present: {found} "
@@ -195,7 +213,46 @@ def _transloc_sequence(directory: Path, fmt: str | None) -> RadarSequence:
             raise InputError(f"{gps}: read as {unit}, the timestamps put the frames {interval:g} s apart (median); "
                              f"expected {lo:g}-{hi:g} s. TransLoc4D-style names are integer microseconds since the "
                              f"epoch, or seconds with a decimal point")
+    check_positions(positions, str(gps))
     return RadarSequence(directory.name, paths, seconds, positions, fmt)
+
+
+_UNITS = ((1e9, "nanoseconds"), (1e6, "microseconds"), (1e3, "milliseconds"))
+MAX_POSITION = 2.0e7        # m: a UTM northing is below 1e7, a local frame far below
+DEGREE_STEP = 1e-4          # a track whose moving steps are this small (median) is not in metres
+
+
+def check_timestamps(timestamps: np.ndarray, where: str) -> None:
+    """InputError unless gps.csv's timestamps are seconds: their median interval must lie in
+    1 ms .. 10 s (one row per radar frame); the error names the unit they look like."""
+    if len(timestamps) < 2:
+        return
+    interval = float(np.median(np.diff(timestamps)))
+    lo, hi = _INTERVAL_RANGE
+    if lo <= interval <= hi:
+        return
+    unit = next((u for f, u in _UNITS if lo * f <= interval <= hi * f), None)
+    raise InputError(f"{where}: the timestamps put the frames {interval:g} s apart (median); expected {lo:g}-{hi:g} s "
+                     + (f"between radar frames: they look like {unit}; write seconds" if unit else
+                        "between radar frames; timestamps are seconds"))
+
+
+def check_positions(positions: np.ndarray, where: str) -> None:
+    """InputError unless the positions are planar metres: within +-2e7 m, and not latitude and
+    longitude in degrees (values within +-90 / +-180 whose moving steps are around 1e-5)."""
+    if not len(positions):
+        return
+    big = np.flatnonzero(np.abs(positions).max(1) > MAX_POSITION)
+    if big.size:
+        raise InputError(f"{where}: row {int(big[0])} puts the frame at {positions[big[0]].tolist()}; northing and "
+                         f"easting are metres (UTM or a local frame), at most {MAX_POSITION:g} in size")
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    moving = steps[steps > 0]
+    in_degrees = (np.abs(positions[:, 0]) <= 90).all() and (np.abs(positions[:, 1]) <= 180).all()
+    if in_degrees and moving.size and float(np.median(moving)) < DEGREE_STEP:
+        raise InputError(f"{where}: the northing/easting columns look like latitude/longitude in degrees (values "
+                         f"within +-90/+-180 moving {float(np.median(moving)):.2g} per frame); radaredge reads "
+                         f"planar metres: project them to UTM first (radaredge.data.geodesy.utm_from_latlon)")
 
 
 def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> RadarSequence:
@@ -215,6 +272,8 @@ def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> Radar
     fmt = _check_fmt("transloc" if fmt is None else fmt)
     paths = _scan_files(directory, fmt)
     timestamps, positions, _ = _read_gps(directory / "gps.csv")
+    check_timestamps(timestamps, str(directory / "gps.csv"))
+    check_positions(positions, str(directory / "gps.csv"))
     if len(timestamps) != len(paths):
         raise InputError(f"{directory}: gps.csv has {len(timestamps)} rows but scans/ holds {len(paths)} "
                          f"{FILE_SUFFIX[fmt]} scan files; expected one row per scan")

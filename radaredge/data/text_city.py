@@ -89,6 +89,10 @@ def direction(pose: np.ndarray, obj: dict) -> str:
     return "east" if off[0] > 0 else "west"
 
 
+MAX_MAP_BYTES = 2 * 2**30          # a map's packed points (cells x slots x points x 6 float32)
+MAX_CELL_OBJECT_PAIRS = 5 * 10**7  # cells x objects membership tests (a minute of work)
+
+
 def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size: float = 30.0, stride: float = 10.0,
               objects: int = 70, poses: int = 40, min_hints: int = 2, max_hints: int = 6,
               min_points: int = 8) -> CellMap:
@@ -101,6 +105,12 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
         raise ConfigError(f"a synthetic city needs objects >= 1, poses >= 0, a world edge >= the cell size "
                           f"({size:g} m) and a positive stride; got objects={objects}, poses={poses}, "
                           f"world={world:g} m, stride={stride:g} m")
+    cells_max = int((world - size) // stride + 1) ** 2
+    if cells_max * objects > MAX_CELL_OBJECT_PAIRS or cells_max * slots * points * 24 > MAX_MAP_BYTES:
+        raise ConfigError(f"a {world:g} m city of {objects} objects makes up to {cells_max} cells of {size:g} m every "
+                          f"{stride:g} m: {cells_max * slots * points * 24 / 2**30:.1f} GiB of packed points and "
+                          f"{cells_max * objects:.3g} cell-object tests; at most {MAX_MAP_BYTES / 2**30:g} GiB and "
+                          f"{MAX_CELL_OBJECT_PAIRS:.0e} (a smaller --world or fewer --objects)")
     rng = np.random.default_rng(seed)
     objs = make_objects(rng, world, objects)
     starts = np.arange(0.0, world - size + 1e-9, stride)
@@ -148,6 +158,25 @@ def make_city_for_card(card, seed: int = 0, world: float = 90.0, objects: int = 
     c, t = card.section("cell", CellConfig), card.section("text", TextConfig)
     return make_city(c.max_objects, c.points_per_object, seed=seed, world=world, size=c.size, stride=c.stride,
                      objects=objects, poses=poses, max_hints=min(6, t.max_hints))
+
+
+def check_city_output(out, cities: int) -> None:
+    """ConfigError unless ``out`` can take what ``make-city`` writes, checked before any work: one
+    city is a ``.npz`` file (not an existing directory), several go into a directory (not an
+    existing file)."""
+    from pathlib import Path
+
+    from ..errors import ConfigError
+    as_dir = str(out).endswith(("/", "\\"))
+    out = Path(out)
+    if cities == 1:
+        if out.is_dir() or as_dir:
+            raise ConfigError(f"--out {out}: a directory; one city is one .npz file (e.g. --out {out / 'city.npz'}), "
+                              f"several (--cities N) go into a directory")
+        if out.suffix != ".npz":
+            raise ConfigError(f"--out {out}: a city map is a .npz file; name it {out.name}.npz")
+    elif out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: an existing file; {cities} cities are written into a directory")
 
 
 def write_cities(out_dir, card, cities: int, seed: int = 0, world: float = 90.0, objects: int = 70,

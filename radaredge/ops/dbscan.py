@@ -96,6 +96,7 @@ import torch
 
 from ..errors import InputError
 from .components import exact_schedule, hook_roots
+from .grid_density import MAX_MAP_CELLS
 from ..config import card_ranges, positive
 
 
@@ -123,9 +124,9 @@ class DbscanConfig:
             raise ValueError(f"max_cluster_size must be >= 0, got {self.max_cluster_size}")
         if not 1 <= self.capacity < 2**24:
             raise ValueError(f"capacity must be in [1, 2^24), got {self.capacity}")
-        if self.map_rows < 1 or self.map_cols < 1 or self.map_rows * self.map_cols >= 2**31:
-            raise ValueError(f"map_rows and map_cols must be >= 1 (and their product < 2^31), "
-                             f"got {self.map_rows} x {self.map_cols}")
+        if self.map_rows < 1 or self.map_cols < 1 or self.map_rows * self.map_cols > MAX_MAP_CELLS:
+            raise ValueError(f"map_rows and map_cols must be >= 1 with at most {MAX_MAP_CELLS} cells (the CFA "
+                             f"convolves the map at 64 channels: 256 MiB), got {self.map_rows} x {self.map_cols}")
         if not (self.resolution > 0 and np.isfinite(self.resolution)):
             raise ValueError(f"resolution must be a finite number > 0, got {self.resolution}")
         if not np.isfinite(self.y_offset):

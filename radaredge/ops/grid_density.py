@@ -50,6 +50,9 @@ from .components import MODES, connected_components
 from ..config import card_ranges, positive
 
 
+MAX_MAP_CELLS = 2**20      # CFA map cells: 64 float32 channels of it make 256 MiB
+
+
 @card_ranges(map_h=(1, 8192), map_w=(1, 8192), resolution=positive(100.0), x_min=(-1000.0, 1000.0),
              y_min=(-1000.0, 1000.0), eps=positive(100.0), min_density=(1, 1_000_000),
              max_density=(1, 1_000_000), cc_iterations=(1, 100_000))
@@ -79,6 +82,9 @@ class GridDensityConfig:
             raise ValueError(f"cc_mode must be one of {MODES}, got {self.cc_mode!r}")
         if self.cc_iterations < 0:
             raise ValueError("cc_iterations must be >= 0")
+        if self.map_h * self.map_w > MAX_MAP_CELLS:
+            raise ValueError(f"a {self.map_h} x {self.map_w} map is {self.map_h * self.map_w} cells; at most "
+                             f"{MAX_MAP_CELLS} (the CFA convolves it at 64 channels: 256 MiB)")
 
     @property
     def kernel_size(self) -> int:

@@ -36,7 +36,11 @@ from .loops import fixed_point_loop
 from .reduce import any_true
 
 
-MAX_GRID_CELLS = 2**22     # BEV cells (x * y * z) a card may ask for: 4.2 M, 64 channels = 1 GiB float32
+MAX_GRID_CELLS = 2**22     # BEV cells (x * y * z) a card may ask for: 4.2 M
+# One frame's BEV map (x * y cells x out_channels float32) a card may ask for: the networks keep
+# several maps of this size and a few times it in their widest layers, so a card past it fails
+# to allocate at run time (a 0.05 m grid did, after exporting), and is refused when read instead.
+MAX_BEV_BYTES = 256 * 2**20
 
 
 @card_ranges(point_cloud_range=(-1000.0, 1000.0), voxel_size=positive(100.0), max_points_per_pillar=(1, 1024),
@@ -66,6 +70,11 @@ class PillarConfig:
         cells = math.prod(self.grid_size)
         if cells > MAX_GRID_CELLS:
             raise ValueError(f"point_cloud_range / voxel_size make {cells} grid cells; at most {MAX_GRID_CELLS}")
+        bev = self.grid_size[0] * self.grid_size[1] * self.out_channels * 4
+        if bev > MAX_BEV_BYTES:
+            raise ValueError(f"a {self.grid_size[0]} x {self.grid_size[1]} grid of {self.out_channels} channels is "
+                             f"a {bev / 2**20:.0f} MiB BEV map per frame; at most {MAX_BEV_BYTES // 2**20} MiB "
+                             f"(coarser voxel_size, a smaller range or fewer out_channels)")
         if self.max_points_per_pillar < 1:
             raise ValueError("max_points_per_pillar must be >= 1")
 

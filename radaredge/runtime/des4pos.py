@@ -32,6 +32,25 @@ PARTS = ("submap_encoder", "text_encoder", "fine_stage")
 INDEX_CACHE_TAG = ".des4pos-"  # <map file name><tag><key>.npz: a MapIndex cache beside the map
 
 
+def read_manifest(path: Path) -> dict:
+    """``bundle.json``, checked: ``weights_sha256`` a string and ``parts`` mapping each graph to an
+    ``onnx`` file name inside the bundle; InputError naming the file and the entry otherwise."""
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable bundle manifest ({type(exc).__name__}: {str(exc)[:120]}); "
+                         f"re-export the bundle") from None
+    parts = manifest.get("parts") if isinstance(manifest, dict) else None
+    if not isinstance(parts, dict) or not isinstance(manifest.get("weights_sha256"), str):
+        raise InputError(f"{path}: a bundle manifest holds 'weights_sha256' (a string) and 'parts' (graph name -> "
+                         f"file); re-export the bundle")
+    for name, info in parts.items():
+        onnx_name = info.get("onnx") if isinstance(info, dict) else None
+        if not isinstance(onnx_name, str) or Path(onnx_name).name != onnx_name or not onnx_name.endswith(".onnx"):
+            raise InputError(f"{path}: parts.{name}.onnx must name an .onnx file inside the bundle, got {onnx_name!r}")
+    return manifest
+
+
 class Des4PosBundle:
     """An exported Des4Pos bundle directory. ``text_encoder`` may name another text graph (e.g. the
     dynamically quantised ``text_encoder.int8.onnx``) with the same interface."""
@@ -45,7 +64,7 @@ class Des4PosBundle:
         if not manifest.is_file():
             raise InputError(f"{d} is not a Des4Pos bundle (no bundle.json); export one with "
                              f"`radaredge export --model des4pos`")
-        self.manifest = json.loads(manifest.read_text())
+        self.manifest = read_manifest(manifest)
         self.graphs: dict[str, RadarModel] = {}
         for part in PARTS:
             info = self.manifest["parts"].get(part)

@@ -34,7 +34,10 @@ def load_tokenizer(path: str | Path):
         path = path / "tokenizer.json"
     if not path.is_file():
         raise ConfigError(f"no tokenizer at {path}; a Des4Pos bundle carries tokenizer.json beside its graphs")
-    tok = Tokenizer.from_file(str(path))
+    try:
+        tok = Tokenizer.from_file(str(path))
+    except Exception as exc:                  # tokenizers raises its own Exception type with serde's message
+        raise InputError(f"{path}: not a readable tokenizer.json ({' '.join(str(exc).split())[:160]})") from None
     tok.no_padding()
     tok.no_truncation()
     return tok

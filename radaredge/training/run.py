@@ -15,7 +15,6 @@ truncated checkpoint behind.
 
 from __future__ import annotations
 
-import json
 import random
 import time
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 from ..cards import ModelCard
-from ..atomic import atomic_path, write_text
+from ..atomic import atomic_path, write_json
 from ..config import check_writable_dir
 from ..errors import ConfigError
 
@@ -111,7 +110,7 @@ class RunDir:
         return _atomic_save(state, self.last)
 
     def write_log(self, log: dict) -> Path:
-        return write_text(self.log, json.dumps(log, indent=2))
+        return write_json(self.log, log)
 
     def require_last(self) -> None:
         """ConfigError unless ``last.pth`` exists (``--resume`` needs it)."""
