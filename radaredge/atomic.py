@@ -101,15 +101,17 @@ def write_json(path: str | os.PathLike, obj, indent: int = 2) -> Path:
 
 
 class Staging:
-    """A hidden staging directory beside ``dest`` (a directory, created if missing) whose files
+    """A hidden staging directory inside ``dest`` (a directory, created if missing) whose files
     :meth:`commit` moves into ``dest`` under the same names, all with signals held back.
-    As a context manager: the staging directory is removed when the block ends, committed or not."""
+    As a context manager: the staging directory is removed when the block ends, committed or not,
+    and so is ``dest`` when this created it and nothing was committed."""
 
     def __init__(self, dest: str | os.PathLike):
         self.dest = Path(dest)
-        self.dest.parent.mkdir(parents=True, exist_ok=True)
-        self.dir = Path(tempfile.mkdtemp(prefix=f".{self.dest.name or 'radaredge'}.", suffix=".staging",
-                                         dir=self.dest.parent))
+        self.created = not self.dest.exists()
+        self.dest.mkdir(parents=True, exist_ok=True)
+        self.committed = False
+        self.dir = Path(tempfile.mkdtemp(prefix=".radaredge-", suffix=".staging", dir=self.dest))
 
     def path(self, final: str | os.PathLike) -> Path:
         """Where to write the file that will become ``final`` (a path inside ``dest``)."""
@@ -119,15 +121,18 @@ class Staging:
         """Move every staged file into ``dest``; the final paths, in name order."""
         moved = []
         with signals_held():
-            self.dest.mkdir(parents=True, exist_ok=True)
             for f in sorted(self.dir.iterdir()):
                 target = self.dest / f.name
                 os.replace(f, target)
                 moved.append(target)
+            self.committed = True
         return moved
 
     def close(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
+        if self.created and not self.committed:
+            with contextlib.suppress(OSError):
+                self.dest.rmdir()
 
     def __enter__(self) -> "Staging":
         return self

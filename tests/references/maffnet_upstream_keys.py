@@ -506,7 +506,7 @@ def trained_like_state_dict(dataset: str, stage_two: bool = True, seed: int = 0)
     g = torch.Generator().manual_seed(seed)
     state = upstream_state_dict(dataset, stage_two, seed)
     for key, value in state.items():
-        if not value.is_floating_point():
+        if not value.is_floating_point() or not value.numel():
             continue
         n = torch.randn(value.shape, generator=g)
         if key.endswith("running_var"):
