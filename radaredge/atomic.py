@@ -14,6 +14,7 @@ Standard library only (no numpy, no torch): the runtime and the CLI use it too.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import math
@@ -26,6 +27,18 @@ from pathlib import Path
 from typing import Iterator
 
 _HELD = (signal.SIGINT, signal.SIGTERM)
+# Temporaries not yet renamed or removed: an interrupt that lands between a temporary's creation
+# and the block that would remove it (a bytecode boundary away) still removes it at exit.
+_LIVE: set[Path] = set()
+
+
+@atexit.register
+def _remove_leftovers() -> None:
+    for path in list(_LIVE):
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
@@ -48,8 +61,11 @@ os.umask(_UMASK)
 
 def _temporary_name(path: Path) -> Path:
     """A new hidden file beside ``path`` that keeps its suffix (``np.savez`` appends ``.npz`` to
-    a name without it), with the permissions an ordinary new file gets."""
-    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".partial{path.suffix}", dir=path.parent)
+    a name without it), with the permissions an ordinary new file gets; registered for removal
+    at exit until it is renamed or removed."""
+    with signals_held():
+        fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".partial{path.suffix}", dir=path.parent)
+        _LIVE.add(Path(name))
     os.close(fd)
     os.chmod(name, 0o666 & ~_UMASK)
     return Path(name)
@@ -67,8 +83,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         with signals_held():
             os.replace(tmp, path)
+            _LIVE.discard(tmp)
     finally:
         tmp.unlink(missing_ok=True)
+        _LIVE.discard(tmp)
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
@@ -111,7 +129,9 @@ class Staging:
         self.created = not self.dest.exists()
         self.dest.mkdir(parents=True, exist_ok=True)
         self.committed = False
-        self.dir = Path(tempfile.mkdtemp(prefix=".radaredge-", suffix=".staging", dir=self.dest))
+        with signals_held():
+            self.dir = Path(tempfile.mkdtemp(prefix=".radaredge-", suffix=".staging", dir=self.dest))
+            _LIVE.add(self.dir)
 
     def path(self, final: str | os.PathLike) -> Path:
         """Where to write the file that will become ``final`` (a path inside ``dest``)."""
@@ -130,6 +150,7 @@ class Staging:
 
     def close(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
+        _LIVE.discard(self.dir)
         if self.created and not self.committed:
             with contextlib.suppress(OSError):
                 self.dest.rmdir()
