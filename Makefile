@@ -17,7 +17,9 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# The layers first (import-linter, contracts in pyproject.toml), then the suite.
 test: $(STAMP)
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile tests
 
 # The main job on built-in defaults: export the model, prove parity, measure speed.

@@ -1,6 +1,6 @@
 """MAFF-Net's clustering-feature stage (upstream IMAGE_BACKBONE): GridDensityBEV vs the DBSCAN path.
 
-Times, on 2 pinned cores and interleaved per run (radaredge.timing.benchmark), the map that feeds
+Times, on 2 pinned cores and interleaved per run (radaredge.bench.timing.benchmark), the map that feeds
 the 3 -> 16 -> 32 -> 64 CNN and the whole stage (map + CNN), for:
 - CQCA_cfa as upstream runs it: sklearn DBSCAN on (x, y, v_r_comp), a per-point cluster-size
   loop, a last-write-wins map (radaredge.ops.dbscan.cqca_cfa_map_sklearn), then the CNN in torch;
@@ -30,13 +30,13 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.data.synthetic import generate_scan
-from radaredge.exporter import build_model
-from radaredge.models.maffnet_spec import synthetic_columns
-from radaredge.onnx_export import export_onnx
+from radaredge.models import create_model
+from radaredge.models.maffnet.spec import synthetic_columns
+from radaredge.export.onnx_call import export_onnx
 from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.runtime.session import make_session
-from radaredge.timing import benchmark, cpu_name, pin_threads, require_ok
+from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -84,7 +84,7 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
     and the speed-up over the upstream per-point loop (its p50 over the row's)."""
     cores = pin_threads(threads)
     card = load_card(card_name)
-    model = build_model(card)
+    model = create_model(card)
     cfa = model.image_backbone
     g = cfa.grid_density.config
     upstream = DbscanConfig(eps=g.eps, min_samples=g.min_density, max_cluster_size=g.max_density,

@@ -25,9 +25,9 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.data.synthetic import generate_sequence, vod_accumulated_table
-from radaredge.exporter import build_model
-from radaredge.models.maffnet_rcnn import scan_points
-from radaredge.models.maffnet_spec import DENSE_TRAFFIC, VOD_CAMERA_FOV_DEG
+from radaredge.models import create_model
+from radaredge.models.maffnet.rcnn import scan_points
+from radaredge.models.maffnet.spec import DENSE_TRAFFIC, VOD_CAMERA_FOV_DEG
 
 ROOT = Path(__file__).resolve().parent.parent
 SEEDS = range(12)
@@ -35,7 +35,7 @@ SEEDS = range(12)
 
 def measure(card_name: str = "maffnet-vod-full-dbscan") -> dict:
     card = load_card(card_name)
-    model = build_model(card)
+    model = create_model(card)
     r = card.get("pillars.point_cloud_range")
     rows = []
     for seed in SEEDS:

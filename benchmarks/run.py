@@ -7,7 +7,7 @@ code. Writes benchmarks/results/suite-<date>.json, the Markdown table in benchma
 a bar chart benchmarks/suite.png (log scale). Run it with ``make bench`` (or
 ``python benchmarks/run.py --help``).
 
-Per row: median latency, FPS (1000 / median), GMACs per inference (radaredge.macs: matrix,
+Per row: median latency, FPS (1000 / median), GMACs per inference (radaredge.bench.macs: matrix,
 convolution, bilinear sampling and scatter work) and the achieved share of the machine's fp32
 GEMM peak on the same threads, measured by this script. The int8 speed-up over fp32 is reported
 with the share of onnxruntime fp32 time spent in the quantised op types, which bounds the
@@ -25,15 +25,15 @@ from pathlib import Path
 import torch
 
 import radaredge
-from radaredge.benchmarking import BenchOptions, pipeline_backends
+from radaredge.bench.harness import BenchOptions, pipeline_backends
 from radaredge.cards import load_card
-from radaredge.exporter import build_model
-from radaredge.macs import count_macs, gemm_peak_gflops
-from radaredge.profiling import profile_runs, top_ops
-from radaredge.quantize import QUANTIZED_OPS
-from radaredge.registry import model_spec
+from radaredge.models import create_model
+from radaredge.bench.macs import count_macs, gemm_peak_gflops
+from radaredge.bench.profiling import profile_runs, top_ops
+from radaredge.export.quantize import QUANTIZED_OPS
+from radaredge.models import model_spec
 from radaredge.runtime.openvino import openvino_installed
-from radaredge.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
+from radaredge.bench.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
@@ -64,7 +64,7 @@ def quantised_time_share(onnx_path: Path, cases: list[dict], threads: int, runs:
 
 def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path, openvino: bool) -> dict:
     card = load_card(name)
-    model = build_model(card)
+    model = create_model(card)
     graph = model_spec(card).graph()
     fp32, int8 = export_both(card, model, export_dir)
     cases = [feeds for _, feeds in graph.make_cases(card, 4, 1)]

@@ -86,7 +86,7 @@ def main(argv=None) -> int:
 
 def _agreement(a, b) -> dict:
     """Top-1 agreement of two eval reports' onnxruntime retrievals: same window, and within the radius."""
-    from radaredge.evaluation import top1_agreement, top1_place_agreement
+    from radaredge.eval.places import top1_agreement, top1_place_agreement
     ta, tb = a.results["onnxruntime"]["top1"], b.results["onnxruntime"]["top1"]
     return {"same_window": top1_agreement(ta, tb),
             "within_radius": top1_place_agreement(ta, tb, a.database.positions, a.radius)}

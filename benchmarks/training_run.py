@@ -14,7 +14,7 @@ import torch
 
 from radaredge.cards import ModelCard, load_card
 from radaredge.config import parse_settings
-from radaredge.timing import cpu_name
+from radaredge.bench.timing import cpu_name
 
 ROOT = Path(__file__).resolve().parent.parent
 THREADS = 2

@@ -13,17 +13,50 @@ Importing the package imports neither torch nor onnxruntime (the verbs load them
 ``radaredge.runtime`` needs only numpy and onnxruntime.
 """
 
-__version__ = "0.1.0"
+import importlib
+import sys
+import types
+
+from .version import __version__
+
+__all__ = ["__version__", "export", "parity", "bench", "evaluate", "train"]
 
 _VERBS = ("export", "parity", "bench", "evaluate", "train")
+_VERB_PACKAGES = ("export", "parity", "bench", "train")     # verbs whose machinery is a subpackage of that name
+
+
+class _VerbPackage(types.ModuleType):
+    """A verb's subpackage (``radaredge.export``, ...) that is also the verb: calling it calls
+    :mod:`radaredge.api`'s function of that name, so ``radaredge.export("tdfanet")`` and
+    ``from radaredge.export import graphs`` both work."""
+
+    def __call__(self, *args, **kwargs):
+        # lazy: the API imports torch, which importing radaredge must not
+        from . import api
+        return getattr(api, self.__name__.rsplit(".", 1)[1])(*args, **kwargs)
+
+
+class _Package(types.ModuleType):
+    """The package module: binding a verb's subpackage as its attribute makes that package callable."""
+
+    def __setattr__(self, name, value):
+        if name in _VERB_PACKAGES and isinstance(value, types.ModuleType):
+            value.__class__ = _VerbPackage
+        super().__setattr__(name, value)
 
 
 def __getattr__(name):
-    if name in _VERBS:
+    if name in _VERB_PACKAGES:                      # importing binds it (callable) through _Package
+        return importlib.import_module(f"{__name__}.{name}")
+    if name == "evaluate":
+        # lazy: the API imports torch, which importing radaredge must not
         from . import api
-        return getattr(api, name)
+        return api.evaluate
     raise AttributeError(f"module 'radaredge' has no attribute {name!r}")
 
 
 def __dir__():
     return sorted(list(globals()) + list(_VERBS))
+
+
+sys.modules[__name__].__class__ = _Package

@@ -5,9 +5,11 @@
     report = radaredge.parity("tdfanet", "export/tdfanet.onnx", cases=20)     # bool(report): the verdict
     bench = radaredge.bench("tdfanet", threads=2, runs=20)                    # -> BenchReport, a row per backend
 
-A model is 1..n graphs (:mod:`radaredge.models.spec`); each verb resolves the card's spec once,
-builds the model once and loops over the graphs. ``card`` is a :class:`ModelCard`, a shipped
-card's name or a card YAML path.
+A model is 1..n graphs (:mod:`radaredge.models.spec`), exported as a bundle
+(:mod:`radaredge.artifacts`); each verb resolves the card's spec once, builds the model once
+and loops over the graphs. What a verb does for a particular model (comparators, int8 policy,
+bench tasks, evaluation, training recipe) is in the verb's package, keyed by the model's name.
+``card`` is a :class:`ModelCard`, a shipped card's name or a card YAML path.
 """
 
 from __future__ import annotations
@@ -16,10 +18,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from .benchmarking import BenchReport, bench
-from .cards import ModelCard, load_card
+import onnx as onnx_lib
+
+from . import artifacts
+from . import runtime as rt
+from .atomic import Staging
+from .bench.harness import BenchReport, bench
+from .cards import ModelCard, resolve_card
 from .config import check_count, check_writable_dir
 from .errors import ConfigError, InputError
+from .eval.tasks import EVALUATIONS, EvalInputs
+from .export.calibration import DEFAULT_WINDOWS, recorded_feeds
+from .export.graphs import default_output, export_graph, graph_paths, require_same_weights, resolve_output, write_export
+from .export.onnx_call import DEFAULT_OPSET
+from .export.quantize import Int8Options, int8_policy
+from .models import create_model, model_spec
+from .parity.check import ParityReport, check_graph
+from .runtime.model import FrameFeeds
+from .train.recipes import RECIPES, TrainInputs
 
 __all__ = ["export", "parity", "bench", "evaluate", "train", "ExportResult", "BenchReport", "resolve_card",
            "EXPORT_OPTIONS"]
@@ -29,14 +45,9 @@ MAX_CASES = 10_000          # parity cases are built before the first run: bound
 MIN_OPSET = 7               # the oldest opset onnx's version converter writes
 
 
-def resolve_card(card: ModelCard | str | Path) -> ModelCard:
-    """``card`` itself, or the card loaded by name or path."""
-    return card if isinstance(card, ModelCard) else load_card(card)
-
-
-def _calibrated(spec) -> bool:
-    """The model's int8 hook takes calibration data."""
-    return spec.int8_calibrated
+def _calibrated(card: ModelCard) -> bool:
+    """The model's int8 policy takes calibration data."""
+    return int8_policy(card).calibrated
 
 
 # Every export option that depends on another option or on the model, checked by one generic
@@ -52,7 +63,7 @@ EXPORT_OPTIONS = (
 )
 
 
-def check_export_options(card: ModelCard, spec, given: dict) -> None:
+def check_export_options(card: ModelCard, given: dict) -> None:
     """ConfigError for an option of :data:`EXPORT_OPTIONS` given without the option it needs, or
     to a model that does not take it; ``given`` maps option names to values (None: not given)."""
     if given.get("--quantize") not in (None, "int8"):
@@ -62,7 +73,7 @@ def check_export_options(card: ModelCard, spec, given: dict) -> None:
             continue
         if given.get(needs) is None:
             raise ConfigError(f"{option}: {missing}")
-        if not allowed(spec):
+        if not allowed(card):
             raise ConfigError(f"{card.name}: {refused}; drop {option}")
 
 
@@ -108,11 +119,12 @@ class ExportResult:
                 out.append(f"debug graph: {self.debug[name]}")
             if name in self.int8:
                 p = self.int8[name]
-                out.append(f"int8 graph: {p} ({p.stat().st_size / 1e6:.2f} MB); check it with "
-                           f"`radaredge parity-check --quantized --onnx {p}`" if len(self.graphs) == 1 else
-                           f"int8 graph: {p} ({p.stat().st_size / 1e6:.2f} MB)")
+                out.append(f"int8 graph: {p} ({p.stat().st_size / 1e6:.2f} MB)")
         if self.manifest:
             out.append(f"wrote {self.manifest}")
+        if self.int8:
+            out.append(f"check the int8 copies with `radaredge parity-check --model {self.model} --quantized "
+                       f"--onnx {self.output}`")
         return out
 
 
@@ -123,33 +135,26 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
            log: Callable[[str], None] | None = None) -> ExportResult:
     """Export the card's whole pipeline: every graph to ``output`` (a one-graph model's .onnx,
     default ``export/<card>.onnx``; a multi-graph model's directory, default ``export/<card>/``)
-    with a JSON sidecar each; ``debug`` adds ``<graph>.debug.onnx``, ``quantize="int8"`` the
+    with a JSON sidecar each; ``debug`` adds each graph's debug copy, ``quantize="int8"`` the
     model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
     synthetic scenes; ``calibration_windows`` windows). ``model`` reuses a built model (its
     weights must be the checkpoint's). ``log`` receives progress lines."""
-    from .exporter import build_model, resolve_output, write_export
-    from .onnx_export import DEFAULT_OPSET
-    from .registry import model_spec
-
     card = resolve_card(card)
     spec = model_spec(card)
     say = log or (lambda line: None)
     if opset is not None:
-        import onnx
-        check_count("--opset", opset, MIN_OPSET, onnx.defs.onnx_opset_version())
-    check_export_options(card, spec, {"--quantize": quantize, "--calibration": calibration,
+        check_count("--opset", opset, MIN_OPSET, onnx_lib.defs.onnx_opset_version())
+    check_export_options(card, {"--quantize": quantize, "--calibration": calibration,
                                       "--calibration-format": calibration_format,
                                       "--calibration-windows": calibration_windows})
     if calibration is not None:                 # a wrong recording fails before the export, not after it
-        from .calibration import DEFAULT_WINDOWS, recorded_feeds
-        from .runtime.model import FrameFeeds
         graph = spec.graph()
         recorded_feeds(FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input), calibration,
                        calibration_windows or DEFAULT_WINDOWS, calibration_format)
     if model is None:
-        model = build_model(card, checkpoint, spec)       # card and checkpoint errors first, then the output's
+        model = create_model(card, checkpoint, spec)      # card and checkpoint errors first, then the output's
     output = resolve_output(card, spec, output)
-    check_writable_dir(output if spec.multi_graph else output.parent, "--output")   # before a long export
+    check_writable_dir(artifacts.bundle_root([g.name for g in spec.graphs], output), "--output")  # before a long export
     report = getattr(model, "checkpoint_report", None)
     if report is not None:
         say(report.summary())
@@ -157,64 +162,50 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     say(f"exporting {card.name}" + (f" ({names}) to {output}/" if spec.multi_graph else "") + " ...")
     int8 = None
     if quantize:
-        from .quantize import Int8Options, static_int8
-        hook = spec.int8 or static_int8
+        policy = int8_policy(card)
 
         def int8(paths):
             say(f"quantising {card.name} to int8 ...")
-            return hook(card, spec, paths, Int8Options(calibration_windows, calibration, calibration_format))
+            return policy.make(card, spec, paths, Int8Options(calibration_windows, calibration, calibration_format))
     graphs, int8_paths = write_export(card, spec, model, output, DEFAULT_OPSET if opset is None else opset,
                                       debug=debug, int8=int8, progress=progress)
     result = ExportResult(card.name, output, graphs, checkpoint=report, int8=int8_paths)
-    result.debug = {n: g.path.with_suffix(".debug.onnx") for n, g in graphs.items()} if debug else {}
+    result.debug = {n: artifacts.copy_path(g.path, artifacts.DEBUG) for n, g in graphs.items()} if debug else {}
     if spec.multi_graph:
-        from .exporter import MANIFEST
-        result.manifest = output / MANIFEST
+        result.manifest = artifacts.manifest_path(output)
     return result
 
 
 def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None,
            model=None, cases: int = 20, seed: int = 0, quantized: bool = False, runtime: str = "onnxruntime",
            progress: Callable[[str], Callable] | None = None):
-    """Parity of every graph of the card's model at ``onnx`` (the .onnx, or a multi-graph
-    model's directory; default the export path) run in ``runtime`` against the torch reference
-    formulation, on ``cases`` synthetic cases drawn with ``seed``. ``quantized``: the graph is an
-    int8 copy, held to each output's int8 budget. Returns a
-    :class:`radaredge.parity_check.ParityReport`, whose truth value is the verdict."""
-    from . import runtime as rt
-    from .atomic import Staging
-    from .exporter import build_model, default_output, export_graph, graph_paths, require_same_weights
-    from .parity_check import ParityReport, check_graph
-    from .registry import model_spec
-
+    """Parity of every graph of the card's export at ``onnx`` (the bundle: a one-graph model's
+    .onnx, a multi-graph model's directory; default the export path) run in ``runtime`` against
+    the torch reference formulation, on ``cases`` synthetic cases drawn with ``seed``.
+    ``quantized``: each graph's int8 copy (beside it; a one-graph model's may be named as
+    ``onnx`` itself) is held to each output's int8 budget, and a graph the model's int8 policy
+    keeps fp32 is checked as fp32. Returns a :class:`radaredge.parity.check.ParityReport`,
+    whose truth value is the verdict."""
     check_count("cases", cases, 1, MAX_CASES)
     card = resolve_card(card)
     spec = model_spec(card)
     onnx = Path(onnx) if onnx is not None else default_output(card, spec)
-    if spec.multi_graph:
-        from .exporter import MANIFEST
-        if not (onnx / MANIFEST).is_file():
-            raise InputError(f"{onnx} is not a {card.name} export directory (no {MANIFEST}); {card.name} exports "
-                             f"as {len(spec.graphs)} graphs: pass the directory `radaredge export --model "
-                             f"{card.name}` wrote")
-        if quantized:
-            raise ConfigError(f"--quantized checks a one-graph int8 export; {card.name} exports "
-                              f"{len(spec.graphs)} graphs, whose int8 copies `radaredge bench` times")
+    targets = checked_graphs(card, spec, onnx, quantized)
     if model is None:
-        model = build_model(card, checkpoint, spec)
+        model = create_model(card, checkpoint, spec)
     report = ParityReport(card.name, str(onnx), runtime, quantized)
-    paths = graph_paths(spec, onnx)
     for graph in spec.graphs:
-        path = paths[graph.name]
+        path, int8 = targets[graph.name]
         module = graph.module(model)
         exported = rt.load(path)
         require_same_weights(exported, module, checkpoint)
-        if quantized and exported.info.quantization is None:
-            raise ConfigError(f"{path} is not an int8 export; drop --quantized or pass the .int8.onnx")
+        if int8 and exported.info.quantization is None:
+            raise ConfigError(f"{path} is not an int8 export; drop --quantized or write the int8 copy with "
+                              f"`radaredge export --quantize int8`")
 
         def debug_graph(path=path, graph=graph, module=module, exported=exported):
-            """The debug export beside the .onnx, (re)written unless it holds these weights."""
-            debug_path = path.with_suffix(".debug.onnx")
+            """The debug export beside the graph, (re)written unless it holds these weights."""
+            debug_path = artifacts.copy_path(path, artifacts.DEBUG)
             if not debug_path.exists() or rt.load(debug_path).weights_sha256 != exported.weights_sha256:
                 with Staging(debug_path.parent) as stage:
                     export_graph(card, spec, graph, module, stage.path(debug_path), debug=True,
@@ -223,9 +214,34 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
             return debug_path
 
         wrap = progress(f"parity {graph.name}") if progress else None
-        report.graphs[graph.name] = check_graph(card, graph, module, path, cases, seed, quantized, runtime,
-                                                debug_onnx=None if quantized else debug_graph, progress=wrap)
+        report.graphs[graph.name] = check_graph(card, graph, module, path, cases, seed, int8, runtime,
+                                                debug_onnx=None if int8 else debug_graph, progress=wrap)
     return report
+
+
+def checked_graphs(card: ModelCard, spec, onnx: Path, quantized: bool) -> dict[str, tuple[Path, bool]]:
+    """graph name -> (the file parity runs, whether it is judged as int8) for the bundle at
+    ``onnx``: each graph itself, or with ``quantized`` its int8 copy where the model's int8
+    policy makes one (a one-graph bundle named by its int8 copy is that copy)."""
+    if spec.multi_graph and not artifacts.manifest_path(onnx).is_file():
+        raise InputError(f"{onnx} is not a {card.name} export directory (no {artifacts.manifest_path(onnx).name}); "
+                         f"{card.name} exports as {len(spec.graphs)} graphs: pass the directory `radaredge export "
+                         f"--model {card.name}` wrote")
+    paths = graph_paths(spec, onnx)
+    if not quantized:
+        return {name: (p, False) for name, p in paths.items()}
+    policy = int8_policy(card)
+    out = {}
+    for name, p in paths.items():
+        if artifacts.copy_kind(p) == artifacts.INT8 or not policy.quantises(name):
+            out[name] = (p, policy.quantises(name))
+            continue
+        int8 = artifacts.copy_path(p, artifacts.INT8)
+        if not int8.is_file():
+            raise InputError(f"--quantized: {int8} does not exist; write the int8 copy with `radaredge export "
+                             f"--model {card.name} --quantize int8`")
+        out[name] = (int8, True)
+    return out
 
 
 def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Path | None = None,
@@ -235,19 +251,18 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
     """The model's task metric on the export at ``onnx``, by the model's ``evaluate`` hook:
     TDFANet's place-recognition Recall@N (and the torch reference's) over the K-frame windows of
     ``queries`` drives against ``database`` drives, true positives within ``radius`` m
-    (:func:`radaredge.evaluation.evaluate`); Des4Pos's localisation recall over the described
-    poses of the cell map ``map_path`` (:func:`radaredge.des4pos_eval.evaluate_localization`)."""
-    from .models.spec import EvalInputs
-    from .registry import model_spec
+    (:func:`radaredge.eval.places.evaluate`); Des4Pos's localisation recall over the described
+    poses of the cell map ``map_path`` (:func:`radaredge.eval.localisation.evaluate_localization`);
+    the task is the model's entry in :data:`radaredge.eval.tasks.EVALUATIONS`."""
     card = resolve_card(card)
-    spec = model_spec(card)
-    if spec.evaluate is None:
+    task = EVALUATIONS.get(card.model)
+    if task is None:
         raise ConfigError(f"{card.name} ({card.model}) has no evaluation on recorded data in radaredge; "
                           f"`radaredge parity-check` checks its export against the reference")
     inputs = EvalInputs(str(database) if database else None, str(queries) if queries else None,
                         str(map_path) if map_path else None, str(checkpoint) if checkpoint else None, radius,
                         reference, progress)
-    return spec.evaluate(card, onnx, inputs)
+    return task(card, onnx, inputs)
 
 
 def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | None = None, *,
@@ -262,19 +277,18 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     initialises the weights (fine-tuning); ``options`` overrides recipe values by name (epochs,
     lr, batch_size, ...); ``bag`` says where ROS bag drives keep their radar scans and GNSS fixes
     (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
-    :class:`radaredge.training.run.TrainReport`."""
-    from .exporter import build_model
-    from .models.spec import TrainInputs
-    from .registry import model_spec
+    :class:`radaredge.train.run.TrainReport`. The recipe is the model's entry in
+    :data:`radaredge.train.recipes.RECIPES`."""
     card = resolve_card(card)
     spec = model_spec(card)
-    if spec.train is None:
+    recipe = RECIPES.get(card.model)
+    if recipe is None:
         raise ConfigError(f"{card.name} ({card.model}): radaredge has no training recipe for this model; "
                           f"train it upstream and pass the weights to `radaredge export --checkpoint`")
     if resume and checkpoint is not None:
         raise ConfigError("--resume continues the run in --output from its last.pth; drop --checkpoint")
     output = Path(output) if output is not None else Path("runs") / card.name
-    model = build_model(card, checkpoint, spec)
+    model = create_model(card, checkpoint, spec)
     inputs = TrainInputs(str(output), device, resume, tuple(validation) if validation is not None else None,
                          data_format, dict(bag or {}), dict(options or {}), progress, log)
-    return spec.train(card, model, data, inputs)
+    return recipe(card, model, data, inputs)

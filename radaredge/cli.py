@@ -15,7 +15,9 @@ from pathlib import Path
 
 import click
 
-from . import atomic
+from . import artifacts, atomic
+from .cards import available_cards, load_card
+from .config import check_writable_dir, parse_settings
 from .errors import RadarEdgeError
 from .runtime.runners import RUNTIMES
 
@@ -65,11 +67,10 @@ def _friendly_errors(fn):
     return wrapper
 
 
-
-
 def _progress(desc):
     """A progress-bar wrapper on stderr when it is a terminal (tqdm, when installed)."""
     try:
+        # lazy: tqdm comes with the export extra; a runtime-only install draws no bars
         from tqdm import tqdm
     except ImportError:
         return lambda it: it
@@ -79,9 +80,11 @@ def _progress(desc):
 def _bar(desc: str, total: int):
     """A progress bar on stderr when it is a terminal (tqdm, when installed): update, set_postfix, close."""
     try:
+        # lazy: tqdm comes with the export extra; a runtime-only install draws no bars
         from tqdm import tqdm
     except ImportError:
-        from .training.run import no_progress
+        # lazy: imports torch, which the light commands (list, inspect, locate) must not load
+        from .train.run import no_progress
         return no_progress(desc, total)
     return tqdm(total=total, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
 
@@ -100,7 +103,6 @@ def _emit(as_json: bool, result) -> None:
 
 
 def _card(model: str, config: str | None):
-    from .cards import load_card
     return load_card(config or model)
 
 
@@ -135,7 +137,6 @@ def main():
 @_friendly_errors
 def list_cmd(as_json):
     """The available model cards, one line each."""
-    from .cards import available_cards, load_card
     cards = [load_card(n) for n in available_cards()]
     if as_json:
         click.echo(atomic.dumps([{"name": c.name, "model": c.model, "description": c.description} for c in cards]))
@@ -154,6 +155,7 @@ def list_cmd(as_json):
 def inspect(onnx_path, targets, as_json):
     """Show an exported graph's (or a multi-graph export directory's) inputs, outputs, card and versions;
     with --targets, the ops a deployment target does not support (exit 1 when one does not)."""
+    # lazy: loads onnxruntime, which `list` and `--help` must not
     from .runtime import inspect_export
     chosen = ()
     if targets is not None:
@@ -188,10 +190,11 @@ def inspect(onnx_path, targets, as_json):
               help="Where to write the .onnx (default export/<model>.onnx); a multi-graph model's directory "
                    "(default export/<model>/).")
 @click.option("--opset", default=18, show_default=True, type=int)
-@click.option("--debug", is_flag=True, help="Also write <graph>.debug.onnx with intermediate tensors as outputs.")
+@click.option("--debug", is_flag=True,
+              help=f"Also write {artifacts.describe(artifacts.DEBUG)} with intermediate tensors as outputs.")
 @click.option("--quantize", type=click.Choice(["int8"]),
-              help="Also write <graph>.int8.onnx: static QDQ int8 of Conv/MatMul/Gemm, calibrated on synthetic "
-                   "scenes or on --calibration (des4pos: the text encoder, dynamic int8).")
+              help=f"Also write {artifacts.describe(artifacts.INT8)}: static QDQ int8 of Conv/MatMul/Gemm, "
+                   "calibrated on synthetic scenes or on --calibration (des4pos: the text encoder, dynamic int8).")
 @click.option("--calibration", "calibration_dir", type=click.Path(file_okay=False),
               help="With --quantize int8: calibrate on this recording of your sensor (its scan files, .npy or "
                    ".bin, one per frame in file-name order, or a drive with scans/) instead of synthetic scenes.")
@@ -205,6 +208,7 @@ def inspect(onnx_path, targets, as_json):
 def export(model, config, checkpoint, output, opset, debug, quantize, calibration_dir, calibration_format,
            calibration_windows, as_json):
     """Export the whole pipeline (raw points in, result out) to one .onnx per graph with a JSON sidecar."""
+    # lazy: the API imports torch; a runtime-only install runs list, inspect and locate without it
     from .api import export as export_verb
     result = export_verb(_card(model, config), output, checkpoint=checkpoint, opset=opset, debug=debug,
                          quantize=quantize, calibration=calibration_dir, calibration_format=calibration_format,
@@ -221,9 +225,11 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
 @click.option("--cases", default=20, show_default=True, type=int)
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--quantized", is_flag=True,
-              help="The .onnx is int8: descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; "
-                   "detections need matched-box recall >= 95 % at IoU 0.5 (recall of the boxes scored "
-                   ">= 0.3 and >= 0.5 is reported); preprocessing outputs keep their fp32 tolerances.")
+              help="Check the int8 copies (beside each graph; a one-graph model's may be passed as --onnx): "
+                   "descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; detections need matched-box "
+                   "recall >= 95 % at IoU 0.5 (recall of the boxes scored >= 0.3 and >= 0.5 is reported); "
+                   "preprocessing outputs keep their fp32 tolerances. Graphs the model keeps fp32 are checked "
+                   "as fp32.")
 @click.option("--runtime", "runtime_name", type=click.Choice(RUNTIMES), default="onnxruntime",
               show_default=True,
               help="Run the graph in onnxruntime or in OpenVINO's CPU plugin (pip install 'radaredge[openvino]').")
@@ -232,6 +238,7 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
 def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, runtime_name, as_json):
     """Run the ONNX in onnxruntime (or OpenVINO) and the reference formulation in torch on the
     same synthetic cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
+    # lazy: the API imports torch (see export)
     from .api import parity
     report = parity(_card(model, config), onnx_path, checkpoint=checkpoint, cases=cases, seed=seed,
                     quantized=quantized, runtime=runtime_name, progress=_progress)
@@ -249,8 +256,9 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, r
 @click.option("--runs", default=50, show_default=True, type=int)
 @click.option("--warmup", default=3, show_default=True, type=int)
 @click.option("--no-reference", is_flag=True, help="Skip the (slow) torch reference backend.")
-@click.option("--int8", "int8_path", type=click.Path(dir_okay=False),
-              help="Also time this int8 graph (default: <graph>.int8.onnx when it exists).")
+@click.option("--int8", "int8_path", is_flag=False, flag_value="", default=None, metavar="[PATH]",
+              help=f"Time the int8 copies too, writing them first when missing; with PATH, that int8 graph "
+                   f"(default: each {artifacts.describe(artifacts.INT8)} that exists).")
 @click.option("--profile", is_flag=True, help="Print onnxruntime's top ops by time.")
 @click.option("--openvino/--no-openvino", default=None,
               help="Also time the graph(s) in OpenVINO's CPU plugin (default: when openvino is installed).")
@@ -262,12 +270,13 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
           save_path, as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run, a row each
     (exit 1 when a backend failed: its row says why)."""
+    # lazy: the API imports torch (see export)
     from .api import bench as bench_verb
     if save_path:
-        from .config import check_writable_dir
         check_writable_dir(Path(save_path).parent, "--save")     # before the runs, not after them
     report = bench_verb(_card(model, config), onnx_path, checkpoint=checkpoint, threads=threads, runs=runs,
-                        warmup=warmup, reference=not no_reference, int8=int8_path, profile=profile,
+                        warmup=warmup, reference=not no_reference, int8=True if int8_path == "" else int8_path,
+                        profile=profile,
                         openvino=openvino, progress=_progress, log=_log)
     _emit(as_json, report)
     if save_path:
@@ -289,6 +298,7 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
     """Write a synthetic place-recognition benchmark: one town (static world) driven on several
     days with other traffic, ego speed and heading offset, and some parked cars moved."""
+    # lazy: the scene generator is loaded only by the command that runs it
     from .data.pr_benchmark import make_pr_benchmark, make_pr_towns
     if towns == 1:
         plans = {"": make_pr_benchmark(out_dir, drives, frames, seed, progress=_progress("drives"))}
@@ -334,8 +344,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
     """The model's task metric: place-recognition Recall@1/5/10 of the ONNX and the torch reference
     over query drives against database drives (TDFANet), or localisation recall at top-1/5/10 cells
     and 5/10/15 m and cell-retrieval recall@1/3/5 over maps' described poses (Des4Pos)."""
+    # lazy: the API imports torch (see export)
     from .api import evaluate
-    from .config import check_writable_dir
     base = Path(onnx_path)
     base = base.with_name(base.name + ".eval.json") if base.suffix != ".onnx" else base.with_suffix(".eval.json")
     report_path, plot_path = Path(report_path or base), Path(plot_path or base.with_suffix(".png"))
@@ -359,7 +369,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, 
 @click.option("--data", "data_dir", required=True, type=click.Path(),
               help="Training data. TDFANet: a directory of drives (scans/ + gps.csv, or TransLoc4D-style "
                    "pointclouds/ + gps.csv), e.g. several `radaredge make-benchmark` towns. Des4Pos: cell maps "
-                   "with described poses (`radaredge make-city --cities N`, KITTI360Pose cells/ + poses/).")
+                   "with described poses (`radaredge make-city --cities N`, KITTI360Pose cells/ + poses/). "
+                   "MAFF-Net (one-stage cards): `synthetic`, the anchor-head fit on synthetic VoD scans.")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--output", type=click.Path(file_okay=False),
               help="Run directory: best.pth, last.pth, train-log.json  [default: runs/<model>]")
@@ -390,8 +401,8 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
     """Train a model with its paper's recipe (TDFANet: the lazy quadruplet loss, Adam 8e-4 decayed 0.9
     per epoch; Des4Pos: object, prior, coarse InfoNCE and fine stages), validate every epoch and keep
     the best checkpoint for `radaredge export --checkpoint`."""
+    # lazy: the API imports torch (see export)
     from .api import train as train_verb
-    from .config import parse_settings
     options = {k.replace("-", "_"): v for k, v in parse_settings(settings).items()}
     options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed))
                     if v is not None})
@@ -423,6 +434,7 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
 def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, as_json):
     """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
     query poses with template descriptions ("The pose is north of a red box.")."""
+    # lazy: the city generator is loaded only by the command that runs it
     from .data.text_city import check_city_output, make_city_for_card, write_cities
     card = _card(model, config)
     check_city_output(out_path, cities)
@@ -453,7 +465,7 @@ def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, 
 @click.option("--text", required=True, help='The description, e.g. "The pose is north of a red box."')
 @click.option("--top-k", default=3, show_default=True, type=int, help="Candidate cells for the fine stage.")
 @click.option("--threads", default=2, show_default=True, type=int)
-@click.option("--int8-text", is_flag=True, help="Use the dynamically quantised text_encoder.int8.onnx of the export.")
+@click.option("--int8-text", is_flag=True, help="Use the int8 copy of the export's text encoder (dynamic int8).")
 @click.option("--no-cache", is_flag=True, help="Re-encode the map's cells instead of reading the cached descriptors.")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
@@ -461,6 +473,7 @@ def locate(model, onnx_dir, map_path, text, top_k, threads, int8_text, no_cache,
     """Locate a described pose: encode the map's cells once (cached), retrieve the top-k cells for the
     text (FAISS), run the fine stage in each and print the position estimates with their scores.
     Needs numpy, onnxruntime, faiss and tokenizers only (no torch, no network)."""
+    # lazy: loads onnxruntime, tokenizers and faiss, which the other commands do not need
     from .runtime.des4pos import locate_description
     _emit(as_json, locate_description(onnx_dir, map_path, text, top_k, threads, int8_text, cache=not no_cache,
                                       progress=_progress("cells"), model=model))

@@ -7,6 +7,9 @@ import math
 from typing import Any, Callable, Mapping, Type, TypeVar
 
 from .errors import ConfigError
+import os
+from pathlib import Path
+import yaml
 
 T = TypeVar("T")
 
@@ -147,8 +150,6 @@ def check_writable_dir(directory, option: str, create: bool = False) -> None:
     """ConfigError naming ``option`` unless files can be written into ``directory``: its nearest
     existing ancestor is a writable directory (checked before a long run, not after it, and
     without leaving anything behind); with ``create`` the directory is made now."""
-    import os
-    from pathlib import Path
     directory = Path(directory)
     if create:
         try:
@@ -167,7 +168,6 @@ def check_writable_dir(directory, option: str, create: bool = False) -> None:
 def parse_settings(pairs: tuple[str, ...], option: str = "--set", example: str = "negatives=8") -> dict:
     """``KEY=VALUE`` pairs (``--set`` options) as a dict, values read as YAML scalars (numbers,
     true/false, words); ConfigError naming ``option`` for a malformed pair or a list/mapping value."""
-    import yaml
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")

@@ -1,5 +1,10 @@
-"""Model name -> builder. One line per model; the card's ``model`` field picks the entry (its
-top-level sections are :data:`radaredge.cards.CARD_SECTIONS`)."""
+"""Model family name -> its spec, filled by the model packages themselves.
+
+Each package under :mod:`radaredge.models` decorates its spec function with
+:func:`register_model`; importing :mod:`radaredge.models` imports them all. This module imports
+nothing from the models, so the registry sits below them (the card's ``model`` field is the key;
+its top-level sections are :data:`radaredge.cards.CARD_SECTIONS`).
+"""
 
 from __future__ import annotations
 
@@ -8,33 +13,30 @@ from typing import Callable
 from .cards import ModelCard
 from .errors import ConfigError
 
-
-def _tdfanet(card=None):
-    from .models.tdfanet_spec import TDFANET_SPEC
-    return TDFANET_SPEC
+_SPECS: dict[str, Callable] = {}
 
 
-def _maffnet(card=None):
-    from .models.maffnet_spec import spec_for
-    return spec_for(card)          # a card with stage_two gets the two-stage graph's spec
+def register_model(name: str) -> Callable[[Callable], Callable]:
+    """Decorator: ``spec_for(card) -> ModelSpec`` is the spec of family ``name`` (a card may pick
+    a variant, e.g. MAFF-Net's two-stage graph). A name registers once."""
+    def add(spec_for: Callable) -> Callable:
+        if name in _SPECS and _SPECS[name] is not spec_for:
+            raise ValueError(f"model {name!r} is registered twice")
+        _SPECS[name] = spec_for
+        return spec_for
+    return add
 
 
-def _des4pos(card=None):
-    from .models.des4pos_spec import DES4POS_SPEC
-    return DES4POS_SPEC
-
-
-MODELS: dict[str, Callable] = {
-    "tdfanet": _tdfanet,
-    "maffnet": _maffnet,
-    "des4pos": _des4pos,       # three graphs: submap encoder, text encoder, fine stage
-}
+def registered() -> list[str]:
+    """The registered family names, sorted."""
+    return sorted(_SPECS)
 
 
 def model_spec(card: ModelCard):
-    """The :class:`radaredge.models.spec.ModelSpec` of ``card``'s model (its graphs and hooks)."""
+    """The :class:`radaredge.models.spec.ModelSpec` of ``card``'s model (its graphs);
+    the models register on ``import radaredge.models``, which every verb does."""
     try:
-        entry = MODELS[card.model]
+        spec_for = _SPECS[card.model]
     except KeyError:
-        raise ConfigError(f"{card.where}: unknown model {card.model!r}; known: {sorted(MODELS)}") from None
-    return entry(card)
+        raise ConfigError(f"{card.where}: unknown model {card.model!r}; known: {registered()}") from None
+    return spec_for(card)

@@ -38,6 +38,7 @@ from typing import Callable, Iterator
 
 import onnx
 from onnx import TensorProto
+from .errors import ConfigError
 
 TARGETS = ("onnxruntime", "tensorrt", "openvino", "ort-mobile")
 TOPK_MAX_TENSORRT = 3840          # TensorRT: "K input must be less than 3840"
@@ -221,7 +222,6 @@ RULES: dict[str, Rule] = {"onnxruntime": _onnxruntime, "tensorrt": _tensorrt, "o
 
 def parse_targets(text: str | None) -> tuple[str, ...]:
     """``--targets`` as a tuple of target names ("all" for every one); ConfigError for an unknown name."""
-    from .errors import ConfigError
     if text is None:
         return ()
     names = TARGETS if text.strip() == "all" else tuple(t.strip() for t in text.split(",") if t.strip())

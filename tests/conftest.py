@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from radaredge.onnx_export import export_onnx
+from radaredge.export.onnx_call import export_onnx
 from radaredge.runtime.session import make_session, run_session
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
@@ -67,10 +67,10 @@ def tiny_export(tmp_path_factory):
     """The tiny TDFANet card exported once per session: (card, model, onnx path, debug onnx path)."""
     from radaredge.cards import load_card
     import radaredge
-    from radaredge.exporter import build_model
+    from radaredge.models import create_model
 
     card = load_card(TINY_CARD)
-    model = build_model(card)
+    model = create_model(card)
     d = tmp_path_factory.mktemp("tiny-export")
     radaredge.export(card, d / "tdfanet-tiny.onnx", model=model, debug=True)
     return card, model, d / "tdfanet-tiny.onnx", d / "tdfanet-tiny.debug.onnx"

@@ -31,14 +31,14 @@ from radaredge import runtime
 from radaredge.config import field_range
 from radaredge.data.readers import read_rosbag, read_scan
 from radaredge.data.sequences import load_sequence
-from radaredge.data.kitti360pose import TEXT2LOC_MODULE, read_cells, read_poses
+from radaredge.runtime.kitti360pose import TEXT2LOC_MODULE, read_cells, read_poses
 from radaredge.errors import InputError, RadarEdgeError
-from radaredge.models.des4pos import FineConfig, SubmapConfig
-from radaredge.models.des4pos_config import CellConfig, TextConfig
-from radaredge.models.maffnet import BackboneConfig, SpaConfig
-from radaredge.models.maffnet_rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
-from radaredge.models.maffnet_fuser import CafConfig
-from radaredge.models.tdfanet import TDFANetConfig
+from radaredge.models.des4pos.model import FineConfig, SubmapConfig
+from radaredge.cards.des4pos import CellConfig, TextConfig
+from radaredge.models.maffnet.model import BackboneConfig, SpaConfig
+from radaredge.models.maffnet.rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
+from radaredge.models.maffnet.fuser import CafConfig
+from radaredge.models.tdfanet.model import TDFANetConfig
 from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.dbscan import DbscanConfig
 from radaredge.ops.grid_density import GridDensityConfig
@@ -338,7 +338,7 @@ CLI = [
     ("train-field-map", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
                          "--field-map", "v_r"], "--field-map"),
     ("train-maffnet", ["train", "--model", "maffnet-tiny", "--config", str(MAFF_TINY), "--data", "{f}/town"],
-     "no training recipe"),
+     "reads no recorded data"),
     ("train-output-under-file", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
                                  "--output", "{f}/a-file/run"], "a-file"),
 ]
@@ -793,8 +793,8 @@ def test_gps_units(files, tmp_path, case, how):
 # -- checkpoints of the right shapes with values no layer can hold
 def _state_edits():
     from radaredge.cards import load_card
-    from radaredge.exporter import build_model
-    state = build_model(load_card(TINY_CARD)).state_dict()
+    from radaredge.models import create_model
+    state = create_model(load_card(TINY_CARD)).state_dict()
     bn = [k for k in state if k.endswith("running_var")]
     weights = [k for k, v in state.items() if k.endswith("weight") and v.dim() >= 2]
     edits = [(f"negative-var-{k}", k, "negvar") for k in bn[:: max(1, len(bn) // 6)]]

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from radaredge import timing as bench
-from radaredge.macs import count_macs
+from radaredge.bench import timing as bench
+from radaredge.bench.macs import count_macs
 
 ROOT = Path(__file__).resolve().parent.parent
 

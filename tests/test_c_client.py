@@ -19,7 +19,7 @@ import radaredge
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, InputError
-from radaredge.exporter import build_model
+from radaredge.models import create_model
 from radaredge.runtime.flags import CAPACITY, IMPLAUSIBLE, NON_FINITE, OUT_OF_RANGE, TIME_ORDER
 from radaredge.runtime.session import run_session
 
@@ -47,7 +47,7 @@ def graphs(tmp_path_factory, tiny_export):
     """The tiny TDFANet export and a tiny MAFF-Net export."""
     d = tmp_path_factory.mktemp("c-graphs")
     card = load_card(MAFF_TINY)
-    maff = radaredge.export(card, d / "maffnet-tiny.onnx", model=build_model(card)).path
+    maff = radaredge.export(card, d / "maffnet-tiny.onnx", model=create_model(card)).path
     return {"tdfanet": tiny_export[2], "maffnet": maff}
 
 
@@ -74,13 +74,13 @@ def _outputs(out: Path) -> dict[str, np.ndarray]:
 
 def _tdfanet_frames():
     card = load_card(TINY_CARD)
-    feeds = radaredge.registry.model_spec(card).graph().make_cases(card, 1, 0)[0][1]
+    feeds = radaredge.models.model_spec(card).graph().make_cases(card, 1, 0)[0][1]
     return [feeds["points_0"], np.zeros((0, 5), np.float32), feeds["points_2"]]
 
 
 def _maffnet_frames():
     card = load_card(MAFF_TINY)
-    feeds = radaredge.registry.model_spec(card).graph().make_cases(card, 1, 0)[0][1]
+    feeds = radaredge.models.model_spec(card).graph().make_cases(card, 1, 0)[0][1]
     return [feeds["points"]]
 
 

@@ -1,6 +1,7 @@
 """The radaredge CLI end to end, including the full cards (export + parity on each)."""
 
 import json
+import shutil
 
 import pytest
 from click.testing import CliRunner
@@ -73,7 +74,7 @@ def test_bench_json_reports_every_backend(tmp_path, tiny_export):
 
 def test_a_failing_backend_is_a_row_not_an_abort():
     """Ultralytics-style: the backend that raises gets status error and its reason; the rest are timed."""
-    from radaredge.timing import benchmark, results_table
+    from radaredge.bench.timing import benchmark, results_table
 
     def broken(case):
         raise RuntimeError("no kernel for this op\nsecond line")
@@ -98,8 +99,8 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
         return real(path, threads=threads, profile=profile, **kw)
 
     monkeypatch.setattr(ort_helpers, "make_session", spy)
-    import radaredge.profiling
-    monkeypatch.setattr(radaredge.profiling, "make_session", spy)
+    import radaredge.bench.profiling
+    monkeypatch.setattr(radaredge.bench.profiling, "make_session", spy)
     (tmp_path / "tmp").mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
@@ -123,7 +124,17 @@ def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
     res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(int8),
                  "--cases", "4", "--quantized")
     assert res.exit_code == 0 and "[int8 budget]" in res.output and "PASSED" in res.output
-    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx),
+    # the fp32 graph with --quantized: its int8 copy beside it is checked, as for a multi-graph bundle
+    res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx),
+                 "--cases", "1", "--quantized")
+    assert res.exit_code == 0 and "tiny.int8.onnx" in res.output and "[int8 budget]" in res.output
+    lone = tmp_path / "lone.onnx"
+    shutil.copyfile(onnx, lone)
+    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(lone),
+                                    "--cases", "1", "--quantized"])
+    assert res.exit_code == 2 and "lone.int8.onnx does not exist" in res.output
+    shutil.copyfile(onnx, tmp_path / "lone.int8.onnx")       # an fp32 graph named like an int8 copy
+    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(lone),
                                     "--cases", "1", "--quantized"])
     assert res.exit_code == 2 and "not an int8 export" in res.output
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx), "--runs", "2",

@@ -9,12 +9,12 @@ import pytest
 
 from radaredge.config import Range, card_ranges, config_from_dict, field_range
 from radaredge.errors import ConfigError
-from radaredge.models.des4pos import FineConfig, SubmapConfig
-from radaredge.models.des4pos_config import CellConfig, TextConfig
-from radaredge.models.maffnet import AnchorClass, BackboneConfig, HeadConfig, InputConfig, SpaConfig
-from radaredge.models.maffnet_fuser import CafConfig
-from radaredge.models.maffnet_rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
-from radaredge.models.tdfanet import TDFANetConfig
+from radaredge.models.des4pos.model import FineConfig, SubmapConfig
+from radaredge.cards.des4pos import CellConfig, TextConfig
+from radaredge.models.maffnet.model import AnchorClass, BackboneConfig, HeadConfig, InputConfig, SpaConfig
+from radaredge.models.maffnet.fuser import CafConfig
+from radaredge.models.maffnet.rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
+from radaredge.models.tdfanet.model import TDFANetConfig
 from radaredge.ops.dbscan import DbscanConfig
 from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.grid_density import GridDensityConfig

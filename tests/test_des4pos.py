@@ -16,11 +16,11 @@ from click.testing import CliRunner
 
 from radaredge.cards import load_card
 from radaredge.cli import main
-from radaredge.data.cellmap import load_map, pack_cells
+from radaredge.runtime.cellmap import load_map, pack_cells
 from radaredge.data.text_city import make_city
 from radaredge.errors import ConfigError, InputError
-from radaredge.exporter import build_model
-from radaredge.models.minilm import MiniLMEncoder, T5Encoder, minilm_dir
+from radaredge.models import create_model
+from radaredge.models.des4pos.minilm import MiniLMEncoder, T5Encoder, minilm_dir
 from radaredge.runtime.text_tokens import encode_hints, load_tokenizer, split_hints
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -37,7 +37,7 @@ def card():
 
 @pytest.fixture(scope="module")
 def model(card):
-    return build_model(card)
+    return create_model(card)
 
 
 @pytest.fixture(scope="module")
@@ -193,6 +193,31 @@ def test_bundle_export_and_parity_of_every_part(bundle):
     assert parts["fine_stage"]["summary"]["position"]["max_abs"] <= 1e-3
 
 
+def test_int8_bundle_is_checked_and_timed_as_any_export(bundle, tmp_path):
+    """A bundle takes --quantized and --int8 as a one-graph export does: the text encoder's int8
+    copy is judged on the int8 budgets, the graphs the int8 policy keeps fp32 as fp32; bench
+    times the int8 copy, and writes it first when it is missing."""
+    res = invoke("parity-check", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--cases", "2",
+                 "--quantized", "--json")
+    report = json.loads(res.stdout)
+    assert res.exit_code == 0 and report["passed"], res.output
+    assert report["graphs"]["text_encoder"]["quantized"] and report["graphs"]["text_encoder"]["onnx"].endswith(
+        "text_encoder.int8.onnx")
+    assert not report["graphs"]["submap_encoder"]["quantized"] and not report["graphs"]["fine_stage"]["quantized"]
+    fresh = tmp_path / "fresh"
+    shutil.copytree(bundle, fresh)
+    (fresh / "text_encoder.int8.onnx").unlink()
+    res = CliRunner().invoke(main, ["parity-check", "--model", "des4pos-tiny", "--config", str(TINY), "--onnx",
+                                    str(fresh), "--cases", "1", "--quantized"])
+    assert res.exit_code == 2 and "text_encoder.int8.onnx does not exist" in res.output
+    res = invoke("bench", "--model", "des4pos-tiny", "--config", TINY, "--onnx", fresh, "--int8", "--runs", "1",
+                 "--warmup", "0", "--no-reference", "--no-openvino", "--json")
+    assert res.exit_code == 0, res.output
+    rows = [r["backend"] for r in json.loads(res.stdout)["tasks"]["query"]["rows"]]
+    assert "onnxruntime int8 text" in rows and (fresh / "text_encoder.int8.onnx").is_file()
+    assert sorted(p.name for p in fresh.iterdir() if p.name.startswith(".")) == []      # no staging left
+
+
 def test_parity_refuses_a_bundle_with_other_weights(bundle, tmp_path):
     other = tmp_path / "other.yaml"
     other.write_text(TINY.read_text().replace("seed: 5", "seed: 6"))
@@ -283,12 +308,12 @@ def test_card_rejects_other_point_columns(card):
     from radaredge.cards import parse_card
     data = dict(card.data, features=["x", "y", "z", "intensity"])
     with pytest.raises(ConfigError, match=r"columns \['x', 'y', 'z', 'r', 'g', 'b'\]"):
-        build_model(parse_card(data))
+        create_model(parse_card(data))
 
 
 def test_parity_descriptions_are_distinct():
     """The text encoder's parity cases hold no description twice (two equal texts made the
     retrieval agreement of the seeded full card 90 %)."""
-    from radaredge.models.des4pos_spec import descriptions
+    from radaredge.models.des4pos.spec import descriptions
     texts = descriptions(load_card("des4pos"), 40, 0)
     assert len(set(texts)) == 40 and min(len(t) for t in texts) < 10

@@ -9,10 +9,10 @@ import types
 import numpy as np
 import pytest
 
-from radaredge.data.cellmap import load_map
-from radaredge.data.kitti360pose import read_cells, read_pickle, read_poses
+from radaredge.runtime.cellmap import load_map
+from radaredge.runtime.kitti360pose import read_cells, read_pickle, read_poses
 from radaredge.errors import InputError
-from radaredge.evaluation import localization_recall
+from radaredge.eval.places import localization_recall
 
 MODULE = "datapreparation.kitti360pose.imports"
 
@@ -91,7 +91,7 @@ def test_pickle_of_the_wrong_thing_is_a_clear_error(tmp_path):
 
 def test_the_reader_does_not_import_the_map_module():
     """One-way dependency: cellmap.load_map packs what kitti360pose reads, never the reverse."""
-    code = "import sys, radaredge.data.kitti360pose; print('radaredge.data.cellmap' in sys.modules)"
+    code = "import sys, radaredge.runtime.kitti360pose; print('radaredge.runtime.cellmap' in sys.modules)"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.split() == ["False"], res.stderr
 

@@ -1,4 +1,4 @@
-"""radaredge.des4pos_eval: localisation recall of an exported Des4Pos bundle over a map's described poses."""
+"""radaredge.eval.localisation: localisation recall of an exported Des4Pos bundle over a map's described poses."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ import torch
 
 from conftest import invoke
 from radaredge.cards import load_card
-from radaredge.data.cellmap import load_map
+from radaredge.runtime.cellmap import load_map
 from radaredge.data.text_city import make_city
-from radaredge.des4pos_eval import evaluate_localization
+from radaredge.eval.localisation import evaluate_localization
 from radaredge.errors import ConfigError, InputError
-from radaredge.exporter import build_model
+from radaredge.models import create_model
 from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -82,7 +82,7 @@ def test_the_torch_reference_agrees_and_the_database_spans_maps(bundle, city, tm
     assert "recall (torch reference)" in report.retrieval_table()
     again = evaluate_localization(bundle, d)                      # the caches beside the maps are not maps
     assert again.from_cache and again.cells == report.cells
-    model = build_model(load_card(TINY))
+    model = create_model(load_card(TINY))
     with torch.no_grad():
         model.fine.offset[0].bias.add_(1.0)
     torch.save(model.state_dict(), tmp_path / "other.pth")

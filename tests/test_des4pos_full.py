@@ -1,4 +1,4 @@
-"""The paper card (radaredge/cards/des4pos.yaml) exports as three graphs and passes parity on every part."""
+"""The paper card (models/des4pos.yaml) exports as three graphs and passes parity on every part."""
 
 import json
 

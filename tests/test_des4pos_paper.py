@@ -12,8 +12,8 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.data.text_city import make_city_for_card
-from radaredge.exporter import build_model
-from radaredge.models.des4pos import MFAM
+from radaredge.models import create_model
+from radaredge.models.des4pos.model import MFAM
 from references import des4pos_paper as paper
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -27,7 +27,7 @@ def card():
 @pytest.fixture(scope="module")
 def model(card):
     torch.manual_seed(11)
-    m = build_model(card)
+    m = create_model(card)
     with torch.no_grad():                     # seeded biases are small; make every term count
         for name, p in m.named_parameters():
             if not name.startswith("text.backbone") and name.endswith("bias"):
@@ -99,7 +99,7 @@ def test_one_objects_points_move_the_cell_descriptor():
     seeded full card's descriptor by ~1e-2; eq. 4-5 alone (``mfam: paper``) by ~1e-5, which is
     what the default is there to avoid."""
     card = load_card("des4pos")
-    model = build_model(card)
+    model = create_model(card)
     city = make_city_for_card(card, seed=3, poses=0)
     c = int(np.argmax(city.object_mask.sum(1)))
     pts, cnt, mask = city.points[c:c + 1], city.num_points[c:c + 1], city.object_mask[c:c + 1]

@@ -1,4 +1,4 @@
-"""Des4Pos training (radaredge/training/des4pos.py) on a tiny card and a small synthetic city."""
+"""Des4Pos training (radaredge/train/des4pos.py) on a tiny card and a small synthetic city."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from radaredge.cards import load_card
 from radaredge.data.text_city import write_cities
 from radaredge.data.text_maps import load_text_maps
 from radaredge.errors import ConfigError
-from radaredge.exporter import build_model
-from radaredge.training.des4pos import (TextRecipe, _padded_hints, backbone_features, cell_descriptors, coarse_metrics,
+from radaredge.models import create_model
+from radaredge.train.des4pos import (TextRecipe, _padded_hints, backbone_features, cell_descriptors, coarse_metrics,
                                         geometry_features, hint_fine_features, hint_table, info_nce, text_descriptors)
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -48,14 +48,14 @@ def _training_recall(card, model, root) -> float:
 
 
 def test_coarse_stage_lowers_infonce_and_raises_recall(card, city_dir, tmp_path):
-    seeded = build_model(card)
+    seeded = create_model(card)
     before = _training_recall(card, seeded, city_dir)
     report = radaredge.train(card, city_dir, tmp_path / "run",
                              options={"stages": "coarse", "coarse_epochs": 5, "coarse_batch": 16, "coarse_lr": 2e-3})
     rows = [r for r in report.epochs if r["stage"] == "coarse"]
     assert len(rows) == 5 and report.data["training_poses"] == 144    # 9 steps an epoch, 45 in all
     assert rows[-1]["loss"] < 0.8 * rows[0]["loss"], [r["loss"] for r in rows]
-    trained = build_model(card, tmp_path / "run" / "best.pth")
+    trained = create_model(card, tmp_path / "run" / "best.pth")
     after = _training_recall(card, trained, city_dir)
     assert after >= before + 10.0, (before, after)
     log = json.loads((tmp_path / "run" / "train-log.json").read_text())
@@ -116,7 +116,7 @@ def test_tensors_made_in_the_training_path_follow_the_input_device(card, city_di
     """Every tensor the model and the training helpers make takes its device from their inputs
     (CUDA training): with meta as the default device, a tensor made without one lands on meta and
     mixing it with the CPU inputs fails, so CPU results prove none was made."""
-    model = build_model(card)
+    model = create_model(card)
     cell, text = model.cell_config, model.text_config
     maps = load_text_maps(city_dir, cell.max_objects, cell.points_per_object, text.max_hints, None, 0)
     table = hint_table(card, maps)

@@ -9,8 +9,8 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
-from radaredge.exporter import build_model
-from radaredge.models.des4pos_weights import load_object_weights
+from radaredge.models import create_model
+from radaredge.models.des4pos.weights import load_object_weights
 from references import text2pos_pointnet as text2pos
 
 
@@ -41,7 +41,7 @@ def text2pos_pointnet(seed: int = 0) -> dict:
 
 @pytest.fixture(scope="module")
 def model():
-    return build_model(load_card("des4pos"))
+    return create_model(load_card("des4pos"))
 
 
 def test_text2pos_pointnet_loads_key_for_key(model, tmp_path):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from radaredge.errors import ConfigError, InputError
-from radaredge.evaluation import nearest_neighbours, recall_at_n, top1_agreement, top1_place_agreement
+from radaredge.eval.places import nearest_neighbours, recall_at_n, top1_agreement, top1_place_agreement
 
 BACKENDS = [pytest.param(True, id="faiss"), pytest.param(False, id="numpy")]
 

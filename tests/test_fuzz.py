@@ -23,7 +23,7 @@ from radaredge.cards import card_from_yaml
 from radaredge.data.readers import read_scan
 from radaredge.data.sequences import load_sequence
 from radaredge.errors import RadarEdgeError
-from radaredge.models.tdfanet import TDFANetConfig
+from radaredge.models.tdfanet.model import TDFANetConfig
 from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.pillars import PillarConfig
 
@@ -142,10 +142,10 @@ def cards(draw):
 @given(text=cards())
 def test_card_parser_refuses_or_builds(text):
     """A fuzzed card is refused with a ConfigError, or every section it has parses into finite values."""
-    from radaredge.exporter import build_model
+    from radaredge.models import create_model
     try:
         card = card_from_yaml(text)
-        build_model(card)
+        create_model(card)
     except RadarEdgeError:
         return
     for section in (card.section("preprocess.ransac", RansacConfig), card.section("pillars", PillarConfig),

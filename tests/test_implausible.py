@@ -19,9 +19,9 @@ import radaredge
 from radaredge import runtime
 from radaredge.cards import PLAUSIBLE_DEFAULTS, load_card, plausible_ranges
 from radaredge.errors import ConfigError, InputError
-from radaredge.exporter import build_model
+from radaredge.models import create_model
 from radaredge.ops.input_flags import drop_implausible, drop_implausible_reference
-from radaredge.registry import model_spec
+from radaredge.models import model_spec
 from radaredge.runtime.flags import IMPLAUSIBLE, NON_FINITE
 
 from conftest import TINY_CARD
@@ -69,7 +69,7 @@ def test_an_implausible_point_is_left_out_like_a_nan_row(card_path):
     gives the outputs of the same frame with that row NaN, and flags ``implausible``, not
     ``non_finite``."""
     card = load_card(card_path)
-    model = build_model(card)
+    model = create_model(card)
     graph, feeds = _window(card)
     frame = graph.frame_inputs(card)[-1]
     for col, name in enumerate(card.features):
@@ -110,8 +110,8 @@ def test_the_runtime_refuses_when_the_card_says_so(tmp_path):
     assert run_session(m.session, raw)["input_flags"][1] & IMPLAUSIBLE      # the graph drops and flags it too
 
 
-def _peak_rss_and_time(fn, runs: int = 5) -> tuple[float, float]:
-    """Peak resident memory growth (bytes) and median seconds of ``fn()`` over ``runs`` runs."""
+def _peak_rss(fn, runs: int = 3) -> float:
+    """Peak resident memory growth (bytes) over ``runs`` runs of ``fn()``."""
     page = os.sysconf("SC_PAGE_SIZE")
 
     def rss():
@@ -127,20 +127,31 @@ def _peak_rss_and_time(fn, runs: int = 5) -> tuple[float, float]:
     base = rss()
     thread = threading.Thread(target=sample, daemon=True)
     thread.start()
-    times = []
     for _ in range(runs):
-        t = time.perf_counter()
         fn()
-        times.append(time.perf_counter() - t)
     stop.set()
     thread.join()
-    return max(peak[0] - base, 0), statistics.median(times)
+    return max(peak[0] - base, 0)
+
+
+def _cpu_medians(fns, runs: int = 7) -> list[float]:
+    """Median CPU seconds of this thread per function, the functions interleaved run by run: a
+    one-thread session computes in the calling thread, so the figure is the work done, whatever
+    else the machine runs meanwhile."""
+    times = [[] for _ in fns]
+    for _ in range(runs):
+        for fn, acc in zip(fns, times):
+            t = time.thread_time()
+            fn()
+            acc.append(time.thread_time() - t)
+    return [statistics.median(acc) for acc in times]
 
 
 def test_one_absurd_point_costs_no_more_than_a_normal_frame(tmp_path):
     """MAFF-Net (the stage-one tiny card): a scan plus one point with float32's largest value in a
     column, column by column, stays within 1.5x the normal scan's peak memory growth and median
-    time (in one process, interleaved; a ratio, not a wall-clock figure), with the same boxes."""
+    CPU time (one-thread session, interleaved with the normal scan; a ratio of work, not a
+    wall-clock figure), with the same boxes."""
     res = radaredge.export(str(MAFF_TINY), tmp_path / "maffnet-tiny.onnx")
     m = runtime.load(res.path, threads=1)
     card = m.card
@@ -148,7 +159,7 @@ def test_one_absurd_point_costs_no_more_than_a_normal_frame(tmp_path):
     normal = feeds["points"]
     m.run(normal)                                                    # warm-up: arenas, first-run allocations
     ref = m.run(normal)
-    base_mem, base_time = _peak_rss_and_time(lambda: m.run(normal))
+    base_mem = _peak_rss(lambda: m.run(normal))
     r = card.get("pillars.point_cloud_range")
     centre = np.zeros(len(card.features), np.float32)
     centre[:3] = [(r[0] + r[3]) / 2, (r[1] + r[4]) / 2, (r[2] + r[5]) / 2]   # where a point reaches the network
@@ -158,6 +169,7 @@ def test_one_absurd_point_costs_no_more_than_a_normal_frame(tmp_path):
         out = m.run(scan)
         assert out["input_flags"][0] & (IMPLAUSIBLE if name not in ("x", "y", "z") else 4), name
         np.testing.assert_array_equal(out["boxes"], ref["boxes"], err_msg=name)
-        mem, t = _peak_rss_and_time(lambda: m.run(scan))
+        mem = _peak_rss(lambda: m.run(scan))
         assert mem <= 1.5 * base_mem + 32 * 2**20, f"{name}: {mem / 2**20:.0f} MiB vs {base_mem / 2**20:.0f} MiB"
-        assert t <= 1.5 * base_time + 0.02, f"{name}: {t * 1e3:.1f} ms vs {base_time * 1e3:.1f} ms"
+        base_time, t = _cpu_medians([lambda: m.run(normal), lambda: m.run(scan)])
+        assert t <= 1.5 * base_time + 0.02, f"{name}: {t * 1e3:.1f} ms vs {base_time * 1e3:.1f} ms of CPU"

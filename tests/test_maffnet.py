@@ -13,9 +13,9 @@ import torch
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, ConfigError
-from radaredge.exporter import build_model, load_checkpoint
-from radaredge.models.maffnet import HeadConfig, decode_boxes
-from radaredge.models.maffnet_spec import STAGE_ONE_GRAPH
+from radaredge.models import create_model, load_checkpoint
+from radaredge.models.maffnet.model import HeadConfig, decode_boxes
+from radaredge.models.maffnet.spec import STAGE_ONE_GRAPH
 from conftest import assert_close, assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,7 +55,7 @@ def expected_vod_keys() -> dict[str, tuple]:
 
 @pytest.fixture(scope="module")
 def vod_model():
-    return build_model(load_card(ROOT / "radaredge" / "cards" / "maffnet-vod.yaml"))
+    return create_model(load_card(ROOT / "models" / "maffnet-vod.yaml"))
 
 
 def test_vod_state_dict_follows_upstream_keys(vod_model, tmp_path):
@@ -94,7 +94,7 @@ def test_decode_zero_residual_gives_the_anchor():
 
 def test_tiny_export_formulation_equals_reference():
     card = load_card(TINY)
-    model = build_model(card)
+    model = create_model(card)
     for name, feeds in STAGE_ONE_GRAPH.make_cases(card, 5, 1):
         with torch.no_grad():
             e = STAGE_ONE_GRAPH.run_export(model, feeds)
@@ -178,7 +178,7 @@ def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path):
 def test_onnx_nodes_attributed_to_stages(tiny_onnx):
     """Every graph node lands in one MAFF-Net stage, by module scope or by graph position."""
     import onnx
-    from radaredge.profiling import node_stages
+    from radaredge.bench.profiling import node_stages
     model = onnx.load(str(tiny_onnx), load_external_data=False)
     stage = node_stages(model, list(STAGE_ONE_GRAPH.onnx_stages), STAGE_ONE_GRAPH.onnx_post_outputs)
     nodes = {n.name: n for n in model.graph.node}

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from radaredge.cards import load_card
-from radaredge.exporter import build_model, load_checkpoint
-from radaredge.models.maffnet import STAGE_TWO_PREFIXES, UNUSED_FUSER_KEYS, UNUSED_VFE_KEYS
+from radaredge.models import create_model, load_checkpoint
+from radaredge.models.maffnet.model import STAGE_TWO_PREFIXES, UNUSED_FUSER_KEYS, UNUSED_VFE_KEYS
 from references.maffnet_upstream_keys import openpcdet_checkpoint, upstream_state_dict, upstream_state_dict_shapes
 from conftest import invoke
 
@@ -27,7 +27,7 @@ STAGE_ONE_RULE = "stage-two modules on a stage-one card"
                                            ("maffnet-tj4d", "tj4d"), ("maffnet-tj4d-full", "tj4d"),
                                            ("maffnet-vod-full-dbscan", "vod"), ("maffnet-tj4d-full-dbscan", "tj4d")])
 def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, tmp_path):
-    model = build_model(load_card(ROOT / "radaredge" / "cards" / f"{card}.yaml"))
+    model = create_model(load_card(ROOT / "models" / f"{card}.yaml"))
     own = model.state_dict()
     upstream = upstream_state_dict(dataset, seed=3)
     torch.save(openpcdet_checkpoint(upstream), tmp_path / "ckpt.pth")
@@ -55,7 +55,7 @@ def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, t
 
 def test_stage_two_keys_of_the_full_cards_are_upstreams():
     for card, dataset in (("maffnet-vod-full", "vod"), ("maffnet-tj4d-full", "tj4d")):
-        own = {k: tuple(v.shape) for k, v in build_model(load_card(ROOT / "radaredge" / "cards" / f"{card}.yaml")).state_dict().items()}
+        own = {k: tuple(v.shape) for k, v in create_model(load_card(ROOT / "models" / f"{card}.yaml")).state_dict().items()}
         up = upstream_state_dict_shapes(dataset)
         two = {k: s for k, s in up.items() if k.startswith(STAGE_TWO_PREFIXES)}
         assert {k: own.get(k) for k in two} == two, card
@@ -75,7 +75,7 @@ def _one_error_line(res, *needles):
 
 def test_bad_checkpoints_end_with_one_clear_error(tmp_path):
     tiny = ROOT / "tests" / "cards" / "maffnet-tiny.yaml"
-    model = build_model(load_card(tiny))
+    model = create_model(load_card(tiny))
     state = model.state_dict()
 
     def export(path):

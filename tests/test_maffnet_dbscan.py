@@ -17,9 +17,9 @@ import torch
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, ConfigError
-from radaredge.exporter import build_model
-from radaredge.models.maffnet_spec import five_frame_points
-from radaredge.registry import model_spec
+from radaredge.models import create_model
+from radaredge.models.maffnet.spec import five_frame_points
+from radaredge.models import model_spec
 from references.maffnet_upstream import upstream_scan_mask
 from references.sklearn_cqca_cfa import upstream_map
 from conftest import assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
@@ -40,10 +40,10 @@ def _sklearn_map(card, pts):
     return bev, cluster
 
 
-@pytest.mark.parametrize("card_path, cases", [(TINY, 5), (ROOT / "radaredge" / "cards" / "maffnet-vod-full-dbscan.yaml", 5)])
+@pytest.mark.parametrize("card_path, cases", [(TINY, 5), (ROOT / "models" / "maffnet-vod-full-dbscan.yaml", 5)])
 def test_clustering_map_equals_sklearn(card_path, cases):
     card = load_card(card_path)
-    model = build_model(card)
+    model = create_model(card)
     seen = 0
     for name, feeds in model_spec(card).graph().make_cases(card, cases, 4):
         pts = feeds["points"]
@@ -100,19 +100,19 @@ def test_card_names_one_clustering_method(tmp_path):
     data["cfa"]["grid"] = {"map_h": 40, "map_w": 40}
     (tmp_path / "both.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match="cfa.grid is set but cfa.method is 'dbscan'"):
-        build_model(load_card(tmp_path / "both.yaml"))
+        create_model(load_card(tmp_path / "both.yaml"))
     data = load_card(TINY).data
     data["cfa"]["method"] = "kmeans"
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match="method must be one of"):
-        build_model(load_card(tmp_path / "bad.yaml"))
+        create_model(load_card(tmp_path / "bad.yaml"))
 
 
 def test_dense_five_frame_clouds_fit_the_vod_capacities():
     """The documented sizing (docs/models/maffnet.md): dense 5-frame clouds in the camera FOV stay
     below spa.capacity in non-empty pillars and below cfa.dbscan.capacity in scan points."""
-    card = load_card(ROOT / "radaredge" / "cards" / "maffnet-vod-full-dbscan.yaml")
-    model = build_model(card)
+    card = load_card(ROOT / "models" / "maffnet-vod-full-dbscan.yaml")
+    model = create_model(card)
     r = card.get("pillars.point_cloud_range")
     for seed in (0, 2, 4):
         pts = five_frame_points(seed, card)

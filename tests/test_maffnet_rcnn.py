@@ -14,10 +14,10 @@ import torch
 
 from radaredge import runtime
 from radaredge.cards import load_card
-from radaredge.exporter import build_model
-from radaredge.models.maffnet_rcnn import (CDAKeypointSampler, KeypointConfig, ProposalConfig, ProposalLayer,
+from radaredge.models import create_model
+from radaredge.models.maffnet.rcnn import (CDAKeypointSampler, KeypointConfig, ProposalConfig, ProposalLayer,
                                            decode_roi_residuals)
-from radaredge.registry import model_spec
+from radaredge.models import model_spec
 from conftest import assert_close, assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,7 @@ TINY_FULL = Path(__file__).parent / "cards" / "maffnet-tiny-full.yaml"
 @pytest.fixture(scope="module")
 def tiny():
     card = load_card(TINY_FULL)
-    model = build_model(card)
+    model = create_model(card)
     with torch.no_grad():                                 # non-trivial BN statistics in stage two
         gen = torch.Generator().manual_seed(1)
         for name, m in model.named_modules():
@@ -219,7 +219,7 @@ def test_tiny_full_export_formulation_equals_reference(tiny):
 
 
 def test_tiny_full_stage_times(tiny):
-    from radaredge.models.maffnet import stage_times
+    from radaredge.models.maffnet.model import stage_times
     card, model = tiny
     pts = torch.from_numpy(model_spec(card).graph().make_cases(card, 1, 0)[0][1]["points"])
     for reference in (False, True):
@@ -252,7 +252,7 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
     assert out["boxes"].shape[1] == 7 and len(out["boxes"]) == len(out["scores"]) == len(out["labels"])
     assert out["keypoints"].shape == (64, 3) and set(out["labels"].tolist()) <= {1, 2, 3}
     # fewer points than keypoint slots, and an empty scan: the graph equals the torch export formulation
-    net = build_model(card)
+    net = create_model(card)
     full = model_spec(card).graph().make_cases(card, 1, 3)[0][1]["points"]
     inside = full[(full[:, 0] >= 0) & (full[:, 0] <= 12.8) & (np.abs(full[:, 1]) <= 6.4)]
     for pts in (inside[:3], full[:0]):
@@ -266,7 +266,7 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
 
 def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):
     import onnx
-    from radaredge.profiling import node_stages
+    from radaredge.bench.profiling import node_stages
     spec = model_spec(load_card(TINY_FULL)).graph()
     stages = [s for s, _ in spec.onnx_stages]
     assert stages == ["VFE+SPA", "CFA", "CAF", "backbone+head", "proposals+CDA", "VSA+point head", "ROI head",
@@ -318,23 +318,23 @@ def expected_vod_stage_two_keys() -> dict[str, tuple]:
     return keys
 
 
-VOD_FULL = ROOT / "radaredge" / "cards" / "maffnet-vod-full.yaml"
+VOD_FULL = ROOT / "models" / "maffnet-vod-full.yaml"
 
 
 def test_vod_full_card_keys_and_stage_one():
     from test_maffnet import expected_vod_keys
     card = load_card(VOD_FULL)
-    model = build_model(card)
+    model = create_model(card)
     own = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     two = expected_vod_stage_two_keys()
     assert {k: own.get(k) for k in two} == two
     stage_one = {k: v for k, v in own.items() if k.split(".")[0] not in ("pfe", "point_head", "roi_head")}
-    one = build_model(load_card(ROOT / "radaredge" / "cards" / "maffnet-vod.yaml")).state_dict()
+    one = create_model(load_card(ROOT / "models" / "maffnet-vod.yaml")).state_dict()
     assert stage_one == {k: tuple(v.shape) for k, v in one.items()}       # all of maffnet-vod, unchanged
     assert set(expected_vod_keys()) <= set(stage_one)
     assert set(own) == set(stage_one) | set(two)
     # the stage-one part of the two cards is the same card
-    full, base = load_card(VOD_FULL).data, load_card(ROOT / "radaredge" / "cards" / "maffnet-vod.yaml").data
+    full, base = load_card(VOD_FULL).data, load_card(ROOT / "models" / "maffnet-vod.yaml").data
     assert {k: v for k, v in full.items() if k not in ("name", "description", "stage_two")} == \
         {k: v for k, v in base.items() if k not in ("name", "description")}
 
@@ -358,7 +358,7 @@ def vod_full_onnx(tmp_path_factory):
     upstream key, random values at a trained network's scales; not our seeded weights)."""
     from references.maffnet_upstream_keys import openpcdet_checkpoint, trained_like_state_dict
     out = tmp_path_factory.mktemp("maffnet-vod-full")
-    own = build_model(load_card(VOD_FULL)).state_dict()
+    own = create_model(load_card(VOD_FULL)).state_dict()
     torch.save(openpcdet_checkpoint(trained_like_state_dict("vod", seed=1)), out / "upstream.pth")
     path = out / "maffnet-vod-full.onnx"
     res = invoke("export", "--model", "maffnet-vod-full", "--output", str(path), "--checkpoint", out / "upstream.pth")

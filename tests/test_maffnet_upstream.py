@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from radaredge.cards import load_card
-from radaredge.exporter import build_model, load_checkpoint
-from radaredge.models.maffnet import UNUSED_FUSER_KEYS
-from radaredge.models.maffnet_rcnn import CDAKeypointSampler, KeypointConfig, scan_points
+from radaredge.models import create_model, load_checkpoint
+from radaredge.models.maffnet.model import UNUSED_FUSER_KEYS
+from radaredge.models.maffnet.rcnn import CDAKeypointSampler, KeypointConfig, scan_points
 from references.maffnet_upstream import (UpstreamCQCACaf, UpstreamVSA, randomise, upstream_cda_keypoints,
                                          upstream_scan_mask)
 
@@ -34,10 +34,10 @@ def _with_upstream_part(model, prefix: str, part_state: dict, tmp_path: Path) ->
     return path
 
 
-@pytest.mark.parametrize("card_path, side", [(TINY_FULL, 40), (ROOT / "radaredge" / "cards" / "maffnet-vod.yaml", 320)])
+@pytest.mark.parametrize("card_path, side", [(TINY_FULL, 40), (ROOT / "models" / "maffnet-vod.yaml", 320)])
 def test_fuser_equals_upstream_cqca_caf(card_path, side, tmp_path):
     card = load_card(card_path)
-    model = build_model(card)
+    model = create_model(card)
     caf = card.get("caf")
     upstream = UpstreamCQCACaf(64, 128, caf["out_channels"], caf["pool_size"], caf["heads"], caf["ffn_ratio"],
                                caf["se_reduction"]).eval()
@@ -103,7 +103,7 @@ def test_cda_keypoints_equal_upstream(case):
 
 def test_vsa_equals_upstream(tmp_path):
     card = load_card(TINY_FULL)
-    model = build_model(card)
+    model = create_model(card)
     sa = card.get("stage_two.vsa.sa_clusterpoints")
     r, v = card.get("pillars.point_cloud_range"), card.get("pillars.voxel_size")
     upstream = UpstreamVSA(7, card.get("caf.out_channels"), sa["radii"], sa["nsample"], sa["mlps"],
@@ -127,12 +127,12 @@ def test_tiny_full_fused_map_and_keypoints_equal_upstream_on_its_own_rois(tmp_pa
     """The whole tiny two-stage model with upstream-format fuser weights: the fused map and the
     graph's keypoints (exactly K, every scan) equal upstream's given the same rois."""
     card = load_card(TINY_FULL)
-    model = build_model(card)
+    model = create_model(card)
     caf = card.get("caf")
     fuser = UpstreamCQCACaf(64, 128, caf["out_channels"], caf["pool_size"], caf["heads"], caf["ffn_ratio"],
                             caf["se_reduction"]).eval()
     load_checkpoint(model, _with_upstream_part(model, "fuser.", randomise(fuser, 5), tmp_path))
-    from radaredge.registry import model_spec
+    from radaredge.models import model_spec
     spec = model_spec(card).graph()
     k = card.get("stage_two.keypoints.num_keypoints")
     r = card.get("pillars.point_cloud_range")
@@ -155,9 +155,9 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
     """maffnet-vod-full with upstream-format fuser and pfe weights, on a drive scan and a dense
     5-frame cloud: exactly 1024 keypoints, equal to upstream's CDA given the graph's own rois and
     cluster points, and VSA features within 1e-4 of upstream's VoxelSetAbstraction_cda."""
-    from radaredge.models.maffnet_spec import five_frame_points
-    card = load_card(ROOT / "radaredge" / "cards" / "maffnet-vod-full.yaml")
-    model = build_model(card)
+    from radaredge.models.maffnet.spec import five_frame_points
+    card = load_card(ROOT / "models" / "maffnet-vod-full.yaml")
+    model = create_model(card)
     fuser = UpstreamCQCACaf().eval()
     sa = card.get("stage_two.vsa.sa_clusterpoints")
     r, v = card.get("pillars.point_cloud_range"), card.get("pillars.voxel_size")
@@ -167,7 +167,7 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
     state.update({"pfe." + k: t for k, t in randomise(vsa, 9).items()})
     torch.save({"model_state": state}, tmp_path / "upstream.pth")
     load_checkpoint(model, tmp_path / "upstream.pth")
-    from radaredge.registry import model_spec
+    from radaredge.models import model_spec
     clouds = [model_spec(card).graph().make_cases(card, 1, 5)[0][1]["points"], five_frame_points(3, card)]
     for pts in clouds:
         trace: dict = {}

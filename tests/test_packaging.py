@@ -28,7 +28,7 @@ from packaging.utils import canonicalize_name
 from packaging.version import Version
 
 ROOT = Path(__file__).resolve().parent.parent
-SHIPPED = sorted(p.stem for p in (ROOT / "radaredge" / "cards").glob("*.yaml"))
+SHIPPED = sorted(p.stem for p in (ROOT / "models").glob("*.yaml"))
 EXPORT_CARD = "tdfanet-edge"        # the quickest shipped card to export (a 2 MB graph)
 SITE = Path(sysconfig.get_paths()["purelib"])
 
@@ -46,7 +46,8 @@ def wheel(tmp_path_factory) -> Path:
     and a stale build/lib could slip removed modules into the wheel)."""
     d = tmp_path_factory.mktemp("wheel")
     src = d / "src"
-    shutil.copytree(ROOT / "radaredge", src / "radaredge", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for tree in ("radaredge", "models"):
+        shutil.copytree(ROOT / tree, src / tree, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(ROOT / name, src / name)
     _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
@@ -136,8 +137,17 @@ def test_wheel_ships_every_card(wheel):
     assert SHIPPED and EXPORT_CARD in SHIPPED
     with zipfile.ZipFile(wheel) as z:
         names = set(z.namelist())
-    assert {f"radaredge/cards/{c}.yaml" for c in SHIPPED} <= names
+    assert {f"radaredge/model_cards/{c}.yaml" for c in SHIPPED} <= names
     assert "radaredge/cards/__init__.py" in names
+
+
+def test_wheel_ships_every_package(wheel):
+    """pyproject.toml lists the packages by hand (the cards' package is mapped from models/):
+    every package of the source tree must be in the wheel."""
+    packages = {str(p.parent.relative_to(ROOT)) for p in (ROOT / "radaredge").rglob("__init__.py")}
+    with zipfile.ZipFile(wheel) as z:
+        names = set(z.namelist())
+    assert {f"{p}/__init__.py" for p in packages} <= names, sorted(f"{p}/__init__.py" for p in packages)
 
 
 def test_base_install_runs_without_torch(wheel, tiny_export, tmp_path):

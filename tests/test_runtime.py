@@ -11,7 +11,7 @@ import pytest
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import InputError
-from radaredge.registry import model_spec
+from radaredge.models import model_spec
 
 from conftest import TINY_CARD as TINY
 

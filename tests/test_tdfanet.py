@@ -8,10 +8,10 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
-from radaredge.exporter import build_model, load_checkpoint
+from radaredge.models import create_model, load_checkpoint
 import radaredge
-from radaredge.parity_check import check_graph
-from radaredge.registry import model_spec
+from radaredge.parity.check import check_graph
+from radaredge.models import model_spec
 
 from conftest import TINY_CARD as TINY
 
@@ -28,7 +28,7 @@ def exported(tiny_export):
 
 
 def test_export_formulation_equals_reference(card):
-    model = build_model(card)
+    model = create_model(card)
     spec = model_spec(card).graph()
     for name, feeds in spec.make_cases(card, 8, 5):
         with torch.no_grad():
@@ -41,7 +41,7 @@ def test_export_formulation_equals_reference(card):
 
 
 def test_outputs_are_shaped_and_normalised(card):
-    model = build_model(card)
+    model = create_model(card)
     _, feeds = model_spec(card).graph().make_cases(card, 1, 0)[0]
     with torch.no_grad():
         out = model_spec(card).graph().run_export(model, {k: torch.from_numpy(v) for k, v in feeds.items()})
@@ -63,14 +63,14 @@ def test_onnx_parity_passes_on_all_case_kinds(card, exported):
 
 def test_parity_names_the_first_diverging_tensor(card, exported):
     model, onnx_path, debug_path = exported
-    broken = build_model(card)
+    broken = create_model(card)
     with torch.no_grad():
         broken.vfe.pfn_layers[0].linear.weight.mul_(1.5)   # reference now differs from the ONNX
     graph = model_spec(card).graph()
     report = check_graph(card, graph, broken, onnx_path, cases_n=2, seed=0, debug_onnx=debug_path)
     assert not report
     assert report.divergence["tensor"] == "bev"
-    late = build_model(card)
+    late = create_model(card)
     with torch.no_grad():
         late.dfa[0].ffn[0].weight.mul_(1.5)
     report = check_graph(card, graph, late, onnx_path, cases_n=2, seed=0, debug_onnx=debug_path)
@@ -78,9 +78,9 @@ def test_parity_names_the_first_diverging_tensor(card, exported):
 
 
 def test_checkpoint_round_trip_and_mismatch_report(card, tmp_path):
-    model = build_model(card)
+    model = create_model(card)
     torch.save(model.state_dict(), tmp_path / "ok.pth")
-    other = build_model(card)
+    other = create_model(card)
     with torch.no_grad():
         for p in other.parameters():
             p.zero_()
@@ -101,17 +101,17 @@ def test_card_errors_name_the_field(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text(TINY.read_text().replace("heads: 2", "heads: 3"))
     with pytest.raises(ValueError, match="divisible"):
-        build_model(load_card(bad))
+        create_model(load_card(bad))
     bad.write_text(TINY.read_text().replace("num_hypotheses: 32", "num_hypothesis: 32"))
     with pytest.raises(ConfigError, match="num_hypothesis"):
-        build_model(load_card(bad))
+        create_model(load_card(bad))
 
 
 def test_debug_export_follows_the_pyramid_depth(tmp_path):
     card_path = tmp_path / "two-stage.yaml"
     card_path.write_text(TINY.read_text().replace("pyramid_stages: 3", "pyramid_stages: 2"))
     card = load_card(card_path)
-    res = radaredge.export(card, tmp_path / "two.onnx", model=build_model(card), debug=True)
+    res = radaredge.export(card, tmp_path / "two.onnx", model=create_model(card), debug=True)
     import json
     outputs = json.loads(res.debug["tdfanet"].with_suffix(".json").read_text())["debug_outputs"]
     assert outputs == ["ego_velocity", "bev", "aligned_bev", "aggregated_l2", "aggregated_l1", "aggregated_l0"]

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from radaredge.cards import load_card
-from radaredge.exporter import build_model
+from radaredge.models import create_model
 
 from conftest import TINY_CARD
 from references import tdfanet_paper as paper
@@ -20,7 +20,7 @@ def model():
     """The tiny card with every parameter and running statistic drawn at random, so that no
     initial zero (attention logits, offset weights) or unit statistic hides a wrong wiring."""
     torch.manual_seed(7)
-    net = build_model(load_card(TINY_CARD))
+    net = create_model(load_card(TINY_CARD))
     with torch.no_grad():
         for name, p in net.named_parameters():
             if name == "gem.p":

@@ -18,13 +18,13 @@ from radaredge.cards import load_card
 from radaredge.data.pr_benchmark import make_pr_benchmark
 from radaredge.data.sequences import load_sequence
 from radaredge.errors import ConfigError, InputError
-from radaredge.exporter import build_model
-from radaredge.models.tdfanet_spec import make_cases
+from radaredge.models import create_model
+from radaredge.models.tdfanet.spec import make_cases
 from radaredge.ops.ego_velocity import estimate_ego_velocity
 from radaredge.ops.pillars import pillar_features_reference, scatter_pillars_reference
-from radaredge.training import tdfanet as T
-from radaredge.training.losses import lazy_quadruplet_loss
-from radaredge.training.places import TupleMiner, load_place_windows
+from radaredge.train import tdfanet as T
+from radaredge.train.losses import lazy_quadruplet_loss
+from radaredge.train.places import TupleMiner, load_place_windows
 
 from conftest import TINY_CARD, invoke
 
@@ -96,7 +96,7 @@ def test_tuple_loss_is_the_full_tuples_loss_and_gradient(card, town):
     """Describing only the windows the loss reaches (lazy pass) gives bitwise the loss, the gradient,
     the BatchNorm running statistics and the random state of describing every window with gradients."""
     data = load_place_windows(town, 3)
-    model = build_model(card)
+    model = create_model(card)
     prepared = T.prepare_windows(model, data, torch.device("cpu"))
     miner = TupleMiner(data, 2, 6, 0)
     rng = np.random.default_rng(0)
@@ -132,7 +132,7 @@ def test_pillar_batch_statistics_are_openpcdets_padded_ones(card):
     [pillars, slots] tensor, and updates its running statistics as BatchNorm1d does on it."""
     frames, _ = _window(card)
     points = frames[-1]
-    a, b = build_model(card), build_model(card)
+    a, b = create_model(card), create_model(card)
     a.vfe.train()
     b.vfe.train()
     canvas = a.vfe(points, torch.ones(len(points), dtype=torch.bool))
@@ -150,7 +150,7 @@ def test_pillar_batch_statistics_are_openpcdets_padded_ones(card):
 
 @pytest.mark.parametrize("name", ["tdfanet", "tdfanet-edge"])
 def test_train_mode_and_backward_on_the_full_cards(name):
-    model = build_model(load_card(name)).train()
+    model = create_model(load_card(name)).train()
     frames, ts = _window(load_card(name))
     out = model.run([f[:150] for f in frames], ts)
     out["descriptor_normalized"].sum().backward()
@@ -176,7 +176,7 @@ class _CpuTensors(TorchDispatchMode):
 def test_forward_creates_no_cpu_tensor_on_another_device(card):
     """The meta device stands in for CUDA: every tensor made inside forward takes its device from the input."""
     frames, ts = _window(card)
-    model = build_model(load_card("tdfanet-edge")).to("meta")
+    model = create_model(load_card("tdfanet-edge")).to("meta")
     with _CpuTensors() as watch:
         torch.zeros(3)                         # the watch sees a CPU tensor when one is made
     assert watch.ops
@@ -194,7 +194,7 @@ def test_doppler_column_is_looked_up_by_name(card, tmp_path):
     swapped = tmp_path / "swapped.yaml"
     swapped.write_text(TINY_CARD.read_text().replace("features: [x, y, z, v_r, rcs]", "features: [x, y, z, rcs, v_r]"))
     frames, ts = _window(card, seed=2)
-    plain, other = build_model(card), build_model(load_card(swapped))
+    plain, other = create_model(card), create_model(load_card(swapped))
     with torch.no_grad():
         a = plain.run(frames, ts)
         b = other.run([f[:, [0, 1, 2, 4, 3]] for f in frames], ts)
@@ -208,7 +208,7 @@ def test_doppler_column_is_looked_up_by_name(card, tmp_path):
         bad = tmp_path / "bad.yaml"
         bad.write_text(TINY_CARD.read_text().replace("features: [x, y, z, v_r, rcs]", f"features: {features}"))
         with pytest.raises(ConfigError, match="v_r"):
-            build_model(load_card(bad))
+            create_model(load_card(bad))
 
 
 # ----------------------------------------------------------------------------- ablations (Table II)
@@ -220,12 +220,12 @@ def test_ablation_switches_export_with_parity(switch, tmp_path):
     text = TINY_CARD.read_text().replace("network: {", f"network: {{{switch}, ")
     path.write_text(text)
     card = load_card(path)
-    model = build_model(card)
+    model = create_model(card)
     res = radaredge.export(card, tmp_path / "a.onnx", model=model)
     report = radaredge.parity(card, res.path, model=model, cases=4)
     assert report, report.to_dict()
     frames, ts = _window(card)
-    full = build_model(load_card(TINY_CARD))
+    full = create_model(load_card(TINY_CARD))
     with torch.no_grad():
         prepared, reference = model.prepare(frames, ts), full.prepare(frames, ts)
     if switch.startswith("remove_dynamic"):
@@ -272,7 +272,7 @@ def test_a_tiny_card_learns(card, tmp_path):
     """A few dozen steps on a seeded town: the loss falls and the held-out drive's recall rises."""
     root = tmp_path / "data"
     make_pr_benchmark(root / "town-2", drives=3, frames_per_drive=40, seed=2)
-    model = build_model(card)
+    model = create_model(card)
     recipe = T.PlaceRecipe(epochs=3, negatives=6, hard_negatives=3, lr=2e-3)
     report = T.train_places(card, model, root, tmp_path / "run", recipe)
     epochs = report.epochs

@@ -3,8 +3,8 @@
 A card is the single source of truth for a model: code reads its sections through
 :meth:`ModelCard.section`, and the exported ONNX carries the card in its metadata.
 
-The shipped cards are package data in this directory (``radaredge/cards/<name>.yaml``), so a
-non-editable install has them too. :func:`load_card` takes a shipped card's name or the path
+The shipped cards live in the top-level ``models/<name>.yaml`` and travel in the wheel as the
+package data ``radaredge/model_cards/``, so a non-editable install has them too. :func:`load_card` takes a shipped card's name or the path
 of any card file; ``$RADAREDGE_CARDS`` points the by-name lookup at another directory.
 """
 
@@ -70,10 +70,19 @@ CARD_SECTIONS = {
 }
 
 
+SHIPPED_CARDS = "model_cards"   # the wheel's package of the shipped cards: radaredge/model_cards/*.yaml
+
+
 def cards_dir() -> Path:
-    """Directory searched by card name: $RADAREDGE_CARDS, else the shipped cards (this package)."""
+    """Directory searched by card name: $RADAREDGE_CARDS, else the shipped cards: the installed
+    package's ``radaredge/model_cards/`` (the wheel maps the top-level ``models/`` there), or
+    the top-level ``models/`` of a source checkout (an editable install)."""
     env = os.environ.get("RADAREDGE_CARDS")
-    return Path(env) if env else Path(__file__).resolve().parent
+    if env:
+        return Path(env)
+    package = Path(__file__).resolve().parent.parent
+    installed = package / SHIPPED_CARDS
+    return installed if installed.is_dir() else package.parent / "models"
 
 
 @dataclass
@@ -219,8 +228,8 @@ def implausible_policy(card: ModelCard) -> str:
 
 
 def load_card(name_or_path: str | Path) -> ModelCard:
-    """Load a shipped card by name (``tdfanet`` -> radaredge/cards/tdfanet.yaml, or the file of
-    that name in $RADAREDGE_CARDS) or any card by path (anything ending in .yaml/.yml)."""
+    """Load a shipped card by name (``tdfanet`` -> models/tdfanet.yaml, or the file of that name
+    in $RADAREDGE_CARDS) or any card by path (anything ending in .yaml/.yml)."""
     p = Path(name_or_path)
     if p.suffix not in (".yaml", ".yml"):
         p = cards_dir() / f"{name_or_path}.yaml"
@@ -234,6 +243,11 @@ def load_card(name_or_path: str | Path) -> ModelCard:
     except UnicodeDecodeError:
         raise ConfigError(f"{p.name}: not a text file (a model card is UTF-8 YAML)") from None
     return parse_card(read_yaml(text, p.name), p)
+
+
+def resolve_card(card: "ModelCard | str | Path") -> ModelCard:
+    """``card`` itself, or the card loaded by name or path (:func:`load_card`)."""
+    return card if isinstance(card, ModelCard) else load_card(card)
 
 
 MAX_CARD_BYTES = 256 * 1024      # the largest shipped card is a few KiB

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cellmap import CellMap, pack_cells
+from ..runtime.cellmap import CellMap, pack_cells
+from ..errors import ConfigError
+from ..cards.des4pos import CellConfig, TextConfig
+from pathlib import Path
 
 COLOURS = {"red": (0.80, 0.12, 0.10), "gray": (0.50, 0.50, 0.50), "green": (0.15, 0.60, 0.20),
            "white": (0.92, 0.92, 0.90), "black": (0.08, 0.08, 0.08), "blue": (0.12, 0.25, 0.75),
@@ -98,7 +101,6 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
               min_points: int = 8) -> CellMap:
     """The synthetic city as a :class:`CellMap` in the model's slot layout, with query poses.
     ConfigError for a city that cannot hold a cell (no objects, a world smaller than a cell)."""
-    from ..errors import ConfigError
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
     if not np.isfinite(world) or objects < 1 or poses < 0 or not size <= world or stride <= 0:
@@ -151,8 +153,6 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
 def make_city_for_card(card, seed: int = 0, world: float = 90.0, objects: int = 70, poses: int = 40) -> CellMap:
     """:func:`make_city` in the layout of a Des4Pos ``card``: its object slots, points per object,
     cell size and stride (m), and descriptions of at most its ``text.max_hints`` hints."""
-    from ..errors import ConfigError
-    from ..models.des4pos_config import CellConfig, TextConfig
     if card.model != "des4pos":
         raise ConfigError(f"{card.name} is a {card.model} card; a synthetic city is Des4Pos's map (--model des4pos)")
     c, t = card.section("cell", CellConfig), card.section("text", TextConfig)
@@ -164,9 +164,7 @@ def check_city_output(out, cities: int) -> None:
     """ConfigError unless ``out`` can take what ``make-city`` writes, checked before any work: one
     city is a ``.npz`` file (not an existing directory), several go into a directory (not an
     existing file)."""
-    from pathlib import Path
 
-    from ..errors import ConfigError
     as_dir = str(out).endswith(("/", "\\"))
     out = Path(out)
     if cities == 1:
@@ -185,9 +183,7 @@ def write_cities(out_dir, card, cities: int, seed: int = 0, world: float = 90.0,
     (:func:`make_city_for_card`), written as ``out_dir/city-<seed>.npz``: one scene each, the
     training data of ``radaredge train --model des4pos`` (the last by name validates). Returns
     (path, map) pairs."""
-    from pathlib import Path
 
-    from ..errors import ConfigError
     if isinstance(cities, bool) or not isinstance(cities, int) or cities < 1:
         raise ConfigError(f"--cities must be an integer >= 1, got {cities!r}")
     out = []

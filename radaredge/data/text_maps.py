@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import InputError
 from ..runtime.des4pos import is_index_cache
 from ..runtime.text_tokens import split_hints
-from .cellmap import CellMap, load_map, validate_map
+from ..runtime.cellmap import CellMap, load_map, validate_map
 
 
 def find_maps(root: str | os.PathLike) -> list[Path]:

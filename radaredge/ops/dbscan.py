@@ -361,6 +361,7 @@ def cqca_cfa_map_sklearn(xyv, cfg: DbscanConfig = VOD, vectorised: bool = False)
     keeps the last, as the module docstring's contract says). Returns torch ``(map [3, rows,
     cols] float32 with channels (v, cluster size, label), labels [N] int64 after the size cut)``.
     """
+    # optional: scikit-learn (dev extra) is the reference DBSCAN of tests, never on the export path
     from sklearn.cluster import DBSCAN
 
     xyv = torch.as_tensor(np.asarray(xyv, np.float32).reshape(-1, 3))

@@ -1,7 +1,7 @@
 """Torch-free Des4Pos query path: numpy + onnxruntime + faiss + tokenizers only.
 
     from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
-    bundle = Des4PosBundle("export/des4pos")            # three graphs + tokenizer.json + bundle.json
+    bundle = Des4PosBundle("export/des4pos")            # three graphs + tokenizer.json + the manifest
     index = MapIndex.build(bundle, "city.npz")          # encodes every cell once (cached beside the map)
     for hit in bundle.locate("The pose is north of a red box.", index, top_k=3):
         print(hit["cell"], hit["score"], hit["position"])
@@ -15,54 +15,41 @@ the top-k cells. Fine stage: one ``fine_stage`` call on those k cells gives a po
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..data.cellmap import CellMap, load_map, validate_map
+from .. import artifacts
+from .bundle import read_manifest
+from .cellmap import CellMap, load_map, validate_map
 from ..errors import ConfigError, InputError
-from ..models.des4pos_config import CellConfig, TextConfig
+from ..cards.des4pos import CellConfig, TextConfig
 from .model import RadarModel
 from .model import load as load_graph
 from .text_tokens import encode_hints, load_tokenizer, split_hints
+import warnings
+import os
+import tempfile
+import time
+from .session import checked_threads
 
 PARTS = ("submap_encoder", "text_encoder", "fine_stage")
 INDEX_CACHE_TAG = ".des4pos-"  # <map file name><tag><key>.npz: a MapIndex cache beside the map
 
 
-def read_manifest(path: Path) -> dict:
-    """``bundle.json``, checked: ``weights_sha256`` a string and ``parts`` mapping each graph to an
-    ``onnx`` file name inside the bundle; InputError naming the file and the entry otherwise."""
-    try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable bundle manifest ({type(exc).__name__}: {str(exc)[:120]}); "
-                         f"re-export the bundle") from None
-    parts = manifest.get("parts") if isinstance(manifest, dict) else None
-    if not isinstance(parts, dict) or not isinstance(manifest.get("weights_sha256"), str):
-        raise InputError(f"{path}: a bundle manifest holds 'weights_sha256' (a string) and 'parts' (graph name -> "
-                         f"file); re-export the bundle")
-    for name, info in parts.items():
-        onnx_name = info.get("onnx") if isinstance(info, dict) else None
-        if not isinstance(onnx_name, str) or Path(onnx_name).name != onnx_name or not onnx_name.endswith(".onnx"):
-            raise InputError(f"{path}: parts.{name}.onnx must name an .onnx file inside the bundle, got {onnx_name!r}")
-    return manifest
-
-
 class Des4PosBundle:
     """An exported Des4Pos bundle directory. ``text_encoder`` may name another text graph (e.g. the
-    dynamically quantised ``text_encoder.int8.onnx``) with the same interface."""
+    int8 copy of the text encoder) with the same interface."""
 
     def __init__(self, directory: str | Path, threads: int = 2, text_encoder: str | Path | None = None):
         self.directory = d = Path(directory)
         if text_encoder is not None and not Path(text_encoder).is_file():
             raise ConfigError(f"{text_encoder} does not exist; the int8 text encoder is written by "
                               f"`radaredge export --model des4pos --quantize int8`")
-        manifest = d / "bundle.json"
+        manifest = artifacts.manifest_path(d)
         if not manifest.is_file():
-            raise InputError(f"{d} is not a Des4Pos bundle (no bundle.json); export one with "
+            raise InputError(f"{d} is not a Des4Pos bundle (no {manifest.name}); export one with "
                              f"`radaredge export --model des4pos`")
         self.manifest = read_manifest(manifest)
         self.graphs: dict[str, RadarModel] = {}
@@ -145,6 +132,7 @@ class MapIndex:
     from_cache: bool = False
 
     def __post_init__(self):
+        # optional: faiss (eval extra) is needed by locate and eval only
         import faiss
         self.index = faiss.IndexFlatIP(self.descriptors.shape[1])
         self.index.add(np.ascontiguousarray(self.descriptors, np.float32))
@@ -201,7 +189,6 @@ def _digest(descriptors: np.ndarray, object_features: np.ndarray) -> str:
 def _read_cache(path: Path, cells: int, slots: int):
     """(descriptors [C, D], object features [C, T, D]) from a cache file, or None (with a
     warning) when it cannot be trusted."""
-    import warnings
     try:
         with np.load(path, allow_pickle=False) as z:
             desc, objs, digest = z["descriptors"], z["object_features"], str(z["digest"])
@@ -219,9 +206,6 @@ def _read_cache(path: Path, cells: int, slots: int):
 
 def _write_cache(path: Path, descriptors: np.ndarray, object_features: np.ndarray) -> bool:
     """Write the cache atomically beside the map; False (with a warning) when that is not possible."""
-    import os
-    import tempfile
-    import warnings
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
@@ -273,8 +257,6 @@ def locate_description(directory: str | Path, map_path: str | Path, text: str, t
     text encoder with ``int8_text``): the map's cells encoded once (cached beside the map with
     ``cache``), the top-k cells retrieved, the fine stage's position in each. ``model``, when
     given, must be the export's card name (or ``des4pos``)."""
-    import time
-    from .session import checked_threads
     if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
         raise ConfigError(f"--top-k: expected an integer >= 1 (candidate cells), got {top_k!r}")
     checked_threads(threads)
@@ -285,7 +267,8 @@ def locate_description(directory: str | Path, map_path: str | Path, text: str, t
         raise InputError("--text: the description is empty; give one or more sentences, e.g. "
                          "\"The pose is north of a red box.\"")
     bundle = Des4PosBundle(directory, threads=threads,
-                           text_encoder=Path(directory) / "text_encoder.int8.onnx" if int8_text else None)
+                           text_encoder=artifacts.copy_path(Path(directory) / "text_encoder.onnx", artifacts.INT8)
+                           if int8_text else None)
     if bundle.card.model != "des4pos" or (model not in (None, "des4pos", bundle.card.name)):
         raise ConfigError(f"{directory} holds {bundle.card.name}, not {model}")
     t0 = time.perf_counter()

@@ -12,6 +12,7 @@ import onnxruntime as ort
 
 from ..cards import ModelCard, card_from_yaml, implausible_policy, plausible_ranges
 from ..errors import CapacityError, InputError
+from .bundle import bundle_graphs
 from .flags import INPUT_ERRORS, OUTPUT as FLAGS_OUTPUT, describe
 from .metadata import GraphMetadata
 from .session import make_session, run_session
@@ -227,23 +228,11 @@ def load(path: str | Path, threads: int = 2) -> RadarModel:
 
 def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
     """What an export holds: for a graph file, or each graph of a multi-graph export directory
-    (its ``bundle.json`` lists them), the card name, graph name, feature columns, frame inputs,
+    (its manifest lists them), the card name, graph name, feature columns, frame inputs,
     inputs and outputs with their shapes, runtime checks, input flag bits, weights hash and
     versions; with ``targets``, what each deployment target does not support
     (:mod:`radaredge.targets`, which needs the onnx package)."""
-    path = Path(path)
-    if path.is_dir():
-        manifest = path / "bundle.json"
-        if not manifest.is_file():
-            raise InputError(f"{path} is a directory without bundle.json; pass an .onnx or a multi-graph export "
-                             f"directory")
-        import json
-        try:
-            files = [path / part["onnx"] for part in json.loads(manifest.read_text())["parts"].values()]
-        except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"{manifest}: unreadable manifest ({type(exc).__name__}: {exc})") from None
-    else:
-        files = [path]
+    files = list(bundle_graphs(path).values())
     graphs = []
     for f in files:
         m = load(f)
@@ -258,6 +247,7 @@ def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
             "weights_sha256": m.weights_sha256, "versions": m.info.versions,
         })
         if targets:
+            # optional: the target checks need the onnx package, which a runtime-only install lacks
             from ..targets import check_graph
             graphs[-1]["targets"] = {t: [x.to_dict() for x in found] for t, found in check_graph(f, targets).items()}
     return {"path": str(path), "graphs": graphs}

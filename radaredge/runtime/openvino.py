@@ -22,6 +22,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import ConfigError, InputError
+from .session import checked_threads
 
 INSTALL_HINT = "pip install 'radaredge[openvino]'"
 
@@ -54,10 +55,10 @@ def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
     InputError when ``path`` is missing or OpenVINO cannot read or compile it, with its reason."""
     if not openvino_installed():
         raise ConfigError(f"OpenVINO is not installed; {INSTALL_HINT}")
+    # optional: OpenVINO is the openvino extra
     import openvino as ov
     from openvino.frontend import FrontEndManager
 
-    from .session import checked_threads
     threads = checked_threads(threads)
     path = Path(path)
     if not path.is_file():

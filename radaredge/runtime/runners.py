@@ -28,10 +28,13 @@ def graph_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
     """fn(feeds) -> {output name: array} running ``onnx_path`` in ``runtime`` (one of RUNTIMES)
     on ``threads`` threads; ConfigError for any other runtime name."""
     if runtime == "onnxruntime":
+        # lazy: radaredge.cli imports RUNTIMES from here, and its light commands (list, --help)
+        # must not load onnxruntime
         from .session import make_session, run_session
         session = make_session(onnx_path, threads=threads)
         return lambda feeds: run_session(session, feeds)
     if runtime == "openvino":
+        # lazy: as above, and OpenVINO is an optional extra
         from .openvino import compile_openvino
         return compile_openvino(onnx_path, threads=threads).run
     raise ConfigError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")

@@ -28,6 +28,7 @@ def split_hints(text: str) -> list[str]:
 
 def load_tokenizer(path: str | Path):
     """A ``tokenizers.Tokenizer`` from ``tokenizer.json`` (file or the directory holding it)."""
+    # optional: tokenizers (eval and export extras) is needed by Des4Pos only
     from tokenizers import Tokenizer
     path = Path(path)
     if path.is_dir():

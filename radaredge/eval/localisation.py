@@ -1,0 +1,229 @@
+"""Des4Pos evaluation: the paper's Table I (localisation) and Table II (cell retrieval) over a
+multi-scene database, for the exported bundle and the torch reference side by side.
+
+Protocol (Text2Loc / Des4Pos): the database is every cell of every map given (a map, or a
+directory of maps, :mod:`radaredge.data.text_maps`); every described pose of those maps is a
+query. Its text descriptor retrieves the top cells by cosine similarity; the fine stage gives a
+position in each.
+
+- **Table I**, localisation recall (:func:`radaredge.eval.places.localization_recall`): a pose
+  counts at (k, t) when one of the positions in its first k retrieved cells lies within t m of
+  the pose, cells of another scene never counting; k = 1, 5, 10 and t = 5, 10, 15 m.
+- **Table II**, cell-retrieval recall@k: the pose's best cell (the cell whose centre is nearest,
+  KITTI360Pose's ``best_cell``) is among its top k; k = 1, 3, 5.
+
+Backends: ``onnxruntime`` runs the bundle's three graphs (torch-free, the cell descriptors
+cached beside each map); ``torch reference`` runs the card's reference formulation (real objects
+and tokens only, one cell and one hint at a time) with the weights the bundle was exported from
+(``checkpoint``; the hash is checked).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from .. import atomic
+from ..data.text_maps import TextMaps, load_text_maps
+from ..errors import ConfigError, InputError
+from ..models import create_model, weights_hash
+from .places import LOCALIZATION_KS, LOCALIZATION_THRESHOLDS, localization_levels, localization_recall
+from ..runtime.des4pos import Des4PosBundle, MapIndex
+
+RETRIEVAL_KS = (1, 3, 5)
+ONNX, REFERENCE = "onnxruntime", "torch reference"
+
+
+def retrieval_recall(retrieved: np.ndarray, truth: np.ndarray, ks: Sequence[int] = RETRIEVAL_KS) -> dict[int, float]:
+    """Cell-retrieval recall: the fraction (0..1) of queries whose true cell ``truth`` [Q] is among
+    the first k of ``retrieved`` [Q, K] (database rows, best first), per k; InputError for a k
+    larger than K."""
+    retrieved, truth = np.asarray(retrieved), np.asarray(truth)
+    if retrieved.ndim != 2 or truth.shape != (len(retrieved),) or not len(truth):
+        raise InputError(f"expected retrieved cells [Q, K] and true cells [Q] with Q >= 1, got {retrieved.shape} "
+                         f"and {truth.shape}")
+    too_deep = [k for k in ks if not 1 <= k <= retrieved.shape[1]]
+    if too_deep:
+        raise InputError(f"recall@{too_deep[0]} needs the top {too_deep[0]} cells; {retrieved.shape[1]} were retrieved")
+    hit = retrieved == truth[:, None]
+    return {int(k): float(hit[:, :k].any(1).mean()) for k in ks}
+
+
+@dataclass
+class LocalizationReport:
+    """Table I and Table II of one bundle on a database of maps, per backend (module docstring).
+    ``results[backend]["localization"][k][t]`` and ``results[backend]["retrieval"][k]`` are
+    fractions in 0..1."""
+
+    model: str                                  # card name of the bundle
+    bundle: str
+    maps: list[str]
+    cells: int                                  # database cells, all maps
+    queries: int                                # described poses located
+    ks: tuple[int, ...]
+    thresholds: tuple[float, ...]               # m
+    retrieval_ks: tuple[int, ...]
+    results: dict[str, dict] = field(default_factory=dict)
+    checkpoint: str | None = None
+    from_cache: bool = False                    # every map's cell descriptors read from its cache
+
+    @property
+    def recall(self) -> dict[int, dict[float, float]]:
+        """Table I of the exported bundle."""
+        return self.results[ONNX]["localization"]
+
+    @property
+    def retrieval(self) -> dict[int, float]:
+        """Table II of the exported bundle."""
+        return self.results[ONNX]["retrieval"]
+
+    def to_dict(self) -> dict:
+        """JSON-ready: localisation keyed by ``str(k)`` then by ``f"{t:g}"`` (m), retrieval by ``str(k)``."""
+        return {"model": self.model, "bundle": self.bundle, "maps": self.maps, "cells": self.cells,
+                "queries": self.queries, "ks": list(self.ks), "thresholds_m": list(self.thresholds),
+                "retrieval_ks": list(self.retrieval_ks), "checkpoint": self.checkpoint, "from_cache": self.from_cache,
+                "results": {name: {"localization": {str(k): {f"{t:g}": r for t, r in by_t.items()}
+                                                    for k, by_t in res["localization"].items()},
+                                   "retrieval": {str(k): r for k, r in res["retrieval"].items()}}
+                            for name, res in self.results.items()}}
+
+    def write_json(self, path: str | os.PathLike) -> Path:
+        """Write :meth:`to_dict` to ``path``; return it."""
+        return atomic.write_json(path, self.to_dict())
+
+    def lines(self) -> list[str]:
+        """The text report: database, then Table I and Table II with one column per backend."""
+        where = self.maps[0] if len(self.maps) == 1 else f"{len(self.maps)} maps"
+        return [f"eval {self.model}: {self.queries} described poses of {where} against {self.cells} cells"
+                f"{' (cell descriptors read from the cache)' if self.from_cache else ''}",
+                "Table I, localisation recall (a position within t m among the top-k cells):",
+                *self.table().split("\n"),
+                "Table II, cell-retrieval recall (the best cell among the top k):",
+                *self.retrieval_table().split("\n")]
+
+    def table(self) -> str:
+        """Table I in %: one row per k, a column per threshold and backend."""
+        head = ["k"] + [f"{t:g} m" + (f" ({name})" if len(self.results) > 1 else "")
+                        for name in self.results for t in self.thresholds]
+        rows = [[f"top-{k}"] + [f"{100 * res['localization'][k][t]:.1f} %" for res in self.results.values()
+                                for t in self.thresholds] for k in self.ks]
+        return _text_table(head, rows)
+
+    def retrieval_table(self) -> str:
+        """Table II in %: one row per k, a column per backend."""
+        head = ["k"] + [f"recall ({name})" for name in self.results]
+        rows = [[f"top-{k}"] + [f"{100 * res['retrieval'][k]:.1f} %" for res in self.results.values()]
+                for k in self.retrieval_ks]
+        return _text_table(head, rows)
+
+
+def _text_table(head: list[str], rows: list[list[str]]) -> str:
+    width = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+    return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, width)))
+                     for r in [head] + rows)
+
+
+def _scores(retrieved: np.ndarray, positions: np.ndarray, maps: TextMaps, ks, thresholds, retrieval_ks) -> dict:
+    same = maps.map_of_cell[retrieved] == maps.map_of_cell[maps.pose_cell][:, None]
+    recall = localization_recall(positions, maps.pose_w, ks, thresholds, same_scene=same[:, :positions.shape[1]])
+    return {"localization": recall, "retrieval": retrieval_recall(retrieved, maps.pose_cell, retrieval_ks)}
+
+
+def _onnx_backend(bundle: Des4PosBundle, maps: TextMaps, depth: int, fine_k: int, cache: bool, wrap):
+    """(retrieved rows [Q, depth], positions [Q, fine_k, 2], every map from its cache) of the bundle."""
+    indices = []
+    for path in maps.paths:
+        indices.append(MapIndex.build(bundle, path, cache=cache, progress=wrap(f"cells of {path.name}")))
+    cells = maps.cells
+    index = MapIndex(np.array([f"{maps.names[m]}/{c}" for m, c in zip(maps.map_of_cell, cells.ids)]), cells.origins,
+                     cells.sizes, cells.object_mask, np.concatenate([i.descriptors for i in indices]),
+                     np.concatenate([i.object_features for i in indices]))
+    retrieved = np.zeros((len(maps.pose_w), depth), np.int64)
+    positions = np.zeros((len(maps.pose_w), fine_k, 2))
+    for q in wrap("poses")(range(len(maps.pose_w))):
+        try:
+            desc, hints = bundle.encode_text(" ".join(maps.pose_hints[q]))
+        except InputError as exc:
+            raise InputError(f"{maps.paths[maps.map_of_cell[maps.pose_cell[q]]]}: pose {maps.pose_id[q]}: {exc}") from None
+        retrieved[q] = index.search(desc[None], depth)[1][0]
+        positions[q] = bundle.fine(index, retrieved[q, :fine_k], hints)[1]
+    return retrieved, positions, all(i.from_cache for i in indices)
+
+
+def _reference_backend(bundle: Des4PosBundle, maps: TextMaps, checkpoint, depth: int, fine_k: int, wrap):
+    """The same with the card's torch reference formulation and the bundle's weights."""
+    model = create_model(bundle.card, checkpoint)
+    if weights_hash(model) != bundle.weights_sha256:
+        source = f"checkpoint {checkpoint}" if checkpoint else "the seeded initialisation of this card"
+        raise ConfigError(f"{bundle.directory} was exported with other weights than {source}; pass the "
+                          f"--checkpoint it was exported with (or --no-reference)")
+    cells = maps.cells
+    descs, objects = [], []
+    with torch.no_grad():
+        for c in wrap("cells (torch reference)")(range(len(cells.ids))):
+            m = cells.object_mask[c]
+            d, h = model.submap.reference(cells.points[c][m], cells.num_points[c][m])
+            descs.append(d.numpy())
+            objects.append(h)
+        descs = np.stack(descs)
+        retrieved = np.zeros((len(maps.pose_w), depth), np.int64)
+        positions = np.zeros((len(maps.pose_w), fine_k, 2))
+        for q in wrap("poses (torch reference)")(range(len(maps.pose_w))):
+            _, ids, mask = bundle.tokenize(" ".join(maps.pose_hints[q]))
+            d, h = model.text.reference([ids[i][mask[i] > 0] for i in range(len(ids))])
+            scores = descs @ d.numpy()
+            retrieved[q] = np.argsort(-scores, kind="stable")[:depth]
+            top = retrieved[q, :fine_k]
+            positions[q] = model.fine.reference([objects[c] for c in top], h, cells.origins[top], cells.sizes[top])[1].numpy()
+    return retrieved, positions
+
+
+def evaluate_localization(bundle_dir: str | os.PathLike, maps_path: str | os.PathLike,
+                          top_k: Sequence[int] = LOCALIZATION_KS,
+                          thresholds: Sequence[float] = LOCALIZATION_THRESHOLDS,
+                          progress: Callable[[str], Callable] | None = None, *, threads: int = 2,
+                          text_encoder: str | os.PathLike | None = None, cache: bool = True,
+                          model: str | None = None, retrieval_ks: Sequence[int] = RETRIEVAL_KS,
+                          reference: bool = False, checkpoint: str | os.PathLike | None = None) -> LocalizationReport:
+    """Table I at the ``top_k`` values and ``thresholds`` (m) and Table II at ``retrieval_ks`` of
+    the Des4Pos bundle in ``bundle_dir`` over the maps at ``maps_path`` (module docstring), and of
+    the torch reference with ``reference`` (weights: ``checkpoint``, or the card's seeded ones).
+
+    ``progress(desc)`` returns a wrapper for the cell and pose loops (a progress bar);
+    ``text_encoder`` names another text graph of the bundle (e.g. its int8 copy);
+    ``cache`` reads and writes each map's encoded cells beside it (:meth:`MapIndex.build`);
+    ``model``, when given, must be the card name the bundle was exported from.
+    InputError when a map has no described pose, a pose's best cell is not in its map, or a
+    description does not fit the model (the map and pose are named); ConfigError when the
+    database holds fewer cells than the deepest k.
+    """
+    ks, thresholds = localization_levels(top_k, thresholds)
+    r_ks = tuple(sorted({int(k) for k in retrieval_ks}))
+    if not r_ks or r_ks[0] < 1:
+        raise ConfigError(f"retrieval recall needs k >= 1, got {list(retrieval_ks)}")
+    if checkpoint is not None and not reference:
+        raise ConfigError("--checkpoint gives the torch reference its weights; it is not used with --no-reference")
+    wrap = progress or (lambda desc: iter)
+    bundle = Des4PosBundle(bundle_dir, threads=threads, text_encoder=text_encoder)
+    if model is not None and bundle.card.name != model:
+        raise ConfigError(f"{bundle_dir} is an export of card {bundle.card.name!r}, not {model!r}; pass the "
+                          f"--model/--config it was exported with")
+    maps = load_text_maps(maps_path, bundle.slots, bundle.points, bundle.max_hints, split=False)
+    fine_k = max(ks)
+    depth = max(fine_k, max(r_ks))
+    if depth > len(maps.cells.ids):
+        raise ConfigError(f"top-{depth} recall needs at least {depth} database cells; {maps_path} has "
+                          f"{len(maps.cells.ids)} (use a larger database, or smaller k)")
+    retrieved, positions, cached = _onnx_backend(bundle, maps, depth, fine_k, cache, wrap)
+    results = {ONNX: _scores(retrieved, positions, maps, ks, thresholds, r_ks)}
+    if reference:
+        retrieved, positions = _reference_backend(bundle, maps, checkpoint, depth, fine_k, wrap)
+        results[REFERENCE] = _scores(retrieved, positions, maps, ks, thresholds, r_ks)
+    return LocalizationReport(bundle.card.name, str(bundle_dir), [str(p) for p in maps.paths], len(maps.cells.ids),
+                              len(maps.pose_w), ks, thresholds, r_ks, results,
+                              str(checkpoint) if checkpoint else None, cached)

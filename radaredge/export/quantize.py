@@ -1,0 +1,249 @@
+"""INT8 post-training quantisation of exported graphs: onnxruntime static QDQ (the default for
+every graph of a model) and dynamic int8 (weights only, for a model that asks for it).
+
+Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
+weights and uint8 activations calibrated on synthetic radar windows or on a recording of the
+user's sensor (:mod:`radaredge.export.calibration`). Everything else stays
+fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
+(float64 in the graph, never touched), alignment and deformable-attention sampling
+(GridSample) and the index math. A card can keep more in fp32: the Conv/MatMul/Gemm layers of
+the modules it lists under ``quantization.keep_fp32`` (module names as in the state dict, ``*``
+matching any run of characters, submodules included), for layers whose int8 error the model
+cannot absorb. The radaredge metadata (card, features, weights hash) is copied over, and the
+quantisation settings are added under ``radaredge.quantization``.
+
+The format is uint8 activations x int8 weights with the weights on a 7-bit range
+(``quantization.reduce_range``, default true). On x86 CPUs without VNNI (AVX2 only)
+onnxruntime multiplies uint8 by int8 with VPMADDUBSW, whose int16 sums of two products
+saturate when full-range weights meet large activations; 7-bit weights cannot saturate, and on
+tdfanet-edge they cut the int8 descriptor error several-fold. int8 activations with the same
+weights were as accurate and slower on 2 cores. With VNNI a card can set ``reduce_range: false``
+and get full 8-bit weights. Measurements: benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import onnx
+import onnxruntime as ort
+from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_dynamic, quantize_static
+from onnxruntime.quantization.shape_inference import quant_pre_process
+
+from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_feeds
+from ..artifacts import INT8, copy_path
+from ..cards import ModelCard
+from ..errors import ConfigError, ExportError
+from ..models import model_spec
+from ..models.spec import GraphSpec, ModelSpec
+from ..node_scopes import fused_from, module_names
+from ..runtime import FrameFeeds
+from ..runtime.metadata import QUANTIZATION
+
+QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
+
+
+def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: dict) -> None:
+    """Give the quantised graph at ``out_path`` the fp32 graph's ``metadata_props`` (card, weights
+    hash, ...) plus ``radaredge.quantization`` = ``quantization`` (JSON)."""
+    src = onnx.load(str(fp32_path), load_external_data=False)
+    q = onnx.load(str(out_path))
+    del q.metadata_props[:]
+    for prop in src.metadata_props:
+        q.metadata_props.add(key=prop.key, value=prop.value)
+    q.metadata_props.add(key=QUANTIZATION, value=json.dumps(quantization))
+    onnx.save(q, str(out_path))
+
+
+def keep_fp32_patterns(card: ModelCard) -> list[str]:
+    """The card's ``quantization.keep_fp32`` module-name patterns (default none)."""
+    patterns = card.get("quantization.keep_fp32", []) or []
+    if not isinstance(patterns, list) or not all(isinstance(p, str) and p for p in patterns):
+        raise ConfigError(f"card {card.name!r}: quantization.keep_fp32 must be a list of module names "
+                          f"(fnmatch patterns such as 'dfa.*.attn.value_proj'), got {patterns!r}")
+    return patterns
+
+
+def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name: str = "") -> set[str]:
+    """Names of the Conv/MatMul/Gemm nodes of ``fp32_model`` (an export that still carries its
+    module-scope metadata) traced inside a module matching one of ``patterns``. ConfigError
+    for a pattern that matches no quantisable node (a typo would silently quantise the layer)."""
+    hits = {p: set() for p in patterns}
+    for node in fp32_model.graph.node:
+        if node.op_type not in QUANTIZED_OPS:
+            continue
+        for name in module_names(node):
+            for p in patterns:
+                if fnmatch.fnmatchcase(name, p):
+                    hits[p].add(node.name)
+    missing = [p for p, names in hits.items() if not names]
+    if missing:
+        raise ConfigError(f"card {card_name!r}: quantization.keep_fp32 pattern(s) {missing} match no "
+                          f"Conv/MatMul/Gemm of the exported graph; module names look like "
+                          f"'backbone_2d.blocks.0' (the state dict's prefixes)")
+    return set().union(*hits.values())
+
+
+def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
+    """The nodes of the pre-processed graph that came from ``names``: the optimiser keeps a
+    node's name or extends it (:func:`radaredge.node_scopes.fused_from`). ExportError when one of
+    ``names`` has no such node, since it would be quantised against the card's wish."""
+    found = [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and fused_from(n.name) in names]
+    lost = sorted(names - {fused_from(n) for n in found})
+    if lost:
+        raise ExportError(f"quantization.keep_fp32: onnxruntime's pre-processing renamed or fused {lost}; "
+                          f"they cannot be kept in fp32")
+    return found
+
+
+def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Path:
+    """Write ``fp32_path`` after onnxruntime's basic graph optimisations (node fusions such as
+    MatMul+Add -> Gemm, redundant-node removal, shared constants) but without constant folding,
+    then ONNX shape inference, to ``out_path``: the graph quantize_static reads.
+
+    onnxruntime's own pre-processing (``quant_pre_process``) folds constants too, and here that
+    writes every shape-derived tensor of the export into the file: reference-point grids,
+    scatter buffers sized by the point budget, which made the int8 graphs several times their
+    fp32 size. Without folding, onnxruntime still folds them in
+    memory when the session loads, and the file holds the weights alone, as int8."""
+    tmp = Path(out_path).with_suffix(".basic.onnx")
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    options.optimized_model_filepath = str(tmp)
+    options.log_severity_level = 3
+    ort.InferenceSession(str(fp32_path), options, providers=["CPUExecutionProvider"],
+                         disabled_optimizers=["ConstantFolding"])
+    quant_pre_process(str(tmp), str(out_path), skip_optimization=True, skip_symbolic_shape=True)
+    tmp.unlink()
+    return Path(out_path)
+
+
+def reduce_range(card: ModelCard) -> bool:
+    """The card's ``quantization.reduce_range``: quantise weights to 7 bits (default true)."""
+    value = card.get("quantization.reduce_range", True)
+    if not isinstance(value, bool):
+        raise ConfigError(f"card {card.name!r}: quantization.reduce_range must be true or false, got {value!r}")
+    return value
+
+
+def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
+                  calibration_cases: int | None = None, seed: int = 12345, calibration_dir: str | Path | None = None,
+                  calibration_format: str | None = None, graph: GraphSpec | None = None) -> Path:
+    """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
+
+    Calibration uses ``calibration_cases`` windows (default ``DEFAULT_WINDOWS``): synthetic ones
+    drawn with ``seed``, or with ``calibration_dir`` windows of that recording
+    (:mod:`radaredge.export.calibration`; its scan format ``calibration_format`` or inferred). The seed
+    differs from the parity and bench seeds, so parity is checked on data the calibration did
+    not see. Activation ranges are min/max calibrated: percentile and entropy ranges (collected
+    one window at a time, since the point-count dependent tensors differ in shape between
+    windows) were less accurate on both TDFANet and MAFF-Net. The layers of the card's
+    ``quantization.keep_fp32`` modules stay fp32; ``quantization.reduce_range`` is the module
+    docstring's weight range. ``graph`` is the graph's spec (default: the card's only graph).
+    """
+    fp32_path, out_path = Path(fp32_path), Path(out_path)
+    patterns, seven_bit = keep_fp32_patterns(card), reduce_range(card)
+    keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
+    calibration_cases = DEFAULT_WINDOWS if calibration_cases is None else calibration_cases
+    if calibration_dir is None:
+        feeds = synthetic_feeds(card, calibration_cases, seed, graph)
+        source = {"data": "synthetic", "cases": calibration_cases, "seed": seed}
+    else:
+        if graph is None:
+            graph = model_spec(card).graph()
+        inputs = FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input, str(fp32_path))
+        feeds, source = recorded_feeds(inputs, calibration_dir, calibration_cases, calibration_format)
+    with tempfile.TemporaryDirectory() as tmp:
+        pre = Path(tmp) / "pre.onnx"
+        try:
+            optimise_without_folding(fp32_path, pre)
+            excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
+            quantize_static(str(pre), str(out_path), FeedList(feeds),
+                            quant_format=QuantFormat.QDQ, per_channel=True,
+                            op_types_to_quantize=list(QUANTIZED_OPS),
+                            weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
+                            reduce_range=seven_bit, calibrate_method=CalibrationMethod.MinMax, nodes_to_exclude=excluded)
+        except Exception as exc:
+            raise ExportError(f"int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
+    carry_metadata(fp32_path, out_path, {
+        "format": "QDQ", "weights": "int8 per-channel, 7-bit range" if seven_bit else "int8 per-channel",
+        "activations": "uint8", "ops": list(QUANTIZED_OPS),
+        "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
+        "calibration": {**source, "method": "minmax"}})
+    return out_path
+
+
+def quantize_dynamic_int8(fp32_path: str | Path, out_path: str | Path) -> Path:
+    """onnxruntime dynamic quantisation: int8 weights of MatMul/Gemm, activations quantised at run
+    time (no calibration). Metadata is copied and ``radaredge.quantization`` added."""
+    fp32_path, out_path = Path(fp32_path), Path(out_path)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            # the exporter's intermediate value_info carries shapes that onnx's re-inference rejects
+            # after quantisation rewrites the graph; drop it and let the quantiser infer afresh
+            clean = onnx.load(str(fp32_path))
+            del clean.graph.value_info[:]
+            pre = Path(tmp) / "pre.onnx"
+            onnx.save(clean, str(pre))
+            quantize_dynamic(str(pre), str(out_path), weight_type=QuantType.QInt8,
+                             op_types_to_quantize=["MatMul", "Gemm"])
+    except Exception as exc:
+        raise ExportError(f"dynamic int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
+    carry_metadata(fp32_path, out_path, {"format": "dynamic", "weights": "int8", "activations": "uint8 at run time",
+                                         "ops": ["MatMul", "Gemm"]})
+    return out_path
+
+
+@dataclass(frozen=True)
+class Int8Options:
+    """``export --quantize int8`` settings: calibration windows (default ``DEFAULT_WINDOWS``)
+    and, to calibrate on a recording instead of synthetic scenes, its directory and format."""
+
+    windows: int | None = None
+    calibration_dir: str | Path | None = None
+    calibration_format: str | None = None
+
+
+def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
+    """The default int8 policy: a static QDQ int8 copy of every graph, beside it."""
+    return {g.name: quantize_int8(card, paths[g.name], copy_path(paths[g.name], INT8), options.windows,
+                                  calibration_dir=options.calibration_dir,
+                                  calibration_format=options.calibration_format, graph=g)
+            for g in spec.graphs}
+
+
+def text_encoder_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
+    """Des4Pos's int8 policy: a dynamically quantised copy of the text encoder (int8 MatMul/Gemm
+    weights, no calibration); the point and fine graphs stay fp32."""
+    path = paths["text_encoder"]
+    return {"text_encoder": quantize_dynamic_int8(path, copy_path(path, INT8))}
+
+
+@dataclass(frozen=True)
+class Int8Policy:
+    """How ``export --quantize int8`` makes a model's int8 copies: ``make(card, spec, paths,
+    options)`` -> {graph: int8 path}; ``calibrated``: it takes calibration data; ``graphs``:
+    the graphs it makes copies of (None: every graph)."""
+
+    make: Callable
+    calibrated: bool = True
+    graphs: tuple[str, ...] | None = None
+
+    def quantises(self, graph: str) -> bool:
+        return self.graphs is None or graph in self.graphs
+
+
+STATIC = Int8Policy(static_int8)
+INT8_POLICIES: dict[str, Int8Policy] = {
+    "des4pos": Int8Policy(text_encoder_int8, calibrated=False, graphs=("text_encoder",)),
+}
+
+
+def int8_policy(card: ModelCard) -> Int8Policy:
+    """The int8 policy of ``card``'s model family (static QDQ of every graph unless it has its own)."""
+    return INT8_POLICIES.get(card.model, STATIC)

@@ -1,0 +1,228 @@
+"""Des4Pos's three graph signatures and parity cases (see radaredge.models.spec).
+
+Graphs (all opset 18, CPU onnxruntime, no custom ops):
+
+``submap_encoder``  points [cells, T, P, 6] float32 (x, y, z normalised to the cell, r, g, b),
+                    num_points [cells, T] float32, object_mask [cells, T] bool
+                    -> descriptor [cells, D] (L2-normalised), object_features [cells, T, D]
+``text_encoder``    input_ids [hints, tokens] int64, attention_mask [hints, tokens] int64
+                    (one row per hint sentence, tokenised with the bundle's tokenizer.json)
+                    -> descriptor [D] (L2-normalised), hint_features [hints, D]
+``fine_stage``      object_features [candidates, T, D], object_mask [candidates, T] bool,
+                    hint_features [hints, D], cell_origin [candidates, 2] float64 (m),
+                    cell_size [candidates] float64 (m)
+                    -> offset [candidates, 2] (cell units from the centre), position [candidates, 2] float64 (m)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ...cards import ModelCard
+from ...data.text_city import make_city
+from ...runtime.text_tokens import encode_hints, load_tokenizer, split_hints
+from .model import build_des4pos
+from ...cards.des4pos import CellConfig, TextConfig
+from .minilm import backbone_dir
+from ...registry import register_model
+from ..spec import GraphSpec, ModelSpec
+
+
+def _cell(card) -> CellConfig:
+    return card.section("cell", CellConfig)
+
+
+def _text(card) -> TextConfig:
+    return card.section("text", TextConfig)
+
+
+def _dim(card) -> int:
+    return int(card.get("submap.embed_dim", 256))
+
+
+def tokenizer_path(card: ModelCard):
+    t = _text(card)
+    return backbone_dir(t.backbone, t.backbone_dir) / "tokenizer.json"
+
+
+# ----------------------------------------------------------------------------- submap encoder
+
+
+def submap_cases(card: ModelCard, n: int, seed: int):
+    """One cell per case from a synthetic city: its objects in rotating slot layouts (packed,
+    shuffled among the slots, a single object), with random garbage in the padding slots."""
+    cell = _cell(card)
+    city = make_city(cell.max_objects, cell.points_per_object, seed=seed, size=cell.size, stride=cell.stride, poses=0)
+    rng = np.random.default_rng(seed)
+    kinds = ("packed", "shuffled-slots", "one-object", "garbage-padding")
+    cases = []
+    for i in range(n):
+        kind = kinds[i % len(kinds)]
+        c = i % len(city)
+        pts, cnt, mask = city.points[c].copy(), city.num_points[c].copy(), city.object_mask[c].copy()
+        if kind == "one-object":
+            mask[1:] = False
+            pts[1:], cnt[1:] = 0, 0
+        if kind in ("shuffled-slots", "garbage-padding"):
+            perm = rng.permutation(len(mask))
+            pts, cnt, mask = pts[perm], cnt[perm], mask[perm]
+        if kind == "garbage-padding":
+            pts[~mask] = rng.normal(0, 5, pts[~mask].shape)
+            cnt[~mask] = rng.integers(1, 9999, int((~mask).sum()))
+        cases.append((f"{i:02d}-{kind}-{int(mask.sum())}obj",
+                      {"points": pts[None].astype(np.float32), "num_points": cnt[None].astype(np.float32),
+                       "object_mask": mask[None]}))
+    return cases
+
+
+def submap_reference(model, feeds, trace=None):
+    pts, cnt, mask = (np.asarray(feeds[k]) for k in ("points", "num_points", "object_mask"))
+    descs, objs = [], []
+    for b in range(len(pts)):
+        d, h = model.reference(pts[b][mask[b]], cnt[b][mask[b]])
+        full = torch.zeros(mask.shape[1], h.shape[1])
+        full[torch.from_numpy(mask[b])] = h
+        descs.append(d)
+        objs.append(full)
+    return {"descriptor": torch.stack(descs), "object_features": torch.stack(objs)}
+
+
+def submap_export(model, feeds, trace=None):
+    d, h = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
+                   for k in ("points", "num_points", "object_mask")), trace=trace)
+    return {"descriptor": d, "object_features": h}
+
+
+SUBMAP_OUTPUTS = ["descriptor", "object_features"]
+SUBMAP_GRAPH = GraphSpec(
+    name="submap_encoder",
+    module=lambda model: model.submap,
+    input_names=lambda card: ["points", "num_points", "object_mask"],
+    dynamic_axes=lambda card: {k: {0: "cells"} for k in ("points", "num_points", "object_mask")},
+    output_names=lambda card: list(SUBMAP_OUTPUTS),
+    make_cases=submap_cases, run_reference=submap_reference, run_export=submap_export,
+)
+
+
+# ----------------------------------------------------------------------------- text encoder
+
+
+EXTRA_DESCRIPTIONS = (
+    "The pose is north of a red car.",
+    "The pose is on-top of a gray road. The pose is west of a tall white building with a flat roof.",
+    "A lamp.",
+    "The pose is east of a small yellow vending machine standing next to the entrance of a large garage.",
+)
+
+
+def descriptions(card: ModelCard, n: int, seed: int) -> list[str]:
+    """``n`` distinct descriptions of 1 .. max_hints hints: synthetic-city poses, every fifth one
+    of other wordings and lengths (short, long, beyond the city's templates). Distinct, so that a
+    case set's retrieval agreement compares different texts."""
+    t = _text(card)
+    city = make_city(max(16, t.max_hints), 8, seed=seed, poses=2 * max(n, 4), min_hints=1, max_hints=t.max_hints,
+                     objects=60)
+    poses = iter(dict.fromkeys(str(text) for text in city.pose_text))
+    extra = iter(EXTRA_DESCRIPTIONS)
+    return [(next(extra, None) if i % 5 == 4 else None) or next(poses) for i in range(n)]
+
+
+def text_cases(card: ModelCard, n: int, seed: int):
+    t = _text(card)
+    tok = load_tokenizer(tokenizer_path(card))
+    cases = []
+    for i, text in enumerate(descriptions(card, n, seed)):
+        hints = split_hints(text)[: t.max_hints]
+        ids, mask = encode_hints(tok, hints, t.max_tokens, t.max_hints)
+        cases.append((f"{i:02d}-{len(hints)}hints-{ids.shape[1]}tok", {"input_ids": ids, "attention_mask": mask}))
+    return cases
+
+
+def text_reference(model, feeds, trace=None):
+    ids, mask = np.asarray(feeds["input_ids"]), np.asarray(feeds["attention_mask"])
+    d, h = model.reference([ids[i][mask[i] > 0] for i in range(len(ids))])
+    return {"descriptor": d, "hint_features": h}
+
+
+def text_export(model, feeds, trace=None):
+    d, h = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
+                   for k in ("input_ids", "attention_mask")))
+    return {"descriptor": d, "hint_features": h}
+
+
+TEXT_OUTPUTS = ["descriptor", "hint_features"]
+TEXT_GRAPH = GraphSpec(
+    name="text_encoder",
+    module=lambda model: model.text,
+    input_names=lambda card: ["input_ids", "attention_mask"],
+    dynamic_axes=lambda card: {k: {0: "hints", 1: "tokens"} for k in ("input_ids", "attention_mask")},
+    output_names=lambda card: list(TEXT_OUTPUTS),
+    make_cases=text_cases, run_reference=text_reference, run_export=text_export,
+)
+
+
+# ----------------------------------------------------------------------------- fine stage
+
+
+def fine_cases(card: ModelCard, n: int, seed: int):
+    """1-4 candidate cells of 1..T objects, 1..max_hints hints, world origins up to 10 km."""
+    cell, t, d = _cell(card), _text(card), _dim(card)
+    rng = np.random.default_rng(seed)
+    cases = []
+    for i in range(n):
+        k = 1 + i % 4
+        h = 1 + (i * 3) % t.max_hints
+        mask = np.zeros((k, cell.max_objects), bool)
+        for j in range(k):
+            real = rng.choice(cell.max_objects, int(rng.integers(1, cell.max_objects + 1)), replace=False)
+            mask[j, real] = True
+        objs = (rng.normal(0, 0.3, (k, cell.max_objects, d)) * mask[..., None]).astype(np.float32)
+        cases.append((f"{i:02d}-{k}cells-{h}hints", {
+            "object_features": objs, "object_mask": mask,
+            "hint_features": rng.normal(0, 1, (h, d)).astype(np.float32),
+            "cell_origin": rng.uniform(-1e4, 1e4, (k, 2)), "cell_size": np.full(k, cell.size)}))
+    return cases
+
+
+def fine_reference(model, feeds, trace=None):
+    objs, mask = np.asarray(feeds["object_features"]), np.asarray(feeds["object_mask"])
+    off, pos = model.reference([torch.from_numpy(objs[j][mask[j]]) for j in range(len(objs))],
+                               torch.as_tensor(np.asarray(feeds["hint_features"])),
+                               np.asarray(feeds["cell_origin"]), np.asarray(feeds["cell_size"]))
+    return {"offset": off, "position": pos}
+
+
+FINE_INPUTS = ["object_features", "object_mask", "hint_features", "cell_origin", "cell_size"]
+
+
+def fine_export(model, feeds, trace=None):
+    off, pos = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
+                       for k in FINE_INPUTS))
+    return {"offset": off, "position": pos}
+
+
+FINE_OUTPUTS = ["offset", "position"]
+FINE_GRAPH = GraphSpec(
+    name="fine_stage",
+    module=lambda model: model.fine,
+    input_names=lambda card: list(FINE_INPUTS),
+    dynamic_axes=lambda card: {"object_features": {0: "candidates"}, "object_mask": {0: "candidates"},
+                               "hint_features": {0: "hints"}, "cell_origin": {0: "candidates"},
+                               "cell_size": {0: "candidates"}},
+    output_names=lambda card: list(FINE_OUTPUTS),
+    make_cases=fine_cases, run_reference=fine_reference, run_export=fine_export,
+)
+
+
+DES4POS_SPEC = ModelSpec(
+    build=build_des4pos,
+    graphs=(SUBMAP_GRAPH, TEXT_GRAPH, FINE_GRAPH),
+    files=lambda card: {"tokenizer.json": tokenizer_path(card)},
+)
+
+
+@register_model("des4pos")
+def des4pos_spec(card: ModelCard | None = None) -> ModelSpec:
+    """The one spec of every Des4Pos card: three graphs sharing one set of weights."""
+    return DES4POS_SPEC

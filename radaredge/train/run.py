@@ -1,0 +1,245 @@
+"""What every training recipe shares: the run directory, checkpoints, ``--resume``, the JSON log,
+the device and the report.
+
+A run directory holds
+
+- ``best.pth``: the weights of the epoch with the best validation metric, under ``model_state``
+  (``radaredge export --checkpoint`` reads it), with the card, the epoch and its metrics;
+- ``last.pth``: everything needed to continue (weights, optimiser, scheduler, random states,
+  history), rewritten after every epoch; ``resume`` starts from it;
+- ``train-log.json``: the options, the data summary and one row per epoch.
+
+Every file is written to a temporary name and renamed, so an interrupted run never leaves a
+truncated checkpoint behind.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ..cards import ModelCard
+from ..atomic import atomic_path, write_json
+from ..config import check_numbers, check_writable_dir, field_range
+from ..errors import ConfigError
+
+BEST, LAST, LOG = "best.pth", "last.pth", "train-log.json"
+DEVICES = ("cpu", "cuda")
+
+
+def recipe_from_options(cls: type, options: dict, model: str, aliases: dict | None = None):
+    """The recipe dataclass ``cls`` with ``options`` (by field name or one of ``aliases``; None
+    values skipped) over its defaults; ConfigError naming an unknown option or a bad value
+    (numbers checked against the class's declared ranges, flags must be true or false)."""
+    aliases = aliases or {}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    given = {aliases.get(k, k): v for k, v in options.items() if v is not None}
+    unknown = sorted(set(given) - set(fields))
+    if unknown:
+        also = f" (and {', '.join(f'{a} = {b}' for a, b in aliases.items())})" if aliases else ""
+        raise ConfigError(f"unknown {model} training option(s) {unknown}; known: {sorted(fields)}{also}")
+    for name, value in given.items():
+        default, option = fields[name].default, f"--{name.replace('_', '-')}"
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(f"{option}: expected true or false, got {value!r}")
+        elif isinstance(default, (int, float)) or (default is None and isinstance(value, (int, float))):
+            integral = isinstance(default, int) or fields[name].type in ("int | None", int)
+            check_numbers(value, field_range(cls, name), integral, option)
+        elif not isinstance(value, str):
+            raise ConfigError(f"{option}: expected text, got {value!r}")
+    try:
+        return cls(**given)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def pick_device(name: str) -> torch.device:
+    """``cpu`` or ``cuda`` as a torch device; ConfigError when CUDA is asked for and absent."""
+    if name not in DEVICES:
+        raise ConfigError(f"--device must be one of {list(DEVICES)}, got {name!r}")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: this torch build sees no CUDA device (torch.cuda.is_available() is False); "
+                          "use --device cpu or install a CUDA build of torch")
+    return torch.device(name)
+
+
+def _atomic_save(obj, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+    return path
+
+
+def random_states(rng: np.random.Generator) -> dict:
+    """The numpy generator's, Python's and torch's random states (plain containers and tensors);
+    torch's CUDA generators' too once CUDA is in use (dropout on a GPU draws from them)."""
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() and torch.cuda.is_initialized() else None
+    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "cuda": cuda,
+            "python": list(random.getstate()[1]), "python_version": random.getstate()[0],
+            "python_gauss": random.getstate()[2]}
+
+
+def restore_random_states(rng: np.random.Generator, states: dict) -> None:
+    rng.bit_generator.state = states["numpy"]
+    torch.set_rng_state(states["torch"])
+    if states.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+    random.setstate((states["python_version"], tuple(states["python"]), states["python_gauss"]))
+
+
+def torch_rng_state(device: torch.device) -> tuple:
+    """torch's CPU generator state, and that of ``device``'s generator when it is a CUDA device:
+    what random ops (dropout) on ``device`` draw from."""
+    return torch.get_rng_state(), torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+
+
+def set_torch_rng_state(state: tuple, device: torch.device) -> None:
+    """Undo the draws since :func:`torch_rng_state` returned ``state``."""
+    torch.set_rng_state(state[0])
+    if state[1] is not None:
+        torch.cuda.set_rng_state(state[1], device)
+
+
+@dataclass
+class RunDir:
+    """A training run's directory (module docstring) for ``card``'s model."""
+
+    path: Path
+    card: ModelCard
+
+    def __post_init__(self):
+        self.path = Path(self.path)
+        check_writable_dir(self.path, "--output")     # made at the first save: a failed start leaves nothing
+
+    @property
+    def best(self) -> Path:
+        return self.path / BEST
+
+    @property
+    def last(self) -> Path:
+        return self.path / LAST
+
+    @property
+    def log(self) -> Path:
+        return self.path / LOG
+
+    def save_best(self, model: torch.nn.Module, epoch: int, metrics: dict) -> Path:
+        return _atomic_save({"model_state": model.state_dict(), "card": self.card.data, "epoch": epoch,
+                             "metrics": metrics}, self.best)
+
+    def save_last(self, state: dict) -> Path:
+        return _atomic_save(state, self.last)
+
+    def write_log(self, log: dict) -> Path:
+        return write_json(self.log, log)
+
+    def require_last(self) -> None:
+        """ConfigError unless ``last.pth`` exists (``--resume`` needs it)."""
+        if not self.last.is_file():
+            raise ConfigError(f"--resume: {self.last} does not exist; start without --resume (or pass the --output "
+                              f"of the run to continue)")
+
+    def load_last(self, signature: dict) -> dict:
+        """The state of ``last.pth`` to resume from; ConfigError when there is none or it was
+        written by another card or for other data (``signature`` differs)."""
+        self.require_last()
+        try:
+            state = torch.load(str(self.last), map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - any unreadable file is the same user error
+            raise ConfigError(f"--resume: {self.last} is not a readable radaredge training state "
+                              f"({type(exc).__name__})") from None
+        if not isinstance(state, dict) or "signature" not in state:
+            raise ConfigError(f"--resume: {self.last} is not a radaredge training state")
+        if state["signature"] != signature:
+            diff = sorted(k for k in set(signature) | set(state["signature"])
+                          if signature.get(k) != state["signature"].get(k))
+            raise ConfigError(f"--resume: {self.last} was written for another run (differs in {', '.join(diff)}); "
+                              f"use the same card, data and recipe options, or a new --output")
+        return state
+
+
+@dataclass
+class TrainReport:
+    """What a training run did: per epoch its metrics, the best epoch, and the files it wrote."""
+
+    model: str
+    output: Path
+    metric: str                                   # the validation metric that picks the best epoch
+    epochs: list[dict] = field(default_factory=list)
+    best_epoch: int | None = None
+    stage_best: dict = field(default_factory=dict)   # staged recipes: stage -> its best epoch (kept weights)
+    data: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def best(self) -> dict | None:
+        return next((e for e in self.epochs if e["epoch"] == self.best_epoch), None)
+
+    def to_dict(self) -> dict:
+        return {"model": self.model, "output": str(self.output), "best_checkpoint": str(Path(self.output) / BEST),
+                "last_state": str(Path(self.output) / LAST), "metric": self.metric, "best_epoch": self.best_epoch,
+                **({"stage_best": self.stage_best} if self.stage_best else {}),
+                "seconds": round(self.seconds, 1), "data": self.data, "options": self.options, "epochs": self.epochs}
+
+    def lines(self) -> list[str]:
+        out = [f"train {self.model}: {len(self.epochs)} epoch(s) in {self.seconds / 60:.1f} min; data: "
+               + ", ".join(f"{k} {v}" for k, v in self.data.items() if not isinstance(v, (list, dict)))]
+        bests = []
+        for stage in dict.fromkeys(e.get("stage") for e in self.epochs):      # rows of a staged recipe by stage
+            rows = [e for e in self.epochs if e.get("stage") == stage]
+            keys = [k for k in rows[0] if k not in ("stage", "epoch", "seconds")]
+            best, metric = (self.stage_best.get(stage), None) if stage else (self.best_epoch, self.metric)
+            if stage:
+                out.append(f"stage {stage}:")
+            width = [max(12, len(k) + 2) for k in keys]
+            out.append(f"{'epoch':>5}" + "".join(f"{k:>{w}}" for k, w in zip(keys, width)))
+            for e in rows:
+                mark = "  *" if e["epoch"] == best else ""
+                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e[k]):>{w}}" for k, w in zip(keys, width)) + mark)
+                if mark:
+                    metric = metric or keys[1]
+                    bests.append(f"{stage + ' ' if stage else ''}epoch {best} ({metric} {_fmt(e[metric])})")
+        if bests:
+            out.append(f"best {', '.join(bests)}: {Path(self.output) / BEST}; export it with `radaredge export "
+                       f"--model {self.model} --checkpoint {Path(self.output) / BEST}`")
+        return out
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+class Stopwatch:
+    """Seconds since creation, plus time carried over from a resumed run."""
+
+    def __init__(self, carried: float = 0.0):
+        self.start, self.carried = time.perf_counter(), carried
+
+    def __call__(self) -> float:
+        return self.carried + time.perf_counter() - self.start
+
+
+Progress = Callable[[str, int], Any]      # (description, total) -> a tqdm-like bar (update, set_postfix, close)
+
+
+class _NoBar:
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix(self, **kwargs) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def no_progress(desc: str, total: int) -> _NoBar:
+    return _NoBar()
