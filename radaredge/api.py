@@ -145,8 +145,8 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     if opset is not None:
         check_count("--opset", opset, MIN_OPSET, onnx_lib.defs.onnx_opset_version())
     check_export_options(card, {"--quantize": quantize, "--calibration": calibration,
-                                      "--calibration-format": calibration_format,
-                                      "--calibration-windows": calibration_windows})
+                                "--calibration-format": calibration_format,
+                                "--calibration-windows": calibration_windows})
     if calibration is not None:                 # a wrong recording fails before the export, not after it
         graph = spec.graph()
         recorded_feeds(FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input), calibration,
@@ -154,7 +154,8 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     if model is None:
         model = create_model(card, checkpoint, spec)      # card and checkpoint errors first, then the output's
     output = resolve_output(card, spec, output)
-    check_writable_dir(artifacts.bundle_root([g.name for g in spec.graphs], output), "--output")  # before a long export
+    # before a long export
+    check_writable_dir(artifacts.bundle_root([g.name for g in spec.graphs], output), "--output")
     report = getattr(model, "checkpoint_report", None)
     if report is not None:
         say(report.summary())

@@ -160,6 +160,7 @@ def test_head_fit_is_the_maffnet_recipe_of_radaredge_train(tmp_path):
     assert not torch.equal(model.dense_head.conv_cls.bias, create_model(CARD).dense_head.conv_cls.bias)
     for extra, says in ((["--data", str(tmp_path)], "reads no recorded data"),
                         (["--data", "synthetic", "--validation", "x"], "--validation: not used"),
+                        (["--data", "synthetic", "--device", "cuda"], "head fit runs on the CPU"),
                         (["--data", "synthetic", "--set", "epoch=3"], "unknown MAFF-Net head fit training option")):
         res = CliRunner().invoke(main, ["train", "--model", "maffnet-tiny", "--config", str(tiny), *extra,
                                         "--output", str(tmp_path / "other")])

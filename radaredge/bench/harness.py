@@ -3,8 +3,8 @@
 By default each graph's whole pipeline is timed in the torch reference, the torch export
 formulation, onnxruntime fp32, onnxruntime int8 (when an int8 copy exists) and OpenVINO (when
 installed); a model may time something else through its entry in
-:data:`radaredge.bench.tasks.BENCH_TASKS` (Des4Pos: queries and cell encoding). A backend that fails is a row with
-status ``error``, not an abort. Beside the tables: the onnxruntime per-stage split and top ops
+:data:`radaredge.bench.tasks.BENCH_TASKS` (Des4Pos: queries and cell encoding). A backend that
+fails is a row with status ``error``, not an abort. Beside the tables: the onnxruntime per-stage split and top ops
 from a separately profiled session, the peak memory of a numpy + onnxruntime process per graph,
 and OpenVINO's largest output difference from onnxruntime.
 """
@@ -40,9 +40,9 @@ from .timing import BackendResult, BenchTask, benchmark, cpu_name, format_differ
 
 @dataclass(frozen=True)
 class BenchOptions:
-    """What a model's bench tasks (:mod:`radaredge.bench.tasks`) are told: threads, timed runs, warm-up runs, whether to time the
-    torch reference, whether to add OpenVINO (None: when installed), each graph's int8 copy, and
-    where progress lines go."""
+    """What a model's bench tasks (:mod:`radaredge.bench.tasks`) are told: threads, timed runs,
+    warm-up runs, whether to time the torch reference, whether to add OpenVINO (None: when
+    installed), each graph's int8 copy, and where progress lines go."""
 
     threads: int = 2
     runs: int = 20

@@ -61,7 +61,8 @@ def pin_threads(threads: int) -> list[int] | None:
     """Pin this process to the first ``threads`` allowed cores and set torch's thread count
     (when torch is installed)."""
     try:
-        # optional: torch's thread count is pinned too when torch is installed (the harness also times torch-free backends)
+        # optional: torch's thread count is pinned too when torch is installed (the harness
+        # also times torch-free backends)
         import torch
         torch.set_num_threads(threads)
     except ImportError:
@@ -83,7 +84,8 @@ def pinned(threads: int):
     except (AttributeError, OSError):
         affinity = None
     try:
-        # optional: torch's thread count is pinned too when torch is installed (the harness also times torch-free backends)
+        # optional: torch's thread count is pinned too when torch is installed (the harness
+        # also times torch-free backends)
         import torch
         torch_threads = torch.get_num_threads()
     except ImportError:

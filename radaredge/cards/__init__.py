@@ -4,8 +4,9 @@ A card is the single source of truth for a model: code reads its sections throug
 :meth:`ModelCard.section`, and the exported ONNX carries the card in its metadata.
 
 The shipped cards live in the top-level ``models/<name>.yaml`` and travel in the wheel as the
-package data ``radaredge/model_cards/``, so a non-editable install has them too. :func:`load_card` takes a shipped card's name or the path
-of any card file; ``$RADAREDGE_CARDS`` points the by-name lookup at another directory.
+package data ``radaredge/model_cards/``, so a non-editable install has them too.
+:func:`load_card` takes a shipped card's name or the path of any card file;
+``$RADAREDGE_CARDS`` points the by-name lookup at another directory.
 """
 
 from __future__ import annotations

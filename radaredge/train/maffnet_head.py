@@ -281,6 +281,9 @@ def train_head(card, model, data, inputs) -> TrainReport:
     given += [f"--{k.replace('_', '-')}" for k, v in (inputs.bag or {}).items() if v is not None]
     if given:
         raise ConfigError(f"{', '.join(given)}: not used by {card.name}'s head fit on synthetic scans")
+    if inputs.device != "cpu":
+        raise ConfigError(f"--device {inputs.device}: {card.name}'s head fit runs on the CPU (a few minutes); "
+                          f"drop --device")
     if card.get("stage_two") is not None:
         raise ConfigError(f"{card.name}: the head fit covers stage one's anchor head; use a one-stage card "
                           f"(maffnet-vod)")
