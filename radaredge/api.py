@@ -27,7 +27,7 @@ from .bench.harness import BenchReport, bench
 from .cards import ModelCard, resolve_card
 from .config import check_count, check_writable_dir
 from .errors import ConfigError, InputError
-from .eval.tasks import EVALUATIONS, EvalInputs
+from .eval.tasks import EVALUATIONS, QUANTIZED_TASKS, EvalInputs
 from .export.calibration import DEFAULT_WINDOWS, recorded_feeds
 from .export.graphs import default_output, export_graph, graph_paths, require_same_weights, resolve_output, write_export
 from .export.onnx_call import DEFAULT_OPSET
@@ -217,6 +217,9 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
         wrap = progress(f"parity {graph.name}") if progress else None
         report.graphs[graph.name] = check_graph(card, graph, module, path, cases, seed, int8, runtime,
                                                 debug_onnx=None if int8 else debug_graph, progress=wrap)
+    task = QUANTIZED_TASKS.get(card.model) if quantized and runtime == "onnxruntime" else None
+    if task is not None:
+        report.task = task(card, onnx, checkpoint)
     return report
 
 
@@ -247,6 +250,7 @@ def checked_graphs(card: ModelCard, spec, onnx: Path, quantized: bool) -> dict[s
 
 def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Path | None = None,
              queries: str | Path | None = None, *, map_path: str | Path | None = None,
+             data: str | Path | None = None, split: str = "val", dataset: str | None = None,
              checkpoint: str | Path | None = None, radius: float = 5.0, reference: bool = True,
              progress: Callable[[str], Callable] | None = None):
     """The model's task metric on the export at ``onnx``, by the model's ``evaluate`` hook:
@@ -254,15 +258,19 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
     ``queries`` drives against ``database`` drives, true positives within ``radius`` m
     (:func:`radaredge.eval.places.evaluate`); Des4Pos's localisation recall over the described
     poses of the cell map ``map_path`` (:func:`radaredge.eval.localisation.evaluate_localization`);
-    the task is the model's entry in :data:`radaredge.eval.tasks.EVALUATIONS`."""
+    MAFF-Net's 3D / BEV AP per class and area of the torch reference, the export, its int8 copy
+    and OpenVINO over the ``split`` of the labelled set at ``data`` (VoD or TJ4D layout, or
+    ``dataset``; :func:`radaredge.eval.detection.evaluate_detection`); the task is the model's
+    entry in :data:`radaredge.eval.tasks.EVALUATIONS`."""
     card = resolve_card(card)
     task = EVALUATIONS.get(card.model)
     if task is None:
         raise ConfigError(f"{card.name} ({card.model}) has no evaluation on recorded data in radaredge; "
                           f"`radaredge parity-check` checks its export against the reference")
-    inputs = EvalInputs(str(database) if database else None, str(queries) if queries else None,
-                        str(map_path) if map_path else None, str(checkpoint) if checkpoint else None, radius,
-                        reference, progress)
+    inputs = EvalInputs(database=str(database) if database else None, queries=str(queries) if queries else None,
+                        map=str(map_path) if map_path else None, data=str(data) if data else None, split=split,
+                        dataset=dataset, checkpoint=str(checkpoint) if checkpoint else None, radius=radius,
+                        reference=reference, progress=progress)
     return task(card, onnx, inputs)
 
 

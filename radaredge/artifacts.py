@@ -65,6 +65,16 @@ def copy_kind(path: str | Path) -> str | None:
     return next((k for k in COPY_KINDS if name.endswith(ARTIFACTS[k].suffix)), None)
 
 
+def graph_of_copy(path: str | Path) -> Path:
+    """The graph an int8 or debug copy was made from (``x.int8.onnx`` -> ``x.onnx``); ``path`` itself
+    when it is named as a graph."""
+    kind = copy_kind(path)
+    if kind is None:
+        return Path(path)
+    path = Path(path)
+    return path.with_name(path.name[: -len(ARTIFACTS[kind].suffix)] + ARTIFACTS[GRAPH].suffix)
+
+
 def manifest_path(bundle: str | Path) -> Path:
     """The manifest of the bundle directory ``bundle``."""
     return Path(bundle) / ARTIFACTS[MANIFEST].suffix

@@ -18,7 +18,7 @@ import click
 from . import artifacts, atomic
 from .cards import available_cards, load_card
 from .config import check_writable_dir, parse_settings
-from .errors import RadarEdgeError
+from .errors import ConfigError, RadarEdgeError
 from .runtime.runners import RUNTIMES
 
 
@@ -286,18 +286,43 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 
 @main.command("make-benchmark")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Writes OUT/database/drive-00 and OUT/queries/drive-01 ...")
-@click.option("--drives", default=3, show_default=True, type=click.IntRange(2, 64),
-              help="Drive 0 is the database, the rest queries.")
-@click.option("--frames", default=60, show_default=True, type=click.IntRange(1, 20_000), help="Scans per drive (10 Hz).")
+              help="Places: writes OUT/database/drive-00 and OUT/queries/drive-01 ...; detection: OUT/radar/ and "
+                   "OUT/radar_5frames/ in View-of-Delft's layout.")
+@click.option("--task", type=click.Choice(["places", "detection"]), default="places", show_default=True,
+              help="places: drives with positions for place recognition; detection: labelled frames for AP.")
+@click.option("--drives", type=click.IntRange(2, 100),
+              help="Places: drive 0 is the database, the rest queries  [default: 3]. Detection: drives, split "
+                   "train / val / test by drive  [default: 10].")
+@click.option("--frames", type=click.IntRange(1, 20_000),
+              help="Scans per drive (10 Hz)  [default: places 60, detection 40].")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
 @click.option("--towns", default=1, show_default=True, type=click.IntRange(1, 1000),
-              help="Towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
+              help="Places: towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
-    """Write a synthetic place-recognition benchmark: one town (static world) driven on several
-    days with other traffic, ego speed and heading offset, and some parked cars moved."""
+def make_benchmark(out_dir, task, drives, frames, seed, towns, as_json):
+    """Write a synthetic benchmark. places: one town (static world) driven on several days with
+    other traffic, ego speed and heading offset, and some parked cars moved. detection: labelled
+    View-of-Delft-layout frames (single and 5-frame scans, label_2, calib, ImageSets) of cars,
+    pedestrians and cyclists, moving and parked, occluding each other."""
+    if task == "detection":
+        if towns != 1:
+            raise ConfigError("--towns is for --task places")
+        # lazy: the scene generator is loaded only by the command that runs it
+        from .data.detection_benchmark import make_detection_benchmark
+        result = make_detection_benchmark(out_dir, drives or 10, frames or 40, seed, progress=_progress("drives"))
+        if as_json:
+            click.echo(atomic.dumps(result.to_dict()))
+            return
+        click.echo(f"wrote {sum(len(v) for v in result.splits.values())} labelled frames to {out_dir}/radar and "
+                   f"{out_dir}/radar_5frames (seed {seed}):")
+        for split, ids in result.splits.items():
+            counts = ", ".join(f"{n} {c}" for c, n in result.objects[split].items())
+            click.echo(f"  {split:<6}{len(ids):>5} frames   {counts}")
+        return
+    drives, frames = drives or 3, frames or 60
+    if drives > 64:
+        raise ConfigError(f"--drives {drives}: a places benchmark has at most 64 drives")
     # lazy: the scene generator is loaded only by the command that runs it
     from .data.pr_benchmark import make_pr_benchmark, make_pr_towns
     if towns == 1:
@@ -328,6 +353,12 @@ def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
 @click.option("--map", "map_path", type=click.Path(),
               help="Localisation (des4pos): a cell map with described poses (`radaredge make-city`), or a "
                    "directory of maps (one database of all their cells, every described pose a query).")
+@click.option("--data", "data_root", type=click.Path(file_okay=False),
+              help="Detection (maffnet): a labelled set in the KITTI layout (View-of-Delft radar/ or "
+                   "radar_5frames/, TJ4DRadSet, `radaredge make-benchmark --task detection`).")
+@click.option("--split", default="val", show_default=True, help="Detection: the ImageSets/<split>.txt to evaluate.")
+@click.option("--dataset", type=click.Choice(["vod", "tj4d"]),
+              help="Detection: the dataset's protocol and scan format (default: from the card's features).")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
 @click.option("--radius", default=5.0, show_default=True, type=float,
@@ -337,25 +368,35 @@ def make_benchmark(out_dir, drives, frames, seed, towns, as_json):
               help="JSON report path (default: <onnx>.eval.json beside the .onnx).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
               help="Place recognition: PNG with the trajectory and Recall@N curve (default: <onnx>.eval.png).")
+@click.option("--report-dir", "report_dir", type=click.Path(file_okay=False),
+              help="Detection: report.json, a precision-recall plot per class and BEV pictures of the frames "
+                   "where backends disagree most (default: <onnx>.eval/).")
 @click.option("--json", "as_json", is_flag=True, help="Print the whole report as JSON.")
 @_friendly_errors
-def eval_cmd(model, onnx_path, database, queries, map_path, config, checkpoint, radius, no_reference, report_path,
-             plot_path, as_json):
+def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, dataset, config, checkpoint, radius,
+             no_reference, report_path, plot_path, report_dir, as_json):
     """The model's task metric: place-recognition Recall@1/5/10 of the ONNX and the torch reference
-    over query drives against database drives (TDFANet), or localisation recall at top-1/5/10 cells
-    and 5/10/15 m and cell-retrieval recall@1/3/5 over maps' described poses (Des4Pos)."""
+    over query drives against database drives (TDFANet); localisation recall at top-1/5/10 cells
+    and 5/10/15 m and cell-retrieval recall@1/3/5 over maps' described poses (Des4Pos); 3D / BEV AP
+    and AOS per class, entire area and driving corridor, of the torch reference, the ONNX, its int8
+    copy and OpenVINO over a labelled split (MAFF-Net)."""
     # lazy: the API imports torch (see export)
     from .api import evaluate
     base = Path(onnx_path)
     base = base.with_name(base.name + ".eval.json") if base.suffix != ".onnx" else base.with_suffix(".eval.json")
     report_path, plot_path = Path(report_path or base), Path(plot_path or base.with_suffix(".png"))
+    report_dir = Path(report_dir or base.with_suffix(""))
     check_writable_dir(report_path.parent, "--report")          # before the evaluation, not after it
     check_writable_dir(plot_path.parent, "--plot")
-    report = evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, checkpoint=checkpoint,
-                      radius=radius, reference=not no_reference, progress=_progress)
+    check_writable_dir(report_dir.parent, "--report-dir")
+    report = evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, data=data_root,
+                      split=split, dataset=dataset, checkpoint=checkpoint, radius=radius, reference=not no_reference,
+                      progress=_progress)
     written = [str(report.write_json(report_path))]
     if hasattr(report, "plot"):
         written.append(str(report.plot(plot_path)))
+    if hasattr(report, "write_directory"):
+        written.append(f"{report_dir}/ ({len(report.write_directory(report_dir))} files)")
     if as_json:
         click.echo(atomic.dumps(report.to_dict()))
         return

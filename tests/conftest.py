@@ -76,6 +76,19 @@ def tiny_export(tmp_path_factory):
     return card, model, d / "tdfanet-tiny.onnx", d / "tdfanet-tiny.debug.onnx"
 
 
+MAFFNET_TINY_CARD = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
+
+
+@pytest.fixture(scope="session")
+def maffnet_tiny_export(tmp_path_factory):
+    """The tiny MAFF-Net card exported once per session with its int8 copy: (card path, onnx path)."""
+    import radaredge
+
+    d = tmp_path_factory.mktemp("maffnet-tiny-export")
+    radaredge.export(MAFFNET_TINY_CARD, d / "maffnet-tiny.onnx", quantize="int8")
+    return MAFFNET_TINY_CARD, d / "maffnet-tiny.onnx"
+
+
 def invoke(*args):
     """Run the radaredge CLI in-process (click's runner); exceptions propagate."""
     from click.testing import CliRunner

@@ -13,8 +13,9 @@ vod       View-of-Delft ``.bin``, little-endian       x, y, z, rcs, v_r, v_r_com
           float32 x 7: x, y, z, rcs, v_r,             time
           v_r_compensated, time
 tj4d      TJ4DRadSet ``.bin``, little-endian          x <- X, y <- Y, z <- Z, v_r <- V_r, range <- Range,
-          float32 x 8: X, Y, Z, V_r, Range, Power,    power <- Power, alpha <- Alpha, beta <- Beta,
-          Alpha, Beta                                 **rcs <- Power** (stand-in)
+          float32 x 8: X, Y, Z, V_r, Range, Power,    power <- Power, snr <- Power (the MAFF-Net TJ4D
+          Alpha, Beta                                 cards' name), alpha <- Alpha, beta <- Beta,
+                                                      **rcs <- Power** (stand-in)
 transloc  TransLoc4D-style ``.npy`` [N, 5], any       x, y, z, v_r <- v, intensity,
           integer or float dtype: x, y, z, v,         **rcs <- intensity** (stand-in)
           intensity
@@ -88,7 +89,8 @@ _LAYOUTS = {
     "vod": _Layout("View-of-Delft radar", VOD_COLUMNS,
                    {"x": 0, "y": 1, "z": 2, "rcs": 3, "v_r": 4, "v_r_comp": 5, "time": 6}),
     "tj4d": _Layout("TJ4DRadSet radar", TJ4D_COLUMNS,
-                    {"x": 0, "y": 1, "z": 2, "v_r": 3, "range": 4, "power": 5, "alpha": 6, "beta": 7, "rcs": 5}),
+                    {"x": 0, "y": 1, "z": 2, "v_r": 3, "range": 4, "power": 5, "snr": 5, "alpha": 6, "beta": 7,
+                     "rcs": 5}),
     "transloc": _Layout("TransLoc4D-style radar", TRANSLOC_COLUMNS,
                         {"x": 0, "y": 1, "z": 2, "v_r": 3, "intensity": 4, "rcs": 4}),
 }
@@ -115,6 +117,11 @@ def _feature_columns(features: Sequence[str], fmt: str) -> list[int]:
         raise InputError(f"format {fmt!r} ({layout.title}) cannot provide feature(s) {missing}; "
                          f"it provides {sorted(layout.features)}")
     return [layout.features[f] for f in features]
+
+
+def scan_features(fmt: str) -> tuple[str, ...]:
+    """The feature names a scan file of ``fmt`` (vod, tj4d, transloc) can serve."""
+    return tuple(_LAYOUTS[fmt].features)
 
 
 def _bin_row_bytes(fmt: str) -> int:

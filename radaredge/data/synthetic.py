@@ -24,7 +24,7 @@ The scene
   curvature and grade are otherwise drawn with the ego motion (from ``seed``); give them all one
   ``road_curvature`` and ``ego_vertical_max`` = 0 (a flat road) to share one world frame.
 * **Traffic.** Cars, pedestrians and cyclists move parallel to the road at constant speed in
-  their lanes. They live in a window from 30 m behind to 90 m ahead of the ego, both ends
+  their lanes (with ``vru_on_road``, some pedestrians and cyclists on the carriageway). They live in a window from 30 m behind to 90 m ahead of the ego, both ends
   outside the field of view (FOV), and wrap around in it, so traffic keeps flowing through
   long sequences.
 * **Ego.** The radar moves along the ego lane at a constant speed and yaw rate; a small
@@ -131,6 +131,7 @@ _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself 
     "position_noise": (0.0, None, True),
     "ghost_fraction": (0.0, 0.5, True),
     "parked_change": (0.0, 1.0, True),
+    "vru_on_road": (0.0, 1.0, True),
 }
 
 
@@ -167,6 +168,8 @@ class SceneConfig:
     ghost_fraction: float = 0.03      # expected fraction of multipath ghosts among all points, [0, 0.5]
     parked_change: float = 0.0        # chance per parked car to be gone (half) or shifted 0.3-0.8 m
                                       # along its axis (half) in this drive, drawn from ``seed``, [0, 1]
+    vru_on_road: float = 0.0          # chance per pedestrian / cyclist to move on the carriageway
+                                      # (|d| 1-4 m, with the traffic) instead of its sidewalk or bike lane, [0, 1]
     rcs_dbsm: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(_DEFAULT_RCS_DBSM))
     # (mean, std) in dBsm of one reflector point per class of RCS_CLASSES
 
@@ -651,12 +654,16 @@ class _Traffic:
         return _Boxes(centre, self.dims, yaw, self.label, road.velocity(s, self.d, self.s_dot))
 
 
-def _draw_lane_and_speed(rng: np.random.Generator, kind: str) -> tuple[float, float]:
-    """Lateral offset d (m) and ds/dt (m/s) of one moving object; traffic keeps to the right."""
+def _draw_lane_and_speed(rng: np.random.Generator, kind: str, on_road: float = 0.0) -> tuple[float, float]:
+    """Lateral offset d (m) and ds/dt (m/s) of one moving object; traffic keeps to the right.
+    A pedestrian or cyclist moves on the carriageway with chance ``on_road`` (drawn only when > 0)."""
     side = rng.choice([-1.0, 1.0])
     if kind == "car":
         speed = rng.uniform(4, 16) if side < 0 else -rng.uniform(6, 14)
         return side * _LANE + rng.uniform(-0.3, 0.3), speed
+    if on_road > 0 and rng.random() < on_road:
+        speed = rng.uniform(0.8, 1.8) if kind == "pedestrian" else rng.uniform(3, 7)
+        return side * rng.uniform(1.0, 4.0), -side * speed
     if kind == "pedestrian":
         return side * rng.uniform(*_SIDEWALK), rng.choice([-1.0, 1.0]) * rng.uniform(0.8, 1.8)
     return side * rng.uniform(*_BIKE_LANE), -side * rng.uniform(3, 7)
@@ -665,7 +672,7 @@ def _draw_lane_and_speed(rng: np.random.Generator, kind: str) -> tuple[float, fl
 def _draw_traffic(config: SceneConfig) -> _Traffic:
     rng = _rng(config.seed, _STREAM_TRAFFIC)
     label = np.repeat(np.arange(3), [config.num_cars, config.num_pedestrians, config.num_cyclists])
-    lanes = np.array([_draw_lane_and_speed(rng, CLASS_NAMES[c]) for c in label]).reshape(-1, 2)
+    lanes = np.array([_draw_lane_and_speed(rng, CLASS_NAMES[c], config.vru_on_road) for c in label]).reshape(-1, 2)
     return _Traffic(label, lanes[:, 0], lanes[:, 1], rng.uniform(10, 60, label.size), _draw_dims(rng, label))
 
 

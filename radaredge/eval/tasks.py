@@ -7,6 +7,7 @@ from typing import Callable
 
 from ..cards import ModelCard
 from ..errors import ConfigError
+from .detection import evaluate_detection, int8_ap_loss
 from .localisation import evaluate_localization as localize
 from .places import evaluate
 
@@ -15,23 +16,28 @@ from .places import evaluate
 class EvalInputs:
     """What ``eval`` was given; each model's task (:data:`EVALUATIONS`) takes what it needs and
     refuses the rest. Place recognition: ``database``/``queries`` drives, ``radius`` (m),
-    ``checkpoint`` and ``reference``; localisation: a cell ``map``."""
+    ``checkpoint`` and ``reference``; localisation: a cell ``map``; detection: a labelled set
+    ``data`` with its ``split`` and ``dataset`` layout."""
 
     database: str | None = None
     queries: str | None = None
     map: str | None = None
+    data: str | None = None
+    split: str = "val"
+    dataset: str | None = None
     checkpoint: str | None = None
     radius: float = 5.0
     reference: bool = True
     progress: Callable | None = None
 
     def require(self, task: str, needed: tuple[str, ...], card_name: str, uses: tuple[str, ...] = ()) -> None:
-        """ConfigError unless exactly the inputs ``needed`` (of database, queries, map) are given
-        and no option outside ``uses`` (of checkpoint, radius, reference) was set."""
+        """ConfigError unless exactly the inputs ``needed`` (of database, queries, map, data) are
+        given and no option outside ``uses`` (of checkpoint, radius, reference, split, dataset) was set."""
         missing = [n for n in needed if getattr(self, n) is None]
-        extra = [n for n in ("database", "queries", "map") if n not in needed and getattr(self, n) is not None]
+        extra = [n for n in ("database", "queries", "map", "data") if n not in needed and getattr(self, n) is not None]
         options = (("checkpoint", "checkpoint", self.checkpoint is not None), ("radius", "radius", self.radius != 5.0),
-                   ("reference", "no-reference", not self.reference))       # (name, option, set)
+                   ("reference", "no-reference", not self.reference), ("split", "split", self.split != "val"),
+                   ("dataset", "dataset", self.dataset is not None))       # (name, option, set)
         extra += [option for name, option, given in options if given and name not in uses]
         if missing or extra:
             raise ConfigError(f"{card_name} is evaluated by {task} on {', '.join('--' + n for n in needed)}"
@@ -56,7 +62,23 @@ def evaluate_localisation(card: ModelCard, onnx, inputs: EvalInputs):
                     checkpoint=inputs.checkpoint)
 
 
+def evaluate_detections(card: ModelCard, onnx, inputs: EvalInputs):
+    """3D / BEV AP and AOS per class and area of the torch reference, the export, its int8 copy
+    and OpenVINO over a labelled split (:func:`radaredge.eval.detection.evaluate_detection`)."""
+    inputs.require("3D-detection AP", ("data",), card.name, ("checkpoint", "reference", "split", "dataset"))
+    return evaluate_detection(card, onnx, inputs.data, inputs.split, inputs.checkpoint, inputs.reference,
+                              inputs.dataset, progress=inputs.progress)
+
+
 EVALUATIONS: dict[str, Callable] = {
     "tdfanet": evaluate_places,
     "des4pos": evaluate_localisation,
+    "maffnet": evaluate_detections,
+}
+
+
+# With ``parity-check --quantized``: the int8 graph judged by the model's task metric as well,
+# fn(card, onnx path, checkpoint) -> a report with lines(), to_dict() and a truth value.
+QUANTIZED_TASKS: dict[str, Callable] = {
+    "maffnet": int8_ap_loss,
 }

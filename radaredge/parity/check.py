@@ -81,10 +81,11 @@ class ParityReport:
     runtime: str = "onnxruntime"
     quantized: bool = False
     graphs: dict[str, GraphParity] = field(default_factory=dict)
+    task: object | None = None      # with --quantized, the int8 graph's task metric (lines, to_dict, bool)
 
     @property
     def passed(self) -> bool:
-        return all(self.graphs.values())
+        return all(self.graphs.values()) and (self.task is None or bool(self.task))
 
     def __bool__(self) -> bool:
         return self.passed
@@ -95,7 +96,8 @@ class ParityReport:
 
     def to_dict(self) -> dict:
         return {"model": self.model, "onnx": self.onnx, "runtime": self.runtime, "quantized": self.quantized,
-                "passed": self.passed, "graphs": {n: g.to_dict() for n, g in self.graphs.items()}}
+                "passed": self.passed, "graphs": {n: g.to_dict() for n, g in self.graphs.items()},
+                "task": self.task.to_dict() if self.task is not None else None}
 
     def lines(self) -> list[str]:
         out = []
@@ -112,6 +114,8 @@ class ParityReport:
                        "carries float32 error there")
         if len(self.graphs) > 1:
             out.append(f"{self.model}: {sum(map(bool, self.graphs.values()))}/{len(self.graphs)} graphs passed")
+        if self.task is not None:
+            out += self.task.lines()
         out.append("PASSED" if self.passed else "FAILED")
         return out
 

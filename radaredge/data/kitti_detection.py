@@ -1,0 +1,390 @@
+"""Labelled 3D-detection sets in the KITTI layout that View-of-Delft and TJ4DRadSet use.
+
+Layout (both datasets; ROOT is what ``--data`` names)::
+
+    ROOT/ImageSets/{train,val,test}.txt     one frame id per line ("00042")
+    ROOT/training/velodyne/<id>.bin         the radar scan (VoD: 7 float32 columns, TJ4D: 8)
+    ROOT/training/label_2/<id>.txt          KITTI labels in the camera frame
+    ROOT/training/calib/<id>.txt            P2 (camera intrinsics), R0_rect, Tr_velo_to_cam (radar -> camera)
+    ROOT/training/image_2/<id>.{jpg,png}    optional: only its size is read (the 2D-box clip)
+
+For View-of-Delft ROOT is ``radar/``, ``radar_3frames/`` or ``radar_5frames/``; the dataset's
+top folder works too and the card's ``input.scans_accumulated`` picks the subfolder.
+
+Labels (VoD docs/ANNOTATION.md, KITTI devkit readme): one object a line, 15 fields (16 with a
+score): class, truncated (VoD: unused, or a track id), occluded (0-2), alpha, 2D box left, top,
+right, bottom (px), height, width, length (m), x, y, z (m, camera frame: the box's bottom
+centre), rotation_y (rad). Into the radar frame as the devkits and OpenPCDet do it: centre =
+the radar point of the bottom centre raised by h / 2, size (l, w, h), heading -(rotation_y +
+pi / 2) (VoD defines rotation_y about the LiDAR's -Z axis). Radar frame: x forward, y left,
+z up; metres, radians.
+
+Every malformed file ends in an :class:`~radaredge.errors.InputError` naming the file and line.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .readers import read_scan
+
+DONT_CARE = "DontCare"
+
+
+@dataclass(frozen=True)
+class EvalClass:
+    """One evaluated class: its label name, the minimum 3D / BEV IoU of a true positive, the
+    minimum 2D-box IoU (the image metric and AOS), and the label names that count as neither hit
+    nor miss for it (the devkits' "neighbouring" classes)."""
+
+    name: str
+    min_iou: float
+    min_iou_image: float
+    neighbours: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class DetectionLayout:
+    """What differs between the KITTI-style radar datasets: scan format, label classes, the
+    evaluated classes with their IoU thresholds, the default camera image size and whether the
+    driving-corridor area is evaluated."""
+
+    name: str
+    scan_format: str
+    label_classes: tuple[str, ...]
+    eval_classes: tuple[EvalClass, ...]
+    image_size: tuple[int, int]            # (width, height) px, when no image_2 file is present
+    corridor: bool
+    accumulated_dirs: dict[int, str] = field(default_factory=dict)
+
+    def eval_class(self, name: str) -> EvalClass:
+        for c in self.eval_classes:
+            if c.name.lower() == name.lower():
+                return c
+        raise InputError(f"{self.name} has no evaluated class {name!r}; it evaluates "
+                         f"{[c.name for c in self.eval_classes]}")
+
+
+# View-of-Delft: 13 annotated classes (docs/ANNOTATION.md), DontCare, and KITTI's Van /
+# Person_sitting that the devkit's evaluation knows as neighbours of Car / Pedestrian.
+VOD = DetectionLayout(
+    "vod", "vod",
+    ("Car", "Pedestrian", "Cyclist", "rider", "bicycle", "bicycle_rack", "human_depiction", "moped_scooter",
+     "motor", "ride_other", "ride_uncertain", "truck", "vehicle_other", "Van", "Person_sitting", DONT_CARE),
+    (EvalClass("Car", 0.5, 0.7, ("Van",)), EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
+     EvalClass("Cyclist", 0.25, 0.5)),
+    (1936, 1216), True, {1: "radar", 3: "radar_3frames", 5: "radar_5frames"})
+
+# TJ4DRadSet as TRV-Lab/MAFF-Net evaluates it (pcdet/datasets/TJ4DRadSet): Car, Pedestrian,
+# Cyclist, Truck at 0.5 / 0.25 / 0.25 / 0.5, the entire annotated area only.
+TJ4D = DetectionLayout(
+    "tj4d", "tj4d",
+    ("Car", "Pedestrian", "Cyclist", "Truck", "Bus", "Motorcycle", "Van", "Person_sitting", DONT_CARE),
+    (EvalClass("Car", 0.5, 0.7, ("Van",)), EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
+     EvalClass("Cyclist", 0.25, 0.5), EvalClass("Truck", 0.5, 0.7)),
+    (1280, 960), False)
+
+LAYOUTS = {"vod": VOD, "tj4d": TJ4D}
+
+
+# ----------------------------------------------------------------------------- calibration
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """One frame's calibration: ``P2`` [3, 4] camera projection, ``R0`` [3, 3] rectification,
+    ``V2C`` [3, 4] radar -> camera (``Tr_velo_to_cam``). Rect = R0 (V2C [p; 1])."""
+
+    P2: np.ndarray
+    R0: np.ndarray
+    V2C: np.ndarray
+    path: str = ""
+
+    def radar_to_rect(self, xyz: np.ndarray) -> np.ndarray:
+        """Radar-frame points [N, 3] (m) in the rectified camera frame [N, 3] (x right, y down, z forward)."""
+        xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+        return (xyz @ self.V2C[:, :3].T + self.V2C[:, 3]) @ self.R0.T
+
+    def rect_to_radar(self, xyz: np.ndarray) -> np.ndarray:
+        """Rectified camera points [N, 3] back in the radar frame [N, 3]."""
+        ref = np.linalg.solve(self.R0, np.asarray(xyz, np.float64).reshape(-1, 3).T).T
+        return np.linalg.solve(self.V2C[:, :3], (ref - self.V2C[:, 3]).T).T
+
+    def rect_to_image(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates [N, 2] (u right, v down) and depth [N] (m) of rectified points."""
+        hom = np.column_stack([np.asarray(xyz, np.float64).reshape(-1, 3), np.ones(len(xyz))]) @ self.P2.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return hom[:, :2] / hom[:, 2:3], hom[:, 2] - self.P2[2, 3]
+
+
+_CALIB_KEYS = {"P2": 12, "R0_rect": 9, "Tr_velo_to_cam": 12}
+
+
+def read_calibration(path: str | os.PathLike) -> Calibration:
+    """A KITTI calibration file's P2, R0_rect and Tr_velo_to_cam (other keys are ignored;
+    a missing R0_rect is the identity). InputError naming the file and line for a missing key,
+    a wrong number of values, a non-number, or a transform that cannot be inverted."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: calibration file missing (expected KITTI lines 'P2: ...', 'Tr_velo_to_cam: ...')")
+    found: dict[str, tuple[np.ndarray, int]] = {}
+    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        if ":" not in line:
+            if line.strip():
+                raise InputError(f"{path}:{number}: expected 'KEY: values', got {line.strip()[:60]!r}")
+            continue
+        key, values = line.split(":", 1)
+        key = key.strip()
+        if key not in _CALIB_KEYS:
+            continue
+        try:
+            numbers = np.array([float(v) for v in values.split()], np.float64)
+        except ValueError:
+            raise InputError(f"{path}:{number}: {key} holds a value that is not a number") from None
+        if numbers.size != _CALIB_KEYS[key] or not np.isfinite(numbers).all():
+            raise InputError(f"{path}:{number}: {key} must hold {_CALIB_KEYS[key]} finite numbers, got {numbers.size}")
+        found[key] = (numbers, number)
+    for key in ("P2", "Tr_velo_to_cam"):
+        if key not in found:
+            raise InputError(f"{path}: no {key} line (KITTI calibration: P2 is the camera projection, "
+                             f"Tr_velo_to_cam the radar -> camera transform)")
+    r0, r0_line = found.get("R0_rect", (np.eye(3).ravel(), 0))
+    calib = Calibration(found["P2"][0].reshape(3, 4), r0.reshape(3, 3), found["Tr_velo_to_cam"][0].reshape(3, 4),
+                        str(path))
+    for name, matrix, number in (("Tr_velo_to_cam", calib.V2C[:, :3], found["Tr_velo_to_cam"][1]),
+                                 ("R0_rect", calib.R0, r0_line)):
+        if abs(np.linalg.det(matrix)) < 1e-6:
+            raise InputError(f"{path}:{number}: {name}'s 3 x 3 rotation part cannot be inverted (determinant "
+                             f"{np.linalg.det(matrix):.3g}); labels cannot be brought into the radar frame")
+    if abs(np.linalg.det(calib.P2[:, :3])) < 1e-9:
+        raise InputError(f"{path}:{found['P2'][1]}: P2's 3 x 3 part cannot be inverted: not a camera projection")
+    return calib
+
+
+# ----------------------------------------------------------------------------- labels
+
+
+@dataclass(frozen=True)
+class Labels:
+    """A frame's KITTI labels, the columns of the devkits' annotation dicts: ``name`` [M],
+    ``truncated`` [M], ``occluded`` [M] int, ``alpha`` [M] rad, ``bbox`` [M, 4] px (left, top,
+    right, bottom), ``dimensions`` [M, 3] m as (l, h, w), ``location`` [M, 3] m (camera frame,
+    bottom centre), ``rotation_y`` [M] rad, ``score`` [M] (0 for ground truth)."""
+
+    name: np.ndarray
+    truncated: np.ndarray
+    occluded: np.ndarray
+    alpha: np.ndarray
+    bbox: np.ndarray
+    dimensions: np.ndarray
+    location: np.ndarray
+    rotation_y: np.ndarray
+    score: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.name)
+
+    @staticmethod
+    def empty() -> Labels:
+        return Labels(np.zeros(0, dtype=object), np.zeros(0), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)),
+                      np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+
+    def select(self, keep: np.ndarray) -> Labels:
+        return Labels(*(getattr(self, f)[keep] for f in Labels.__dataclass_fields__))
+
+    def annotation(self) -> dict[str, np.ndarray]:
+        """The devkits' annotation dict of these labels."""
+        return {f: getattr(self, f) for f in Labels.__dataclass_fields__}
+
+
+def read_labels(path: str | os.PathLike, classes: tuple[str, ...]) -> Labels:
+    """A KITTI label file (15 fields a line, 16 with a score). InputError naming the file and
+    line for a missing file, another field count, a non-number, a negative size, or a class not
+    in ``classes``. An empty file is a frame without objects."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: label file missing (KITTI label_2: one object a line)")
+    rows, names = [], []
+    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        fields = line.split()
+        if not fields:
+            continue
+        if len(fields) not in (15, 16):
+            raise InputError(f"{path}:{number}: {len(fields)} fields; a KITTI label line has 15 (class, truncated, "
+                             f"occluded, alpha, 4 x bbox, h, w, l, x, y, z, rotation_y) or 16 (with a score)")
+        if fields[0] not in classes:
+            raise InputError(f"{path}:{number}: unknown class {fields[0]!r}; this dataset's classes are "
+                             f"{list(classes)}")
+        try:
+            values = [float(v) for v in fields[1:]]
+        except ValueError:
+            raise InputError(f"{path}:{number}: a field after the class is not a number") from None
+        if not np.isfinite(values).all():
+            raise InputError(f"{path}:{number}: fields must be finite numbers")
+        if fields[0] != DONT_CARE and min(values[7:10]) < 0:
+            raise InputError(f"{path}:{number}: negative box size h, w, l = {values[7:10]}")
+        names.append(fields[0])
+        rows.append(values + [0.0] * (15 - len(values)))
+    if not rows:
+        return Labels.empty()
+    v = np.array(rows, np.float64)
+    return Labels(np.array(names, dtype=object), v[:, 0], v[:, 1].astype(np.int64), v[:, 2], v[:, 3:7],
+                  v[:, [9, 7, 8]], v[:, 10:13], v[:, 13], v[:, 14])
+
+
+def labels_to_radar_boxes(labels: Labels, calib: Calibration) -> np.ndarray:
+    """OpenPCDet boxes [M, 7] (x, y, z centre, l, w, h, heading; radar frame) of the labels."""
+    centre = calib.rect_to_radar(labels.location)
+    length, h, w = labels.dimensions.T
+    centre[:, 2] += h / 2
+    return np.column_stack([centre, length, w, h, -(labels.rotation_y + np.pi / 2)]).reshape(-1, 7)
+
+
+def camera_box_corners(location: np.ndarray, dims_lhw: np.ndarray, rotation_y: np.ndarray) -> np.ndarray:
+    """Corners [M, 8, 3] (rectified camera frame) of KITTI boxes: bottom centre ``location``,
+    (l, h, w), rotation about the camera's y axis (pointing down)."""
+    length, h, w = (dims_lhw[:, i:i + 1] for i in range(3))
+    x = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * length / 2
+    y = np.array([0, 0, 0, 0, -1, -1, -1, -1]) * h
+    z = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * w / 2
+    c, s = np.cos(rotation_y)[:, None], np.sin(rotation_y)[:, None]
+    return np.stack([c * x + s * z, y, -s * x + c * z], -1) + location[:, None, :]
+
+
+def radar_boxes_to_labels(boxes: np.ndarray, scores: np.ndarray, names: np.ndarray, calib: Calibration,
+                          image_size: tuple[int, int]) -> Labels:
+    """Detections (OpenPCDet boxes [M, 7] in the radar frame, scores [M], class names [M]) as
+    KITTI labels in the camera frame, as OpenPCDet's ``generate_prediction_dicts`` writes them:
+    bottom centre, (l, h, w), rotation_y = -heading - pi / 2, the 2D box of the projected
+    corners clipped to the image (``image_size`` = width, height px), alpha = rotation_y -
+    atan2 of the centre as seen from the radar."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    bottom = boxes[:, :3].copy()
+    bottom[:, 2] -= boxes[:, 5] / 2
+    location = calib.radar_to_rect(bottom)
+    dims = boxes[:, [3, 5, 4]]
+    rotation_y = -boxes[:, 6] - np.pi / 2
+    corners = camera_box_corners(location, dims, rotation_y)
+    uv, _ = calib.rect_to_image(corners.reshape(-1, 3))
+    uv = uv.reshape(-1, 8, 2)
+    width, height = image_size
+    bbox = np.column_stack([np.clip(uv[..., 0].min(1), 0, width - 1), np.clip(uv[..., 1].min(1), 0, height - 1),
+                            np.clip(uv[..., 0].max(1), 0, width - 1), np.clip(uv[..., 1].max(1), 0, height - 1)])
+    alpha = -np.arctan2(-boxes[:, 1], boxes[:, 0]) + rotation_y
+    n = len(boxes)
+    return Labels(np.asarray(names, dtype=object).reshape(n), np.zeros(n), np.zeros(n, np.int64), alpha,
+                  bbox.reshape(n, 4), dims, location, rotation_y, np.asarray(scores, np.float64).reshape(n))
+
+
+def camera_fov_mask(xyz: np.ndarray, calib: Calibration, image_size: tuple[int, int]) -> np.ndarray:
+    """Points [N, 3] (radar frame) that project inside the image with depth >= 0 (OpenPCDet's
+    ``get_fov_flag``, what ``FOV_POINTS_ONLY`` keeps)."""
+    uv, depth = calib.rect_to_image(calib.radar_to_rect(xyz))
+    width, height = image_size
+    return (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height) & (depth >= 0)
+
+
+# ----------------------------------------------------------------------------- the set
+
+
+def image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) px of a PNG or JPEG from its header; None when unreadable."""
+    with open(path, "rb") as f:
+        head = f.read(32)
+        if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
+            return struct.unpack(">II", head[16:24])
+        if head[:2] != b"\xff\xd8":
+            return None
+        f.seek(2)
+        while True:
+            marker = f.read(2)
+            if len(marker) < 2 or marker[0] != 0xFF:
+                return None
+            size = struct.unpack(">H", f.read(2))[0]
+            if marker[1] in (0xC0, 0xC1, 0xC2):            # start of frame: precision, height, width
+                _, h, w = struct.unpack(">BHH", f.read(5))
+                return w, h
+            f.seek(size - 2, 1)
+
+
+@dataclass(frozen=True)
+class DetectionFrame:
+    """One labelled frame: id, radar points [N, F] (the card's features), labels, calibration,
+    the camera image size (width, height px) and where that size came from."""
+
+    frame_id: str
+    points: np.ndarray
+    labels: Labels
+    calib: Calibration
+    image_size: tuple[int, int]
+
+
+class DetectionSet:
+    """The frames of one split of a KITTI-layout radar detection set (module docstring)."""
+
+    def __init__(self, root: str | os.PathLike, split: str, layout: DetectionLayout, scans_accumulated: int = 1):
+        self.layout = layout
+        self.root = self._resolve_root(Path(root), scans_accumulated)
+        self.split = split
+        self.training = self.root / "training"
+        split_file = self.root / "ImageSets" / f"{split}.txt"
+        if not split_file.is_file():
+            have = sorted(p.stem for p in (self.root / "ImageSets").glob("*.txt"))
+            raise InputError(f"{split_file}: split file missing" + (f"; ImageSets has {have}" if have else
+                             "; expected ImageSets/{train,val,test}.txt with one frame id a line"))
+        self.frame_ids: list[str] = []
+        for number, line in enumerate(split_file.read_text(errors="replace").splitlines(), 1):
+            token = line.strip()
+            if not token:
+                continue
+            if not re.fullmatch(r"[0-9A-Za-z_-]+", token):
+                raise InputError(f"{split_file}:{number}: {token[:40]!r} is not a frame id (one id such as 00042 "
+                                 f"a line)")
+            scan = self.training / "velodyne" / f"{token}.bin"
+            if not scan.is_file():
+                raise InputError(f"{split_file}:{number}: frame {token} is listed but {scan} does not exist")
+            self.frame_ids.append(token)
+        if not self.frame_ids:
+            raise InputError(f"{split_file}: lists no frames")
+        self._image_dir = self.training / "image_2"
+
+    def _resolve_root(self, root: Path, scans: int) -> Path:
+        if (root / "training").is_dir():
+            return root
+        sub = self.layout.accumulated_dirs.get(scans)
+        if sub and (root / sub / "training").is_dir():
+            return root / sub
+        subs = [d for d in self.layout.accumulated_dirs.values() if (root / d).is_dir()]
+        raise InputError(f"{root}: no training/ folder"
+                         + (f" and no {sub}/ for {scans} accumulated scans" if sub else "")
+                         + (f" (found {subs})" if subs else "")
+                         + "; expected the KITTI layout ImageSets/ + training/{velodyne,label_2,calib}")
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def image_size(self, frame_id: str) -> tuple[int, int]:
+        """The frame's camera image size from image_2 when present, else the dataset's."""
+        for suffix in (".jpg", ".png", ".jpeg"):
+            p = self._image_dir / f"{frame_id}{suffix}"
+            if p.is_file():
+                size = image_size(p)
+                if size is None:
+                    raise InputError(f"{p}: not a readable PNG or JPEG (only its size is needed)")
+                return size
+        return self.layout.image_size
+
+    def frame(self, i: int, features: list[str]) -> DetectionFrame:
+        """Frame ``i`` of the split with its scan in ``features`` columns."""
+        fid = self.frame_ids[i]
+        points = read_scan(self.training / "velodyne" / f"{fid}.bin", features, fmt=self.layout.scan_format)
+        labels = read_labels(self.training / "label_2" / f"{fid}.txt", self.layout.label_classes)
+        calib = read_calibration(self.training / "calib" / f"{fid}.txt")
+        return DetectionFrame(fid, points, labels, calib, self.image_size(fid))
