@@ -298,9 +298,12 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
 @click.option("--towns", default=1, show_default=True, type=click.IntRange(1, 1000),
               help="Places: towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
+@click.option("--dataset", type=click.Choice(["vod", "tj4d"]),
+              help="Detection: the layout to write, View-of-Delft's (radar/ + radar_5frames/) or TJ4DRadSet's  "
+                   "[default: vod]")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def make_benchmark(out_dir, task, drives, frames, seed, towns, as_json):
+def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, as_json):
     """Write a synthetic benchmark. places: one town (static world) driven on several days with
     other traffic, ego speed and heading offset, and some parked cars moved. detection: labelled
     View-of-Delft-layout frames (single and 5-frame scans, label_2, calib, ImageSets) of cars,
@@ -310,16 +313,19 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, as_json):
             raise ConfigError("--towns is for --task places")
         # lazy: the scene generator is loaded only by the command that runs it
         from .data.detection_benchmark import make_detection_benchmark
-        result = make_detection_benchmark(out_dir, drives or 10, frames or 40, seed, progress=_progress("drives"))
+        result = make_detection_benchmark(out_dir, drives or 10, frames or 40, seed, progress=_progress("drives"),
+                                          dataset=dataset or "vod")
         if as_json:
             click.echo(atomic.dumps(result.to_dict()))
             return
-        click.echo(f"wrote {sum(len(v) for v in result.splits.values())} labelled frames to {out_dir}/radar and "
-                   f"{out_dir}/radar_5frames (seed {seed}):")
+        where = f"{out_dir}/radar and {out_dir}/radar_5frames" if result.dataset == "vod" else f"{out_dir} (TJ4DRadSet)"
+        click.echo(f"wrote {sum(len(v) for v in result.splits.values())} labelled frames to {where} (seed {seed}):")
         for split, ids in result.splits.items():
             counts = ", ".join(f"{n} {c}" for c, n in result.objects[split].items())
             click.echo(f"  {split:<6}{len(ids):>5} frames   {counts}")
         return
+    if dataset is not None:
+        raise ConfigError("--dataset is for --task detection")
     drives, frames = drives or 3, frames or 60
     if drives > 64:
         raise ConfigError(f"--drives {drives}: a places benchmark has at most 64 drives")

@@ -4,17 +4,19 @@ the Python API verb, and int8 judged by AP in `parity-check --quantized`."""
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
 import pytest
+import yaml
 
 import radaredge
 from radaredge.data.kitti_detection import VOD, DetectionSet, radar_boxes_to_labels
 from radaredge.eval.detection import REFERENCE, ORT, ORT_INT8, card_points
 from radaredge.eval.kitti_ap import ap_table, evaluate_frames
 from radaredge.cards import load_card
-from conftest import invoke
+from conftest import MAFFNET_TINY_CARD, invoke
 
 
 @pytest.fixture(scope="module")
@@ -88,3 +90,40 @@ def test_parity_quantized_reports_ap_lost_per_class(maffnet_tiny_export):
     assert set(task["loss"]) == {"Car", "Pedestrian", "Cyclist"} and task["budget_ap_points"] == 1.0
     assert task["passed"] == all(v <= 1.0 for v in task["loss"].values())
     assert any(line.startswith("int8 by AP") for line in report.lines())
+
+
+def test_a_tj4d_card_on_a_tj4d_layout(tmp_path):
+    """A 4-class card on TJ4DRadSet's columns (x, y, z, v_r, snr), cropped to the camera's view,
+    scored with TJ4D's protocol (Car, Pedestrian, Cyclist, Truck; entire area only)."""
+    data = yaml.safe_load(MAFFNET_TINY_CARD.read_text())
+    data.update(name="maffnet-tiny-tj4d", features=["x", "y", "z", "v_r", "snr"],
+                classes=["Car", "Pedestrian", "Cyclist", "Truck"],
+                input={"scans_accumulated": 1, "crop": "camera_fov"})
+    data["cfa"]["velocity_feature"] = "v_r"
+    data["dense_head"]["anchors"].append({**copy.deepcopy(data["dense_head"]["anchors"][0]), "class_name": "Truck",
+                                          "anchor_sizes": [[8.0, 2.5, 3.0]]})
+    card = tmp_path / "maffnet-tiny-tj4d.yaml"
+    card.write_text(yaml.safe_dump(data, sort_keys=False))
+    radaredge.export(card, tmp_path / "tj.onnx")
+    res = invoke("make-benchmark", "--task", "detection", "--dataset", "tj4d", "--out", tmp_path / "tj4d",
+                 "--drives", 2, "--frames", 2)
+    assert res.exit_code == 0 and "TJ4DRadSet" in res.output, res.output
+    report = radaredge.evaluate(card, tmp_path / "tj.onnx", data=tmp_path / "tj4d", reference=False)
+    assert report.layout == "tj4d" and report.areas == ("entire_area",)
+    assert report.classes == ["Car", "Pedestrian", "Cyclist", "Truck"]
+    assert report.min_iou == {"Car": 0.5, "Pedestrian": 0.25, "Cyclist": 0.25, "Truck": 0.5}
+    assert all(len(card_points(f, load_card(card))) <= len(f.points) for f in report.frames)
+
+
+def test_make_benchmark_refuses_options_of_the_other_task(tmp_path):
+    res = invoke("make-benchmark", "--out", tmp_path / "a", "--dataset", "tj4d")
+    assert res.exit_code == 2 and "--dataset is for --task detection" in res.output
+    res = invoke("make-benchmark", "--task", "detection", "--out", tmp_path / "b", "--towns", 2)
+    assert res.exit_code == 2 and "--towns is for --task places" in res.output
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_eval_of_an_int8_copy_scores_it_beside_its_fp32_graph(labelled, maffnet_tiny_export):
+    card, onnx = maffnet_tiny_export
+    report = radaredge.evaluate(card, onnx.with_suffix(".int8.onnx"), data=labelled, reference=False)
+    assert list(report.ap)[:2] == [ORT, ORT_INT8]

@@ -98,28 +98,32 @@ def detectors(card: ModelCard, onnx_path, checkpoint=None, reference: bool = Tru
               openvino: bool | None = None) -> dict[str, Detector]:
     """Backend name -> detector for the export at ``onnx_path``: the torch reference (unless
     ``reference`` is False), onnxruntime, its int8 copy when present, OpenVINO when installed
-    (``openvino`` None) or asked for (True)."""
-    exported = runtime.load(onnx_path)
-    if exported.card.name != card.name or exported.features != card.features:
-        raise ConfigError(f"{onnx_path} is an export of card {exported.card.name!r} ({exported.features}), not "
-                          f"{card.name!r} ({card.features}); pass the --model/--config it was exported with")
+    (``openvino`` None) or asked for (True). ``onnx_path`` may name the int8 copy itself; then
+    the fp32 graph beside it is scored too when it exists."""
+    given = Path(onnx_path)
+    fp32 = artifacts.graph_of_copy(given)
+    int8 = given if fp32 != given else artifacts.copy_path(given, artifacts.INT8)
+    graphs = {name: runtime.load(p) for name, p in ((ORT, fp32), (ORT_INT8, int8)) if p.is_file()}
+    if not graphs:
+        raise InputError(f"{given}: no such graph")
+    for name, g in graphs.items():
+        if g.card.name != card.name or g.features != card.features:
+            raise ConfigError(f"{g.path} is an export of card {g.card.name!r} ({g.features}), not {card.name!r} "
+                              f"({card.features}); pass the --model/--config it was exported with")
+    first = next(iter(graphs.values()))
+    if len(graphs) == 2 and graphs[ORT_INT8].weights_sha256 != graphs[ORT].weights_sha256:
+        raise ConfigError(f"{int8} was quantised from other weights than {fp32}; re-write it with "
+                          f"`radaredge export --model {card.name} --quantize int8`")
     out: dict[str, Detector] = {}
     if reference:
         net = create_model(card, checkpoint)
-        require_same_weights(exported, net, checkpoint)
+        require_same_weights(first, net, checkpoint)
         out[REFERENCE] = reference_detector(net)
-    out[ORT] = graph_detector(exported)
-    int8 = artifacts.copy_path(Path(onnx_path), artifacts.INT8)
-    if int8.is_file():
-        quantised = runtime.load(int8)
-        if quantised.weights_sha256 != exported.weights_sha256:
-            raise ConfigError(f"{int8} was quantised from other weights than {onnx_path}; re-write it with "
-                              f"`radaredge export --model {card.name} --quantize int8`")
-        out[ORT_INT8] = graph_detector(quantised)
+    out.update({name: graph_detector(g) for name, g in graphs.items()})
     if openvino is None:
         openvino = openvino_installed()
-    if openvino:
-        out[OPENVINO] = graph_detector(exported, graph_runner(onnx_path, "openvino"))
+    if openvino and ORT in graphs:
+        out[OPENVINO] = graph_detector(graphs[ORT], graph_runner(fp32, "openvino"))
     return out
 
 
@@ -194,7 +198,8 @@ class DetectionEvalReport:
 
     @property
     def baseline(self) -> str:
-        return REFERENCE if REFERENCE in self.ap else ORT
+        """The backend the others are compared with: the reference, else the first graph."""
+        return REFERENCE if REFERENCE in self.ap else next(iter(self.ap))
 
     def mean_ap(self, backend: str, area: str, metric: str = "3d") -> float:
         rows = self.ap[backend][area]
@@ -414,13 +419,14 @@ def int8_ap_loss(card: ModelCard, onnx_path, checkpoint=None) -> Int8ApReport:
     there) and of its int8 copy, on the val split of a labelled synthetic set in the card's
     dataset layout (:func:`radaredge.data.detection_benchmark.make_detection_benchmark`)."""
     fp32 = artifacts.graph_of_copy(onnx_path)
+    for path, what in ((fp32, "fp32 graph"), (artifacts.copy_path(fp32, artifacts.INT8), "int8 copy")):
+        if not path.is_file():
+            raise InputError(f"{path} does not exist: AP lost to int8 compares the {what} with the other one; "
+                             f"write both with `radaredge export --model {card.name} --quantize int8`")
     layout = layout_for_card(card)
     with tempfile.TemporaryDirectory(prefix="radaredge-int8-ap-") as tmp:
         make_detection_benchmark(Path(tmp) / "set", INT8_AP_DRIVES, INT8_AP_FRAMES, seed=7, dataset=layout.name)
         report = evaluate_detection(card, fp32, Path(tmp) / "set", "val", checkpoint, reference=False, openvino=False)
-    if ORT_INT8 not in report.ap:
-        raise InputError(f"{artifacts.copy_path(fp32, artifacts.INT8)} does not exist; write it with "
-                         f"`radaredge export --model {card.name} --quantize int8`")
     area = "entire_area"
     return Int8ApReport({c: report.ap[ORT][area][c]["3d"] for c in report.classes},
                         {c: report.ap[ORT_INT8][area][c]["3d"] for c in report.classes}, len(report.frames))
