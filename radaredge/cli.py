@@ -368,7 +368,8 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, as_json)
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
 @click.option("--radius", default=5.0, show_default=True, type=float,
-              help="m; a retrieved window this close to the query is a true positive (TDFANet: 5 m).")
+              help="m; a retrieved window this close to the query is a true positive (TransLoc4D's "
+                   "evaluation: 25 m).")
 @click.option("--no-reference", is_flag=True, help="Skip the torch reference formulation.")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False),
               help="JSON report path (default: <onnx>.eval.json beside the .onnx).")
