@@ -308,7 +308,7 @@ def image_size(path: Path) -> tuple[int, int] | None:
             if len(marker) < 2 or marker[0] != 0xFF:
                 return None
             size = struct.unpack(">H", f.read(2))[0]
-            if marker[1] in (0xC0, 0xC1, 0xC2):            # start of frame: precision, height, width
+            if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):   # a start of frame
                 _, h, w = struct.unpack(">BHH", f.read(5))
                 return w, h
             f.seek(size - 2, 1)
