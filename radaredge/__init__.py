@@ -8,6 +8,7 @@ The verbs (:mod:`radaredge.api`)::
     radaredge.bench("tdfanet", threads=2)             # -> BenchReport
     radaredge.evaluate("tdfanet", onnx, database, queries)
     radaredge.train("tdfanet-edge", "train-towns")     # -> TrainReport; runs/tdfanet-edge/best.pth
+    radaredge.card_from_openpcdet("MAFF-Net_vod.yaml", "models/my.yaml")   # `radaredge card from-openpcdet`
 
 Importing the package imports neither torch nor onnxruntime (the verbs load them when called);
 ``radaredge.runtime`` needs only numpy and onnxruntime.
@@ -19,9 +20,9 @@ import types
 
 from .version import __version__
 
-__all__ = ["__version__", "export", "parity", "bench", "evaluate", "train"]
+__all__ = ["__version__", "export", "parity", "bench", "evaluate", "train", "card_from_openpcdet"]
 
-_VERBS = ("export", "parity", "bench", "evaluate", "train")
+_VERBS = ("export", "parity", "bench", "evaluate", "train", "card_from_openpcdet")
 _VERB_PACKAGES = ("export", "parity", "bench", "train")     # verbs whose machinery is a subpackage of that name
 
 
@@ -48,10 +49,10 @@ class _Package(types.ModuleType):
 def __getattr__(name):
     if name in _VERB_PACKAGES:                      # importing binds it (callable) through _Package
         return importlib.import_module(f"{__name__}.{name}")
-    if name == "evaluate":
+    if name in ("evaluate", "card_from_openpcdet"):
         # lazy: the API imports torch, which importing radaredge must not
         from . import api
-        return api.evaluate
+        return getattr(api, name)
     raise AttributeError(f"module 'radaredge' has no attribute {name!r}")
 
 

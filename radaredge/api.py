@@ -20,11 +20,12 @@ from typing import Callable
 
 import onnx as onnx_lib
 
-from . import artifacts
+from . import artifacts, atomic
 from . import runtime as rt
 from .atomic import Staging
 from .bench.harness import BenchReport, bench
-from .cards import ModelCard, resolve_card
+from .cards import ModelCard, parse_card, resolve_card
+from .cards.openpcdet import Conversion, load_openpcdet_config, maffnet_card, render_card
 from .config import check_count, check_writable_dir
 from .errors import ConfigError, InputError
 from .eval.tasks import EVALUATIONS, QUANTIZED_TASKS, EvalInputs
@@ -37,8 +38,8 @@ from .parity.check import ParityReport, check_graph
 from .runtime.model import FrameFeeds
 from .train.recipes import RECIPES, TrainInputs
 
-__all__ = ["export", "parity", "bench", "evaluate", "train", "ExportResult", "BenchReport", "resolve_card",
-           "EXPORT_OPTIONS"]
+__all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "ExportResult", "BenchReport",
+           "resolve_card", "EXPORT_OPTIONS"]
 
 
 MAX_CASES = 10_000          # parity cases are built before the first run: bound them
@@ -301,3 +302,28 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     inputs = TrainInputs(str(output), device, resume, tuple(validation) if validation is not None else None,
                          data_format, dict(bag or {}), dict(options or {}), progress, log)
     return recipe(card, model, data, inputs)
+
+
+CFA_CHOICES = ("dbscan", "grid_density")
+
+
+def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, dataset_config: str | Path | None = None,
+                        name: str | None = None, stage_two: bool = True, cfa: str | None = None) -> Conversion:
+    """A MAFF-Net card from an OpenPCDet config (TRV-Lab/MAFF-Net ``tools/cfgs``) and its
+    ``_BASE_CONFIG_`` (``dataset_config`` replaces that file), written to ``out`` when given.
+
+    Every key of the merged config is mapped, checked, training-only or ignored
+    (:mod:`radaredge.cards.openpcdet`); the card is validated as ``export`` reads it (the model is
+    built from it) before anything is written. ``stage_two`` False makes a stage-one card;
+    ``cfa`` (``dbscan`` / ``grid_density``) overrides the clustering map the config names."""
+    if cfa is not None and cfa not in CFA_CHOICES:
+        raise ConfigError(f"cfa must be one of {list(CFA_CHOICES)}, got {cfa!r}")
+    if out is not None:
+        check_writable_dir(Path(out).parent, "--out")
+    merged, files = load_openpcdet_config(config, dataset_config)
+    conversion = maffnet_card(merged, files, name=name, stage_two=stage_two, cfa=cfa)
+    card = parse_card(conversion.card, Path(out) if out is not None else Path(f"{conversion.card['name']}.yaml"))
+    create_model(card)
+    if out is not None:
+        atomic.write_text(out, render_card(conversion))
+    return conversion

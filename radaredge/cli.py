@@ -17,6 +17,7 @@ import click
 
 from . import artifacts, atomic
 from .cards import available_cards, load_card
+from .cards.openpcdet import describe_source
 from .config import check_writable_dir, parse_settings
 from .errors import ConfigError, RadarEdgeError
 from .runtime.runners import RUNTIMES
@@ -170,7 +171,7 @@ def inspect(onnx_path, targets, as_json):
                 click.echo("")
             for k, v in graph.items():
                 if k != "targets":
-                    click.echo(f"{k:>15}: {v}")
+                    click.echo(f"{k:>15}: {describe_source(v) if k == 'source' else v}")
             for target, found in graph.get("targets", {}).items():
                 bad = [f for f in found if f["level"] == "unsupported"]
                 click.echo(f"{'target ' + target:>15}: " + ("unsupported: " + "; ".join(
@@ -180,6 +181,40 @@ def inspect(onnx_path, targets, as_json):
     refused = any(f["level"] == "unsupported" for g in info["graphs"] for fs in g.get("targets", {}).values()
                   for f in fs)
     sys.exit(1 if refused else 0)
+
+
+@main.group("card")
+def card_group():
+    """Model cards: write one from an OpenPCDet config."""
+
+
+@card_group.command("from-openpcdet")
+@click.argument("config", type=click.Path(dir_okay=False))
+@click.option("--dataset-config", type=click.Path(dir_okay=False),
+              help="The dataset config to merge in place of the file the config's _BASE_CONFIG_ names.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Where to write the card (.yaml).")
+@click.option("--name", help="The card's name  [default: from the config's file name]")
+@click.option("--stage-one", is_flag=True, help="A stage-one card: the PFE, point head and ROI head are not run.")
+@click.option("--cfa", type=click.Choice(["dbscan", "grid_density"]),
+              help="The clustering map: upstream CQCA_cfa's DBSCAN or the fthbng77 fork's GridDensityBEV  "
+                   "[default: the one the config's IMAGE_BACKBONE names]")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout, every key's fate included.")
+@_friendly_errors
+def card_from_openpcdet(config, dataset_config, out, name, stage_one, cfa, as_json):
+    """Write a MAFF-Net card from an OpenPCDet config (TRV-Lab/MAFF-Net tools/cfgs) and its
+    _BASE_CONFIG_: every key mapped to a card field, checked, training-only or ignored, or refused."""
+    # lazy: the API imports torch (the card is validated by building the model)
+    from .api import card_from_openpcdet as convert
+    conv = convert(config, out, dataset_config=dataset_config, name=name, stage_two=not stage_one, cfa=cfa)
+    if as_json:
+        click.echo(atomic.dumps({"card": str(out), "name": conv.card["name"], "source": conv.card["source"],
+                                 "counts": conv.counts(), "notes": conv.notes,
+                                 "keys": [{"key": k.key, "fate": k.fate, "detail": k.detail} for k in conv.keys]}))
+        return
+    counts = ", ".join(f"{n} {fate}" for fate, n in conv.counts().items())
+    click.echo(f"wrote {out}: card {conv.card['name']} from {conv.card['source']['config']} ({counts} keys)")
+    for note in conv.notes:
+        click.echo(f"note: {note}")
 
 
 @main.command()

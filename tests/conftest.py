@@ -97,6 +97,16 @@ def invoke(*args):
     return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
 
 
+def one_error_line(res, *needles) -> None:
+    """A CLI result that ended with exit code 2, exactly one ``error:`` line containing each of
+    ``needles``, and no traceback."""
+    lines = res.output.strip().splitlines()
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    assert res.exit_code == 2 and len(errors) == 1 and "Traceback" not in res.output, res.output
+    for n in needles:
+        assert n in errors[0], (n, errors[0])
+
+
 def export_with_cli(out_dir: Path, model: str, config: Path) -> Path:
     """``radaredge export --model MODEL --config CONFIG`` into out_dir/MODEL.onnx; the path."""
     path = Path(out_dir) / f"{model}.onnx"

@@ -73,10 +73,43 @@ def test_the_cli_calls_the_library_verbs(monkeypatch, command, verb, extra):
     assert len(calls) == 1 and calls[0][0][0].name == "tdfanet-tiny"
 
 
+def _leaf_commands(group, prefix=""):
+    """(name, command) of every command, those of a command group (``card``) included."""
+    import click
+    for name, cmd in group.commands.items():
+        if isinstance(cmd, click.Group):
+            yield from _leaf_commands(cmd, f"{prefix}{name} ")
+        else:
+            yield prefix + name, cmd
+
+
 def test_every_command_has_json():
     from radaredge.cli import main
-    for name, cmd in main.commands.items():
+    names = []
+    for name, cmd in _leaf_commands(main):
+        names.append(name)
         assert any("--json" in p.opts for p in cmd.params), f"{name} has no --json"
+    assert "card from-openpcdet" in names
+
+
+def test_card_from_openpcdet_is_the_api_verb(monkeypatch, tmp_path):
+    """`radaredge card from-openpcdet` calls radaredge.api.card_from_openpcdet; radaredge.card_from_openpcdet is it."""
+    import radaredge
+    from radaredge import api
+    assert radaredge.card_from_openpcdet is api.card_from_openpcdet
+    calls = []
+
+    class Conversion:
+        card = {"name": "x", "source": {"config": "c.yaml"}}
+        notes, keys = [], []
+
+        def counts(self):
+            return {"mapped": 1}
+    monkeypatch.setattr(api, "card_from_openpcdet", lambda *a, **kw: calls.append((a, kw)) or Conversion())
+    res = invoke("card", "from-openpcdet", "c.yaml", "--out", tmp_path / "x.yaml", "--stage-one", "--json")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["counts"] == {"mapped": 1}
+    assert calls[0][0] == ("c.yaml", str(tmp_path / "x.yaml")) and calls[0][1]["stage_two"] is False
 
 
 def test_the_layers_hold():

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from radaredge import runtime
 from radaredge.cards import load_card
@@ -141,6 +142,46 @@ def test_runtime_rejects_bad_columns(tiny_onnx):
     from radaredge.errors import InputError
     with pytest.raises(InputError, match="expected shape \\[N, 7\\]"):
         runtime.load(tiny_onnx).run(np.zeros((10, 5), np.float32))
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_tj4d_vfe_takes_snr_before_v_r_as_upstreams_radarpillarvfe_tj(reference):
+    """RadarPillarVFE_TJ selects SNR (USE_SNR) before v_r (USE_VR): its first Linear's input column 3
+    is SNR, column 4 v_r, while the points keep used_feature_list's order [x, y, z, v_r, SNR]."""
+    card = load_card(ROOT / "models" / "maffnet-tj4d.yaml")
+    assert card.features == ["x", "y", "z", "v_r", "snr"] and card.get("vfe_features") == ["x", "y", "z", "snr", "v_r"]
+    model = create_model(card)
+    with torch.no_grad():
+        weight = model.vfe.pfn_layers[0].linear.weight
+        weight.zero_()
+        weight[:, 3] = 1.0                          # a checkpoint whose VFE reads only its SNR input
+    rng = np.random.default_rng(0)
+    pts = np.stack([rng.uniform(5, 40, 50), rng.uniform(-20, 20, 50), rng.uniform(-1, 1, 50),
+                    rng.uniform(-10, 10, 50), rng.uniform(5, 30, 50)], 1).astype(np.float32)
+
+    def canvas(p):
+        with torch.no_grad():
+            return model.pillar_stage(torch.from_numpy(p), reference=reference)[0]
+    base = canvas(pts)
+    assert base.abs().sum() > 0
+    other_v_r, other_snr = pts.copy(), pts.copy()
+    other_v_r[:, 3] += 7.0
+    other_snr[:, 4] += 7.0
+    assert torch.equal(canvas(other_v_r), base)
+    assert not torch.allclose(canvas(other_snr), base)
+
+
+@pytest.mark.parametrize("columns, needle", [(["x", "y", "z", "rcs", "doppler"], "name each of the card's features"),
+                                             (["y", "x", "z"], "must start with x, y, z"),
+                                             (["x", "y", "z", "rcs", "rcs"], "at most once"),
+                                             ("x, y, z", "must be a list")])
+def test_bad_vfe_features_are_refused_by_name(columns, needle, tmp_path):
+    data = load_card(TINY).data
+    data["vfe_features"] = columns
+    (tmp_path / "card.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="vfe_features") as err:
+        create_model(load_card(tmp_path / "card.yaml"))
+    assert needle in str(err.value)
 
 
 @pytest.mark.parametrize("model", ["maffnet-vod", "maffnet-tj4d"])

@@ -15,7 +15,7 @@ from radaredge.cards import load_card
 from radaredge.models import create_model, load_checkpoint
 from radaredge.models.maffnet.model import STAGE_TWO_PREFIXES, UNUSED_FUSER_KEYS, UNUSED_VFE_KEYS
 from references.maffnet_upstream_keys import openpcdet_checkpoint, upstream_state_dict, upstream_state_dict_shapes
-from conftest import invoke
+from conftest import invoke, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 FUSER_RULE = "upstream fuser parameters with no effect at test time"
@@ -65,14 +65,6 @@ class ModelCardLike:
     """Any object a weights-only load must refuse to unpickle."""
 
 
-def _one_error_line(res, *needles):
-    lines = res.output.strip().splitlines()
-    errors = [ln for ln in lines if ln.startswith("error:")]
-    assert res.exit_code == 2 and len(errors) == 1 and "Traceback" not in res.output, res.output
-    for n in needles:
-        assert n in errors[0], (n, errors[0])
-
-
 def test_bad_checkpoints_end_with_one_clear_error(tmp_path):
     tiny = ROOT / "tests" / "cards" / "maffnet-tiny.yaml"
     model = create_model(load_card(tiny))
@@ -85,27 +77,27 @@ def test_bad_checkpoints_end_with_one_clear_error(tmp_path):
     torch.save({"model_state": state}, tmp_path / "good.pth")
     data = (tmp_path / "good.pth").read_bytes()
     (tmp_path / "truncated.pth").write_bytes(data[: len(data) // 2])
-    _one_error_line(export(tmp_path / "truncated.pth"), "truncated.pth", "not a file written by torch.save")
+    one_error_line(export(tmp_path / "truncated.pth"), "truncated.pth", "not a file written by torch.save")
     torch.save([1, 2, 3], tmp_path / "list.pth")
-    _one_error_line(export(tmp_path / "list.pth"), "list.pth", "expected a state_dict mapping, got list")
+    one_error_line(export(tmp_path / "list.pth"), "list.pth", "expected a state_dict mapping, got list")
     torch.save({"model_state": state, "optimizer": ModelCardLike()}, tmp_path / "object.pth")
-    _one_error_line(export(tmp_path / "object.pth"), "object.pth", "objects other than tensors", "no pickled code")
+    one_error_line(export(tmp_path / "object.pth"), "object.pth", "objects other than tensors", "no pickled code")
     import pickle
     (tmp_path / "plain.pkl").write_bytes(pickle.dumps({"a": 1}))
-    _one_error_line(export(tmp_path / "plain.pkl"), "plain.pkl", "not a file written by torch.save")
+    one_error_line(export(tmp_path / "plain.pkl"), "plain.pkl", "not a file written by torch.save")
     torch.save({"model_state": {**state, "dense_head.conv_cls.weight": torch.zeros(3, 3)}}, tmp_path / "shape.pth")
-    _one_error_line(export(tmp_path / "shape.pth"), "dense_head.conv_cls.weight (checkpoint (3, 3), model")
+    one_error_line(export(tmp_path / "shape.pth"), "dense_head.conv_cls.weight (checkpoint (3, 3), model")
     torch.save({"model_state": {k: v for k, v in state.items() if k != "vfe.pfn_layers.0.linear.weight"}},
                tmp_path / "missing.pth")
-    _one_error_line(export(tmp_path / "missing.pth"), "missing keys (1): vfe.pfn_layers.0.linear.weight")
+    one_error_line(export(tmp_path / "missing.pth"), "missing keys (1): vfe.pfn_layers.0.linear.weight")
     torch.save({"model_state": {**state, "fuser.extra.weight": torch.zeros(2)}}, tmp_path / "extra.pth")
-    _one_error_line(export(tmp_path / "extra.pth"), "unexpected keys (1): fuser.extra.weight")
+    one_error_line(export(tmp_path / "extra.pth"), "unexpected keys (1): fuser.extra.weight")
     torch.save({"model_state": {**state, "vfe.pfn_layers.0.linear.weight": 3}}, tmp_path / "value.pth")
-    _one_error_line(export(tmp_path / "value.pth"), "named tensors", "vfe.pfn_layers.0.linear.weight")
-    _one_error_line(export(tmp_path / "nowhere.pth"), "nowhere.pth does not exist")
+    one_error_line(export(tmp_path / "value.pth"), "named tensors", "vfe.pfn_layers.0.linear.weight")
+    one_error_line(export(tmp_path / "nowhere.pth"), "nowhere.pth does not exist")
     # TJ4D's never-called SE layer is dropped only as upstream builds it, zero-width
     torch.save({"model_state": {**state, "vfe.se.fc.0.weight": torch.zeros(2, 11)}}, tmp_path / "se.pth")
-    _one_error_line(export(tmp_path / "se.pth"), "unexpected keys (1): vfe.se.fc.0.weight")
+    one_error_line(export(tmp_path / "se.pth"), "unexpected keys (1): vfe.se.fc.0.weight")
     torch.save({"model_state": {**state, "vfe.se.fc.0.weight": torch.zeros(0, 11)}}, tmp_path / "se0.pth")
     assert load_checkpoint(model, tmp_path / "se0.pth").dropped == {VFE_RULE: ["vfe.se.fc.0.weight"]}
     assert not (tmp_path / "x.onnx").exists()

@@ -62,11 +62,11 @@ MAX_WINDOW_POINTS = 2**24 - 64
 # card of that model is refused, so a misspelt section is an error rather than a section left
 # silently at its defaults.
 COMMON_FIELDS = ("name", "description", "model", "features", "seed", "frames", "frame_rate", "max_points_per_frame",
-                 "classes", "plausible", "implausible", "quantization")
+                 "classes", "plausible", "implausible", "quantization", "source")
 CARD_SECTIONS = {
     "tdfanet": ("preprocess", "pillars", "network"),
     "maffnet": ("pillars", "spa", "cfa", "caf", "backbone_2d", "dense_head", "post_processing", "stage_two", "input",
-                "init"),
+                "init", "vfe_features"),
     "des4pos": ("cell", "submap", "text", "fine"),
 }
 
@@ -172,6 +172,10 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
                  else repr(k) for k in unknown]
         raise ConfigError(f"{where}: unknown top-level field(s) {', '.join(hints)}; a {data['model']} card takes "
                           f"{', '.join(known)}")
+    source = data.get("source", {})
+    if not isinstance(source, dict) or not all(isinstance(k, str) for k in source):
+        raise ConfigError(f"{where}: source must be a mapping (where the card came from, e.g. the OpenPCDet config "
+                          f"and its sha256), got {source!r}")
     card = ModelCard(data=data, path=path)
     _given_ranges(card)
     implausible_policy(card)

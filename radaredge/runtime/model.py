@@ -229,8 +229,8 @@ def load(path: str | Path, threads: int = 2) -> RadarModel:
 def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
     """What an export holds: for a graph file, or each graph of a multi-graph export directory
     (its manifest lists them), the card name, graph name, feature columns, frame inputs,
-    inputs and outputs with their shapes, runtime checks, input flag bits, weights hash and
-    versions; with ``targets``, what each deployment target does not support
+    inputs and outputs with their shapes, runtime checks, input flag bits, weights hash,
+    versions and the card's ``source`` when it has one; with ``targets``, what each deployment target does not support
     (:mod:`radaredge.targets`, which needs the onnx package)."""
     files = list(bundle_graphs(path).values())
     graphs = []
@@ -246,6 +246,8 @@ def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
             "quantization": m.info.quantization,
             "weights_sha256": m.weights_sha256, "versions": m.info.versions,
         })
+        if m.card.data.get("source"):        # where the card came from (an OpenPCDet config and its sha256)
+            graphs[-1]["source"] = m.card.data["source"]
         if targets:
             # optional: the target checks need the onnx package, which a runtime-only install lacks
             from ..targets import check_graph

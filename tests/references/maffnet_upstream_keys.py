@@ -99,6 +99,17 @@ CONFIGS = {
     },
 }
 
+def _config(dataset) -> dict:
+    """The dataset values of ``dataset``: 'vod' or 'tj4d' (:data:`CONFIGS`), or a dict of the same
+    keys (class_names, used_feature_list, vfe, anchor_sets; optionally BACKBONE_2D in place of
+    :data:`COMMON`'s) for a modified config."""
+    if isinstance(dataset, dict):
+        return dataset
+    if dataset not in CONFIGS:
+        raise ValueError(f"dataset must be one of {sorted(CONFIGS)} or a dict of their keys, got {dataset!r}")
+    return CONFIGS[dataset]
+
+
 # Identical in both model configs (line numbers of MAFF-Net_vod.yaml; TJ4D's sit 6 to 17 lines later).
 COMMON = {
     "MAP_TO_BEV": {"IS_SPA": True, "NUM_BEV_FEATURES": 64},                          # l.50-53
@@ -173,7 +184,7 @@ def _stack_sa_msg(keys: Keys, prefix: str, input_channels: int, mlps) -> int:
 
 def num_rawpoint_features(dataset: str) -> int:
     """point_feature_encoder.py l.57: len(used_feature_list) (VoD 7, TJ4D 5)."""
-    return len(CONFIGS[dataset]["used_feature_list"])
+    return len(_config(dataset)["used_feature_list"])
 
 
 def vfe_keys(dataset: str) -> Tuple[Keys, int]:
@@ -183,7 +194,7 @@ def vfe_keys(dataset: str) -> Tuple[Keys, int]:
     entry (Linear without bias + BatchNorm1d when USE_NORM; a non-last layer halves its width,
     l.355-367). RadarPillarVFE_TJ also builds ``se`` = SELayer_vfe(width), reduction 16
     (model_utils/se_module.py l.22-31) before the PFN layers (l.114)."""
-    cfg = CONFIGS[dataset]["vfe"]
+    cfg = _config(dataset)["vfe"]
     width = 6 + (3 if cfg["USE_ABSLOTE_XYZ"] else 0)
     if cfg["NAME"] == "RadarPillarVFE":
         flags = ("USE_RCS", "USE_VR", "USE_VR_COMP", "USE_TIME")
@@ -327,12 +338,12 @@ def fuser_keys_without_effect() -> list:
     return [k for k in keys if k.startswith(FUSER_KEYS_WITHOUT_EFFECT_PREFIXES)]
 
 
-def backbone_2d_keys(input_channels: int) -> Tuple[Keys, int]:
+def backbone_2d_keys(input_channels: int, cfg: dict | None = None) -> Tuple[Keys, int]:
     """backbones_2d/base_bev_backbone.py l.29-84: block i = ZeroPad2d, Conv2d(c_in -> f_i, 3x3,
     stride s_i, no bias), BN, ReLU, then LAYER_NUMS[i] x (Conv2d 3x3 no bias, BN, ReLU); deblock
     i (stride >= 1) = ConvTranspose2d(f_i -> u_i, k = stride, no bias), BN, ReLU. Returns
     sum(NUM_UPSAMPLE_FILTERS)."""
-    cfg = COMMON["BACKBONE_2D"]
+    cfg = cfg or COMMON["BACKBONE_2D"]
     keys: Keys = {}
     filters = cfg["NUM_FILTERS"]
     c_in = [input_channels, *filters[:-1]]
@@ -354,8 +365,8 @@ def dense_head_keys(dataset: str, input_channels: int) -> Keys:
     (anchor_generator.py l.32); conv_cls 1x1 -> A * num_class, conv_box -> A * code_size (7),
     conv_dir_cls -> A * NUM_DIR_BINS, all with bias."""
     cfg = COMMON["DENSE_HEAD"]
-    num_class = 1 if cfg["CLASS_AGNOSTIC"] else len(CONFIGS[dataset]["class_names"])
-    a = sum(r * s * h for r, s, h in CONFIGS[dataset]["anchor_sets"])
+    num_class = 1 if cfg["CLASS_AGNOSTIC"] else len(_config(dataset)["class_names"])
+    a = sum(r * s * h for r, s, h in _config(dataset)["anchor_sets"])
     keys: Keys = {}
     _conv(keys, "dense_head.conv_cls", input_channels, a * num_class, (1, 1), bias=True)
     _conv(keys, "dense_head.conv_box", input_channels, a * cfg["CODE_SIZE"], (1, 1), bias=True)
@@ -387,7 +398,7 @@ def point_head_keys(dataset: str, input_channels: int) -> Keys:
     """dense_heads/point_head_template.py make_fc_layers l.36-47: per CLS_FC entry Linear (no bias),
     BatchNorm1d, ReLU; then Linear(-> num_class) with bias. CLASS_AGNOSTIC -> 1 class."""
     cfg = COMMON["POINT_HEAD"]
-    num_class = 1 if cfg["CLASS_AGNOSTIC"] else len(CONFIGS[dataset]["class_names"])
+    num_class = 1 if cfg["CLASS_AGNOSTIC"] else len(_config(dataset)["class_names"])
     keys: Keys = {}
     c = input_channels
     for k, width in enumerate(cfg["CLS_FC"]):
@@ -420,7 +431,7 @@ def roi_head_keys(dataset: str, input_channels: int) -> Keys:
     num_class (1, class agnostic) and code_size * num_class (7)."""
     cfg = COMMON["ROI_HEAD"]
     keys: Keys = {}
-    num_class = 1 if cfg["CLASS_AGNOSTIC"] else len(CONFIGS[dataset]["class_names"])
+    num_class = 1 if cfg["CLASS_AGNOSTIC"] else len(_config(dataset)["class_names"])
     c_out = _stack_sa_msg(keys, "roi_head.roi_grid_pool_layer", input_channels, cfg["ROI_GRID_POOL"]["MLPS"])
     c = cfg["ROI_GRID_POOL"]["GRID_SIZE"] ** 3 * c_out
     idx = 0
@@ -443,14 +454,13 @@ def roi_head_keys(dataset: str, input_channels: int) -> Keys:
 
 def upstream_state_dict_shapes(dataset: str, stage_two: bool = True) -> Dict[str, Tuple[int, ...]]:
     """Every key of ``model.state_dict()`` of upstream's MAFF_Net built from the ``dataset``
-    ('vod' or 'tj4d') config, with its shape, in state_dict order.
+    ('vod' or 'tj4d', or a dict as :func:`_config` takes) config, with its shape, in state_dict order.
 
     Upstream always has the second stage (MAFF_Net.forward runs pfe, point_head and roi_head
     unconditionally); ``stage_two=False`` gives the keys of radaredge's stage-one-only card,
     i.e. the same dict without the ``pfe.*``, ``point_head.*`` and ``roi_head.*`` keys.
     """
-    if dataset not in CONFIGS:
-        raise ValueError(f"dataset must be one of {sorted(CONFIGS)}, got {dataset!r}")
+    _config(dataset)
     keys: Keys = {"global_step": (1,)}          # detector3d_template.py l.20
     vfe, _ = vfe_keys(dataset)
     keys.update(vfe)
@@ -461,7 +471,7 @@ def upstream_state_dict_shapes(dataset: str, stage_two: bool = True) -> Dict[str
     keys.update(fuser)
     # backbone_2d reads num_bev_features = map_to_bev's NUM_BEV_FEATURES (the fuser does not change
     # it in model_info_dict); the fused map has OUT_CHANNEL = 64 channels too.
-    b2d, num_bev_2d = backbone_2d_keys(num_bev_features)
+    b2d, num_bev_2d = backbone_2d_keys(num_bev_features, _config(dataset).get("BACKBONE_2D"))
     keys.update(b2d)
     keys.update(dense_head_keys(dataset, num_bev_2d))
     if stage_two:

@@ -311,10 +311,16 @@ class MAFFNet(nn.Module):
 
     def __init__(self, features: list[str], classes: list[str], pillars: PillarConfig, spa: SpaConfig,
                  cfa: CfaConfig, grid: GridDensityConfig | DbscanConfig, caf: CafConfig, backbone: BackboneConfig,
-                 head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig, stage_two=None):
+                 head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig, stage_two=None,
+                 vfe_features: list[str] | None = None):
         super().__init__()
         if features[:3] != ["x", "y", "z"]:
             raise ConfigError(f"features must start with x, y, z; got {features}")
+        vfe_features = list(features if vfe_features is None else vfe_features)
+        if vfe_features[:3] != ["x", "y", "z"] or len(set(vfe_features)) != len(vfe_features) \
+                or not set(vfe_features) <= set(features):
+            raise ConfigError(f"vfe_features must start with x, y, z and name each of the card's features {features} "
+                              f"at most once; got {vfe_features}")
         if cfa.velocity_feature not in features:
             raise ConfigError(f"cfa.velocity_feature {cfa.velocity_feature!r} is not a card feature {features}")
         if [a.class_name for a in anchors] != list(classes):
@@ -331,7 +337,11 @@ class MAFFNet(nn.Module):
         self.cfa_method = "dbscan" if isinstance(grid, DbscanConfig) else "grid_density"
         self.spa_config, self.head_config, self.nms_config = spa, head, nms
         self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))   # build: the card's plausible
-        self.vfe = PillarFeatureNet(len(features), pillars)
+        # the VFE's input columns in its own order (upstream RadarPillarVFE_TJ reads SNR before v_r);
+        # None: the card's columns as they come
+        self.vfe_columns = (None if vfe_features == list(features)
+                            else [list(features).index(f) for f in vfe_features])
+        self.vfe = PillarFeatureNet(len(vfe_features), pillars)
         self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
         self.image_backbone = (ClusteringFeatureAssist(dbscan=grid) if isinstance(grid, DbscanConfig)
                                else ClusteringFeatureAssist(grid=grid))
@@ -366,7 +376,10 @@ class MAFFNet(nn.Module):
     # -- stages ---------------------------------------------------------------------
     def pillar_stage(self, points: torch.Tensor, reference: bool, drops: dict | None = None):
         """VFE + SPA: (canvas [C, ny, nx], num_pillars [] int64, overflow [] bool); ``drops``
-        receives the export formulation's left-out points (:meth:`PillarFeatureNet.scatter_frames`)."""
+        receives the export formulation's left-out points (:meth:`PillarFeatureNet.scatter_frames`).
+        The VFE sees the card's ``vfe_features`` columns, in that order."""
+        if self.vfe_columns is not None:
+            points = points[:, self.vfe_columns]
         if not reference:
             canvas, occupied = self.vfe.scatter(points, torch.ones(points.shape[0], dtype=torch.bool,
                                                                    device=points.device), drops)
@@ -519,6 +532,18 @@ def read_anchors(card: ModelCard) -> list[AnchorClass]:
     return out
 
 
+def read_vfe_features(card: ModelCard) -> list[str] | None:
+    """The card's ``vfe_features``: the columns the pillar VFE takes, in its input order (upstream's
+    RadarPillarVFE_TJ selects SNR before v_r whatever order the points have); None when absent
+    (the card's ``features`` as they come)."""
+    cols = card.get("vfe_features")
+    if cols is None:
+        return None
+    if not isinstance(cols, list) or not all(isinstance(c, str) for c in cols):
+        raise ConfigError(f"{card.where}: vfe_features must be a list of the card's feature columns, got {cols!r}")
+    return cols
+
+
 def build_maffnet(card: ModelCard) -> MAFFNet:
     """MAFF-Net from a model card, with a seeded initialisation (card ``seed``, default 0)."""
     torch.manual_seed(int(card.get("seed", 0)))
@@ -544,6 +569,7 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
         anchors=read_anchors(card),
         nms=card.section("post_processing", NmsConfig),
         stage_two=two.read_stage_two(card),
+        vfe_features=read_vfe_features(card),
     )
     model.point_bounds = column_bounds(card)      # plausible (low, high) per point column
     init = card.get("init", "torch")
