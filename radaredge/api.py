@@ -38,8 +38,8 @@ from .parity.check import ParityReport, check_graph
 from .runtime.model import FrameFeeds
 from .train.recipes import RECIPES, TrainInputs
 
-__all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "ExportResult", "BenchReport",
-           "resolve_card", "EXPORT_OPTIONS"]
+__all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build", "map_query",
+           "ExportResult", "BenchReport", "resolve_card", "EXPORT_OPTIONS"]
 
 
 MAX_CASES = 10_000          # parity cases are built before the first run: bound them
@@ -327,3 +327,41 @@ def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, da
     if out is not None:
         atomic.write_text(out, render_card(conversion))
     return conversion
+
+
+def run(onnx: str | Path, data: str | Path, out: str | Path, *, workers: int | None = None, threads: int = 1,
+        backend: str = "onnxruntime", ray_address: str | None = None, shard_windows: int | None = None,
+        progress: Callable | None = None):
+    """Run the exported single-graph model ``onnx`` over every window (TDFANet) or frame
+    (MAFF-Net) of every drive under ``data`` as a Ray Data pipeline, writing Parquet shards of its
+    outputs with drive, frame, timestamp and pose to ``out``; resumable
+    (:func:`radaredge.fleet.pipeline.run_graph`). Returns a ``RunReport``."""
+    # lazy: ray and pyarrow are the scale extra, loaded by the fleet commands only
+    from .fleet.pipeline import run_graph
+    check_writable_dir(Path(out), "--out")
+    return run_graph(onnx, data, out, workers=workers, threads=threads, backend=backend, ray_address=ray_address,
+                     shard_windows=shard_windows, progress=progress)
+
+
+def map_build(card: ModelCard | str | Path, onnx: str | Path, drives: str | Path, out: str | Path, *,
+              index: str = "auto", workers: int | None = None, threads: int = 1, backend: str = "onnxruntime",
+              ray_address: str | None = None, progress: Callable | None = None):
+    """A persistent place-recognition map of the drives under ``drives``: their windows described
+    by ``onnx`` (an export of ``card``) on Ray, in a FAISS index (:mod:`radaredge.fleet.maps`)."""
+    # lazy: as run
+    from .eval.places import check_export
+    from .fleet.maps import build_map
+    card = resolve_card(card)
+    check_export(card, rt.load(onnx, threads=1))
+    check_writable_dir(Path(out), "--out")
+    return build_map(onnx, drives, out, index=index, workers=workers, threads=threads, backend=backend,
+                     ray_address=ray_address, progress=progress)
+
+
+def map_query(map_dir: str | Path, drive: str | Path, *, onnx: str | Path | None = None, top_k: int = 10,
+              radius: float = 5.0, threads: int = 2, backend: str = "onnxruntime"):
+    """Localise the windows of ``drive`` against a map made by :func:`map_build`: top-k map
+    windows with poses and Recall@N (:func:`radaredge.fleet.maps.query_map`)."""
+    # lazy: as run
+    from .fleet.maps import query_map
+    return query_map(map_dir, drive, onnx=onnx, top_k=top_k, radius=radius, threads=threads, backend=backend)

@@ -499,6 +499,89 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
     _emit(as_json, report)
 
 
+_BACKEND = click.Choice(["onnxruntime", "openvino", "auto"])
+
+
+@main.command("run")
+@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False), help="An exported single-graph .onnx.")
+@click.option("--data", "data_root", required=True, type=click.Path(file_okay=False),
+              help="A drive (scans/ + gps.csv) or a directory of drives.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="The run directory: run.json and shards/*.parquet; an interrupted run resumes there.")
+@click.option("--workers", type=click.IntRange(min=1), help="Ray actors  [default: the cluster's CPUs / --threads]")
+@click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1), help="Threads per worker.")
+@click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True,
+              help="The runtime of each worker; auto times both on this machine once and keeps the faster.")
+@click.option("--ray-address", help="Run on this Ray cluster (default: $RAY_ADDRESS, else an embedded local instance).")
+@click.option("--shard-windows", type=click.IntRange(min=1),
+              help="Windows per shard, the unit a resumed run keeps  [default: 256, or what the run in --out used]")
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def run_cmd(onnx_path, data_root, out_dir, workers, threads, backend, ray_address, shard_windows, as_json):
+    """Run an exported graph over every window (TDFANet) or frame (MAFF-Net) of every drive on Ray Data:
+    Parquet shards of its outputs with drive, frame, timestamp and pose."""
+    # lazy: the API imports torch; ray and pyarrow are the scale extra
+    from .api import run as run_verb
+    bar = _bar("run (windows)", None)
+    try:
+        report = run_verb(onnx_path, data_root, out_dir, workers=workers, threads=threads, backend=backend,
+                          ray_address=ray_address, shard_windows=shard_windows, progress=bar.update)
+    finally:
+        bar.close()
+    _emit(as_json, report)
+
+
+@main.group("map")
+def map_group():
+    """Place-recognition maps over many drives: build one with Ray and FAISS, query it."""
+
+
+@map_group.command("build")
+@click.option("--model", required=True, help="The place-recognition card the graph was exported from (tdfanet*).")
+@click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
+@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False))
+@click.option("--drives", required=True, type=click.Path(file_okay=False), help="A drive or a directory of drives.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="The map directory.")
+@click.option("--index", type=click.Choice(["auto", "flat", "ivfpq", "hnsw"]), default="auto", show_default=True,
+              help="auto: exact up to 100,000 windows, IVF-PQ with exact re-ranking above.")
+@click.option("--workers", type=click.IntRange(min=1), help="Ray actors  [default: the cluster's CPUs / --threads]")
+@click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1), help="Threads per worker.")
+@click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True)
+@click.option("--ray-address", help="Run on this Ray cluster (default: $RAY_ADDRESS, else an embedded local instance).")
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def map_build_cmd(model, config, onnx_path, drives, out_dir, index, workers, threads, backend, ray_address, as_json):
+    """Describe every window of the drives with the graph (on Ray) and index them (FAISS) in a map directory."""
+    # lazy: as run
+    from .api import map_build
+    bar = _bar("map build (windows)", None)
+    try:
+        report = map_build(_card(model, config), onnx_path, drives, out_dir, index=index, workers=workers,
+                           threads=threads, backend=backend, ray_address=ray_address, progress=bar.update)
+    finally:
+        bar.close()
+    _emit(as_json, report)
+
+
+@map_group.command("query")
+@click.option("--map", "map_dir", required=True, type=click.Path(file_okay=False), help="A map from `map build`.")
+@click.option("--drive", required=True, type=click.Path(file_okay=False), help="The drive to localise.")
+@click.option("--onnx", "onnx_path", type=click.Path(dir_okay=False),
+              help="The graph (default: the one the map was built with; other weights are refused).")
+@click.option("--top-k", default=10, show_default=True, type=click.IntRange(min=1))
+@click.option("--radius", default=5.0, show_default=True, type=float, help="m; Recall@N's true-positive distance.")
+@click.option("--threads", default=2, show_default=True, type=click.IntRange(min=1))
+@click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True)
+@click.option("--json", "as_json", is_flag=True)
+@_friendly_errors
+def map_query_cmd(map_dir, drive, onnx_path, top_k, radius, threads, backend, as_json):
+    """Localise a drive against a map: each window's top-k map windows with their poses, and Recall@N."""
+    # lazy: as run
+    from .api import map_query
+    _emit(as_json, map_query(map_dir, drive, onnx=onnx_path, top_k=top_k, radius=radius, threads=threads,
+                             backend=backend))
+
+
 @main.command("make-city")
 @click.option("--out", "out_path", required=True, type=click.Path(),
               help="The map to write (.npz); with --cities N > 1 a directory of OUT/city-NNNN.npz (NNNN: the seed).")

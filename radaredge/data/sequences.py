@@ -179,6 +179,21 @@ def is_drive(path: str | os.PathLike) -> bool:
     return (path / "scans").is_dir() or (path / POINTCLOUDS).is_dir()
 
 
+def drive_directories(path: str | os.PathLike) -> list[Path]:
+    """``path`` itself if it is one drive (has ``scans/`` or ``pointclouds/``), else its sub-directories that are
+    drives, sorted by name. InputError when there is none."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(f"{path} is not a directory; expected a drive (scans/ + gps.csv) or a directory of drives")
+    if is_drive(path):
+        return [path]
+    drives = sorted(p for p in path.iterdir() if is_drive(p))
+    if not drives:
+        raise InputError(f"{path}: no drives found; expected {path}/scans/*.npy + {path}/gps.csv, or "
+                         f"sub-directories each holding scans/ + gps.csv (make one with `radaredge make-benchmark`)")
+    return drives
+
+
 def _transloc_sequence(directory: Path, fmt: str | None) -> RadarSequence:
     """A drive in the TransLoc4D layout (module docstring)."""
     folder = directory / POINTCLOUDS

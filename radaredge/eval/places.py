@@ -36,7 +36,8 @@ import numpy as np
 
 from ..cards import ModelCard
 from .. import atomic
-from ..data.sequences import RadarSequence, is_drive, load_sequence, name_the_scan, window_positions, windows
+from ..data.sequences import (RadarSequence, drive_directories, load_sequence, name_the_scan, window_positions,
+                              windows)
 from ..errors import ConfigError, InputError
 from ..export.graphs import require_same_weights
 from ..models import create_model
@@ -137,8 +138,19 @@ def recall_at_n(query_desc, query_pos, db_desc, db_pos, ns: Sequence[int] = RECA
     if len(query_desc) == 0 or len(db_desc) == 0 or query_desc.shape[1] != db_desc.shape[1]:
         raise InputError(f"need at least one query and one database descriptor of the same dimension, got "
                          f"queries {query_desc.shape} and database {db_desc.shape}")
-    evaluated = answerable(query_pos, db_pos, radius)
     ranked = nearest_neighbours(query_desc, db_desc, min(max(ns), len(db_desc)), index, use_faiss)
+    return recall_of_ranking(ranked, query_pos, db_pos, ns, radius)
+
+
+def recall_of_ranking(ranked: np.ndarray, query_pos, db_pos, ns: Sequence[int] = RECALL_NS,
+                      radius: float = 5.0) -> dict:
+    """:func:`recall_at_n`'s result from a ranking already made: ``ranked`` int64 [Q, k], the
+    database rows of each query's nearest descriptors, nearest first (e.g. a place map's index
+    search); positions as in :func:`recall_at_n`."""
+    query_pos = np.asarray(query_pos, dtype=np.float64)
+    db_pos = np.asarray(db_pos, dtype=np.float64)
+    ns, radius = _check_ns(ns), _check_radius(radius)
+    evaluated = answerable(query_pos, db_pos, radius)
     distance = np.linalg.norm(db_pos[ranked] - query_pos[:, None, :], axis=2)        # [Q, k] m
     found = np.logical_or.accumulate(distance <= radius, axis=1)[evaluated]           # hit within the top n
     recall = {n: 100.0 * float(found[:, min(n, ranked.shape[1]) - 1].mean()) for n in ns}
@@ -172,21 +184,6 @@ def top1_place_agreement(a_top1, b_top1, db_pos: np.ndarray, radius: float) -> f
 
 
 # ----------------------------------------------------------------------------- drives and windows
-
-
-def drive_directories(path: str | os.PathLike) -> list[Path]:
-    """``path`` itself if it is one drive (has ``scans/`` or ``pointclouds/``), else its sub-directories that are
-    drives, sorted by name. InputError when there is none."""
-    path = Path(path)
-    if not path.is_dir():
-        raise InputError(f"{path} is not a directory; expected a drive (scans/ + gps.csv) or a directory of drives")
-    if is_drive(path):
-        return [path]
-    drives = sorted(p for p in path.iterdir() if is_drive(p))
-    if not drives:
-        raise InputError(f"{path}: no drives found; expected {path}/scans/*.npy + {path}/gps.csv, or "
-                         f"sub-directories each holding scans/ + gps.csv (make one with `radaredge make-benchmark`)")
-    return drives
 
 
 @dataclass

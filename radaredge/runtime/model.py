@@ -12,6 +12,7 @@ import onnxruntime as ort
 
 from ..cards import ModelCard, card_from_yaml, implausible_policy, plausible_ranges
 from ..errors import CapacityError, InputError
+from . import backends
 from .bundle import bundle_graphs
 from .flags import INPUT_ERRORS, OUTPUT as FLAGS_OUTPUT, describe
 from .metadata import GraphMetadata
@@ -147,7 +148,7 @@ class FrameFeeds:
 class RadarModel:
     """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``."""
 
-    def __init__(self, session: ort.InferenceSession, path: Path):
+    def __init__(self, session: ort.InferenceSession, path: Path, backend: str = "onnxruntime", threads: int = 2):
         self.session = session
         self.path = path
         self.metadata = session.get_modelmeta().custom_metadata_map
@@ -163,6 +164,27 @@ class RadarModel:
         self.errors = INPUT_ERRORS if self.info.input_errors is None else self.info.input_errors
         self.frames = self.inputs.frames
         self.frame_rate = self.inputs.frame_rate
+        self.threads = threads
+        self.backend = backends.check_backend(backend)      # "auto" becomes the chosen one at the first run
+        if backend == "auto" and not backends.auto_available():
+            self.backend = "onnxruntime"
+        if backend == "auto":
+            self.backend = backends.cached_choice(self.weights_sha256, threads) or "auto"
+        self._runner = self._runner_of(self.backend) if self.backend != "auto" else None
+
+    def _runner_of(self, backend: str):
+        if backend == "openvino":
+            return backends.openvino_runner(self.path, self.threads)
+        return lambda feeds: run_session(self.session, feeds)
+
+    def _execute(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The graph's outputs on ``feeds`` in the chosen runtime; with ``auto``, the first call
+        times both runtimes on these feeds and keeps the faster (:mod:`.backends`)."""
+        if self._runner is None:
+            runners = {name: self._runner_of(name) for name in ("onnxruntime", "openvino")}
+            self.backend = backends.choose(self.weights_sha256, self.threads, runners, feeds)
+            self._runner = runners[self.backend]
+        return self._runner(feeds)
 
     def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Check frame count, shapes, dtype and finiteness against the card (:class:`FrameFeeds`)."""
@@ -174,7 +196,7 @@ class RadarModel:
 
     def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
-        out = run_session(self.session, self.feeds(frames, timestamps))
+        out = self._execute(self.feeds(frames, timestamps))
         for check in self.info.checks:        # declared by the model at export (capacity flags)
             check.apply(out)
         refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & self.errors
@@ -220,10 +242,14 @@ def check_signature(session: ort.InferenceSession, info: GraphMetadata, card: Mo
                              f"float [{len(info.frame_inputs)}]")
 
 
-def load(path: str | Path, threads: int = 2) -> RadarModel:
-    """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads."""
+def load(path: str | Path, threads: int = 2, backend: str = "onnxruntime") -> RadarModel:
+    """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads in
+    ``backend``: ``onnxruntime``, ``openvino`` (the openvino extra) or ``auto`` (the faster of
+    the two on this machine, timed on the first input and remembered: :mod:`.backends`). The
+    input checks and the outputs' names are the same whichever runs it."""
     path = Path(path)
-    return RadarModel(make_session(path, threads=threads), path)
+    backends.check_backend(backend)
+    return RadarModel(make_session(path, threads=threads), path, backend, threads)
 
 
 def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:

@@ -1,0 +1,6 @@
+"""Fleet scale: run an exported graph over many drives on Ray Data (:mod:`.pipeline`, Parquet
+shards in :mod:`.shards`) and build and query place-recognition maps with FAISS (:mod:`.maps`).
+
+Ray's actors import :mod:`.pipeline` and :mod:`.shards` only: numpy, pyarrow, onnxruntime and
+radaredge's torch-free modules. This package imports none of its modules itself.
+"""
