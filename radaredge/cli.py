@@ -393,7 +393,8 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, as_json)
               help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.")
 @click.option("--map", "map_path", type=click.Path(),
               help="Localisation (des4pos): a cell map with described poses (`radaredge make-city`), or a "
-                   "directory of maps (one database of all their cells, every described pose a query).")
+                   "directory of maps (one database of all their cells, every described pose a query). Place "
+                   "recognition: a place map (`radaredge map build`) as the database, with --no-reference.")
 @click.option("--data", "data_root", type=click.Path(file_okay=False),
               help="Detection (maffnet): a labelled set in the KITTI layout (View-of-Delft radar/ or "
                    "radar_5frames/, TJ4DRadSet, `radaredge make-benchmark --task detection`).")

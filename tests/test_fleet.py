@@ -13,7 +13,7 @@ from radaredge import runtime
 from radaredge.data.pr_benchmark import make_pr_benchmark
 from radaredge.fleet import maps
 from radaredge.fleet.pipeline import ShardWorker, plan_shards, run_graph, run_sequential
-from radaredge.fleet.shards import MANIFEST, read_run
+from radaredge.data.run_shards import MANIFEST, read_run
 from conftest import TINY_CARD, invoke, one_error_line
 
 
@@ -92,6 +92,15 @@ def test_map_build_and_query_give_evals_recall(town, tmp_path):
     for n, v in found["recall"]["recall"].items():
         assert v == pytest.approx(recall[str(n)], abs=1e-9), n
     assert len(found["queries"]) == 12 and len(found["queries"][0]["top"]) == 10
+    # eval takes the map as its database: the same Recall@N
+    res = invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx, "--map", tmp_path / "map",
+                 "--queries", data / "queries", "--radius", 25, "--no-reference", "--report", tmp_path / "m.json",
+                 "--plot", tmp_path / "m.png", "--json")
+    assert res.exit_code == 0, res.output
+    on_map = json.loads(res.stdout)
+    assert on_map["recall"] == evaluated["recall"] and on_map["database"]["windows"] == 12
+    one_error_line(invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx, "--map",
+                          tmp_path / "map", "--queries", data / "queries"), "--no-reference")
     # a graph of other weights is refused
     other = tmp_path / "other.onnx"
     import radaredge

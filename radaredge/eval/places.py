@@ -27,6 +27,7 @@ windows within the radius of each other).
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +39,7 @@ from ..cards import ModelCard
 from .. import atomic
 from ..data.sequences import (RadarSequence, drive_directories, load_sequence, name_the_scan, window_positions,
                               windows)
+from ..data.run_shards import read_run
 from ..errors import ConfigError, InputError
 from ..export.graphs import require_same_weights
 from ..models import create_model
@@ -216,6 +218,15 @@ class WindowSet:
         row, frames = self.items[i]
         return name_the_scan(self.sequences[row], frames, message)
 
+    def drive_windows(self) -> dict[str, int]:
+        """Windows per drive, by drive name."""
+        return {s.name: len(s) - self.k + 1 for s in self.sequences}
+
+    def drive_rows(self) -> list[np.ndarray]:
+        """The window rows of each drive, in drive order (for the trajectory plot)."""
+        return [np.array([i for i, (drive, _) in enumerate(self.items) if drive == d], dtype=np.int64)
+                for d in range(len(self.sequences))]
+
     def window_info(self, i: int) -> dict:
         """Drive name, last frame, timestamp (s) and position (northing, easting m) of window ``i``."""
         drive, frames = self.items[i]
@@ -235,6 +246,54 @@ def load_windows(path: str | os.PathLike, k: int) -> WindowSet:
     items = [(d, idx) for d, seq in enumerate(sequences) for idx in windows(seq, k)]
     positions = np.concatenate([window_positions(seq, k) for seq in sequences])
     return WindowSet(Path(path), k, sequences, items, positions)
+
+
+@dataclass
+class MapWindows:
+    """The windows of a place map (``radaredge map build``) as eval's database: their descriptors
+    (the map's graph, onnxruntime) and poses, in map order; ``drives`` [W] names each window's drive."""
+
+    path: Path
+    k: int
+    positions: np.ndarray
+    descriptors: np.ndarray
+    drives: np.ndarray
+    frames: np.ndarray
+    timestamps: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def drive_windows(self) -> dict[str, int]:
+        names, counts = np.unique(self.drives, return_counts=True)
+        return {str(n): int(c) for n, c in zip(names, counts)}
+
+    def drive_rows(self) -> list[np.ndarray]:
+        return [np.flatnonzero(self.drives == n) for n in dict.fromkeys(self.drives.tolist())]
+
+    def window_info(self, i: int) -> dict:
+        return {"drive": str(self.drives[i]), "frame": int(self.frames[i]), "timestamp": float(self.timestamps[i]),
+                "northing": float(self.positions[i, 0]), "easting": float(self.positions[i, 1])}
+
+
+def load_map_windows(map_dir: str | os.PathLike, exported) -> MapWindows:
+    """The database of the place map at ``map_dir`` for the exported graph ``exported`` (a
+    :class:`radaredge.runtime.RadarModel`): ConfigError unless the map was built with the same
+    weights; InputError when it is not a readable map."""
+    map_dir = Path(map_dir)
+    try:
+        info = json.loads((map_dir / "map.json").read_text())
+    except (OSError, ValueError):
+        raise InputError(f"{map_dir}: no readable map.json; --map for place recognition takes a directory made by "
+                         f"`radaredge map build`") from None
+    if info.get("weights_sha256") != exported.weights_sha256:
+        raise ConfigError(f"{map_dir} was built with graph weights {str(info.get('weights_sha256'))[:12]}, "
+                          f"{exported.path} has {exported.weights_sha256[:12]}; evaluate with the map's graph or "
+                          f"build the map again")
+    _, poses, outputs = read_run(map_dir / "run")
+    desc = np.asarray(outputs["descriptor_normalized"], dtype=np.float32).reshape(len(poses["frame"]), -1)
+    return MapWindows(map_dir, exported.frames, np.stack([poses["northing"], poses["easting"]], 1), desc,
+                      np.asarray(poses["drive"]).astype(str), poses["frame"], poses["timestamp"])
 
 
 Backend = Callable[[list, np.ndarray], np.ndarray]
@@ -321,9 +380,8 @@ class EvalReport:
     def to_dict(self) -> dict:
         """The JSON report: setup, counts, Recall@1/5/10 and the Recall@N curve (N = 1..25) per
         backend, top-1 agreement by window and by place, and per query its window, position and top-1 match."""
-        def side(ws: WindowSet) -> dict:
-            return {"path": str(ws.path), "windows": len(ws),
-                    "drives": {s.name: len(s) - ws.k + 1 for s in ws.sequences}}
+        def side(ws) -> dict:
+            return {"path": str(ws.path), "windows": len(ws), "drives": ws.drive_windows()}
         return {
             "model": self.model, "onnx": self.onnx, "checkpoint": self.checkpoint, "radius_m": self.radius,
             "frames_per_window": self.database.k, "database": side(self.database), "queries": side(self.queries),
@@ -339,8 +397,10 @@ class EvalReport:
         """The text report: setup, counts, Recall@1/5/10 per backend and top-1 agreement."""
         lines = []
         q, db = self.queries, self.database
-        lines.append(f"eval {self.model}: {len(q)} query windows from {len(q.sequences)} drive(s) vs {len(db)} database "
-                     f"windows from {len(db.sequences)} drive(s), K = {db.k}, true positive within {self.radius:g} m")
+        source = f"the map {db.path}" if isinstance(db, MapWindows) else "database"
+        lines.append(f"eval {self.model}: {len(q)} query windows from {len(q.drive_windows())} drive(s) vs {len(db)} "
+                     f"{source} windows from {len(db.drive_windows())} drive(s), K = {db.k}, true positive within "
+                     f"{self.radius:g} m")
         lines.append(f"{self.evaluated} queries evaluated, {self.skipped} skipped (no database window within "
                      f"{self.radius:g} m)")
         lines.append(f"{'backend':<18}" + "".join(f"{f'R@{n}':>9}" for n in RECALL_NS))
@@ -365,8 +425,7 @@ class EvalReport:
         fig = Figure(figsize=(12, 5), layout="constrained")
         FigureCanvasAgg(fig)
         left, right = fig.subplots(1, 2)
-        for d in range(len(self.database.sequences)):
-            rows = [i for i, (drive, _) in enumerate(self.database.items) if drive == d]
+        for d, rows in enumerate(self.database.drive_rows()):
             track = self.database.positions[rows]
             left.plot(track[:, 1], track[:, 0], color="0.75", lw=5, solid_capstyle="round", zorder=1,
                       label="database" if d == 0 else None)
@@ -392,21 +451,35 @@ class EvalReport:
         return Path(path)
 
 
-def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.PathLike,
+def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.PathLike | None,
              queries: str | os.PathLike, checkpoint: str | os.PathLike | None = None, radius: float = 5.0,
-             reference: bool = True, progress: Callable[[str], Callable] | None = None) -> EvalReport:
+             reference: bool = True, progress: Callable[[str], Callable] | None = None,
+             map_dir: str | os.PathLike | None = None) -> EvalReport:
     """Recall@N of the exported ``onnx_path`` (onnxruntime) and, with ``reference``, of the
     card's torch reference formulation (``checkpoint`` or the seeded initialisation) over the
     K-frame windows of the ``queries`` drive(s) against those of the ``database`` drive(s), each
     searched in an exact-L2 FAISS index; plus their top-1 agreement, by window and by place
     (top-1 windows within ``radius`` m of each other). ``progress(desc)`` returns
-    a wrapper for the window loops (a progress bar)."""
+    a wrapper for the window loops (a progress bar).
+
+    ``map_dir`` instead of ``database``: the windows of a place map (``radaredge map build``) with
+    the descriptors it holds, searched exactly; the map's graph must be ``onnx_path``'s weights,
+    and the torch reference is not run (the map holds the graph's descriptors only)."""
 
     radius = _check_radius(radius)
     exported = runtime.load(onnx_path)
     check_export(card, exported)
     k = exported.frames
-    db_windows, query_windows = load_windows(database, k), load_windows(queries, k)
+    if (database is None) == (map_dir is None):
+        raise ConfigError("place recognition takes the database as --database drives or as a --map, one of the two")
+    if map_dir is not None:
+        if reference:
+            raise ConfigError(f"--map {map_dir} holds the graph's descriptors only, so the torch reference cannot be "
+                              f"compared on it; add --no-reference, or pass the drives as --database")
+        db_windows = load_map_windows(map_dir, exported)
+    else:
+        db_windows = load_windows(database, k)
+    query_windows = load_windows(queries, k)
     answerable(query_windows.positions, db_windows.positions, radius)
     backends = {ONNX: onnx_backend(exported)}
     if reference:
@@ -418,8 +491,9 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
     # One backend after the other: onnxruntime's worker threads spin after each run, which slows
     # torch down when the two alternate on a 2-core machine.
     for name, backend in backends.items():
-        db_desc, query_desc = (describe_windows(ws, exported.features, backend, wrap(f"{side} {BACKEND_LABELS[name]}"))
-                               for side, ws in (("database", db_windows), ("queries", query_windows)))
+        db_desc = (db_windows.descriptors if isinstance(db_windows, MapWindows) else
+                   describe_windows(db_windows, exported.features, backend, wrap(f"database {BACKEND_LABELS[name]}")))
+        query_desc = describe_windows(query_windows, exported.features, backend, wrap(f"queries {BACKEND_LABELS[name]}"))
         results[name] = recall_at_n(query_desc, query_windows.positions, db_desc, db_windows.positions, CURVE_NS,
                                     radius)
     agreement = place = None

@@ -47,10 +47,12 @@ class EvalInputs:
 
 def evaluate_places(card: ModelCard, onnx, inputs: EvalInputs):
     """Place-recognition Recall@N of the export and the torch reference over query drives against
-    database drives (:func:`radaredge.eval.places.evaluate`)."""
-    inputs.require("place recognition", ("database", "queries"), card.name, ("checkpoint", "radius", "reference"))
+    database drives, or of the export against a place map's windows (``--map``, made by
+    ``radaredge map build``) (:func:`radaredge.eval.places.evaluate`)."""
+    sides = ("map", "queries") if inputs.map is not None and inputs.database is None else ("database", "queries")
+    inputs.require("place recognition", sides, card.name, ("checkpoint", "radius", "reference"))
     return evaluate(card, onnx, inputs.database, inputs.queries, inputs.checkpoint, inputs.radius, inputs.reference,
-                    inputs.progress)
+                    inputs.progress, map_dir=inputs.map)
 
 
 def evaluate_localisation(card: ModelCard, onnx, inputs: EvalInputs):

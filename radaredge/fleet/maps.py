@@ -32,7 +32,7 @@ from ..errors import ConfigError, InputError
 from ..eval.places import RECALL_NS, recall_of_ranking
 from .. import runtime
 from .pipeline import ShardWorker, plan_shards, run_graph
-from .shards import read_run
+from ..data.run_shards import read_run
 
 DESCRIPTOR = "descriptor_normalized"
 EXACT_LIMIT = 100_000

@@ -30,7 +30,7 @@ from .. import runtime
 from ..data.sequences import drive_directories, is_drive, load_sequence, name_the_scan, windows
 from ..errors import ConfigError, InputError, RadarEdgeError
 from ..runtime.backends import check_backend
-from .shards import Manifest, ShardPlan, encode_shard
+from ..data.run_shards import Manifest, ShardPlan, encode_shard
 
 DEFAULT_SHARD_WINDOWS = 256
 
@@ -251,7 +251,7 @@ def run_graph(graph: str | Path, data: str | Path, out: str | Path, *, workers: 
               shard_windows: int | None = None, progress: Callable | None = None) -> RunReport:
     """Run the exported single-graph model ``graph`` over every window of every drive under
     ``data`` on Ray Data and write Parquet shards of its outputs, with each window's drive,
-    frame, timestamp and pose, to ``out`` (layout in :mod:`radaredge.fleet.shards`).
+    frame, timestamp and pose, to ``out`` (layout in :mod:`radaredge.data.run_shards`).
 
     ``workers`` actors (default: the cluster's CPUs / ``threads``), each a runtime session on
     ``threads`` threads with ``backend``; ``shard_windows`` windows a shard (default
