@@ -331,7 +331,7 @@ def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, da
 
 def run(onnx: str | Path, data: str | Path, out: str | Path, *, workers: int | None = None, threads: int = 1,
         backend: str = "onnxruntime", ray_address: str | None = None, shard_windows: int | None = None,
-        progress: Callable | None = None):
+        fmt: str | None = None, progress: Callable | None = None):
     """Run the exported single-graph model ``onnx`` over every window (TDFANet) or frame
     (MAFF-Net) of every drive under ``data`` as a Ray Data pipeline, writing Parquet shards of its
     outputs with drive, frame, timestamp and pose to ``out``; resumable
@@ -340,12 +340,12 @@ def run(onnx: str | Path, data: str | Path, out: str | Path, *, workers: int | N
     from .fleet.pipeline import run_graph
     check_writable_dir(Path(out), "--out")
     return run_graph(onnx, data, out, workers=workers, threads=threads, backend=backend, ray_address=ray_address,
-                     shard_windows=shard_windows, progress=progress)
+                     shard_windows=shard_windows, fmt=fmt, progress=progress)
 
 
 def map_build(card: ModelCard | str | Path, onnx: str | Path, drives: str | Path, out: str | Path, *,
               index: str = "auto", workers: int | None = None, threads: int = 1, backend: str = "onnxruntime",
-              ray_address: str | None = None, progress: Callable | None = None):
+              ray_address: str | None = None, fmt: str | None = None, progress: Callable | None = None):
     """A persistent place-recognition map of the drives under ``drives``: their windows described
     by ``onnx`` (an export of ``card``) on Ray, in a FAISS index (:mod:`radaredge.fleet.maps`)."""
     # lazy: as run
@@ -355,7 +355,7 @@ def map_build(card: ModelCard | str | Path, onnx: str | Path, drives: str | Path
     check_export(card, rt.load(onnx, threads=1))
     check_writable_dir(Path(out), "--out")
     return build_map(onnx, drives, out, index=index, workers=workers, threads=threads, backend=backend,
-                     ray_address=ray_address, progress=progress)
+                     ray_address=ray_address, fmt=fmt, progress=progress)
 
 
 def map_query(map_dir: str | Path, drive: str | Path, *, onnx: str | Path | None = None, top_k: int = 10,

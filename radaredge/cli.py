@@ -514,11 +514,13 @@ _BACKEND = click.Choice(["onnxruntime", "openvino", "auto"])
 @click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True,
               help="The runtime of each worker; auto times both on this machine once and keeps the faster.")
 @click.option("--ray-address", help="Run on this Ray cluster (default: $RAY_ADDRESS, else an embedded local instance).")
+@click.option("--format", "data_format", type=click.Choice(["transloc", "vod", "tj4d"]),
+              help="Scan file format of every drive (default: inferred per drive from its files).")
 @click.option("--shard-windows", type=click.IntRange(min=1),
               help="Windows per shard, the unit a resumed run keeps  [default: 256, or what the run in --out used]")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def run_cmd(onnx_path, data_root, out_dir, workers, threads, backend, ray_address, shard_windows, as_json):
+def run_cmd(onnx_path, data_root, out_dir, workers, threads, backend, ray_address, data_format, shard_windows, as_json):
     """Run an exported graph over every window (TDFANet) or frame (MAFF-Net) of every drive on Ray Data:
     Parquet shards of its outputs with drive, frame, timestamp and pose."""
     # lazy: the API imports torch; ray and pyarrow are the scale extra
@@ -526,7 +528,8 @@ def run_cmd(onnx_path, data_root, out_dir, workers, threads, backend, ray_addres
     bar = _bar("run (windows)", None)
     try:
         report = run_verb(onnx_path, data_root, out_dir, workers=workers, threads=threads, backend=backend,
-                          ray_address=ray_address, shard_windows=shard_windows, progress=bar.update)
+                          ray_address=ray_address, shard_windows=shard_windows, fmt=data_format,
+                          progress=bar.update)
     finally:
         bar.close()
     _emit(as_json, report)
@@ -549,16 +552,20 @@ def map_group():
 @click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1), help="Threads per worker.")
 @click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True)
 @click.option("--ray-address", help="Run on this Ray cluster (default: $RAY_ADDRESS, else an embedded local instance).")
+@click.option("--format", "data_format", type=click.Choice(["transloc", "vod", "tj4d"]),
+              help="Scan file format of every drive (default: inferred per drive from its files).")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def map_build_cmd(model, config, onnx_path, drives, out_dir, index, workers, threads, backend, ray_address, as_json):
+def map_build_cmd(model, config, onnx_path, drives, out_dir, index, workers, threads, backend, ray_address, data_format,
+                  as_json):
     """Describe every window of the drives with the graph (on Ray) and index them (FAISS) in a map directory."""
     # lazy: as run
     from .api import map_build
     bar = _bar("map build (windows)", None)
     try:
         report = map_build(_card(model, config), onnx_path, drives, out_dir, index=index, workers=workers,
-                           threads=threads, backend=backend, ray_address=ray_address, progress=bar.update)
+                           threads=threads, backend=backend, ray_address=ray_address, fmt=data_format,
+                           progress=bar.update)
     finally:
         bar.close()
     _emit(as_json, report)

@@ -34,13 +34,14 @@ POSE_COLUMNS = ("drive", "frame", "timestamp", "northing", "easting")
 @dataclass(frozen=True)
 class ShardPlan:
     """One shard to compute: ``count`` consecutive windows of drive ``drive`` (its directory
-    ``path``) from window ``first`` on."""
+    ``path``, scans in format ``fmt``) from window ``first`` on."""
 
     name: str
     drive: str
     path: str
     first: int
     count: int
+    fmt: str = ""           # the drive's scan format ("" = the TransLoc4D pointclouds/ layout's own)
 
     def entry(self, sha256: str) -> dict:
         return {"drive": self.drive, "first": self.first, "count": self.count, "sha256": sha256}

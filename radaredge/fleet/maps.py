@@ -113,7 +113,7 @@ class MapReport:
 
 def build_map(graph: str | Path, drives: str | Path, out: str | Path, *, index: str = "auto",
               workers: int | None = None, threads: int = 1, backend: str = "onnxruntime",
-              ray_address: str | None = None, progress: Callable | None = None) -> MapReport:
+              ray_address: str | None = None, fmt: str | None = None, progress: Callable | None = None) -> MapReport:
     """Describe every window of the drives under ``drives`` with the place-recognition graph
     ``graph`` (:func:`run_graph`, into ``out/run``) and index the descriptors in ``out``."""
     out = Path(out)
@@ -122,7 +122,7 @@ def build_map(graph: str | Path, drives: str | Path, out: str | Path, *, index: 
         raise ConfigError(f"{graph} ({model.card.name}) has no {DESCRIPTOR} output; a map indexes the descriptors "
                           f"of a place-recognition graph (tdfanet, tdfanet-edge)")
     report = run_graph(graph, drives, out / "run", workers=workers, threads=threads, backend=backend,
-                       ray_address=ray_address, progress=progress)
+                       ray_address=ray_address, fmt=fmt, progress=progress)
     manifest, poses, outputs = read_run(out / "run")
     desc = outputs[DESCRIPTOR].reshape(len(poses["frame"]), -1)
     params = index_parameters(index, *desc.shape)

@@ -27,6 +27,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .. import runtime
+from ..data.readers import infer_format
 from ..data.sequences import drive_directories, is_drive, load_sequence, name_the_scan, windows
 from ..errors import ConfigError, InputError, RadarEdgeError
 from ..runtime.backends import check_backend
@@ -54,13 +55,28 @@ def find_drives(data: str | Path) -> list[tuple[str, Path]]:
     return sorted(found)
 
 
-def plan_shards(data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOWS) -> list[ShardPlan]:
+def drive_format(drive: Path, given: str | None = None) -> str:
+    """The scan format of ``drive``: ``given``, else inferred from its ``scans/`` files (.npy:
+    transloc; .bin: vod or tj4d by size and content); "" for the TransLoc4D ``pointclouds/`` layout."""
+    if given:
+        return given
+    scans = drive / "scans"
+    if not scans.is_dir():
+        return ""
+    files = [p for p in scans.iterdir() if p.is_file()]
+    return infer_format(files) if files else "transloc"
+
+
+def plan_shards(data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOWS,
+                fmt: str | None = None) -> list[ShardPlan]:
     """The shards of every drive under ``data`` (:func:`find_drives`): its K-frame windows in
-    order, ``shard_windows`` a shard. InputError naming a drive without scans or with fewer scans
+    order, ``shard_windows`` a shard; ``fmt`` the scan format of every drive (default: inferred
+    per drive, :func:`drive_format`). InputError naming a drive without scans or with fewer scans
     than K."""
     plans = []
     for label, d in find_drives(data):
-        seq = load_sequence(d)
+        drive_fmt = drive_format(d, fmt)
+        seq = load_sequence(d, drive_fmt or None)
         if len(seq) == 0:
             raise InputError(f"{d}: the drive has no scans")
         n = len(windows(seq, k))
@@ -68,7 +84,8 @@ def plan_shards(data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WIN
             raise InputError(f"{d}: {len(seq)} scans, fewer than the graph's window of {k}")
         stem = label.replace("/", "__")
         for i, first in enumerate(range(0, n, shard_windows)):
-            plans.append(ShardPlan(f"{stem}-{i:05d}", label, str(d.resolve()), first, min(shard_windows, n - first)))
+            plans.append(ShardPlan(f"{stem}-{i:05d}", label, str(d.resolve()), first, min(shard_windows, n - first),
+                                   drive_fmt))
     return plans
 
 
@@ -88,7 +105,7 @@ class ShardWorker:
         """(pose rows, graph outputs) of every window of ``plan``."""
         seq = self._drives.get(plan.path)
         if seq is None:
-            seq = self._drives[plan.path] = load_sequence(plan.path)
+            seq = self._drives[plan.path] = load_sequence(plan.path, plan.fmt or None)
         k = self.model.frames
         rows, outs = [], []
         for w in range(plan.first, plan.first + plan.count):
@@ -106,7 +123,7 @@ class ShardWorker:
     def __call__(self, row: dict) -> dict:
         """Ray Data's row function: a planned shard in, its Parquet bytes (or the error) out."""
         plan = ShardPlan(**{k: (int(row[k]) if k in ("first", "count") else str(row[k]))
-                            for k in ("name", "drive", "path", "first", "count")})
+                            for k in ("name", "drive", "path", "first", "count", "fmt")})
         try:
             return {"name": plan.name, "parquet": encode_shard(*self.outputs(plan)), "error": ""}
         except RadarEdgeError as exc:
@@ -148,24 +165,24 @@ def _setup(graph: Path, data: Path, shard_windows: int) -> tuple[dict, int]:
             "window_frames": model.frames, "shard_windows": shard_windows}, model.frames
 
 
-def _prepare(graph, data, out, shard_windows):
+def _prepare(graph, data, out, shard_windows, fmt=None):
     graph, data, out = Path(graph), Path(data), Path(out)
     if shard_windows is None:                 # a resumed run keeps its shards; a new one takes the default
         shard_windows = Manifest.recorded(out, "shard_windows") or DEFAULT_SHARD_WINDOWS
     if isinstance(shard_windows, bool) or not isinstance(shard_windows, int) or shard_windows < 1:
         raise ConfigError(f"shard_windows must be a positive integer, got {shard_windows!r}")
     setup, k = _setup(graph, data, shard_windows)
-    plans = plan_shards(data, k, shard_windows)
+    plans = plan_shards(data, k, shard_windows, fmt)
     manifest = Manifest(out, setup)
     pending = [p for p in plans if not manifest.finished(p)]
     return plans, manifest, pending
 
 
 def run_sequential(graph: str | Path, data: str | Path, out: str | Path, *, threads: int = 1,
-                   backend: str = "onnxruntime", shard_windows: int | None = None,
+                   backend: str = "onnxruntime", shard_windows: int | None = None, fmt: str | None = None,
                    progress: Callable | None = None) -> RunReport:
     """:func:`run_graph`'s shards computed in this process, one after the other (no Ray)."""
-    plans, manifest, pending = _prepare(graph, data, out, shard_windows)
+    plans, manifest, pending = _prepare(graph, data, out, shard_windows, fmt)
     start = time.perf_counter()
     if pending:
         worker = ShardWorker(str(graph), threads, backend)
@@ -236,7 +253,8 @@ def _reachable(address: str, timeout: float = 5.0) -> None:
 
 def _ray_results(ray, graph: str, pending: list[ShardPlan], workers: int, threads: int,
                  backend: str) -> Iterator[dict]:
-    items = [{"name": p.name, "drive": p.drive, "path": p.path, "first": p.first, "count": p.count} for p in pending]
+    items = [{"name": p.name, "drive": p.drive, "path": p.path, "first": p.first, "count": p.count, "fmt": p.fmt}
+             for p in pending]
     ds = ray.data.from_items(items, override_num_blocks=len(items))
     # the settings travel in the class, not as constructor arguments in Ray's object store (whose
     # loss would stop a restarted actor from being built)
@@ -248,7 +266,8 @@ def _ray_results(ray, graph: str, pending: list[ShardPlan], workers: int, thread
 
 def run_graph(graph: str | Path, data: str | Path, out: str | Path, *, workers: int | None = None,
               threads: int = 1, backend: str = "onnxruntime", ray_address: str | None = None,
-              shard_windows: int | None = None, progress: Callable | None = None) -> RunReport:
+              shard_windows: int | None = None, fmt: str | None = None,
+              progress: Callable | None = None) -> RunReport:
     """Run the exported single-graph model ``graph`` over every window of every drive under
     ``data`` on Ray Data and write Parquet shards of its outputs, with each window's drive,
     frame, timestamp and pose, to ``out`` (layout in :mod:`radaredge.data.run_shards`).
@@ -257,11 +276,12 @@ def run_graph(graph: str | Path, data: str | Path, out: str | Path, *, workers: 
     ``threads`` threads with ``backend``; ``shard_windows`` windows a shard (default
     :data:`DEFAULT_SHARD_WINDOWS`, or what the run in ``out`` used). A run interrupted or with a
     worker killed resumes: the shards already finished (their sha256 as recorded) are kept, the
-    rest computed. ``progress`` is called with each finished shard's window count."""
+    rest computed. ``fmt`` is the scan format of every drive (default: inferred per drive).
+    ``progress`` is called with each finished shard's window count."""
     check_backend(backend)
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise ConfigError(f"threads must be a positive integer, got {threads!r}")
-    plans, manifest, pending = _prepare(graph, data, out, shard_windows)
+    plans, manifest, pending = _prepare(graph, data, out, shard_windows, fmt)
     start = time.perf_counter()
     used = 0
     with warnings.catch_warnings():
