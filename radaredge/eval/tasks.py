@@ -50,7 +50,8 @@ def evaluate_places(card: ModelCard, onnx, inputs: EvalInputs):
     database drives, or of the export against a place map's windows (``--map``, made by
     ``radaredge map build``) (:func:`radaredge.eval.places.evaluate`)."""
     sides = ("map", "queries") if inputs.map is not None and inputs.database is None else ("database", "queries")
-    inputs.require("place recognition", sides, card.name, ("checkpoint", "radius", "reference"))
+    inputs.require("place recognition (against --database drives or a --map from `radaredge map build`)", sides,
+                   card.name, ("checkpoint", "radius", "reference"))
     return evaluate(card, onnx, inputs.database, inputs.queries, inputs.checkpoint, inputs.radius, inputs.reference,
                     inputs.progress, map_dir=inputs.map)
 

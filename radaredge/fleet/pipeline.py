@@ -128,6 +128,8 @@ class ShardWorker:
             return {"name": plan.name, "parquet": encode_shard(*self.outputs(plan)), "error": ""}
         except RadarEdgeError as exc:
             return {"name": plan.name, "parquet": b"", "error": str(exc)}
+        except OSError as exc:         # a scan file that vanished or cannot be read on this node
+            return {"name": plan.name, "parquet": b"", "error": f"{exc.filename or plan.path}: {exc.strerror or exc}"}
 
 
 @dataclass
