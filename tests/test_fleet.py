@@ -137,6 +137,10 @@ def test_the_runtime_backend_auto_picks_and_remembers_one(town, tmp_path, monkey
     (entry,) = cache.values()
     assert entry["backend"] == model.backend and set(entry["median_s"]) == {"onnxruntime", "openvino"}
     assert runtime.load(onnx, threads=1, backend="auto").backend == model.backend     # no second trial
+    from radaredge.runtime import backends
+    monkeypatch.setattr(backends, "auto_available", lambda: False)     # no OpenVINO: auto is onnxruntime
+    assert runtime.load(onnx, threads=1, backend="auto").backend == "onnxruntime"
+    monkeypatch.undo()
     ov = runtime.load(onnx, threads=1, backend="openvino")
     np.testing.assert_allclose(ov.run(frames)["descriptor_normalized"],
                                runtime.load(onnx, threads=1).run(frames)["descriptor_normalized"], atol=1e-4)

@@ -167,8 +167,8 @@ class RadarModel:
         self.threads = threads
         self.backend = backends.check_backend(backend)      # "auto" becomes the chosen one at the first run
         if backend == "auto" and not backends.auto_available():
-            self.backend = "onnxruntime"
-        if backend == "auto":
+            self.backend = "onnxruntime"                    # nothing to choose from without OpenVINO
+        elif backend == "auto":
             self.backend = backends.cached_choice(self.weights_sha256, threads) or "auto"
         self._runner = self._runner_of(self.backend) if self.backend != "auto" else None
 
@@ -256,8 +256,8 @@ def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
     """What an export holds: for a graph file, or each graph of a multi-graph export directory
     (its manifest lists them), the card name, graph name, feature columns, frame inputs,
     inputs and outputs with their shapes, runtime checks, input flag bits, weights hash,
-    versions and the card's ``source`` when it has one; with ``targets``, what each deployment target does not support
-    (:mod:`radaredge.targets`, which needs the onnx package)."""
+    versions and the card's ``source`` when it has one; with ``targets``, what each deployment
+    target does not support (:mod:`radaredge.targets`, which needs the onnx package)."""
     files = list(bundle_graphs(path).values())
     graphs = []
     for f in files:
