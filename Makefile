@@ -5,6 +5,10 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 MODEL   ?= tdfanet
 RUNS    ?= 20
+# MAFF-Net on trained weights: a run directory of `radaredge train` per card, and the labelled set
+# it was trained on (benchmarks/maffnet_trained.py times its test split); skipped when absent.
+MAFFNET_RUNS ?= runs
+DETECTION_SET ?= bench-detection
 
 .PHONY: setup test demo bench clean
 
@@ -30,8 +34,19 @@ demo: $(STAMP)
 
 # The speed suite: every card x {torch reference, torch export, onnxruntime fp32, int8} on 2 cores;
 # writes benchmarks/README.md, benchmarks/suite.png and benchmarks/results/suite-<date>.json.
+# Then the MAFF-Net cards that have trained weights under $(MAFFNET_RUNS)/<card>/best.pth: fp32,
+# int8 and the worst case with the stage split (benchmarks/results/maffnet-trained-<card>-<date>.json).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py --runs $(RUNS)
+	@for card in maffnet-vod maffnet-vod-edge; do \
+	  if [ -f $(MAFFNET_RUNS)/$$card/best.pth ] && [ -d $(DETECTION_SET) ]; then \
+	    $(BIN)/python benchmarks/maffnet_trained.py --model $$card --checkpoint $(MAFFNET_RUNS)/$$card/best.pth \
+	      --data $(DETECTION_SET) || exit 1; \
+	  else echo "$$card: no $(MAFFNET_RUNS)/$$card/best.pth or no $(DETECTION_SET)/: trained-weight rows skipped" \
+	    "(radaredge make-benchmark --task detection --out $(DETECTION_SET) --drives 20; radaredge train" \
+	    "--model $$card --data $(DETECTION_SET) --output $(MAFFNET_RUNS)/$$card)"; fi; \
+	done
+	$(BIN)/python benchmarks/render.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -78,6 +78,8 @@ def _kind(stem: str, data) -> str:
         return "cfa"
     if stem == "fleet-scale":
         return "fleet"
+    if stem.startswith("maffnet-trained-"):
+        return "trained"
     if stem.endswith("-training") and "train" in data:
         return "training"
     if any(k in data for k in ("tasks", "results", "rows", "query")):
@@ -373,6 +375,9 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
         if "heldout" in d:
             out += des4pos_training_section(r, results_dir)
             continue
+        if "test_trained" in d:
+            out += maffnet_training_section(r, results_dir)
+            continue
         train, held = d["train"], d["heldout_town"]
         m = d.get("machine", {})
         data = train.get("data", {})
@@ -399,6 +404,39 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
                 f"int8 budget {'PASSED' if p8.get('passed') else 'FAILED'}. int8 retrieves the same top-1 window "
                 f"as fp32 for {100 * agree.get('same_window', float('nan')):.1f} % of the queries and a window "
                 f"within 5 m of it for {100 * agree.get('within_radius', float('nan')):.1f} %.", ""]
+    return out
+
+
+def maffnet_training_section(r: Result, results_dir: Path) -> list[str]:
+    """benchmarks/maffnet_training.py: the epochs, then 3D / BEV AP on the test split per backend."""
+    d = r.data
+    train, m = d["train"], d.get("machine", {})
+    data = train.get("data", {})
+    out = [f"## MAFF-Net training: {d['card']}", "",
+           f"`benchmarks/maffnet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+           f"`{d['command']}`: {data.get('train_frames', '?')} training frames, validation on "
+           f"{data.get('validation_frames', '?')} frames of `{data.get('validation_split', '?')}`. Training took "
+           f"{_num((d.get('train_seconds') or 0) / 60)} min. JSON: {_link(r, results_dir)}.", ""]
+    classes = [k[len("AP3d_"):] for k in train["epochs"][0] if k.startswith("AP3d_")]
+    rows = [[str(e["epoch"]), "-" if e["loss"] != e["loss"] else f"{e['loss']:.3f}",
+             *(_num(e.get(f"AP3d_{c}")) for c in classes), _num(e.get("mAP3d")), _num(e["seconds"] / 60),
+             "best" if e["epoch"] == train.get("best_epoch") else ""] for e in train["epochs"]]
+    out += _table(["epoch", "loss", *(f"val 3D AP {c}" for c in classes), "val mAP", "min", ""], rows,
+                  ["---:"] * (len(classes) + 4) + ["---"]) + [""]
+    t, s0 = d["test_trained"], d["test_seeded"]
+    out += [f"The `test` split ({t['frames']} frames, drives never trained or validated on), `radaredge eval`: 3D AP "
+            "(BEV AP) per class, entire area, 11 recall positions, VoD's IoU thresholds; frames per second of "
+            "each backend's frame loop.", ""]
+    backends = [("seeded, onnxruntime fp32", s0, "onnxruntime")] + [
+        (f"trained, {b}", t, b) for b in t["ap"]]
+    rows = []
+    for label, rep, b in backends:
+        per = rep["ap"][b]["entire_area"]
+        mean3d = sum(v["3d"] for v in per.values()) / len(per)
+        rows.append([label, *(f"{_num(per[c]['3d'], '.2f')} ({_num(per[c]['bev'], '.2f')})" for c in per),
+                     _num(mean3d, ".2f"), _num(rep["fps"].get(b))])
+    names = list(t["ap"][next(iter(t["ap"]))]["entire_area"])
+    out += _table(["graph", *names, "mAP 3D", "FPS"], rows, ["---"] + ["---:"] * (len(names) + 2)) + [""]
     return out
 
 
@@ -498,6 +536,56 @@ def fleet_section(r: Result | None, results_dir: Path) -> list[str]:
     return out
 
 
+def _test_map(training: Result | None, backend: str) -> float | None:
+    """Mean 3D AP (entire area) of ``backend`` on the test split of a MAFF-Net training result."""
+    if training is None or backend not in training.data["test_trained"]["ap"]:
+        return None
+    per = training.data["test_trained"]["ap"][backend]["entire_area"]
+    return sum(v["3d"] for v in per.values()) / len(per)
+
+
+def trained_section(results: list[Result], trainings: list[Result], results_dir: Path) -> list[str]:
+    """MAFF-Net on trained weights (benchmarks/maffnet_trained.py): fp32, int8 and the worst case,
+    with each card's test mAP from its training result (benchmarks/maffnet_training.py)."""
+    if not results:
+        return []
+    by_card = {t.data["card"]: t for t in trainings if "test_trained" in t.data}
+    overview = []
+    for r in results:
+        d = r.data
+        row = {x["graph"]: x for x in d.get("rows", [])}
+        t = by_card.get(d.get("model"))
+        overview.append([d.get("model"), _num(row.get("fp32", {}).get("fps")), _num(row.get("int8", {}).get("fps")),
+                         _num(row.get("worst case", {}).get("fps")),
+                         _num(_test_map(t, "onnxruntime"), ".2f"), _num(_test_map(t, "onnxruntime int8"), ".2f")])
+    out = ["## MAFF-Net on trained weights", "",
+           "Each card's trained weights on the same machine: frames per second of the fp32 graph, its int8 copy and "
+           "the worst case (onnxruntime, 2 threads, real frames), and mean 3D AP over Car, Pedestrian and Cyclist "
+           "(entire area) on the test split of the synthetic set (the card's training section below).", ""]
+    out += _table(["card", "fp32 FPS", "int8 FPS", "worst-case FPS", "test mAP fp32", "test mAP int8"], overview)
+    out += ["", "`benchmarks/maffnet_trained.py`: a trained checkpoint on real frames of a labelled set, onnxruntime, "
+           "fp32 / int8 / worst case timed in one alternating loop. The worst case is the same weights with every "
+           "class logit raised by 30, so every anchor passes the score threshold and the NMS gets "
+           "`post_processing.pre_max` candidates on every frame. Candidates: anchors above the threshold per frame "
+           "(what the NMS is given, before the pre_max cap).", ""]
+    for r in results:
+        d = r.data
+        out += [f"### {d.get('model')}", "",
+                f"{_stamp(r, d)}. Weights: `{d.get('checkpoint')}` (sha256 {str(d.get('checkpoint_sha256'))[:12]}...)"
+                + (f", {d['note']}" if d.get("note") else "") + f". Frames: {len(d.get('frames', []))} of the "
+                f"`{d.get('split')}` split of `{d.get('data')}` (median {_num(d.get('points_median'), '.0f')} points), "
+                f"{d.get('passes')} passes. JSON: {_link(r, results_dir)}.", ""]
+        rows = [[row["graph"], _num(row.get("p50_ms")), _num(row.get("p90_ms")), _num(row.get("fps")),
+                 _num(100 * row["nms_share"] if row.get("nms_share") is not None else None),
+                 f"{_num(row.get('candidates_median'), '.0f')} / {row.get('candidates_max')}",
+                 _num(row.get("detections_median"), ".0f")] for row in d.get("rows", [])]
+        out += _table(["graph", "p50 ms", "p90 ms", "FPS", "NMS share %", "candidates median / max",
+                       "detections median"], rows)
+        out += [""] + _stage_table({row["graph"]: row["stage_ms"] for row in d.get("rows", []) if row.get("stage_ms")})
+        out += [""]
+    return out
+
+
 def render(results_dir: Path = RESULTS_DIR) -> str:
     """The whole of benchmarks/README.md, built from the JSON files in ``results_dir``."""
     results_dir = Path(results_dir)
@@ -509,6 +597,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     cfa = (newest_by_key(results, "cfa") or [None])[-1]
     fleet = (newest_by_key(results, "fleet") or [None])[-1]
     trainings = newest_by_key(results, "training")
+    trained = newest_by_key(results, "trained")
     out = ["# Benchmarks", "",
            "Generated by `python benchmarks/render.py` from the JSON files in [results/](results/); do not edit "
            "it by hand. `make bench` writes a new `suite-<date>.json` and regenerates this page; the other "
@@ -522,8 +611,9 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     out += capacity_section(capacity, results_dir)
     out += cfa_section(cfa, results_dir)
     out += fleet_section(fleet, results_dir)
+    out += trained_section(trained, trainings, results_dir)
     out += training_section(trainings, results_dir)
-    rendered = {r.path for r in suites + benches + compares + trainings} | {r.path for r in (capacity, cfa, fleet)
+    rendered = {r.path for r in suites + benches + compares + trainings + trained} | {r.path for r in (capacity, cfa, fleet)
                                                                              if r is not None}
     out += history_section(results, rendered, results_dir)
     others = [r for r in results if r.kind == "other"]

@@ -38,10 +38,12 @@ from radaredge.bench.timing import benchmark, cpu_name, output_differences, pin_
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
 OPENVINO_BACKENDS = ("openvino", "openvino int8")
-# The single-graph cards: TDFANet's two, MAFF-Net stage one for both datasets, and both stages on
-# VoD with each clustering branch (the TJ4D two-stage cards differ from these only in grid size).
+# The single-graph cards: TDFANet's two, MAFF-Net stage one for both datasets and its edge card, and
+# both stages on VoD with each clustering branch (the TJ4D two-stage cards differ from these only in
+# grid size).
 # des4pos exports three graphs and has its own query/cell benchmark (`radaredge bench --model des4pos`).
-SUITE_MODELS = ("tdfanet", "tdfanet-edge", "maffnet-vod", "maffnet-tj4d", "maffnet-vod-full", "maffnet-vod-full-dbscan")
+SUITE_MODELS = ("tdfanet", "tdfanet-edge", "maffnet-vod", "maffnet-vod-edge", "maffnet-tj4d", "maffnet-vod-full",
+                "maffnet-vod-full-dbscan")
 
 
 def export_both(card, model, export_dir: Path) -> tuple[Path, Path]:

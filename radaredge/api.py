@@ -299,8 +299,8 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
         raise ConfigError("--resume continues the run in --output from its last.pth; drop --checkpoint")
     output = Path(output) if output is not None else Path("runs") / card.name
     model = create_model(card, checkpoint, spec)
-    inputs = TrainInputs(str(output), device, resume, tuple(validation) if validation is not None else None,
-                         data_format, dict(bag or {}), dict(options or {}), progress, log)
+    inputs = TrainInputs(str(output), str(checkpoint) if checkpoint is not None else None, device, resume,
+                         tuple(validation) if validation is not None else None, data_format, dict(bag or {}), dict(options or {}), progress, log)
     return recipe(card, model, data, inputs)
 
 

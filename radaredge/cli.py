@@ -454,7 +454,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
               help="Training data. TDFANet: a directory of drives (scans/ + gps.csv, or TransLoc4D-style "
                    "pointclouds/ + gps.csv), e.g. several `radaredge make-benchmark` towns. Des4Pos: cell maps "
                    "with described poses (`radaredge make-city --cities N`, KITTI360Pose cells/ + poses/). "
-                   "MAFF-Net (one-stage cards): `synthetic`, the anchor-head fit on synthetic VoD scans.")
+                   "MAFF-Net (stage-one cards): a labelled View-of-Delft or TJ4DRadSet layout "
+                   "(`radaredge make-benchmark --task detection`).")
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--output", type=click.Path(file_okay=False),
               help="Run directory: best.pth, last.pth, train-log.json  [default: runs/<model>]")
@@ -465,9 +466,13 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
 @click.option("--seed", type=int, help="Seeds the tuple order, the mining and dropout.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Any other recipe option, e.g. --set negatives=8 (the docs of the model list them).")
+@click.option("--freeze", multiple=True, metavar="PATTERN",
+              help="MAFF-Net: keep the parameters whose names match fixed (fnmatch; a module name covers it all), "
+                   "e.g. --freeze vfe --freeze 'backbone_2d.blocks.0.*'.")
 @click.option("--validation", multiple=True, metavar="NAME",
               help="A held-out drive relative to --data, or a held-out map (scene) by name (repeat for several); "
-                   "default: the last drive of every directory of drives, the last map by name.")
+                   "default: the last drive of every directory of drives, the last map by name. MAFF-Net: the "
+                   "split that picks the best epoch [default: val].")
 @click.option("--format", "data_format", type=click.Choice(["transloc", "vod", "tj4d"]),
               help="Scan file format of every drive (default: inferred from the files).")
 @click.option("--radar-topic", help="ROS bag drives: the radar's point-cloud topic  [default: /radar_enhanced_pcl]")
@@ -480,7 +485,7 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
 @click.option("--resume", is_flag=True, help="Continue the run in --output after its last finished epoch.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
-def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, seed, settings, validation,
+def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, seed, settings, freeze, validation,
           data_format, radar_topic, gps_topic, field_map, doppler_sign, device, resume, as_json):
     """Train a model with its paper's recipe (TDFANet: the lazy quadruplet loss, Adam 8e-4 decayed 0.9
     per epoch; Des4Pos: object, prior, coarse InfoNCE and fine stages), validate every epoch and keep
@@ -488,8 +493,8 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
     # lazy: the API imports torch (see export)
     from .api import train as train_verb
     options = {k.replace("-", "_"): v for k, v in parse_settings(settings).items()}
-    options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed))
-                    if v is not None})
+    options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed),
+                                      ("freeze", ",".join(freeze) or None)) if v is not None})
     bag = {"radar_topic": radar_topic, "gps_topic": gps_topic,
            "field_map": {k: (v if isinstance(v, int) else str(v))
                          for k, v in parse_settings(field_map, "--field-map", "v_r=0").items()} or None,

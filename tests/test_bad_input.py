@@ -339,7 +339,7 @@ CLI = [
     ("train-field-map", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
                          "--field-map", "v_r"], "--field-map"),
     ("train-maffnet", ["train", "--model", "maffnet-tiny", "--config", str(MAFF_TINY), "--data", "{f}/town"],
-     "reads no recorded data"),
+     "no training/ folder"),
     ("train-output-under-file", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
                                  "--output", "{f}/a-file/run"], "a-file"),
 ]

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from radaredge.ops.box_iou import bev_iou_matrix_reference, bev_iou_paired, bev_iou_reference
-from radaredge.ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference, greedy_nms_reference
+from radaredge.ops.nms import (NmsConfig, class_agnostic_nms, class_agnostic_nms_eager, class_agnostic_nms_reference,
+                               greedy_nms_reference)
 
 
 def random_boxes(rng, n, spread=4.0):
@@ -95,6 +96,8 @@ def test_nms_matches_reference_in_torch(config):
         got = class_agnostic_nms(torch.tensor(boxes), torch.tensor(scores), config).numpy()
         ref = class_agnostic_nms_reference(boxes, scores, config)
         assert got.tolist() == ref.tolist()
+        eager = class_agnostic_nms_eager(torch.tensor(boxes), torch.tensor(scores), config).numpy()
+        assert eager.tolist() == ref.tolist()                # training's validation NMS: the same indices
 
 
 class _Nms(torch.nn.Module):

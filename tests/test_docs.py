@@ -121,10 +121,29 @@ def test_render_handles_every_result_kind(tmp_path):
         "card": "m", "date": "2030-01-01 00:00 UTC", "rows": [
             {"scans": 1, "points": 3, "part": "map", "backend": "up", "p50_ms": 2.0, "speedup_vs_upstream": 1.0},
             {"scans": 1, "points": 3, "part": "map", "backend": "ours", "p50_ms": 1.0, "speedup_vs_upstream": 2.0}]}))
+    trained_row = {"p50_ms": 50.0, "p90_ms": 60.0, "fps": 20.0, "candidates_median": 12.0, "candidates_max": 40,
+                   "detections_median": 5.0}
+    (res / "maffnet-trained-m-2030-01-01.json").write_text(json.dumps({
+        "model": "m", "checkpoint": "best.pth", "checkpoint_sha256": "ab" * 32, "data": "set", "split": "test",
+        "frames": ["00001"], "points_median": 900.0, "passes": 3, "date": "2030-01-01 00:00 UTC", "rows": [
+            {**trained_row, "graph": "fp32", "stage_ms": {"NMS": 2.0, "backbone+head": 30.0}, "nms_share": 0.0625},
+            {**trained_row, "graph": "int8", "stage_ms": {}, "nms_share": None},
+            {**trained_row, "graph": "worst case", "stage_ms": {"NMS": 90.0}, "nms_share": 0.75}]}))
+    ap = {"Car": {"3d": 50.0, "bev": 60.0, "num_gt": 10}, "Pedestrian": {"3d": 10.0, "bev": 12.0, "num_gt": 5}}
+    report = {"ap": {"onnxruntime": {"entire_area": ap}, "onnxruntime int8": {"entire_area": ap}},
+              "fps": {"onnxruntime": 20.0, "onnxruntime int8": 25.0}, "frames": 8}
+    (res / "m-training-2030-01-01.json").write_text(json.dumps({
+        "date": "2030-01-01 00:00", "card": "m", "command": "radaredge train --model m --data set",
+        "machine": {"cpu": "cpu", "threads": 2}, "train_seconds": 60.0, "test_trained": report, "test_seeded": report,
+        "train": {"best_epoch": 1, "data": {"train_frames": 8}, "epochs": [
+            {"epoch": 0, "loss": float("nan"), "AP3d_Car": 0.0, "mAP3d": 0.0, "seconds": 1.0},
+            {"epoch": 1, "loss": 1.0, "AP3d_Car": 40.0, "mAP3d": 20.0, "seconds": 60.0}]}}))
     text = render.render(res)
     current, history = text.split("## History")
+    assert "| m | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current          # FPS beside the test mAP
+    assert "## MAFF-Net training: m" in current and "| trained, onnxruntime int8 | 50.00 (60.00) |" in current
     for heading in ("## Speed suite", "## Per-model benches", "## Graph comparisons", "## MAFF-Net capacity",
-                    "## Clustering stage"):
+                    "## Clustering stage", "## MAFF-Net on trained weights"):
         assert heading in current
     assert "2030-01-02 00:00 UTC" in current
     assert "[suite-2030-01-01.json](results/suite-2030-01-01.json)" in history

@@ -184,13 +184,13 @@ def test_bad_vfe_features_are_refused_by_name(columns, needle, tmp_path):
     assert needle in str(err.value)
 
 
-@pytest.mark.parametrize("model", ["maffnet-vod", "maffnet-tj4d"])
+@pytest.mark.parametrize("model", ["maffnet-vod", "maffnet-tj4d", "maffnet-vod-edge"])
 def test_full_card_export_and_parity(model, tmp_path):
     onnx = tmp_path / f"{model}.onnx"
     res = invoke("export", "--model", model, "--output", str(onnx))
     assert res.exit_code == 0, res.output
     assert_parses_in_tensorrt(onnx)
-    cases = "5" if model == "maffnet-vod" else "2"        # VoD's fifth case is a dense 5-frame cloud
+    cases = "5" if model.startswith("maffnet-vod") else "2"     # VoD's fifth case is a dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", cases, "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output

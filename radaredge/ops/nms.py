@@ -120,6 +120,37 @@ def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsCon
     return order[rank]
 
 
+def class_agnostic_nms_eager(boxes: torch.Tensor, scores: torch.Tensor, config: NmsConfig) -> torch.Tensor:
+    """Training-time formulation of :func:`class_agnostic_nms` (same indices): the greedy walk as
+    a Python loop over the *kept* boxes, each suppressing the later candidates it overlaps (IoU in
+    float64 only for those within reach of its bounding rectangle). Eager torch, never exported:
+    validation during training runs it because a half-trained head can put thousands of anchors
+    above the threshold, and the export formulation's pairwise work then takes seconds a frame."""
+    boxes, scores = boxes.detach().cpu(), scores.detach().cpu()
+    above = torch.nonzero(scores >= config.score_thresh).squeeze(1)
+    # descending score, equal scores lower anchor index first (a stable sort of the index order)
+    order = above[torch.sort(scores[above], descending=True, stable=True).indices][: config.pre_max]
+    cand = boxes[order].to(torch.float64)
+    c, s = torch.cos(cand[:, 6]).abs(), torch.sin(cand[:, 6]).abs()
+    ex = 0.5 * (cand[:, 3] * c + cand[:, 4] * s) + 1e-3
+    ey = 0.5 * (cand[:, 3] * s + cand[:, 4] * c) + 1e-3
+    alive = torch.ones(len(order), dtype=torch.bool)
+    kept: list[int] = []
+    for i in range(len(order)):
+        if not alive[i]:
+            continue
+        kept.append(i)
+        if len(kept) == config.post_max:
+            break
+        later = torch.arange(i + 1, len(order))
+        later = later[alive[later] & ((cand[later, 0] - cand[i, 0]).abs() <= ex[later] + ex[i])
+                      & ((cand[later, 1] - cand[i, 1]).abs() <= ey[later] + ey[i])]
+        if len(later):
+            iou = bev_iou_paired(cand[i].expand(len(later), 7), cand[later])
+            alive[later[iou > config.iou_thresh]] = False
+    return order[torch.tensor(kept, dtype=torch.int64)]
+
+
 # ----------------------------------------------------------------------------- reference
 
 

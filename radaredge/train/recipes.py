@@ -9,7 +9,7 @@ from ..cards import ModelCard
 from ..data.bag_drives import BagSource
 from ..errors import ConfigError
 from .des4pos import TextRecipe, train_text as run_text
-from .maffnet_head import train_head
+from .maffnet import DetectionRecipe, VALIDATION_SPLIT, train_detector
 from .run import no_progress
 from .tdfanet import PlaceRecipe, train_places as run_places
 
@@ -17,13 +17,15 @@ from .tdfanet import PlaceRecipe, train_places as run_places
 @dataclass(frozen=True)
 class TrainInputs:
     """What ``train`` was given besides the card, the model and the data: the run directory
-    ``output``, ``device`` (cpu or cuda), ``resume`` from ``output``'s last state, the held-out
-    ``validation`` drives or scenes (None: the model's default split), the scan ``data_format``,
+    ``output``, the ``checkpoint`` the model's weights were loaded from (None: seeded),
+    ``device`` (cpu or cuda), ``resume`` from ``output``'s last state, the held-out
+    ``validation`` drives, scenes or split (None: the model's default), the scan ``data_format``,
     where ROS bags keep their scans and fixes (``bag``: the fields of
     :class:`radaredge.data.bag_drives.BagSource`), the recipe ``options`` (name -> value, None =
     the recipe's default), and the progress-bar factory ``progress(desc, total)`` and ``log(line)``."""
 
     output: str
+    checkpoint: str | None = None
     device: str = "cpu"
     resume: bool = False
     validation: tuple[str, ...] | None = None
@@ -55,8 +57,26 @@ def train_text(card: ModelCard, model, data, inputs: TrainInputs):
                     inputs.progress or no_progress, inputs.log or (lambda line: None))
 
 
+def train_maffnet(card: ModelCard, model, data, inputs: TrainInputs):
+    """MAFF-Net stage one with upstream's recipe (:mod:`radaredge.train.maffnet`) on the labelled
+    KITTI-layout set under ``data`` (VoD or TJ4DRadSet; ``--validation`` names the split)."""
+    drive_only = [f"--{k.replace('_', '-')}" for k, v in (inputs.bag or {}).items() if v is not None]
+    if drive_only:
+        raise ConfigError(f"{', '.join(drive_only)} describe ROS bag drives; {card.name} trains on a labelled "
+                          f"View-of-Delft or TJ4DRadSet layout (`radaredge make-benchmark --task detection`)")
+    if inputs.validation is not None and len(inputs.validation) != 1:
+        raise ConfigError(f"--validation: {card.name} validates on one split of the set (e.g. val), got "
+                          f"{list(inputs.validation)}")
+    if inputs.data_format == "transloc":
+        raise ConfigError("--format transloc: MAFF-Net trains on View-of-Delft (vod) or TJ4DRadSet (tj4d) scans")
+    recipe = DetectionRecipe.from_options(inputs.options or {})
+    return train_detector(card, model, data, inputs.output, recipe, inputs.device, inputs.resume,
+                          inputs.validation[0] if inputs.validation else VALIDATION_SPLIT, inputs.data_format,
+                          inputs.checkpoint, inputs.progress or no_progress, inputs.log or (lambda line: None))
+
+
 RECIPES: dict[str, Callable] = {
     "tdfanet": train_places,
     "des4pos": train_text,
-    "maffnet": train_head,
+    "maffnet": train_maffnet,
 }

@@ -31,6 +31,7 @@ Python loops, plain-Python greedy NMS).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -122,7 +123,7 @@ class BackboneConfig:
 
 
 @card_ranges(anchor_sizes=positive(1000.0), anchor_rotations=(-7.0, 7.0), anchor_bottom_heights=(-1000.0, 1000.0),
-             feature_map_stride=(1, 64))
+             feature_map_stride=(1, 64), matched_threshold=(0.0, 1.0), unmatched_threshold=(0.0, 1.0))
 @dataclass(frozen=True)
 class AnchorClass:
     """One entry of ``dense_head.anchors`` (OpenPCDet ANCHOR_GENERATOR_CONFIG)."""
@@ -133,6 +134,8 @@ class AnchorClass:
     anchor_bottom_heights: tuple = (0.0,)
     align_center: bool = False
     feature_map_stride: int = 2
+    matched_threshold: float | None = None      # training only (radaredge train's target assigner);
+    unmatched_threshold: float | None = None    # None: upstream's value for the class
 
 
 @card_ranges(dir_offset=(-7.0, 7.0), dir_limit_offset=(0.0, 1.0), num_dir_bins=(1, 64),
@@ -527,8 +530,7 @@ def read_anchors(card: ModelCard) -> list[AnchorClass]:
     out = []
     for i, entry in enumerate(raw):
         a = config_from_dict(AnchorClass, entry, f"{card.where}: dense_head.anchors[{i}]")
-        out.append(AnchorClass(a.class_name, tuple(tuple(s) for s in a.anchor_sizes), a.anchor_rotations,
-                               a.anchor_bottom_heights, a.align_center, a.feature_map_stride))
+        out.append(dataclasses.replace(a, anchor_sizes=tuple(tuple(s) for s in a.anchor_sizes)))
     return out
 
 

@@ -1,0 +1,134 @@
+"""Which layers of a trained MAFF-Net does int8 hurt? Per-group sensitivity by detection AP.
+
+For a trained checkpoint and a labelled set: the fp32 graph's 3D AP per class on the split, then,
+for every group of quantisable layers (the VFE, SPA, CFA, CAF, each backbone block and deblock,
+the head), an int8 copy in which *only that group* is quantised (every other group listed under
+``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
+Then the card's int8 copy (its own ``keep_fp32``) and, when it loses more than the budget, the
+copy that also keeps every group above ``--threshold`` in fp32 are scored with their speed
+against fp32 on the same frames. Writes ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
+
+    python benchmarks/int8_sensitivity.py --model maffnet-vod-edge --checkpoint runs/edge/best.pth \\
+        --data bench-detection --split test
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime as dt
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import radaredge
+from radaredge.bench.timing import cpu_name, pin_threads
+from radaredge.cards import load_card, parse_card
+from radaredge.data.kitti_detection import DetectionSet
+from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, card_points, evaluate_detection, layout_for_card
+from radaredge.models import create_model
+from radaredge.runtime.session import make_session, run_session
+from radaredge import runtime
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def layer_groups(model) -> list[str]:
+    """Module-name prefixes of the quantisable groups, in pipeline order."""
+    groups = ["vfe", "map_to_bev_module", "image_backbone", "fuser"]
+    groups += [f"backbone_2d.blocks.{i}" for i in range(len(model.backbone_2d.blocks))]
+    groups += [f"backbone_2d.deblocks.{i}" for i in range(len(model.backbone_2d.deblocks))]
+    groups.append("dense_head")
+    return [g for g in groups if any(n.startswith(g + ".") for n, _ in model.named_parameters())]
+
+
+def with_keep(card, keep: list[str]):
+    """``card`` with ``quantization.keep_fp32`` = ``keep``."""
+    data = copy.deepcopy(card.data)
+    data["quantization"] = dict(data.get("quantization") or {}, keep_fp32=keep)
+    return parse_card(data, card.path)
+
+
+def ap_3d(report, backend: str) -> dict[str, float]:
+    return {c: float(r["3d"]) for c, r in report.ap[backend]["entire_area"].items()}
+
+
+def score(card, checkpoint, out: Path, data, split: str) -> tuple[dict, dict]:
+    """(fp32 3D AP per class, int8 3D AP per class) of ``card`` exported to ``out`` with its int8 copy."""
+    net = create_model(card, checkpoint)
+    radaredge.export(card, out, model=net, quantize="int8")
+    report = evaluate_detection(card, out, data, split, checkpoint, reference=False, openvino=False)
+    return ap_3d(report, ORT), ap_3d(report, ORT_INT8)
+
+
+def speed(fp32: Path, int8: Path, data_points: list, threads: int, passes: int = 3) -> dict[str, float]:
+    """Median ms per frame of the two graphs, alternating, on the same frames."""
+    sessions = {"fp32": make_session(fp32, threads=threads), "int8": make_session(int8, threads=threads)}
+    loaded = runtime.load(fp32, threads=threads)
+    cases = [loaded.feeds([p]) for p in data_points]
+    times: dict[str, list[float]] = {k: [] for k in sessions}
+    for name, s in sessions.items():
+        run_session(s, cases[0])
+    for _ in range(passes):
+        for c in cases:
+            for name, s in sessions.items():
+                t = time.perf_counter()
+                run_session(s, c)
+                times[name].append(time.perf_counter() - t)
+    return {k: 1000 * statistics.median(v) for k, v in times.items()}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--threshold", type=float, default=0.5, help="AP points a group may cost before it stays fp32.")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--work", type=Path, default=ROOT / "export" / "int8-sensitivity")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = ap.parse_args(argv)
+    cores = pin_threads(args.threads)
+    card = load_card(args.model)
+    groups = layer_groups(create_model(card))
+    args.work.mkdir(parents=True, exist_ok=True)
+    fp32_ap, card_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.split)
+    print(f"fp32 {fp32_ap}\ncard's int8 {card_int8}", flush=True)
+    rows = []
+    for g in groups:
+        only = with_keep(card, [x for x in groups if x != g])
+        _, int8 = score(only, args.checkpoint, args.work / f"only-{g}.onnx", args.data, args.split)
+        loss = {c: fp32_ap[c] - int8[c] for c in fp32_ap}
+        rows.append({"group": g, "int8_ap": int8, "loss": loss, "worst_loss": max(loss.values())})
+        print(f"only {g:<24} int8 loses {', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
+    result = {"model": card.name, "checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split,
+              "budget_ap_points": INT8_AP_BUDGET, "threshold": args.threshold, "fp32_ap": fp32_ap,
+              "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
+              "groups": rows}
+    sensitive = [r["group"] for r in rows if r["worst_loss"] > args.threshold]
+    the_set = DetectionSet(args.data, args.split, layout_for_card(card), int(card.get("input.scans_accumulated", 1)))
+    step = max(1, len(the_set) // 12)
+    points = [card_points(the_set.frame(i, card.features), card) for i in range(0, len(the_set), step)]
+    result["card_speed_ms"] = speed(args.work / f"{card.name}.onnx", args.work / f"{card.name}.int8.onnx", points,
+                                    args.threads)
+    if sensitive and max(fp32_ap[c] - card_int8[c] for c in fp32_ap) > INT8_AP_BUDGET:
+        kept = with_keep(card, sensitive)
+        out = args.work / f"{card.name}-kept.onnx"
+        _, int8 = score(kept, args.checkpoint, out, args.data, args.split)
+        result["kept"] = {"keep_fp32": sensitive, "int8_ap": int8, "loss": {c: fp32_ap[c] - int8[c] for c in fp32_ap},
+                          "speed_ms": speed(out, out.with_suffix(".int8.onnx"), points, args.threads)}
+        print(f"keeping {sensitive} in fp32: int8 {int8}", flush=True)
+    date = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    result.update(date=date, cpu=cpu_name(), threads=args.threads, cores=cores)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / f"int8-sensitivity-{card.name}-{date[:10]}.json"
+    path.write_text(json.dumps(result, indent=2))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

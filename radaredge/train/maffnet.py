@@ -1,0 +1,462 @@
+"""MAFF-Net stage one trained with upstream's recipe on a labelled KITTI-layout radar set.
+
+Read in TRV-Lab/MAFF-Net (tools/cfgs/MAFF-Net/MAFF-Net_vod.yaml and _TJ4D.yaml, its
+dataset configs, pcdet/datasets/augmentor, processor) and OpenPCDet (train_utils, the
+AnchorHeadTemplate losses); nothing of either is copied.
+
+Data. ``--data ROOT`` is a VoD or TJ4DRadSet layout (``radaredge make-benchmark --task
+detection`` writes one): the ``train`` split trains, ``--validation`` names the split that picks
+the best epoch (default ``val``). Each frame's points are what the card's graph takes
+(``input.crop: camera_fov`` crops them to the camera's view, as upstream's FOV_POINTS_ONLY does
+on loading); its boxes are every label of a card class (upstream trains on every annotated
+object, seen by the radar or not).
+
+Augmentation (upstream's DATA_AUGMENTOR, in its order, per scan): flip along x (y -> -y,
+heading -> -heading) with probability 1/2, a world rotation about z uniform in +-45 deg, a world
+scaling uniform in [0.95, 1.05]; headings then limited to [-pi, pi). Point features other than
+x, y, z stay as they are (radial speeds are invariant under all three). Upstream's gt_sampling
+is disabled in its MAFF-Net configs, and so it is here. Then, as upstream's
+mask_points_and_boxes_outside_range does, boxes with no corner inside the point-cloud range
+are removed; a scan left without boxes is skipped (upstream draws another scan at random).
+
+Targets and losses: :mod:`radaredge.train.anchor_targets` (the axis-aligned target assigner with
+each class's matched / unmatched thresholds, focal loss, smooth-L1 on the residual coder with
+the sine-difference heading, the direction classifier).
+
+Optimiser (OpenPCDet's ``adam_onecycle``): Adam with betas (0.95 cycled to 0.85 and back, 0.99),
+weight decay applied as decoupled decay to every parameter (fastai's true_wd, bn_wd), the
+learning rate one-cycle from lr / 10 up to lr over the first 40 % of the steps, then cosine
+down to lr / 10 / 1e4; gradients clipped to norm 10; one optimiser step per ``batch_size``
+scans (the model runs one scan at a time; the scans' losses are averaged, as upstream's
+per-sample normalisation averages over its batch).
+
+Initialisation: ``--checkpoint`` loads every tensor by name (the export's loader: nothing
+missing, nothing unexpected, nothing re-initialised). Without one, the card's seeded network,
+with the class bias set to upstream's prior ``head_prior`` (0.01; the cards' 0.1 exists so that
+a random graph emits boxes for parity). ``freeze`` keeps matching parameters (and the batch-norm
+statistics of modules whose parameters are all frozen) as they are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..cards import ModelCard
+from ..config import Range, card_ranges, positive
+from ..data.kitti_detection import DetectionSet, labels_to_radar_boxes
+from ..errors import ConfigError, InputError
+from ..eval.detection import as_labels, card_points, layout_for_card
+from ..eval.kitti_ap import ap_table, evaluate_frames
+from ..ops.input_flags import drop_implausible
+from ..ops.nms import class_agnostic_nms_eager
+from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
+from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
+                  restore_random_states)
+
+TRAIN_SPLIT, VALIDATION_SPLIT = "train", "val"
+
+
+@card_ranges(epochs=(1, 10_000), batch_size=(1, 256), lr=positive(1.0), weight_decay=(0.0, 1.0),
+             pct_start=Range(0.0, 1.0, True, True), div_factor=positive(1e6), grad_clip=positive(1e6),
+             rotation=(0.0, math.pi), scale_min=positive(10.0), scale_max=positive(10.0), val_every=(1, 10_000),
+             val_frames=(0, 10**7), train_frames=(0, 10**7), head_prior=Range(0.0, 1.0, True, True), bn_scans=(0, 10**6),
+             seed=(0, 2**32 - 1))
+@dataclass(frozen=True)
+class DetectionRecipe:
+    """The options of MAFF-Net training (module docstring); defaults are upstream's
+    (MAFF-Net_vod.yaml OPTIMIZATION and DATA_AUGMENTOR)."""
+
+    epochs: int = 60                 # NUM_EPOCHS (VoD; TJ4D 80)
+    batch_size: int = 4              # BATCH_SIZE_PER_GPU
+    lr: float = 0.01                 # LR (the one-cycle peak)
+    weight_decay: float = 0.01       # WEIGHT_DECAY
+    pct_start: float = 0.4           # PCT_START
+    div_factor: float = 10.0         # DIV_FACTOR
+    grad_clip: float = 10.0          # GRAD_NORM_CLIP
+    flip_x: bool = True              # random_world_flip ALONG_AXIS_LIST ['x']
+    rotation: float = 0.78539816     # random_world_rotation WORLD_ROT_ANGLE +-
+    scale_min: float = 0.95          # random_world_scaling WORLD_SCALE_RANGE
+    scale_max: float = 1.05
+    augment: bool = True             # false: no augmentation at all
+    val_every: int = 1               # epochs between validations (the last epoch is always validated)
+    val_frames: int = 0              # validation frames (evenly spaced over the split); 0: all
+    train_frames: int = 0            # training frames (evenly spaced over the split); 0: all
+    freeze: str = ""                 # comma-separated parameter-name patterns kept fixed (fnmatch; "vfe" = "vfe.*")
+    head_prior: float = 0.01         # without --checkpoint: the class bias's prior (upstream's init)
+    bn_scans: int = 64               # ours: batch-norm statistics re-estimated on this many training scans
+                                     # before each validation (0: upstream's running averages as they are)
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.scale_min > self.scale_max:
+            raise ValueError(f"scale_min ({self.scale_min}) must not exceed scale_max ({self.scale_max})")
+
+    @classmethod
+    def from_options(cls, options: dict) -> "DetectionRecipe":
+        """The recipe with ``options`` over the defaults (:func:`radaredge.train.run.recipe_from_options`)."""
+        return recipe_from_options(cls, options, "MAFF-Net")
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class LabelledScan:
+    """One training or validation frame: the card's points [N, F] (cropped as the graph takes
+    them), boxes [M, 7] (radar frame) and their card class index [M]; ``frame`` keeps the labels,
+    calibration and image size that AP needs."""
+
+    points: np.ndarray
+    boxes: np.ndarray
+    classes: np.ndarray
+    frame: object
+
+
+def evenly(n: int, k: int) -> list[int]:
+    """``k`` indices spread evenly over ``range(n)`` (all of them when k is 0 or >= n)."""
+    if k <= 0 or k >= n:
+        return list(range(n))
+    return sorted({int(i) for i in np.linspace(0, n - 1, k).round()})
+
+
+def load_split(card: ModelCard, root, split: str, data_format: str | None, limit: int = 0) -> list[LabelledScan]:
+    """The frames of ``split`` under ``root`` (at most ``limit``, evenly spaced) as LabelledScans."""
+    layout = layout_for_card(card, data_format)
+    the_set = DetectionSet(root, split, layout, int(card.get("input.scans_accumulated", 1)))
+    index = {name: i for i, name in enumerate(card.get("classes"))}
+    out = []
+    for i in evenly(len(the_set), limit):
+        frame = the_set.frame(i, card.features)
+        points = card_points(frame, card)
+        if not np.isfinite(points).all():
+            point, column = (int(x[0]) for x in np.nonzero(~np.isfinite(points)))
+            raise InputError(f"{the_set.training / 'velodyne' / (frame.frame_id + '.bin')}: non-finite value at point "
+                             f"{point}, column {card.features[column]!r}")
+        keep = np.array([n in index for n in frame.labels.name], bool)
+        boxes = labels_to_radar_boxes(frame.labels.select(keep), frame.calib).astype(np.float32)
+        classes = np.array([index[n] for n in frame.labels.name[keep]], np.int64)
+        out.append(LabelledScan(points.astype(np.float32), boxes, classes, frame))
+    return out
+
+
+def box_corners(boxes: np.ndarray) -> np.ndarray:
+    """The 8 corners [M, 8, 3] of boxes [M, 7] (centre, dx, dy, dz, heading about z)."""
+    signs = np.array([[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)], np.float64) / 2
+    local = boxes[:, None, 3:6] * signs[None]
+    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
+    x = local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0]
+    y = local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1]
+    return np.stack([x, y, local[..., 2] + boxes[:, None, 2]], -1)
+
+
+def augment(points: np.ndarray, boxes: np.ndarray, xyz: list[int], recipe: DetectionRecipe,
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Upstream's world augmentation (module docstring) of one scan: (points, boxes) copies."""
+    points, boxes = points.copy(), boxes.astype(np.float64).copy()
+    ix, iy, iz = xyz
+    if recipe.flip_x and rng.random() < 0.5:
+        points[:, iy] = -points[:, iy]
+        boxes[:, 1], boxes[:, 6] = -boxes[:, 1], -boxes[:, 6]
+    if recipe.rotation > 0:
+        a = rng.uniform(-recipe.rotation, recipe.rotation)
+        c, s = math.cos(a), math.sin(a)
+        x, y = points[:, ix].copy(), points[:, iy].copy()
+        points[:, ix], points[:, iy] = c * x - s * y, s * x + c * y
+        bx, by = boxes[:, 0].copy(), boxes[:, 1].copy()
+        boxes[:, 0], boxes[:, 1] = c * bx - s * by, s * bx + c * by
+        boxes[:, 6] += a
+    scale = rng.uniform(recipe.scale_min, recipe.scale_max)
+    points[:, [ix, iy, iz]] *= scale
+    boxes[:, :6] *= scale
+    boxes[:, 6] = boxes[:, 6] - np.floor(boxes[:, 6] / (2 * np.pi) + 0.5) * 2 * np.pi
+    return points, boxes.astype(np.float32)
+
+
+def boxes_in_range(boxes: np.ndarray, point_cloud_range) -> np.ndarray:
+    """Boxes with at least one corner inside the range (OpenPCDet mask_boxes_outside_range_numpy)."""
+    if not len(boxes):
+        return np.zeros(0, bool)
+    r = np.asarray(point_cloud_range, np.float64)
+    corners = box_corners(boxes.astype(np.float64))
+    return ((corners >= r[:3]) & (corners <= r[3:])).all(2).any(1)
+
+
+# ----------------------------------------------------------------------------- model plumbing
+
+
+def fused_map(model, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the fusion's BEV map [1, C, H, W], SPA overflow [] bool) of one scan, export formulation."""
+    points, _ = drop_implausible(points, *model.point_bounds)
+    pillar, _, overflow = model.pillar_stage(points, False)
+    cfa = model.cfa_stage(points, False)[0]
+    return model.fuser(pillar.unsqueeze(0), cfa), overflow
+
+
+def fused_map_and_head(model, points: torch.Tensor):
+    """Every normalised layer of the detector run on one scan (the head's raw outputs)."""
+    return model.dense_head(model.backbone_2d(fused_map(model, points)[0]))
+
+
+def anchor_outputs(model, points: torch.Tensor):
+    """The dense head's raw outputs for one scan in the export formulation: (class logits
+    [A, classes], box residuals [A, 7], direction logits [A, bins], SPA overflow [] bool)."""
+    fused, overflow = fused_map(model, points)
+    return (*model.dense_head(model.backbone_2d(fused)), overflow)
+
+
+def detect(model, points: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The graph's detections of one scan (boxes [M, 7], scores [M], labels [M] 1-based), with the
+    greedy NMS of :func:`radaredge.ops.nms.class_agnostic_nms_eager` (the same selection as the
+    graph's; fast when a half-trained head leaves thousands of candidates)."""
+    logits, boxes = model.head_stage(fused_map(model, points)[0])
+    best, label = torch.sigmoid(logits).max(-1)
+    sel = class_agnostic_nms_eager(boxes, best, model.nms_config)
+    return (boxes[sel].cpu().numpy().astype(np.float64), best[sel].cpu().numpy().astype(np.float64),
+            (label[sel] + 1).cpu().numpy())
+
+
+def frozen_parameters(model, patterns: str) -> list[str]:
+    """Names of the parameters matched by the comma-separated ``patterns`` (fnmatch on the
+    parameter name; a bare module name matches everything under it). ConfigError for a pattern
+    that matches nothing, or when nothing would be left to train."""
+    names = [n for n, _ in model.named_parameters()]
+    out: set[str] = set()
+    for pat in (p.strip() for p in patterns.split(",") if p.strip()):
+        hit = [n for n in names if fnmatch.fnmatchcase(n, pat) or n.startswith(pat.rstrip(".") + ".")]
+        if not hit:
+            tops = sorted({n.split(".")[0] for n in names})
+            raise ConfigError(f"--freeze {pat!r} matches no parameter; the modules are {tops} "
+                              f"(patterns match parameter names, e.g. 'backbone_2d.blocks.0.*')")
+        out.update(hit)
+    if out and len(out) == len(names):
+        raise ConfigError(f"--freeze {patterns!r} freezes every parameter; nothing would train")
+    return [n for n in names if n in out]
+
+
+def set_train_mode(model, frozen: set[str]) -> None:
+    """Training mode, except modules whose parameters are all frozen (their batch-norm statistics
+    stay as loaded)."""
+    model.train()
+    for name, module in model.named_modules():
+        params = [f"{name}.{p}" if name else p for p, _ in module.named_parameters()]
+        if params and all(p in frozen for p in params):
+            module.eval()
+
+
+def _adam_onecycle(model, recipe: DetectionRecipe, steps: int):
+    """OpenPCDet's adam_onecycle (module docstring) as torch AdamW + OneCycleLR."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=recipe.lr / recipe.div_factor, betas=(0.95, 0.99),
+                            weight_decay=recipe.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=recipe.lr, total_steps=max(steps, 1),
+                                                pct_start=recipe.pct_start, anneal_strategy="cos",
+                                                cycle_momentum=True, base_momentum=0.85, max_momentum=0.95,
+                                                div_factor=recipe.div_factor, final_div_factor=1e4)
+    return params, opt, sched
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str], device) -> None:
+    """Batch-norm running statistics of the trainable modules recomputed with the current weights:
+    the cumulative average over ``scans`` (no augmentation), each scan one batch, as in training.
+    Upstream's running averages (momentum 0.01) trail the weights by about a hundred scans; on a
+    schedule of a few epochs at a 0.01 peak learning rate that lag compounds through the 20
+    normalised layers, and an eval-mode network scores every anchor 1.0 (measured on maffnet-vod
+    after one epoch: batch variances 1.3-1.8 x the running ones, layer after layer)."""
+    set_train_mode(model, frozen)
+    norms = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) and m.training]
+    saved = [m.momentum for m in norms]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None
+    with torch.no_grad():
+        for scan in scans:
+            fused_map_and_head(model, torch.from_numpy(scan.points).to(device))
+    for m, momentum in zip(norms, saved):
+        m.momentum = momentum
+    model.eval()
+
+
+
+def validation_ap(model, scans: list[LabelledScan], card: ModelCard, data_format: str | None,
+                  device: torch.device, progress=no_progress) -> dict[str, float]:
+    """3D AP (%, entire area, 11 recall positions, the dataset's IoU thresholds) per evaluated
+    class of the model's detections (:func:`detect`) on ``scans``, and their mean
+    ``mAP``; also each class's BEV AP."""
+    layout = layout_for_card(card, data_format)
+    eval_classes = tuple(layout.eval_class(c) for c in card.get("classes")
+                         if c in {e.name for e in layout.eval_classes})
+    model.eval()
+    dts = []
+    bar = progress("validation AP", len(scans))
+    with torch.no_grad():
+        for scan in scans:
+            dts.append(as_labels(detect(model, torch.from_numpy(scan.points).to(device)), scan.frame,
+                                 card.get("classes")))
+            bar.update()
+    bar.close()
+    table = ap_table(evaluate_frames([s.frame.labels for s in scans], dts, eval_classes, ("entire_area",)))
+    rows = table["entire_area"]
+    metrics = {f"AP3d_{c}": float(r["3d"]) for c, r in rows.items()}
+    metrics.update({f"APbev_{c}": float(r["bev"]) for c, r in rows.items()})
+    metrics["mAP3d"] = float(np.mean([r["3d"] for r in rows.values()]))
+    return metrics
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def _signature(card: ModelCard, root, recipe: DetectionRecipe, validation: str, train: list, val: list) -> dict:
+    """What a resumed run must share with the one that wrote ``last.pth``."""
+    keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "val_every")}
+    return {"card": card.data, "data": str(Path(root).resolve()), "validation": validation,
+            "train_frames": [s.frame.frame_id for s in train], "val_frames": [s.frame.frame_id for s in val],
+            "recipe": keep}
+
+
+def _epoch_line(e: dict, classes: list[str]) -> str:
+    ap = " / ".join(f"{e.get(f'AP3d_{c}', float('nan')):.1f}" for c in classes if f"AP3d_{c}" in e)
+    val = f", validation 3D AP {ap} (mAP {e['mAP3d']:.1f})" if "mAP3d" in e else ""
+    loss = "-" if not math.isfinite(e["loss"]) else f"{e['loss']:.4f}"
+    return f"epoch {e['epoch']:>3}: loss {loss}{val}, {e['seconds'] / 60:.1f} min"
+
+
+def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionRecipe, device: str = "cpu",
+                   resume: bool = False, validation: str = VALIDATION_SPLIT, data_format: str | None = None,
+                   checkpoint=None, progress=no_progress,
+                   log: Callable[[str], None] = lambda line: None) -> TrainReport:
+    """Train ``model`` (a stage-one MAFF-Net of ``card``) on the ``train`` split under ``data_root``
+    with ``recipe``, validate on the ``validation`` split, and write the run directory ``output``
+    (:mod:`.run`: best.pth by validation mAP, last.pth for ``resume``, train-log.json)."""
+    if card.get("stage_two") is not None:
+        raise ConfigError(f"{card.name} has a second stage; radaredge trains MAFF-Net's stage one (the anchor head's "
+                          f"targets and losses) so far, not the proposal target layer, point head and ROI head: "
+                          f"train the stage-one card (e.g. maffnet-vod) or fine-tune the full card upstream")
+    dev = pick_device(device)
+    run = RunDir(output, card)
+    if resume:
+        run.require_last()
+    frozen = frozen_parameters(model, recipe.freeze)
+    train = load_split(card, data_root, TRAIN_SPLIT, data_format, recipe.train_frames)
+    val = load_split(card, data_root, validation, data_format, recipe.val_frames)
+    thresholds = class_thresholds(card)
+    xyz = [card.features.index(c) for c in ("x", "y", "z")]
+    pc_range = card.get("pillars.point_cloud_range")
+    n_boxes = {c: int(sum((s.classes == i).sum() for s in train)) for i, c in enumerate(card.get("classes"))}
+    summary = {"root": str(data_root), "train_frames": len(train), "validation_split": validation,
+               "validation_frames": len(val), "train_boxes": n_boxes,
+               "initial_weights": str(checkpoint) if checkpoint else f"seeded (card seed {card.get('seed', 0)})",
+               "frozen_parameters": len(frozen)}
+    log(f"data: {len(train)} training frames ({', '.join(f'{v} {k}' for k, v in n_boxes.items())}), "
+        f"{len(val)} validation frames ({validation}); weights: {summary['initial_weights']}"
+        + (f"; {len(frozen)} parameter tensors frozen" if frozen else ""))
+    if not checkpoint:
+        with torch.no_grad():
+            model.dense_head.conv_cls.bias.fill_(-math.log((1 - recipe.head_prior) / recipe.head_prior))
+    frozen_set = set(frozen)
+    for name, p in model.named_parameters():
+        p.requires_grad_(name not in frozen_set)
+    model.to(dev)
+    classes = anchor_classes(card, len(model.anchors)).to(dev)
+    steps_per_epoch = math.ceil(len(train) / recipe.batch_size)
+    params, opt, sched = _adam_onecycle(model, recipe, steps_per_epoch * recipe.epochs)
+    rng = np.random.default_rng(recipe.seed)
+    torch.manual_seed(recipe.seed)
+    signature = _signature(card, data_root, recipe, validation, train, val)
+    report = TrainReport(card.name, run.path, "mAP3d", data=summary,
+                         options={**dataclasses.asdict(recipe), "device": device})
+    start, best = 1, None
+    if resume:
+        state = run.load_last(signature)
+        if state["epochs"] != recipe.epochs:
+            raise ConfigError(f"--resume: {run.last} was written for a {state['epochs']}-epoch schedule (the one-cycle "
+                              f"learning rate spans all epochs); resume with --epochs {state['epochs']}")
+        model.load_state_dict(state["model_state"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        restore_random_states(rng, state["random"])
+        report.epochs, report.best_epoch = state["history"], state["best_epoch"]
+        best = report.best["mAP3d"] if report.best is not None else None
+        start = state["epoch"] + 1
+        clock = Stopwatch(state["seconds"])
+        if start > recipe.epochs:
+            raise ConfigError(f"--resume: {run.last} already holds all {recipe.epochs} epochs")
+        log(f"resuming after epoch {state['epoch']} from {run.last}")
+    else:
+        clock = Stopwatch()
+        metrics = validation_ap(model, val, card, data_format, dev, progress)
+        report.epochs.append({"epoch": 0, "loss": float("nan"), **metrics, "seconds": round(clock(), 1)})
+        log(_epoch_line(report.epochs[-1], card.get("classes")) + "  (initial weights)")
+    for epoch in range(start, recipe.epochs + 1):
+        set_train_mode(model, frozen_set)
+        order = rng.permutation(len(train))
+        bar = progress(f"epoch {epoch}/{recipe.epochs}", len(order))
+        sums = {"loss": 0.0, "cls": 0.0, "loc": 0.0, "dir": 0.0}
+        counted = skipped = overflows = 0
+        for first in range(0, len(order), recipe.batch_size):
+            batch = order[first:first + recipe.batch_size]
+            opt.zero_grad()
+            used = 0
+            for i in batch:
+                scan = train[int(i)]
+                points, boxes = ((augment(scan.points, scan.boxes, xyz, recipe, rng)) if recipe.augment
+                                 else (scan.points, scan.boxes))
+                keep = boxes_in_range(boxes, pc_range)
+                bar.update()
+                if not keep.any():
+                    skipped += 1
+                    continue
+                targets = assign_targets(model.anchors, classes, torch.from_numpy(boxes[keep]).to(dev),
+                                         torch.from_numpy(scan.classes[keep]).to(dev), thresholds)
+                cls, box, direction, overflow = anchor_outputs(model, torch.from_numpy(points).to(dev))
+                overflows += int(overflow)
+                terms = head_loss(cls, box, direction, targets, model.head_config, model.dense_head.num_classes)
+                (terms["loss"] / len(batch)).backward()
+                for k in sums:
+                    sums[k] += float(terms[k].detach())
+                counted += 1
+                used += 1
+            if used:
+                torch.nn.utils.clip_grad_norm_(params, recipe.grad_clip)
+                opt.step()
+            sched.step()
+            bar.set_postfix(loss=f"{sums['loss'] / max(counted, 1):.4f}")
+        bar.close()
+        means = {k: v / max(counted, 1) for k, v in sums.items()}
+        if not math.isfinite(means["loss"]):
+            raise ConfigError(f"training diverged in epoch {epoch} (loss {means['loss']}); lower --lr "
+                              f"(now {recipe.lr:g})")
+        row = {"epoch": epoch, "loss": means["loss"], "loss_cls": means["cls"], "loss_loc": means["loc"],
+               "loss_dir": means["dir"], "lr": float(opt.param_groups[0]["lr"]), "skipped_scans": skipped,
+               "spa_overflows": overflows}
+        if epoch % recipe.val_every == 0 or epoch == recipe.epochs:
+            if recipe.bn_scans:
+                reestimate_norm_statistics(model, [train[i] for i in evenly(len(train), recipe.bn_scans)], frozen_set,
+                                           dev)
+            row.update(validation_ap(model, val, card, data_format, dev, progress))
+            if best is None or row["mAP3d"] > best:
+                best, report.best_epoch = row["mAP3d"], epoch
+                run.save_best(model, epoch, {k: v for k, v in row.items() if k.startswith(("AP", "mAP"))})
+        row["seconds"] = round(clock(), 1)
+        report.epochs.append(row)
+        report.seconds = clock()
+        run.save_last({"signature": signature, "epoch": epoch, "epochs": recipe.epochs,
+                       "model_state": model.state_dict(), "optimizer": opt.state_dict(),
+                       "scheduler": sched.state_dict(), "random": random_states(rng), "history": report.epochs,
+                       "best_epoch": report.best_epoch, "seconds": report.seconds})
+        run.write_log(report.to_dict())
+        log(_epoch_line(row, card.get("classes")) + ("  (best)" if report.best_epoch == epoch else ""))
+    report.seconds = clock()
+    run.write_log(report.to_dict())
+    model.eval()
+    return report

@@ -1,0 +1,175 @@
+"""radaredge train for MAFF-Net: upstream's recipe (radaredge.train.maffnet) learns, fine-tunes an
+upstream-format checkpoint key for key, freezes, resumes, and refuses what it cannot do."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from radaredge.cards import load_card
+from radaredge.models import create_model
+from radaredge.train import maffnet as tm
+from references.maffnet_upstream_keys import openpcdet_checkpoint, trained_like_state_dict
+from conftest import MAFFNET_TINY_CARD, invoke, one_error_line
+
+CARD = load_card(MAFFNET_TINY_CARD)
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory):
+    """A labelled synthetic VoD-layout set: 2 training drives of 20 frames, 1 validation drive."""
+    out = tmp_path_factory.mktemp("train-set") / "set"
+    res = invoke("make-benchmark", "--task", "detection", "--out", out, "--drives", 3, "--frames", 20, "--seed", 3)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def _train(labelled, out, *extra):
+    res = invoke("train", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--data", labelled,
+                 "--output", out, "--json", *extra)
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout)
+
+
+def test_training_lowers_the_loss_and_raises_validation_ap(labelled, tmp_path):
+    """60 steps of upstream's recipe on the tiny card (12 frames, no augmentation, AP measured on
+    the same frames): the loss falls, AP rises above the seeded network's, the best epoch's weights
+    are best.pth and export. (The tiny card sees 12.8 m; most labelled objects lie beyond it, so
+    its AP stays low: the test is that the loop learns, docs/models/maffnet.md what a card reaches.)"""
+    report = _train(labelled, tmp_path / "run", "--epochs", 10, "--batch-size", 2, "--lr", 0.003,
+                    "--set", "train_frames=12", "--validation", "train", "--set", "val_frames=12",
+                    "--set", "augment=false")
+    rows = report["epochs"]
+    assert [r["epoch"] for r in rows] == list(range(11))
+    assert rows[-1]["loss"] < 0.3 * rows[1]["loss"]
+    assert rows[0]["mAP3d"] < 1.0
+    best = max(r["mAP3d"] for r in rows[1:])
+    assert best > rows[0]["mAP3d"] + 5.0, [r["mAP3d"] for r in rows]
+    assert report["best_epoch"] == max(rows[1:], key=lambda r: r["mAP3d"])["epoch"]
+    state = torch.load(tmp_path / "run" / "best.pth", weights_only=True)
+    assert state["epoch"] == report["best_epoch"] and math.isclose(state["metrics"]["mAP3d"], best)
+    res = invoke("export", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--checkpoint",
+                 tmp_path / "run" / "best.pth", "--output", tmp_path / "t.onnx")
+    assert res.exit_code == 0, res.output
+
+
+def test_an_upstream_checkpoint_fine_tunes_key_for_key(labelled, tmp_path):
+    """maffnet-vod from an OpenPCDet checkpoint with upstream's keys (its stage two dropped by the
+    card's rule): one epoch moves every trained tensor a little from the checkpoint's value and
+    re-initialises none (the class bias keeps the checkpoint's, not the recipe's prior)."""
+    ckpt = trained_like_state_dict("vod", stage_two=True, seed=4)
+    torch.save(openpcdet_checkpoint(ckpt), tmp_path / "up.pth")
+    res = invoke("train", "--model", "maffnet-vod", "--data", labelled, "--output", tmp_path / "ft",
+                 "--checkpoint", tmp_path / "up.pth", "--epochs", 1, "--batch-size", 2, "--set", "train_frames=2",
+                 "--set", "val_frames=1", "--json")
+    assert res.exit_code == 0, res.output
+    after = torch.load(tmp_path / "ft" / "last.pth", weights_only=True)["model_state"]
+    model = create_model(load_card("maffnet-vod"))
+    assert set(after) == set(model.state_dict())
+    loaded = {k: v for k, v in ckpt.items() if k in after}
+    assert set(loaded) == set(after)                         # every tensor came from the checkpoint
+    params = {n for n, _ in model.named_parameters()}
+    moved = 0
+    for key, value in after.items():
+        if not value.is_floating_point():
+            continue
+        if key in params:                                    # two Adam steps: at most ~lr per element
+            diff = float((value - loaded[key]).abs().max())
+            assert diff < 0.05, f"{key} moved {diff} from the checkpoint: re-initialised?"
+            moved += diff > 0
+        elif value.numel() > 8:                              # running statistics: updated with momentum 0.01
+            corr = np.corrcoef(value.double().numpy().ravel(), loaded[key].double().numpy().ravel())[0, 1]
+            assert corr > 0.9, f"{key} no longer follows the checkpoint's values (correlation {corr:.2f})"
+    assert moved > 0.9 * len(params)
+
+
+def test_freeze_keeps_parameters_and_their_norm_statistics(labelled, tmp_path):
+    start = create_model(CARD).state_dict()
+    _train(labelled, tmp_path / "run", "--epochs", 1, "--set", "train_frames=4", "--set", "val_frames=2",
+           "--freeze", "vfe", "--freeze", "backbone_2d.blocks.*")
+    after = torch.load(tmp_path / "run" / "last.pth", weights_only=True)["model_state"]
+    for key, value in after.items():
+        same = torch.equal(value, start[key])
+        if key.startswith(("vfe.", "backbone_2d.blocks.")) and "num_batches" not in key:
+            assert same, key                                 # weights and running statistics alike
+        elif key in ("dense_head.conv_box.weight", "backbone_2d.deblocks.0.0.weight"):
+            assert not same, key
+
+
+def test_resume_continues_the_same_run(labelled, tmp_path):
+    """A run stopped after epoch 1 and resumed gives the weights and history of one uninterrupted run."""
+    import radaredge
+
+    opts = {"epochs": 2, "train_frames": 4, "val_frames": 2}
+    whole = radaredge.train(MAFFNET_TINY_CARD, labelled, tmp_path / "a", options=opts)
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_epoch_1(line):
+        if line.startswith("epoch   1"):
+            raise Stop
+
+    with pytest.raises(Stop):
+        radaredge.train(MAFFNET_TINY_CARD, labelled, tmp_path / "b", options=opts, log=stop_after_epoch_1)
+    assert torch.load(tmp_path / "b" / "last.pth", weights_only=True)["epoch"] == 1
+    resumed = radaredge.train(MAFFNET_TINY_CARD, labelled, tmp_path / "b", options=opts, resume=True)
+    a = torch.load(tmp_path / "a" / "last.pth", weights_only=True)["model_state"]
+    b = torch.load(tmp_path / "b" / "last.pth", weights_only=True)["model_state"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    def history(report):                                     # as text: the initial row's loss is NaN
+        return json.dumps([{k: v for k, v in r.items() if k != "seconds"} for r in report.epochs])
+    assert history(whole) == history(resumed)
+
+
+def test_augmentation_moves_points_and_boxes_together():
+    rng = np.random.default_rng(0)
+    recipe = tm.DetectionRecipe()
+    points = np.array([[10.0, 2.0, 0.5, 1, 2, 3, 0], [20.0, -3.0, 1.0, 1, 2, 3, 0]], np.float32)
+    boxes = np.array([[10.0, 2.0, 0.5, 4.0, 2.0, 1.5, 0.3], [20.0, -3.0, 1.0, 1.0, 0.6, 1.7, -2.9]], np.float32)
+    for _ in range(20):
+        p, b = tm.augment(points, boxes, [0, 1, 2], recipe, rng)
+        np.testing.assert_allclose(p[:, :3], b[:, :3], atol=1e-4)           # each point stays at its box centre
+        np.testing.assert_allclose(p[:, 3:], points[:, 3:])                  # speeds, rcs, time unchanged
+        ratio = b[:, 3:6] / boxes[:, 3:6]
+        assert np.allclose(ratio, ratio[0, 0]) and 0.95 <= ratio[0, 0] <= 1.05
+        assert np.all(b[:, 6] >= -np.pi) and np.all(b[:, 6] < np.pi)
+
+
+def test_boxes_in_range_keeps_a_box_with_one_corner_inside():
+    r = [0.0, -6.4, -3.0, 12.8, 6.4, 2.0]
+    boxes = np.array([[13.5, 0, 0, 4, 2, 1, 0], [16, 0, 0, 4, 2, 1, 0], [5, 0, 0, 4, 2, 1, 0]], np.float32)
+    assert tm.boxes_in_range(boxes, r).tolist() == [True, False, True]
+
+
+@pytest.mark.parametrize("extra, says", [
+    (("--freeze", "nope"), "--freeze 'nope' matches no parameter"),
+    (("--freeze", "*"), "freezes every parameter"),
+    (("--validation", "val", "--validation", "test"), "validates on one split"),
+    (("--validation", "nosuch"), "nosuch.txt: split file missing"),
+    (("--format", "transloc"), "--format transloc"),
+    (("--set", "epoch=3"), "unknown MAFF-Net training option"),
+    (("--set", "scale_min=1.2"), "scale_min (1.2) must not exceed scale_max"),
+    (("--radar-topic", "/r"), "--radar-topic describe ROS bag drives"),
+    (("--resume",), "--resume"),
+])
+def test_bad_options_are_one_error_line(labelled, tmp_path, extra, says):
+    res = invoke("train", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--data", labelled,
+                 "--output", tmp_path / "run", "--epochs", 1, *extra)
+    one_error_line(res, says)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_stage_two_card_is_refused_with_the_reason(labelled, tmp_path):
+    res = invoke("train", "--model", "maffnet-vod-full", "--data", labelled, "--output", tmp_path / "run")
+    one_error_line(res, "has a second stage", "maffnet-vod")
+
+
+def test_a_set_without_labels_of_the_card_is_an_error(tmp_path):
+    res = invoke("train", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--data", tmp_path,
+                 "--output", tmp_path / "run")
+    one_error_line(res, "no training/ folder")
