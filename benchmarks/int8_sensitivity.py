@@ -1,12 +1,13 @@
 """Which layers of a trained MAFF-Net does int8 hurt? Per-group sensitivity by detection AP.
 
-For a trained checkpoint and a labelled set: the fp32 graph's 3D AP per class on the split, then,
+For a trained checkpoint and a labelled set: the fp32 graph's 3D AP per class on the
+``--choose-split`` (default ``val``: the layers are chosen on it, never on the test split), then,
 for every group of quantisable layers (the VFE, SPA, CFA, CAF, each backbone block and deblock,
 the head), an int8 copy in which *only that group* is quantised (every other group listed under
 ``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
-Then the card's int8 copy (its own ``keep_fp32``) and, when it loses more than the budget, the
-copy that also keeps every group above ``--threshold`` in fp32 are scored with their speed
-against fp32 on the same frames. Writes ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
+Then, on ``--split`` (default ``test``), the card's int8 copy (its own ``keep_fp32``) and, when
+it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32,
+with their speed against fp32 on the same frames. Writes ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
 
     python benchmarks/int8_sensitivity.py --model maffnet-vod-edge --checkpoint runs/edge/best.pth \\
         --data bench-detection --split test
@@ -23,11 +24,16 @@ import sys
 import time
 from pathlib import Path
 
+import onnx
+import torch
+
 import radaredge
 from radaredge.bench.timing import cpu_name, pin_threads
 from radaredge.cards import load_card, parse_card
 from radaredge.data.kitti_detection import DetectionSet
 from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, card_points, evaluate_detection, layout_for_card
+from radaredge.errors import ConfigError
+from radaredge.export.quantize import fp32_node_names
 from radaredge.models import create_model
 from radaredge.runtime.session import make_session, run_session
 from radaredge import runtime
@@ -36,12 +42,21 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def layer_groups(model) -> list[str]:
-    """Module-name prefixes of the quantisable groups, in pipeline order."""
+    """Module-name prefixes of the groups with layers int8 quantises (Conv, Linear: the graph's
+    Conv / MatMul / Gemm; the deblocks' transposed convolutions stay fp32), in pipeline order."""
     groups = ["vfe", "map_to_bev_module", "image_backbone", "fuser"]
     groups += [f"backbone_2d.blocks.{i}" for i in range(len(model.backbone_2d.blocks))]
-    groups += [f"backbone_2d.deblocks.{i}" for i in range(len(model.backbone_2d.deblocks))]
     groups.append("dense_head")
-    return [g for g in groups if any(n.startswith(g + ".") for n, _ in model.named_parameters())]
+    quantised = [n for n, m in model.named_modules() if isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Linear))]
+    return [g for g in groups if any(n.startswith(g + ".") for n in quantised)]
+
+
+def _quantises(graph: onnx.ModelProto, group: str) -> bool:
+    """Whether the exported graph has a Conv / MatMul / Gemm node inside module ``group``."""
+    try:
+        return bool(fp32_node_names(graph, [group]))
+    except ConfigError:
+        return False
 
 
 def with_keep(card, keep: list[str]):
@@ -85,7 +100,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", required=True)
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--split", default="test")
+    ap.add_argument("--split", default="test", help="The split the results are reported on.")
+    ap.add_argument("--choose-split", default="val", help="The split the sensitive groups are chosen on.")
     ap.add_argument("--threshold", type=float, default=0.5, help="AP points a group may cost before it stays fp32.")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--work", type=Path, default=ROOT / "export" / "int8-sensitivity")
@@ -95,20 +111,28 @@ def main(argv=None) -> int:
     card = load_card(args.model)
     groups = layer_groups(create_model(card))
     args.work.mkdir(parents=True, exist_ok=True)
-    fp32_ap, card_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.split)
-    print(f"fp32 {fp32_ap}\ncard's int8 {card_int8}", flush=True)
+    choose_fp32, _ = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.choose_split)
+    graph = onnx.load(str(args.work / f"{card.name}.onnx"), load_external_data=False)
+    groups = [g for g in groups if _quantises(graph, g)]
     rows = []
+    _, int8 = score(with_keep(card, groups), args.checkpoint, args.work / "no-group.onnx", args.data, args.choose_split)
+    loss = {c: choose_fp32[c] - int8[c] for c in choose_fp32}
+    rows.append({"group": "(none: every group fp32)", "int8_ap": int8, "loss": loss, "worst_loss": max(loss.values())})
+    print(f"every group fp32: int8 loses {', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
     for g in groups:
         only = with_keep(card, [x for x in groups if x != g])
-        _, int8 = score(only, args.checkpoint, args.work / f"only-{g}.onnx", args.data, args.split)
-        loss = {c: fp32_ap[c] - int8[c] for c in fp32_ap}
+        _, int8 = score(only, args.checkpoint, args.work / f"only-{g}.onnx", args.data, args.choose_split)
+        loss = {c: choose_fp32[c] - int8[c] for c in choose_fp32}
         rows.append({"group": g, "int8_ap": int8, "loss": loss, "worst_loss": max(loss.values())})
         print(f"only {g:<24} int8 loses {', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
+    fp32_ap, card_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.split)
+    print(f"{args.split}: fp32 {fp32_ap}\ncard's int8 {card_int8}", flush=True)
     result = {"model": card.name, "checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split,
+              "choose_split": args.choose_split, "choose_fp32_ap": choose_fp32,
               "budget_ap_points": INT8_AP_BUDGET, "threshold": args.threshold, "fp32_ap": fp32_ap,
               "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
               "groups": rows}
-    sensitive = [r["group"] for r in rows if r["worst_loss"] > args.threshold]
+    sensitive = [r["group"] for r in rows[1:] if r["worst_loss"] > args.threshold]
     the_set = DetectionSet(args.data, args.split, layout_for_card(card), int(card.get("input.scans_accumulated", 1)))
     step = max(1, len(the_set) // 12)
     points = [card_points(the_set.frame(i, card.features), card) for i in range(0, len(the_set), step)]

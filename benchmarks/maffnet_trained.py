@@ -97,18 +97,18 @@ def bench_trained(model: str, checkpoint: Path, data: Path, split: str, frames: 
         if name == "int8":                 # quantised nodes lose their module scopes: no stage split
             continue
         model_proto = onnx.load(str(path), load_external_data=False)
-        passes = [stage_times_from_profile(profile_runs(path, cases, threads, len(cases)), model_proto,
-                                           list(spec.onnx_stages), spec.onnx_post_outputs, len(cases))
-                  for _ in range(rounds)]
-        stages[name] = {k: statistics.median(p.get(k, 0.0) for p in passes)
-                        for k in dict.fromkeys(k for p in passes for k in p)}
+        profiled = [stage_times_from_profile(profile_runs(path, cases, threads, len(cases)), model_proto,
+                                             list(spec.onnx_stages), spec.onnx_post_outputs, len(cases))
+                    for _ in range(rounds)]
+        stages[name] = {k: statistics.median(p.get(k, 0.0) for p in profiled)
+                        for k in dict.fromkeys(k for p in profiled for k in p)}
     rows = []
     for name in graphs:
         r = results[name]
-        split = stages.get(name, {})
-        total = sum(split.values())
-        rows.append({"graph": name, "p50_ms": r.p50_ms, "p90_ms": r.p90_ms, "fps": r.fps, "stage_ms": split,
-                     "nms_share": split.get("NMS", 0.0) / total if total else None,
+        per_stage = stages.get(name, {})
+        total = sum(per_stage.values())
+        rows.append({"graph": name, "p50_ms": r.p50_ms, "p90_ms": r.p90_ms, "fps": r.fps, "stage_ms": per_stage,
+                     "nms_share": per_stage.get("NMS", 0.0) / total if total else None,
                      "candidates_median": float(np.median(counts[name]["candidates"])),
                      "candidates_max": int(max(counts[name]["candidates"])),
                      "detections_median": float(np.median(counts[name]["detections"]))})

@@ -418,7 +418,7 @@ def maffnet_training_section(r: Result, results_dir: Path) -> list[str]:
            f"{data.get('validation_frames', '?')} frames of `{data.get('validation_split', '?')}`. Training took "
            f"{_num((d.get('train_seconds') or 0) / 60)} min. JSON: {_link(r, results_dir)}.", ""]
     classes = [k[len("AP3d_"):] for k in train["epochs"][0] if k.startswith("AP3d_")]
-    rows = [[str(e["epoch"]), "-" if e["loss"] != e["loss"] else f"{e['loss']:.3f}",
+    rows = [[str(e["epoch"]), "-" if e["loss"] is None or e["loss"] != e["loss"] else f"{e['loss']:.3f}",
              *(_num(e.get(f"AP3d_{c}")) for c in classes), _num(e.get("mAP3d")), _num(e["seconds"] / 60),
              "best" if e["epoch"] == train.get("best_epoch") else ""] for e in train["epochs"]]
     out += _table(["epoch", "loss", *(f"val 3D AP {c}" for c in classes), "val mAP", "min", ""], rows,
