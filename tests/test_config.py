@@ -49,7 +49,7 @@ def test_every_numeric_field_declares_a_range(cls):
 def test_defaults_lie_in_their_ranges(cls):
     for f in dataclasses.fields(cls):
         rng = field_range(cls, f.name)
-        if rng is None or f.default is dataclasses.MISSING:
+        if rng is None or f.default is dataclasses.MISSING or f.default is None:   # None: unset, optional
             continue
         values = list(_flat(f.default)) if isinstance(f.default, tuple) else [f.default]
         assert all(v in rng for v in values), f"{cls.__name__}.{f.name} = {f.default} outside {rng}"
