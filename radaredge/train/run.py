@@ -195,7 +195,7 @@ class TrainReport:
         bests = []
         for stage in dict.fromkeys(e.get("stage") for e in self.epochs):      # rows of a staged recipe by stage
             rows = [e for e in self.epochs if e.get("stage") == stage]
-            keys = [k for k in rows[0] if k not in ("stage", "epoch", "seconds")]
+            keys = [k for k in dict.fromkeys(k for e in rows for k in e) if k not in ("stage", "epoch", "seconds")]
             best, metric = (self.stage_best.get(stage), None) if stage else (self.best_epoch, self.metric)
             if stage:
                 out.append(f"stage {stage}:")
@@ -203,7 +203,7 @@ class TrainReport:
             out.append(f"{'epoch':>5}" + "".join(f"{k:>{w}}" for k, w in zip(keys, width)))
             for e in rows:
                 mark = "  *" if e["epoch"] == best else ""
-                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e[k]):>{w}}" for k, w in zip(keys, width)) + mark)
+                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e.get(k, '-')):>{w}}" for k, w in zip(keys, width)) + mark)
                 if mark:
                     metric = metric or keys[1]
                     bests.append(f"{stage + ' ' if stage else ''}epoch {best} ({metric} {_fmt(e[metric])})")
