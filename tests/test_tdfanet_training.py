@@ -241,7 +241,8 @@ def test_ablation_switches_export_with_parity(switch, tmp_path):
 
 def _train(town, out, epochs, *extra):
     return invoke("train", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--data", town, "--output", out,
-                  "--epochs", epochs, "--set", "negatives=6", "--set", "hard_negatives=3", *extra)
+                  "--epochs", epochs, "--set", "negatives=6", "--set", "hard_negatives=3", "--set", "tuples_per_epoch=12",
+                  *extra)
 
 
 def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_path):
@@ -255,6 +256,7 @@ def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_pat
     log_b = json.loads(straight.stdout)
     untimed = lambda log: [{k: v for k, v in e.items() if k != "seconds"} for e in log["epochs"]]  # noqa: E731
     assert [e["epoch"] for e in log_a["epochs"]] == [0, 1, 2] and untimed(log_a) == untimed(log_b)
+    assert log_b["data"]["queries_per_epoch"] == 12 < log_b["data"]["training_windows"]
     a = torch.load(tmp_path / "a" / "last.pth", weights_only=True)["model_state"]
     b = torch.load(tmp_path / "b" / "last.pth", weights_only=True)["model_state"]
     assert all(torch.equal(a[k], b[k]) for k in a)

@@ -65,7 +65,8 @@ BATCH_NORMS = ("frozen", "window")
 @card_ranges(epochs=(1, 10_000), batch_size=(1, 1024), lr=positive(1.0), lr_decay=Range(0.0, 1.0, True),
              positives=(1, 64), negatives=(1, 256), hard_negatives=(0, 256), hard_pool=(1, 10**7),
              hard_from_epoch=(1, 10_000), alpha=(0.0, 10.0), beta=(0.0, 10.0), positive_radius=positive(1e4),
-             negative_radius=positive(1e4), seed=(0, 2**32 - 1), weight_decay=(0.0, 1.0), norm_windows=(1, 10**6))
+             negative_radius=positive(1e4), seed=(0, 2**32 - 1), weight_decay=(0.0, 1.0), norm_windows=(1, 10**6),
+             tuples_per_epoch=(0, 10**7))
 @dataclass(frozen=True)
 class PlaceRecipe:
     """The options of TDFANet training (module docstring); defaults are the paper's where it
@@ -86,6 +87,7 @@ class PlaceRecipe:
     second_term: str = "paper"      # eq. 10 as printed, or "pointnetvlad" (see losses.py)
     batch_norm: str = "frozen"      # "frozen": statistics estimated once, then fixed; "window": batch statistics
     norm_windows: int = 200         # training windows the frozen statistics are estimated on
+    tuples_per_epoch: int = 0       # ours: 0 = every training window once an epoch; N: N of them, drawn anew
     positive_radius: float = 5.0    # m (paper)
     negative_radius: float = 10.0   # m (paper)
     seed: int = 0
@@ -302,7 +304,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
                        recipe.negative_radius, recipe.hard_pool)
     summary = {"root": str(data_root), "drives": len(data.names), "windows": len(data),
                "training_windows": int((~data.validation).sum()), "validation_windows": int(data.validation.sum()),
-               "queries_per_epoch": len(miner.queries),
+               "queries_per_epoch": min(len(miner.queries), recipe.tuples_per_epoch or len(miner.queries)),
                "validation_drives": sorted({data.names[r] for r in data.drive[data.validation]})}
     log(f"data: {summary['drives']} drives, {summary['windows']} windows of K = {model.frames} "
         f"({summary['training_windows']} training, {summary['validation_windows']} validation); "
@@ -348,7 +350,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         log(_epoch_line(report.epochs[-1]))
     for epoch in range(start, recipe.epochs + 1):
         miner.set_descriptors(descriptors if epoch >= recipe.hard_from_epoch else None)
-        queries = rng.permutation(miner.queries)
+        queries = rng.permutation(miner.queries)[:recipe.tuples_per_epoch or None]
         set_train_mode(model, recipe)
         bar = progress(f"epoch {epoch}/{recipe.epochs}", len(queries))
         losses = []
