@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     towns, held, run, graphs = work / "towns", work / "heldout-town", work / "run", work / "graphs"
     t0 = time.perf_counter()
     if not towns.exists():
-        make_pr_towns(towns, args.towns, args.drives, args.frames, seed=1)
+        make_pr_towns(towns, args.towns, 1, lambda path, seed: make_pr_benchmark(path, args.drives, args.frames, seed))
     if not held.exists():
         make_pr_benchmark(held, seed=0)
     t_data = time.perf_counter() - t0

@@ -336,16 +336,22 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 @click.option("--dataset", type=click.Choice(["vod", "tj4d"]),
               help="Detection: the layout to write, View-of-Delft's (radar/ + radar_5frames/) or TJ4DRadSet's  "
                    "[default: vod]")
+@click.option("--layout", type=click.Choice(["street", "network"]), default="street", show_default=True,
+              help="Places: one street about 60 m long, or a town of streets and junctions driven along routes "
+                   "(--route-km) with loops, turns, both lanes and both directions.")
+@click.option("--route-km", type=click.FloatRange(0.2, 50.0),
+              help="Places, network layout: the database day's route length; each query day drives half of it  "
+                   "[default: 2.2].")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, as_json):
+def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, route_km, as_json):
     """Write a synthetic benchmark. places: one town (static world) driven on several days with
     other traffic, ego speed and heading offset, and some parked cars moved. detection: labelled
     View-of-Delft-layout frames (single and 5-frame scans, label_2, calib, ImageSets) of cars,
     pedestrians and cyclists, moving and parked, occluding each other."""
     if task == "detection":
-        if towns != 1:
-            raise ConfigError("--towns is for --task places")
+        if towns != 1 or layout != "street" or route_km is not None:
+            raise ConfigError("--towns, --layout and --route-km are for --task places")
         # lazy: the scene generator is loaded only by the command that runs it
         from .data.detection_benchmark import make_detection_benchmark
         result = make_detection_benchmark(out_dir, drives or 10, frames or 40, seed, progress=_progress("drives"),
@@ -361,26 +367,44 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, as_json)
         return
     if dataset is not None:
         raise ConfigError("--dataset is for --task detection")
-    drives, frames = drives or 3, frames or 60
+    drives = drives or 3
     if drives > 64:
         raise ConfigError(f"--drives {drives}: a places benchmark has at most 64 drives")
     # lazy: the scene generator is loaded only by the command that runs it
-    from .data.pr_benchmark import make_pr_benchmark, make_pr_towns
-    if towns == 1:
-        plans = {"": make_pr_benchmark(out_dir, drives, frames, seed, progress=_progress("drives"))}
+    from .data.pr_benchmark import make_pr_benchmark, make_pr_towns, make_route_benchmark
+    from .eval.recall_stats import chance_of_benchmark
+    if layout == "network":
+        route_km = route_km or 2.2
+        if frames is not None:
+            raise ConfigError("--frames is for --layout street; a network drive's scans follow from --route-km")
+        def make(path, town_seed):
+            return make_route_benchmark(path, drives, route_km * 1000.0, town_seed, progress=_progress("drives"))
     else:
-        plans = make_pr_towns(out_dir, towns, drives, frames, seed, progress=_progress("drives"))
-    plan = [d for ds in plans.values() for d in ds]
+        if route_km is not None:
+            raise ConfigError("--route-km is for --layout network")
+        frames = frames or 60
+        def make(path, town_seed):
+            return make_pr_benchmark(path, drives, frames, town_seed, progress=_progress("drives"))
+    plans = {"": make(Path(out_dir), seed)} if towns == 1 else make_pr_towns(out_dir, towns, seed, make)
     rows = [{"drive": str(Path(out_dir) / town / d.subdir), "role": d.role, "frames": d.frames,
-             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change}
+             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change,
+             **({"lane_m": d.drive.lane, "against_database": d.against} if layout == "network" else {})}
             for town, ds in plans.items() for d in ds]
+    chance = {town or ".": chance_of_benchmark(Path(out_dir) / town) for town in plans}
     if as_json:
-        click.echo(atomic.dumps({"out": str(out_dir), "seed": seed, "towns": towns, "drives": rows}))
+        click.echo(atomic.dumps({"out": str(out_dir), "seed": seed, "towns": towns, "layout": layout, "drives": rows,
+                                 "chance_recall": chance}))
         return
-    click.echo(f"wrote {len(plan)} drives of {frames} scans ({towns} town(s), seed {seed}) to {out_dir}:")
+    click.echo(f"wrote {len(rows)} drives ({towns} town(s), {layout} layout, seed {seed}) to {out_dir}:")
     for r in rows:
-        click.echo(f"  {r['drive']:<40}{r['role']:<10}{r['speed_m_s']:5.1f} m/s, parked cars changed "
-                   f"{r['parked_change'] * 100:.0f} %")
+        route = (f", lane {r['lane_m']:+.2f} m, {r['against_database'] * 100:.0f} % against the database's direction"
+                 if "lane_m" in r else "")
+        click.echo(f"  {r['drive']:<40}{r['role']:<10}{r['frames']:>6} scans {r['speed_m_s']:5.1f} m/s, parked cars "
+                   f"changed {r['parked_change'] * 100:.0f} %{route}")
+    for town, by_radius in chance.items():
+        click.echo(f"  chance Recall@1 ({town}): " + ", ".join(
+            f"{v['recall_at_1']:.2f} % at {r} m ({v['database_within']:.1f} database scans within it per query)"
+            for r, v in by_radius.items()))
 
 
 @main.command("eval")

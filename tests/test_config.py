@@ -15,6 +15,7 @@ from radaredge.models.maffnet.model import AnchorClass, BackboneConfig, HeadConf
 from radaredge.models.maffnet.fuser import CafConfig
 from radaredge.models.maffnet.rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
 from radaredge.models.tdfanet.model import TDFANetConfig
+from radaredge.data.road_network import NetworkConfig
 from radaredge.ops.dbscan import DbscanConfig
 from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.grid_density import GridDensityConfig
@@ -23,7 +24,7 @@ from radaredge.ops.pillars import PillarConfig
 
 SECTIONS = [PillarConfig, DbscanConfig, GridDensityConfig, RansacConfig, NmsConfig, SpaConfig, InputConfig,
             BackboneConfig, AnchorClass, HeadConfig, CafConfig, TDFANetConfig, ProposalConfig, KeypointConfig,
-            SAConfig, VsaConfig, RoiHeadConfig, SubmapConfig, FineConfig, CellConfig, TextConfig]
+            SAConfig, VsaConfig, RoiHeadConfig, SubmapConfig, FineConfig, CellConfig, TextConfig, NetworkConfig]
 
 
 def _numeric(f: dataclasses.Field) -> bool:

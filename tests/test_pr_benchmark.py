@@ -114,7 +114,10 @@ def test_eval_on_the_benchmark_agrees_with_the_reference(tiny_export, small_benc
     assert plot_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert report["database"]["windows"] == 18 and report["queries"]["windows"] == 36
     assert report["evaluated"] + report["skipped"] == 36 and report["evaluated"] > 30
-    assert set(report["recall"]) == {"onnxruntime", "torch_reference"}
+    assert set(report["recall"]) == {"onnxruntime", "torch_reference", "polar_occupancy"}
+    low, high = report["recall_interval_95"]["onnxruntime"]["1"]
+    assert low <= report["recall"]["onnxruntime"]["1"] <= high
+    assert "no learning" in res.output and "95 % interval" in res.output
     assert set(report["recall"]["onnxruntime"]) == {"1", "5", "10"}
     assert len(report["recall_curve"]["onnxruntime"]) == 25
     assert report["top1_agreement"] >= 0.995
@@ -130,7 +133,7 @@ def test_eval_json_without_reference(tiny_export, small_benchmark):
                  "--json")
     assert res.exit_code == 0, res.output
     report = json.loads(res.stdout)
-    assert set(report["recall"]) == {"onnxruntime"} and report["top1_agreement"] is None
+    assert set(report["recall"]) == {"onnxruntime", "polar_occupancy"} and report["top1_agreement"] is None
     assert report["top1_place_agreement"] is None
     assert report["queries"]["drives"] == {"drive-02": 18}
 

@@ -330,6 +330,10 @@ class _Road:
     curvature: float
     grade: float
 
+    def curvature_at(self, s) -> float:
+        """Curvature (1/m, positive turns left) at arc length ``s`` (m): constant."""
+        return self.curvature
+
     def heading(self, s) -> np.ndarray:
         """World yaw (rad) of the road at arc length ``s`` (m)."""
         return self.curvature * np.asarray(s, dtype=float)
@@ -371,9 +375,9 @@ class _Ego:
         """Yaw (rad) of the radar relative to the road heading, which makes v_y = ``lateral``."""
         return -math.asin(self.lateral / self.speed) if self.speed > 0 else 0.0
 
-    @property
-    def yaw_rate(self) -> float:
-        return self.road.curvature * self.speed
+    def yaw_rate_at(self, t: float) -> float:
+        """Yaw rate (rad/s, positive = turning left) of the radar at time ``t`` (s)."""
+        return float(self.road.curvature_at(self.speed * t)) * self.speed
 
     def velocity(self) -> np.ndarray:
         """Radar velocity w.r.t. the world in the radar frame, m/s [3] (constant)."""
@@ -587,11 +591,11 @@ def _change_parking(rng: np.random.Generator, cars: _Boxes, reflectors: _Reflect
                         row[owner]))
 
 
-def _build_segment(config: SceneConfig, road: _Road, index: int) -> tuple[_Reflectors, _Boxes]:
-    """Static reflectors and parked cars of road segment ``index`` (s in [20 index, 20 index + 20) m);
-    the parking of this drive (``parked_change``) from the stream of ``seed``."""
+def _build_segment(config: SceneConfig, road: _Road, index: int, s0: float) -> tuple[_Reflectors, _Boxes]:
+    """Static reflectors and parked cars of the road segment s in [``s0``, ``s0`` + 20) m of
+    ``road``, drawn from the world's stream ``index``; the parking of this drive
+    (``parked_change``) from the stream of ``seed``."""
     rng = _rng(config.static_seed, _STREAM_WORLD, index)
-    s0 = index * _SEGMENT
     surfaces, parked = [_road_clutter(rng, s0)], []
     for side in (-1.0, 1.0):
         facade = rng.uniform(*_FACADE) if rng.random() < 0.7 else None
@@ -626,11 +630,16 @@ class _StaticWorld:
         indices = range(math.floor(s_low / _SEGMENT), math.floor(s_high / _SEGMENT) + 1)
         for i in indices:
             if i not in self._segments:
-                self._segments[i] = _build_segment(self._config, self._road, i)
+                self._segments[i] = _build_segment(self._config, self._road, i, i * _SEGMENT)
         segments = [self._segments[i] for i in indices]
         offsets = np.cumsum([0] + [len(cars) for _, cars in segments[:-1]])
         return (_Reflectors.concat([r for r, _ in segments], offsets),
                 _Boxes.concat([cars for _, cars in segments]))
+
+    def visible(self, s_ego: float, position: np.ndarray) -> tuple[_Reflectors, _Boxes]:
+        """Reflectors and parked cars a radar at arc length ``s_ego`` (m) may see: one segment
+        behind it to twice the maximum range ahead (``position`` is not needed on one street)."""
+        return self.between(s_ego - _SEGMENT, s_ego + 2 * self._config.max_range)
 
 
 @dataclass(frozen=True)
@@ -795,7 +804,7 @@ def _synthesize(scene: _Scene, k: int) -> RadarScan:
     rng = _rng(config.seed, _STREAM_FRAME, k)
     t = k / config.frame_rate
     pose, v_ego, s_ego = ego.pose(t), ego.velocity(), ego.speed * t
-    reflectors, parked = scene.world.between(s_ego - _SEGMENT, s_ego + 2 * config.max_range)
+    reflectors, parked = scene.world.visible(s_ego, pose[:3, 3])
     movers = scene.traffic.at(ego.road, ego.speed, t)
     objects = _Boxes.concat([parked, movers])
 
@@ -813,7 +822,7 @@ def _synthesize(scene: _Scene, k: int) -> RadarScan:
     order = rng.permutation(np.flatnonzero(_in_fov(points[:, :3], config)))
     box_fields, object_index = _radar_boxes(config, objects, pose, object_index[order], len(parked))
     return RadarScan(points=points[order].astype(np.float32).reshape(-1, len(COLUMNS)), dynamic=dynamic[order],
-                     ghost=ghost[order], object_index=object_index, ego_velocity=v_ego, yaw_rate=ego.yaw_rate,
+                     ghost=ghost[order], object_index=object_index, ego_velocity=v_ego, yaw_rate=ego.yaw_rate_at(t),
                      pose=pose, timestamp=t, **box_fields)
 
 

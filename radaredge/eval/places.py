@@ -44,12 +44,14 @@ from ..errors import ConfigError, InputError
 from ..export.graphs import require_same_weights
 from ..models import create_model
 from .. import runtime
+from .baselines import polar_occupancy
+from .recall_stats import bootstrap_interval
 import torch
 
 RECALL_NS = (1, 5, 10)
 CURVE_NS = tuple(range(1, 26))
-ONNX, REFERENCE = "onnxruntime", "torch_reference"
-BACKEND_LABELS = {ONNX: "onnxruntime", REFERENCE: "torch reference"}
+ONNX, REFERENCE, BASELINE = "onnxruntime", "torch_reference", "polar_occupancy"
+BACKEND_LABELS = {ONNX: "onnxruntime", REFERENCE: "torch reference", BASELINE: "no learning"}
 
 # ----------------------------------------------------------------------------- Recall@N
 
@@ -127,7 +129,8 @@ def recall_at_n(query_desc, query_pos, db_desc, db_pos, ns: Sequence[int] = RECA
     :func:`nearest_neighbours` with ``index`` / ``use_faiss``.
 
     Returns a dict: ``recall`` {N: percent of the evaluated queries}, ``evaluated`` and
-    ``skipped`` (queries without a database entry within ``radius``), ``radius``, and per query
+    ``skipped`` (queries without a database entry within ``radius``), ``radius``, ``hits`` bool
+    [evaluated, k] (a true positive within the top n + 1), and per query
     ``evaluated_mask`` bool [Q], ``ranked`` int64 [Q, k] (database rows, nearest first),
     ``top1`` int64 [Q], ``top1_distance`` float64 [Q] (m, ground truth between the query and its
     top-1) and ``top1_correct`` bool [Q] (``top1_distance`` <= ``radius``).
@@ -157,7 +160,7 @@ def recall_of_ranking(ranked: np.ndarray, query_pos, db_pos, ns: Sequence[int] =
     found = np.logical_or.accumulate(distance <= radius, axis=1)[evaluated]           # hit within the top n
     recall = {n: 100.0 * float(found[:, min(n, ranked.shape[1]) - 1].mean()) for n in ns}
     return {"recall": recall, "evaluated": int(evaluated.sum()), "skipped": int((~evaluated).sum()),
-            "radius": radius, "evaluated_mask": evaluated, "ranked": ranked, "top1": ranked[:, 0],
+            "radius": radius, "hits": found, "evaluated_mask": evaluated, "ranked": ranked, "top1": ranked[:, 0],
             "top1_distance": distance[:, 0], "top1_correct": distance[:, 0] <= radius}
 
 
@@ -331,6 +334,13 @@ def reference_backend(net) -> Backend:
     return describe
 
 
+def baseline_backend(features: Sequence[str]) -> Backend:
+    """The no-learning :func:`radaredge.eval.baselines.polar_occupancy` descriptor of a window
+    whose scans have the columns ``features``."""
+    x, y = features.index("x"), features.index("y")
+    return lambda frames, timestamps: polar_occupancy(frames, x, y)
+
+
 def check_export(card: ModelCard, exported) -> None:
     """ConfigError unless the exported graph (a :class:`radaredge.runtime.RadarModel`) was made
     from ``card``: the same name, frame count and feature columns."""
@@ -360,6 +370,12 @@ class EvalReport:
         """Recall@N in percent of ``backend`` for each N of ``ns`` (within ``CURVE_NS``)."""
         return {n: self.results[backend]["recall"][n] for n in ns}
 
+    def interval(self, backend: str, ns: Sequence[int] = RECALL_NS) -> dict[int, tuple[float, float]]:
+        """95 % bootstrap interval over queries (percent) of ``backend``'s Recall@N for each N of
+        ``ns`` (:func:`radaredge.eval.recall_stats.bootstrap_interval`)."""
+        hits = self.results[backend]["hits"]
+        return {n: bootstrap_interval(hits[:, min(n, hits.shape[1]) - 1]) for n in ns}
+
     @property
     def evaluated(self) -> int:
         return next(iter(self.results.values()))["evaluated"]
@@ -387,6 +403,8 @@ class EvalReport:
             "frames_per_window": self.database.k, "database": side(self.database), "queries": side(self.queries),
             "evaluated": self.evaluated, "skipped": self.skipped,
             "recall": {name: {str(n): r for n, r in self.recall(name).items()} for name in self.results},
+            "recall_interval_95": {name: {str(n): list(ci) for n, ci in self.interval(name).items()}
+                                   for name in self.results},
             "recall_curve": {name: [self.results[name]["recall"][n] for n in CURVE_NS] for name in self.results},
             "top1_agreement": self.agreement,
             "top1_place_agreement": self.place_agreement,
@@ -403,9 +421,11 @@ class EvalReport:
                      f"{self.radius:g} m")
         lines.append(f"{self.evaluated} queries evaluated, {self.skipped} skipped (no database window within "
                      f"{self.radius:g} m)")
-        lines.append(f"{'backend':<18}" + "".join(f"{f'R@{n}':>9}" for n in RECALL_NS))
+        lines.append(f"{'backend':<18}" + "".join(f"{f'R@{n} [95 % interval]':>24}" for n in RECALL_NS))
         for name in self.results:
-            lines.append(f"{BACKEND_LABELS[name]:<18}" + "".join(f"{r:>9.2f}" for r in self.recall(name).values()))
+            cells = (f"{r:.2f} [{lo:.1f}, {hi:.1f}]" for r, (lo, hi) in zip(self.recall(name).values(),
+                                                                          self.interval(name).values()))
+            lines.append(f"{BACKEND_LABELS[name]:<18}" + "".join(f"{c:>24}" for c in cells))
         if self.agreement is not None:
             lines.append(f"top-1 agreement {BACKEND_LABELS[ONNX]} vs {BACKEND_LABELS[REFERENCE]}: "
                          f"{self.agreement * 100:.1f} % of {len(q)} queries the same window, "
@@ -455,16 +475,19 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
              queries: str | os.PathLike, checkpoint: str | os.PathLike | None = None, radius: float = 5.0,
              reference: bool = True, progress: Callable[[str], Callable] | None = None,
              map_dir: str | os.PathLike | None = None) -> EvalReport:
-    """Recall@N of the exported ``onnx_path`` (onnxruntime) and, with ``reference``, of the
-    card's torch reference formulation (``checkpoint`` or the seeded initialisation) over the
-    K-frame windows of the ``queries`` drive(s) against those of the ``database`` drive(s), each
-    searched in an exact-L2 FAISS index; plus their top-1 agreement, by window and by place
+    """Recall@N of the exported ``onnx_path`` (onnxruntime), with ``reference`` of the card's
+    torch reference formulation (``checkpoint`` or the seeded initialisation), and of the
+    no-learning :func:`radaredge.eval.baselines.polar_occupancy` descriptor of the same points,
+    over the K-frame windows of the ``queries`` drive(s) against those of the ``database``
+    drive(s), each searched in an exact-L2 FAISS index; plus the top-1 agreement of the graph
+    and the reference, by window and by place
     (top-1 windows within ``radius`` m of each other). ``progress(desc)`` returns
     a wrapper for the window loops (a progress bar).
 
     ``map_dir`` instead of ``database``: the windows of a place map (``radaredge map build``) with
     the descriptors it holds, searched exactly; the map's graph must be ``onnx_path``'s weights,
-    and the torch reference is not run (the map holds the graph's descriptors only)."""
+    and neither the torch reference nor the baseline is run (the map holds the graph's
+    descriptors only)."""
 
     radius = _check_radius(radius)
     exported = runtime.load(onnx_path)
@@ -486,6 +509,8 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
         net = create_model(card, checkpoint)
         require_same_weights(exported, net, checkpoint)
         backends[REFERENCE] = reference_backend(net)
+    if map_dir is None:
+        backends[BASELINE] = baseline_backend(exported.features)
     wrap = progress or (lambda desc: iter)
     results = {}
     # One backend after the other: onnxruntime's worker threads spin after each run, which slows
