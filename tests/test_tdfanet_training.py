@@ -89,6 +89,23 @@ def test_tuples_follow_the_radii(card, town):
         assert not any(data.validation[[t.query, *t.positives, *t.negatives, t.other_negative]])
 
 
+def test_the_hardest_other_negative_is_the_nearest_descriptor_among_the_far_windows(card, town):
+    data = load_place_windows(town, 3)
+    desc = np.random.default_rng(1).normal(size=(len(data), 8))
+    hardest = TupleMiner(data, positives=2, negatives=6, hard=3, hard_pool=10**6, other_negative="hardest")
+    hardest.set_descriptors(desc)
+    train = np.flatnonzero(~data.validation)
+    for q in hardest.queries[::15]:
+        t = hardest.tuple_for(int(q), np.random.default_rng(0))
+        far = [i for i in train if data.distances(t.query)[i] > 10.0
+               and all(np.linalg.norm(data.positions[i] - data.positions[n]) > 10.0 for n in t.negatives)]
+        if far:
+            gap = np.linalg.norm(desc[far] - desc[t.query], axis=1)
+            assert t.other_negative == far[int(np.argmin(gap))]
+    with pytest.raises(ValueError, match="other_negative"):
+        TupleMiner(data, positives=2, negatives=6, hard=3, other_negative="nearest")
+
+
 # ----------------------------------------------------------------------------- train mode
 
 
@@ -268,6 +285,27 @@ def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_pat
     assert par.exit_code == 0, par.output
     again = _train(town, tmp_path / "a", 2, "--resume")
     assert again.exit_code == 2 and "already holds epoch 2" in again.output
+
+
+def test_reestimated_norm_statistics_follow_the_trained_weights(card, town, tmp_path):
+    """batch_norm: reestimate trains epoch 1 exactly as frozen does, then re-estimates the
+    statistics from the trained weights: frozen's weights with statistics re-estimated by hand."""
+    recipe = dict(epochs=1, negatives=6, hard_negatives=3, tuples_per_epoch=10, norm_windows=20)
+    runs = {}
+    for mode in ("frozen", "reestimate"):
+        T.train_places(card, create_model(card), town, tmp_path / mode, T.PlaceRecipe(batch_norm=mode, **recipe))
+        runs[mode] = torch.load(tmp_path / mode / "last.pth", weights_only=True)["model_state"]
+    stats = [k for k in runs["frozen"] if k.endswith(("running_mean", "running_var"))]
+    weights = [k for k in runs["frozen"] if k not in stats and not k.endswith("num_batches_tracked")]
+    assert stats and all(torch.equal(runs["frozen"][k], runs["reestimate"][k]) for k in weights)
+    assert not all(torch.equal(runs["frozen"][k], runs["reestimate"][k]) for k in stats)
+    by_hand = create_model(card)
+    by_hand.load_state_dict(runs["frozen"])
+    data = load_place_windows(town, by_hand.frames)
+    rows = np.sort(np.random.default_rng(0).choice(np.flatnonzero(~data.validation), 20, replace=False))
+    T.estimate_norm_statistics(by_hand, T.prepare_windows(by_hand, data, torch.device("cpu")), rows)
+    for k in stats:
+        torch.testing.assert_close(by_hand.state_dict()[k], runs["reestimate"][k])
 
 
 def test_a_tiny_card_learns(card, tmp_path):

@@ -166,6 +166,9 @@ def _check_overlap(data: PlaceWindows, radius: float) -> None:
                              f"no place with the others; check its gps.csv)")
 
 
+OTHER_NEGATIVES = ("random", "hardest")
+
+
 @dataclass
 class Tuple:
     """One training tuple of window indices: the query, its positives, negatives and the other
@@ -185,12 +188,18 @@ class TupleMiner:
     random (with repetition when fewer exist). Negatives: ``negatives`` windows beyond
     ``negative_radius`` m; ``hard`` of them the nearest to the query in descriptor space among
     up to ``hard_pool`` random true negatives (descriptors from :meth:`set_descriptors`; without
-    them all are random), the rest random. neg*: a random window beyond ``negative_radius`` m of
-    the query and of every negative (any true negative of the query when there is none).
+    them all are random), the rest random. neg*: a window beyond ``negative_radius`` m of the
+    query and of every negative (any true negative of the query when there is none), drawn at
+    random (``other_negative="random"``) or, with descriptors, the nearest to the query in
+    descriptor space among up to ``hard_pool`` of them (``"hardest"``).
     """
 
     def __init__(self, data: PlaceWindows, positives: int, negatives: int, hard: int,
-                 positive_radius: float = 5.0, negative_radius: float = 10.0, hard_pool: int = 4000):
+                 positive_radius: float = 5.0, negative_radius: float = 10.0, hard_pool: int = 4000,
+                 other_negative: str = "random"):
+        if other_negative not in OTHER_NEGATIVES:
+            raise ValueError(f"other_negative must be one of {list(OTHER_NEGATIVES)}, got {other_negative!r}")
+        self.other = other_negative
         self.data, self.p, self.n, self.hard = data, positives, negatives, min(hard, negatives)
         self.pos_r, self.neg_r, self.pool = positive_radius, negative_radius, hard_pool
         self.train = np.flatnonzero(~data.validation)
@@ -232,5 +241,10 @@ class TupleMiner:
         chosen += list(rng.choice(rest, self.n - len(chosen), replace=False))
         far = neg_all[np.all(np.linalg.norm(self.data.positions[neg_all][:, None] - self.data.positions[chosen][None],
                                             axis=2) > self.neg_r, axis=1)]
-        star = int(rng.choice(far)) if len(far) else int(rng.choice(np.setdiff1d(neg_all, chosen)))
+        far = far if len(far) else np.setdiff1d(neg_all, chosen)
+        if self.other == "hardest" and self.descriptors is not None:
+            cand = rng.choice(far, min(len(far), self.pool), replace=False)
+            star = int(cand[np.argmin(np.linalg.norm(self.descriptors[cand] - self.descriptors[q], axis=1))])
+        else:
+            star = int(rng.choice(far))
         return Tuple(int(q), [int(i) for i in positives], [int(i) for i in chosen], star)

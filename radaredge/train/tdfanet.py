@@ -13,10 +13,14 @@ What the paper leaves open, and how this recipe reads it (each an option, record
   true negatives, using the descriptors of the previous epoch's validation pass; the rest are
   random. PointNetVLAD takes 18 negatives, 10 of them hard from a pool of 4000; the defaults
   take 10, 6 of them hard (a tuple's cost on a CPU grows with its windows, and on the synthetic
-  towns the shorter tuple reached the same recall).
+  towns the shorter tuple reached the same recall). neg* is a random true negative of the query
+  and of every negative (PointNetVLAD's code); the paper's text calls it a hard negative, which
+  ``other_negative: hardest`` takes (the nearest such window in descriptor space).
 - BatchNorm: the statistics are estimated once on ``norm_windows`` training windows (their
   average batch statistics, each window a batch) and then held fixed while the weights train
-  (``batch_norm: frozen``), so training normalises exactly as the exported graph does. With
+  (``batch_norm: frozen``), so training normalises exactly as the exported graph does;
+  ``batch_norm: reestimate`` estimates them again from the same windows after every epoch, with
+  the weights trained so far, and trains the next epoch with those. With
   per-window batch statistics (``batch_norm: window``) held-out Recall@1 was 14 points lower in
   eval mode than with the same weights normalised per window: one window's three frames are too
   few for statistics a whole drive shares.
@@ -54,12 +58,13 @@ from ..errors import ConfigError, InputError
 from ..data.bag_drives import BagSource
 from ..eval.places import RECALL_NS, recall_at_n
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
-from .places import PlaceWindows, TupleMiner, load_place_windows
+from .places import OTHER_NEGATIVES, PlaceWindows, TupleMiner, load_place_windows
 from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
                   restore_random_states, set_torch_rng_state, torch_rng_state)
 
 
-BATCH_NORMS = ("frozen", "window")
+BATCH_NORMS = ("frozen", "reestimate", "window")
+FIXED_NORMS = ("frozen", "reestimate")     # training normalises with fixed statistics, as the graph does
 
 
 @card_ranges(epochs=(1, 10_000), batch_size=(1, 1024), lr=positive(1.0), lr_decay=Range(0.0, 1.0, True),
@@ -85,9 +90,11 @@ class PlaceRecipe:
     alpha: float = 0.2              # eq. 10 margins (paper)
     beta: float = 0.1
     second_term: str = "paper"      # eq. 10 as printed, or "pointnetvlad" (see losses.py)
-    batch_norm: str = "frozen"      # "frozen": statistics estimated once, then fixed; "window": batch statistics
+    batch_norm: str = "frozen"      # "frozen": statistics estimated once, then fixed; "reestimate": also after
+                                    # every epoch from the trained weights; "window": batch statistics
     norm_windows: int = 200         # training windows the frozen statistics are estimated on
     tuples_per_epoch: int = 0       # ours: 0 = every training window once an epoch; N: N of them, drawn anew
+    other_negative: str = "random"  # neg*: "random" true negative, or the "hardest" (nearest descriptor) one
     positive_radius: float = 5.0    # m (paper)
     negative_radius: float = 10.0   # m (paper)
     seed: int = 0
@@ -98,6 +105,8 @@ class PlaceRecipe:
         if self.negative_radius < self.positive_radius:
             raise ValueError(f"negative_radius ({self.negative_radius} m) must not be below positive_radius "
                              f"({self.positive_radius} m)")
+        if self.other_negative not in OTHER_NEGATIVES:
+            raise ValueError(f"other_negative must be one of {list(OTHER_NEGATIVES)}, got {self.other_negative!r}")
         if self.batch_norm not in BATCH_NORMS:
             raise ValueError(f"batch_norm must be one of {list(BATCH_NORMS)}, got {self.batch_norm!r}")
         if self.hard_negatives > self.negatives:
@@ -201,7 +210,7 @@ def set_train_mode(model, recipe: "PlaceRecipe") -> None:
     """Train mode (dropout on); with ``batch_norm: frozen`` the BatchNorm layers stay in eval mode
     and normalise with their fixed statistics, exactly as the exported graph does."""
     model.train()
-    if recipe.batch_norm == "frozen":
+    if recipe.batch_norm in FIXED_NORMS:
         for m in _norms(model):
             m.eval()
 
@@ -301,7 +310,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
     data = load_place_windows(data_root, model.frames, validation, data_format, recipe.positive_radius,
                               model.features, bag)
     miner = TupleMiner(data, recipe.positives, recipe.negatives, recipe.hard_negatives, recipe.positive_radius,
-                       recipe.negative_radius, recipe.hard_pool)
+                       recipe.negative_radius, recipe.hard_pool, recipe.other_negative)
     summary = {"root": str(data_root), "drives": len(data.names), "windows": len(data),
                "training_windows": int((~data.validation).sum()), "validation_windows": int(data.validation.sum()),
                "queries_per_epoch": min(len(miner.queries), recipe.tuples_per_epoch or len(miner.queries)),
@@ -321,6 +330,9 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
     report = TrainReport(card.name, run.path, "val_R@1", data=summary,
                          options={**dataclasses.asdict(recipe), "device": device})
     start, best_rank = 1, None
+    train_rows = np.flatnonzero(~data.validation)
+    norm_rows = np.sort(np.random.default_rng(recipe.seed).choice(train_rows, min(recipe.norm_windows, len(train_rows)),
+                                                                  replace=False))
     if resume:
         state = run.load_last(signature)
         model.load_state_dict(state["model_state"])
@@ -338,11 +350,8 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         log(f"resuming after epoch {state['epoch']} from {run.last}")
     else:
         clock = Stopwatch()
-        if recipe.batch_norm == "frozen":
-            train_rows = np.flatnonzero(~data.validation)
-            pick = np.random.default_rng(recipe.seed).choice(train_rows, min(recipe.norm_windows, len(train_rows)),
-                                                             replace=False)
-            estimate_norm_statistics(model, prepared, np.sort(pick))
+        if recipe.batch_norm in FIXED_NORMS:
+            estimate_norm_statistics(model, prepared, norm_rows)
         descriptors = describe_all(model, prepared, progress, "epoch 0: describe windows")
         metrics = _metrics(validation_recall(descriptors, data, recipe.positive_radius))
         report.epochs.append({"epoch": 0, "loss": float("nan"), "lr": recipe.lr, **metrics,
@@ -371,6 +380,8 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         bar.close()
         lr = opt.param_groups[0]["lr"]
         sched.step()
+        if recipe.batch_norm == "reestimate":
+            estimate_norm_statistics(model, prepared, norm_rows)
         descriptors = describe_all(model, prepared, progress, f"epoch {epoch}: describe windows")
         metrics = _metrics(validation_recall(descriptors, data, recipe.positive_radius))
         loss_mean = float(np.mean(losses)) if losses else float("nan")
