@@ -35,7 +35,8 @@ import numpy as np
 from ..config import card_ranges
 from ..errors import ConfigError
 from .synthetic import (_SEGMENT, RadarScan, SceneConfig, _Boxes, _build_segment, _clusters, _draw_ego,
-                        _draw_traffic, _Ego, _Reflectors, _rng, _Scene, _Surface, _surface_reflectors, _synthesize)
+                        _draw_traffic, _Ego, _Reflectors, _rng, _RoadFrame, _Scene, _Surface, _surface_reflectors,
+                        _synthesize)
 
 _STREAM_NETWORK, _STREAM_CLUTTER = 16, 17   # generator streams beyond synthetic's own
 _STEP = 0.5                                 # m between the samples of a path
@@ -70,7 +71,7 @@ class NetworkConfig:
 # ----------------------------------------------------------------------------- paths
 
 
-class Path:
+class Path(_RoadFrame):
     """A planar path on the road surface (z = 0), parameterised by arc length ``s`` (m) from its
     first point: position, heading (rad, from the x axis, continuous) and curvature (1/m,
     positive turning left). Outside [0, ``length``] it goes on straight. Offers the road
@@ -137,17 +138,6 @@ class Path:
         xy = self._point(s)
         return np.stack([xy[..., 0] - d * np.sin(theta), xy[..., 1] + d * np.cos(theta), h], axis=-1)
 
-    def to_world_direction(self, s, along, left) -> np.ndarray:
-        """World vectors [..., 3] with components ``along`` and ``left`` of the path at ``s``."""
-        s, along, left = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, along, left)))
-        theta = self.heading(s)
-        return np.stack([along * np.cos(theta) - left * np.sin(theta),
-                         along * np.sin(theta) + left * np.cos(theta), np.zeros_like(s)], axis=-1)
-
-    def velocity(self, s, d, s_dot) -> np.ndarray:
-        """World velocity [..., 3] (m/s) of a point at (s, d) moving with ds/dt = ``s_dot``."""
-        s, d, s_dot = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, d, s_dot)))
-        return self.to_world_direction(s, s_dot * (1.0 - self.curvature_at(s) * d), 0.0)
 
 
 # ----------------------------------------------------------------------------- the street grid

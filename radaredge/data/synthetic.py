@@ -323,8 +323,27 @@ def _detection_weight(rcs: np.ndarray, r: np.ndarray) -> np.ndarray:
     return 10.0 ** (rcs / 20.0) / (1.0 + (r / 12.0) ** 2)
 
 
+class _RoadFrame:
+    """Directions and velocities in road coordinates (arc length ``s``, ``d`` to the left, m) of
+    a road that gives ``heading(s)``, ``curvature_at(s)`` and ``grade``."""
+
+    def to_world_direction(self, s, along, left) -> np.ndarray:
+        """World vectors [..., 3] with components ``along`` and ``left`` of the road at ``s``."""
+        s, along, left = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, along, left)))
+        theta = self.heading(s)
+        return np.stack([along * np.cos(theta) - left * np.sin(theta),
+                         along * np.sin(theta) + left * np.cos(theta), np.zeros_like(s)], axis=-1)
+
+    def velocity(self, s, d, s_dot) -> np.ndarray:
+        """World velocity [..., 3] (m/s) of a point at (s, d) moving with ds/dt = ``s_dot``."""
+        s, d, s_dot = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, d, s_dot)))
+        v = self.to_world_direction(s, s_dot * (1.0 - self.curvature_at(s) * d), 0.0)
+        v[..., 2] = s_dot * self.grade
+        return v
+
+
 @dataclass(frozen=True)
-class _Road:
+class _Road(_RoadFrame):
     """The ego lane: constant ``curvature`` (1/m, positive turns left) and ``grade`` (dz/ds)."""
 
     curvature: float
@@ -346,19 +365,6 @@ class _Road:
         y = 0.5 * theta * s * np.sinc(theta / (2 * np.pi)) ** 2 + d * np.cos(theta)  # (1-cos ks)/k + d cos
         return np.stack([x, y, self.grade * s + h], axis=-1)
 
-    def to_world_direction(self, s, along, left) -> np.ndarray:
-        """World vectors [..., 3] with components ``along`` and ``left`` of the road at ``s``."""
-        s, along, left = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, along, left)))
-        theta = self.heading(s)
-        return np.stack([along * np.cos(theta) - left * np.sin(theta),
-                         along * np.sin(theta) + left * np.cos(theta), np.zeros_like(s)], axis=-1)
-
-    def velocity(self, s, d, s_dot) -> np.ndarray:
-        """World velocity [..., 3] (m/s) of a point at (s, d) moving with ds/dt = ``s_dot``."""
-        s, d, s_dot = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, d, s_dot)))
-        v = self.to_world_direction(s, s_dot * (1.0 - self.curvature * d), 0.0)
-        v[..., 2] = s_dot * self.grade
-        return v
 
 
 @dataclass(frozen=True)
