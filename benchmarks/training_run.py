@@ -48,9 +48,13 @@ def settings_text(options: dict) -> str:
     return "".join(f" --set {k}={v}" for k, v in options.items())
 
 
-def save(card: ModelCard, stamp: str, result: dict) -> Path:
-    """Writes benchmarks/results/<card>-training-<date>.json."""
-    path = ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json"
+def write(path: Path, result: dict) -> Path:
+    """Writes ``result`` as indented JSON to ``path`` and says so."""
     path.write_text(json.dumps(result, indent=2, default=str) + "\n")
     print(f"wrote {path}")
     return path
+
+
+def save(card: ModelCard, stamp: str, result: dict) -> Path:
+    """Writes benchmarks/results/<card>-training-<date>.json."""
+    return write(ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json", result)

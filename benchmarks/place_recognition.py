@@ -1,0 +1,136 @@
+"""Place recognition on towns that discriminate: Recall@1/5/10 at 5 m and 25 m with intervals.
+
+The towns are street networks (``radaredge make-benchmark --layout network``): a database circuit
+of 2 km or more through junctions, query days on its streets in both lanes and partly against
+its direction (radaredge.data.road_network, radaredge.data.pr_benchmark). Towns have two roles,
+never mixed:
+
+- design towns, seeds 1 .. T (``--design-towns``, ``--design-km`` each): training, and the
+  validation that picks the best epoch (``radaredge train``'s by-drive validation, each town's
+  last query day); card and recipe choices are made on these only;
+- test towns, seeds 1000 .. (``--test-towns``, ``--test-km``): this table only.
+
+Rows, each on the same windows of the test towns (the database against every query window):
+chance (a random ranking, computed), the no-learning polar occupancy descriptor of the same
+points (radaredge.eval.baselines), the seeded network, the trained network's fp32 graph and its
+int8 graph (onnxruntime, 2 threads). Each Recall@N comes with its 95 % percentile-bootstrap
+interval over queries (radaredge.eval.recall_stats), at 5 m and at 25 m (TransLoc4D's
+evaluation radius). The trained checkpoint is ``radaredge train --model CARD --data <design
+towns>`` run here, or ``--run DIR`` of an earlier run.
+
+Writes benchmarks/results/place-recognition-<card>-<date>.json, which benchmarks/render.py renders.
+
+    python benchmarks/place_recognition.py --card tdfanet-edge
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import radaredge
+from radaredge import runtime
+from radaredge.data.pr_benchmark import make_pr_towns, make_route_benchmark
+from radaredge.eval.places import baseline_backend, describe_windows, load_windows, onnx_backend, recall_at_n
+from radaredge.eval.recall_stats import bootstrap_interval, chance_of_benchmark
+
+import training_run
+
+RADII = (5.0, 25.0)
+NS = (1, 5, 10)
+TEST_SEED = 1000
+
+
+def _towns(root: Path, count: int, seed: int, km: float) -> list[Path]:
+    if not root.exists():
+        make_pr_towns(root, count, seed, lambda path, s: make_route_benchmark(path, 3, km * 1000.0, s))
+    return sorted(p for p in root.iterdir() if p.name.startswith("town-"))
+
+
+def _score(describe, towns: list[Path], k: int, features) -> dict:
+    """Recall@N with intervals at each radius, pooled over the test towns' queries, of the
+    descriptors ``describe`` gives (a backend of radaredge.eval.places)."""
+    hits = {r: [] for r in RADII}
+    evaluated = {r: 0 for r in RADII}
+    seconds, windows = 0.0, 0
+    for town in towns:
+        db, queries = load_windows(town / "database", k), load_windows(town / "queries", k)
+        windows += len(db) + len(queries)
+        t0 = time.perf_counter()
+        db_desc = describe_windows(db, features, describe)
+        query_desc = describe_windows(queries, features, describe)
+        seconds += time.perf_counter() - t0
+        for r in RADII:
+            res = recall_at_n(query_desc, queries.positions, db_desc, db.positions, NS, r)
+            hits[r].append(res["hits"])
+            evaluated[r] += res["evaluated"]
+    out = {"windows": windows, "windows_per_second": round(windows / seconds, 1)}
+    for r in RADII:
+        found = np.concatenate(hits[r])
+        out[f"{r:g}"] = {"evaluated": evaluated[r],
+                         "recall": {str(n): 100.0 * float(found[:, n - 1].mean()) for n in NS},
+                         "interval_95": {str(n): list(bootstrap_interval(found[:, n - 1])) for n in NS}}
+    return out
+
+
+def _chance(towns: list[Path]) -> dict:
+    """Chance Recall@1 per test town and radius (every scan a window)."""
+    return {t.name: chance_of_benchmark(t, RADII) for t in towns}
+
+
+def main(argv=None) -> int:
+    ap = training_run.parser("python benchmarks/place_recognition.py", __doc__, "tdfanet-edge")
+    ap.add_argument("--design-towns", type=int, default=3)
+    ap.add_argument("--design-km", type=float, default=1.2)
+    ap.add_argument("--test-towns", type=int, default=1)
+    ap.add_argument("--test-km", type=float, default=2.2)
+    ap.add_argument("--run", type=Path, help="an existing run directory of `radaredge train` (skips training)")
+    args = ap.parse_args(argv)
+    card, work, options, stamp = training_run.start(args)
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    design = _towns(work / "design-towns", args.design_towns, 1, args.design_km)
+    test = _towns(work / "test-towns", args.test_towns, TEST_SEED, args.test_km)
+    t_data = time.perf_counter() - t0
+    run, t_train, train = args.run, None, None
+    if run is None:
+        run = work / "run"
+        t0 = time.perf_counter()
+        report = radaredge.train(card, work / "design-towns", run, options=options,
+                                 log=lambda line: print(line, flush=True))
+        t_train, train = time.perf_counter() - t0, report.to_dict()
+    best = run / "best.pth"
+    graphs = work / "graphs"
+    fp32, seeded = graphs / f"{card.name}.onnx", graphs / f"{card.name}-seeded.onnx"
+    exported = radaredge.export(card, fp32, checkpoint=best, quantize="int8")
+    radaredge.export(card, seeded)
+    k = int(card.get("frames", 1))
+    rows = {}
+    for name, path in (("seeded", seeded), ("trained_fp32", fp32), ("trained_int8", exported.int8["tdfanet"])):
+        model = runtime.load(path, threads=training_run.THREADS)
+        rows[name] = _score(onnx_backend(model), test, k, model.features)
+        print(f"{name}: R@1 at 5 m {rows[name]['5']['recall']['1']:.1f} %", flush=True)
+    rows["no_learning"] = _score(baseline_backend(card.features), test, k, card.features)
+    out = {
+        "date": stamp, "card": card.name, "machine": training_run.machine(),
+        "command": f"python benchmarks/place_recognition.py --card {card.name} --design-towns {args.design_towns} "
+                   f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
+                   + training_run.settings_text(options),
+        "towns": {"design": {"seeds": [int(t.name.split("-")[1]) for t in design], "route_km": args.design_km,
+                             "used_for": "training and the validation that picks the best epoch"},
+                  "test": {"seeds": [int(t.name.split("-")[1]) for t in test], "route_km": args.test_km,
+                           "used_for": "this table only"}},
+        "frames_per_window": k, "chance": _chance(test), "data_seconds": round(t_data, 1),
+        "train_seconds": None if t_train is None else round(t_train, 1), "checkpoint": str(best), "train": train,
+        "rows": rows,
+    }
+    path = training_run.ROOT / "benchmarks" / "results" / f"place-recognition-{card.name}-{stamp[:10]}.json"
+    training_run.write(path, out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
