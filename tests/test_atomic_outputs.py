@@ -96,9 +96,11 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(tmp_pat
     start = time.perf_counter()
     subprocess.run(run + ["--config", str(TINY_CARD), "--output", str(fresh / "model.onnx")], check=True,
                    capture_output=True)
-    full = time.perf_counter() - start
+    middle = time.perf_counter()
     subprocess.run(run + ["--config", str(reseeded), "--output", str(previous / "model.onnx")], check=True,
                    capture_output=True)
+    # the faster of the two runs: on a fresh checkout the first one also compiles every module
+    full = min(middle - start, time.perf_counter() - middle)
     new = {p.name: _sha(p) for p in fresh.iterdir()}
     old = {p.name: _sha(p) for p in previous.iterdir()}
     assert old.keys() == new.keys() and old != new

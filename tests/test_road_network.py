@@ -131,7 +131,8 @@ def test_make_benchmark_network_layout(tmp_path):
 @pytest.mark.parametrize("args, says", [
     (("--layout", "network", "--frames", 10), "--frames is for --layout street"),
     (("--route-km", 1.0), "--route-km is for --layout network"),
-    (("--task", "detection", "--layout", "network"), "are for --task places"),
+    (("--task", "detection", "--layout", "network"), "--layout is for --task places"),
+    (("--task", "detection", "--towns", 2, "--route-km", 1.0), "--towns, --route-km are for --task places"),
 ])
 def test_make_benchmark_layout_errors(tmp_path, args, says):
     one_error_line(invoke("make-benchmark", "--out", tmp_path / "b", *args), says)
