@@ -199,33 +199,17 @@ class RoadNetwork:
         """Length (m) of a route of junctions."""
         return float(np.linalg.norm(np.diff(self.nodes[list(route)], axis=0), axis=1).sum())
 
-    @property
-    def length(self) -> float:
-        """Total street length, m."""
-        return float(sum(self.street_length(e) for e in range(len(self.streets))))
-
-    def walk(self, rng: np.random.Generator, length: float, start: int | None = None,
-             follow: set[tuple[int, int]] | None = None, opposite: float = 0.0) -> list[int]:
-        """A route of at least ``length`` m as the junctions it passes: from ``start`` (drawn
-        when None), at each junction onto a street other than the one it came by, the least
-        driven first (ties drawn at random). With ``follow`` (another route's steps, (from, to)
-        junction pairs) it keeps to that route's streets in that route's direction; at each
-        junction, with chance ``opposite``, also against it; other streets only where none of
-        those goes on."""
+    def walk(self, rng: np.random.Generator, length: float) -> list[int]:
+        """A route of at least ``length`` m as the junctions it passes: from a junction drawn at
+        random, at each junction onto a street other than the one it came by, the least driven
+        first (ties drawn at random)."""
         links: list[list[tuple[int, int]]] = [[] for _ in range(len(self.nodes))]
         for e, (a, b) in enumerate(self.streets):
             links[a].append((int(b), e))
             links[b].append((int(a), e))
-        if start is None:
-            start = int(rng.choice(sorted({a for a, _ in follow}) if follow else len(self.nodes)))
-        route, driven, came_by, total = [start], np.zeros(len(self.streets)), -1, 0.0
+        route, driven, came_by, total = [int(rng.choice(len(self.nodes)))], np.zeros(len(self.streets)), -1, 0.0
         while total < length:
-            here = route[-1]
-            options = [(b, e) for b, e in links[here] if e != came_by] or links[here]
-            if follow is not None:
-                against = rng.random() < opposite
-                options = [(b, e) for b, e in options
-                           if (here, b) in follow or (against and (b, here) in follow)] or options
+            options = [(b, e) for b, e in links[route[-1]] if e != came_by] or links[route[-1]]
             least = min(driven[e] for _, e in options)
             b, e = options[int(rng.choice([i for i, (_, e) in enumerate(options) if driven[e] == least]))]
             driven[e] += 1
