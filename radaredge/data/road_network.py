@@ -10,10 +10,12 @@ clutter) in 20 m segments, kept ``junction_clear`` m away from the junctions so 
 stay open. The radar sees through buildings (the generator has no occlusion), so content of a
 crossing street within range is visible before the turn.
 
-A drive follows a route (:meth:`RoadNetwork.walk`): a walk from junction to junction that never
-turns back where it can go on, preferring streets it has driven least, so long routes close
-loops and pass junctions in every direction. The route's centreline is smoothed with a Gaussian
-of ``corner_sigma`` m (corners of a few metres' radius) and the radar drives a lane parallel to
+A drive follows a route of junctions. A database circuit (:meth:`RoadNetwork.circuit`) walks
+from junction to junction without turning back, preferring the streets it has driven least, so
+a long route closes loops and passes junctions in every direction, and then returns to its
+start by the shortest way; query routes are sections of it (:mod:`radaredge.data.pr_benchmark`).
+The route's centreline is smoothed with a Gaussian of ``corner_sigma`` m (with the default
+10 m, corners of about 9 m radius) and the radar drives a lane parallel to
 it (:meth:`Path.offset`): x forward, at a constant speed, with the heading offset and traffic of
 its day (:class:`radaredge.data.synthetic.SceneConfig`, ``seed``; the static world from
 ``world_seed``). Every day adds its own transient clutter (barriers and bins along the kerb,
