@@ -108,8 +108,11 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(tmp_pat
     for fraction in (0.1, 0.3, 0.5, 0.7, 0.8, 0.9, 0.97):
         shutil.rmtree(work, ignore_errors=True)
         shutil.copytree(previous, work)
+        # SIGINT back to its default in the child: a suite started in the background by a
+        # non-interactive shell inherits SIGINT ignored, and the interrupt would never arrive
         proc = subprocess.Popen(run + ["--config", str(TINY_CARD), "--output", str(work / "model.onnx")],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(full * fraction)
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=120)
