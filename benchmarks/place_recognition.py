@@ -44,19 +44,21 @@ NS = (1, 5, 10)
 TEST_SEED = 1000
 
 
-def _towns(root: Path, count: int, seed: int, km: float) -> list[Path]:
+def towns(root: Path, count: int, seed: int, km: float) -> list[Path]:
+    """The towns under ``root`` (``count`` of them, seeds ``seed`` .., database circuits of at
+    least ``km`` km), made there first when ``root`` does not exist."""
     if not root.exists():
         make_pr_towns(root, count, seed, lambda path, s: make_route_benchmark(path, 3, km * 1000.0, s))
     return sorted(p for p in root.iterdir() if p.name.startswith("town-"))
 
 
-def _score(describe, towns: list[Path], k: int, features) -> dict:
+def score(describe, town_dirs: list[Path], k: int, features) -> dict:
     """Recall@N with intervals at each radius, pooled over the test towns' queries, of the
     descriptors ``describe`` gives (a backend of radaredge.eval.places)."""
     hits = {r: [] for r in RADII}
     evaluated = {r: 0 for r in RADII}
     seconds, windows = 0.0, 0
-    for town in towns:
+    for town in town_dirs:
         db, queries = load_windows(town / "database", k), load_windows(town / "queries", k)
         windows += len(db) + len(queries)
         t0 = time.perf_counter()
@@ -92,8 +94,8 @@ def main(argv=None) -> int:
     card, work, options, stamp = training_run.start(args)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    design = _towns(work / "design-towns", args.design_towns, 1, args.design_km)
-    test = _towns(work / "test-towns", args.test_towns, TEST_SEED, args.test_km)
+    design = towns(work / "design-towns", args.design_towns, 1, args.design_km)
+    test = towns(work / "test-towns", args.test_towns, TEST_SEED, args.test_km)
     t_data = time.perf_counter() - t0
     run, t_train, train = args.run, None, None
     if run is None:
@@ -111,9 +113,9 @@ def main(argv=None) -> int:
     rows = {}
     for name, path in (("seeded", seeded), ("trained_fp32", fp32), ("trained_int8", exported.int8["tdfanet"])):
         model = runtime.load(path, threads=training_run.THREADS)
-        rows[name] = _score(onnx_backend(model), test, k, model.features)
+        rows[name] = score(onnx_backend(model), test, k, model.features)
         print(f"{name}: R@1 at 5 m {rows[name]['5']['recall']['1']:.1f} %", flush=True)
-    rows["no_learning"] = _score(baseline_backend(card.features), test, k, card.features)
+    rows["no_learning"] = score(baseline_backend(card.features), test, k, card.features)
     out = {
         "date": stamp, "card": card.name, "machine": training_run.machine(),
         "command": f"python benchmarks/place_recognition.py --card {card.name} --design-towns {args.design_towns} "

@@ -149,9 +149,22 @@ def test_render_handles_every_result_kind(tmp_path):
         "towns": {"design": {"seeds": [1], "route_km": 1.0, "used_for": "training"},
                   "test": {"seeds": [1000], "route_km": 2.2, "used_for": "this table only"}},
         "rows": {k: {"5": recall, "25": recall} for k in ("no_learning", "seeded", "trained_fp32", "trained_int8")}}))
+    best = {"epoch": 2, "val_R@1": 50.0, "val_R@5": 70.0, "val_R@10": 80.0, "val_queries": 200,
+            "val_R@1_interval_95": [43.0, 57.0]}
+    variant = {"best": best, "train_seconds": 600.0, "test": {"5": recall, "25": recall}}
+    (res / "tdfanet-variants-m-2030-01-01.json").write_text(json.dumps({
+        "date": "2030-01-01 00:00", "card": "m", "command": "python benchmarks/tdfanet_variants.py --card m",
+        "machine": {"cpu": "cpu", "threads": 2}, "recipe": {"epochs": 3, "tuples_per_epoch": 200},
+        "towns": {"design": {"seeds": [1], "route_km": 0.5, "used_for": "training"},
+                  "test": {"seeds": [1000], "route_km": 2.2, "used_for": "the ablations"}},
+        "choices": ["frozen", "window"], "ablations": {"full": "frozen", "sum": "sum"},
+        "variants": {"frozen": variant, "sum": variant, "window": {k: v for k, v in variant.items() if k != "test"}}}))
     text = render.render(res)
     current, history = text.split("## History")
     assert "## Place recognition on street-network towns: m" in current
+    assert "| window | each window's own batch statistics while training | 2 | 50.0 [43.0, 57.0] | 70.0 | 10.0 |" in current
+    assert ("| sum | yes | yes | no (sum) | 50.0 [43.0, 57.0] | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] "
+            "| 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |") in current
     assert "| trained, int8 | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] | 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |" in current
     assert "| chance (random ranking) | 0.35 | - | - | 2.10 |" in current
     assert "| m | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current          # FPS beside the test mAP
@@ -165,6 +178,25 @@ def test_render_handles_every_result_kind(tmp_path):
     assert "| openvino | error: not installed | - |" in current
     assert "2.0x" in current and "(1 cloud, each with and without the crop" in current
     assert render.render(res) == text                          # deterministic
+
+
+def test_training_plot_draws_the_benchmark_run_and_every_variant(tmp_path):
+    """benchmarks/plot_training.py draws the newest place-recognition run of a card and the
+    newest variants file's runs, and says so when there is nothing to draw."""
+    import json
+    spec = importlib.util.spec_from_file_location("plot_training", ROOT / "benchmarks" / "plot_training.py")
+    plot = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(plot)
+    epochs = [{"epoch": 0, "loss": float("nan"), "val_R@1": 20.0}, {"epoch": 1, "loss": 0.2, "val_R@1": 40.0}]
+    for day in ("2030-01-01", "2030-01-02"):
+        (tmp_path / f"place-recognition-m-{day}.json").write_text(json.dumps({"train": {"epochs": epochs}}))
+    (tmp_path / "tdfanet-variants-m-2030-01-01.json").write_text(json.dumps(
+        {"variants": {"frozen": {"history": epochs}, "sum": {"history": epochs[:1]}}}))
+    assert [label for label, _, _ in plot.curves(tmp_path)] == ["m (benchmark run)", "m frozen", "m sum"]
+    out = plot.draw(tmp_path, tmp_path / "curves.png")
+    assert out.stat().st_size > 1000
+    with pytest.raises(SystemExit, match="no place-recognition"):
+        plot.draw(tmp_path / "empty", tmp_path / "none.png")
 
 
 def _relative_links(path: Path):

@@ -319,6 +319,9 @@ def test_a_tiny_card_learns(card, tmp_path):
     assert [e["epoch"] for e in epochs] == [0, 1, 2, 3]
     assert epochs[-1]["loss"] < epochs[1]["loss"]
     assert epochs[-1]["val_R@1"] > epochs[0]["val_R@1"] + 10.0, epochs
+    for e in epochs:                       # the recall is a share of val_queries scored queries
+        hits = e["val_R@1"] * e["val_queries"] / 100.0
+        assert e["val_queries"] > 0 and abs(hits - round(hits)) < 1e-6, e
 
 
 @pytest.mark.parametrize("damage, says", [

@@ -173,12 +173,14 @@ def describe_all(model, prepared: Sequence, progress=no_progress, desc: str = "d
     return np.stack(out)
 
 
-def validation_recall(descriptors: np.ndarray, data: PlaceWindows, radius: float) -> dict[int, float]:
-    """Recall@1/5/10 (%) of the validation windows against the training windows."""
+def validation_recall(descriptors: np.ndarray, data: PlaceWindows, radius: float) -> dict[str, float]:
+    """The epoch's validation metrics: ``val_R@N`` (%), Recall@1/5/10 of the validation windows
+    against the training windows, and ``val_queries``, how many validation windows had a
+    training window within ``radius`` m (the queries those percentages are of)."""
     val, train = data.validation, ~data.validation
     res = recall_at_n(descriptors[val], data.positions[val], descriptors[train], data.positions[train],
                       RECALL_NS, radius, use_faiss=False)
-    return res["recall"]
+    return {**{f"val_R@{n}": float(r) for n, r in res["recall"].items()}, "val_queries": int(res["evaluated"])}
 
 
 def _norms(model) -> list:
@@ -286,10 +288,6 @@ def _signature(card: ModelCard, data: PlaceWindows, recipe: PlaceRecipe) -> dict
             "validation": sorted({data.names[r] for r in data.drive[data.validation]}), "recipe": keep}
 
 
-def _metrics(recall: dict[int, float]) -> dict[str, float]:
-    return {f"val_R@{n}": float(r) for n, r in recall.items()}
-
-
 def _rank(metrics: dict) -> tuple:
     return tuple(metrics[f"val_R@{n}"] for n in RECALL_NS)
 
@@ -353,7 +351,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         if recipe.batch_norm in FIXED_NORMS:
             estimate_norm_statistics(model, prepared, norm_rows)
         descriptors = describe_all(model, prepared, progress, "epoch 0: describe windows")
-        metrics = _metrics(validation_recall(descriptors, data, recipe.positive_radius))
+        metrics = validation_recall(descriptors, data, recipe.positive_radius)
         report.epochs.append({"epoch": 0, "loss": float("nan"), "lr": recipe.lr, **metrics,
                               "seconds": round(clock(), 1)})
         log(_epoch_line(report.epochs[-1]))
@@ -383,7 +381,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         if recipe.batch_norm == "reestimate":
             estimate_norm_statistics(model, prepared, norm_rows)
         descriptors = describe_all(model, prepared, progress, f"epoch {epoch}: describe windows")
-        metrics = _metrics(validation_recall(descriptors, data, recipe.positive_radius))
+        metrics = validation_recall(descriptors, data, recipe.positive_radius)
         loss_mean = float(np.mean(losses)) if losses else float("nan")
         if not math.isfinite(loss_mean) or not np.isfinite(descriptors).all():
             raise ConfigError(f"training diverged in epoch {epoch} (loss {loss_mean}); lower --lr (now {recipe.lr:g})")

@@ -1,0 +1,155 @@
+"""TDFANet's open training choices and the paper's ablations, each variant trained the same way.
+
+Every variant is ``radaredge train`` of one card (default tdfanet-edge) on the design towns of
+benchmarks/place_recognition.py, with the same recipe: the card's, shortened by ``--set``
+(default 3 epochs of 200 tuples, so that seven variants fit in under two hours on 2 cores).
+
+- **choices**, the two training choices the paper leaves open, judged on the design towns only
+  by the best epoch's validation Recall@1 at 5 m with its 95 % bootstrap interval:
+  ``frozen`` (the recipe's default: BatchNorm statistics estimated once from the untrained
+  network, then fixed; neg* a random true negative), ``reestimate`` (the statistics estimated
+  again after every epoch), ``window`` (each window's own batch statistics while training) and
+  ``hardest`` (neg* the nearest true negative in descriptor space).
+- **ablations**, the components of the paper's ablation table (its Table II), each removed
+  from the full network in turn: ``full`` (the ``frozen`` run), ``no-dpr`` (dynamic points
+  stay in the BEV maps, ``network.remove_dynamic: false``), ``no-fa`` (no trajectory
+  alignment, ``network.align: false``), ``sum`` (the K maps summed, no pyramid and no
+  deformable attention, ``network.aggregation: sum``). Scored as the exported fp32 graph on the
+  test towns: Recall@1/5/10 at 5 m and 25 m with intervals (place_recognition.score).
+
+Each variant's run directory is kept under the work directory; a variant whose run finished
+(its train-log.json holds every epoch) is not trained again. Writes
+benchmarks/results/tdfanet-variants-<card>-<date>.json, which benchmarks/render.py renders.
+
+    python benchmarks/tdfanet_variants.py --card tdfanet-edge --design-towns 1 --design-km 0.5
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import radaredge
+from radaredge import runtime
+from radaredge.cards import parse_card
+from radaredge.eval.places import onnx_backend
+from radaredge.eval.recall_stats import bootstrap_interval
+
+import place_recognition
+import training_run
+
+SHORT_RECIPE = {"epochs": 3, "tuples_per_epoch": 200}
+
+# name -> (card network fields, recipe options) on top of the card and the shared recipe
+VARIANTS = {
+    "frozen": ({}, {}),
+    "reestimate": ({}, {"batch_norm": "reestimate"}),
+    "window": ({}, {"batch_norm": "window"}),
+    "hardest": ({}, {"other_negative": "hardest"}),
+    "no-dpr": ({"remove_dynamic": False}, {}),
+    "no-fa": ({"align": False}, {}),
+    "sum": ({"aggregation": "sum"}, {}),
+}
+CHOICES = ("frozen", "reestimate", "window", "hardest")
+ABLATIONS = {"full": "frozen", "no-dpr": "no-dpr", "no-fa": "no-fa", "sum": "sum"}
+
+
+def variant_card(card, network: dict, name: str):
+    """``card`` with ``network`` fields replaced, named ``<card>-<name>``."""
+    data = copy.deepcopy(card.data)
+    data["name"] = f"{card.name}-{name}"
+    data["network"] = {**(data.get("network") or {}), **network}
+    return parse_card(data, card.path)
+
+
+def validation_interval(epoch: dict) -> list[float]:
+    """95 % bootstrap interval of an epoch's validation Recall@1 over its validation queries
+    (a hit vector's bootstrap depends only on its length and its number of hits)."""
+    n = int(epoch["val_queries"])
+    found = np.zeros(n, dtype=bool)
+    found[: int(round(epoch["val_R@1"] * n / 100.0))] = True
+    return list(bootstrap_interval(found))
+
+
+def _finished(run: Path, epochs: int) -> dict | None:
+    log = run / "train-log.json"
+    if not log.exists():
+        return None
+    report = json.loads(log.read_text())
+    return report if report["epochs"][-1]["epoch"] >= epochs and (run / "best.pth").exists() else None
+
+
+def train_variant(card, design: Path, run: Path, options: dict) -> dict:
+    """The training report of ``card`` with ``options`` in ``run`` (trained there unless it finished)."""
+    report = _finished(run, int(options["epochs"]))
+    if report is not None:
+        print(f"{card.name}: reusing the finished run in {run}", flush=True)
+        return report
+    t0 = time.perf_counter()
+    report = radaredge.train(card, design, run, options=options,
+                             log=lambda line: print(f"{card.name}: {line}", flush=True)).to_dict()
+    report["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    return report
+
+
+def _best(report: dict) -> dict:
+    best = next(e for e in report["epochs"] if e["epoch"] == report["best_epoch"])
+    return {"epoch": best["epoch"], "val_R@1": best["val_R@1"], "val_R@5": best["val_R@5"],
+            "val_R@10": best["val_R@10"], "val_queries": best["val_queries"],
+            "val_R@1_interval_95": validation_interval(best)}
+
+
+def main(argv=None) -> int:
+    ap = training_run.parser("python benchmarks/tdfanet_variants.py", __doc__, "tdfanet-edge")
+    ap.add_argument("--design-towns", type=int, default=1)
+    ap.add_argument("--design-km", type=float, default=0.5)
+    ap.add_argument("--test-towns", type=int, default=1)
+    ap.add_argument("--test-km", type=float, default=2.2)
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    args = ap.parse_args(argv)
+    card, work, options, stamp = training_run.start(args)
+    options = {**SHORT_RECIPE, **options}
+    work = args.work or training_run.ROOT / "export" / f"{card.name}-variants"
+    work.mkdir(parents=True, exist_ok=True)
+    design = place_recognition.towns(work / "design-towns", args.design_towns, 1, args.design_km)
+    test = place_recognition.towns(work / "test-towns", args.test_towns, place_recognition.TEST_SEED, args.test_km)
+    k = int(card.get("frames", 1))
+    out = {
+        "date": stamp, "card": card.name, "machine": training_run.machine(),
+        "command": f"python benchmarks/tdfanet_variants.py --card {card.name} --design-towns {args.design_towns} "
+                   f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
+                   + training_run.settings_text({k_: v for k_, v in options.items() if SHORT_RECIPE.get(k_) != v}),
+        "recipe": options,
+        "towns": {"design": {"seeds": [int(t.name.split("-")[1]) for t in design], "route_km": args.design_km,
+                             "used_for": "training, and the validation recall that judges the choices"},
+                  "test": {"seeds": [int(t.name.split("-")[1]) for t in test], "route_km": args.test_km,
+                           "used_for": "the ablation table only"}},
+        "frames_per_window": k, "choices": list(CHOICES), "ablations": ABLATIONS, "variants": {},
+    }
+    path = training_run.ROOT / "benchmarks" / "results" / f"tdfanet-variants-{card.name}-{stamp[:10]}.json"
+    for name in args.variants:
+        network, recipe = VARIANTS[name]
+        vcard = variant_card(card, network, name)
+        run = work / "runs" / name
+        report = train_variant(vcard, work / "design-towns", run, {**options, **recipe})
+        row = {"network": network, "recipe": recipe, "best": _best(report), "train_seconds": report["seconds"],
+               "history": [{k_: e[k_] for k_ in ("epoch", "loss", "val_R@1", "val_R@5", "val_R@10", "seconds")}
+                           for e in report["epochs"]]}
+        if name in ABLATIONS.values():
+            graph = work / "graphs" / f"{vcard.name}.onnx"
+            radaredge.export(vcard, graph, checkpoint=run / "best.pth")
+            model = runtime.load(graph, threads=training_run.THREADS)
+            row["test"] = place_recognition.score(onnx_backend(model), test, k, model.features)
+            print(f"{vcard.name}: test R@1 at 5 m {row['test']['5']['recall']['1']:.1f} %", flush=True)
+        out["variants"][name] = row
+        training_run.write(path, out)          # after every variant, so a stopped run keeps what it measured
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
