@@ -36,6 +36,7 @@ from radaredge import runtime
 from radaredge.data.pr_benchmark import make_pr_towns, make_route_benchmark
 from radaredge.eval.places import baseline_backend, describe_windows, load_windows, onnx_backend, recall_at_n
 from radaredge.eval.recall_stats import bootstrap_interval, chance_of_benchmark
+from radaredge.eval.travel import AGAINST, WITH, against_database, window_headings
 
 import training_run
 
@@ -54,8 +55,11 @@ def towns(root: Path, count: int, seed: int, km: float) -> list[Path]:
 
 def score(describe, town_dirs: list[Path], k: int, features) -> dict:
     """Recall@N with intervals at each radius, pooled over the test towns' queries, of the
-    descriptors ``describe`` gives (a backend of radaredge.eval.places)."""
+    descriptors ``describe`` gives (a backend of radaredge.eval.places); under ``by_direction``
+    Recall@1 of the queries that drive with and against the database at their place
+    (radaredge.eval.travel)."""
     hits = {r: [] for r in RADII}
+    direction = {r: [] for r in RADII}
     evaluated = {r: 0 for r in RADII}
     seconds, windows = 0.0, 0
     for town in town_dirs:
@@ -69,12 +73,19 @@ def score(describe, town_dirs: list[Path], k: int, features) -> dict:
             res = recall_at_n(query_desc, queries.positions, db_desc, db.positions, NS, r)
             hits[r].append(res["hits"])
             evaluated[r] += res["evaluated"]
+            way = against_database(queries.positions, window_headings(queries), db.positions, window_headings(db), r)
+            direction[r].append(way[res["evaluated_mask"]])
     out = {"windows": windows, "windows_per_second": round(windows / seconds, 1)}
     for r in RADII:
-        found = np.concatenate(hits[r])
+        found, way = np.concatenate(hits[r]), np.concatenate(direction[r])
         out[f"{r:g}"] = {"evaluated": evaluated[r],
                          "recall": {str(n): 100.0 * float(found[:, n - 1].mean()) for n in NS},
-                         "interval_95": {str(n): list(bootstrap_interval(found[:, n - 1])) for n in NS}}
+                         "interval_95": {str(n): list(bootstrap_interval(found[:, n - 1])) for n in NS},
+                         "by_direction": {name: {"evaluated": int((way == code).sum()),
+                                                 "recall_at_1": 100.0 * float(found[way == code, 0].mean()),
+                                                 "interval_95": list(bootstrap_interval(found[way == code, 0]))}
+                                          for name, code in (("with", WITH), ("against", AGAINST))
+                                          if (way == code).any()}}
     return out
 
 

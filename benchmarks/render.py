@@ -587,7 +587,24 @@ def places_section(results: list[Result], results_dir: Path) -> list[str]:
         rows += [[label, *(_recall_cell(d["rows"][k], "5", n) for n in (1, 5, 10)), _recall_cell(d["rows"][k], "25", 1)]
                  for k, label in labels if k in d["rows"]]
         out += _table(["descriptor", "R@1 at 5 m", "R@5 at 5 m", "R@10 at 5 m", "R@1 at 25 m"], rows) + [""]
+        split = [(label, d["rows"][k]["5"]["by_direction"]) for k, label in labels
+                 if "by_direction" in d["rows"].get(k, {}).get("5", {})]
+        if split:
+            counts = split[0][1]
+            out += ["Recall@1 at 5 m of the queries that drive with the database at their place and of those that "
+                    "drive against it (heading more than 90 degrees from the nearest database window's; "
+                    + ", ".join(f"{counts[w]['evaluated']} {w}" for w in ("with", "against") if w in counts)
+                    + " queries):", ""]
+            out += _table(["descriptor", "with", "against"],
+                          [[label, *(_direction_cell(by.get(w)) for w in ("with", "against"))] for label, by in split]) + [""]
     return out
+
+
+def _direction_cell(r: dict | None) -> str:
+    if r is None:
+        return "-"
+    low, high = r["interval_95"]
+    return f"{r['recall_at_1']:.1f} [{low:.1f}, {high:.1f}]"
 
 
 _VARIANT_TEXT = {

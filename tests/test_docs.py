@@ -140,6 +140,8 @@ def test_render_handles_every_result_kind(tmp_path):
             {"epoch": 1, "loss": 1.0, "AP3d_Car": 40.0, "mAP3d": 20.0, "seconds": 60.0}]}}))
     recall = {"evaluated": 90, "recall": {"1": 40.0, "5": 60.0, "10": 70.0},
               "interval_95": {"1": [30.0, 50.0], "5": [50.0, 70.0], "10": [60.0, 80.0]}}
+    by_direction = {"with": {"evaluated": 80, "recall_at_1": 45.0, "interval_95": [35.0, 55.0]},
+                    "against": {"evaluated": 10, "recall_at_1": 0.0, "interval_95": [0.0, 0.0]}}
     chance = {"5": {"recall_at_1": 0.35, "database_within": 9.0, "database_scans": 2600, "query_scans": 2800},
               "25": {"recall_at_1": 2.1, "database_within": 55.0, "database_scans": 2600, "query_scans": 2800}}
     (res / "place-recognition-m-2030-01-01.json").write_text(json.dumps({
@@ -148,7 +150,8 @@ def test_render_handles_every_result_kind(tmp_path):
         "train_seconds": 600.0, "chance": {"town-1000": chance},
         "towns": {"design": {"seeds": [1], "route_km": 1.0, "used_for": "training"},
                   "test": {"seeds": [1000], "route_km": 2.2, "used_for": "this table only"}},
-        "rows": {k: {"5": recall, "25": recall} for k in ("no_learning", "seeded", "trained_fp32", "trained_int8")}}))
+        "rows": {k: {"5": {**recall, "by_direction": by_direction}, "25": recall}
+                 for k in ("no_learning", "seeded", "trained_fp32", "trained_int8")}}))
     best = {"epoch": 2, "val_R@1": 50.0, "val_R@5": 70.0, "val_R@10": 80.0, "val_queries": 200,
             "val_R@1_interval_95": [43.0, 57.0]}
     variant = {"best": best, "train_seconds": 600.0, "test": {"5": recall, "25": recall}}
@@ -167,6 +170,7 @@ def test_render_handles_every_result_kind(tmp_path):
             "| 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |") in current
     assert "| trained, int8 | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] | 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |" in current
     assert "| chance (random ranking) | 0.35 | - | - | 2.10 |" in current
+    assert "80 with, 10 against queries" in current and "| trained, int8 | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] |" in current
     assert "| m | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current          # FPS beside the test mAP
     assert "## MAFF-Net training: m" in current and "| trained, onnxruntime int8 | 50.00 (60.00) |" in current
     for heading in ("## Speed suite", "## Per-model benches", "## Graph comparisons", "## MAFF-Net capacity",
