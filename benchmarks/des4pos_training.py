@@ -11,19 +11,27 @@ verbs, with their times:
    weights (and of the seeded bundle);
 4. held-out cities ``radaredge make-city --out <work>/heldout --cities H --seed 100``: one
    database of all their cells, every described pose a query; ``radaredge eval`` of the seeded
-   and the trained bundle, onnxruntime and the torch reference side by side (Table I and II).
+   and the trained bundle, onnxruntime and the torch reference side by side (Table I, with the fine
+   stage and with the retrieved cells' centres alone, each with 95 % bootstrap intervals over the
+   queries, and Table II).
 
-Writes benchmarks/results/des4pos-training-<date>.json (rendered into benchmarks/README.md by
-benchmarks/render.py) and keeps the run directory and exports under --work (default
-export/des4pos-training).
+Writes benchmarks/results/<card>[-<tag>]-training-<date>.json (rendered into benchmarks/README.md
+by benchmarks/render.py) and keeps the run directory and exports under --work (default
+export/<card>-training; its cities are reused when they exist).
 
     python benchmarks/des4pos_training.py          # 12 cities x 200 described poses, 2 held out
+    # the fine stage alone, again, on a finished run's weights, with a card whose fine stage differs:
+    python benchmarks/des4pos_training.py --card my-des4pos.yaml --tag fine-encoder --work export/fine-encoder \
+        --cities-from export/des4pos-training --set stages=fine \
+        --set coarse_weights=export/des4pos-training/run/best.pth
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
+from pathlib import Path
 
 import radaredge
 from radaredge.data.text_city import write_cities
@@ -31,10 +39,16 @@ from radaredge.data.text_city import write_cities
 import training_run
 
 
+def _percent(value):
+    return [100 * v for v in value] if isinstance(value, tuple) else 100 * value
+
+
 def _tables(report) -> dict:
-    """Table I and II of every backend of a localisation report, in % (JSON keys as strings)."""
-    return {name: {"localization": {str(k): {f"{t:g}": 100 * r for t, r in by_t.items()}
-                                    for k, by_t in res["localization"].items()},
+    """Table I (``localization``: the fine stage; ``localization_centre``: the retrieved cells'
+    centres; ``..._interval``: their 95 % bootstrap intervals, [low, high]) and Table II of every
+    backend of a localisation report, in % (JSON keys as strings)."""
+    return {name: {**{key: {str(k): {f"{t:g}": _percent(r) for t, r in by_t.items()} for k, by_t in table.items()}
+                      for key, table in res.items() if key != "retrieval"},
                    "retrieval": {str(k): 100 * r for k, r in res["retrieval"].items()}}
             for name, res in report.results.items()}
 
@@ -52,9 +66,17 @@ def main(argv=None) -> int:
     ap.add_argument("--cities", type=int, default=12)
     ap.add_argument("--poses", type=int, default=200, help="described poses per city")
     ap.add_argument("--heldout", type=int, default=2, help="held-out cities (one database)")
+    ap.add_argument("--tag", default="", help="results file <card>-<tag>-training-<date>.json (a variant run)")
+    ap.add_argument("--cities-from", type=Path, metavar="WORK",
+                    help="copy the training and held-out cities of an earlier run's work directory")
     args = ap.parse_args(argv)
     card, work, options, stamp = training_run.start(args)
     cities, held, run, graphs = work / "cities", work / "heldout", work / "run", work / "graphs"
+    if args.cities_from is not None:
+        for name in ("cities", "heldout"):
+            if not (work / name).exists():
+                shutil.copytree(args.cities_from / name, work / name,
+                                ignore=shutil.ignore_patterns("*.des4pos-*"))      # not the cell caches
     t0 = time.perf_counter()
     if not cities.exists():
         write_cities(cities, card, args.cities, seed=1, poses=args.poses)
@@ -83,7 +105,7 @@ def main(argv=None) -> int:
             print("  " + line, flush=True)
     first = next(iter(evals.values()))
     out = {
-        "date": stamp, "card": card.name,
+        "date": stamp, "card": card.name, "tag": args.tag,
         "machine": training_run.machine(),
         "command": f"radaredge make-city --out cities --cities {args.cities} --seed 1 --poses {args.poses}; "
                    f"radaredge train --model {card.name} --data cities"
@@ -96,7 +118,11 @@ def main(argv=None) -> int:
         "heldout": {"seed": 100, "maps": first.maps, "cells": first.cells, "queries": first.queries,
                     **{name: _tables(r) for name, r in evals.items()}},
     }
-    training_run.save(card, stamp, out)
+    if args.tag:
+        training_run.write(training_run.ROOT / "benchmarks" / "results"
+                           / f"{card.name}-{args.tag}-training-{stamp[:10]}.json", out)
+    else:
+        training_run.save(card, stamp, out)
     return 0
 
 

@@ -452,13 +452,21 @@ def _stage_metrics(rows: list[dict]) -> list[str]:
     return [k for k in rows[0] if k not in ("stage", "epoch", "loss", "seconds")]
 
 
+def _with_interval(res: dict, key: str, k: int, t: float) -> str:
+    """One Table I figure (%) of a Des4Pos held-out run, with its bootstrap interval when recorded."""
+    value = _num(res[key].get(str(k), {}).get(f"{t:g}"))
+    low_high = res.get(key + "_interval", {}).get(str(k), {}).get(f"{t:g}")
+    return value if low_high is None else f"{value} [{_num(low_high[0])}, {_num(low_high[1])}]"
+
+
 def des4pos_training_section(r: Result, results_dir: Path) -> list[str]:
     """A Des4Pos training run (benchmarks/des4pos_training.py): the stages' epochs, parity on the
     trained weights, and Tables I and II on held-out cities, seeded vs trained, both backends."""
     d = r.data
     train, held = d["train"], d["heldout"]
     m, data = d.get("machine", {}), train.get("data", {})
-    out = ["## Des4Pos training", "",
+    variant = r.stem.removesuffix("-training")
+    out = ["## Des4Pos training" + ("" if variant == "des4pos" else f" (`{variant}`)"), "",
            f"`benchmarks/des4pos_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
            f"`{d['command']}`: {data.get('maps', '?')} cities, {data.get('cells', '?')} cells, "
            f"{data.get('training_poses', '?')} training and {data.get('validation_poses', '?')} validation described "
@@ -473,17 +481,29 @@ def des4pos_training_section(r: Result, results_dir: Path) -> list[str]:
         out += _table(["epoch", "loss", *keys, "min", ""], body, ["---:"] * (len(keys) + 3) + ["---"]) + [""]
     verdict = lambda p: "PASSED" if p.get("passed") else "FAILED"  # noqa: E731
     par = d.get("parity", {})
+    runs = [(w, b) for w in ("seeded", "trained") for b in held.get(w, {})]
+    centres = any("localization_centre" in held[w][b] for w, b in runs)
+    unit = ("% with the fine stage's positions and with the retrieved cells' centres alone (no fine stage), "
+            "in brackets the 95 % percentile-bootstrap interval over the queries:" if centres else "%:")
     out += [f"Parity of the exported bundle (three graphs) against the torch reference: trained weights "
             f"{verdict(par.get('trained', {}))}, seeded weights {verdict(par.get('seeded', {}))}.", "",
             f"Held-out cities (`{d.get('eval_command', '?')}`): {held['cells']} cells of {len(held['maps'])} "
             f"cities in one database, {held['queries']} described poses as queries. Table I, localisation "
-            f"accuracy (a position within t m among the top-k cells), %:", ""]
-    runs = [(w, b) for w in ("seeded", "trained") for b in held.get(w, {})]
+            f"accuracy (a position within t m among the top-k cells), {unit}", ""]
     ks = sorted({int(k) for w, b in runs for k in held[w][b]["localization"]})
     ts = sorted({float(t) for w, b in runs for k in held[w][b]["localization"].values() for t in k}, key=float)
-    head = ["weights", "backend"] + [f"top-{k} {t:g} m" for k in ks for t in ts]
-    body = [[w, b, *(_num(held[w][b]["localization"][str(k)][f"{t:g}"]) for k in ks for t in ts)] for w, b in runs]
-    out += _table(head, body, ["---", "---"] + ["---:"] * (len(head) - 2)) + [""]
+    if centres:
+        out += _table(["weights", "backend", "position"] + [f"top-{k} {t:g} m" for k in ks for t in ts],
+                      [[w, b, label, *(_with_interval(held[w][b], key, k, t) for k in ks for t in ts)]
+                       for w, b in runs for key, label in (("localization", "fine stage"),
+                                                           ("localization_centre", "cell centre"))
+                       if key in held[w][b]],
+                      ["---", "---", "---"] + ["---:"] * (len(ks) * len(ts))) + [""]
+    else:                                       # files from before the cell-centre rows
+        head = ["weights", "backend"] + [f"top-{k} {t:g} m" for k in ks for t in ts]
+        body = [[w, b, *(_num(held[w][b]["localization"][str(k)][f"{t:g}"]) for k in ks for t in ts)]
+                for w, b in runs]
+        out += _table(head, body, ["---", "---"] + ["---:"] * (len(head) - 2)) + [""]
     out += ["Table II, cell-retrieval recall (the pose's best cell among the top k), %:", ""]
     rk = sorted({int(k) for w, b in runs for k in held[w][b]["retrieval"]})
     body = [[w, b, *(_num(held[w][b]["retrieval"][str(k)]) for k in rk)] for w, b in runs]

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import pytest
 
+from radaredge.cards import load_card
 from radaredge.config import Range, card_ranges, config_from_dict, field_range
 from radaredge.errors import ConfigError
 from radaredge.models.des4pos.model import FineConfig, SubmapConfig
@@ -93,3 +95,13 @@ def test_valid_values_convert():
 def test_a_range_for_a_missing_field_is_a_programming_error():
     with pytest.raises(TypeError, match="no field"):
         card_ranges(nope=(0, 1))(_Section)
+
+
+def test_every_benchmark_card_builds():
+    """The configurations tried under benchmarks/cards/ stay valid cards of the current code."""
+    from radaredge.models import create_model
+    paths = sorted((Path(__file__).resolve().parent.parent / "benchmarks" / "cards").glob("*.yaml"))
+    assert paths
+    for path in paths:
+        card = load_card(path)
+        assert card.name == path.stem and create_model(card) is not None

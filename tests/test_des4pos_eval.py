@@ -59,12 +59,44 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
     again = evaluate_localization(bundle, city, top_k=(1, 3), thresholds=(30.0,), retrieval_ks=(2,))
     assert again.from_cache and list(again.recall) == [1, 3] and list(again.retrieval) == [2]
     assert again.recall[3][30.0] == pytest.approx((dist[:, :3] <= 30.0).any(1).mean())
+    # without the fine stage: each retrieved cell's centre is the position
+    centres = np.array([[m.origins[list(m.ids).index(c)] + m.sizes[list(m.ids).index(c)] / 2 for c in row]
+                        for row in retrieved])
+    dist_c = np.linalg.norm(centres - m.pose_w[:, None], axis=2)
+    res = report.results["onnxruntime"]
+    for k in report.ks:
+        for t in report.thresholds:
+            assert report.centre_recall[k][t] == pytest.approx((dist_c[:, :k] <= t).any(1).mean())
+            for key in ("localization", "localization_centre"):       # a 95 % bootstrap interval over queries
+                low, high = res[key + "_interval"][k][t]
+                assert 0.0 <= low <= res[key][k][t] <= high <= 1.0
     out = json.loads(json.dumps(report.to_dict()))
     res = out["results"]["onnxruntime"]
     assert out["queries"] == 6 and set(res["localization"]) == {"1", "5", "10"}
     assert set(res["localization"]["5"]) == {"5", "10", "15"} and set(res["retrieval"]) == {"1", "3", "5"}
+    assert set(res["localization_centre"]["10"]) == {"5", "10", "15"} and len(res["localization_interval"]["1"]["5"]) == 2
     lines = report.lines()
-    assert lines[1].startswith("Table I") and lines[3].split()[0] == "top-1" and lines[6].startswith("Table II")
+    assert lines[1].startswith("Table I") and lines[3].split()[0] == "top-1" and "[" in lines[3]
+    assert lines[6].startswith("Table I without the fine stage") and lines[11].startswith("Table II")
+
+
+def test_bootstrap_intervals_are_those_of_the_per_query_hits():
+    """localization_hits gives per query what localization_recall averages; the interval is the
+    percentile bootstrap of those hits (recall_stats.bootstrap_interval), in fractions."""
+    from radaredge.eval.localisation import _intervals, localization_hits
+    from radaredge.eval.places import localization_recall
+    from radaredge.eval.recall_stats import bootstrap_interval
+    rng = np.random.default_rng(0)
+    pred, pose = rng.uniform(0, 40, (200, 10, 2)), rng.uniform(0, 40, (200, 2))
+    same = rng.random((200, 10)) > 0.2
+    hits = localization_hits(pred, pose, (1, 5, 10), (5.0, 10.0), same)
+    recall = localization_recall(pred, pose, (1, 5, 10), (5.0, 10.0), same_scene=same)
+    for k in (1, 5, 10):
+        for t in (5.0, 10.0):
+            assert hits[k][t].mean() == pytest.approx(recall[k][t])
+    low, high = _intervals(hits)[5][10.0]
+    assert (100 * low, 100 * high) == pytest.approx(bootstrap_interval(hits[5][10.0]))
+    assert low < recall[5][10.0] < high
 
 
 def test_the_torch_reference_agrees_and_the_database_spans_maps(bundle, city, tmp_path):
@@ -79,6 +111,7 @@ def test_the_torch_reference_agrees_and_the_database_spans_maps(bundle, city, tm
     assert list(report.results) == ["onnxruntime", "torch reference"]
     onnx, ref = report.results["onnxruntime"], report.results["torch reference"]
     assert onnx["retrieval"] == ref["retrieval"] and onnx["localization"] == ref["localization"]
+    assert onnx["localization_centre"] == ref["localization_centre"]
     assert "recall (torch reference)" in report.retrieval_table()
     again = evaluate_localization(bundle, d)                      # the caches beside the maps are not maps
     assert again.from_cache and again.cells == report.cells

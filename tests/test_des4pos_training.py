@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import radaredge
-from radaredge.cards import load_card
+from radaredge.cards import card_from_yaml, load_card
 from radaredge.data.text_city import write_cities
 from radaredge.data.text_maps import load_text_maps
 from radaredge.errors import ConfigError
@@ -89,6 +89,41 @@ def test_resume_continues_as_the_uninterrupted_run(card, city_dir, tmp_path):
     more = radaredge.train(card, city_dir, tmp_path / "b", resume=True, options={**opts, "fine_epochs": 4})
     errors = {r["epoch"]: r["fine_error_m"] for r in more.epochs}
     assert more.stage_best["fine"] == min(errors, key=errors.get), errors
+
+
+def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_dir, tmp_path):
+    """``coarse_weights``: a fine-stage-only run of a trained model with another fine stage
+    (``fine.objects: encoder``) takes every weight outside the fine stage from the checkpoint and
+    starts the fine stage seeded; a warm-up epoch at a negligible rate leaves it there, and
+    without one it trains. A checkpoint that does not fit outside the fine stage is refused."""
+    radaredge.train(card, city_dir, tmp_path / "base", options={"stages": "coarse", "coarse_epochs": 1,
+                                                                 "coarse_batch": 16})
+    ckpt = tmp_path / "base" / "best.pth"
+    text = TINY.read_text().replace("fine: {cra_layers: 3, heads: 2, mlp_hidden: 16}",
+                                    "fine: {cra_layers: 4, heads: 2, mlp_hidden: 16, objects: encoder, pool: hints}")
+    enc_card = card_from_yaml(text)
+    fine = ("fine.", "text.fine_words.", "text.fine_mlp.")
+    warm = {"stages": "fine", "fine_epochs": 1, "fine_warmup_epochs": 1, "fine_warmup_lr": 1e-9,
+            "coarse_weights": str(ckpt)}
+    radaredge.train(enc_card, city_dir, tmp_path / "warm", options=warm)
+    trained, seeded = create_model(card, ckpt).state_dict(), create_model(enc_card).state_dict()
+    after = create_model(enc_card, tmp_path / "warm" / "best.pth").state_dict()
+    assert any(k.startswith("fine.objects.") for k in after)
+    for k, v in after.items():
+        if k.startswith(fine):
+            torch.testing.assert_close(v, seeded[k], atol=1e-6, rtol=0.0)
+        else:
+            assert torch.equal(v, trained[k]), k
+    run = radaredge.train(enc_card, city_dir, tmp_path / "fine", options={**warm, "fine_epochs": 3,
+                                                                          "fine_warmup_epochs": 0, "fine_lr": 3e-3})
+    losses = [r["loss"] for r in run.epochs]
+    assert losses[-1] < losses[0], losses
+    moved = create_model(enc_card, tmp_path / "fine" / "best.pth").state_dict()
+    assert not torch.equal(moved["fine.objects.pos_encoder.0.weight"], seeded["fine.objects.pos_encoder.0.weight"])
+    partial = {k: v for k, v in trained.items() if k != "submap.mfam.v.weight"}
+    torch.save(partial, tmp_path / "partial.pth")
+    with pytest.raises(ConfigError, match=r"outside the fine stage: missing keys \(1\): submap.mfam.v.weight"):
+        radaredge.train(enc_card, city_dir, tmp_path / "bad", options={**warm, "coarse_weights": str(tmp_path / "partial.pth")})
 
 
 def test_info_nce_masks_copies_of_the_same_cell():

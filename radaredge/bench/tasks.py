@@ -13,7 +13,7 @@ from ..cards.des4pos import CellConfig
 from ..data.text_city import make_city
 from ..errors import ConfigError
 from ..models.des4pos.spec import descriptions
-from ..runtime.des4pos import Des4PosBundle, MapIndex
+from ..runtime.des4pos import Des4PosBundle, MapIndex, object_summaries
 from .timing import BenchTask
 
 
@@ -38,7 +38,10 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
     with torch.no_grad():
         desc, objs = model.submap(torch.from_numpy(city.points), torch.from_numpy(city.num_points),
                                   torch.from_numpy(city.object_mask))
-    index = MapIndex(city.ids, city.origins, city.sizes, city.object_mask, desc.numpy(), objs.numpy())
+    centres, colours = object_summaries(city.points)
+    index = MapIndex(city.ids, city.origins, city.sizes, city.object_mask, desc.numpy(), objs.numpy(),
+                     object_centres=centres, object_colours=colours, num_points=city.num_points.astype("float32"))
+    summaries = model.fine.needs_summaries
     texts = descriptions(card, 8, 3)
 
     def torch_query(text, reference=False):
@@ -50,12 +53,17 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
                 d, h = model.text(torch.from_numpy(ids), torch.from_numpy(mask))
             _, cells = index.search(d.numpy()[None], top_k)
             c = cells[0]
+            parts = (index.object_centres, index.object_colours, index.num_points)
             if reference:
-                model.fine.reference([torch.from_numpy(index.object_features[j][index.object_mask[j]]) for j in c], h,
-                                     index.origins[c], index.sizes[c])
+                real = [index.object_mask[j] for j in c]
+                model.fine.reference([torch.from_numpy(index.object_features[j][m]) for j, m in zip(c, real)], h,
+                                     index.origins[c], index.sizes[c],
+                                     [tuple(torch.from_numpy(p[j][m]) for p in parts) for j, m in zip(c, real)]
+                                     if summaries else None)
             else:
                 model.fine(torch.from_numpy(index.object_features[c]), torch.from_numpy(index.object_mask[c]), h,
-                           torch.from_numpy(index.origins[c]), torch.from_numpy(index.sizes[c]))
+                           torch.from_numpy(index.origins[c]), torch.from_numpy(index.sizes[c]),
+                           *((torch.from_numpy(p[c]) for p in parts) if summaries else ()))
 
     query = {}
     if options.reference:

@@ -8,7 +8,10 @@ position in each.
 
 - **Table I**, localisation recall (:func:`radaredge.eval.places.localization_recall`): a pose
   counts at (k, t) when one of the positions in its first k retrieved cells lies within t m of
-  the pose, cells of another scene never counting; k = 1, 5, 10 and t = 5, 10, 15 m.
+  the pose, cells of another scene never counting; k = 1, 5, 10 and t = 5, 10, 15 m. Twice: with
+  the fine stage's positions, and with each retrieved cell's centre (no fine stage), which is
+  what the fine stage has to beat. Each figure comes with its 95 % percentile-bootstrap interval
+  over the queries (:func:`radaredge.eval.recall_stats.bootstrap_interval`).
 - **Table II**, cell-retrieval recall@k: the pose's best cell (the cell whose centre is nearest,
   KITTI360Pose's ``best_cell``) is among its top k; k = 1, 3, 5.
 
@@ -33,10 +36,13 @@ from ..data.text_maps import TextMaps, load_text_maps
 from ..errors import ConfigError, InputError
 from ..models import create_model, weights_hash
 from .places import LOCALIZATION_KS, LOCALIZATION_THRESHOLDS, localization_levels, localization_recall
-from ..runtime.des4pos import Des4PosBundle, MapIndex
+from .recall_stats import bootstrap_interval
+from ..runtime.des4pos import Des4PosBundle, MapIndex, object_summaries
 
 RETRIEVAL_KS = (1, 3, 5)
 ONNX, REFERENCE = "onnxruntime", "torch reference"
+FINE, CENTRE = "localization", "localization_centre"     # Table I with the fine stage / with the cell centres
+INTERVAL = "_interval"                                   # suffix: the 95 % bootstrap interval of a Table I
 
 
 def retrieval_recall(retrieved: np.ndarray, truth: np.ndarray, ks: Sequence[int] = RETRIEVAL_KS) -> dict[int, float]:
@@ -54,11 +60,29 @@ def retrieval_recall(retrieved: np.ndarray, truth: np.ndarray, ks: Sequence[int]
     return {int(k): float(hit[:, :k].any(1).mean()) for k in ks}
 
 
+def localization_hits(pred_w: np.ndarray, pose_w: np.ndarray, ks: Sequence[int], thresholds: Sequence[float],
+                      same_scene: np.ndarray) -> dict[int, dict[float, np.ndarray]]:
+    """Per query, whether it counts at (k, t) (bool [Q]), by the rule of
+    :func:`radaredge.eval.places.localization_recall` (whose fractions are the means of these):
+    ``pred_w`` [Q, K, 2], ``pose_w`` [Q, 2] m, ``same_scene`` [Q, K] (False never counts)."""
+    dist = np.linalg.norm(np.asarray(pred_w, np.float64) - np.asarray(pose_w, np.float64)[:, None, :], axis=2)
+    best = np.minimum.accumulate(np.where(np.asarray(same_scene, bool), dist, np.inf), axis=1)
+    return {k: {t: best[:, k - 1] <= t for t in thresholds} for k in ks}
+
+
+def _intervals(hits: dict) -> dict[int, dict[float, tuple[float, float]]]:
+    """The 95 % percentile-bootstrap interval (fractions 0..1) of every (k, t) of ``hits``."""
+    return {k: {t: tuple(v / 100.0 for v in bootstrap_interval(h)) for t, h in by_t.items()} for k, by_t in hits.items()}
+
+
 @dataclass
 class LocalizationReport:
     """Table I and Table II of one bundle on a database of maps, per backend (module docstring).
-    ``results[backend]["localization"][k][t]`` and ``results[backend]["retrieval"][k]`` are
-    fractions in 0..1."""
+    ``results[backend]["localization"][k][t]`` (with the fine stage),
+    ``results[backend]["localization_centre"][k][t]`` (each retrieved cell's centre, no fine
+    stage) and ``results[backend]["retrieval"][k]`` are fractions in 0..1; the two Table I have
+    their 95 % bootstrap intervals over queries, (low, high) fractions, under the same keys with
+    ``_interval`` appended."""
 
     model: str                                  # card name of the bundle
     bundle: str
@@ -78,17 +102,27 @@ class LocalizationReport:
         return self.results[ONNX]["localization"]
 
     @property
+    def centre_recall(self) -> dict[int, dict[float, float]]:
+        """Table I of the exported bundle's retrieval with each cell's centre as the position."""
+        return self.results[ONNX][CENTRE]
+
+    @property
     def retrieval(self) -> dict[int, float]:
         """Table II of the exported bundle."""
         return self.results[ONNX]["retrieval"]
 
     def to_dict(self) -> dict:
-        """JSON-ready: localisation keyed by ``str(k)`` then by ``f"{t:g}"`` (m), retrieval by ``str(k)``."""
+        """JSON-ready: localisation (``localization``: fine stage, ``localization_centre``: cell
+        centres) keyed by ``str(k)`` then by ``f"{t:g}"`` (m), its intervals (``..._interval``) as
+        [low, high], retrieval by ``str(k)``."""
+        def table(by_k):
+            return {str(k): {f"{t:g}": (list(r) if isinstance(r, tuple) else r) for t, r in by_t.items()}
+                    for k, by_t in by_k.items()}
         return {"model": self.model, "bundle": self.bundle, "maps": self.maps, "cells": self.cells,
                 "queries": self.queries, "ks": list(self.ks), "thresholds_m": list(self.thresholds),
                 "retrieval_ks": list(self.retrieval_ks), "checkpoint": self.checkpoint, "from_cache": self.from_cache,
-                "results": {name: {"localization": {str(k): {f"{t:g}": r for t, r in by_t.items()}
-                                                    for k, by_t in res["localization"].items()},
+                "results": {name: {**{key: table(res[key]) for key in (FINE, FINE + INTERVAL, CENTRE, CENTRE + INTERVAL)
+                                      if key in res},
                                    "retrieval": {str(k): r for k, r in res["retrieval"].items()}}
                             for name, res in self.results.items()}}
 
@@ -101,17 +135,28 @@ class LocalizationReport:
         where = self.maps[0] if len(self.maps) == 1 else f"{len(self.maps)} maps"
         return [f"eval {self.model}: {self.queries} described poses of {where} against {self.cells} cells"
                 f"{' (cell descriptors read from the cache)' if self.from_cache else ''}",
-                "Table I, localisation recall (a position within t m among the top-k cells):",
+                ("Table I, localisation recall (a position within t m among the top-k cells), fine stage "
+                 "[95 % bootstrap interval over queries]:"),
                 *self.table().split("\n"),
+                "Table I without the fine stage (each retrieved cell's centre as the position):",
+                *self.table(CENTRE).split("\n"),
                 "Table II, cell-retrieval recall (the best cell among the top k):",
                 *self.retrieval_table().split("\n")]
 
-    def table(self) -> str:
-        """Table I in %: one row per k, a column per threshold and backend."""
+    def table(self, which: str = FINE) -> str:
+        """Table I in % (``which``: ``localization``, the fine stage's positions, or
+        ``localization_centre``, the cells' centres) with its bootstrap intervals when computed:
+        one row per k, a column per threshold and backend."""
         head = ["k"] + [f"{t:g} m" + (f" ({name})" if len(self.results) > 1 else "")
                         for name in self.results for t in self.thresholds]
-        rows = [[f"top-{k}"] + [f"{100 * res['localization'][k][t]:.1f} %" for res in self.results.values()
-                                for t in self.thresholds] for k in self.ks]
+
+        def cell(res, k, t):
+            low_high = res.get(which + INTERVAL, {}).get(k, {}).get(t)
+            text = f"{100 * res[which][k][t]:.1f} %"
+            return text if low_high is None else f"{text} [{100 * low_high[0]:.1f}, {100 * low_high[1]:.1f}]"
+
+        rows = [[f"top-{k}"] + [cell(res, k, t) for res in self.results.values() for t in self.thresholds]
+                for k in self.ks]
         return _text_table(head, rows)
 
     def retrieval_table(self) -> str:
@@ -129,9 +174,17 @@ def _text_table(head: list[str], rows: list[list[str]]) -> str:
 
 
 def _scores(retrieved: np.ndarray, positions: np.ndarray, maps: TextMaps, ks, thresholds, retrieval_ks) -> dict:
-    same = maps.map_of_cell[retrieved] == maps.map_of_cell[maps.pose_cell][:, None]
-    recall = localization_recall(positions, maps.pose_w, ks, thresholds, same_scene=same[:, :positions.shape[1]])
-    return {"localization": recall, "retrieval": retrieval_recall(retrieved, maps.pose_cell, retrieval_ks)}
+    """Table I with the fine stage's ``positions`` [Q, K, 2] and with the centres of the retrieved
+    cells (no fine stage), each with its bootstrap intervals, and Table II."""
+    top = retrieved[:, :positions.shape[1]]
+    same = maps.map_of_cell[top] == maps.map_of_cell[maps.pose_cell][:, None]
+    centres = maps.cells.origins[top] + 0.5 * maps.cells.sizes[top][..., None]
+    out = {}
+    for key, pred in ((FINE, positions), (CENTRE, centres)):
+        out[key] = localization_recall(pred, maps.pose_w, ks, thresholds, same_scene=same)
+        out[key + INTERVAL] = _intervals(localization_hits(pred, maps.pose_w, ks, thresholds, same))
+    out["retrieval"] = retrieval_recall(retrieved, maps.pose_cell, retrieval_ks)
+    return out
 
 
 def _onnx_backend(bundle: Des4PosBundle, maps: TextMaps, depth: int, fine_k: int, cache: bool, wrap):
@@ -140,9 +193,11 @@ def _onnx_backend(bundle: Des4PosBundle, maps: TextMaps, depth: int, fine_k: int
     for path in maps.paths:
         indices.append(MapIndex.build(bundle, path, cache=cache, progress=wrap(f"cells of {path.name}")))
     cells = maps.cells
+    centres, colours = object_summaries(cells.points)
     index = MapIndex(np.array([f"{maps.names[m]}/{c}" for m, c in zip(maps.map_of_cell, cells.ids)]), cells.origins,
                      cells.sizes, cells.object_mask, np.concatenate([i.descriptors for i in indices]),
-                     np.concatenate([i.object_features for i in indices]))
+                     np.concatenate([i.object_features for i in indices]), object_centres=centres,
+                     object_colours=colours, num_points=np.asarray(cells.num_points, np.float32))
     retrieved = np.zeros((len(maps.pose_w), depth), np.int64)
     positions = np.zeros((len(maps.pose_w), fine_k, 2))
     for q in wrap("poses")(range(len(maps.pose_w))):
@@ -164,6 +219,9 @@ def _reference_backend(bundle: Des4PosBundle, maps: TextMaps, checkpoint, depth:
                           f"--checkpoint it was exported with (or --no-reference)")
     cells = maps.cells
     descs, objects = [], []
+    centres, colours = object_summaries(cells.points)
+    summaries = [tuple(torch.from_numpy(np.ascontiguousarray(a[c][cells.object_mask[c]], np.float32))
+                       for a in (centres, colours, cells.num_points)) for c in range(len(cells.ids))]
     with torch.no_grad():
         for c in wrap("cells (torch reference)")(range(len(cells.ids))):
             m = cells.object_mask[c]
@@ -179,7 +237,9 @@ def _reference_backend(bundle: Des4PosBundle, maps: TextMaps, checkpoint, depth:
             scores = descs @ d.numpy()
             retrieved[q] = np.argsort(-scores, kind="stable")[:depth]
             top = retrieved[q, :fine_k]
-            positions[q] = model.fine.reference([objects[c] for c in top], h, cells.origins[top], cells.sizes[top])[1].numpy()
+            positions[q] = model.fine.reference([objects[c] for c in top], h, cells.origins[top], cells.sizes[top],
+                                                [summaries[c] for c in top] if model.fine.needs_summaries
+                                                else None)[1].numpy()
     return retrieved, positions
 
 

@@ -100,11 +100,22 @@ class Des4PosBundle:
         return d, h
 
     def fine(self, index: "MapIndex", cells: np.ndarray, hint_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(offset [k, 2] cell units from the centre, position [k, 2] world m) in ``cells``."""
-        return self.graphs["fine_stage"].session.run(["offset", "position"], {
-            "object_features": index.object_features[cells], "object_mask": index.object_mask[cells],
-            "hint_features": hint_features, "cell_origin": index.origins[cells].astype(np.float64),
-            "cell_size": index.sizes[cells].astype(np.float64)})
+        """(offset [k, 2] cell units from the centre, position [k, 2] world m) in ``cells``. A fine
+        stage with its own object encoder (card ``fine.objects: encoder``) also takes the cells'
+        object centres, colours and point counts, which the index keeps."""
+        graph = self.graphs["fine_stage"]
+        feeds = {"object_features": index.object_features[cells], "object_mask": index.object_mask[cells],
+                 "hint_features": hint_features, "cell_origin": index.origins[cells].astype(np.float64),
+                 "cell_size": index.sizes[cells].astype(np.float64)}
+        wanted = [n for n in SUMMARY_INPUTS if n in graph.input_names]
+        if wanted:
+            if index.object_centres is None:
+                raise InputError(f"{graph.path.name} reads the objects' centres, colours and point counts; this "
+                                 f"index was built without them (use MapIndex.build, or pass the map's cells)")
+            summary = {"object_centres": index.object_centres, "object_colours": index.object_colours,
+                       "num_points": index.num_points}
+            feeds.update({n: np.ascontiguousarray(summary[n][cells], np.float32) for n in wanted})
+        return graph.session.run(["offset", "position"], feeds)
 
     def locate(self, text: str, index: "MapIndex", top_k: int = 3) -> list[dict]:
         """The top-k cells for ``text`` with a position estimate in each, best first."""
@@ -118,9 +129,21 @@ class Des4PosBundle:
                  "offset": offset[r].tolist()} for r, (c, s) in enumerate(zip(cells, scores))]
 
 
+SUMMARY_INPUTS = ("object_centres", "object_colours", "num_points")     # of a fine stage with its own object encoder
+
+
+def object_summaries(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centres [..., 3], mean colours [..., 3]) float32 of objects ``points`` [..., P, 6]: the means of
+    their stored points (x, y, z in cell units, r, g, b), as the torch model computes them."""
+    pts = np.asarray(points, np.float32)
+    return pts[..., :3].mean(-2, dtype=np.float32), pts[..., 3:].mean(-2, dtype=np.float32)
+
+
 @dataclass
 class MapIndex:
-    """The encoded cells of one map and a FAISS inner-product index over their descriptors."""
+    """The encoded cells of one map and a FAISS inner-product index over their descriptors; with
+    ``object_centres``, ``object_colours`` and ``num_points`` [C, T, ...] (:func:`object_summaries`
+    of the map's points, and its point counts) a fine stage with its own object encoder can run."""
 
     ids: np.ndarray
     origins: np.ndarray
@@ -130,6 +153,9 @@ class MapIndex:
     object_features: np.ndarray
     cache: Path | None = None
     from_cache: bool = False
+    object_centres: np.ndarray | None = None
+    object_colours: np.ndarray | None = None
+    num_points: np.ndarray | None = None
 
     def __post_init__(self):
         # optional: faiss (eval extra) is needed by locate and eval only
@@ -163,7 +189,10 @@ class MapIndex:
                 for chunk in iter(lambda: f.read(1 << 20), b""):
                     h.update(chunk)
         path = map_path.with_name(f"{map_path.name}{INDEX_CACHE_TAG}{h.hexdigest()[:16]}.npz")
-        common = dict(ids=cells.ids, origins=cells.origins, sizes=cells.sizes, object_mask=cells.object_mask)
+        centres, colours = object_summaries(cells.points)
+        common = dict(ids=cells.ids, origins=cells.origins, sizes=cells.sizes, object_mask=cells.object_mask,
+                      object_centres=centres, object_colours=colours,
+                      num_points=np.asarray(cells.num_points, np.float32))
         if cache and path.is_file():
             arrays = _read_cache(path, len(cells), cells.object_mask.shape[1])
             if arrays is not None:

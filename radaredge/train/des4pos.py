@@ -22,7 +22,14 @@ Stages, in order (``stages``; each keeps the weights of its best validation epoc
 4. ``fine``: eq. 13, the CRA regressor on the frozen coarse encoder's object features ("directly
    reused", III-C) and the fine text branch: the offset of the pose from its best cell's
    centre in cell units, loss the mean L2 norm of the error (eq. 13; ``fine_loss: mse`` is
-   Text2Loc's 5 x mean squared error); Adam 3e-4, batch 32, constant rate (Text2Loc).
+   Text2Loc's 5 x mean squared error); Adam 3e-4, batch 32, constant rate (Text2Loc; it also
+   warms up at 1e-5 for 2 epochs: ``fine_warmup_epochs``). With the card's ``fine.objects:
+   encoder`` the fine stage's own object encoder trains with it, on each object's centre, mean
+   colour and point count beside the frozen coarse states (Text2Loc's fine stage).
+
+``coarse_weights`` starts from a Des4Pos checkpoint's weights outside the fine stage, which stays
+seeded: ``--set stages=fine --set coarse_weights=run/best.pth`` retrains only the fine stage of a
+trained model, with the same card or one whose fine stage differs.
 
 Validation is by scene (:mod:`.text_maps`): object accuracy, prior cosine, cell retrieval recall
 @1/3/5 (the best cell among the top k of the validation scenes' cells; the epoch with the best
@@ -50,13 +57,14 @@ import torch.nn.functional as F
 from ..cards import ModelCard
 from ..config import Range, card_ranges, positive
 from ..errors import ConfigError, InputError
-from ..models.des4pos.model import masked_max
+from ..models.des4pos.model import masked_max, object_summaries
 from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
                   restore_random_states)
 from ..data.text_maps import TextMaps, load_text_maps
 from ..models.des4pos.spec import tokenizer_path
 from ..runtime.text_tokens import encode_hints, load_tokenizer
 from ..models.des4pos.weights import load_object_weights
+from ..models.checkpoints import read_checkpoint
 
 STAGES = ("objects", "prior", "coarse", "fine")
 ALIASES = {"epochs": "coarse_epochs", "lr": "coarse_lr", "batch_size": "coarse_batch"}
@@ -65,7 +73,8 @@ ALIASES = {"epochs": "coarse_epochs", "lr": "coarse_lr", "batch_size": "coarse_b
 @card_ranges(object_epochs=(0, 10_000), object_lr=positive(1.0), object_batch=(1, 4096), prior_epochs=(0, 10_000),
              prior_lr=positive(1.0), prior_batch=(1, 4096), coarse_epochs=(0, 10_000), coarse_lr=positive(1.0),
              coarse_batch=(2, 4096), lr_step=(1, 10_000), lr_gamma=Range(0.0, 1.0, True), temperature=positive(10.0),
-             fine_epochs=(0, 10_000), fine_lr=positive(1.0), fine_batch=(1, 4096), seed=(0, 2**32 - 1))
+             fine_epochs=(0, 10_000), fine_lr=positive(1.0), fine_batch=(1, 4096), fine_warmup_epochs=(0, 10_000),
+             fine_warmup_lr=positive(1.0), seed=(0, 2**32 - 1))
 @dataclass(frozen=True)
 class TextRecipe:
     """Options of Des4Pos training (module docstring). ``epochs``, ``lr`` and ``batch_size`` given
@@ -91,6 +100,10 @@ class TextRecipe:
     fine_lr: float = 3e-4
     fine_batch: int = 32
     fine_loss: str = "l2"               # eq. 13; "mse": Text2Loc's 5 x MSE
+    fine_warmup_epochs: int = 0         # Text2Loc: 2 epochs at fine_warmup_lr, then fine_lr
+    fine_warmup_lr: float = 1e-5
+    coarse_weights: str = ""            # a Des4Pos checkpoint: every weight outside the fine stage loaded from it
+                                        # before the first stage (the fine stage stays seeded)
     object_weights: str = ""            # Text2Pos's pointnet_acc0.86_lr1_p256.pth (or a Text2Loc / Des4Pos checkpoint's
                                         # object encoder), loaded before the first stage
     seed: int = 0
@@ -314,6 +327,8 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
                "validation_maps": sorted({maps.names[int(maps.map_of_cell[c])] for c in maps.pose_cell[val_q]})}
     log(f"data: {summary['maps']} map(s), {summary['cells']} cells, {len(train_q)} training and {len(val_q)} "
         f"validation described poses")
+    if recipe.coarse_weights and not resume:
+        log(load_coarse_weights(model, recipe.coarse_weights))
     if recipe.object_weights and not resume:
         log(load_object_weights(model, recipe.object_weights).summary())
     model.to(dev)
@@ -401,6 +416,34 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
     report.seconds = clock()
     run.write_log(report.to_dict())
     return report
+
+
+FINE_MODULES = ("fine", "text.fine_words", "text.fine_mlp")      # what the fine stage trains
+
+
+def _in_fine_stage(key: str) -> bool:
+    return key.startswith(tuple(m + "." for m in FINE_MODULES))
+
+
+def load_coarse_weights(model, path) -> str:
+    """Load every weight outside the fine stage (:data:`FINE_MODULES`) from the Des4Pos checkpoint
+    ``path``; the fine stage keeps its seeded weights, whatever the checkpoint holds for it (its
+    card's fine stage may differ). Any other missing, unexpected or mis-shaped key is a
+    ConfigError. Returns a one-line summary."""
+    state, _ = read_checkpoint(path)
+    own = model.state_dict()
+    outside = {k: v for k, v in state.items() if not _in_fine_stage(k)}
+    missing = sorted(k for k in own if not _in_fine_stage(k) and k not in outside)
+    unexpected = sorted(k for k in outside if k not in own)
+    shapes = sorted(k for k in outside if k in own and tuple(outside[k].shape) != tuple(own[k].shape))
+    problems = [f"{what} ({len(keys)}): {', '.join(keys[:8])}" for what, keys in
+                (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)) if keys]
+    if problems:
+        raise ConfigError(f"coarse_weights {path} does not fit this card's model outside the fine stage: "
+                          f"{'; '.join(problems)}")
+    model.load_state_dict({**own, **outside})
+    seeded = sum(1 for k in own if _in_fine_stage(k))
+    return f"coarse_weights: {len(outside)} tensors from {path}; the fine stage's {seeded} stay seeded"
 
 
 class _Keeper:
@@ -581,7 +624,11 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
     # what the cell centre alone (a zero offset, the coarse stage's answer) misses by: the bar to beat
     centre_m = float((target_all[torch.from_numpy(val_q).to(dev)].double().norm(dim=1)
                       * size[maps.pose_cell[val_q]]).mean())
-    names = ["fine", "text.fine_words", "text.fine_mlp"]
+    summaries = None
+    if model.fine.needs_summaries:                    # fine.objects: encoder
+        centres, colours = object_summaries(torch.from_numpy(maps.cells.points))
+        summaries = (centres.to(dev), colours.to(dev), torch.from_numpy(maps.cells.num_points).to(dev))
+    names = list(FINE_MODULES)
     stage = _Stage("fine", _set_trainable(model, names), recipe.fine_lr, epochs, start)
     keeper = keep(stage, names, lambda m, b: m["fine_error_m"] < b["fine_error_m"])
 
@@ -589,13 +636,16 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
         rows, hmask = _padded_hints(maps, table, poses, None)
         hints = hint_fine_features(model, prior, tmask, rows.to(dev))
         cells = torch.from_numpy(maps.pose_cell[poses]).to(dev)
-        return model.fine.offsets(objects[cells], object_mask[cells], hints, hmask.to(dev))
+        return model.fine.offsets(objects[cells], object_mask[cells], hints, hmask.to(dev),
+                                  None if summaries is None else tuple(x[cells] for x in summaries))
 
     def loss_of(poses):
         err = predict(poses) - target_all[torch.from_numpy(poses).to(dev)]
         return err.norm(dim=1).mean() if recipe.fine_loss == "l2" else 5.0 * (err ** 2).mean()
 
     for epoch in range(start, epochs + 1):
+        for group in stage.opt.param_groups:          # Text2Loc's warm-up: a low rate for the first epochs
+            group["lr"] = recipe.fine_warmup_lr if epoch <= recipe.fine_warmup_epochs else recipe.fine_lr
         loss = stage.run_epoch(model, epoch, rng.permutation(train_q), recipe.fine_batch, loss_of, progress)
         with torch.no_grad():
             errs = []

@@ -22,9 +22,13 @@ Three parts, exported as three graphs that share one set of weights:
    over hints -> L2-normalised descriptor. The fine-stage text branch (a Transformer layer +
    max pooling, III-C) gives one feature per hint.
 3. **Fine stage** (CRA, III-C, eq. 10-12): R1 = Attn(T, N, N) + T, R2 = Attn(N, R1, R1) + N,
-   R_i = Attn(R_i-2, R_i-1, R_i-1) + R_i-2; a max over the last R and an MLP give the offset
-   of the pose from the cell centre in cell units; position = cell origin + (0.5 + offset) *
-   cell size (Text2Loc's pose-in-cell convention), in float64.
+   R_i = Attn(R_i-2, R_i-1, R_i-1) + R_i-2; a max over the last R (``fine.pool: last``) or the
+   last hint-stream R (``hints``, Text2Loc's choice) and an MLP give the offset of the pose from
+   the cell centre in cell units; position = cell origin + (0.5 + offset) * cell size (Text2Loc's
+   pose-in-cell convention), in float64. N is the coarse encoder's object states (the paper) or,
+   with ``fine.objects: encoder``, a fine-stage object encoder's output on those states and each
+   object's centre, mean colour and point count (Text2Loc trains its fine stage's own object
+   encoder, with a position MLP).
 
 Both formulations share the weights: ``reference=True`` is the paper's computation on the real
 objects / tokens only (Python FPS, per-query ball query, no padding, one hint at a time, an
@@ -118,14 +122,39 @@ class SubmapConfig:
             raise ValueError(f"the cell descriptor is {rule} = {width} wide, but embed_dim is {self.embed_dim}")
 
 
+FINE_OBJECTS = ("coarse", "encoder")
+FINE_POOLS = ("last", "hints")
+
+
 @card_ranges(cra_layers=(1, 32), heads=(1, 64), mlp_hidden=(1, 4096))
 @dataclass(frozen=True)
 class FineConfig:
-    """Card section ``fine``."""
+    """Card section ``fine``.
+
+    ``objects``: what the CRA reads as the object stream n_i. ``coarse`` (the paper: "directly
+    reuse the point-cloud encoder pre-trained in the coarse stage"): the coarse encoder's object
+    states as they are. ``encoder``: a fine-stage object encoder of its own (Text2Loc's fine
+    stage trains one, with an explicit position MLP): the coarse state through a linear layer,
+    and MLPs on each object's centre in the cell (x, y, z in cell units), mean colour and point
+    count, each L2-normalised, merged by an MLP and L2-normalised (the three MLPs as wide as the
+    coarse encoder's, ``submap.encoder_hidden``). The graph then also takes ``object_centres``,
+    ``object_colours`` and ``num_points`` of the candidate cells.
+
+    ``pool``: what the max before the offset MLP runs over: the last CRA state R_n (``last``,
+    eq. 12's output; with an even ``cra_layers`` that is an object-stream state) or the last
+    hint-stream state (``hints``: R_n or R_n-1, the stream Text2Loc pools).
+    """
 
     cra_layers: int = 4                # R1 .. Rn of eq. 10-12
     heads: int = 4
     mlp_hidden: int = 128
+    objects: str = "coarse"            # "coarse" (the paper) or "encoder" (a fine-stage object encoder, Text2Loc)
+    pool: str = "last"                 # "last" (R_n, the paper) or "hints" (the last hint-stream state, Text2Loc)
+
+    def __post_init__(self):
+        for name, allowed in (("objects", FINE_OBJECTS), ("pool", FINE_POOLS)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {list(allowed)}, got {getattr(self, name)!r}")
 
 
 # ----------------------------------------------------------------------------- shared blocks
@@ -523,40 +552,107 @@ class TextEncoder(nn.Module):
 # ----------------------------------------------------------------------------- fine stage
 
 
-class FineStage(nn.Module):
-    """Cascaded residual attention (eq. 10-12) + offset MLP + position in the world frame."""
+def object_summaries(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(centres [..., 3], mean colours [..., 3]) of objects ``points`` [..., P, 6] (x, y, z in cell
+    units, r, g, b): the means over each object's P stored points, as the object encoder takes them."""
+    return points[..., :3].mean(-2), points[..., 3:].mean(-2)
 
-    def __init__(self, cfg: FineConfig, d: int):
+
+class FineObjectEncoder(nn.Module):
+    """The fine stage's own object encoder (``fine.objects: encoder``): the coarse object state
+    through a linear layer, MLPs on the object's centre in the cell, mean colour and normalised
+    point count (Text2Loc's position, colour and count encoders), each L2-normalised, merged by an
+    MLP and L2-normalised. The position reaches the CRA through its own MLP, not only through
+    the coarse encoder's states, which retrieval trained."""
+
+    def __init__(self, cell: CellConfig, d: int, hidden: int):
+        super().__init__()
+        self.count_mean, self.count_std = cell.count_mean, cell.count_std
+        self.feature = nn.Linear(d, d)
+        self.pos_encoder = mlp([3, hidden, d])
+        self.color_encoder = mlp([3, hidden, d])
+        self.num_encoder = mlp([1, hidden, d])
+        self.merge = mlp([4 * d, d, d])
+
+    def forward(self, features, centres, colours, counts):
+        """features [..., D], centres [..., 3], colours [..., 3], counts [...] -> [..., D]."""
+        c = (counts.to(features.dtype).unsqueeze(-1) - self.count_mean) / self.count_std
+        parts = [self.feature(features), self.pos_encoder(centres), self.color_encoder(colours), self.num_encoder(c)]
+        return F.normalize(self.merge(torch.cat([F.normalize(p, dim=-1) for p in parts], -1)), dim=-1)
+
+
+class FineStage(nn.Module):
+    """Cascaded residual attention (eq. 10-12) + offset MLP + position in the world frame; with
+    ``objects: encoder`` a fine-stage object encoder first (:class:`FineObjectEncoder`)."""
+
+    def __init__(self, cfg: FineConfig, d: int, cell: CellConfig | None = None, encoder_hidden: int = 64):
         super().__init__()
         if cfg.cra_layers < 1:
             raise ConfigError("fine.cra_layers must be >= 1")
+        self.cfg = cfg
         self.attn = nn.ModuleList(Attention(d, cfg.heads) for _ in range(cfg.cra_layers))
         self.offset = mlp([d, cfg.mlp_hidden, 2])
+        if cfg.objects == "encoder":                      # made last: the other weights seed as without it
+            self.objects = FineObjectEncoder(cell or CellConfig(), d, encoder_hidden)
 
-    def offsets(self, objects, object_mask, hints, hint_mask=None):
-        """objects [K, T, D] (mask [K, T] or None), hints [K, H, D] (mask [K, H] or None) -> offset
-        [K, 2] (cell units from the cell centre)."""
+    @property
+    def needs_summaries(self) -> bool:
+        """True when the stage reads the objects' centres, colours and point counts."""
+        return self.cfg.objects == "encoder"
+
+    def encode_objects(self, objects, object_mask, summaries):
+        """The object stream n_i: ``objects`` [K, T, D] as they are (``objects: coarse``) or through
+        the fine object encoder with ``summaries`` = (centres [K, T, 3], colours [K, T, 3], counts
+        [K, T]). Padding slots (``object_mask`` False) are zeroed first: whatever they hold (NaN
+        included) reaches no real output."""
+        if not self.needs_summaries:
+            return objects
+        if summaries is None:
+            raise ConfigError("fine.objects: encoder needs the candidate cells' object centres, colours and point "
+                              "counts (object_centres, object_colours, num_points)")
+        parts = (objects, *summaries)
+        if object_mask is not None:
+            parts = [torch.where(object_mask.view(*object_mask.shape, *([1] * (p.dim() - 2))), p, torch.zeros_like(p))
+                     for p in parts]
+        return self.objects(*parts)
+
+    def offsets(self, objects, object_mask, hints, hint_mask=None, summaries=None):
+        """objects [K, T, D] (mask [K, T] or None), hints [K, H, D] (mask [K, H] or None), and with
+        ``objects: encoder`` ``summaries`` (:meth:`encode_objects`) -> offset [K, 2] (cell units from
+        the cell centre)."""
+        objects = self.encode_objects(objects, object_mask, summaries)
         seq = [(hints, hint_mask), (objects, object_mask)]                        # R_-1 = T, R_0 = N
         for attn in self.attn:
             (q, qmask), (kv, kvmask) = seq[-2], seq[-1]
             seq.append((attn(q, kv, kvmask) + q, qmask))                           # Residual(Attention(...), query)
-        last, mask = seq[-1]
+        # seq[i] belongs to the hint stream for even i: the last is R_n, the last even one the last hint state
+        last, mask = seq[-1] if self.cfg.pool == "last" else seq[len(seq) - 1 - (len(seq) - 1) % 2]
         return self.offset(masked_max(last, mask, 1))
 
     @staticmethod
     def place(offset, cell_origin, cell_size):
         return cell_origin + (0.5 + offset.to(torch.float64)) * cell_size.unsqueeze(-1)
 
-    def forward(self, object_features, object_mask, hint_features, cell_origin, cell_size):
+    def forward(self, object_features, object_mask, hint_features, cell_origin, cell_size, object_centres=None,
+                object_colours=None, num_points=None):
         """Export: object_features [K, T, D], object_mask [K, T] bool, hint_features [H, D],
-        cell_origin [K, 2] float64 (m), cell_size [K] float64 (m) -> offset [K, 2], position [K, 2]."""
+        cell_origin [K, 2] float64 (m), cell_size [K] float64 (m); with ``objects: encoder`` also
+        object_centres [K, T, 3] (cell units), object_colours [K, T, 3], num_points [K, T]
+        -> offset [K, 2], position [K, 2]."""
         k = object_features.shape[0]
-        off = self.offsets(object_features, object_mask, hint_features.unsqueeze(0).expand(k, -1, -1))
+        summaries = None if object_centres is None else (object_centres, object_colours, num_points)
+        off = self.offsets(object_features, object_mask, hint_features.unsqueeze(0).expand(k, -1, -1),
+                           summaries=summaries)
         return off, self.place(off, cell_origin, cell_size)
 
-    def reference(self, objects: list[torch.Tensor], hints: torch.Tensor, cell_origin, cell_size):
-        """Reference: each candidate's real objects [n_k, D] on its own."""
-        off = torch.cat([self.offsets(o[None], None, hints[None]) for o in objects])
+    def reference(self, objects: list[torch.Tensor], hints: torch.Tensor, cell_origin, cell_size, summaries=None):
+        """Reference: each candidate's real objects [n_k, D] on its own (with ``objects: encoder``,
+        ``summaries``: per candidate (centres [n_k, 3], colours [n_k, 3], counts [n_k]))."""
+        if self.needs_summaries and summaries is None:
+            raise ConfigError("fine.objects: encoder needs each candidate's object centres, colours and point counts")
+        off = torch.cat([self.offsets(o[None], None, hints[None],
+                                      summaries=None if summaries is None else tuple(x[None] for x in summaries[j]))
+                         for j, o in enumerate(objects)])
         return off, self.place(off, torch.as_tensor(cell_origin, dtype=torch.float64),
                                torch.as_tensor(cell_size, dtype=torch.float64))
 
@@ -572,7 +668,7 @@ class Des4Pos(nn.Module):
         self.cell_config, self.text_config = cell, text
         self.submap = SubmapEncoder(cell, submap)
         self.text = TextEncoder(text, submap.embed_dim)
-        self.fine = FineStage(fine, submap.embed_dim)
+        self.fine = FineStage(fine, submap.embed_dim, cell, submap.encoder_hidden)
 
 
 def des4pos_configs(card: ModelCard):

@@ -11,6 +11,9 @@ Graphs (all opset 18, CPU onnxruntime, no custom ops):
 ``fine_stage``      object_features [candidates, T, D], object_mask [candidates, T] bool,
                     hint_features [hints, D], cell_origin [candidates, 2] float64 (m),
                     cell_size [candidates] float64 (m)
+                    (card ``fine.objects: encoder``: also object_centres [candidates, T, 3] float32, cell
+                    units, object_colours [candidates, T, 3] float32, num_points [candidates, T] float32:
+                    the means of each object's points and its point count)
                     -> offset [candidates, 2] (cell units from the centre), position [candidates, 2] float64 (m)
 """
 
@@ -22,7 +25,7 @@ import torch
 from ...cards import ModelCard
 from ...data.text_city import make_city
 from ...runtime.text_tokens import encode_hints, load_tokenizer, split_hints
-from .model import build_des4pos
+from .model import FineConfig, build_des4pos
 from ...cards.des4pos import CellConfig, TextConfig
 from .minilm import backbone_dir
 from ...registry import register_model
@@ -165,9 +168,16 @@ TEXT_GRAPH = GraphSpec(
 # ----------------------------------------------------------------------------- fine stage
 
 
+def _fine(card) -> FineConfig:
+    return card.section("fine", FineConfig)
+
+
 def fine_cases(card: ModelCard, n: int, seed: int):
-    """1-4 candidate cells of 1..T objects, 1..max_hints hints, world origins up to 10 km."""
+    """1-4 candidate cells of 1..T objects, 1..max_hints hints, world origins up to 10 km; with
+    ``fine.objects: encoder`` also object centres, colours and point counts, garbage (large
+    values) in their padding slots."""
     cell, t, d = _cell(card), _text(card), _dim(card)
+    summaries = _fine(card).objects == "encoder"
     rng = np.random.default_rng(seed)
     cases = []
     for i in range(n):
@@ -178,27 +188,49 @@ def fine_cases(card: ModelCard, n: int, seed: int):
             real = rng.choice(cell.max_objects, int(rng.integers(1, cell.max_objects + 1)), replace=False)
             mask[j, real] = True
         objs = (rng.normal(0, 0.3, (k, cell.max_objects, d)) * mask[..., None]).astype(np.float32)
-        cases.append((f"{i:02d}-{k}cells-{h}hints", {
-            "object_features": objs, "object_mask": mask,
-            "hint_features": rng.normal(0, 1, (h, d)).astype(np.float32),
-            "cell_origin": rng.uniform(-1e4, 1e4, (k, 2)), "cell_size": np.full(k, cell.size)}))
+        feeds = {"object_features": objs, "object_mask": mask,
+                 "hint_features": rng.normal(0, 1, (h, d)).astype(np.float32),
+                 "cell_origin": rng.uniform(-1e4, 1e4, (k, 2)), "cell_size": np.full(k, cell.size)}
+        if summaries:
+            def garbage(shape):
+                return rng.normal(0, 1e3, shape)
+            centres = np.where(mask[..., None], rng.uniform(-0.1, 1.1, (k, cell.max_objects, 3)),
+                               garbage((k, cell.max_objects, 3)))
+            colours = np.where(mask[..., None], rng.uniform(0, 1, (k, cell.max_objects, 3)),
+                               garbage((k, cell.max_objects, 3)))
+            counts = np.where(mask, rng.integers(8, 5000, (k, cell.max_objects)), garbage((k, cell.max_objects)))
+            feeds.update(object_centres=centres.astype(np.float32), object_colours=colours.astype(np.float32),
+                         num_points=counts.astype(np.float32))
+        cases.append((f"{i:02d}-{k}cells-{h}hints", feeds))
     return cases
 
 
 def fine_reference(model, feeds, trace=None):
     objs, mask = np.asarray(feeds["object_features"]), np.asarray(feeds["object_mask"])
+    summaries = None
+    if "object_centres" in feeds:
+        parts = [np.asarray(feeds[k]) for k in SUMMARY_INPUTS]
+        summaries = [tuple(torch.from_numpy(p[j][mask[j]]) for p in parts) for j in range(len(objs))]
     off, pos = model.reference([torch.from_numpy(objs[j][mask[j]]) for j in range(len(objs))],
                                torch.as_tensor(np.asarray(feeds["hint_features"])),
-                               np.asarray(feeds["cell_origin"]), np.asarray(feeds["cell_size"]))
+                               np.asarray(feeds["cell_origin"]), np.asarray(feeds["cell_size"]), summaries)
     return {"offset": off, "position": pos}
 
 
 FINE_INPUTS = ["object_features", "object_mask", "hint_features", "cell_origin", "cell_size"]
+SUMMARY_INPUTS = ["object_centres", "object_colours", "num_points"]     # fine.objects: encoder
+
+
+def fine_inputs(card: ModelCard) -> list[str]:
+    """The fine-stage graph's inputs: the summaries of the candidate cells' objects too when the
+    card's fine stage has its own object encoder."""
+    return FINE_INPUTS + (SUMMARY_INPUTS if _fine(card).objects == "encoder" else [])
 
 
 def fine_export(model, feeds, trace=None):
+    names = FINE_INPUTS + [k for k in SUMMARY_INPUTS if k in feeds]
     off, pos = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
-                       for k in FINE_INPUTS))
+                       for k in names))
     return {"offset": off, "position": pos}
 
 
@@ -206,10 +238,9 @@ FINE_OUTPUTS = ["offset", "position"]
 FINE_GRAPH = GraphSpec(
     name="fine_stage",
     module=lambda model: model.fine,
-    input_names=lambda card: list(FINE_INPUTS),
-    dynamic_axes=lambda card: {"object_features": {0: "candidates"}, "object_mask": {0: "candidates"},
-                               "hint_features": {0: "hints"}, "cell_origin": {0: "candidates"},
-                               "cell_size": {0: "candidates"}},
+    input_names=fine_inputs,
+    dynamic_axes=lambda card: {name: {0: "hints" if name == "hint_features" else "candidates"}
+                               for name in fine_inputs(card)},
     output_names=lambda card: list(FINE_OUTPUTS),
     make_cases=fine_cases, run_reference=fine_reference, run_export=fine_export,
 )
