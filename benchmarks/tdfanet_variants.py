@@ -17,9 +17,11 @@ benchmarks/place_recognition.py, with the same recipe: the card's, shortened by 
   deformable attention, ``network.aggregation: sum``). Scored as the exported fp32 graph on the
   test towns: Recall@1/5/10 at 5 m and 25 m with intervals (place_recognition.score).
 
-Each variant's run directory is kept under the work directory; a variant whose run finished
-(its train-log.json holds every epoch) is not trained again. Writes
-benchmarks/results/tdfanet-variants-<card>-<date>.json, which benchmarks/render.py renders.
+Each variant's run directory is kept under the work directory (``--work``), with the variant's
+measured row (variant.json): a variant measured there with the same recipe is not trained or
+scored again, and a run that finished training is not trained again, so ``--variants`` can
+measure one variant at a time. Writes benchmarks/results/tdfanet-variants-<card>-<date>.json
+with every variant measured under the work directory, which benchmarks/render.py renders.
 
     python benchmarks/tdfanet_variants.py --card tdfanet-edge --design-towns 1 --design-km 0.5
 """
@@ -57,6 +59,7 @@ VARIANTS = {
 }
 CHOICES = ("frozen", "reestimate", "window", "hardest")
 ABLATIONS = {"full": "frozen", "no-dpr": "no-dpr", "no-fa": "no-fa", "sum": "sum"}
+ROW = "variant.json"           # a variant's measured row, in its run directory
 
 
 def variant_card(card, network: dict, name: str):
@@ -104,6 +107,42 @@ def _best(report: dict) -> dict:
             "val_R@1_interval_95": validation_interval(best)}
 
 
+def measure_variant(card, name: str, work: Path, options: dict, test: list[Path], k: int) -> dict:
+    """The table row of variant ``name``: trained under ``work``/runs/<name> (unless finished there),
+    scored on ``test`` when it is an ablation, and kept in that run directory as variant.json (a
+    finished variant with the same recipe is not measured again)."""
+    network, recipe = VARIANTS[name]
+    run = work / "runs" / name
+    kept = run / ROW
+    if name in measured(work, options):
+        print(f"{card.name}-{name}: reusing {kept}", flush=True)
+        return json.loads(kept.read_text())
+    vcard = variant_card(card, network, name)
+    report = train_variant(vcard, work / "design-towns", run, {**options, **recipe})
+    row = {"network": network, "recipe": recipe, "options": {**options, **recipe}, "best": _best(report),
+           "train_seconds": report["seconds"],
+           "history": [{key: e[key] for key in ("epoch", "loss", "val_R@1", "val_R@5", "val_R@10", "seconds")}
+                       for e in report["epochs"]]}
+    if name in ABLATIONS.values():
+        graph = work / "graphs" / f"{vcard.name}.onnx"
+        radaredge.export(vcard, graph, checkpoint=run / "best.pth")
+        model = runtime.load(graph, threads=training_run.THREADS)
+        row["test"] = place_recognition.score(onnx_backend(model), test, k, model.features)
+        print(f"{vcard.name}: test R@1 at 5 m {row['test']['5']['recall']['1']:.1f} %", flush=True)
+    training_run.write(kept, row)
+    return row
+
+
+def measured(work: Path, options: dict) -> dict[str, dict]:
+    """The rows of every variant measured under ``work`` with the recipe ``options``, in table order."""
+    rows = {}
+    for name, (_, recipe) in VARIANTS.items():
+        kept = work / "runs" / name / ROW
+        if kept.exists() and (row := json.loads(kept.read_text())).get("options") == {**options, **recipe}:
+            rows[name] = row
+    return rows
+
+
 def main(argv=None) -> int:
     ap = training_run.parser("python benchmarks/tdfanet_variants.py", __doc__, "tdfanet-edge")
     ap.add_argument("--design-towns", type=int, default=1)
@@ -133,20 +172,8 @@ def main(argv=None) -> int:
     }
     path = training_run.ROOT / "benchmarks" / "results" / f"tdfanet-variants-{card.name}-{stamp[:10]}.json"
     for name in args.variants:
-        network, recipe = VARIANTS[name]
-        vcard = variant_card(card, network, name)
-        run = work / "runs" / name
-        report = train_variant(vcard, work / "design-towns", run, {**options, **recipe})
-        row = {"network": network, "recipe": recipe, "best": _best(report), "train_seconds": report["seconds"],
-               "history": [{k_: e[k_] for k_ in ("epoch", "loss", "val_R@1", "val_R@5", "val_R@10", "seconds")}
-                           for e in report["epochs"]]}
-        if name in ABLATIONS.values():
-            graph = work / "graphs" / f"{vcard.name}.onnx"
-            radaredge.export(vcard, graph, checkpoint=run / "best.pth")
-            model = runtime.load(graph, threads=training_run.THREADS)
-            row["test"] = place_recognition.score(onnx_backend(model), test, k, model.features)
-            print(f"{vcard.name}: test R@1 at 5 m {row['test']['5']['recall']['1']:.1f} %", flush=True)
-        out["variants"][name] = row
+        measure_variant(card, name, work, options, test, k)
+        out["variants"] = measured(work, options)
         training_run.write(path, out)          # after every variant, so a stopped run keeps what it measured
     return 0
 
