@@ -324,6 +324,26 @@ def test_a_tiny_card_learns(card, tmp_path):
         assert e["val_queries"] > 0 and abs(hits - round(hits)) < 1e-6, e
 
 
+@pytest.mark.parametrize("switch", ["align: false", "remove_dynamic: false", "aggregation: sum"])
+def test_every_ablation_trains(switch, town, tmp_path):
+    """Each ablation switch trains: a few tuples step the weights. align: false once corrupted
+    memory in the first backward pass, on two or more torch threads only."""
+    path = tmp_path / "ablation.yaml"
+    path.write_text(TINY_CARD.read_text().replace("network: {", f"network: {{{switch}, "))
+    card = load_card(path)
+    model = create_model(card)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        report = T.train_places(card, model, town, tmp_path / "run",
+                                T.PlaceRecipe(epochs=1, negatives=6, hard_negatives=3, tuples_per_epoch=20))
+    finally:
+        torch.set_num_threads(threads)
+    assert np.isfinite(report.epochs[-1]["loss"])
+    assert any(not torch.equal(before[k], v) for k, v in model.state_dict().items())
+
+
 @pytest.mark.parametrize("damage, says", [
     ("no-gps", "gps.csv: no such file"),
     ("empty-scans", "no .npy scan files"),

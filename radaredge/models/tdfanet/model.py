@@ -201,6 +201,11 @@ class TDFANet(nn.Module):
             past = align(maps[:, : k - 1].flatten(0, 1), cells.unflatten(0, (b, k))[:, : k - 1].flatten(0, 1),
                          grid=self.grid)
             maps = torch.cat([past.unflatten(0, (b, k - 1)), maps[:, k - 1:]], 1)
+        else:
+            # a copy of the scatter's canvas: without it, backward through the pyramid straight
+            # into the canvas corrupted memory in torch 2.13's CPU autograd (a segfault or a
+            # double free in the first training step); the forward values are the same
+            maps = maps.clone(memory_format=torch.contiguous_format)
         if trace is not None:
             trace["aligned_bev"] = maps.flatten(0, 1)
         if self.net_config.aggregation == "sum":
