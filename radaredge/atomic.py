@@ -2,7 +2,8 @@
 
 A file is written under a temporary name in its own directory (same file system) and renamed
 onto its final name only when it is complete (``os.replace`` is atomic on POSIX and Windows).
-A command that fails or is interrupted (Ctrl-C, SIGTERM) leaves the previous file as it was and
+A command that fails or is interrupted (Ctrl-C; SIGTERM, which the CLI turns into the same
+orderly exit) leaves the previous file as it was and
 removes its temporary. Outputs made of several files (an export: graph, sidecar, int8 and debug
 copies; a Des4Pos bundle) are written into a staging directory and moved into place together,
 with SIGINT and SIGTERM held back during the moves, so no interruption leaves a mix of old and
@@ -42,17 +43,51 @@ def _remove_leftovers() -> None:
 
 
 @contextlib.contextmanager
-def signals_held() -> Iterator[None]:
+def signals_held(notice: str | None = None) -> Iterator[None]:
     """Hold SIGINT and SIGTERM back for the duration (main thread only; elsewhere a no-op): a
-    signal that arrives meanwhile is delivered when the block ends."""
-    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+    signal that arrives meanwhile is recorded, and delivered to the handler in force before the
+    block when the block ends (Ctrl-C raises KeyboardInterrupt there). ``notice``, when given,
+    is printed on stderr at the first held signal (a long block: say what the process finishes
+    first).
+
+    The signals are caught by a recording handler rather than masked: a mask covers only the
+    calling thread, and a signal the kernel hands to another thread (torch's and onnxruntime's
+    workers) still raises KeyboardInterrupt in the main thread at its next bytecode."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    arrived: list[int] = []
+
+    def record(signum, frame):
+        if notice and not arrived:
+            with contextlib.suppress(OSError):
+                os.write(2, f"{notice}\n".encode())
+        arrived.append(signum)
+
+    old = {}
     try:
+        for sig in _HELD:
+            if signal.getsignal(sig) is not None:      # None: a handler set outside Python, left alone
+                old[sig] = signal.signal(sig, record)
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(arrived):
+            if old[sig] is not signal.SIG_IGN:
+                signal.raise_signal(sig)
+
+
+def exit_on_sigterm() -> None:
+    """Make SIGTERM end the process as Ctrl-C does (main thread only): SystemExit(143) unwinds
+    the stack, so every temporary and staging directory is removed on the way out. Without it
+    SIGTERM kills the process where it stands."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminated)
+
+
+def _terminated(signum, frame):
+    raise SystemExit(128 + signum)
 
 
 _UMASK = os.umask(0)

@@ -112,6 +112,7 @@ class OneLineUsageErrors(click.Group):
     one ``error:`` line and exit code 2, like radaredge's own errors, instead of click's usage block."""
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        atomic.exit_on_sigterm()
         try:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         except click.exceptions.NoArgsIsHelpError as exc:     # a bare `radaredge`: the help, as --help shows it

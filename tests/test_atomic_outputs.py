@@ -4,6 +4,7 @@ failed or interrupted one, and output paths are checked before the work."""
 from __future__ import annotations
 
 import hashlib
+import os
 import shutil
 import signal
 import subprocess
@@ -13,9 +14,11 @@ from pathlib import Path
 
 import onnx
 import pytest
+import torch
 import yaml
 
 from radaredge import atomic, runtime
+from radaredge.export.onnx_call import export_onnx
 
 from conftest import TINY_CARD, invoke
 
@@ -46,6 +49,50 @@ def test_staging_commits_every_file_or_none(tmp_path):
         stage.path(dest / "a.onnx").write_text("a")
         stage.commit()
     assert [p.name for p in dest.iterdir()] == ["a.onnx"]     # the staging directory is gone
+
+
+def test_held_signals_arrive_when_the_block_ends(capfd):
+    """A SIGINT inside ``signals_held`` waits for the block (code after the signal still runs),
+    says the notice once, and then raises KeyboardInterrupt as Ctrl-C does."""
+    ran = []
+    with pytest.raises(KeyboardInterrupt):
+        with atomic.signals_held("held: finishing first"):
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(100_000))                    # bytecodes where an unheld interrupt would land
+            ran.append("rest of the block")
+    assert ran == ["rest of the block"]
+    assert capfd.readouterr().err.count("held: finishing first") == 1
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_sigterm_unwinds_like_ctrl_c():
+    """The CLI's SIGTERM handler raises SystemExit(143), so cleanups run on the way out."""
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        atomic.exit_on_sigterm()
+        with pytest.raises(SystemExit) as exit_:
+            os.kill(os.getpid(), signal.SIGTERM)
+            sum(range(100_000))
+        assert exit_.value.code == 143
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def test_an_interrupt_during_tracing_waits_for_the_tracer(tmp_path):
+    """Ctrl-C while torch traces a graph arrives after the graph is written: raised inside
+    torch.export's dispatch modes it aborts the process or turns into an export error."""
+    from torch import nn
+
+    class InterruptedDuringTrace(nn.Module):
+        def forward(self, x):
+            os.kill(os.getpid(), signal.SIGINT)
+            return x * 2
+
+    path = tmp_path / "g.onnx"
+    with pytest.raises(KeyboardInterrupt):
+        export_onnx(InterruptedDuringTrace(), (torch.ones(3),), path, ["x"], ["y"])
+    assert onnx.load(str(path)).graph.node                          # the tracer finished first
 
 
 @pytest.fixture(scope="module")

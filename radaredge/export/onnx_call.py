@@ -19,9 +19,11 @@ import onnx
 import onnxscript.optimizer
 import torch
 
+from ..atomic import signals_held
 from ..errors import ExportError
 
 DEFAULT_OPSET = 18
+INTERRUPT_NOTICE = "interrupted: stopping once torch has finished tracing this graph"
 
 
 @contextlib.contextmanager
@@ -71,8 +73,10 @@ def export_onnx(
     # The exporter and onnx_ir print progress and notes on stdout/stderr; failures still raise.
     quiet = contextlib.nullcontext() if verbose else _redirect_both(sink)
     logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    # Ctrl-C waits for the tracer: a KeyboardInterrupt raised inside torch.export's dispatch
+    # modes aborts the process (std::terminate) or is swallowed into an export error.
     try:
-        with quiet, warnings.catch_warnings():
+        with signals_held(INTERRUPT_NOTICE), quiet, warnings.catch_warnings():
             warnings.simplefilter("ignore")
             program = torch.onnx.export(
                 module,
