@@ -51,7 +51,16 @@ def test_staging_commits_every_file_or_none(tmp_path):
     assert [p.name for p in dest.iterdir()] == ["a.onnx"]     # the staging directory is gone
 
 
-def test_held_signals_arrive_when_the_block_ends(capfd):
+@pytest.fixture
+def ctrl_c():
+    """SIGINT raising KeyboardInterrupt, as in an interactive shell: a suite started in the
+    background by a non-interactive shell (CI) inherits SIGINT ignored."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def test_held_signals_arrive_when_the_block_ends(ctrl_c, capfd):
     """A SIGINT inside ``signals_held`` waits for the block (code after the signal still runs),
     says the notice once, and then raises KeyboardInterrupt as Ctrl-C does."""
     ran = []
@@ -79,7 +88,7 @@ def test_sigterm_unwinds_like_ctrl_c():
         signal.signal(signal.SIGTERM, before)
 
 
-def test_an_interrupt_during_tracing_waits_for_the_tracer(tmp_path):
+def test_an_interrupt_during_tracing_waits_for_the_tracer(ctrl_c, tmp_path):
     """Ctrl-C while torch traces a graph arrives after the graph is written: raised inside
     torch.export's dispatch modes it aborts the process or turns into an export error."""
     from torch import nn
