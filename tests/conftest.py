@@ -77,6 +77,7 @@ def tiny_export(tmp_path_factory):
 
 
 MAFFNET_TINY_CARD = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
+MAFFNET_TINY_FULL_CARD = Path(__file__).parent / "cards" / "maffnet-tiny-full.yaml"
 
 
 @pytest.fixture(scope="session")

@@ -125,6 +125,30 @@ def test_sa_module_matches_reference():
     assert np.abs(zero).max() > 0
 
 
+def test_sa_module_in_training_mode_normalises_with_the_batch_like_the_upstream_modules():
+    """radaredge train: every slot of every centre is one BatchNorm2d sample, as upstream's
+    [1, C, S, K] layout makes it; both formulations give the same output, gradients and running
+    averages (an empty ball's slots count too)."""
+    import copy
+    xyz, rng = _cloud(6, 120)
+    xyz *= 0.5
+    feats = rng.normal(size=(120, 4)).astype(np.float32)
+    valid = rng.random(120) < 0.7
+    centres = np.concatenate([xyz[:30], np.full((2, 3), 50.0, np.float32)])
+    export, reference = _sa().train(), _sa().train()
+    got = export(*(torch.from_numpy(a) for a in (xyz, valid, feats, centres)))
+    ref = reference.reference(xyz, valid, feats, centres)
+    assert_close(got.detach().numpy(), ref.detach().numpy(), 1e-4, "SA, batch statistics")
+    assert not torch.allclose(got, copy.deepcopy(export).eval()(*(torch.from_numpy(a) for a in (xyz, valid, feats,
+                                                                                             centres))))
+    got.square().sum().backward()
+    ref.square().sum().backward()
+    for (name, a), b in zip(export.state_dict().items(), reference.state_dict().values()):
+        assert_close(a.double().numpy(), b.double().numpy(), 1e-4, name)      # running averages updated alike
+    for (name, a), b in zip(export.named_parameters(), reference.parameters()):
+        assert_close(a.grad.numpy(), b.grad.numpy(), 1e-3 * float(b.grad.abs().max()), f"{name} gradient")
+
+
 def test_bev_interpolate_matches_reference():
     rng = np.random.default_rng(6)
     bev = rng.normal(size=(5, 8, 10)).astype(np.float32)         # C, H (y), W (x)

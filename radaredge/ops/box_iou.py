@@ -95,6 +95,23 @@ def bev_iou_paired(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor
     return overlap / torch.clamp(union, min=EPS_UNION)
 
 
+def boxes_iou3d(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
+    """3-D IoU [N, M] of every box of boxes_a [N, 7] with every box of boxes_b [M, 7], as
+    OpenPCDet's boxes_iou3d_gpu: rotated BEV overlap times the overlap of the z extents (z is the
+    box centre), over max(volume_a + volume_b - intersection, 1e-6). Training-time (target
+    assignment), not exported."""
+    n, m = len(boxes_a), len(boxes_b)
+    if n == 0 or m == 0:
+        return boxes_a.new_zeros((n, m))
+    bev = bev_overlap_paired(boxes_a.repeat_interleave(m, 0), boxes_b.repeat(n, 1)).reshape(n, m)
+    top = torch.minimum(boxes_a[:, None, 2] + boxes_a[:, None, 5] / 2, boxes_b[None, :, 2] + boxes_b[None, :, 5] / 2)
+    bottom = torch.maximum(boxes_a[:, None, 2] - boxes_a[:, None, 5] / 2, boxes_b[None, :, 2] - boxes_b[None, :, 5] / 2)
+    inter = bev * torch.clamp(top - bottom, min=0.0)
+    vol_a = (boxes_a[:, 3] * boxes_a[:, 4] * boxes_a[:, 5])[:, None]
+    vol_b = (boxes_b[:, 3] * boxes_b[:, 4] * boxes_b[:, 5])[None, :]
+    return inter / torch.clamp(vol_a + vol_b - inter, min=1e-6)
+
+
 # ----------------------------------------------------------------------------- reference
 
 

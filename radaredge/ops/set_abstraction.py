@@ -19,7 +19,8 @@ Export formulation (:meth:`SAModuleMSG.forward`): fixed shapes, channel-last. Th
 linear, so W [rel_xyz, f] = W_xyz rel_xyz + W_f f: W_f f is computed once per *point* and then
 gathered (the grouped tensor has m_k[0] channels instead of 3 + C, which is what keeps the
 ROI-grid pooling of VoD under 100 MB per intermediate), rel_xyz is gathered and subtracted
-exactly as upstream. BatchNorm is applied in its eval form (scale and shift).
+exactly as upstream. BatchNorm is applied in its eval form (scale and shift); in training mode
+(``radaredge train``) with the batch's statistics, as upstream trains.
 
 Reference formulation (:meth:`SAModuleMSG.reference`): the per-centre ball-query loop, explicit
 grouping into [1, 3 + C, S, K] and the upstream Conv2d/BatchNorm2d modules, then max.
@@ -49,8 +50,14 @@ def group_relative_reference(xyz: np.ndarray, features: np.ndarray, centres: np.
     return out
 
 
-def _bn_eval(bn: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """BatchNorm (eval) on the last axis of x."""
+def _bn(bn: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """BatchNorm on the last axis of x [S, K, C]: the eval form (scale and shift) at test time; in
+    training mode the module itself, so its batch statistics cover every slot of every centre
+    (upstream's BatchNorm2d over [1, C, S, K]) and its running averages are updated. The input is
+    made contiguous first: torch 2.13's CPU BatchNorm2d backward returns a wrong input gradient for
+    the channels-last strides a permuted view has (tests/test_set_abstraction.py checks)."""
+    if bn.training:
+        return bn(x.permute(2, 0, 1).unsqueeze(0).contiguous())[0].permute(1, 2, 0)
     scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
     return x * scale + (bn.bias - bn.running_mean * scale)
 
@@ -99,9 +106,9 @@ class SAModuleMSG(nn.Module):
             rel = group_points(xyz.unsqueeze(0), idx.unsqueeze(0))[0] - centres.unsqueeze(1)
             h = rel @ w[:, :3].t() + group_points(per_point.unsqueeze(0), idx.unsqueeze(0))[0]
             h = torch.where(empty.view(-1, 1, 1), torch.zeros_like(h), h)
-            h = torch.relu(_bn_eval(mlp[1], h))
+            h = torch.relu(_bn(mlp[1], h))
             for j in range(3, len(mlp), 3):
-                h = torch.relu(_bn_eval(mlp[j + 1], h @ mlp[j].weight.flatten(1).t()))
+                h = torch.relu(_bn(mlp[j + 1], h @ mlp[j].weight.flatten(1).t()))
             out.append(h.amax(1))
         return torch.cat(out, -1)
 

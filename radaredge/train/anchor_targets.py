@@ -129,6 +129,21 @@ def direction_targets(matched: torch.Tensor, cfg) -> torch.Tensor:
     return torch.clamp(torch.floor(rot / period).long(), 0, cfg.num_dir_bins - 1)
 
 
+def sigmoid_focal(logits: torch.Tensor, targets: torch.Tensor, alpha: float = 0.25, gamma: float = 2.0) -> torch.Tensor:
+    """OpenPCDet SigmoidFocalClassificationLoss per element (unweighted): alpha_t (1 - p_t)^gamma
+    times the binary cross entropy of ``logits`` with ``targets`` (0 / 1, same shape)."""
+    p = torch.sigmoid(logits)
+    alpha_t = targets * alpha + (1 - targets) * (1 - alpha)
+    pt = targets * (1 - p) + (1 - targets) * p
+    return alpha_t * pt.pow(gamma) * F.binary_cross_entropy_with_logits(logits, targets, reduction="none")
+
+
+def smooth_l1(diff: torch.Tensor, beta: float) -> torch.Tensor:
+    """Smooth-L1 per element of ``diff``: 0.5 d^2 / beta below beta, |d| - beta / 2 above."""
+    d = diff.abs()
+    return torch.where(d < beta, 0.5 * d ** 2 / beta, d - 0.5 * beta)
+
+
 def head_loss(cls_logits, box_pred, dir_logits, targets: dict, cfg, num_classes: int) -> dict[str, torch.Tensor]:
     """OpenPCDet AnchorHeadTemplate loss for one scan, normalised by the number of positives:
     {"loss": the weighted sum, "cls", "loc", "dir": the weighted terms}."""
@@ -137,11 +152,7 @@ def head_loss(cls_logits, box_pred, dir_logits, targets: dict, cfg, num_classes:
     cared = (labels >= 0).float()
     norm = max(int(pos.sum()), 1)
     one_hot = F.one_hot(labels.clamp(min=0), num_classes + 1)[:, 1:].float()
-    p = torch.sigmoid(cls_logits)
-    alpha = one_hot * 0.25 + (1 - one_hot) * 0.75
-    pt = one_hot * (1 - p) + (1 - one_hot) * p
-    ce = F.binary_cross_entropy_with_logits(cls_logits, one_hot, reduction="none")
-    cls = (alpha * pt.pow(2.0) * ce).sum(1) * cared
+    cls = sigmoid_focal(cls_logits, one_hot).sum(1) * cared
     terms = {"cls": LOSS_WEIGHTS["cls"] * cls.sum() / norm}
     zero = cls_logits.sum() * 0.0
     terms["loc"] = terms["dir"] = zero
@@ -149,10 +160,8 @@ def head_loss(cls_logits, box_pred, dir_logits, targets: dict, cfg, num_classes:
         pred, tgt = box_pred[pos], targets["box_targets"][pos]
         sin_pred = torch.sin(pred[:, 6:7]) * torch.cos(tgt[:, 6:7])          # sin(a - b) split between the two
         sin_tgt = torch.cos(pred[:, 6:7]) * torch.sin(tgt[:, 6:7])
-        diff = torch.cat([pred[:, :6] - tgt[:, :6], sin_pred - sin_tgt], 1).abs()
-        beta = 1.0 / 9.0
-        loc = torch.where(diff < beta, 0.5 * diff ** 2 / beta, diff - 0.5 * beta)
-        terms["loc"] = LOSS_WEIGHTS["loc"] * loc.sum() / norm
+        diff = torch.cat([pred[:, :6] - tgt[:, :6], sin_pred - sin_tgt], 1)
+        terms["loc"] = LOSS_WEIGHTS["loc"] * smooth_l1(diff, 1.0 / 9.0).sum() / norm
         dirs = direction_targets(targets["matched"][pos], cfg)
         terms["dir"] = LOSS_WEIGHTS["dir"] * F.cross_entropy(dir_logits[pos], dirs, reduction="sum") / norm
     return {"loss": terms["cls"] + terms["loc"] + terms["dir"], **terms}

@@ -1,4 +1,5 @@
-"""MAFF-Net stage one trained with upstream's recipe on a labelled KITTI-layout radar set.
+"""MAFF-Net (stage one, and stage two where the card has one) trained with upstream's recipe on a
+labelled KITTI-layout radar set.
 
 Read in TRV-Lab/MAFF-Net (tools/cfgs/MAFF-Net/MAFF-Net_vod.yaml and _TJ4D.yaml, its
 dataset configs, pcdet/datasets/augmentor, processor) and OpenPCDet (train_utils, the
@@ -21,7 +22,10 @@ are removed; a scan left without boxes is skipped (upstream draws another scan a
 
 Targets and losses: :mod:`radaredge.train.anchor_targets` (the axis-aligned target assigner with
 each class's matched / unmatched thresholds, focal loss, smooth-L1 on the residual coder with
-the sine-difference heading, the direction classifier).
+the sine-difference heading, the direction classifier); a card with a ``stage_two`` adds, as
+upstream's two-stage detector does, the training proposals, the proposal target layer, the point
+head's and the ROI head's losses of :mod:`radaredge.train.roi_targets` (the CDA keypoints are
+sampled around the sampled rois; no gradient flows through the proposals).
 
 Optimiser (OpenPCDet's ``adam_onecycle``): Adam with betas (0.95 cycled to 0.85 and back, 0.99),
 weight decay applied as decoupled decay to every parameter (fastai's true_wd, bn_wd), the
@@ -55,20 +59,26 @@ from ..data.kitti_detection import DetectionSet, labels_to_radar_boxes
 from ..errors import ConfigError, InputError
 from ..eval.detection import as_labels, card_points, layout_for_card
 from ..eval.kitti_ap import ap_table, evaluate_frames
+from ..models.maffnet.model import decode_boxes
+from ..models.maffnet.rcnn import run_stage_two, scan_points
 from ..ops.input_flags import drop_implausible
 from ..ops.nms import class_agnostic_nms_eager
 from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
+from .roi_targets import (RoiSampling, box_corners, point_head_loss, point_labels, roi_head_loss, sample_rois,
+                          training_proposals)
 from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
                   restore_random_states)
 
 TRAIN_SPLIT, VALIDATION_SPLIT = "train", "val"
+TERMS = ("loss", "cls", "loc", "dir")                                   # logged per epoch as loss_<term>
+STAGE_TWO_TERMS = ("point", "rcnn_cls", "rcnn_reg", "rcnn_corner")
 
 
 @card_ranges(epochs=(1, 10_000), batch_size=(1, 256), lr=positive(1.0), weight_decay=(0.0, 1.0),
              pct_start=Range(0.0, 1.0, True, True), div_factor=positive(1e6), grad_clip=positive(1e6),
              rotation=(0.0, math.pi), scale_min=positive(10.0), scale_max=positive(10.0), val_every=(1, 10_000),
              val_frames=(0, 10**7), train_frames=(0, 10**7), head_prior=Range(0.0, 1.0, True, True), bn_scans=(0, 10**6),
-             seed=(0, 2**32 - 1))
+             roi_per_image=(1, 2**16), train_proposals=(1, 2**16), train_proposals_pre=(1, 2**20), seed=(0, 2**32 - 1))
 @dataclass(frozen=True)
 class DetectionRecipe:
     """The options of MAFF-Net training (module docstring); defaults are upstream's
@@ -93,11 +103,19 @@ class DetectionRecipe:
     head_prior: float = 0.01         # without --checkpoint: the class bias's prior (upstream's init)
     bn_scans: int = 64               # ours: batch-norm statistics re-estimated on this many training scans
                                      # before each validation (0: upstream's running averages as they are)
+    roi_per_image: int = 128         # two-stage cards: ROI_HEAD.TARGET_CONFIG.ROI_PER_IMAGE (rois sampled per scan)
+    train_proposals: int = 512       # ROI_HEAD.NMS_CONFIG.TRAIN.NMS_POST_MAXSIZE
+    train_proposals_pre: int = 9000  # ROI_HEAD.NMS_CONFIG.TRAIN.NMS_PRE_MAXSIZE
     seed: int = 0
 
     def __post_init__(self):
         if self.scale_min > self.scale_max:
             raise ValueError(f"scale_min ({self.scale_min}) must not exceed scale_max ({self.scale_max})")
+
+    def roi_sampling(self) -> RoiSampling:
+        """Stage two's training proposals and roi sampling (upstream's thresholds)."""
+        return RoiSampling(pre_max=self.train_proposals_pre, post_max=self.train_proposals,
+                           roi_per_image=self.roi_per_image)
 
     @classmethod
     def from_options(cls, options: dict) -> "DetectionRecipe":
@@ -147,16 +165,6 @@ def load_split(card: ModelCard, root, split: str, data_format: str | None, limit
     return out
 
 
-def box_corners(boxes: np.ndarray) -> np.ndarray:
-    """The 8 corners [M, 8, 3] of boxes [M, 7] (centre, dx, dy, dz, heading about z)."""
-    signs = np.array([[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)], np.float64) / 2
-    local = boxes[:, None, 3:6] * signs[None]
-    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
-    x = local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0]
-    y = local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1]
-    return np.stack([x, y, local[..., 2] + boxes[:, None, 2]], -1)
-
-
 def augment(points: np.ndarray, boxes: np.ndarray, xyz: list[int], recipe: DetectionRecipe,
             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Upstream's world augmentation (module docstring) of one scan: (points, boxes) copies."""
@@ -185,42 +193,84 @@ def boxes_in_range(boxes: np.ndarray, point_cloud_range) -> np.ndarray:
     if not len(boxes):
         return np.zeros(0, bool)
     r = np.asarray(point_cloud_range, np.float64)
-    corners = box_corners(boxes.astype(np.float64))
+    corners = box_corners(torch.from_numpy(boxes.astype(np.float64))).numpy()
     return ((corners >= r[:3]) & (corners <= r[3:])).all(2).any(1)
 
 
 # ----------------------------------------------------------------------------- model plumbing
 
 
-def fused_map(model, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(the fusion's BEV map [1, C, H, W], SPA overflow [] bool) of one scan, export formulation."""
+def fused_map(model, points: torch.Tensor) -> dict[str, torch.Tensor]:
+    """One scan through VFE + SPA, CFA and the fusion, export formulation: ``points`` [N, F] (rows
+    with an implausible value turned to NaN, as the graph does), ``fused`` [1, C, H, W] (the
+    fuser's BEV map), ``cluster`` [N] bool (the CFA's cluster points), ``overflow`` [] bool (SPA)."""
     points, _ = drop_implausible(points, *model.point_bounds)
     pillar, _, overflow = model.pillar_stage(points, False)
-    cfa = model.cfa_stage(points, False)[0]
-    return model.fuser(pillar.unsqueeze(0), cfa), overflow
+    cfa, _, _, cluster = model.cfa_stage(points, False)
+    return {"points": points, "fused": model.fuser(pillar.unsqueeze(0), cfa), "cluster": cluster,
+            "overflow": overflow}
 
 
-def fused_map_and_head(model, points: torch.Tensor):
-    """Every normalised layer of the detector run on one scan (the head's raw outputs)."""
-    return model.dense_head(model.backbone_2d(fused_map(model, points)[0]))
+@dataclass
+class LossSetup:
+    """What the loss of a scan needs beyond the scan: the anchors' classes [A], the assigner's
+    thresholds and stage two's sampling (None for a stage-one card; it draws from torch's global
+    generator)."""
+
+    anchor_classes: torch.Tensor
+    thresholds: list
+    sampling: RoiSampling | None
 
 
-def anchor_outputs(model, points: torch.Tensor):
-    """The dense head's raw outputs for one scan in the export formulation: (class logits
-    [A, classes], box residuals [A, 7], direction logits [A, bins], SPA overflow [] bool)."""
-    fused, overflow = fused_map(model, points)
-    return (*model.dense_head(model.backbone_2d(fused)), overflow)
+def stage_two_terms(model, scan: dict, cls, box, direction, gt, gt_labels, setup: LossSetup) -> dict:
+    """Stage two's loss terms of one scan (radaredge.train.roi_targets, in upstream's order): the
+    training proposals from the detached anchor outputs, the sampled rois, CDA keypoints around
+    them, VSA, the point head and the ROI head; ``gt_labels`` 1-based."""
+    with torch.no_grad():
+        decoded = decode_boxes(box, model.anchors, direction, model.head_config)
+    rois, roi_labels = training_proposals(cls.detach(), decoded, setup.sampling)
+    t = sample_rois(rois, roi_labels, gt, gt_labels, setup.sampling)
+    xyz, feats, in_scan = scan_points(scan["points"], model.vfe.config.point_cloud_range)
+    cluster = scan["cluster"] & in_scan
+    every = torch.ones(len(t["rois"]), dtype=torch.bool, device=rois.device)
+    keypoints, valid = model.keypoint_sampler(xyz, cluster, in_scan, t["rois"], every)
+    before, point_features = model.pfe(scan["fused"][0], keypoints, xyz, feats, in_scan)
+    logits = model.point_head.logits(before)
+    rcnn_cls, rcnn_reg = model.roi_head(t["rois"], keypoints, valid, point_features * torch.sigmoid(logits)[:, None])
+    return {"point": point_head_loss(logits, point_labels(keypoints, valid, gt)), **roi_head_loss(rcnn_cls, rcnn_reg, t)}
+
+
+def scan_terms(model, points: torch.Tensor, gt: torch.Tensor, gt_classes: torch.Tensor, setup: LossSetup) -> dict:
+    """The loss terms of one scan (``gt`` [M, 7] radar frame, ``gt_classes`` [M] 0-based card
+    classes): stage one's (loss, cls, loc, dir), stage two's when the card has one (their sum is
+    ``loss``), and ``overflow`` (SPA) as a tensor."""
+    scan = fused_map(model, points)
+    cls, box, direction = model.dense_head(model.backbone_2d(scan["fused"]))
+    targets = assign_targets(model.anchors, setup.anchor_classes, gt, gt_classes, setup.thresholds)
+    terms = head_loss(cls, box, direction, targets, model.head_config, model.dense_head.num_classes)
+    if setup.sampling is not None:
+        two = stage_two_terms(model, scan, cls, box, direction, gt, gt_classes + 1, setup)
+        terms.update(two)
+        terms["loss"] = terms["loss"] + sum(two.values())
+    return {**terms, "overflow": scan["overflow"]}
 
 
 def detect(model, points: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The graph's detections of one scan (boxes [M, 7], scores [M], labels [M] 1-based), with the
     greedy NMS of :func:`radaredge.ops.nms.class_agnostic_nms_eager` (the same selection as the
-    graph's; fast when a half-trained head leaves thousands of candidates)."""
-    logits, boxes = model.head_stage(fused_map(model, points)[0])
-    best, label = torch.sigmoid(logits).max(-1)
-    sel = class_agnostic_nms_eager(boxes, best, model.nms_config)
-    return (boxes[sel].cpu().numpy().astype(np.float64), best[sel].cpu().numpy().astype(np.float64),
-            (label[sel] + 1).cpu().numpy())
+    graph's; fast when a half-trained head leaves thousands of candidates); a two-stage card's are
+    the refined boxes of its second stage."""
+    scan = fused_map(model, points)
+    logits, boxes = model.head_stage(scan["fused"])
+    if model.stage_two_config is not None:
+        out = run_stage_two(model, scan["points"], scan["fused"][0], scan["cluster"], logits, boxes, False,
+                            eager_nms=True)
+        boxes, best, label = out["boxes"], out["scores"], out["labels"]
+    else:
+        best, label = torch.sigmoid(logits).max(-1)
+        sel = class_agnostic_nms_eager(boxes, best, model.nms_config)
+        boxes, best, label = boxes[sel], best[sel], label[sel] + 1
+    return (boxes.cpu().numpy().astype(np.float64), best.cpu().numpy().astype(np.float64), label.cpu().numpy())
 
 
 def frozen_parameters(model, patterns: str) -> list[str]:
@@ -266,9 +316,11 @@ def _adam_onecycle(model, recipe: DetectionRecipe, steps: int):
 # ----------------------------------------------------------------------------- validation
 
 
-def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str], device) -> None:
+def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str], setup: LossSetup,
+                               pc_range, device) -> None:
     """Batch-norm running statistics of the trainable modules recomputed with the current weights:
-    the cumulative average over ``scans`` (no augmentation), each scan one batch, as in training.
+    the cumulative average over ``scans`` (no augmentation), each scan one batch, run as in
+    training (a two-stage card's second stage on its sampled rois, as its running averages see it).
     Upstream's running averages (momentum 0.01) trail the weights by about a hundred scans; on a
     schedule of a few epochs at a 0.01 peak learning rate that lag compounds through the 20
     normalised layers, and an eval-mode network scores every anchor 1.0 (measured on maffnet-vod
@@ -281,7 +333,9 @@ def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str
         m.momentum = None
     with torch.no_grad():
         for scan in scans:
-            fused_map_and_head(model, torch.from_numpy(scan.points).to(device))
+            keep = boxes_in_range(scan.boxes, pc_range)
+            scan_terms(model, torch.from_numpy(scan.points).to(device), torch.from_numpy(scan.boxes[keep]).to(device),
+                       torch.from_numpy(scan.classes[keep]).to(device), setup)
     for m, momentum in zip(norms, saved):
         m.momentum = momentum
     model.eval()
@@ -335,13 +389,9 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
                    resume: bool = False, validation: str = VALIDATION_SPLIT, data_format: str | None = None,
                    checkpoint=None, progress=no_progress,
                    log: Callable[[str], None] = lambda line: None) -> TrainReport:
-    """Train ``model`` (a stage-one MAFF-Net of ``card``) on the ``train`` split under ``data_root``
+    """Train ``model`` (a MAFF-Net of ``card``, one stage or two) on the ``train`` split under ``data_root``
     with ``recipe``, validate on the ``validation`` split, and write the run directory ``output``
     (:mod:`.run`: best.pth by validation mAP, last.pth for ``resume``, train-log.json)."""
-    if card.get("stage_two") is not None:
-        raise ConfigError(f"{card.name} has a second stage; radaredge trains MAFF-Net's stage one (the anchor head's "
-                          f"targets and losses) so far, not the proposal target layer, point head and ROI head: "
-                          f"train the stage-one card (e.g. maffnet-vod) or fine-tune the full card upstream")
     dev = pick_device(device)
     run = RunDir(output, card)
     if resume:
@@ -367,7 +417,8 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
     for name, p in model.named_parameters():
         p.requires_grad_(name not in frozen_set)
     model.to(dev)
-    classes = anchor_classes(card, len(model.anchors)).to(dev)
+    setup = LossSetup(anchor_classes(card, len(model.anchors)).to(dev), thresholds,
+                      recipe.roi_sampling() if model.stage_two_config is not None else None)
     steps_per_epoch = math.ceil(len(train) / recipe.batch_size)
     params, opt, sched = _adam_onecycle(model, recipe, steps_per_epoch * recipe.epochs)
     rng = np.random.default_rng(recipe.seed)
@@ -401,7 +452,7 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         set_train_mode(model, frozen_set)
         order = rng.permutation(len(train))
         bar = progress(f"epoch {epoch}/{recipe.epochs}", len(order))
-        sums = {"loss": 0.0, "cls": 0.0, "loc": 0.0, "dir": 0.0}
+        sums = dict.fromkeys(TERMS + (STAGE_TWO_TERMS if setup.sampling else ()), 0.0)
         counted = skipped = overflows = 0
         for first in range(0, len(order), recipe.batch_size):
             batch = order[first:first + recipe.batch_size]
@@ -416,11 +467,9 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
                 if not keep.any():
                     skipped += 1
                     continue
-                targets = assign_targets(model.anchors, classes, torch.from_numpy(boxes[keep]).to(dev),
-                                         torch.from_numpy(scan.classes[keep]).to(dev), thresholds)
-                cls, box, direction, overflow = anchor_outputs(model, torch.from_numpy(points).to(dev))
-                overflows += int(overflow)
-                terms = head_loss(cls, box, direction, targets, model.head_config, model.dense_head.num_classes)
+                terms = scan_terms(model, torch.from_numpy(points).to(dev), torch.from_numpy(boxes[keep]).to(dev),
+                                   torch.from_numpy(scan.classes[keep]).to(dev), setup)
+                overflows += int(terms["overflow"])
                 (terms["loss"] / len(batch)).backward()
                 for k in sums:
                     sums[k] += float(terms[k].detach())
@@ -436,13 +485,12 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         if not math.isfinite(means["loss"]):
             raise ConfigError(f"training diverged in epoch {epoch} (loss {means['loss']}); lower --lr "
                               f"(now {recipe.lr:g})")
-        row = {"epoch": epoch, "loss": means["loss"], "loss_cls": means["cls"], "loss_loc": means["loc"],
-               "loss_dir": means["dir"], "lr": float(opt.param_groups[0]["lr"]), "skipped_scans": skipped,
-               "spa_overflows": overflows}
+        row = {"epoch": epoch, "loss": means.pop("loss"), **{f"loss_{k}": v for k, v in means.items()},
+               "lr": float(opt.param_groups[0]["lr"]), "skipped_scans": skipped, "spa_overflows": overflows}
         if epoch % recipe.val_every == 0 or epoch == recipe.epochs:
             if recipe.bn_scans:
                 reestimate_norm_statistics(model, [train[i] for i in evenly(len(train), recipe.bn_scans)], frozen_set,
-                                           dev)
+                                           setup, pc_range, dev)
             row.update(validation_ap(model, val, card, data_format, dev, progress))
             if best is None or row["mAP3d"] > best:
                 best, report.best_epoch = row["mAP3d"], epoch

@@ -58,7 +58,7 @@ def train_text(card: ModelCard, model, data, inputs: TrainInputs):
 
 
 def train_maffnet(card: ModelCard, model, data, inputs: TrainInputs):
-    """MAFF-Net stage one with upstream's recipe (:mod:`radaredge.train.maffnet`) on the labelled
+    """MAFF-Net (one stage or two) with upstream's recipe (:mod:`radaredge.train.maffnet`) on the labelled
     KITTI-layout set under ``data`` (VoD or TJ4DRadSet; ``--validation`` names the split)."""
     drive_only = [f"--{k.replace('_', '-')}" for k, v in (inputs.bag or {}).items() if v is not None]
     if drive_only:

@@ -45,7 +45,7 @@ from ...cards import ModelCard
 from ...config import Range, card_ranges, check_numbers, config_from_dict, positive
 from ...errors import ConfigError
 from ...ops.bev_interp import bev_interpolate, bev_interpolate_reference
-from ...ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
+from ...ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_eager, class_agnostic_nms_reference
 from ...ops.point_sampling import farthest_point_sample_masked, farthest_point_sample_reference
 from ...ops.set_abstraction import SAModuleMSG
 
@@ -214,6 +214,12 @@ class ProposalLayer(nn.Module):
         sel = torch.from_numpy(class_agnostic_nms_reference(boxes.numpy(), score.numpy(), self.nms))
         return self._finish(boxes, label, sel)
 
+    def eager(self, cls_logits: torch.Tensor, boxes: torch.Tensor):
+        """Training-time validation: :func:`class_agnostic_nms_eager` (the same selection as
+        ``forward``, fast when thousands of candidates are left)."""
+        score, label = cls_logits.max(-1)
+        return self._finish(boxes, label, class_agnostic_nms_eager(boxes, score, self.nms))
+
 
 # ----------------------------------------------------------------------------- CDA keypoints
 
@@ -375,8 +381,12 @@ class PointHeadSimple(nn.Module):
         super().__init__()
         self.cls_layers = nn.Sequential(*_fc_stack(cin, fc, linear=True), nn.Linear(fc[-1], 1))
 
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """The foreground logit [K] of each keypoint (what training's focal loss takes)."""
+        return self.cls_layers(x)[:, 0]
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.cls_layers(x)[:, 0])
+        return torch.sigmoid(self.logits(x))
 
 
 # ----------------------------------------------------------------------------- ROI head
@@ -504,9 +514,14 @@ def scan_points(points: torch.Tensor, point_cloud_range) -> tuple[torch.Tensor, 
     return clean[:, :3], clean[:, 3:], scan
 
 
-def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference: bool) -> dict:
-    """Stage "proposals+CDA": rois, roi_labels, roi_valid, keypoints, keypoint_valid."""
-    if reference:
+def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference: bool,
+                            eager_nms: bool = False) -> dict:
+    """Stage "proposals+CDA": rois, roi_labels, roi_valid, keypoints, keypoint_valid; ``eager_nms``:
+    the export formulation with the training-time NMS (:meth:`ProposalLayer.eager`)."""
+    if eager_nms:
+        rois, labels, valid = model.proposal_layer.eager(cls_logits, boxes)
+        kp, kp_valid = model.keypoint_sampler(xyz, cluster, scan, rois, valid)
+    elif reference:
         rois, labels, valid = model.proposal_layer.reference(cls_logits, boxes)
         kp, kp_valid = model.keypoint_sampler.reference(xyz.numpy(), cluster.numpy(), scan.numpy(),
                                                         rois.numpy(), valid.numpy())
@@ -530,11 +545,13 @@ def refine(model, s: dict, point_features, point_scores, reference: bool):
     return torch.sigmoid(cls), decode_roi_residuals(reg, s["rois"])
 
 
-def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: bool):
+def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: bool, eager_nms: bool = False):
     """Stage "final NMS": (boxes [M, 7], scores [M], labels [M]); padded rois score -inf, never kept."""
     cfg = model.stage_two_config.post_processing
     scores = torch.where(roi_valid, rcnn_scores, torch.full_like(rcnn_scores, -math.inf))
-    if reference:
+    if eager_nms:
+        sel = class_agnostic_nms_eager(rcnn_boxes, scores, cfg)
+    elif reference:
         sel = torch.from_numpy(class_agnostic_nms_reference(rcnn_boxes.numpy(), scores.numpy(), cfg))
     else:
         sel = class_agnostic_nms(rcnn_boxes, scores, cfg)
@@ -542,21 +559,22 @@ def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: 
 
 
 def run_stage_two(model, points, fused_bev, cluster, cls_logits, boxes, reference: bool,
-                  trace: dict | None = None, lap=None) -> dict:
+                  trace: dict | None = None, lap=None, eager_nms: bool = False) -> dict:
     """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs;
     ``fused_bev`` [C, H, W] is the fuser's output. ``lap(stage)``, if given, is called as each
-    bench stage ends (see maffnet.stage_times)."""
+    bench stage ends (see maffnet.stage_times). ``eager_nms`` (training's validation): both NMS
+    with :func:`class_agnostic_nms_eager`, the rest in the export formulation."""
     lap = lap or (lambda stage: None)
     xyz, feats, scan = scan_points(points, model.vfe.config.point_cloud_range)
     cluster = cluster & scan
-    s = proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference)
+    s = proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference, eager_nms)
     lap("proposals+CDA")
     point_features, point_scores = keypoint_features(model, fused_bev, s, xyz, feats, scan, reference)
     lap("VSA+point head")
     rcnn_scores, rcnn_boxes = refine(model, s, point_features, point_scores, reference)
     lap("ROI head")
     out_boxes, out_scores, out_labels = final_nms(model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"],
-                                                  reference)
+                                                  reference, eager_nms)
     lap("final NMS")
     if trace is not None:
         trace.update(point_features=point_features, point_cls_scores=point_scores)
