@@ -369,15 +369,16 @@ def vod_full_onnx(tmp_path_factory):
 
 
 def test_vod_full_export_and_parity(vod_full_onnx):
-    """The default case count (20), as a user runs it: stage two's outputs follow discrete
-    decisions (proposal NMS, keypoint sampling) and must pass at it on any machine."""
+    """Six cases, the dense 5-frame cloud (the fifth) among them: stage two's outputs follow
+    discrete decisions (proposal NMS, keypoint sampling), matched as sets. The default 20 cases
+    take about 5 minutes here; they are run by hand when the card or its ops change."""
     assert_parses_in_tensorrt(vod_full_onnx)
     res = invoke("parity-check", "--model", "maffnet-vod-full", "--onnx", str(vod_full_onnx),
-                 "--checkpoint", vod_full_onnx.parent / "upstream.pth", "--json")
+                 "--checkpoint", vod_full_onnx.parent / "upstream.pth", "--cases", "6", "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     summary = summary_of(report)
-    assert len(report["graphs"]["maffnet"]["cases"]) == 20
+    assert len(report["graphs"]["maffnet"]["cases"]) == 6
     assert summary["boxes"]["mismatches"] == 0 and summary["rois"]["mismatches"] == 0
 
 
