@@ -137,6 +137,34 @@ def test_resume_continues_the_same_run(labelled, tmp_path):
     assert "-" in epoch_1.split() and "AP3d_Car" in "".join(resumed.lines())
 
 
+def test_bf16_precision_follows_the_fp32_gradient_and_trains(labelled, tmp_path):
+    """``precision: bf16`` (autocast over the fuser, backbone and head): one scan's loss and
+    gradient stay close to fp32's, the point stages and the outputs the losses see stay fp32, and a
+    run with it trains and exports as an fp32 one does."""
+    model = create_model(CARD)
+    model.train()
+    scan = tm.load_split(CARD, labelled, "train", None, 1)[0]
+    keep = tm.boxes_in_range(scan.boxes, CARD.get("pillars.point_cloud_range"))
+    inputs = (torch.from_numpy(scan.points), torch.from_numpy(scan.boxes[keep]), torch.from_numpy(scan.classes[keep]))
+    grads, losses = {}, {}
+    for name, dtype in tm.PRECISIONS.items():
+        setup = tm.LossSetup(tm.anchor_classes(CARD, len(model.anchors)), tm.class_thresholds(CARD), None, dtype)
+        model.zero_grad()
+        terms = tm.scan_terms(model, *inputs, setup)
+        assert terms["loss"].dtype == torch.float32
+        terms["loss"].backward()
+        losses[name] = float(terms["loss"].detach())
+        grads[name] = torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
+    assert grads["bf16"].abs().sum() > 0 and not torch.equal(grads["bf16"], grads["fp32"])   # autocast was on
+    assert torch.nn.functional.cosine_similarity(grads["bf16"], grads["fp32"], dim=0) > 0.99
+    assert losses["bf16"] == pytest.approx(losses["fp32"], rel=0.05)
+    report = _train(labelled, tmp_path / "run", "--epochs", 1, "--set", "train_frames=4", "--set", "val_frames=2",
+                    "--set", "precision=bf16")
+    assert report["options"]["precision"] == "bf16" and math.isfinite(report["epochs"][-1]["loss"])
+    best = torch.load(tmp_path / "run" / "best.pth", weights_only=True)["model_state"]
+    assert all(v.dtype != torch.bfloat16 for v in best.values())
+
+
 def test_augmentation_moves_points_and_boxes_together():
     rng = np.random.default_rng(0)
     recipe = tm.DetectionRecipe()
@@ -165,6 +193,7 @@ def test_boxes_in_range_keeps_a_box_with_one_corner_inside():
     (("--format", "transloc"), "--format transloc"),
     (("--set", "epoch=3"), "unknown MAFF-Net training option"),
     (("--set", "scale_min=1.2"), "scale_min (1.2) must not exceed scale_max"),
+    (("--set", "precision=fp16"), "precision must be one of fp32, bf16, not 'fp16'"),
     (("--radar-topic", "/r"), "--radar-topic describe ROS bag drives"),
     (("--resume",), "--resume"),
 ])
