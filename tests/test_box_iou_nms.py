@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from radaredge.ops.box_iou import bev_iou_matrix_reference, bev_iou_paired, bev_iou_reference
+from radaredge.ops.box_iou import bev_iou_matrix_reference, bev_iou_paired, bev_iou_reference, bev_iou_upper_bound
 from radaredge.ops.nms import (NmsConfig, class_agnostic_nms, class_agnostic_nms_eager, class_agnostic_nms_reference,
                                greedy_nms_reference)
 
@@ -60,6 +60,26 @@ def test_iou_matches_reference(dtype, atol):
     np.testing.assert_allclose(got[:10], 1.0, atol=1e-5)               # identical boxes
     np.testing.assert_allclose(got[30:40], 1.0, atol=1e-5)             # same footprint, flipped
     np.testing.assert_allclose(got[40:60], 0.0, atol=1e-5)             # touching or far apart
+
+
+def test_iou_upper_bound_never_falls_below_the_iou():
+    """The bound the NMS filters pairs with: >= the reference IoU on every pair (special, random,
+    close), equal to it for axis-aligned boxes, 0 for disjoint rectangles."""
+    rng = np.random.default_rng(4)
+    a, b = special_pairs(rng)
+    close = random_boxes(rng, 3000, spread=1.0)
+    a, b = np.concatenate([a, random_boxes(rng, 3000, 1.0)]), np.concatenate([b, close])
+    square = random_boxes(rng, 500, 2.0)
+    square[:, 6] = rng.choice([0.0, math.pi / 2, -math.pi, math.pi], 500)
+    square_b = random_boxes(rng, 500, 2.0)
+    square_b[:, 6] = rng.choice([0.0, math.pi / 2], 500)
+    a, b = np.concatenate([a, square]).astype(np.float64), np.concatenate([b, square_b]).astype(np.float64)
+    bound = bev_iou_upper_bound(torch.from_numpy(a), torch.from_numpy(b)).numpy()
+    ref = np.array([bev_iou_reference(x, y) for x, y in zip(a, b)])
+    assert (bound >= ref - 1e-12).all() and (bound <= 1 + 1e-12).all()
+    assert (bound > ref + 0.05).sum() > 100                              # a bound, not the IoU itself
+    np.testing.assert_allclose(bound[-500:], ref[-500:], atol=1e-6)      # axis-aligned (to float32 headings)
+    assert (bound[50:60] == 0).all()                                     # far apart
 
 
 def test_iou_matrix_reference_is_symmetric():

@@ -95,6 +95,28 @@ def bev_iou_paired(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor
     return overlap / torch.clamp(union, min=EPS_UNION)
 
 
+def bev_half_extents(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Half extents (m) along x and along y [...] of the axis-aligned rectangle that bounds each
+    box's BEV footprint (boxes [..., 7])."""
+    c, s = torch.cos(boxes[..., 6]).abs(), torch.sin(boxes[..., 6]).abs()
+    return 0.5 * (boxes[..., 3] * c + boxes[..., 4] * s), 0.5 * (boxes[..., 3] * s + boxes[..., 4] * c)
+
+
+def bev_iou_upper_bound(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
+    """An upper bound [P] of :func:`bev_iou_paired` of row i of boxes_a [P, 7] with row i of
+    boxes_b, from a few ops a pair: a footprint lies inside its bounding rectangle, so the overlap
+    is at most the area u of the two rectangles' intersection and at most the smaller footprint,
+    and IoU = overlap / (area_a + area_b - overlap) rises with the overlap, so IoU <= u / (area_a +
+    area_b - u). It equals the IoU for two axis-aligned boxes and is 0 for disjoint rectangles."""
+    exa, eya = bev_half_extents(boxes_a)
+    exb, eyb = bev_half_extents(boxes_b)
+    ix = torch.minimum(boxes_a[:, 0] + exa, boxes_b[:, 0] + exb) - torch.maximum(boxes_a[:, 0] - exa, boxes_b[:, 0] - exb)
+    iy = torch.minimum(boxes_a[:, 1] + eya, boxes_b[:, 1] + eyb) - torch.maximum(boxes_a[:, 1] - eya, boxes_b[:, 1] - eyb)
+    area_a, area_b = boxes_a[:, 3] * boxes_a[:, 4], boxes_b[:, 3] * boxes_b[:, 4]
+    u = torch.minimum(torch.clamp(ix, min=0.0) * torch.clamp(iy, min=0.0), torch.minimum(area_a, area_b))
+    return u / torch.clamp(area_a + area_b - u, min=EPS_UNION)
+
+
 def boxes_iou3d(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
     """3-D IoU [N, M] of every box of boxes_a [N, 7] with every box of boxes_b [M, 7], as
     OpenPCDet's boxes_iou3d_gpu: rotated BEV overlap times the overlap of the z extents (z is the
