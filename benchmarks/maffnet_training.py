@@ -13,7 +13,7 @@ The same steps as the commands in docs/models/maffnet.md ("Training"), through t
 
 Writes benchmarks/results/<card>-training-<date>.json (rendered by benchmarks/render.py).
 
-    python benchmarks/maffnet_training.py --card maffnet-vod --set epochs=3 --set val_frames=40
+    python benchmarks/maffnet_training.py --card maffnet-vod --set epochs=6 --set val_frames=40 --set precision=bf16
 """
 
 from __future__ import annotations
