@@ -12,9 +12,10 @@ import torch
 
 from radaredge.cards import load_card
 from radaredge.models import create_model
+from radaredge.models.factory import save_checkpoint
 from radaredge.train import maffnet as tm
 from references.maffnet_upstream_keys import openpcdet_checkpoint, trained_like_state_dict
-from conftest import MAFFNET_TINY_CARD, invoke, one_error_line
+from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_CARD, invoke, one_error_line
 
 CARD = load_card(MAFFNET_TINY_CARD)
 
@@ -108,6 +109,41 @@ def test_freeze_keeps_parameters_and_their_norm_statistics(labelled, tmp_path):
             assert not same, key
 
 
+STAGE_ONE = ("vfe", "map_to_bev_module", "image_backbone", "fuser", "backbone_2d", "dense_head")
+
+
+def test_stage_one_weights_start_a_two_stage_card(labelled, tmp_path):
+    """``stage_one_weights``: a one-stage checkpoint (maffnet-tiny's) starts maffnet-tiny-full's
+    stage one key for key (frozen here, so it must come out unchanged, class bias included), stage
+    two starts seeded and trains; a checkpoint missing a stage-one key, or given together with
+    --checkpoint, is refused."""
+    one = create_model(CARD)
+    with torch.no_grad():
+        for p in one.parameters():
+            p.add_(0.01)                                     # unlike the full card's seeded stage one
+    save_checkpoint(one, tmp_path / "one.pth")
+    common = ["train", "--model", "maffnet-tiny-full", "--config", MAFFNET_TINY_FULL_CARD, "--data", labelled,
+              "--epochs", 1, "--set", "train_frames=2", "--set", "val_frames=1", "--set", "freeze=" + ",".join(STAGE_ONE)]
+    res = invoke(*common, "--output", tmp_path / "run", "--set", f"stage_one_weights={tmp_path / 'one.pth'}")
+    assert res.exit_code == 0, res.output
+    assert f"stage_one_weights: {len(one.state_dict())} tensors" in res.output
+    after = torch.load(tmp_path / "run" / "last.pth", weights_only=True)["model_state"]
+    seeded = create_model(load_card(MAFFNET_TINY_FULL_CARD)).state_dict()
+    for key, value in one.state_dict().items():
+        if "num_batches" not in key:
+            assert torch.equal(after[key], value), key
+    stage_two = [k for k in after if k.startswith(("pfe.", "point_head.", "roi_head.")) and k.endswith("weight")]
+    assert stage_two and any(not torch.equal(after[k], seeded[k]) for k in stage_two)
+    partial = {k: v for k, v in one.state_dict().items() if k != "dense_head.conv_cls.bias"}
+    torch.save(partial, tmp_path / "partial.pth")
+    res = invoke(*common, "--output", tmp_path / "bad", "--set", f"stage_one_weights={tmp_path / 'partial.pth'}")
+    one_error_line(res, "outside stage two: missing keys (1): dense_head.conv_cls.bias")
+    torch.save(seeded, tmp_path / "full.pth")
+    res = invoke(*common, "--output", tmp_path / "bad", "--set", f"stage_one_weights={tmp_path / 'one.pth'}",
+                 "--checkpoint", tmp_path / "full.pth")
+    one_error_line(res, "--checkpoint and stage_one_weights both give initial weights")
+
+
 def test_resume_continues_the_same_run(labelled, tmp_path):
     """A run stopped after epoch 1 and resumed gives the weights and history of one uninterrupted run
     (validated after epoch 2 only: its summary marks epoch 1's missing AP)."""
@@ -194,6 +230,7 @@ def test_boxes_in_range_keeps_a_box_with_one_corner_inside():
     (("--set", "epoch=3"), "unknown MAFF-Net training option"),
     (("--set", "scale_min=1.2"), "scale_min (1.2) must not exceed scale_max"),
     (("--set", "precision=fp16"), "precision must be one of fp32, bf16, not 'fp16'"),
+    (("--set", "stage_one_weights=x.pth"), "stage_one_weights is for a card with a second stage; maffnet-tiny has none"),
     (("--radar-topic", "/r"), "--radar-topic describe ROS bag drives"),
     (("--resume",), "--resume"),
 ])

@@ -59,12 +59,11 @@ from ..config import Range, card_ranges, positive
 from ..errors import ConfigError, InputError
 from ..models.des4pos.model import masked_max, object_summaries
 from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
-                  restore_random_states)
+                  restore_random_states, load_weights_outside)
 from ..data.text_maps import TextMaps, load_text_maps
 from ..models.des4pos.spec import tokenizer_path
 from ..runtime.text_tokens import encode_hints, load_tokenizer
 from ..models.des4pos.weights import load_object_weights
-from ..models.checkpoints import read_checkpoint
 
 STAGES = ("objects", "prior", "coarse", "fine")
 ALIASES = {"epochs": "coarse_epochs", "lr": "coarse_lr", "batch_size": "coarse_batch"}
@@ -328,7 +327,7 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
     log(f"data: {summary['maps']} map(s), {summary['cells']} cells, {len(train_q)} training and {len(val_q)} "
         f"validation described poses")
     if recipe.coarse_weights and not resume:
-        log(load_coarse_weights(model, recipe.coarse_weights))
+        log(load_weights_outside(model, recipe.coarse_weights, FINE_MODULES, "the fine stage", "coarse_weights"))
     if recipe.object_weights and not resume:
         log(load_object_weights(model, recipe.object_weights).summary())
     model.to(dev)
@@ -419,31 +418,6 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
 
 
 FINE_MODULES = ("fine", "text.fine_words", "text.fine_mlp")      # what the fine stage trains
-
-
-def _in_fine_stage(key: str) -> bool:
-    return key.startswith(tuple(m + "." for m in FINE_MODULES))
-
-
-def load_coarse_weights(model, path) -> str:
-    """Load every weight outside the fine stage (:data:`FINE_MODULES`) from the Des4Pos checkpoint
-    ``path``; the fine stage keeps its seeded weights, whatever the checkpoint holds for it (its
-    card's fine stage may differ). Any other missing, unexpected or mis-shaped key is a
-    ConfigError. Returns a one-line summary."""
-    state, _ = read_checkpoint(path)
-    own = model.state_dict()
-    outside = {k: v for k, v in state.items() if not _in_fine_stage(k)}
-    missing = sorted(k for k in own if not _in_fine_stage(k) and k not in outside)
-    unexpected = sorted(k for k in outside if k not in own)
-    shapes = sorted(k for k in outside if k in own and tuple(outside[k].shape) != tuple(own[k].shape))
-    problems = [f"{what} ({len(keys)}): {', '.join(keys[:8])}" for what, keys in
-                (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)) if keys]
-    if problems:
-        raise ConfigError(f"coarse_weights {path} does not fit this card's model outside the fine stage: "
-                          f"{'; '.join(problems)}")
-    model.load_state_dict({**own, **outside})
-    seeded = sum(1 for k in own if _in_fine_stage(k))
-    return f"coarse_weights: {len(outside)} tensors from {path}; the fine stage's {seeded} stay seeded"
 
 
 class _Keeper:

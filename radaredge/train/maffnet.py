@@ -38,7 +38,12 @@ Initialisation: ``--checkpoint`` loads every tensor by name (the export's loader
 missing, nothing unexpected, nothing re-initialised). Without one, the card's seeded network,
 with the class bias set to upstream's prior ``head_prior`` (0.01; the cards' 0.1 exists so that
 a random graph emits boxes for parity). ``freeze`` keeps matching parameters (and the batch-norm
-statistics of modules whose parameters are all frozen) as they are.
+statistics of modules whose parameters are all frozen) as they are. On a two-stage card,
+``stage_one_weights`` starts stage one from a one-stage checkpoint of the same configuration (a
+trained ``maffnet-vod`` for ``maffnet-vod-full``: every tensor outside pfe, point_head and
+roi_head, key for key) and stage two from the seeded network, as OpenPCDet's
+``--pretrained_model`` does with a partial checkpoint, except that here the split is named and
+any other mismatch is an error.
 
 Precision: ``precision: bf16`` runs the fuser, the 2D backbone and the anchor head under torch's
 bfloat16 autocast (the CPU counterpart of upstream's ``--use_amp``, which is fp16 on CUDA; bf16
@@ -67,14 +72,14 @@ from ..errors import ConfigError, InputError
 from ..eval.detection import as_labels, card_points, layout_for_card
 from ..eval.kitti_ap import ap_table, evaluate_frames
 from ..models.maffnet.model import decode_boxes
-from ..models.maffnet.rcnn import run_stage_two, scan_points
+from ..models.maffnet.rcnn import STAGE_TWO_MODULES, run_stage_two, scan_points
 from ..ops.input_flags import drop_implausible
 from ..ops.nms import class_agnostic_nms_eager
 from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
 from .roi_targets import (RoiSampling, box_corners, point_head_loss, point_labels, roi_head_loss, sample_rois,
                           training_proposals)
 from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
-                  restore_random_states)
+                  restore_random_states, load_weights_outside)
 
 TRAIN_SPLIT, VALIDATION_SPLIT = "train", "val"
 TERMS = ("loss", "cls", "loc", "dir")                                   # logged per epoch as loss_<term>
@@ -109,6 +114,8 @@ class DetectionRecipe:
     train_frames: int = 0            # training frames (evenly spaced over the split); 0: all
     freeze: str = ""                 # comma-separated parameter-name patterns kept fixed (fnmatch; "vfe" = "vfe.*")
     head_prior: float = 0.01         # without --checkpoint: the class bias's prior (upstream's init)
+    stage_one_weights: str = ""      # two-stage cards: a one-stage checkpoint (a trained maffnet-vod's best.pth)
+                                     # whose weights start stage one; stage two starts seeded
     bn_scans: int = 64               # ours: batch-norm statistics re-estimated on this many training scans
                                      # before each validation (0: upstream's running averages as they are)
     roi_per_image: int = 128         # two-stage cards: ROI_HEAD.TARGET_CONFIG.ROI_PER_IMAGE (rois sampled per scan)
@@ -428,12 +435,22 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
     n_boxes = {c: int(sum((s.classes == i).sum() for s in train)) for i, c in enumerate(card.get("classes"))}
     summary = {"root": str(data_root), "train_frames": len(train), "validation_split": validation,
                "validation_frames": len(val), "train_boxes": n_boxes,
-               "initial_weights": str(checkpoint) if checkpoint else f"seeded (card seed {card.get('seed', 0)})",
+               "initial_weights": (str(checkpoint) if checkpoint else
+                                   f"stage one {recipe.stage_one_weights}, stage two seeded" if recipe.stage_one_weights
+                                   else f"seeded (card seed {card.get('seed', 0)})"),
                "frozen_parameters": len(frozen)}
     log(f"data: {len(train)} training frames ({', '.join(f'{v} {k}' for k, v in n_boxes.items())}), "
         f"{len(val)} validation frames ({validation}); weights: {summary['initial_weights']}"
         + (f"; {len(frozen)} parameter tensors frozen" if frozen else ""))
-    if not checkpoint:
+    if recipe.stage_one_weights and not resume:
+        if model.stage_two_config is None:
+            raise ConfigError(f"stage_one_weights is for a card with a second stage; {card.name} has none "
+                              f"(a checkpoint of the whole network loads with --checkpoint)")
+        if checkpoint:
+            raise ConfigError("--checkpoint and stage_one_weights both give initial weights; give one")
+        log(load_weights_outside(model, recipe.stage_one_weights, STAGE_TWO_MODULES, "stage two",
+                                 "stage_one_weights"))
+    elif not checkpoint:
         with torch.no_grad():
             model.dense_head.conv_cls.bias.fill_(-math.log((1 - recipe.head_prior) / recipe.head_prior))
     frozen_set = set(frozen)

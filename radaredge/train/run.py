@@ -29,6 +29,8 @@ from ..cards import ModelCard
 from ..atomic import atomic_path, write_json
 from ..config import check_numbers, check_writable_dir, field_range
 from ..errors import ConfigError
+from ..models.checkpoints import read_checkpoint
+from ..models.factory import check_weight_values
 
 BEST, LAST, LOG = "best.pth", "last.pth", "train-log.json"
 DEVICES = ("cpu", "cuda")
@@ -105,6 +107,32 @@ def set_torch_rng_state(state: tuple, device: torch.device) -> None:
     torch.set_rng_state(state[0])
     if state[1] is not None:
         torch.cuda.set_rng_state(state[1], device)
+
+
+def load_weights_outside(model: torch.nn.Module, path, seeded: tuple[str, ...], part: str, option: str) -> str:
+    """Load every tensor of ``model`` outside the modules ``seeded`` (state-dict name prefixes,
+    e.g. ``("roi_head",)``, together called ``part``) from the checkpoint ``path``; those modules
+    keep their current weights, whatever the checkpoint holds for them. Any other missing, unexpected or mis-shaped
+    key, or a value no trained layer holds, is a ConfigError naming ``option``. Returns a
+    one-line summary."""
+    def kept(key: str) -> bool:
+        return key.startswith(tuple(m + "." for m in seeded))
+
+    state, _ = read_checkpoint(path)
+    own = model.state_dict()
+    outside = {k: v for k, v in state.items() if not kept(k)}
+    missing = sorted(k for k in own if not kept(k) and k not in outside)
+    unexpected = sorted(k for k in outside if k not in own)
+    shapes = sorted(k for k in outside if k in own and tuple(outside[k].shape) != tuple(own[k].shape))
+    problems = [f"{what} ({len(keys)}): {', '.join(keys[:8])}" for what, keys in
+                (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)) if keys]
+    if problems:
+        raise ConfigError(f"{option} {path} does not fit this card's model outside {part}: "
+                          f"{'; '.join(problems)}")
+    check_weight_values(model, outside, path)
+    model.load_state_dict({**own, **outside})
+    n_seeded = sum(1 for k in own if kept(k))
+    return f"{option}: {len(outside)} tensors from {path}; {part}'s {n_seeded} stay as they are"
 
 
 @dataclass

@@ -490,6 +490,9 @@ class PVRCNNHead(nn.Module):
 # ----------------------------------------------------------------------------- composition
 
 
+STAGE_TWO_MODULES = ("pfe", "point_head", "roi_head")      # stage two's weights (upstream's module names)
+
+
 def build_stage_two(model: nn.Module, cfg: StageTwoConfig, num_point_features: int, bev_channels: int,
                     origin, cell) -> None:
     """Attach stage two's modules to ``model`` under upstream's names (pfe, point_head, roi_head)
