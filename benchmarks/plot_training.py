@@ -2,7 +2,8 @@
 
 Reads the newest ``place-recognition-<card>-<date>.json`` of each card (benchmarks/place_recognition.py,
 solid lines: the run behind the benchmark table) and the newest ``tdfanet-variants-<card>-<date>.json``
-(benchmarks/tdfanet_variants.py, thin lines: each variant's shorter run) in benchmarks/results/, and
+and ``tdfanet-variants-<card>-<recipe>-<date>.json`` (benchmarks/tdfanet_variants.py, thin lines:
+each variant's run) in benchmarks/results/, and
 draws both panels to docs/models/tdfanet-training.png. Epoch 0 is the initialisation: it has a
 validation recall and no loss.
 

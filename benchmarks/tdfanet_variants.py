@@ -17,6 +17,8 @@ benchmarks/place_recognition.py, with the same recipe: the card's, shortened by 
   deformable attention, ``network.aggregation: sum``). Scored as the exported fp32 graph on the
   test towns: Recall@1/5/10 at 5 m and 25 m with intervals (place_recognition.score).
 
+A recipe other than the short one (``--set epochs=5 --set tuples_per_epoch=500``) writes its own
+results file (``tdfanet-variants-<card>-5x500-<date>.json``), rendered beside the short one's.
 Each variant's run directory is kept under the work directory (``--work``), with the variant's
 measured row (variant.json): a variant measured there with the same recipe is not trained or
 scored again, and a run that finished training is not trained again, so ``--variants`` can
@@ -170,7 +172,10 @@ def main(argv=None) -> int:
                            "used_for": "the ablation table only"}},
         "frames_per_window": k, "choices": list(CHOICES), "ablations": ABLATIONS, "variants": {},
     }
-    path = training_run.ROOT / "benchmarks" / "results" / f"tdfanet-variants-{card.name}-{stamp[:10]}.json"
+    # another recipe is another study: its own results file, rendered beside the short recipe's
+    recipe = "" if all(options[k] == v for k, v in SHORT_RECIPE.items()) else \
+        f"-{options['epochs']}x{options['tuples_per_epoch']}"
+    path = training_run.ROOT / "benchmarks" / "results" / f"tdfanet-variants-{card.name}{recipe}-{stamp[:10]}.json"
     for name in args.variants:
         measure_variant(card, name, work, options, test, k)
         out["variants"] = measured(work, options)

@@ -162,12 +162,24 @@ def test_render_handles_every_result_kind(tmp_path):
                   "test": {"seeds": [1000], "route_km": 2.2, "used_for": "the ablations"}},
         "choices": ["frozen", "window"], "ablations": {"full": "frozen", "sum": "sum"},
         "variants": {"frozen": variant, "sum": variant, "window": {k: v for k, v in variant.items() if k != "test"}}}))
+    long = {"best": best, "train_seconds": 900.0, "test": {"5": {**recall, "by_direction": by_direction}, "25": recall}}
+    (res / "tdfanet-variants-m-5x500-2030-01-01.json").write_text(json.dumps({     # another recipe, ablations only
+        "date": "2030-01-01 00:00", "card": "m", "command": "python benchmarks/tdfanet_variants.py --card m",
+        "machine": {"cpu": "cpu", "threads": 2}, "recipe": {"epochs": 5, "tuples_per_epoch": 500},
+        "towns": {"design": {"seeds": [1], "route_km": 0.5, "used_for": "training"},
+                  "test": {"seeds": [1000], "route_km": 2.2, "used_for": "the ablations"}},
+        "choices": ["frozen", "window"], "ablations": {"full": "frozen", "sum": "sum"}, "variants": {"sum": long}}))
     text = render.render(res)
     current, history = text.split("## History")
+    short, longer = current.split("## TDFANet training choices and ablations: m, ")[1:]
+    assert short.startswith("3 epochs of 200 tuples") and longer.startswith("5 epochs of 500 tuples")
+    assert "### Training choices" in short and "### Training choices" not in longer
+    assert "| sum | yes | yes | no (sum) | 50.0 [43.0, 57.0] | 40.0 [30.0, 50.0] " in longer
+    assert "| 40.0 [30.0, 50.0] | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] | 15.0 |" in longer
     assert "## Place recognition on street-network towns: m" in current
     assert "| window | each window's own batch statistics while training | 2 | 50.0 [43.0, 57.0] | 70.0 | 10.0 |" in current
     assert ("| sum | yes | yes | no (sum) | 50.0 [43.0, 57.0] | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] "
-            "| 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |") in current
+            "| 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] | - | - | 10.0 |") in short
     assert "| trained, int8 | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] | 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |" in current
     assert "| chance (random ranking) | 0.35 | - | - | 2.10 |" in current
     assert "80 with, 10 against queries" in current and "| trained, int8 | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] |" in current
