@@ -3,7 +3,7 @@
 For a trained checkpoint and a labelled set: the fp32 graph's 3D AP per class on the
 ``--choose-split`` (default ``val``: the layers are chosen on it, never on the test split), then,
 for every group of quantisable layers (the VFE, SPA, CFA, CAF, each backbone block and deblock,
-the head), an int8 copy in which *only that group* is quantised (every other group listed under
+the head, and on a two-stage card the VSA, point head and ROI head), an int8 copy in which *only that group* is quantised (every other group listed under
 ``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
 Then, on ``--split`` (default ``test``), the card's int8 copy (its own ``keep_fp32``) and, when
 it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32,
@@ -35,6 +35,7 @@ from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, card_points,
 from radaredge.errors import ConfigError
 from radaredge.export.quantize import fp32_node_names
 from radaredge.models import create_model
+from radaredge.models.maffnet.rcnn import STAGE_TWO_MODULES
 from radaredge.runtime.session import make_session, run_session
 from radaredge import runtime
 
@@ -47,6 +48,7 @@ def layer_groups(model) -> list[str]:
     groups = ["vfe", "map_to_bev_module", "image_backbone", "fuser"]
     groups += [f"backbone_2d.blocks.{i}" for i in range(len(model.backbone_2d.blocks))]
     groups.append("dense_head")
+    groups += [m for m in STAGE_TWO_MODULES if hasattr(model, m)]      # a two-stage card's stage two
     quantised = [n for n, m in model.named_modules() if isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Linear))]
     return [g for g in groups if any(n.startswith(g + ".") for n in quantised)]
 
