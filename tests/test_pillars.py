@@ -156,3 +156,29 @@ def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
 def test_a_voxel_size_that_is_not_positive_is_refused_by_name(voxel):
     with pytest.raises(ValueError, match="voxel_size entries must be > 0"):
         PillarConfig(**{**SMALL.__dict__, "voxel_size": voxel})
+
+
+def test_batch_statistics_of_scans_run_alone_equal_the_batch_run_at_once():
+    """Train mode: scans encoded one at a time inside PFNLayer.batch_statistics(the batch's input
+    moments) give the canvases, the weight gradient and the running statistics of the batch
+    encoded at once (OpenPCDet's BatchNorm1d over every slot of every scan); without it each
+    scan normalises alone, and a z offset common to a scan's points would vanish."""
+    scans = [torch.from_numpy(scan(200, 5)), torch.from_numpy(scan(300, 8) + np.float32([0, 0, 0.7, 0, 0]))]
+    at_once, alone = make_net().train(), make_net().train()
+    pts, frame = concat_scans(scans)
+    joint = at_once.scatter_frames(pts, torch.ones(len(pts), dtype=torch.bool), frame, len(scans))[0]
+    weights = torch.linspace(0, 1, joint.numel()).reshape(joint.shape)
+    (joint * weights).sum().backward()
+    layer = alone.pfn_layers[0]
+    ones = [torch.ones(len(s), dtype=torch.bool) for s in scans]
+    moments = alone.input_moments(scans[0], ones[0]) + alone.input_moments(scans[1], ones[1])
+    with layer.batch_statistics(moments):
+        for k, s in enumerate(scans):
+            canvas = alone.scatter(s, ones[k])[0]
+            torch.testing.assert_close(canvas, joint[k].detach(), atol=1e-5, rtol=1e-5)
+            (canvas * weights[k]).sum().backward()
+    torch.testing.assert_close(layer.linear.weight.grad, at_once.pfn_layers[0].linear.weight.grad, atol=1e-4, rtol=1e-4)
+    for name in ("running_mean", "running_var", "num_batches_tracked"):
+        torch.testing.assert_close(getattr(layer.norm, name), getattr(at_once.pfn_layers[0].norm, name))
+    own = make_net().train().scatter(scans[1], ones[1])[0]
+    assert (own - joint[1]).abs().max() > 1e-2

@@ -23,6 +23,7 @@ Point policy, identical in both formulations:
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -85,6 +86,20 @@ class PillarConfig:
         return tuple(int(round((r[i + 3] - r[i]) / v[i])) for i in range(3))
 
 
+@dataclass(frozen=True)
+class SlotMoments:
+    """Moments of a PFN layer's input over OpenPCDet's padded point slots of one or more scans
+    (float64): ``sum_x`` [F] and ``sum_xx`` [F, F] over the points (a padding slot is an all-zero
+    row and adds nothing), ``slots`` the number of slots, padding included. Scans add up."""
+
+    sum_x: torch.Tensor
+    sum_xx: torch.Tensor
+    slots: float
+
+    def __add__(self, other: "SlotMoments") -> "SlotMoments":
+        return SlotMoments(self.sum_x + other.sum_x, self.sum_xx + other.sum_xx, self.slots + other.slots)
+
+
 class PFNLayer(nn.Module):
     """Linear (no bias) + BatchNorm1d + ReLU; names match OpenPCDet (``linear``, ``norm``)."""
 
@@ -92,6 +107,37 @@ class PFNLayer(nn.Module):
         super().__init__()
         self.linear = nn.Linear(in_channels, out_channels, bias=False)
         self.norm = nn.BatchNorm1d(out_channels, eps=eps, momentum=0.01)
+        self._batch: list | None = None          # [SlotMoments, running statistics updated] in batch_statistics
+
+    @contextlib.contextmanager
+    def batch_statistics(self, moments: SlotMoments):
+        """Within the block, train-mode :meth:`forward_slots` normalises with the statistics of
+        the batch whose input moments are ``moments`` instead of the scan's own: OpenPCDet's
+        BatchNorm1d over every slot of every scan of a batch, for scans run one at a time. The
+        linear has no bias, so the batch's mean and variance of its output are exact functions
+        of ``moments`` and the weight, and the gradient flows through them to the weight as it
+        does upstream. The running statistics update once in the block, as for one batch."""
+        self._batch = [moments, False]
+        try:
+            yield
+        finally:
+            self._batch = None
+
+    def _statistics(self, y: torch.Tensor, weight: torch.Tensor, slots: torch.Tensor):
+        """(mean [out], biased variance [out], rows [] float, update the running statistics):
+        the scan's own over its slots, or the batch's inside :meth:`batch_statistics`."""
+        if self._batch is None:
+            w = weight.to(y.dtype).unsqueeze(1)
+            rows = torch.clamp(slots.to(y.dtype), min=2.0)
+            mean = (y * w).sum(0) / rows
+            return mean, torch.clamp((y * y * w).sum(0) / rows - mean * mean, min=0.0), rows, True
+        moments, counted = self._batch
+        self._batch[1] = True
+        rows = max(moments.slots, 2.0)
+        w64 = self.linear.weight.to(torch.float64)
+        mean = w64 @ (moments.sum_x / rows)
+        var = torch.clamp(((w64 @ (moments.sum_xx / rows)) * w64).sum(1) - mean * mean, min=0.0)
+        return mean.to(y.dtype), var.to(y.dtype), torch.tensor(rows, dtype=y.dtype), not counted
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [..., in] -> [..., out]: every row is a slot of the batch (train-mode statistics over all rows)."""
@@ -108,18 +154,15 @@ class PFNLayer(nn.Module):
         In eval mode the norm uses its running statistics, as :meth:`forward`. In train mode its
         batch statistics are those of OpenPCDet's padded [pillars, slots] tensor: the points'
         linear outputs plus ``slots - sum(weight)`` zero rows (a padding slot is an all-zero input
-        and the linear has no bias), and the running statistics are updated from them as
-        BatchNorm1d would (unbiased variance)."""
+        and the linear has no bias), or the batch's in :meth:`batch_statistics`, and the running
+        statistics are updated from them as BatchNorm1d would (unbiased variance)."""
         y = self.linear(x)
         zero = torch.zeros(1, y.shape[1], dtype=y.dtype, device=y.device)
         if not self.norm.training:
             return torch.relu(self.norm(y)), torch.relu(self.norm(zero))
-        w = weight.to(y.dtype).unsqueeze(1)
-        rows = torch.clamp(slots.to(y.dtype), min=2.0)
-        mean = (y * w).sum(0) / rows
-        var = torch.clamp((y * y * w).sum(0) / rows - mean * mean, min=0.0)
+        mean, var, rows, update = self._statistics(y, weight, slots)
         norm = self.norm
-        if norm.track_running_stats:
+        if norm.track_running_stats and update:
             with torch.no_grad():
                 norm.num_batches_tracked.add_(1)
                 # momentum None: the cumulative average, as BatchNorm1d keeps it
@@ -225,6 +268,30 @@ class PillarFeatureNet(nn.Module):
         ``drops``, when given, receives ``full`` [N] bool: the points inside the range left out
         because their pillar already held ``max_points_per_pillar`` points."""
         cfg = self.config
+        nx, ny, _ = cfg.grid_size
+        ncell = nx * ny
+        spare = count * ncell                                     # the cell of dropped points
+        feats, w, cell, count_per_cell, count_at_point, slots = self._slot_inputs(points, valid, frame, count, drops)
+        feats, pad_value = self.pfn_layers[0].forward_slots(feats, w, slots)
+        feats = feats * w.unsqueeze(1)
+        # A pillar with free slots also takes the max with the padding slot's value; max is
+        # associative, so each of its points carries that value into the scatter.
+        has_free_slots = (count_at_point < cfg.max_points_per_pillar).unsqueeze(1)
+        feats = torch.where(has_free_slots, torch.maximum(feats, pad_value), feats)
+
+        c = feats.shape[1]
+        canvas = torch.zeros(spare + 1, c, dtype=feats.dtype, device=points.device).scatter_reduce(
+            0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
+        canvas = canvas[:spare].reshape(count, ncell, c).transpose(1, 2).reshape(count, c, ny, nx)
+        return canvas, (count_per_cell[:spare] > 0).reshape(count, ncell)
+
+    def _slot_inputs(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int,
+                     drops: dict | None):
+        """The PFN layer's input of :meth:`scatter_frames`: (features [N, F + 6], weight [N] 1 for
+        a kept point, cell [N] its pillar (the spare cell ``count * ny * nx`` for a left-out
+        point), points per cell [cells + 1], points in the point's pillar [N], slots [] the
+        padded slots of the occupied pillars)."""
+        cfg = self.config
         nx, ny, nz = cfg.grid_size
         ncell = nx * ny
         spare = count * ncell                                     # the cell of dropped points
@@ -257,18 +324,15 @@ class PillarFeatureNet(nn.Module):
         feats = torch.cat([points, xyz - mean, _centre_offsets(xyz, coords, cfg)], 1)
         # OpenPCDet pads every occupied pillar to max_points_per_pillar slots (train-mode norm statistics).
         slots = (count_per_cell[:spare] > 0).sum() * cfg.max_points_per_pillar
-        feats, pad_value = self.pfn_layers[0].forward_slots(feats, w, slots)
-        feats = feats * w.unsqueeze(1)
-        # A pillar with free slots also takes the max with the padding slot's value; max is
-        # associative, so each of its points carries that value into the scatter.
-        has_free_slots = (count_at_point < cfg.max_points_per_pillar).unsqueeze(1)
-        feats = torch.where(has_free_slots, torch.maximum(feats, pad_value), feats)
+        return feats, w, cell, count_per_cell, count_at_point, slots
 
-        c = feats.shape[1]
-        canvas = torch.zeros(spare + 1, c, dtype=feats.dtype, device=dev).scatter_reduce(
-            0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
-        canvas = canvas[:spare].reshape(count, ncell, c).transpose(1, 2).reshape(count, c, ny, nx)
-        return canvas, (count_per_cell[:spare] > 0).reshape(count, ncell)
+    def input_moments(self, points: torch.Tensor, valid: torch.Tensor) -> SlotMoments:
+        """The moments of the PFN layer's input over one scan's padded slots (no gradient), for
+        :meth:`PFNLayer.batch_statistics` over several scans."""
+        with torch.no_grad():
+            feats, w, *_, slots = self._slot_inputs(points, valid, None, 1, None)
+            x = feats.to(torch.float64) * w.to(torch.float64).unsqueeze(1)
+            return SlotMoments(x.sum(0), x.T @ x, float(slots))
 
 
 # ----------------------------------------------------------------------------- reference

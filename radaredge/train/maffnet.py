@@ -32,7 +32,9 @@ weight decay applied as decoupled decay to every parameter (fastai's true_wd, bn
 learning rate one-cycle from lr / 10 up to lr over the first 40 % of the steps, then cosine
 down to lr / 10 / 1e4; gradients clipped to norm 10; one optimiser step per ``batch_size``
 scans (the model runs one scan at a time; the scans' losses are averaged, as upstream's
-per-sample normalisation averages over its batch).
+per-sample normalisation averages over its batch). The VFE's batch norm takes the statistics of
+the whole batch, as upstream's does (:func:`batch_norm_statistics`); the 2-D layers normalise
+per scan, where upstream's normalise over the batch.
 
 Initialisation: ``--checkpoint`` loads every tensor by name (the export's loader: nothing
 missing, nothing unexpected, nothing re-initialised). Without one, the card's seeded network,
@@ -55,9 +57,12 @@ on a CPU without it, bf16 is emulated and slower, hence fp32 by default.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fnmatch
+import functools
 import math
+import operator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -346,11 +351,25 @@ def _adam_onecycle(model, recipe: DetectionRecipe, steps: int):
 # ----------------------------------------------------------------------------- validation
 
 
+def batch_norm_statistics(model, scans: list[torch.Tensor]):
+    """A context in which the VFE's train-mode norm uses the statistics of the batch ``scans``
+    (points [N, F] each) while the scans run one at a time: upstream's BatchNorm1d normalises
+    over every pillar slot of every scan of a batch, so an offset common to one scan's points
+    (a height offset from the road's grade) reaches the layers after it, where each scan's own
+    statistics would remove it exactly (the layer before the norm is linear). The 2-D layers
+    after the scatter still normalise per scan."""
+    if not scans:
+        return contextlib.nullcontext()
+    moments = [model.pillar_input_moments(drop_implausible(p, *model.point_bounds)[0]) for p in scans]
+    return model.vfe.pfn_layers[0].batch_statistics(functools.reduce(operator.add, moments))
+
+
 def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str], setup: LossSetup,
-                               pc_range, device) -> None:
+                               pc_range, device, batch_size: int) -> None:
     """Batch-norm running statistics of the trainable modules recomputed with the current weights:
-    the cumulative average over ``scans`` (no augmentation), each scan one batch, run as in
-    training (a two-stage card's second stage on its sampled rois, as its running averages see it).
+    the cumulative average over ``scans`` (no augmentation) in batches of ``batch_size`` scans
+    taken across the list (:func:`batch_norm_statistics`), run as in training (a two-stage card's second stage on its
+    sampled rois, as its running averages see it).
     Upstream's running averages (momentum 0.01) trail the weights by about a hundred scans; on a
     schedule of a few epochs at a 0.01 peak learning rate that lag compounds through the 20
     normalised layers, and an eval-mode network scores every anchor 1.0 (measured on maffnet-vod
@@ -362,10 +381,15 @@ def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str
         m.reset_running_stats()
         m.momentum = None
     with torch.no_grad():
-        for scan in scans:
-            keep = boxes_in_range(scan.boxes, pc_range)
-            scan_terms(model, torch.from_numpy(scan.points).to(device), torch.from_numpy(scan.boxes[keep]).to(device),
-                       torch.from_numpy(scan.classes[keep]).to(device), setup)
+        batches = math.ceil(len(scans) / batch_size)
+        for first in range(batches):
+            batch = scans[first::batches]              # scans spread over the list (other drives), as a shuffled batch
+            with batch_norm_statistics(model, [torch.from_numpy(s.points).to(device) for s in batch]):
+                for scan in batch:
+                    keep = boxes_in_range(scan.boxes, pc_range)
+                    scan_terms(model, torch.from_numpy(scan.points).to(device),
+                               torch.from_numpy(scan.boxes[keep]).to(device),
+                               torch.from_numpy(scan.classes[keep]).to(device), setup)
     for m, momentum in zip(norms, saved):
         m.momentum = momentum
     model.eval()
@@ -498,7 +522,7 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         for first in range(0, len(order), recipe.batch_size):
             batch = order[first:first + recipe.batch_size]
             opt.zero_grad()
-            used = 0
+            inputs = []
             for i in batch:
                 scan = train[int(i)]
                 points, boxes = ((augment(scan.points, scan.boxes, xyz, recipe, rng)) if recipe.augment
@@ -508,15 +532,17 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
                 if not keep.any():
                     skipped += 1
                     continue
-                terms = scan_terms(model, torch.from_numpy(points).to(dev), torch.from_numpy(boxes[keep]).to(dev),
-                                   torch.from_numpy(scan.classes[keep]).to(dev), setup)
-                overflows += int(terms["overflow"])
-                (terms["loss"] / len(batch)).backward()
-                for k in sums:
-                    sums[k] += float(terms[k].detach())
-                counted += 1
-                used += 1
-            if used:
+                inputs.append((torch.from_numpy(points).to(dev), torch.from_numpy(boxes[keep]).to(dev),
+                               torch.from_numpy(scan.classes[keep]).to(dev)))
+            with batch_norm_statistics(model, [points for points, _, _ in inputs]):
+                for points, boxes, classes in inputs:
+                    terms = scan_terms(model, points, boxes, classes, setup)
+                    overflows += int(terms["overflow"])
+                    (terms["loss"] / len(batch)).backward()
+                    for k in sums:
+                        sums[k] += float(terms[k].detach())
+            counted += len(inputs)
+            if inputs:
                 torch.nn.utils.clip_grad_norm_(params, recipe.grad_clip)
                 opt.step()
             sched.step()
@@ -531,7 +557,7 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         if epoch % recipe.val_every == 0 or epoch == recipe.epochs:
             if recipe.bn_scans:
                 reestimate_norm_statistics(model, [train[i] for i in evenly(len(train), recipe.bn_scans)], frozen_set,
-                                           dataclasses.replace(setup, dtype=None), pc_range, dev)
+                                           dataclasses.replace(setup, dtype=None), pc_range, dev, recipe.batch_size)
             row.update(validation_ap(model, val, card, data_format, dev, progress))
             if best is None or row["mAP3d"] > best:
                 best, report.best_epoch = row["mAP3d"], epoch

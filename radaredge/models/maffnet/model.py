@@ -48,7 +48,7 @@ from ...ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_referen
 from ...ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
 from ...ops.input_flags import (column_bounds, drop_implausible, drop_implausible_reference, frame_flags,
                                frame_flags_reference)
-from ...ops.pillars import (PillarConfig, PillarFeatureNet, outside_grid, pillar_features_reference,
+from ...ops.pillars import (PillarConfig, PillarFeatureNet, SlotMoments, outside_grid, pillar_features_reference,
                            point_drops_reference, scatter_pillars_reference)
 from . import rcnn as two
 from .fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
@@ -377,6 +377,14 @@ class MAFFNet(nn.Module):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
 
     # -- stages ---------------------------------------------------------------------
+    def pillar_input_moments(self, points: torch.Tensor) -> SlotMoments:
+        """The moments of the VFE's PFN input for the scan ``points`` (implausible rows already
+        NaN, as :meth:`pillar_stage` takes them), to normalise a batch of scans run one at a time
+        (:meth:`radaredge.ops.pillars.PFNLayer.batch_statistics`)."""
+        if self.vfe_columns is not None:
+            points = points[:, self.vfe_columns]
+        return self.vfe.input_moments(points, torch.ones(points.shape[0], dtype=torch.bool, device=points.device))
+
     def pillar_stage(self, points: torch.Tensor, reference: bool, drops: dict | None = None):
         """VFE + SPA: (canvas [C, ny, nx], num_pillars [] int64, overflow [] bool); ``drops``
         receives the export formulation's left-out points (:meth:`PillarFeatureNet.scatter_frames`).
