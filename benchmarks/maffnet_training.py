@@ -9,7 +9,8 @@ The same steps as the commands in docs/models/maffnet.md ("Training"), through t
    command is read instead of training again;
 3. ``radaredge export --checkpoint best.pth --quantize int8`` and the seeded network's export;
 4. ``radaredge eval --split test``: 3D / BEV AP per class of the seeded graph, and of the trained
-   torch reference, fp32 graph and int8 graph side by side, with each backend's frames per second.
+   torch reference, fp32 graph and int8 graph side by side, with each backend's frames per second
+   and the matched boxes' errors (centre, height bias, size, heading).
 
 Writes benchmarks/results/<card>-training-<date>.json (rendered by benchmarks/render.py).
 
@@ -31,10 +32,12 @@ import training_run
 
 
 def _ap(report) -> dict:
-    """backend -> area -> class -> {3d, bev} AP (%), and frames per second."""
+    """backend -> area -> class -> {3d, bev} AP (%), frames per second, and backend -> class ->
+    the matched boxes' errors (radaredge.eval.box_errors)."""
     return {"ap": {b: {area: {c: {"3d": v["3d"], "bev": v["bev"], "num_gt": v["num_gt"]} for c, v in per.items()}
                        for area, per in areas.items()} for b, areas in report.ap.items()},
-            "fps": report.fps, "frames": len(report.frames)}
+            "fps": report.fps, "frames": len(report.frames),
+            "box_errors": {b: {c: e.to_dict() for c, e in per.items()} for b, per in report.box_errors.items()}}
 
 
 def main(argv=None) -> int:

@@ -445,6 +445,16 @@ def maffnet_training_section(r: Result, results_dir: Path) -> list[str]:
                      _num(mean3d, ".2f"), _num(rep["fps"].get(b))])
     names = list(t["ap"][next(iter(t["ap"]))]["entire_area"])
     out += _table(["graph", *names, "mAP 3D", "FPS"], rows, ["---"] + ["---:"] * (len(names) + 2)) + [""]
+    errors = t.get("box_errors", {}).get("onnxruntime")
+    if errors:
+        out += ["Box errors of the trained fp32 graph's detections on the same frames (`radaredge eval`: each "
+                "detection, in descending score, takes the nearest unmatched labelled box of its class within "
+                "2 m in bird's-eye view; radar frame, metres; dz is detection minus ground truth):", ""]
+        rows = [[c, f"{e['matched']} / {e['ground_truth']}", *(_num(e[k], ".2f") for k in
+                                                                ("xy", "dz", "abs_dz", "abs_dl", "abs_dw", "abs_dh")),
+                 _num(e["heading_deg"], ".1f")] for c, e in errors.items()]
+        out += _table(["class", "matched", "centre xy", "dz (bias)", "abs dz", "abs dl", "abs dw", "abs dh",
+                       "heading deg"], rows, ["---"] + ["---:"] * 8) + [""]
     return out
 
 

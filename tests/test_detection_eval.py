@@ -38,7 +38,12 @@ def test_eval_scores_every_backend_in_one_table(labelled, maffnet_tiny_export, t
     for backend in (REFERENCE, ORT, ORT_INT8):
         assert backend in head
     assert "corridor" in res.output and "frames per second" in res.output
+    assert any(line.startswith("box errors") for line in res.output.splitlines())
     report = json.loads((tmp_path / "r.json").read_text())
+    errors = report["box_errors"][REFERENCE]["Car"]
+    assert errors["ground_truth"] >= report["ap"][REFERENCE]["entire_area"]["Car"]["num_gt"] > 0   # every label
+    assert 0 <= errors["matched"] <= errors["ground_truth"]
+    assert set(report["box_errors"]) == {"matching", *report["ap"]}
     assert report["frames"] == 4 and report["dataset"] == "vod" and report["reference"] == REFERENCE
     assert set(report["ap"]) >= {REFERENCE, ORT, ORT_INT8}
     assert set(report["ap"][ORT]) == {"entire_area", "corridor"}

@@ -15,6 +15,8 @@ Detections (radar frame) go into the camera frame as OpenPCDet writes them for t
 and :mod:`radaredge.eval.kitti_ap` scores them with the dataset's protocol: per class 3D AP, BEV
 AP and AOS over the entire annotated area and (VoD) the driving corridor, 11 recall positions
 as VoD reports them, 40 beside. Each backend's difference from the reference is in AP points.
+Beside AP, the box errors of matched detections (:mod:`radaredge.eval.box_errors`) say where
+the boxes go wrong: centre, height, size, heading.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from ..models import create_model
 from ..ops.box_iou import bev_iou_paired
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import graph_runner
+from .box_errors import MATCH_DISTANCE, BoxErrors, box_error_lines, class_box_errors
 from .kitti_ap import AREAS, ClassCurve, ap_table, evaluate_frames
 
 REFERENCE, ORT, ORT_INT8, OPENVINO = "torch reference", "onnxruntime", "onnxruntime int8", "openvino"
@@ -150,6 +153,14 @@ def as_labels(detections, frame: DetectionFrame, classes: list[str]) -> Labels:
     return radar_boxes_to_labels(boxes, scores, names, frame.calib, frame.image_size)
 
 
+def _class_pair(detections, frame: DetectionFrame, classes: list[str], cls: str):
+    """(boxes [D, 7], scores [D], ground truth [G, 7]) of class ``cls`` in ``frame``, radar frame."""
+    boxes, scores, labels = detections
+    mine = labels == classes.index(cls) + 1
+    gt = frame.labels.select(np.asarray(frame.labels.name) == cls)
+    return boxes[mine], scores[mine], labels_to_radar_boxes(gt, frame.calib)
+
+
 def _matched_counts(a, b) -> int:
     """Boxes of two detection sets ((boxes, scores, labels), top PICTURE_BOXES of each) that find
     no box of the same class with BEV IoU >= 0.5 in the other, greedily by score."""
@@ -195,6 +206,7 @@ class DetectionEvalReport:
     min_iou: dict[str, float]
     areas: tuple[str, ...]
     disagreement: list[tuple[str, int]] = field(default_factory=list)
+    box_errors: dict[str, dict[str, BoxErrors]] = field(default_factory=dict)
 
     @property
     def baseline(self) -> str:
@@ -227,6 +239,10 @@ class DetectionEvalReport:
                                 for b in backends if b != self.baseline},
             "frames_per_second": self.fps,
             "most_disagreeing_frames": [{"frame": f, "unmatched_boxes": n} for f, n in self.disagreement],
+            "box_errors": {"matching": f"nuScenes' true-positive matching: centres within {MATCH_DISTANCE:g} m in "
+                                       f"bird's-eye view, detections in descending score; radar frame, metres, "
+                                       f"dz = detection minus ground truth",
+                           **{b: {c: e.to_dict() for c, e in per.items()} for b, per in self.box_errors.items()}},
         }
 
     def lines(self) -> list[str]:
@@ -256,6 +272,10 @@ class DetectionEvalReport:
                         row += "".join(f"{self.ap[b][area][cls][metric]:>18.2f}"
                                        f"{self.delta(b, area, cls, metric):>+8.2f}" for b in others)
                     lines.append(row)
+        if self.box_errors:
+            lines += ["", *box_error_lines(self.box_errors),
+                      f"(matched: detections within {MATCH_DISTANCE:g} m of a labelled box's centre, "
+                      f"nuScenes' rule; dz = detection minus ground truth)"]
         lines += ["", "frames per second: " + ", ".join(f"{b} {v:.1f}" for b, v in self.fps.items())]
         return lines
 
@@ -364,6 +384,9 @@ def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", che
     report = DetectionEvalReport(card.name, str(onnx_path), str(checkpoint) if checkpoint else None, str(the_set.root),
                                  split, layout.name, classes, frames, points, detections, ap, curves, fps,
                                  {c.name: c.min_iou for c in eval_classes}, areas)
+    report.box_errors = {name: {cls: class_box_errors([_class_pair(d, f, card.get("classes"), cls)
+                                                       for d, f in zip(dets, frames)]) for cls in classes}
+                         for name, dets in detections.items()}
     base = detections[report.baseline]
     score = [max((_matched_counts(base[i], dets[i]) for name, dets in detections.items() if name != report.baseline),
                  default=0) for i in range(len(frames))]
