@@ -11,7 +11,7 @@ from radaredge.cards import parse_card
 from radaredge.errors import ConfigError
 from radaredge.node_scopes import module_names
 import radaredge
-from radaredge.export.quantize import quantize_int8
+from radaredge.export.quantize import fp32_node_names, quantize_int8
 
 
 @pytest.fixture(scope="module")
@@ -202,3 +202,19 @@ def test_int8_box_recall_is_also_reported_by_reference_score_but_judged_overall(
     s = spec.summarise([c], ["0"])
     assert s.recall == pytest.approx(0.4) and not s
     assert s.recall_by_score == {"0.3": [4, 4], "0.5": [2, 2]}
+
+
+def test_keep_fp32_covers_a_module_traced_without_its_parents_scope(maffnet_tiny_export):
+    """A keep_fp32 name covers every layer under it, also those traced without that module's own
+    scope: MAFF-Net's VFE layer (reached through a method, scope ``vfe.pfn_layers.0.linear``) and
+    the CFA convs (called by the model itself, scope ``image_backbone.conv.N``)."""
+    _, onnx_path = maffnet_tiny_export
+    model = onnx.load(str(onnx_path), load_external_data=False)
+    nodes = model.graph.node
+    under = {p: {n.name for n in nodes if n.op_type in ("Conv", "Gemm", "MatMul")
+                 and any(s == p or s.startswith(p + ".") for s in module_names(n))}
+             for p in ("vfe", "image_backbone")}
+    assert len(under["vfe"]) == 1 and len(under["image_backbone"]) >= 4
+    assert not any("vfe" in module_names(n) for n in nodes if n.name in under["vfe"])   # no scope of its own
+    for pattern, names in under.items():
+        assert fp32_node_names(model, [pattern]) == names

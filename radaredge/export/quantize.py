@@ -71,13 +71,18 @@ def keep_fp32_patterns(card: ModelCard) -> list[str]:
 
 def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name: str = "") -> set[str]:
     """Names of the Conv/MatMul/Gemm nodes of ``fp32_model`` (an export that still carries its
-    module-scope metadata) traced inside a module matching one of ``patterns``. ConfigError
+    module-scope metadata) traced inside a module matching one of ``patterns``: the module or
+    one of its parents, since a module its grandparent calls, or one reached through a method
+    other than ``forward``, is traced without its parent's scope (MAFF-Net's CFA convs carry
+    ``image_backbone.conv.0`` alone, its VFE layer ``vfe.pfn_layers.0.linear``). ConfigError
     for a pattern that matches no quantisable node (a typo would silently quantise the layer)."""
     hits = {p: set() for p in patterns}
     for node in fp32_model.graph.node:
         if node.op_type not in QUANTIZED_OPS:
             continue
-        for name in module_names(node):
+        scopes = {".".join(parts[:k]) for parts in (n.split(".") for n in module_names(node))
+                  for k in range(1, len(parts) + 1)}
+        for name in scopes:
             for p in patterns:
                 if fnmatch.fnmatchcase(name, p):
                     hits[p].add(node.name)
