@@ -93,6 +93,7 @@ def test_parity_quantized_reports_ap_lost_per_class(maffnet_tiny_export):
     report = radaredge.parity(card, onnx, cases=2, quantized=True)
     task = report.to_dict()["task"]
     assert set(task["loss"]) == {"Car", "Pedestrian", "Cyclist"} and task["budget_ap_points"] == 1.0
+    assert task["frames"] == 36                  # every split of the 3-drive, 12-frame set, not its 12-frame val
     assert task["passed"] == all(v <= 1.0 for v in task["loss"].values())
     assert any(line.startswith("int8 by AP") for line in report.lines())
 
