@@ -367,8 +367,8 @@ def batch_norm_statistics(model, scans: list[torch.Tensor]):
 def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str], setup: LossSetup,
                                pc_range, device, batch_size: int) -> None:
     """Batch-norm running statistics of the trainable modules recomputed with the current weights:
-    the cumulative average over ``scans`` (no augmentation) in batches of ``batch_size`` scans
-    taken across the list (:func:`batch_norm_statistics`), run as in training (a two-stage card's second stage on its
+    the cumulative average over ``scans`` (no augmentation) in batches of ``batch_size``
+    consecutive scans (:func:`batch_norm_statistics`), run as in training (a two-stage card's second stage on its
     sampled rois, as its running averages see it).
     Upstream's running averages (momentum 0.01) trail the weights by about a hundred scans; on a
     schedule of a few epochs at a 0.01 peak learning rate that lag compounds through the 20
@@ -381,9 +381,8 @@ def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str
         m.reset_running_stats()
         m.momentum = None
     with torch.no_grad():
-        batches = math.ceil(len(scans) / batch_size)
-        for first in range(batches):
-            batch = scans[first::batches]              # scans spread over the list (other drives), as a shuffled batch
+        for first in range(0, len(scans), batch_size):
+            batch = scans[first:first + batch_size]
             with batch_norm_statistics(model, [torch.from_numpy(s.points).to(device) for s in batch]):
                 for scan in batch:
                     keep = boxes_in_range(scan.boxes, pc_range)
