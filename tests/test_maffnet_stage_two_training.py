@@ -132,15 +132,15 @@ def test_roi_head_loss_is_zero_for_a_perfect_refinement_and_grows_with_error():
 
 
 def test_a_two_stage_card_trains_and_its_losses_fall(tmp_path):
-    """The tiny two-stage card, 5 epochs on 8 frames (validated on the same frames, at the start and
+    """The tiny two-stage card, 8 epochs on 8 frames (validated on the same frames, at the start and
     the end): the total loss and the stage-two classification terms fall, validation AP rises above
     the seeded network's, and the best checkpoint exports."""
     data = tmp_path / "set"
     res = invoke("make-benchmark", "--task", "detection", "--out", data, "--drives", 3, "--frames", 20, "--seed", 3)
     assert res.exit_code == 0, res.output
     res = invoke("train", "--model", "maffnet-tiny-full", "--config", MAFFNET_TINY_FULL_CARD, "--data", data,
-                 "--output", tmp_path / "run", "--json", "--epochs", 5, "--batch-size", 2, "--lr", 0.003,
-                 "--set", "train_frames=8", "--validation", "train", "--set", "val_frames=8", "--set", "val_every=5",
+                 "--output", tmp_path / "run", "--json", "--epochs", 8, "--batch-size", 2, "--lr", 0.003,
+                 "--set", "train_frames=8", "--validation", "train", "--set", "val_frames=8", "--set", "val_every=8",
                  "--set", "augment=false", "--set", "train_proposals=64", "--set", "roi_per_image=32")
     assert res.exit_code == 0, res.output
     rows = json.loads(res.stdout)["epochs"]
