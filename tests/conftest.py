@@ -78,6 +78,7 @@ def tiny_export(tmp_path_factory):
 
 MAFFNET_TINY_CARD = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
 MAFFNET_TINY_FULL_CARD = Path(__file__).parent / "cards" / "maffnet-tiny-full.yaml"
+MAFFNET_TINY_FULL_DBSCAN_CARD = Path(__file__).parent / "cards" / "maffnet-tiny-full-dbscan.yaml"
 
 
 @pytest.fixture(scope="session")

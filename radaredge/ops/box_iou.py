@@ -34,8 +34,8 @@ EDGE_TOL_F64 = 1e-9   # m, float64 inputs
 def bev_corners(boxes: torch.Tensor) -> torch.Tensor:
     """Counter-clockwise BEV corners [..., 4, 2] (m) of boxes [..., 7]."""
     half = boxes[..., 3:5] / 2
-    sx = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=boxes.dtype)
-    sy = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=boxes.dtype)
+    sx = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=boxes.dtype, device=boxes.device)
+    sy = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=boxes.dtype, device=boxes.device)
     lx = half[..., :1] * sx                                               # [..., 4]
     ly = half[..., 1:2] * sy
     c, s = torch.cos(boxes[..., 6:7]), torch.sin(boxes[..., 6:7])

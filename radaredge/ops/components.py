@@ -103,7 +103,7 @@ def connected_components(mask: torch.Tensor, mode: str = "exact", iterations: in
 def _maxpool_components(mask: torch.Tensor, iterations: int):
     """The fork's scheme: ``iterations`` steps of 3x3 max-pool of position ids inside the mask."""
     _, h, w = mask.shape
-    ids = torch.arange(1, h * w + 1, dtype=torch.float32).view(1, h, w)
+    ids = torch.arange(1, h * w + 1, dtype=torch.float32, device=mask.device).view(1, h, w)
     labels = torch.where(mask, ids, 0.0)
     for _ in range(iterations):
         labels = _propagate(labels, mask)
@@ -121,7 +121,7 @@ def _exact_components(mask: torch.Tensor, jumps: list[int]):
     """Hook-and-contract rounds (see module docstring); ``jumps[k]`` pointer jumps in round k."""
     _, h, w = mask.shape
     valid = mask.reshape(-1, h * w)
-    cells = torch.arange(h * w).unsqueeze(0).expand_as(valid)   # linear index of every cell
+    cells = torch.arange(h * w, device=mask.device).unsqueeze(0).expand_as(valid)   # linear index of every cell
     parent = cells                           # every cell its own root; background stays so
     for count in jumps:
         parent = _hook(parent, valid, cells, h, w)

@@ -170,7 +170,7 @@ def dbscan_labels(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig, rou
     pts = torch.cat([head, head.new_zeros(1, 3)])
     ok = torch.cat([valid[:cap], valid.new_zeros(1)]) & torch.isfinite(pts).all(1)
     m = pts.shape[0]                                   # min(N, capacity) + 1
-    idx = torch.arange(m)
+    idx = torch.arange(m, device=xyv.device)
 
     p = torch.where(ok.unsqueeze(1), pts, 0.0).to(torch.float64)
     dx, dy, dz = (p[:, k].unsqueeze(1) - p[:, k].unsqueeze(0) for k in range(3))   # [M, M] float64, exact
@@ -244,7 +244,7 @@ def cqca_cfa_map(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig):
 
     clustered = labels >= 0
     slot = torch.where(clustered, labels, cap)         # labels < capacity; slot cap collects noise
-    counts = torch.zeros(cap + 1).scatter_add(0, slot, torch.ones(n))
+    counts = torch.zeros(cap + 1, device=xyv.device).scatter_add(0, slot, torch.ones(n, device=xyv.device))
     density = torch.where(clustered, counts.gather(0, slot), 0.0)
     labels = torch.where(density > cfg.max_cluster_size, -1, labels)
     cluster_points = labels != -1
@@ -255,8 +255,8 @@ def cqca_cfa_map(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig):
     row = _cell_index((pts[:, 1] + cfg.y_offset) / cfg.resolution, rows)
     write = (labels > 0) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
     cell = torch.where(write, row * cols + col, rows * cols)          # rows*cols = not written
-    winner = torch.full((rows * cols + 1,), -1, dtype=torch.int64).scatter_reduce(
-        0, cell, torch.arange(n), reduce="amax", include_self=True)[: rows * cols]
+    winner = torch.full((rows * cols + 1,), -1, dtype=torch.int64, device=xyv.device).scatter_reduce(
+        0, cell, torch.arange(n, device=xyv.device), reduce="amax", include_self=True)[: rows * cols]
     values = torch.stack([pts[:, 2], density, labels.to(torch.float32)], 1)
     values = torch.cat([values, values.new_zeros(1, 3)])               # row n: an empty cell
     bev = values.index_select(0, torch.where(winner >= 0, winner, n))  # [rows * cols, 3]

@@ -138,7 +138,7 @@ class GridDensityBEV(nn.Module):
             density / torch.clamp(density.max(), min=1.0),
             labels / torch.clamp(labels.max(), min=1.0),
         ])
-        keep_flat = torch.cat([keep.reshape(-1), torch.zeros(1, dtype=torch.bool)])
+        keep_flat = torch.cat([keep.reshape(-1), torch.zeros(1, dtype=torch.bool, device=keep.device)])
         point_mask = inside & keep_flat[cell]
         return bev, point_mask, converged[0]
 

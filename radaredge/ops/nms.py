@@ -71,7 +71,8 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
     ex, ey = bev_half_extents(boxes)
     ex, ey = ex + 1e-3, ey + 1e-3                                            # m
     x, y = boxes[:, 0], boxes[:, 1]
-    idx = torch.arange(k)
+    dev = boxes.device
+    idx = torch.arange(k, device=dev)
     candidate = ((x.unsqueeze(1) - x.unsqueeze(0)).abs() <= ex.unsqueeze(1) + ex.unsqueeze(0))
     candidate &= (y.unsqueeze(1) - y.unsqueeze(0)).abs() <= ey.unsqueeze(1) + ey.unsqueeze(0)
     candidate &= (idx.unsqueeze(1) < idx.unsqueeze(0)) & valid.unsqueeze(1) & valid.unsqueeze(0)
@@ -81,14 +82,15 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
     # almost no candidates). float64: the reference computes IoU in float64, and a float32 IoU
     # can sit on the other side of iou_thresh when the true value is within ~3e-5 of it.
     found = torch.nonzero(candidate)                                          # [P, 2]
-    dummy = torch.cat([torch.zeros(found.shape[0], dtype=torch.bool), torch.ones(8, dtype=torch.bool)])
-    pairs = torch.cat([found, torch.zeros(8, 2, dtype=torch.int64)])
-    target = torch.cat([found[:, 0] * k + found[:, 1], torch.full((8,), k * k, dtype=torch.int64)])
+    dummy = torch.cat([torch.zeros(found.shape[0], dtype=torch.bool, device=dev),
+                       torch.ones(8, dtype=torch.bool, device=dev)])
+    pairs = torch.cat([found, torch.zeros(8, 2, dtype=torch.int64, device=dev)])
+    target = torch.cat([found[:, 0] * k + found[:, 1], torch.full((8,), k * k, dtype=torch.int64, device=dev)])
     both = boxes.to(torch.float64)[pairs.reshape(-1)].reshape(-1, 2, 7)     # one gather: one pair count
     near = torch.nonzero((bev_iou_upper_bound(both[:, 0], both[:, 1]) > iou_thresh - 1e-6) | dummy).squeeze(1)
     both, target = both[near], target[near]
     iou = bev_iou_paired(both[:, 0], both[:, 1])
-    flat = torch.zeros(k * k + 1, dtype=boxes.dtype)
+    flat = torch.zeros(k * k + 1, dtype=boxes.dtype, device=dev)
     flat = flat.index_put((target,), (iou > iou_thresh).to(boxes.dtype))
     return flat[: k * k].reshape(k, k)
 
@@ -105,7 +107,7 @@ def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         new = valid & ~hit
         return new, (new != keep).any()
 
-    return fixed_point_loop(not_done, step, (valid.clone(), torch.ones((), dtype=torch.bool)))[0]
+    return fixed_point_loop(not_done, step, (valid.clone(), torch.ones((), dtype=torch.bool, device=valid.device)))[0]
 
 
 def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsConfig) -> torch.Tensor:
@@ -116,13 +118,13 @@ def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsCon
     # any float32 spacing at or above the threshold gives that order through one TopK.
     step = 2.0 ** -26 * max(config.score_thresh, 1e-3) / max(a, 1)
     key = torch.where(above, scores.to(torch.float64), torch.full_like(scores, -1.0, dtype=torch.float64))
-    key = key - torch.arange(a, dtype=torch.float64) * step
+    key = key - torch.arange(a, dtype=torch.float64, device=scores.device) * step
     order = topk_indices(key, min(config.pre_max, a))
     # The boxes above the threshold come first in ``order``; keep only them (n, data-dependent)
     # plus 8 invalid padding rows, so the K x K work is (n + 8)^2 rather than pre_max^2.
     order = order[torch.nonzero(above[order]).squeeze(1)]                      # [n]
-    cand = torch.cat([boxes[order], torch.zeros(8, 7, dtype=boxes.dtype)])
-    valid = torch.cat([torch.ones_like(order, dtype=torch.bool), torch.zeros(8, dtype=torch.bool)])
+    cand = torch.cat([boxes[order], torch.zeros(8, 7, dtype=boxes.dtype, device=boxes.device)])
+    valid = torch.cat([torch.ones_like(order, dtype=torch.bool), torch.zeros(8, dtype=torch.bool, device=order.device)])
     keep = greedy_keep(suppression_matrix(cand, valid, config.iou_thresh), valid)
     rank = torch.nonzero(keep).squeeze(1)[: config.post_max]
     return order[rank]
@@ -134,6 +136,7 @@ def class_agnostic_nms_eager(boxes: torch.Tensor, scores: torch.Tensor, config: 
     float64 only for those within reach of its bounding rectangle and of its IoU bound). Eager
     torch, never exported: validation during training runs it because a half-trained head can put thousands of anchors
     above the threshold, and the export formulation's pairwise work then takes seconds a frame."""
+    device = boxes.device
     boxes, scores = boxes.detach().cpu(), scores.detach().cpu()
     above = torch.nonzero(scores >= config.score_thresh).squeeze(1)
     # descending score, equal scores lower anchor index first (a stable sort of the index order)
@@ -141,7 +144,7 @@ def class_agnostic_nms_eager(boxes: torch.Tensor, scores: torch.Tensor, config: 
     cand = boxes[order].to(torch.float64)
     ex, ey = bev_half_extents(cand)
     ex, ey = ex + 1e-3, ey + 1e-3
-    alive = torch.ones(len(order), dtype=torch.bool)
+    alive = torch.ones(len(order), dtype=torch.bool, device=order.device)
     kept: list[int] = []
     for i in range(len(order)):
         if not alive[i]:
@@ -149,14 +152,14 @@ def class_agnostic_nms_eager(boxes: torch.Tensor, scores: torch.Tensor, config: 
         kept.append(i)
         if len(kept) == config.post_max:
             break
-        later = torch.arange(i + 1, len(order))
+        later = torch.arange(i + 1, len(order), device=order.device)
         later = later[alive[later] & ((cand[later, 0] - cand[i, 0]).abs() <= ex[later] + ex[i])
                       & ((cand[later, 1] - cand[i, 1]).abs() <= ey[later] + ey[i])]
         later = later[bev_iou_upper_bound(cand[i].expand(len(later), 7), cand[later]) > config.iou_thresh - 1e-6]
         if len(later):
             iou = bev_iou_paired(cand[i].expand(len(later), 7), cand[later])
             alive[later[iou > config.iou_thresh]] = False
-    return order[torch.tensor(kept, dtype=torch.int64)]
+    return order[torch.tensor(kept, dtype=torch.int64, device=order.device)].to(device)
 
 
 # ----------------------------------------------------------------------------- reference

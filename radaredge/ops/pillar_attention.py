@@ -35,7 +35,7 @@ from torch import nn
 def rope_angles(h: torch.Tensor, w: torch.Tensor, channels: int):
     """(cos h θ, sin h θ, cos w θ, sin w θ), each [..., C/2], for row/column coordinates h, w in [-1, 1]."""
     half = channels // 2
-    theta = 10000.0 ** (-(torch.arange(half, dtype=torch.float32) / half))
+    theta = 10000.0 ** (-(torch.arange(half, dtype=torch.float32, device=h.device) / half))
     ht, wt = h.unsqueeze(-1) * theta, w.unsqueeze(-1) * theta
     return torch.cos(ht), torch.sin(ht), torch.cos(wt), torch.sin(wt)
 
@@ -87,7 +87,7 @@ class SparsePillarAttention(nn.Module):
         c, ny, nx = canvas.shape
         ncell = ny * nx
         slots = torch.sym_min(num_points, self.capacity)
-        cell = torch.arange(ncell, dtype=torch.int64)
+        cell = torch.arange(ncell, dtype=torch.int64, device=canvas.device)
         key = torch.where(occupied, ncell - cell, torch.zeros_like(cell))   # occupied cells first, by index
         top = torch.topk(key, slots)
         slot_valid = top.values > 0
@@ -98,7 +98,7 @@ class SparsePillarAttention(nn.Module):
         f = add_rope(flat[idx], rope_angles(h, w, c))
         out = self.pillar_attention_rope.attend(f, slot_valid)
         target = torch.where(slot_valid, idx, torch.full_like(idx, ncell))
-        result = torch.zeros(ncell + 1, c, dtype=canvas.dtype).index_copy(0, target, out)
+        result = torch.zeros(ncell + 1, c, dtype=canvas.dtype, device=canvas.device).index_copy(0, target, out)
         num_pillars = occupied.sum()
         return result[:ncell].T.reshape(c, ny, nx), num_pillars, num_pillars > self.capacity
 

@@ -137,7 +137,7 @@ class PFNLayer(nn.Module):
         w64 = self.linear.weight.to(torch.float64)
         mean = w64 @ (moments.sum_x / rows)
         var = torch.clamp(((w64 @ (moments.sum_xx / rows)) * w64).sum(1) - mean * mean, min=0.0)
-        return mean.to(y.dtype), var.to(y.dtype), torch.tensor(rows, dtype=y.dtype), not counted
+        return mean.to(y.dtype), var.to(y.dtype), torch.tensor(rows, dtype=y.dtype, device=y.device), not counted
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [..., in] -> [..., out]: every row is a slot of the batch (train-mode statistics over all rows)."""

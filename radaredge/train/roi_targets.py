@@ -108,9 +108,14 @@ def max_iou_same_class(rois, roi_labels, gt, gt_labels):
     return iou, index
 
 
+def _draw_device(gen: torch.Generator | None) -> torch.device:
+    """Where draws from ``gen`` are made (None: torch's global CPU generator), whatever the rois' device."""
+    return gen.device if gen is not None else torch.device("cpu")
+
+
 def _draw(indices: torch.Tensor, n: int, gen: torch.Generator | None = None) -> torch.Tensor:
     """``n`` of ``indices`` drawn uniformly with replacement."""
-    return indices[torch.randint(len(indices), (n,), generator=gen).to(indices.device)]
+    return indices[torch.randint(len(indices), (n,), generator=gen, device=_draw_device(gen)).to(indices.device)]
 
 
 def _background(hard: torch.Tensor, easy: torch.Tensor, n: int, ratio: float, gen: torch.Generator | None = None) -> torch.Tensor:
@@ -132,7 +137,7 @@ def subsample_rois(iou: torch.Tensor, cfg: RoiSampling, gen: torch.Generator | N
     hard = torch.nonzero((iou < cfg.reg_fg_thresh) & (iou >= cfg.cls_bg_thresh_lo)).squeeze(1)
     if len(fg) and (len(hard) or len(easy)):
         n_fg = min(fg_per_image, len(fg))
-        picked = fg[torch.randperm(len(fg), generator=gen)[:n_fg].to(fg.device)]
+        picked = fg[torch.randperm(len(fg), generator=gen, device=_draw_device(gen))[:n_fg].to(fg.device)]
         return torch.cat([picked, _background(hard, easy, per_image - n_fg, cfg.hard_bg_ratio, gen)])
     if len(fg):
         return _draw(fg, per_image, gen)

@@ -178,13 +178,13 @@ class ClusteringFeatureAssist(nn.Module):
         xyv [N, 3] (x, y in m, velocity in m/s); ``scan`` marks the points upstream's model sees.
         (A forward, so the exported nodes carry the ``image_backbone`` scope for the stage split.)"""
         if self.grid_density is not None:
-            return self.grid_density(xyv, torch.ones(xyv.shape[0], dtype=torch.bool))
+            return self.grid_density(xyv, torch.ones(xyv.shape[0], dtype=torch.bool, device=xyv.device))
         # the scan points first, in index order, so ``capacity`` counts scan points; then back
         n = xyv.shape[0]
-        ar = torch.arange(n)
+        ar = torch.arange(n, device=xyv.device)
         order = torch.argsort(torch.where(scan, ar, ar + n))
         bev, mask, converged = cqca_cfa_map(xyv[order], scan[order], self.dbscan)
-        return bev, torch.zeros(n, dtype=torch.bool).scatter(0, order, mask), converged
+        return bev, torch.zeros(n, dtype=torch.bool, device=xyv.device).scatter(0, order, mask), converged
 
     def reference(self, xyv: torch.Tensor, scan: torch.Tensor):
         """Reference formulation of :meth:`forward` (Python loops over points and cells)."""

@@ -188,7 +188,7 @@ def _point_head_fc(card: ModelCard) -> tuple:
 
 def _pad(rows: torch.Tensor, slots: int) -> torch.Tensor:
     """The first ``slots`` rows of ``rows`` followed by zero rows: [slots, ...]."""
-    return torch.cat([rows, torch.zeros((slots, *rows.shape[1:]), dtype=rows.dtype)])[:slots]
+    return torch.cat([rows, torch.zeros((slots, *rows.shape[1:]), dtype=rows.dtype, device=rows.device)])[:slots]
 
 
 class ProposalLayer(nn.Module):
@@ -200,7 +200,7 @@ class ProposalLayer(nn.Module):
 
     def _finish(self, boxes, label, sel):
         r = self.cfg.post_max
-        return _pad(boxes[sel], r), _pad(label[sel] + 1, r), torch.arange(r) < sel.shape[0]
+        return _pad(boxes[sel], r), _pad(label[sel] + 1, r), torch.arange(r, device=boxes.device) < sel.shape[0]
 
     def forward(self, cls_logits: torch.Tensor, boxes: torch.Tensor):
         """Export formulation: cls_logits [A, classes], boxes [A, 7] -> (rois [R, 7], roi_labels [R]
@@ -227,7 +227,7 @@ class ProposalLayer(nn.Module):
 def _first_true(mask: torch.Tensor) -> torch.Tensor:
     """Index of the first True of ``mask`` [N], or N when there is none (N = 0 included: a
     sentinel keeps the ArgMax input non-empty)."""
-    return torch.argmax(torch.cat([mask, torch.ones(1, dtype=torch.bool)]).to(torch.int64))
+    return torch.argmax(torch.cat([mask, torch.ones(1, dtype=torch.bool, device=mask.device)]).to(torch.int64))
 
 
 class CDAKeypointSampler(nn.Module):
@@ -268,14 +268,14 @@ class CDAKeypointSampler(nn.Module):
     def forward(self, xyz, cluster, scan, rois, roi_valid):
         k, n = self.cfg.num_keypoints, xyz.shape[0]
         selected = cluster & self.cylinder_mask(xyz, rois, roi_valid).any(1)
-        ar = torch.arange(n)
+        ar = torch.arange(n, device=xyz.device)
         first_cluster = (ar == _first_true(cluster)) & cluster
         kept = selected | (first_cluster & ~selected.any())
         count = kept.sum()
-        slots = torch.arange(k)
+        slots = torch.arange(k, device=xyz.device)
         # step 2: index order (first K kept points) or FPS when more than K are kept
         key = torch.where(kept, ar, ar + n).to(torch.float32)
-        pad = torch.arange(k, dtype=torch.float32) + 2 * n          # K keys above any point's: N < K works
+        pad = torch.arange(k, dtype=torch.float32, device=xyz.device) + 2 * n   # K keys above any point's: N < K works
         ordered = torch.topk(torch.cat([key, pad]), k, largest=False, sorted=True).values.to(torch.int64)
         over = count > k
         fps_kept = farthest_point_sample_masked(xyz, kept, k, torch.where(over, k, 0))
