@@ -3,7 +3,7 @@
 For a trained checkpoint and a labelled set: the fp32 graph's 3D AP per class on the
 ``--choose-split`` (default ``val``: the layers are chosen on it, never on the test split), then,
 for every group of quantisable layers (the VFE, SPA, CFA, CAF, each backbone block and deblock,
-the head, and on a two-stage card the VSA, point head and ROI head), an int8 copy in which *only that group* is quantised (every other group listed under
+the head, and on a two-stage card the VSA, point head and ROI head; `--groups` names fewer), an int8 copy in which *only that group* is quantised (every other group listed under
 ``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
 Then, on ``--split`` (default ``test``), the card's int8 copy (its own ``keep_fp32``) and, when
 it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32,
@@ -106,6 +106,8 @@ def main(argv=None) -> int:
     ap.add_argument("--choose-split", default="val", help="The split the sensitive groups are chosen on.")
     ap.add_argument("--threshold", type=float, default=0.5, help="AP points a group may cost before it stays fp32.")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--groups", help="Comma-separated groups to probe (default: every group); on a large card each "
+                                     "probe exports an int8 copy and scores the whole choose split.")
     ap.add_argument("--work", type=Path, default=ROOT / "export" / "int8-sensitivity")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
@@ -116,12 +118,18 @@ def main(argv=None) -> int:
     choose_fp32, _ = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.choose_split)
     graph = onnx.load(str(args.work / f"{card.name}.onnx"), load_external_data=False)
     groups = [g for g in groups if _quantises(graph, g)]
+    probed = groups
+    if args.groups:
+        probed = [g.strip() for g in args.groups.split(",") if g.strip()]
+        unknown = sorted(set(probed) - set(groups))
+        if unknown:
+            raise SystemExit(f"--groups: {unknown} are not quantised groups of {card.name}; its groups: {groups}")
     rows = []
     _, int8 = score(with_keep(card, groups), args.checkpoint, args.work / "no-group.onnx", args.data, args.choose_split)
     loss = {c: choose_fp32[c] - int8[c] for c in choose_fp32}
     rows.append({"group": "(none: every group fp32)", "int8_ap": int8, "loss": loss, "worst_loss": max(loss.values())})
     print(f"every group fp32: int8 loses {', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
-    for g in groups:
+    for g in probed:
         only = with_keep(card, [x for x in groups if x != g])
         _, int8 = score(only, args.checkpoint, args.work / f"only-{g}.onnx", args.data, args.choose_split)
         loss = {c: choose_fp32[c] - int8[c] for c in choose_fp32}
@@ -133,8 +141,9 @@ def main(argv=None) -> int:
               "choose_split": args.choose_split, "choose_fp32_ap": choose_fp32,
               "budget_ap_points": INT8_AP_BUDGET, "threshold": args.threshold, "fp32_ap": fp32_ap,
               "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
-              "groups": rows}
+              "groups": rows, "unprobed_groups": [g for g in groups if g not in probed]}
     sensitive = [r["group"] for r in rows[1:] if r["worst_loss"] > args.threshold]
+    sensitive += [g for g in result["card_keep_fp32"] if g not in sensitive and g not in probed]   # kept, not probed
     the_set = DetectionSet(args.data, args.split, layout_for_card(card), int(card.get("input.scans_accumulated", 1)))
     step = max(1, len(the_set) // 12)
     points = [card_points(the_set.frame(i, card.features), card) for i in range(0, len(the_set), step)]

@@ -64,6 +64,7 @@ DEPLOYMENT_CHOICES = {
     "quantization.keep_fp32": ["dense_head"],   # int8 of the anchor head costs trained weights 15-24 AP points
     "quantization.reduce_range": True,
 }
+STAGE_TWO_KEEP_FP32 = ["roi_head"]   # a two-stage card's keep_fp32 also: int8 of the ROI head costs 0.9 Car AP points
 # upstream module constants the card spells out (not config keys)
 CAF_CONSTANTS = {"pool_size": 16, "heads": 8, "ffn_ratio": 4, "se_reduction": 16}   # TransformerFusionBlock, SELayer
 CAF_BN_EPS = 1.0e-5                 # CQCA_caf's fusion conv BatchNorm2d (torch's default)
@@ -354,7 +355,8 @@ def maffnet_card(cfg: dict, files: list[ConfigFile], *, name: str | None = None,
     else:
         for module in ("PFE", "POINT_HEAD", "ROI_HEAD"):
             led.ignore(f"MODEL.{module}", "stage two, not run by a stage-one card (--stage-one)")
-    card["quantization"] = {"keep_fp32": list(DEPLOYMENT_CHOICES["quantization.keep_fp32"]),
+    keep = (STAGE_TWO_KEEP_FP32 if stage_two else []) + DEPLOYMENT_CHOICES["quantization.keep_fp32"]
+    card["quantization"] = {"keep_fp32": list(keep),
                             "reduce_range": DEPLOYMENT_CHOICES["quantization.reduce_range"]}
     _training_and_data_keys(led)
     for f in files[1:]:
