@@ -3,11 +3,12 @@
 For a trained checkpoint and a labelled set: the fp32 graph's 3D AP per class on the
 ``--choose-split`` (default ``val``: the layers are chosen on it, never on the test split), then,
 for every group of quantisable layers (the VFE, SPA, CFA, CAF, each backbone block and deblock,
-the head, and on a two-stage card the VSA, point head and ROI head; `--groups` names fewer), an int8 copy in which *only that group* is quantised (every other group listed under
+the head, and on a two-stage card the VSA, point head and ROI head; ``--groups`` names fewer), an
+int8 copy in which *only that group* is quantised (every other group listed under
 ``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
 Then, on ``--split`` (default ``test``), the card's int8 copy (its own ``keep_fp32``) and, when
-it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32,
-with their speed against fp32 on the same frames. Writes ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
+it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32
+(and the card's own ``keep_fp32`` groups that were not probed), with their speed against fp32 on the same frames. Writes ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
 
     python benchmarks/int8_sensitivity.py --model maffnet-vod-edge --checkpoint runs/edge/best.pth \\
         --data bench-detection --split test

@@ -16,8 +16,8 @@ Augmentation (upstream's DATA_AUGMENTOR, in its order, per scan): flip along x (
 heading -> -heading) with probability 1/2, a world rotation about z uniform in +-45 deg, a world
 scaling uniform in [0.95, 1.05]; headings then limited to [-pi, pi). ``translate_std_z`` (off by
 default, as in MAFF-Net's configs) adds OpenPCDet's random_world_translation along z: one normal
-offset of that standard deviation (metres) per scan, to every point and box. Point features other than
-x, y, z stay as they are (radial speeds are invariant under all four). Upstream's gt_sampling
+offset of that standard deviation (metres) per scan, to every point and box. Point features
+other than x, y, z stay as they are (radial speeds are invariant under all four). Upstream's gt_sampling
 is disabled in its MAFF-Net configs, and so it is here. Then, as upstream's
 mask_points_and_boxes_outside_range does, boxes with no corner inside the point-cloud range
 are removed; a scan left without boxes is skipped (upstream draws another scan at random).
@@ -97,7 +97,8 @@ PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}                  # recipe.pr
 @card_ranges(epochs=(1, 10_000), batch_size=(1, 256), lr=positive(1.0), weight_decay=(0.0, 1.0),
              pct_start=Range(0.0, 1.0, True, True), div_factor=positive(1e6), grad_clip=positive(1e6),
              rotation=(0.0, math.pi), scale_min=positive(10.0), scale_max=positive(10.0), translate_std_z=(0.0, 10.0),
-             val_every=(1, 10_000), val_frames=(0, 10**7), train_frames=(0, 10**7), head_prior=Range(0.0, 1.0, True, True), bn_scans=(0, 10**6),
+             val_every=(1, 10_000), val_frames=(0, 10**7), train_frames=(0, 10**7),
+             head_prior=Range(0.0, 1.0, True, True), bn_scans=(0, 10**6),
              roi_per_image=(1, 2**16), train_proposals=(1, 2**16), train_proposals_pre=(1, 2**20), seed=(0, 2**32 - 1))
 @dataclass(frozen=True)
 class DetectionRecipe:
