@@ -333,10 +333,12 @@ def test_vod_full_card_keys_and_stage_one():
     assert stage_one == {k: tuple(v.shape) for k, v in one.items()}       # all of maffnet-vod, unchanged
     assert set(expected_vod_keys()) <= set(stage_one)
     assert set(own) == set(stage_one) | set(two)
-    # the stage-one part of the two cards is the same card
+    # the stage-one part of the two cards is the same card; int8 also keeps the ROI head in fp32
     full, base = load_card(VOD_FULL).data, load_card(ROOT / "models" / "maffnet-vod.yaml").data
-    assert {k: v for k, v in full.items() if k not in ("name", "description", "stage_two", "source")} == \
-        {k: v for k, v in base.items() if k not in ("name", "description", "source")}
+    assert {k: v for k, v in full.items() if k not in ("name", "description", "stage_two", "source", "quantization")} == \
+        {k: v for k, v in base.items() if k not in ("name", "description", "source", "quantization")}
+    assert full["quantization"] == {**base["quantization"],
+                                    "keep_fp32": ["roi_head", *base["quantization"]["keep_fp32"]]}
 
 
 def _scan_5000(card, seed=0) -> np.ndarray:
