@@ -8,7 +8,11 @@ int8 copy in which *only that group* is quantised (every other group listed unde
 ``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
 Then, on ``--split`` (default ``test``), the card's int8 copy (its own ``keep_fp32``) and, when
 it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32
-(and the card's own ``keep_fp32`` groups that were not probed), with their speed against fp32 on the same frames. Writes ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
+(and the card's own ``keep_fp32`` groups that were not probed), with their speed against fp32 on
+the same frames. The rows of the card's newest earlier results file for the same checkpoint,
+data and choose split are carried over for the groups this run does not probe (marked
+``earlier_run``), so runs with different ``--groups`` add up to one table. Writes
+``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
 
     python benchmarks/int8_sensitivity.py --model maffnet-vod-edge --checkpoint runs/edge/best.pth \\
         --data bench-detection --split test
@@ -20,6 +24,7 @@ import argparse
 import copy
 import datetime as dt
 import json
+import re
 import statistics
 import sys
 import time
@@ -98,6 +103,27 @@ def speed(fp32: Path, int8: Path, data_points: list, threads: int, passes: int =
     return {k: 1000 * statistics.median(v) for k, v in times.items()}
 
 
+def latest_result(out: Path, card_name: str) -> Path | None:
+    """The newest ``int8-sensitivity-<card_name>-<date>.json`` in ``out`` (None when there is none)."""
+    dated = re.compile(re.escape(f"int8-sensitivity-{card_name}-") + r"\d{4}-\d{2}-\d{2}\.json")
+    files = sorted(p for p in out.glob("int8-sensitivity-*.json") if dated.fullmatch(p.name))
+    return files[-1] if files else None
+
+
+def earlier_probes(path: Path | None, result: dict, probed: list[str]) -> list[dict]:
+    """The group rows of an earlier run's results file ``path`` that probed the same checkpoint,
+    data and choose split (and found the same fp32 AP on it), for the groups this run did not
+    probe: ``--groups`` runs, one after another, add up to one sensitivity table."""
+    if path is None:
+        return []
+    earlier = json.loads(path.read_text())
+    fp32 = [{c: round(v, 2) for c, v in r.get("choose_fp32_ap", {}).items()} for r in (earlier, result)]
+    if any(earlier.get(k) != result[k] for k in ("checkpoint", "data", "choose_split")) or fp32[0] != fp32[1]:
+        return []
+    return [{**r, "earlier_run": r.get("earlier_run", earlier.get("date"))}
+            for r in earlier.get("groups", [])[1:] if r["group"] not in probed]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", required=True)
@@ -143,8 +169,10 @@ def main(argv=None) -> int:
               "budget_ap_points": INT8_AP_BUDGET, "threshold": args.threshold, "fp32_ap": fp32_ap,
               "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
               "groups": rows, "unprobed_groups": [g for g in groups if g not in probed]}
+    rows += earlier_probes(latest_result(args.out, card.name), result, probed)
+    result["unprobed_groups"] = [g for g in groups if g not in {r["group"] for r in rows}]
     sensitive = [r["group"] for r in rows[1:] if r["worst_loss"] > args.threshold]
-    sensitive += [g for g in result["card_keep_fp32"] if g not in sensitive and g not in probed]   # kept, not probed
+    sensitive += [g for g in result["card_keep_fp32"] if g in result["unprobed_groups"]]   # kept, never probed
     the_set = DetectionSet(args.data, args.split, layout_for_card(card), int(card.get("input.scans_accumulated", 1)))
     step = max(1, len(the_set) // 12)
     points = [card_points(the_set.frame(i, card.features), card) for i in range(0, len(the_set), step)]
