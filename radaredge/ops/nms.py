@@ -86,12 +86,12 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
                        torch.ones(8, dtype=torch.bool, device=dev)])
     pairs = torch.cat([found, torch.zeros(8, 2, dtype=torch.int64, device=dev)])
     target = torch.cat([found[:, 0] * k + found[:, 1], torch.full((8,), k * k, dtype=torch.int64, device=dev)])
-    both = boxes.to(torch.float64)[pairs.reshape(-1)].reshape(-1, 2, 7)     # one gather: one pair count
+    both = boxes.to(torch.float64).index_select(0, pairs.reshape(-1)).reshape(-1, 2, 7)   # one pair count
     near = torch.nonzero((bev_iou_upper_bound(both[:, 0], both[:, 1]) > iou_thresh - 1e-6) | dummy).squeeze(1)
-    both, target = both[near], target[near]
+    both, target = both.index_select(0, near), target.index_select(0, near)
     iou = bev_iou_paired(both[:, 0], both[:, 1])
     flat = torch.zeros(k * k + 1, dtype=boxes.dtype, device=dev)
-    flat = flat.index_put((target,), (iou > iou_thresh).to(boxes.dtype))
+    flat = flat.scatter(0, target, (iou > iou_thresh).to(boxes.dtype))
     return flat[: k * k].reshape(k, k)
 
 
@@ -122,12 +122,12 @@ def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsCon
     order = topk_indices(key, min(config.pre_max, a))
     # The boxes above the threshold come first in ``order``; keep only them (n, data-dependent)
     # plus 8 invalid padding rows, so the K x K work is (n + 8)^2 rather than pre_max^2.
-    order = order[torch.nonzero(above[order]).squeeze(1)]                      # [n]
-    cand = torch.cat([boxes[order], torch.zeros(8, 7, dtype=boxes.dtype, device=boxes.device)])
+    order = order.index_select(0, torch.nonzero(above.index_select(0, order)).squeeze(1))          # [n]
+    cand = torch.cat([boxes.index_select(0, order), torch.zeros(8, 7, dtype=boxes.dtype, device=boxes.device)])
     valid = torch.cat([torch.ones_like(order, dtype=torch.bool), torch.zeros(8, dtype=torch.bool, device=order.device)])
     keep = greedy_keep(suppression_matrix(cand, valid, config.iou_thresh), valid)
     rank = torch.nonzero(keep).squeeze(1)[: config.post_max]
-    return order[rank]
+    return order.index_select(0, rank)
 
 
 def class_agnostic_nms_eager(boxes: torch.Tensor, scores: torch.Tensor, config: NmsConfig) -> torch.Tensor:
