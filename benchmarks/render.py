@@ -700,14 +700,15 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
         d = r.data
         row = {x["graph"]: x for x in d.get("rows", [])}
         t = by_card.get(d.get("model"))
-        overview.append([d.get("model"), _num(row.get("fp32", {}).get("fps")), _num(row.get("int8", {}).get("fps")),
+        overview.append([d.get("model"), d.get("cpu", "-"), _num(row.get("fp32", {}).get("fps")), _num(row.get("int8", {}).get("fps")),
                          _num(row.get("worst case", {}).get("fps")),
                          _num(_test_map(t, "onnxruntime"), ".2f"), _num(_test_map(t, "onnxruntime int8"), ".2f")])
     out = ["## MAFF-Net on trained weights", "",
-           "Each card's trained weights on the same machine: frames per second of the fp32 graph, its int8 copy and "
+           "Each card's trained weights on the CPU of its row (frames per second compare only between rows of one "
+           "CPU): frames per second of the fp32 graph, its int8 copy and "
            "the worst case (onnxruntime, 2 threads, real frames), and mean 3D AP over Car, Pedestrian and Cyclist "
            "(entire area) on the test split of the synthetic set (the card's training section below).", ""]
-    out += _table(["card", "fp32 FPS", "int8 FPS", "worst-case FPS", "test mAP fp32", "test mAP int8"], overview)
+    out += _table(["card", "CPU", "fp32 FPS", "int8 FPS", "worst-case FPS", "test mAP fp32", "test mAP int8"], overview)
     out += ["", "`benchmarks/maffnet_trained.py`: a trained checkpoint on real frames of a labelled set, onnxruntime, "
            "fp32 / int8 / worst case timed in one alternating loop. The worst case is the same weights with every "
            "class logit raised by 30, so every anchor passes the score threshold and the NMS gets "

@@ -125,7 +125,7 @@ def test_render_handles_every_result_kind(tmp_path):
                    "detections_median": 5.0}
     (res / "maffnet-trained-m-2030-01-01.json").write_text(json.dumps({
         "model": "m", "checkpoint": "best.pth", "checkpoint_sha256": "ab" * 32, "data": "set", "split": "test",
-        "frames": ["00001"], "points_median": 900.0, "passes": 3, "date": "2030-01-01 00:00 UTC", "rows": [
+        "frames": ["00001"], "points_median": 900.0, "passes": 3, "date": "2030-01-01 00:00 UTC", "cpu": "cpu", "rows": [
             {**trained_row, "graph": "fp32", "stage_ms": {"NMS": 2.0, "backbone+head": 30.0}, "nms_share": 0.0625},
             {**trained_row, "graph": "int8", "stage_ms": {}, "nms_share": None},
             {**trained_row, "graph": "worst case", "stage_ms": {"NMS": 90.0}, "nms_share": 0.75}]}))
@@ -183,7 +183,7 @@ def test_render_handles_every_result_kind(tmp_path):
     assert "| trained, int8 | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] | 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |" in current
     assert "| chance (random ranking) | 0.35 | - | - | 2.10 |" in current
     assert "80 with, 10 against queries" in current and "| trained, int8 | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] |" in current
-    assert "| m | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current          # FPS beside the test mAP
+    assert "| m | cpu | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current    # CPU, FPS beside the test mAP
     assert "## MAFF-Net training: m" in current and "| trained, onnxruntime int8 | 50.00 (60.00) |" in current
     for heading in ("## Speed suite", "## Per-model benches", "## Graph comparisons", "## MAFF-Net capacity",
                     "## Clustering stage", "## MAFF-Net on trained weights"):
