@@ -700,8 +700,8 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
         d = r.data
         row = {x["graph"]: x for x in d.get("rows", [])}
         t = by_card.get(d.get("model"))
-        overview.append([d.get("model"), d.get("cpu", "-"), _num(row.get("fp32", {}).get("fps")), _num(row.get("int8", {}).get("fps")),
-                         _num(row.get("worst case", {}).get("fps")),
+        overview.append([d.get("model"), d.get("cpu", "-"), _num(row.get("fp32", {}).get("fps")),
+                         _num(row.get("int8", {}).get("fps")), _num(row.get("worst case", {}).get("fps")),
                          _num(_test_map(t, "onnxruntime"), ".2f"), _num(_test_map(t, "onnxruntime int8"), ".2f")])
     out = ["## MAFF-Net on trained weights", "",
            "Each card's trained weights on the CPU of its row (frames per second compare only between rows of one "
