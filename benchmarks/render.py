@@ -36,7 +36,7 @@ README = HERE / "README.md"
 
 # What the int8 export quantises when a suite file does not record it (radaredge's quantiser).
 DEFAULT_QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
-_NAME = re.compile(r"^(?P<kind>.+)-(?P<date>\d{4}-\d{2}-\d{2})\.json$")
+_NAME = re.compile(r"^(?P<kind>.+)-(?P<date>\d{4}-\d{2}-\d{2})(?:-\d{4})?\.json$")   # -HHMM: a second run that day
 
 
 # --- reading -----------------------------------------------------------------------------------
@@ -78,6 +78,8 @@ def _kind(stem: str, data) -> str:
         return "capacity"
     if stem == "cfa-speedup":
         return "cfa"
+    if stem == "maffnet-train-step":
+        return "train-step"
     if stem == "fleet-scale":
         return "fleet"
     if stem.startswith("maffnet-trained-"):
@@ -371,6 +373,22 @@ def cfa_section(r: Result | None, results_dir: Path) -> list[str]:
            "clustering-feature map alone and with the 3 -> 16 -> 32 -> 64 CNN; p50 and the speed-up over "
            f"upstream's CQCA_cfa. JSON: {_link(r, results_dir)}.", ""]
     out += _table(["cloud", "part"] + backends, body, ["---", "---"] + ["---:"] * len(backends)) + [""]
+    return out
+
+
+def train_step_section(r: Result | None, results_dir: Path) -> list[str]:
+    if r is None:
+        return []
+    d = r.data
+    body = [[row["precision"], row["formulation"], f"{row['median_s']:.3f}", f"{row['p90_s']:.3f}",
+             f"{row['speedup']:.2f}x"] for row in d.get("rows", [])]
+    out = ["## MAFF-Net training step", "",
+           f"`benchmarks/maffnet_train_step.py` on `{d.get('card', '?')}`, {_stamp(r, d)}. Seconds per training "
+           f"scan (median and 90th percentile over {d.get('steps', '?')} optimiser steps of {d.get('batch_size', '?')} "
+           f"scans, the variants taking turns; {d.get('weights', 'seeded weights')}), and the speed-up over the "
+           f"export formulation on NCHW tensors in the same precision. JSON: {_link(r, results_dir)}.", ""]
+    out += _table(["precision", "formulation", "s per scan", "p90", "speed-up"], body,
+                  ["---", "---", "---:", "---:", "---:"]) + [""]
     return out
 
 
@@ -741,6 +759,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     compares = newest_by_key(results, "compare")
     capacity = (newest_by_key(results, "capacity") or [None])[-1]
     cfa = (newest_by_key(results, "cfa") or [None])[-1]
+    train_step = (newest_by_key(results, "train-step") or [None])[-1]
     fleet = (newest_by_key(results, "fleet") or [None])[-1]
     trainings = newest_by_key(results, "training")
     trained = newest_by_key(results, "trained")
@@ -763,8 +782,9 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     out += places_section(places, results_dir)
     out += variants_section(variants, results_dir)
     out += training_section(trainings, results_dir)
-    rendered = {r.path for r in suites + benches + compares + trainings + trained + places + variants} | {r.path for r in (capacity, cfa, fleet)
-                                                                             if r is not None}
+    out += train_step_section(train_step, results_dir)
+    rendered = {r.path for r in suites + benches + compares + trainings + trained + places + variants} | {
+        r.path for r in (capacity, cfa, fleet, train_step) if r is not None}
     out += history_section(results, rendered, results_dir)
     others = [r for r in results if r.kind == "other"]
     if others:

@@ -56,5 +56,10 @@ def write(path: Path, result: dict) -> Path:
 
 
 def save(card: ModelCard, stamp: str, result: dict) -> Path:
-    """Writes benchmarks/results/<card>-training-<date>.json."""
-    return write(ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json", result)
+    """Writes benchmarks/results/<card>-training-<date>.json, or <card>-training-<date>-<HHMM>.json
+    when a run of the same day is there already (each run keeps its file; the renderer shows the
+    newest)."""
+    path = ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json"
+    if path.exists():
+        path = path.with_name(f"{card.name}-training-{stamp[:10]}-{stamp[11:16].replace(':', '')}.json")
+    return write(path, result)

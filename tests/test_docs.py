@@ -121,6 +121,11 @@ def test_render_handles_every_result_kind(tmp_path):
         "card": "m", "date": "2030-01-01 00:00 UTC", "rows": [
             {"scans": 1, "points": 3, "part": "map", "backend": "up", "p50_ms": 2.0, "speedup_vs_upstream": 1.0},
             {"scans": 1, "points": 3, "part": "map", "backend": "ours", "p50_ms": 1.0, "speedup_vs_upstream": 2.0}]}))
+    (res / "maffnet-train-step-2030-01-01.json").write_text(json.dumps({
+        "card": "m", "date": "2030-01-01 00:00 UTC", "cpu": "cpu", "threads": 2, "steps": 5, "batch_size": 4,
+        "weights": "seeded", "rows": [
+            {"precision": "bf16", "formulation": "before", "median_s": 1.0, "p90_s": 1.1, "speedup": 1.0},
+            {"precision": "bf16", "formulation": "after", "median_s": 0.5, "p90_s": 0.6, "speedup": 2.0}]}))
     trained_row = {"p50_ms": 50.0, "p90_ms": 60.0, "fps": 20.0, "candidates_median": 12.0, "candidates_max": 40,
                    "detections_median": 5.0}
     (res / "maffnet-trained-m-2030-01-01.json").write_text(json.dumps({
@@ -138,6 +143,9 @@ def test_render_handles_every_result_kind(tmp_path):
         "train": {"best_epoch": 1, "data": {"train_frames": 8}, "epochs": [
             {"epoch": 0, "loss": float("nan"), "AP3d_Car": 0.0, "mAP3d": 0.0, "seconds": 1.0},
             {"epoch": 1, "loss": 1.0, "AP3d_Car": 40.0, "mAP3d": 20.0, "seconds": 60.0}]}}))
+    later = json.loads((res / "m-training-2030-01-01.json").read_text())       # a second run that day
+    later["date"], later["train_seconds"] = "2030-01-01 12:00", 90.0
+    (res / "m-training-2030-01-01-1200.json").write_text(json.dumps(later))
     recall = {"evaluated": 90, "recall": {"1": 40.0, "5": 60.0, "10": 70.0},
               "interval_95": {"1": [30.0, 50.0], "5": [50.0, 70.0], "10": [60.0, 80.0]}}
     by_direction = {"with": {"evaluated": 80, "recall_at_1": 45.0, "interval_95": [35.0, 55.0]},
@@ -191,7 +199,10 @@ def test_render_handles_every_result_kind(tmp_path):
     assert "2030-01-02 00:00 UTC" in current
     assert "[suite-2030-01-01.json](results/suite-2030-01-01.json)" in history
     assert "[m-2030-01-01.json](results/m-2030-01-01.json)" in history
+    assert "[m-training-2030-01-01.json](results/m-training-2030-01-01.json)" in history
+    assert "m-training-2030-01-01-1200.json" in current and "m-training-2030-01-01-1200.json" not in history
     assert "| openvino | error: not installed | - |" in current
+    assert "## MAFF-Net training step" in current and "| bf16 | after | 0.500 | 0.600 | 2.00x |" in current
     assert "2.0x" in current and "(1 cloud, each with and without the crop" in current
     assert render.render(res) == text                          # deterministic
 

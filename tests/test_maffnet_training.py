@@ -202,6 +202,31 @@ def test_bf16_precision_follows_the_fp32_gradient_and_trains(labelled, tmp_path)
     assert all(v.dtype != torch.bfloat16 for v in best.values())
 
 
+@pytest.mark.parametrize("card_path", [MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD])
+def test_training_pillar_stage_gives_the_export_canvas_and_gradient(labelled, card_path):
+    """The pillar stage training runs (non-empty pillars only, channels-last canvas) == the
+    export formulation's: canvas, pillar count, overflow and every gradient of the pillar
+    stage (train mode), on scans of the labelled set."""
+    card = load_card(card_path)
+    model = create_model(card).train()
+    for scan in tm.load_split(card, labelled, "train", None, 2):
+        points = tm.drop_implausible(torch.from_numpy(scan.points), *model.point_bounds)[0]
+        outputs, grads = [], []
+        for stage in (lambda p: model.pillar_stage(p, False), model.pillar_stage_training):
+            model.zero_grad()
+            canvas, num, overflow = stage(points)
+            (canvas * torch.linspace(-1, 1, canvas.numel()).reshape(canvas.shape)).sum().backward()
+            outputs.append((canvas.detach(), int(num), bool(overflow)))
+            grads.append({n: p.grad for n, p in model.named_parameters() if p.grad is not None and not n.endswith("k_mlp.bias")})
+        (want, *counts), (got, *counts_t) = outputs
+        assert counts_t == counts and counts[0] > 10
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+        assert got.unsqueeze(0).is_contiguous(memory_format=torch.channels_last)
+        assert grads[0].keys() == grads[1].keys() and grads[0]
+        for name, g in grads[0].items():
+            torch.testing.assert_close(grads[1][name], g, atol=1e-4, rtol=1e-4, msg=name)
+
+
 def test_augmentation_moves_points_and_boxes_together():
     rng = np.random.default_rng(0)
     recipe = tm.DetectionRecipe()

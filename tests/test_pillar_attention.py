@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from radaredge.ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
@@ -40,6 +41,28 @@ def test_overflow_is_reported():
     with torch.no_grad():
         _, num, overflow = spa(canvas, occ, 100)
     assert int(num) == 25 and bool(overflow)
+
+
+@pytest.mark.parametrize("pillars, capacity", [(30, 64), (25, 10), (1, 64)])
+def test_training_formulation_gives_the_export_output_and_gradient(pillars, capacity):
+    """forward_pillars on the non-empty pillars == forward on the canvas (an overflowing scan's
+    first ``capacity`` pillars by cell attend, the rest stay 0), values and weight gradients;
+    k_mlp's bias is left out: softmax cancels it, so its gradient is float noise in both."""
+    canvas, occ = _scene(5, pillars=pillars)
+    c, ny, nx = canvas.shape
+    cells = torch.nonzero(occ)[:, 0]
+    features = canvas.reshape(c, -1)[:, cells].T.contiguous()
+    export, training = _spa(capacity=capacity), _spa(capacity=capacity)
+    want, num, overflow = export(canvas, occ, 200)
+    got, num_t, overflow_t = training.forward_pillars(features, cells, ny, nx)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    assert (int(num_t), bool(overflow_t)) == (int(num), bool(overflow)) == (pillars, pillars > capacity)
+    weights = torch.randn(want.shape, generator=torch.Generator().manual_seed(1))
+    (want * weights).sum().backward()
+    (got * weights).sum().backward()
+    for (name, a), b in zip(export.named_parameters(), training.parameters()):
+        if name != "pillar_attention_rope.k_mlp.bias":
+            torch.testing.assert_close(b.grad, a.grad, atol=1e-4, rtol=1e-4, msg=name)
 
 
 def test_onnx_roundtrip_any_point_count(onnx_roundtrip):

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from radaredge.errors import CapacityError
-from radaredge.ops.pillars import PillarConfig, PillarFeatureNet, pillar_scatter_reference, voxelize_reference
+from radaredge.ops.pillars import (PillarConfig, PillarFeatureNet, pillar_canvas, pillar_scatter_reference,
+                                   voxelize_reference)
 from radaredge.ops.scan_batch import concat_scans
 
 SMALL = PillarConfig(point_cloud_range=(0.0, -8.0, -3.0, 16.0, 8.0, 5.0), voxel_size=(0.5, 0.5, 8.0),
@@ -182,3 +183,24 @@ def test_batch_statistics_of_scans_run_alone_equal_the_batch_run_at_once():
         torch.testing.assert_close(getattr(layer.norm, name), getattr(at_once.pfn_layers[0].norm, name))
     own = make_net().train().scatter(scans[1], ones[1])[0]
     assert (own - joint[1]).abs().max() > 1e-2
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_training_formulation_gives_the_canvas_and_gradient_of_the_export_one(seed):
+    """PillarFeatureNet.pillars (non-empty pillars only, eager training) drawn onto a canvas by
+    pillar_canvas == scatter's canvas, bit for bit, and so is the weight gradient (train-mode
+    norm; the crowded pillar's cap and the points outside the grid included)."""
+    pts = torch.from_numpy(scan(400, seed))
+    valid = torch.from_numpy(np.random.default_rng(seed).random(len(pts)) > 0.1)
+    dense, compact = make_net(seed=seed).train(), make_net(seed=seed).train()
+    canvas, occupied = dense.scatter(pts, valid)
+    features, cells = compact.pillars(pts, valid)
+    nx, ny, _ = SMALL.grid_size
+    drawn = pillar_canvas(features, cells, ny, nx)
+    assert torch.equal(drawn, canvas) and torch.equal(cells, torch.nonzero(occupied)[:, 0])
+    assert drawn.unsqueeze(0).is_contiguous(memory_format=torch.channels_last)
+    weights = torch.randn(canvas.shape, generator=torch.Generator().manual_seed(seed))
+    (canvas * weights).sum().backward()
+    (drawn * weights).sum().backward()
+    for a, b in zip(dense.parameters(), compact.parameters()):
+        torch.testing.assert_close(b.grad, a.grad, atol=1e-5, rtol=1e-5)

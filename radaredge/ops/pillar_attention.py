@@ -21,6 +21,10 @@ than points, so the slots are only ever short when the scan has more than ``capa
 then ``overflow`` is True and callers must report it (the runtime raises CapacityError), the
 capacity being a model-card field.
 
+Training formulation (:meth:`SparsePillarAttention.forward_pillars`): the same attention on the
+non-empty pillars as :meth:`radaredge.ops.pillars.PillarFeatureNet.pillars` lists them, for
+eager training (no canvas-wide gather or scatter in the backward).
+
 Reference formulation (:func:`sparse_pillar_attention_reference`): boolean-mask indexing of the
 dense canvas (NonZero), as upstream.
 """
@@ -30,6 +34,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .pillars import pillar_canvas
 
 
 def rope_angles(h: torch.Tensor, w: torch.Tensor, channels: int):
@@ -101,6 +107,20 @@ class SparsePillarAttention(nn.Module):
         result = torch.zeros(ncell + 1, c, dtype=canvas.dtype, device=canvas.device).index_copy(0, target, out)
         num_pillars = occupied.sum()
         return result[:ncell].T.reshape(c, ny, nx), num_pillars, num_pillars > self.capacity
+
+    def forward_pillars(self, features: torch.Tensor, cells: torch.Tensor, ny: int, nx: int):
+        """Training formulation of :meth:`forward` on the non-empty pillars only (features [P, C],
+        cells [P] ascending, as :meth:`radaredge.ops.pillars.PillarFeatureNet.pillars` gives
+        them): the same (canvas, num_pillars, overflow). The first ``capacity`` pillars by cell
+        attend, as the export's slots do (a scan has at least as many points as pillars); the
+        canvas is :func:`radaredge.ops.pillars.pillar_canvas`'s (channels last)."""
+        c = features.shape[1]
+        num_pillars = torch.tensor(cells.shape[0], dtype=torch.int64, device=cells.device)
+        idx, f = cells[:self.capacity], features[:self.capacity]
+        h = -1.0 + (idx // nx).to(torch.float32) * (2.0 / max(ny - 1, 1))
+        w = -1.0 + (idx % nx).to(torch.float32) * (2.0 / max(nx - 1, 1))
+        out = self.pillar_attention_rope.attend(add_rope(f, rope_angles(h, w, c)))
+        return pillar_canvas(out, idx, ny, nx), num_pillars, num_pillars > self.capacity
 
 
 def sparse_pillar_attention_reference(block: PillarAttentionWithRoPE, canvas: torch.Tensor,

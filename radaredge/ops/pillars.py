@@ -10,7 +10,10 @@ the value of an all-zero padding slot, relu(BN(0)).
 Canvas layout (OpenPCDet's PointPillarScatter): [C, ny, nx], row = y cell, column = x cell, cell
 (iy, ix) covering x in [x_min + ix*vx, x_min + (ix+1)*vx), likewise y.
 
-Point policy, identical in both formulations:
+Training formulation (:meth:`PillarFeatureNet.pillars`): the same pillars, only the non-empty
+ones, for eager training, whose backward then touches P pillars instead of the whole canvas.
+
+Point policy, identical in every formulation:
 - a point is kept when its voxel coordinate floor((p - min) / voxel) lies inside the grid on
   all three axes (half-open range [min, max)); points outside are dropped, never wrapped;
 - non-finite points and points with ``valid`` False are dropped;
@@ -267,23 +270,43 @@ class PillarFeatureNet(nn.Module):
         of one canvas, so all scans share one sort and one scatter instead of a graph each.
         ``drops``, when given, receives ``full`` [N] bool: the points inside the range left out
         because their pillar already held ``max_points_per_pillar`` points."""
-        cfg = self.config
-        nx, ny, _ = cfg.grid_size
+        nx, ny, _ = self.config.grid_size
         ncell = nx * ny
         spare = count * ncell                                     # the cell of dropped points
-        feats, w, cell, count_per_cell, count_at_point, slots = self._slot_inputs(points, valid, frame, count, drops)
-        feats, pad_value = self.pfn_layers[0].forward_slots(feats, w, slots)
-        feats = feats * w.unsqueeze(1)
-        # A pillar with free slots also takes the max with the padding slot's value; max is
-        # associative, so each of its points carries that value into the scatter.
-        has_free_slots = (count_at_point < cfg.max_points_per_pillar).unsqueeze(1)
-        feats = torch.where(has_free_slots, torch.maximum(feats, pad_value), feats)
-
+        feats, cell, count_per_cell = self._point_outputs(points, valid, frame, count, drops)
         c = feats.shape[1]
         canvas = torch.zeros(spare + 1, c, dtype=feats.dtype, device=points.device).scatter_reduce(
             0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
         canvas = canvas[:spare].reshape(count, ncell, c).transpose(1, 2).reshape(count, c, ny, nx)
         return canvas, (count_per_cell[:spare] > 0).reshape(count, ncell)
+
+    def pillars(self, points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Training formulation of :meth:`scatter` for one scan: only the non-empty pillars,
+        (features [P, C], cells [P] int64 ascending, iy * nx + ix). The canvas of :meth:`scatter`
+        is zero everywhere else and holds ``features[k]`` at cell ``cells[k]``; the values are
+        the same, and so is the gradient (the same max, ties split alike). The max runs over
+        P rows instead of every cell, so its backward does not sweep the whole canvas; the
+        unique cells make it data-dependent in shape, hence eager training only."""
+        nx, ny, _ = self.config.grid_size
+        feats, cell, _ = self._point_outputs(points, valid, None, 1, None)
+        cells, row = torch.unique(cell, sorted=True, return_inverse=True)
+        c = feats.shape[1]
+        pillar = torch.zeros(cells.shape[0], c, dtype=feats.dtype, device=points.device).scatter_reduce(
+            0, row.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
+        kept = cells < nx * ny                                    # not the spare cell of dropped points
+        return pillar[kept], cells[kept]
+
+    def _point_outputs(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int,
+                       drops: dict | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What each point brings to its pillar's max: (features [N, C], its pillar's cell [N] as
+        in :meth:`_slot_inputs`, points per cell [cells + 1])."""
+        feats, w, cell, count_per_cell, count_at_point, slots = self._slot_inputs(points, valid, frame, count, drops)
+        feats, pad_value = self.pfn_layers[0].forward_slots(feats, w, slots)
+        feats = feats * w.unsqueeze(1)
+        # A pillar with free slots also takes the max with the padding slot's value; max is
+        # associative, so each of its points carries that value into the scatter.
+        has_free_slots = (count_at_point < self.config.max_points_per_pillar).unsqueeze(1)
+        return torch.where(has_free_slots, torch.maximum(feats, pad_value), feats), cell, count_per_cell
 
     def _slot_inputs(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int,
                      drops: dict | None):
@@ -336,6 +359,15 @@ class PillarFeatureNet(nn.Module):
 
 
 # ----------------------------------------------------------------------------- reference
+
+
+def pillar_canvas(features: torch.Tensor, cells: torch.Tensor, ny: int, nx: int) -> torch.Tensor:
+    """The canvas [C, ny, nx] holding ``features`` [P, C] at ``cells`` [P] (iy * nx + ix) and 0
+    elsewhere, as a view of a [ny * nx, C] tensor (channels last): one index_copy, whose
+    backward gathers the P rows."""
+    c = features.shape[1]
+    flat = torch.zeros(ny * nx, c, dtype=features.dtype, device=features.device).index_copy(0, cells, features)
+    return flat.T.reshape(c, ny, nx)
 
 
 def voxelize_reference(points: np.ndarray, config: PillarConfig, valid: np.ndarray | None = None):

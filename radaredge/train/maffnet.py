@@ -236,13 +236,16 @@ def mixed_precision(device: torch.device, dtype: torch.dtype | None):
     return torch.autocast(device.type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)
 
 
-def fused_map(model, points: torch.Tensor, dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
-    """One scan through VFE + SPA, CFA and the fusion, export formulation: ``points`` [N, F] (rows
-    with an implausible value turned to NaN, as the graph does), ``fused`` [1, C, H, W] (the
-    fuser's BEV map; the fuser under autocast to ``dtype`` when given, the point stages in fp32),
-    ``cluster`` [N] bool (the CFA's cluster points), ``overflow`` [] bool (SPA)."""
+def fused_map(model, points: torch.Tensor, dtype: torch.dtype | None = None,
+              training: bool = False) -> dict[str, torch.Tensor]:
+    """One scan through VFE + SPA, CFA and the fusion, export formulation (``training``: the
+    pillars' training formulation, the same values with a cheaper backward,
+    :meth:`~radaredge.models.maffnet.model.MAFFNet.pillar_stage_training`): ``points`` [N, F]
+    (rows with an implausible value turned to NaN, as the graph does), ``fused`` [1, C, H, W]
+    (the fuser's BEV map; the fuser under autocast to ``dtype`` when given, the point stages in
+    fp32), ``cluster`` [N] bool (the CFA's cluster points), ``overflow`` [] bool (SPA)."""
     points, _ = drop_implausible(points, *model.point_bounds)
-    pillar, _, overflow = model.pillar_stage(points, False)
+    pillar, _, overflow = model.pillar_stage_training(points) if training else model.pillar_stage(points, False)
     cfa, _, _, cluster = model.cfa_stage(points, False)
     with mixed_precision(points.device, dtype):
         fused = model.fuser(pillar.unsqueeze(0), cfa)
@@ -253,12 +256,15 @@ def fused_map(model, points: torch.Tensor, dtype: torch.dtype | None = None) -> 
 class LossSetup:
     """What the loss of a scan needs beyond the scan: the anchors' classes [A], the assigner's
     thresholds, stage two's sampling (None for a stage-one card; it draws from torch's global
-    generator) and the autocast dtype of the dense stages (None: fp32)."""
+    generator), the autocast dtype of the dense stages (None: fp32) and the pillar stage's
+    formulation."""
 
     anchor_classes: torch.Tensor
     thresholds: list
     sampling: RoiSampling | None
     dtype: torch.dtype | None = None
+    export_pillars: bool = False     # the pillar stage's export formulation (the same values, a slower
+                                     # backward; benchmarks/maffnet_train_step.py times both)
 
 
 def stage_two_terms(model, scan: dict, cls, box, direction, gt, gt_labels, setup: LossSetup) -> dict:
@@ -284,7 +290,7 @@ def scan_terms(model, points: torch.Tensor, gt: torch.Tensor, gt_classes: torch.
     classes): stage one's (loss, cls, loc, dir), stage two's when the card has one (their sum is
     ``loss``), and ``overflow`` (SPA) as a tensor. With ``setup.dtype`` the fuser, backbone and
     head run under autocast; their outputs return to fp32 before the losses and stage two."""
-    scan = fused_map(model, points, setup.dtype)
+    scan = fused_map(model, points, setup.dtype, training=not setup.export_pillars)
     with mixed_precision(points.device, setup.dtype):
         outputs = model.dense_head(model.backbone_2d(scan["fused"]))
     cls, box, direction = (t.float() for t in outputs)
@@ -487,7 +493,10 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
     frozen_set = set(frozen)
     for name, p in model.named_parameters():
         p.requires_grad_(name not in frozen_set)
-    model.to(dev)
+    # channels last: the training canvas comes that way (pillar_stage_training), and oneDNN's
+    # convolutions then run without converting layouts back and forth (measured on maffnet-vod,
+    # bf16: 0.70 against 1.0 s a training scan)
+    model.to(dev, memory_format=torch.channels_last)
     setup = LossSetup(anchor_classes(card, len(model.anchors)).to(dev), thresholds,
                       recipe.roi_sampling() if model.stage_two_config is not None else None,
                       PRECISIONS[recipe.precision])

@@ -48,8 +48,8 @@ from ...ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_referen
 from ...ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
 from ...ops.input_flags import (column_bounds, drop_implausible, drop_implausible_reference, frame_flags,
                                frame_flags_reference)
-from ...ops.pillars import (PillarConfig, PillarFeatureNet, SlotMoments, outside_grid, pillar_features_reference,
-                           point_drops_reference, scatter_pillars_reference)
+from ...ops.pillars import (PillarConfig, PillarFeatureNet, SlotMoments, outside_grid, pillar_canvas,
+                           pillar_features_reference, point_drops_reference, scatter_pillars_reference)
 from . import rcnn as two
 from .fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
 import time
@@ -412,6 +412,22 @@ class MAFFNet(nn.Module):
             canvas = sparse_pillar_attention_reference(self.map_to_bev_module.pillar_attention_rope, canvas, occupied)
         return canvas, num, torch.zeros((), dtype=torch.bool)
 
+
+    def pillar_stage_training(self, points: torch.Tensor):
+        """Training formulation of :meth:`pillar_stage` (export formulation): the same (canvas,
+        num_pillars, overflow) from the non-empty pillars only
+        (:meth:`~radaredge.ops.pillars.PillarFeatureNet.pillars`,
+        :meth:`~radaredge.ops.pillar_attention.SparsePillarAttention.forward_pillars`), so the
+        backward touches the pillars instead of every cell; the canvas is channels last. Eager
+        only (its shapes follow the data)."""
+        if self.vfe_columns is not None:
+            points = points[:, self.vfe_columns]
+        features, cells = self.vfe.pillars(points, torch.ones(points.shape[0], dtype=torch.bool, device=points.device))
+        nx, ny, _ = self.vfe.config.grid_size
+        if self.map_to_bev_module is not None:
+            return self.map_to_bev_module.forward_pillars(features, cells, ny, nx)
+        num = torch.tensor(cells.shape[0], dtype=torch.int64, device=points.device)
+        return pillar_canvas(features, cells, ny, nx), num, torch.zeros((), dtype=torch.bool, device=points.device)
     def cfa_stage(self, points: torch.Tensor, reference: bool):
         """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool, cluster_points [N] bool:
         GridDensityBEV's points of non-noise cells, or DBSCAN's non-noise scan points)."""
