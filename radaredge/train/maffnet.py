@@ -52,9 +52,14 @@ any other mismatch is an error.
 Precision: ``precision: bf16`` runs the fuser, the 2D backbone and the anchor head under torch's
 bfloat16 autocast (the CPU counterpart of upstream's ``--use_amp``, which is fp16 on CUDA; bf16
 needs no loss scaling). The pillar and CFA stages (whose clustering is a discrete decision), the
-losses, the optimiser's weights and validation stay fp32. On a CPU with AVX512-BF16 a training
-scan of maffnet-vod takes 1.3 s against 2.1 s in fp32, with gradients at cosine 0.998 to fp32's;
-on a CPU without it, bf16 is emulated and slower, hence fp32 by default.
+losses, the optimiser's weights and validation stay fp32. On a CPU with bf16 instructions a
+training scan takes about half of fp32's time (benchmarks/maffnet_train_step.py), with gradients
+at cosine 0.998 to fp32's; on a CPU without them, bf16 is emulated and slower, hence fp32 by
+default.
+
+Layout: the pillar stage runs in its training formulation (:func:`fused_map` with ``training``;
+the export formulation's values and gradients, over the non-empty pillars only) and the network
+is kept channels last, the layout oneDNN's convolutions prefer.
 """
 
 from __future__ import annotations
