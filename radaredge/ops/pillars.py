@@ -358,9 +358,6 @@ class PillarFeatureNet(nn.Module):
             return SlotMoments(x.sum(0), x.T @ x, float(slots))
 
 
-# ----------------------------------------------------------------------------- reference
-
-
 def pillar_canvas(features: torch.Tensor, cells: torch.Tensor, ny: int, nx: int) -> torch.Tensor:
     """The canvas [C, ny, nx] holding ``features`` [P, C] at ``cells`` [P] (iy * nx + ix) and 0
     elsewhere, as a view of a [ny * nx, C] tensor (channels last): one index_copy, whose
@@ -368,6 +365,9 @@ def pillar_canvas(features: torch.Tensor, cells: torch.Tensor, ny: int, nx: int)
     c = features.shape[1]
     flat = torch.zeros(ny * nx, c, dtype=features.dtype, device=features.device).index_copy(0, cells, features)
     return flat.T.reshape(c, ny, nx)
+
+
+# ----------------------------------------------------------------------------- reference
 
 
 def voxelize_reference(points: np.ndarray, config: PillarConfig, valid: np.ndarray | None = None):

@@ -412,7 +412,6 @@ class MAFFNet(nn.Module):
             canvas = sparse_pillar_attention_reference(self.map_to_bev_module.pillar_attention_rope, canvas, occupied)
         return canvas, num, torch.zeros((), dtype=torch.bool)
 
-
     def pillar_stage_training(self, points: torch.Tensor):
         """Training formulation of :meth:`pillar_stage` (export formulation): the same (canvas,
         num_pillars, overflow) from the non-empty pillars only
@@ -428,6 +427,7 @@ class MAFFNet(nn.Module):
             return self.map_to_bev_module.forward_pillars(features, cells, ny, nx)
         num = torch.tensor(cells.shape[0], dtype=torch.int64, device=points.device)
         return pillar_canvas(features, cells, ny, nx), num, torch.zeros((), dtype=torch.bool, device=points.device)
+
     def cfa_stage(self, points: torch.Tensor, reference: bool):
         """CFA: (features [1, 64, H, W], map [3, H, W], converged [] bool, cluster_points [N] bool:
         GridDensityBEV's points of non-noise cells, or DBSCAN's non-noise scan points)."""
