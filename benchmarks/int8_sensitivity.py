@@ -6,12 +6,15 @@ for every group of quantisable layers (the VFE, SPA, CFA, CAF, each backbone blo
 the head, and on a two-stage card the VSA, point head and ROI head; ``--groups`` names fewer), an
 int8 copy in which *only that group* is quantised (every other group listed under
 ``quantization.keep_fp32``), scored the same way: the AP it loses is that group's sensitivity.
-Then, on ``--split`` (default ``test``), the card's int8 copy (its own ``keep_fp32``) and, when
-it loses more than the budget, the copy that keeps every group above ``--threshold`` in fp32
-(and the card's own ``keep_fp32`` groups that were not probed), with their speed against fp32 on
-the same frames. The rows of the card's newest earlier results file for the same checkpoint,
-data and choose split are carried over for the groups this run does not probe (marked
-``earlier_run``), so runs with different ``--groups`` add up to one table. Writes
+Then the choice, made on the choose split: when the card's int8 copy (its own ``keep_fp32``)
+loses more than the budget there, the most sensitive groups join ``keep_fp32`` one at a time,
+in order of the AP they cost alone, until the copy is within the budget on the choose split (or
+no group that costs anything is left). On ``--split`` (default ``test``), the card's int8 copy
+and, when a group was added, the chosen copy, each with its speed against fp32 on the same
+frames. The rows of the card's newest earlier results file for the same checkpoint, data and
+choose split are carried over for the groups this run does not probe (marked ``earlier_run``),
+so runs with different ``--groups`` add up to one table, and ``--groups none`` probes nothing
+and chooses from the earlier rows. Writes
 ``benchmarks/results/int8-sensitivity-<card>-<date>.json``.
 
     python benchmarks/int8_sensitivity.py --model maffnet-vod-edge --checkpoint runs/edge/best.pth \\
@@ -124,6 +127,26 @@ def earlier_probes(path: Path | None, result: dict, probed: list[str]) -> list[d
             for r in earlier.get("groups", [])[1:] if r["group"] not in probed]
 
 
+def choose_keep(card, args, rows: list[dict], fp32: dict, card_int8: dict) -> list[dict]:
+    """The greedy choice on the choose split (module docstring): one step per ``keep_fp32`` tried,
+    from the card's own, each with its int8 AP and loss per class there; the last step's
+    ``keep_fp32`` is the choice. ``rows`` are the probed groups' rows."""
+    keep = list(card.get("quantization.keep_fp32", []) or [])
+    loss = {c: fp32[c] - card_int8[c] for c in fp32}
+    steps = [{"keep_fp32": list(keep), "int8_ap": card_int8, "loss": loss}]
+    ranked = [r["group"] for r in sorted(rows, key=lambda r: -r["worst_loss"]) if r["worst_loss"] > 0]
+    for group in (g for g in ranked if g not in keep):
+        if max(loss.values()) <= INT8_AP_BUDGET:
+            break
+        keep.append(group)
+        _, int8 = score(with_keep(card, keep), args.checkpoint, args.work / "choice.onnx", args.data, args.choose_split)
+        loss = {c: fp32[c] - int8[c] for c in fp32}
+        steps.append({"keep_fp32": list(keep), "int8_ap": int8, "loss": loss})
+        print(f"{args.choose_split}: keeping {keep} in fp32: int8 loses "
+              f"{', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
+    return steps
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", required=True)
@@ -131,10 +154,10 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--split", default="test", help="The split the results are reported on.")
     ap.add_argument("--choose-split", default="val", help="The split the sensitive groups are chosen on.")
-    ap.add_argument("--threshold", type=float, default=0.5, help="AP points a group may cost before it stays fp32.")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--groups", help="Comma-separated groups to probe (default: every group); on a large card each "
-                                     "probe exports an int8 copy and scores the whole choose split.")
+    ap.add_argument("--groups", help="Comma-separated groups to probe (default: every group; none: no group, the "
+                                     "earlier run's rows only); on a large card each probe exports an int8 copy and "
+                                     "scores the whole choose split.")
     ap.add_argument("--work", type=Path, default=ROOT / "export" / "int8-sensitivity")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
@@ -142,12 +165,13 @@ def main(argv=None) -> int:
     card = load_card(args.model)
     groups = layer_groups(create_model(card))
     args.work.mkdir(parents=True, exist_ok=True)
-    choose_fp32, _ = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.choose_split)
+    choose_fp32, choose_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data,
+                                     args.choose_split)
     graph = onnx.load(str(args.work / f"{card.name}.onnx"), load_external_data=False)
     groups = [g for g in groups if _quantises(graph, g)]
     probed = groups
     if args.groups:
-        probed = [g.strip() for g in args.groups.split(",") if g.strip()]
+        probed = [] if args.groups == "none" else [g.strip() for g in args.groups.split(",") if g.strip()]
         unknown = sorted(set(probed) - set(groups))
         if unknown:
             raise SystemExit(f"--groups: {unknown} are not quantised groups of {card.name}; its groups: {groups}")
@@ -166,25 +190,24 @@ def main(argv=None) -> int:
     print(f"{args.split}: fp32 {fp32_ap}\ncard's int8 {card_int8}", flush=True)
     result = {"model": card.name, "checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split,
               "choose_split": args.choose_split, "choose_fp32_ap": choose_fp32,
-              "budget_ap_points": INT8_AP_BUDGET, "threshold": args.threshold, "fp32_ap": fp32_ap,
+              "budget_ap_points": INT8_AP_BUDGET, "fp32_ap": fp32_ap,
               "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
               "groups": rows, "unprobed_groups": [g for g in groups if g not in probed]}
     rows += earlier_probes(latest_result(args.out, card.name), result, probed)
     result["unprobed_groups"] = [g for g in groups if g not in {r["group"] for r in rows}]
-    sensitive = [r["group"] for r in rows[1:] if r["worst_loss"] > args.threshold]
-    sensitive += [g for g in result["card_keep_fp32"] if g in result["unprobed_groups"]]   # kept, never probed
+    result["choice"] = choose_keep(card, args, rows[1:], choose_fp32, choose_int8)
+    keep = result["choice"][-1]["keep_fp32"]
     the_set = DetectionSet(args.data, args.split, layout_for_card(card), int(card.get("input.scans_accumulated", 1)))
     step = max(1, len(the_set) // 12)
     points = [card_points(the_set.frame(i, card.features), card) for i in range(0, len(the_set), step)]
     result["card_speed_ms"] = speed(args.work / f"{card.name}.onnx", args.work / f"{card.name}.int8.onnx", points,
                                     args.threads)
-    if sensitive and max(fp32_ap[c] - card_int8[c] for c in fp32_ap) > INT8_AP_BUDGET:
-        kept = with_keep(card, sensitive)
+    if keep != result["card_keep_fp32"]:
         out = args.work / f"{card.name}-kept.onnx"
-        _, int8 = score(kept, args.checkpoint, out, args.data, args.split)
-        result["kept"] = {"keep_fp32": sensitive, "int8_ap": int8, "loss": {c: fp32_ap[c] - int8[c] for c in fp32_ap},
+        _, int8 = score(with_keep(card, keep), args.checkpoint, out, args.data, args.split)
+        result["kept"] = {"keep_fp32": keep, "int8_ap": int8, "loss": {c: fp32_ap[c] - int8[c] for c in fp32_ap},
                           "speed_ms": speed(out, out.with_suffix(".int8.onnx"), points, args.threads)}
-        print(f"keeping {sensitive} in fp32: int8 {int8}", flush=True)
+        print(f"{args.split}: keeping {keep} in fp32: int8 {int8}", flush=True)
     date = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     result.update(date=date, cpu=cpu_name(), threads=args.threads, cores=cores)
     args.out.mkdir(parents=True, exist_ok=True)
