@@ -287,6 +287,43 @@ def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_pat
     assert again.exit_code == 2 and "already holds epoch 2" in again.output
 
 
+def test_a_run_stopped_within_an_epoch_resumes_at_the_next_step(card, town, tmp_path, monkeypatch):
+    """With save_minutes 0 last.pth is written after every step; a run killed at step 5 of
+    epoch 2 resumes there and ends as the run that never stopped (weights, Adam moments,
+    epoch rows); one killed before epoch 1's first step resumes from epoch 0's save."""
+    recipe = T.PlaceRecipe(epochs=2, negatives=6, hard_negatives=3, tuples_per_epoch=8, save_minutes=0.0)
+    straight = T.train_places(card, create_model(card), town, tmp_path / "b", recipe)
+    real, calls = T.tuple_loss, {"n": 0}
+
+    def dies_at(n):
+        def loss(*args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] > n:
+                raise KeyboardInterrupt
+            return real(*args, **kwargs)
+        calls["n"] = 0
+        monkeypatch.setattr(T, "tuple_loss", loss)
+
+    for stop in (0, 13):                   # before epoch 1's first step; at step 5 of epoch 2
+        out = tmp_path / f"a{stop}"
+        dies_at(stop)
+        with pytest.raises(KeyboardInterrupt):
+            T.train_places(card, create_model(card), town, out, recipe)
+        state = torch.load(out / "last.pth", weights_only=True)
+        assert (state["epoch"], state.get("partial", {}).get("done")) == ((0, None) if stop == 0 else (1, 5))
+        monkeypatch.setattr(T, "tuple_loss", real)
+        lines = []
+        resumed = T.train_places(card, create_model(card), town, out, recipe, resume=True, log=lines.append)
+        assert any(("after 5 of epoch 2's tuples" if stop else "after epoch 0 ") in line for line in lines), lines
+        untimed = lambda rows: json.dumps([{k: v for k, v in e.items() if k != "seconds"} for e in rows])  # noqa: E731
+        assert untimed(resumed.epochs) == untimed(straight.epochs)
+        a = torch.load(out / "last.pth", weights_only=True)
+        b = torch.load(tmp_path / "b" / "last.pth", weights_only=True)
+        assert all(torch.equal(a["model_state"][k], b["model_state"][k]) for k in a["model_state"])
+        assert torch.equal(a["optimizer"]["state"][0]["exp_avg"], b["optimizer"]["state"][0]["exp_avg"])
+        assert "partial" not in a
+
+
 def test_reestimated_norm_statistics_follow_the_trained_weights(card, town, tmp_path):
     """batch_norm: reestimate trains epoch 1 exactly as frozen does, then re-estimates the
     statistics from the trained weights: frozen's weights with statistics re-estimated by hand."""

@@ -6,7 +6,8 @@ A run directory holds
 - ``best.pth``: the weights of the epoch with the best validation metric, under ``model_state``
   (``radaredge export --checkpoint`` reads it), with the card, the epoch and its metrics;
 - ``last.pth``: everything needed to continue (weights, optimiser, scheduler, random states,
-  history), rewritten after every epoch; ``resume`` starts from it;
+  history), rewritten after every epoch (TDFANet's also within one, :mod:`.tdfanet`); ``resume``
+  starts from it;
 - ``train-log.json``: the options, the data summary and one row per epoch.
 
 Every file is written to a temporary name and renamed, so an interrupted run never leaves a

@@ -38,6 +38,10 @@ What the paper leaves open, and how this recipe reads it (each an option, record
   initialisation, before any step.
 - The RANSAC, the dynamic-point mask and the grid displacement hold no parameters: they run once
   per window before training (:meth:`radaredge.models.tdfanet.model.TDFANet.prepare`).
+- ``last.pth`` is written after epoch 0 (the initial descriptors), after every epoch, and within
+  an epoch every ``save_minutes`` of training (0: after every step), so an interrupted run of a
+  large card loses at most that much; ``--resume`` continues at the next step as the run that
+  never stopped would.
 """
 
 from __future__ import annotations
@@ -71,7 +75,7 @@ FIXED_NORMS = ("frozen", "reestimate")     # training normalises with fixed stat
              positives=(1, 64), negatives=(1, 256), hard_negatives=(0, 256), hard_pool=(1, 10**7),
              hard_from_epoch=(1, 10_000), alpha=(0.0, 10.0), beta=(0.0, 10.0), positive_radius=positive(1e4),
              negative_radius=positive(1e4), seed=(0, 2**32 - 1), weight_decay=(0.0, 1.0), norm_windows=(1, 10**6),
-             tuples_per_epoch=(0, 10**7))
+             tuples_per_epoch=(0, 10**7), save_minutes=(0.0, 10_000.0))
 @dataclass(frozen=True)
 class PlaceRecipe:
     """The options of TDFANet training (module docstring); defaults are the paper's where it
@@ -98,6 +102,7 @@ class PlaceRecipe:
     positive_radius: float = 5.0    # m (paper)
     negative_radius: float = 10.0   # m (paper)
     seed: int = 0
+    save_minutes: float = 10.0      # ours: minutes of training between saves of last.pth within an epoch
 
     def __post_init__(self):
         if self.second_term not in SECOND_TERMS:
@@ -283,7 +288,7 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
 
 def _signature(card: ModelCard, data: PlaceWindows, recipe: PlaceRecipe) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
-    keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k != "epochs"}
+    keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "save_minutes")}
     return {"card": card.data, "data": str(Path(data.path).resolve()), "windows": len(data),
             "validation": sorted({data.names[r] for r in data.drive[data.validation]}), "recipe": keep}
 
@@ -331,6 +336,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
     train_rows = np.flatnonzero(~data.validation)
     norm_rows = np.sort(np.random.default_rng(recipe.seed).choice(train_rows, min(recipe.norm_windows, len(train_rows)),
                                                                   replace=False))
+    partial = None                         # the epoch a mid-epoch last.pth stopped in: its queries, tuples done, losses
     if resume:
         state = run.load_last(signature)
         model.load_state_dict(state["model_state"])
@@ -338,14 +344,15 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         sched.load_state_dict(state["scheduler"])
         restore_random_states(rng, state["random"])
         report.epochs, report.best_epoch = state["history"], state["best_epoch"]
-        start = state["epoch"] + 1
+        start, partial = state["epoch"] + 1, state.get("partial")
         best_rank = _rank(report.best) if report.best is not None else None
         clock = Stopwatch(state["seconds"])
         descriptors = state["descriptors"].numpy()
         if start > recipe.epochs:
             raise ConfigError(f"--resume: {run.last} already holds epoch {state['epoch']} of {recipe.epochs}; "
                               f"raise --epochs to train on")
-        log(f"resuming after epoch {state['epoch']} from {run.last}")
+        where = f"{partial['done']} of epoch {start}'s tuples" if partial else f"epoch {state['epoch']}"
+        log(f"resuming after {where} from {run.last}")
     else:
         clock = Stopwatch()
         if recipe.batch_norm in FIXED_NORMS:
@@ -354,14 +361,32 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
         metrics = validation_recall(descriptors, data, recipe.positive_radius)
         report.epochs.append({"epoch": 0, "loss": float("nan"), "lr": recipe.lr, **metrics,
                               "seconds": round(clock(), 1)})
+        report.seconds = clock()
         log(_epoch_line(report.epochs[-1]))
+
+    def save_last(epoch: int, partial: dict | None = None) -> None:
+        """last.pth after ``epoch``, or within the next epoch (``partial``)."""
+        run.save_last({"signature": signature, "epoch": epoch, "model_state": model.state_dict(),
+                       "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                       "random": random_states(rng), "history": report.epochs, "best_epoch": report.best_epoch,
+                       "seconds": clock(), "descriptors": torch.from_numpy(descriptors),
+                       **({"partial": partial} if partial else {})})
+
+    if not resume:
+        save_last(0)
+        run.write_log(report.to_dict())
     for epoch in range(start, recipe.epochs + 1):
         miner.set_descriptors(descriptors if epoch >= recipe.hard_from_epoch else None)
-        queries = rng.permutation(miner.queries)[:recipe.tuples_per_epoch or None]
+        if partial:
+            queries, done, losses = partial["queries"].numpy(), partial["done"], list(partial["losses"])
+            partial = None
+        else:
+            queries, done, losses = rng.permutation(miner.queries)[:recipe.tuples_per_epoch or None], 0, []
         set_train_mode(model, recipe)
         bar = progress(f"epoch {epoch}/{recipe.epochs}", len(queries))
-        losses = []
-        for first in range(0, len(queries), recipe.batch_size):
+        bar.update(done)
+        saved = clock()
+        for first in range(done, len(queries), recipe.batch_size):
             batch = [miner.tuple_for(int(q), rng) for q in queries[first:first + recipe.batch_size]]
             scored = [tuple_loss(model, prepared, t, recipe) for t in batch]
             loss = torch.stack([s for s, _ in scored]).mean()
@@ -375,6 +400,10 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
             losses.append(float(loss.detach()))
             bar.update(len(batch))
             bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}", val_R1=f"{report.epochs[-1]['val_R@1']:.1f}")
+            done = first + len(batch)
+            if done < len(queries) and clock() - saved >= 60.0 * recipe.save_minutes:
+                save_last(epoch - 1, {"queries": torch.from_numpy(queries), "done": done, "losses": losses})
+                saved = clock()
         bar.close()
         lr = opt.param_groups[0]["lr"]
         sched.step()
@@ -390,10 +419,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
             best_rank, report.best_epoch = _rank(metrics), epoch
             run.save_best(model, epoch, metrics)
         report.seconds = clock()
-        run.save_last({"signature": signature, "epoch": epoch, "model_state": model.state_dict(),
-                       "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                       "random": random_states(rng), "history": report.epochs, "best_epoch": report.best_epoch,
-                       "seconds": report.seconds, "descriptors": torch.from_numpy(descriptors)})
+        save_last(epoch)
         run.write_log(report.to_dict())
         log(_epoch_line(report.epochs[-1]) + ("  (best)" if report.best_epoch == epoch else ""))
     report.seconds = clock()
