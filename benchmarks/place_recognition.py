@@ -16,7 +16,12 @@ points (radaredge.eval.baselines), the seeded network, the trained network's fp3
 int8 graph (onnxruntime, 2 threads). Each Recall@N comes with its 95 % percentile-bootstrap
 interval over queries (radaredge.eval.recall_stats), at 5 m and at 25 m (TransLoc4D's
 evaluation radius). The trained checkpoint is ``radaredge train --model CARD --data <design
-towns>`` run here, or ``--run DIR`` of an earlier run.
+towns>`` run here, or ``--run DIR`` of an earlier run (its train-log.json is the training record).
+
+The graphs describe the test towns through ``radaredge run`` (Ray Data, one worker of 2 threads)
+into ``<work>/descriptors/<row>/<town>/<database|queries>``, so a run stopped while scoring a
+large card starts again where it stopped (finished shards are kept); graphs already exported
+from the same checkpoint are reused.
 
 Writes benchmarks/results/place-recognition-<card>-<date>.json, which benchmarks/render.py renders.
 
@@ -25,6 +30,8 @@ Writes benchmarks/results/place-recognition-<card>-<date>.json, which benchmarks
 
 from __future__ import annotations
 
+import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -32,11 +39,12 @@ from pathlib import Path
 import numpy as np
 
 import radaredge
-from radaredge import runtime
 from radaredge.data.pr_benchmark import make_pr_towns, make_route_benchmark
-from radaredge.eval.places import baseline_backend, describe_windows, load_windows, onnx_backend, recall_at_n
+from radaredge.data.run_shards import read_run
+from radaredge.eval.places import WindowSet, baseline_backend, describe_windows, load_windows, recall_at_n
 from radaredge.eval.recall_stats import bootstrap_interval, chance_of_benchmark
 from radaredge.eval.travel import AGAINST, WITH, against_database, window_headings
+from radaredge.fleet.pipeline import run_graph
 
 import training_run
 
@@ -53,29 +61,53 @@ def towns(root: Path, count: int, seed: int, km: float) -> list[Path]:
     return sorted(p for p in root.iterdir() if p.name.startswith("town-"))
 
 
-def score(describe, town_dirs: list[Path], k: int, features) -> dict:
+def graph_descriptors(graph: Path, out: Path):
+    """A describer for :func:`score`: ``descriptor_normalized`` of ``graph`` for every window of
+    a town part, by ``radaredge run`` (onnxruntime, one Ray worker of THREADS threads) into
+    ``out/<town>/<part>``, resumed where an earlier call stopped; checked against the window
+    set's positions (the same windows in the same order)."""
+    def describe(windows: WindowSet, town: str, part: str) -> tuple[np.ndarray, int, float]:
+        report = run_graph(graph, windows.path, out / town / part, workers=1, threads=training_run.THREADS)
+        _, poses, outputs = read_run(out / town / part)
+        found = np.stack([poses["northing"], poses["easting"]], axis=1)
+        if found.shape != windows.positions.shape or not np.allclose(found, windows.positions):
+            raise SystemExit(f"{out / town / part}: its windows are not those of {windows.path}")
+        return outputs["descriptor_normalized"], report.computed_windows, report.seconds
+    return describe
+
+
+def baseline_descriptors(features):
+    """A describer for :func:`score`: the no-learning polar occupancy descriptor of every window."""
+    def describe(windows: WindowSet, town: str, part: str) -> tuple[np.ndarray, int, float]:
+        t0 = time.perf_counter()
+        desc = describe_windows(windows, features, baseline_backend(features))
+        return desc, len(windows), time.perf_counter() - t0
+    return describe
+
+
+def score(describe, town_dirs: list[Path], k: int) -> dict:
     """Recall@N with intervals at each radius, pooled over the test towns' queries, of the
-    descriptors ``describe`` gives (a backend of radaredge.eval.places); under ``by_direction``
-    Recall@1 of the queries that drive with and against the database at their place
-    (radaredge.eval.travel)."""
+    descriptors ``describe`` gives (:func:`graph_descriptors`, :func:`baseline_descriptors`);
+    under ``by_direction`` Recall@1 of the queries that drive with and against the database at
+    their place (radaredge.eval.travel). ``windows_per_second`` counts the windows described in
+    this call (none when every one was described before)."""
     hits = {r: [] for r in RADII}
     direction = {r: [] for r in RADII}
     evaluated = {r: 0 for r in RADII}
-    seconds, windows = 0.0, 0
+    seconds, described = 0.0, 0
     for town in town_dirs:
         db, queries = load_windows(town / "database", k), load_windows(town / "queries", k)
-        windows += len(db) + len(queries)
-        t0 = time.perf_counter()
-        db_desc = describe_windows(db, features, describe)
-        query_desc = describe_windows(queries, features, describe)
-        seconds += time.perf_counter() - t0
+        db_desc, n_db, s_db = describe(db, town.name, "database")
+        query_desc, n_q, s_q = describe(queries, town.name, "queries")
+        seconds, described = seconds + s_db + s_q, described + n_db + n_q
         for r in RADII:
             res = recall_at_n(query_desc, queries.positions, db_desc, db.positions, NS, r)
             hits[r].append(res["hits"])
             evaluated[r] += res["evaluated"]
             way = against_database(queries.positions, window_headings(queries), db.positions, window_headings(db), r)
             direction[r].append(way[res["evaluated_mask"]])
-    out = {"windows": windows, "windows_per_second": round(windows / seconds, 1)}
+    out = {"windows_described": described,
+           "windows_per_second": round(described / seconds, 1) if described and seconds > 0 else None}
     for r in RADII:
         found, way = np.concatenate(hits[r]), np.concatenate(direction[r])
         out[f"{r:g}"] = {"evaluated": evaluated[r],
@@ -115,23 +147,31 @@ def main(argv=None) -> int:
         report = radaredge.train(card, work / "design-towns", run, options=options,
                                  log=lambda line: print(line, flush=True))
         t_train, train = time.perf_counter() - t0, report.to_dict()
+    else:
+        train = json.loads((run / "train-log.json").read_text())
+        t_train = train["seconds"]
     best = run / "best.pth"
     graphs = work / "graphs"
     fp32, seeded = graphs / f"{card.name}.onnx", graphs / f"{card.name}-seeded.onnx"
-    exported = radaredge.export(card, fp32, checkpoint=best, quantize="int8")
-    radaredge.export(card, seeded)
+    int8, described = fp32.with_suffix(".int8.onnx"), work / "descriptors"
+    if not (int8.is_file() and fp32.is_file() and fp32.stat().st_mtime > best.stat().st_mtime):
+        for row in ("trained_fp32", "trained_int8"):          # another checkpoint's
+            shutil.rmtree(described / row, ignore_errors=True)
+        int8 = radaredge.export(card, fp32, checkpoint=best, quantize="int8").int8["tdfanet"]
+    if not seeded.is_file():
+        shutil.rmtree(described / "seeded", ignore_errors=True)
+        radaredge.export(card, seeded)
     k = int(card.get("frames", 1))
     rows = {}
-    for name, path in (("seeded", seeded), ("trained_fp32", fp32), ("trained_int8", exported.int8["tdfanet"])):
-        model = runtime.load(path, threads=training_run.THREADS)
-        rows[name] = score(onnx_backend(model), test, k, model.features)
+    for name, path in (("trained_fp32", fp32), ("trained_int8", int8), ("seeded", seeded)):
+        rows[name] = score(graph_descriptors(path, described / name), test, k)
         print(f"{name}: R@1 at 5 m {rows[name]['5']['recall']['1']:.1f} %", flush=True)
-    rows["no_learning"] = score(baseline_backend(card.features), test, k, card.features)
+    rows["no_learning"] = score(baseline_descriptors(card.features), test, k)
     out = {
         "date": stamp, "card": card.name, "machine": training_run.machine(),
         "command": f"python benchmarks/place_recognition.py --card {card.name} --design-towns {args.design_towns} "
                    f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
-                   + training_run.settings_text(options),
+                   + training_run.settings_text(options) + (f" --run {args.run}" if args.run else ""),
         "towns": {"design": {"seeds": [int(t.name.split("-")[1]) for t in design], "route_km": args.design_km,
                              "used_for": "training and the validation that picks the best epoch"},
                   "test": {"seeds": [int(t.name.split("-")[1]) for t in test], "route_km": args.test_km,

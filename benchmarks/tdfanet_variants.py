@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -39,9 +40,7 @@ from pathlib import Path
 import numpy as np
 
 import radaredge
-from radaredge import runtime
 from radaredge.cards import parse_card
-from radaredge.eval.places import onnx_backend
 from radaredge.eval.recall_stats import bootstrap_interval
 
 import place_recognition
@@ -128,8 +127,9 @@ def measure_variant(card, name: str, work: Path, options: dict, test: list[Path]
     if name in ABLATIONS.values():
         graph = work / "graphs" / f"{vcard.name}.onnx"
         radaredge.export(vcard, graph, checkpoint=run / "best.pth")
-        model = runtime.load(graph, threads=training_run.THREADS)
-        row["test"] = place_recognition.score(onnx_backend(model), test, k, model.features)
+        described = run / "descriptors"
+        shutil.rmtree(described, ignore_errors=True)          # an earlier training's
+        row["test"] = place_recognition.score(place_recognition.graph_descriptors(graph, described), test, k)
         print(f"{vcard.name}: test R@1 at 5 m {row['test']['5']['recall']['1']:.1f} %", flush=True)
     training_run.write(kept, row)
     return row
