@@ -24,10 +24,13 @@ export/<card>-training; its cities are reused when they exist).
     python benchmarks/des4pos_training.py --card my-des4pos.yaml --tag fine-encoder --work export/fine-encoder \
         --cities-from export/des4pos-training --set stages=fine \
         --set coarse_weights=export/des4pos-training/run/best.pth
+    # score a finished run again (export, parity, held-out cities) without training it again:
+    python benchmarks/des4pos_training.py --run export/des4pos-training/run
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 import sys
 import time
@@ -66,7 +69,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cities", type=int, default=12)
     ap.add_argument("--poses", type=int, default=200, help="described poses per city")
     ap.add_argument("--heldout", type=int, default=2, help="held-out cities (one database)")
+    ap.add_argument("--heldout-poses", type=int, default=200, help="described poses per held-out city (the queries)")
     ap.add_argument("--tag", default="", help="results file <card>-<tag>-training-<date>.json (a variant run)")
+    ap.add_argument("--run", type=Path, metavar="DIR",
+                    help="score this finished run of the same cities and --set options (its train-log.json is the "
+                         "training record) instead of training")
     ap.add_argument("--cities-from", type=Path, metavar="WORK",
                     help="copy the training and held-out cities of an earlier run's work directory")
     args = ap.parse_args(argv)
@@ -81,13 +88,21 @@ def main(argv=None) -> int:
     if not cities.exists():
         write_cities(cities, card, args.cities, seed=1, poses=args.poses)
     if not held.exists():
-        write_cities(held, card, args.heldout, seed=100, poses=args.poses)
+        write_cities(held, card, args.heldout, seed=100, poses=args.heldout_poses)
     t_data = time.perf_counter() - t0
     print(f"data: {args.cities} cities x {args.poses} described poses, {args.heldout} held out ({t_data:.0f} s)",
           flush=True)
-    t0 = time.perf_counter()
-    report = radaredge.train(card, cities, run, options=options, log=lambda line: print(line, flush=True))
-    t_train = time.perf_counter() - t0
+    if args.run is None:
+        t0 = time.perf_counter()
+        train = radaredge.train(card, cities, run, options=options, log=lambda line: print(line, flush=True)).to_dict()
+        t_train = time.perf_counter() - t0
+    else:
+        run, train = args.run, json.loads((args.run / "train-log.json").read_text())
+        t_train = train["seconds"]
+        differ = {k: v for k, v in options.items() if train["options"].get(k) != v}
+        if differ or Path(train["data"]["root"]).resolve() != cities.resolve():
+            raise SystemExit(f"{args.run} was trained on {train['data']['root']} with {train['options']}; "
+                             f"this command gives {cities} and --set {differ or options}")
     best = run / "best.pth"
     trained, seeded = graphs / "trained", graphs / "seeded"
     radaredge.export(card, trained, checkpoint=best)
@@ -110,10 +125,10 @@ def main(argv=None) -> int:
         "command": f"radaredge make-city --out cities --cities {args.cities} --seed 1 --poses {args.poses}; "
                    f"radaredge train --model {card.name} --data cities"
                    + training_run.settings_text(options),
-        "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 --poses {args.poses}; "
+        "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 --poses {args.heldout_poses}; "
                         f"radaredge eval --model {card.name} --onnx <bundle> --map heldout",
         "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1), "eval_seconds": round(t_eval, 1),
-        "train": report.to_dict(),
+        "train": train,
         "parity": {name: _parity(p) for name, p in parity.items()},
         "heldout": {"seed": 100, "maps": first.maps, "cells": first.cells, "queries": first.queries,
                     **{name: _tables(r) for name, r in evals.items()}},

@@ -481,8 +481,9 @@ def _stage_metrics(rows: list[dict]) -> list[str]:
 
 
 def _with_interval(res: dict, key: str, k: int, t: float) -> str:
-    """One Table I figure (%) of a Des4Pos held-out run, with its bootstrap interval when recorded."""
-    value = _num(res[key].get(str(k), {}).get(f"{t:g}"))
+    """One Table I figure (%; the fine stage's gain in signed points) of a Des4Pos held-out run,
+    with its bootstrap interval when recorded."""
+    value = _num(res[key].get(str(k), {}).get(f"{t:g}"), "+.1f" if key == "localization_gain" else ".1f")
     low_high = res.get(key + "_interval", {}).get(str(k), {}).get(f"{t:g}")
     return value if low_high is None else f"{value} [{_num(low_high[0])}, {_num(low_high[1])}]"
 
@@ -512,7 +513,9 @@ def des4pos_training_section(r: Result, results_dir: Path) -> list[str]:
     runs = [(w, b) for w in ("seeded", "trained") for b in held.get(w, {})]
     centres = any("localization_centre" in held[w][b] for w, b in runs)
     unit = ("% with the fine stage's positions and with the retrieved cells' centres alone (no fine stage), "
-            "in brackets the 95 % percentile-bootstrap interval over the queries:" if centres else "%:")
+            "in brackets the 95 % percentile-bootstrap interval over the queries"
+            + ("; the gain is the fine stage's, in points, over the same queries (a paired difference)"
+               if any("localization_gain" in held[w][b] for w, b in runs) else "") + ":" if centres else "%:")
     out += [f"Parity of the exported bundle (three graphs) against the torch reference: trained weights "
             f"{verdict(par.get('trained', {}))}, seeded weights {verdict(par.get('seeded', {}))}.", "",
             f"Held-out cities (`{d.get('eval_command', '?')}`): {held['cells']} cells of {len(held['maps'])} "
@@ -524,7 +527,8 @@ def des4pos_training_section(r: Result, results_dir: Path) -> list[str]:
         out += _table(["weights", "backend", "position"] + [f"top-{k} {t:g} m" for k in ks for t in ts],
                       [[w, b, label, *(_with_interval(held[w][b], key, k, t) for k in ks for t in ts)]
                        for w, b in runs for key, label in (("localization", "fine stage"),
-                                                           ("localization_centre", "cell centre"))
+                                                           ("localization_centre", "cell centre"),
+                                                           ("localization_gain", "gain"))
                        if key in held[w][b]],
                       ["---", "---", "---"] + ["---:"] * (len(ks) * len(ts))) + [""]
     else:                                       # files from before the cell-centre rows

@@ -70,6 +70,11 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
             for key in ("localization", "localization_centre"):       # a 95 % bootstrap interval over queries
                 low, high = res[key + "_interval"][k][t]
                 assert 0.0 <= low <= res[key][k][t] <= high <= 1.0
+            # the fine stage's gain: the same queries' difference, with its own (paired) interval
+            gain = ((dist[:, :k] <= t).any(1).astype(float) - (dist_c[:, :k] <= t).any(1)).mean()
+            assert res["localization_gain"][k][t] == pytest.approx(gain)
+            low, high = res["localization_gain_interval"][k][t]
+            assert -1.0 <= low <= gain <= high <= 1.0
     out = json.loads(json.dumps(report.to_dict()))
     res = out["results"]["onnxruntime"]
     assert out["queries"] == 6 and set(res["localization"]) == {"1", "5", "10"}
@@ -77,7 +82,8 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
     assert set(res["localization_centre"]["10"]) == {"5", "10", "15"} and len(res["localization_interval"]["1"]["5"]) == 2
     lines = report.lines()
     assert lines[1].startswith("Table I") and lines[3].split()[0] == "top-1" and "[" in lines[3]
-    assert lines[6].startswith("Table I without the fine stage") and lines[11].startswith("Table II")
+    assert lines[6].startswith("Table I without the fine stage") and lines[11].startswith("The fine stage's gain")
+    assert lines[16].startswith("Table II") and set(res["localization_gain_interval"]["5"]) == {"5", "10", "15"}
 
 
 def test_bootstrap_intervals_are_those_of_the_per_query_hits():

@@ -177,8 +177,21 @@ def test_render_handles_every_result_kind(tmp_path):
         "towns": {"design": {"seeds": [1], "route_km": 0.5, "used_for": "training"},
                   "test": {"seeds": [1000], "route_km": 2.2, "used_for": "the ablations"}},
         "choices": ["frozen", "window"], "ablations": {"full": "frozen", "sum": "sum"}, "variants": {"sum": long}}))
+    table = {"1": {"5": 30.0}}
+    held = {"localization": table, "localization_interval": {"1": {"5": [25.0, 35.0]}}, "localization_centre":
+            {"1": {"5": 25.0}}, "localization_centre_interval": {"1": {"5": [20.0, 30.0]}}, "localization_gain":
+            {"1": {"5": 5.0}}, "localization_gain_interval": {"1": {"5": [1.0, 9.0]}}, "retrieval": {"1": 50.0}}
+    (res / "des4pos-training-2030-01-01.json").write_text(json.dumps({
+        "date": "2030-01-01 00:00", "card": "des4pos", "command": "radaredge train --model des4pos --data cities",
+        "eval_command": "radaredge eval --model des4pos", "machine": {"cpu": "cpu", "threads": 2},
+        "train_seconds": 60.0, "parity": {"trained": {"passed": True}, "seeded": {"passed": True}},
+        "train": {"stage_best": {"fine": 1}, "data": {"maps": 2},
+                  "epochs": [{"stage": "fine", "epoch": 1, "loss": 0.2, "fine_error_m": 6.0, "seconds": 6.0}]},
+        "heldout": {"cells": 98, "maps": ["a", "b"], "queries": 400, "trained": {"onnxruntime": held}}}))
     text = render.render(res)
     current, history = text.split("## History")
+    assert "| trained | onnxruntime | gain | +5.0 [1.0, 9.0] |" in current       # the paired gain, signed
+    assert "| trained | onnxruntime | cell centre | 25.0 [20.0, 30.0] |" in current
     short, longer = current.split("## TDFANet training choices and ablations: m, ")[1:]
     assert short.startswith("3 epochs of 200 tuples") and longer.startswith("5 epochs of 500 tuples")
     assert "### Training choices" in short and "### Training choices" not in longer

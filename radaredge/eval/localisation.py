@@ -11,7 +11,10 @@ position in each.
   the pose, cells of another scene never counting; k = 1, 5, 10 and t = 5, 10, 15 m. Twice: with
   the fine stage's positions, and with each retrieved cell's centre (no fine stage), which is
   what the fine stage has to beat. Each figure comes with its 95 % percentile-bootstrap interval
-  over the queries (:func:`radaredge.eval.recall_stats.bootstrap_interval`).
+  over the queries (:func:`radaredge.eval.recall_stats.bootstrap_interval`), and so does the fine
+  stage's gain: the mean over queries of (hit with the fine stage) - (hit with the centre), a
+  paired difference, whose interval is narrower than the two tables' intervals suggest because
+  both rows are the same queries.
 - **Table II**, cell-retrieval recall@k: the pose's best cell (the cell whose centre is nearest,
   KITTI360Pose's ``best_cell``) is among its top k; k = 1, 3, 5.
 
@@ -42,6 +45,7 @@ from ..runtime.des4pos import Des4PosBundle, MapIndex, object_summaries
 RETRIEVAL_KS = (1, 3, 5)
 ONNX, REFERENCE = "onnxruntime", "torch reference"
 FINE, CENTRE = "localization", "localization_centre"     # Table I with the fine stage / with the cell centres
+GAIN = "localization_gain"                               # FINE - CENTRE, per query, averaged (a paired difference)
 INTERVAL = "_interval"                                   # suffix: the 95 % bootstrap interval of a Table I
 
 
@@ -71,7 +75,8 @@ def localization_hits(pred_w: np.ndarray, pose_w: np.ndarray, ks: Sequence[int],
 
 
 def _intervals(hits: dict) -> dict[int, dict[float, tuple[float, float]]]:
-    """The 95 % percentile-bootstrap interval (fractions 0..1) of every (k, t) of ``hits``."""
+    """The 95 % percentile-bootstrap interval (fractions) of the mean of every (k, t) of ``hits``
+    (per-query hits, or per-query differences of two hit arrays)."""
     return {k: {t: tuple(v / 100.0 for v in bootstrap_interval(h)) for t, h in by_t.items()} for k, by_t in hits.items()}
 
 
@@ -80,9 +85,10 @@ class LocalizationReport:
     """Table I and Table II of one bundle on a database of maps, per backend (module docstring).
     ``results[backend]["localization"][k][t]`` (with the fine stage),
     ``results[backend]["localization_centre"][k][t]`` (each retrieved cell's centre, no fine
-    stage) and ``results[backend]["retrieval"][k]`` are fractions in 0..1; the two Table I have
-    their 95 % bootstrap intervals over queries, (low, high) fractions, under the same keys with
-    ``_interval`` appended."""
+    stage) and ``results[backend]["retrieval"][k]`` are fractions in 0..1;
+    ``results[backend]["localization_gain"][k][t]`` is their paired difference (fine stage minus
+    centre, -1..1). The two Table I and the gain have their 95 % bootstrap intervals over
+    queries, (low, high) fractions, under the same keys with ``_interval`` appended."""
 
     model: str                                  # card name of the bundle
     bundle: str
@@ -121,7 +127,8 @@ class LocalizationReport:
         return {"model": self.model, "bundle": self.bundle, "maps": self.maps, "cells": self.cells,
                 "queries": self.queries, "ks": list(self.ks), "thresholds_m": list(self.thresholds),
                 "retrieval_ks": list(self.retrieval_ks), "checkpoint": self.checkpoint, "from_cache": self.from_cache,
-                "results": {name: {**{key: table(res[key]) for key in (FINE, FINE + INTERVAL, CENTRE, CENTRE + INTERVAL)
+                "results": {name: {**{key: table(res[key]) for key in (FINE, FINE + INTERVAL, CENTRE, CENTRE + INTERVAL,
+                                                                        GAIN, GAIN + INTERVAL)
                                       if key in res},
                                    "retrieval": {str(k): r for k, r in res["retrieval"].items()}}
                             for name, res in self.results.items()}}
@@ -140,19 +147,22 @@ class LocalizationReport:
                 *self.table().split("\n"),
                 "Table I without the fine stage (each retrieved cell's centre as the position):",
                 *self.table(CENTRE).split("\n"),
+                "The fine stage's gain (percentage points, the same queries with and without it):",
+                *self.table(GAIN).split("\n"),
                 "Table II, cell-retrieval recall (the best cell among the top k):",
                 *self.retrieval_table().split("\n")]
 
     def table(self, which: str = FINE) -> str:
-        """Table I in % (``which``: ``localization``, the fine stage's positions, or
-        ``localization_centre``, the cells' centres) with its bootstrap intervals when computed:
-        one row per k, a column per threshold and backend."""
+        """Table I in % (``which``: ``localization``, the fine stage's positions,
+        ``localization_centre``, the cells' centres, or ``localization_gain``, the fine stage's
+        gain in points) with its bootstrap intervals when computed: one row per k, a column per
+        threshold and backend."""
         head = ["k"] + [f"{t:g} m" + (f" ({name})" if len(self.results) > 1 else "")
                         for name in self.results for t in self.thresholds]
 
         def cell(res, k, t):
             low_high = res.get(which + INTERVAL, {}).get(k, {}).get(t)
-            text = f"{100 * res[which][k][t]:.1f} %"
+            text = f"{100 * res[which][k][t]:+.1f}" if which == GAIN else f"{100 * res[which][k][t]:.1f} %"
             return text if low_high is None else f"{text} [{100 * low_high[0]:.1f}, {100 * low_high[1]:.1f}]"
 
         rows = [[f"top-{k}"] + [cell(res, k, t) for res in self.results.values() for t in self.thresholds]
@@ -175,14 +185,19 @@ def _text_table(head: list[str], rows: list[list[str]]) -> str:
 
 def _scores(retrieved: np.ndarray, positions: np.ndarray, maps: TextMaps, ks, thresholds, retrieval_ks) -> dict:
     """Table I with the fine stage's ``positions`` [Q, K, 2] and with the centres of the retrieved
-    cells (no fine stage), each with its bootstrap intervals, and Table II."""
+    cells (no fine stage), their paired difference (the fine stage's gain), each with its
+    bootstrap interval, and Table II."""
     top = retrieved[:, :positions.shape[1]]
     same = maps.map_of_cell[top] == maps.map_of_cell[maps.pose_cell][:, None]
     centres = maps.cells.origins[top] + 0.5 * maps.cells.sizes[top][..., None]
-    out = {}
+    out, hits = {}, {}
     for key, pred in ((FINE, positions), (CENTRE, centres)):
         out[key] = localization_recall(pred, maps.pose_w, ks, thresholds, same_scene=same)
-        out[key + INTERVAL] = _intervals(localization_hits(pred, maps.pose_w, ks, thresholds, same))
+        hits[key] = localization_hits(pred, maps.pose_w, ks, thresholds, same)
+        out[key + INTERVAL] = _intervals(hits[key])
+    gain = {k: {t: hits[FINE][k][t].astype(np.float64) - hits[CENTRE][k][t] for t in thresholds} for k in ks}
+    out[GAIN] = {k: {t: float(d.mean()) for t, d in by_t.items()} for k, by_t in gain.items()}
+    out[GAIN + INTERVAL] = _intervals(gain)
     out["retrieval"] = retrieval_recall(retrieved, maps.pose_cell, retrieval_ks)
     return out
 

@@ -57,8 +57,9 @@ def chance_recall(query_pos: np.ndarray, db_pos: np.ndarray, radius: float, ns: 
 
 def bootstrap_interval(hits: np.ndarray, samples: int = BOOTSTRAP_SAMPLES, level: float = 0.95,
                        seed: int = 0) -> tuple[float, float]:
-    """The ``level`` percentile-bootstrap interval (percent) of the mean of ``hits`` (bool [Q],
-    one per evaluated query), from ``samples`` resamples drawn with ``seed``."""
+    """The ``level`` percentile-bootstrap interval (percent) of the mean of ``hits`` ([Q], one per
+    evaluated query: bool hits, or for a paired interval the difference of two methods' hits on
+    the same queries), from ``samples`` resamples drawn with ``seed``."""
     hits = np.asarray(hits, dtype=np.float64)
     if hits.ndim != 1 or hits.size == 0:
         raise InputError(f"a bootstrap interval needs a non-empty [Q] array of hits, got shape {hits.shape}")
