@@ -54,7 +54,8 @@ def _candidates(rng, k=2, t=6, d=32, hints=3):
 
 
 @pytest.mark.parametrize("fine, match", [("objects: pointnet", "objects must be one of"),
-                                         ("pool: mean", "pool must be one of")])
+                                         ("pool: mean", "pool must be one of"),
+                                         ("object_state: points", "object_state must be one of")])
 def test_fine_options_are_checked(fine, match):
     with pytest.raises(ConfigError, match=match):
         create_model(fine_card(fine))
@@ -241,3 +242,35 @@ def test_bench_runs_a_fine_stage_with_its_own_object_encoder(encoder_bundle):
     rows = {r["backend"]: r for r in json.loads(res.stdout)["tasks"]["query"]["rows"]}
     assert {"torch reference", "torch export", "onnxruntime"} <= set(rows)
     assert all(r.get("status", "ok") == "ok" for r in rows.values()), rows
+
+
+@pytest.mark.parametrize("state", ["mfam", "objects"])
+def test_object_state_picks_the_coarse_stream_the_fine_stage_reads(state, tmp_path):
+    """``fine.object_state`` makes the submap graph's object_features MFAM's or the object
+    encoder's per-object output instead of the LSTM states: the same descriptor, the chosen
+    stream (zero at padding), equal in both formulations, and the bundle passes parity."""
+    card = fine_card(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}")
+    model, lstm_model = create_model(card).eval(), create_model(fine_card(TINY_FINE[7:-1])).eval()
+    assert model.state_dict().keys() == lstm_model.state_dict().keys()
+    lstm_model.load_state_dict(model.state_dict())
+    rng = np.random.default_rng(4)
+    pts = torch.from_numpy(rng.uniform(0, 1, (2, 6, 32, 6)).astype(np.float32))
+    counts = torch.tensor([[32.0, 20, 10, 32, 0, 0], [8.0, 32, 32, 32, 32, 32]])
+    mask = counts > 0
+    trace: dict = {}
+    with torch.no_grad():
+        desc, feats = model.submap(pts, counts, mask)
+        lstm_desc, lstm_feats = lstm_model.submap(pts, counts, mask, trace=trace)
+        ref_desc, ref_feats = model.submap.reference(pts[0, :4].numpy(), counts[0, :4].numpy())
+    torch.testing.assert_close(desc, lstm_desc)
+    assert not torch.allclose(feats[mask], lstm_feats[mask]) and (feats[~mask] == 0).all()
+    torch.testing.assert_close(feats[1], trace[state][1])       # cell 1 is all real: no reordering
+    torch.testing.assert_close(feats[0, :4], ref_feats, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(desc[0], ref_desc, atol=1e-5, rtol=1e-4)
+    path = tmp_path / "des4pos-tiny-state.yaml"
+    path.write_text(fine_card_text(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}")
+                    .replace("name: des4pos-tiny", "name: des4pos-tiny-state"))
+    assert invoke("export", "--model", "des4pos-tiny-state", "--config", path, "--output", tmp_path / "b").exit_code == 0
+    res = invoke("parity-check", "--model", "des4pos-tiny-state", "--config", path, "--onnx", tmp_path / "b",
+                 "--cases", "4", "--json")
+    assert res.exit_code == 0 and json.loads(res.stdout)["passed"], res.output

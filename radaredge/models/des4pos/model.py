@@ -25,7 +25,8 @@ Three parts, exported as three graphs that share one set of weights:
    R_i = Attn(R_i-2, R_i-1, R_i-1) + R_i-2; a max over the last R (``fine.pool: last``) or the
    last hint-stream R (``hints``, Text2Loc's choice) and an MLP give the offset of the pose from
    the cell centre in cell units; position = cell origin + (0.5 + offset) * cell size (Text2Loc's
-   pose-in-cell convention), in float64. N is the coarse encoder's object states (the paper) or,
+   pose-in-cell convention), in float64. N is the coarse encoder's per-object states (the LSTM's,
+   ``fine.object_state: lstm``, this reading of the paper's n_i; MFAM's or the object encoder's) or,
    with ``fine.objects: encoder``, a fine-stage object encoder's output on those states and each
    object's centre, mean colour and point count (Text2Loc trains its fine stage's own object
    encoder, with a position MLP).
@@ -124,6 +125,7 @@ class SubmapConfig:
 
 FINE_OBJECTS = ("coarse", "encoder")
 FINE_POOLS = ("last", "hints")
+OBJECT_STATES = ("lstm", "mfam", "objects")
 
 
 @card_ranges(cra_layers=(1, 32), heads=(1, 64), mlp_hidden=(1, 4096))
@@ -143,6 +145,12 @@ class FineConfig:
     ``pool``: what the max before the offset MLP runs over: the last CRA state R_n (``last``,
     eq. 12's output; with an even ``cra_layers`` that is an object-stream state) or the last
     hint-stream state (``hints``: R_n or R_n-1, the stream Text2Loc pools).
+
+    ``object_state``: which per-object state of the coarse encoder is the object stream (the
+    submap graph's ``object_features``). The paper names the fine stage's input n_i, eq. 7's name
+    for the LSTM's downsampled states, and says only that the coarse encoder is reused:
+    ``lstm`` (the default) reads the bidirectional LSTM's states, ``mfam`` MFAM's output (eq. 5)
+    before the LSTM, ``objects`` the object encoder's s_i (eq. 3) before MFAM.
     """
 
     cra_layers: int = 4                # R1 .. Rn of eq. 10-12
@@ -150,9 +158,10 @@ class FineConfig:
     mlp_hidden: int = 128
     objects: str = "coarse"            # "coarse" (the paper) or "encoder" (a fine-stage object encoder, Text2Loc)
     pool: str = "last"                 # "last" (R_n, the paper) or "hints" (the last hint-stream state, Text2Loc)
+    object_state: str = "lstm"         # the coarse encoder's state read as n_i: "lstm", "mfam" or "objects"
 
     def __post_init__(self):
-        for name, allowed in (("objects", FINE_OBJECTS), ("pool", FINE_POOLS)):
+        for name, allowed in (("objects", FINE_OBJECTS), ("pool", FINE_POOLS), ("object_state", OBJECT_STATES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {list(allowed)}, got {getattr(self, name)!r}")
 
@@ -416,9 +425,11 @@ def _lstm_unrolled(x, w_ih, w_hh, b_ih, b_hh):
 class SubmapEncoder(nn.Module):
     """Cell -> (descriptor [D], per-object features [T, D] for the fine stage)."""
 
-    def __init__(self, cell: CellConfig, cfg: SubmapConfig):
+    def __init__(self, cell: CellConfig, cfg: SubmapConfig, object_state: str = "lstm"):
         super().__init__()
-        self.cell, self.cfg = cell, cfg
+        if object_state not in OBJECT_STATES:
+            raise ConfigError(f"fine.object_state must be one of {list(OBJECT_STATES)}, got {object_state!r}")
+        self.cell, self.cfg, self.object_state = cell, cfg, object_state
         self.objects = ObjectEncoder(cell, cfg)
         self.mfam = MFAM(cfg.embed_dim, cfg.heads, cfg.mfam)
         self.lstm = nn.LSTM(cfg.embed_dim, cfg.lstm_hidden, batch_first=True, bidirectional=True)
@@ -447,7 +458,8 @@ class SubmapEncoder(nn.Module):
 
     def forward(self, points, num_points, object_mask, trace=None, geometry=None):
         """Export: points [B, T, P, 6], num_points [B, T], object_mask [B, T] bool ->
-        descriptor [B, D] (L2-normalised), object_features [B, T, D] (zero at padding slots).
+        descriptor [B, D] (L2-normalised), object_features [B, T, D] (the ``object_state``
+        stream: LSTM states, MFAM output or object encoder output; zero at padding slots).
         ``geometry`` [B, T, 256], when given, is the PointNet++ output of every slot (training with
         a frozen PointNet++ computes it once)."""
         b, t, p, _ = points.shape
@@ -473,18 +485,20 @@ class SubmapEncoder(nn.Module):
         desc = F.normalize(masked_max(h, mask & self._select(t, mask.device).unsqueeze(0), 1), dim=-1)
         if trace is not None:
             trace.update(objects=s, mfam=d, lstm=h)
-        return desc, torch.gather(h, 1, inverse.unsqueeze(-1).expand_as(h))
+        state = {"lstm": h, "mfam": d, "objects": s}[self.object_state]
+        state = torch.where(mask.unsqueeze(-1), state, torch.zeros_like(state))
+        return desc, torch.gather(state, 1, inverse.unsqueeze(-1).expand_as(state))
 
     def reference(self, points: np.ndarray, num_points: np.ndarray):
         """Reference on one cell's real objects only: points [n, P, 6], num_points [n] ->
-        (descriptor [D], object features [n, D])."""
+        (descriptor [D], object features [n, D] of the ``object_state`` stream)."""
         if len(points) == 0:
             raise ConfigError("a cell needs at least one object")
         s = torch.stack([self.objects.reference(o, c) for o, c in zip(points, num_points)])
         d = self.mfam(s[None])
         h = self._channels(self.lstm(d)[0][0])                                     # packed: no padding at all
         desc = F.normalize(h[self._select(len(h))].max(0).values, dim=-1)
-        return desc, h
+        return desc, {"lstm": h, "mfam": d[0], "objects": s}[self.object_state]
 
 
 # ----------------------------------------------------------------------------- text encoder
@@ -666,7 +680,7 @@ class Des4Pos(nn.Module):
     def __init__(self, cell: CellConfig, submap: SubmapConfig, text: TextConfig, fine: FineConfig):
         super().__init__()
         self.cell_config, self.text_config = cell, text
-        self.submap = SubmapEncoder(cell, submap)
+        self.submap = SubmapEncoder(cell, submap, fine.object_state)
         self.text = TextEncoder(text, submap.embed_dim)
         self.fine = FineStage(fine, submap.embed_dim, cell, submap.encoder_hidden)
 
