@@ -486,7 +486,8 @@ class SubmapEncoder(nn.Module):
         if trace is not None:
             trace.update(objects=s, mfam=d, lstm=h)
         state = {"lstm": h, "mfam": d, "objects": s}[self.object_state]
-        state = torch.where(mask.unsqueeze(-1), state, torch.zeros_like(state))
+        if self.object_state != "lstm":                                             # h is zero at padding already
+            state = torch.where(mask.unsqueeze(-1), state, torch.zeros_like(state))
         return desc, torch.gather(state, 1, inverse.unsqueeze(-1).expand_as(state))
 
     def reference(self, points: np.ndarray, num_points: np.ndarray):
