@@ -66,3 +66,28 @@ def test_bench_refuses_openvino_for_a_bundle():
     res = invoke("bench", "--model", "des4pos", "--config", Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
                  "--openvino", "--runs", "1")
     assert res.exit_code == 2 and "one-graph models" in res.output
+
+
+_SIGNAL_AFTER_TWO_GRAPHS = """
+import os, signal, sys
+from radaredge.runtime.openvino import compile_openvino
+first = compile_openvino(sys.argv[1], threads=1)
+second = compile_openvino(sys.argv[1], threads=1)
+del first, second
+arrived = []
+signal.signal(signal.SIGINT, lambda signum, frame: arrived.append(signum))
+os.kill(os.getpid(), signal.SIGINT)
+sum(range(100_000))
+print("arrived", arrived)
+"""
+
+
+def test_ctrl_c_after_two_openvino_graphs_reaches_its_handler(tiny_export):
+    """Two graphs compiled with overlapping lives, then released: a signal with a Python handler
+    still arrives. With an ``openvino.Core`` per graph, OpenVINO's CPU plugin left the thread's
+    signal stack on a freed buffer and the signal killed the process with SIGSEGV."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", _SIGNAL_AFTER_TWO_GRAPHS, str(tiny_export[2])],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "arrived [2]" in done.stdout, (done.returncode, done.stderr[-2000:])

@@ -15,6 +15,7 @@ runs in float32 too, which is why the RANSAC's hypothesis table keeps below 2**2
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 from pathlib import Path
 from typing import Mapping
@@ -48,6 +49,18 @@ class OpenVinoModel:
         return {name: np.array(result[o]) for name, o in zip(self.output_names, self._outputs)}
 
 
+@functools.cache
+def _core():
+    """The process's one ``openvino.Core``. OpenVINO's CPU plugin, created with each Core,
+    points the calling thread's signal stack (sigaltstack) at a buffer of its own and, as it
+    goes, back at the one it found: two Cores with overlapping lives leave the thread's signal
+    stack on the first one's freed buffer, and the next signal with a Python handler (Ctrl-C,
+    SIGTERM) kills the process with SIGSEGV. One Core for the process's life makes one plugin."""
+    # optional: OpenVINO is the openvino extra
+    import openvino as ov
+    return ov.Core()
+
+
 def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
     """Read ``path`` and compile it for OpenVINO's CPU plugin with ``threads`` inference threads,
     one stream, the latency hint and float32 inference precision (a CPU with bf16 would otherwise
@@ -56,7 +69,6 @@ def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
     if not openvino_installed():
         raise ConfigError(f"OpenVINO is not installed; {INSTALL_HINT}")
     # optional: OpenVINO is the openvino extra
-    import openvino as ov
     from openvino.frontend import FrontEndManager
 
     threads = checked_threads(threads)
@@ -69,7 +81,7 @@ def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
         frontend = FrontEndManager().load_by_framework("onnx")
         model = frontend.convert(frontend.load(str(path)))
         names = [o.get_any_name() for o in model.outputs]
-        compiled = ov.Core().compile_model(model, "CPU", {
+        compiled = _core().compile_model(model, "CPU", {
             "INFERENCE_NUM_THREADS": threads, "NUM_STREAMS": 1,
             "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32"})
     except Exception as exc:      # OpenVINO's errors end with the reason, after where it was raised
