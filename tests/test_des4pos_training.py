@@ -120,6 +120,22 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
     assert losses[-1] < losses[0], losses
     moved = create_model(enc_card, tmp_path / "fine" / "best.pth").state_dict()
     assert not torch.equal(moved["fine.objects.pos_encoder.0.weight"], seeded["fine.objects.pos_encoder.0.weight"])
+    # fine_text_from: coarse_weights: the fine text branch is the checkpoint's (moved here, so that it
+    # differs from the seed), only the CRA starts seeded
+    moved_text = {k: v + 0.25 if k.startswith(("text.fine_words.", "text.fine_mlp.")) and v.is_floating_point()
+                  else v for k, v in trained.items()}
+    torch.save(moved_text, tmp_path / "text.pth")
+    radaredge.train(enc_card, city_dir, tmp_path / "text", options={**warm, "coarse_weights": str(tmp_path / "text.pth"),
+                                                                     "fine_text_from": "coarse_weights"})
+    kept = create_model(enc_card, tmp_path / "text" / "best.pth").state_dict()
+    for k, v in kept.items():
+        if k.startswith("fine."):
+            torch.testing.assert_close(v, seeded[k], atol=1e-6, rtol=0.0)
+        elif k.startswith(("text.fine_words.", "text.fine_mlp.")) and v.is_floating_point():
+            torch.testing.assert_close(v, moved_text[k], atol=1e-6, rtol=0.0)
+            assert not torch.equal(v, seeded[k]), k
+    with pytest.raises(ConfigError, match="fine_text_from: coarse_weights needs"):
+        radaredge.train(enc_card, city_dir, tmp_path / "none", options={"stages": "fine", "fine_text_from": "coarse_weights"})
     partial = {k: v for k, v in trained.items() if k != "submap.mfam.v.weight"}
     torch.save(partial, tmp_path / "partial.pth")
     with pytest.raises(ConfigError, match=r"outside the fine stage: missing keys \(1\): submap.mfam.v.weight"):

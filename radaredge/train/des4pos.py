@@ -29,7 +29,10 @@ Stages, in order (``stages``; each keeps the weights of its best validation epoc
 
 ``coarse_weights`` starts from a Des4Pos checkpoint's weights outside the fine stage, which stays
 seeded: ``--set stages=fine --set coarse_weights=run/best.pth`` retrains only the fine stage of a
-trained model, with the same card or one whose fine stage differs.
+trained model, with the same card or one whose fine stage differs. With ``fine_text_from:
+coarse_weights`` the fine text branch comes from the checkpoint too and only the CRA starts
+seeded (a CRA on MFAM's object stream learns from trained hint features, and from seeded ones
+trained beside it learns the training cities instead: docs/models/des4pos.md).
 
 Validation is by scene (:mod:`.text_maps`): object accuracy, prior cosine, cell retrieval recall
 @1/3/5 (the best cell among the top k of the validation scenes' cells; the epoch with the best
@@ -103,6 +106,8 @@ class TextRecipe:
     fine_warmup_lr: float = 1e-5
     coarse_weights: str = ""            # a Des4Pos checkpoint: every weight outside the fine stage loaded from it
                                         # before the first stage (the fine stage stays seeded)
+    fine_text_from: str = "seed"        # "coarse_weights": the fine text branch (text.fine_words, text.fine_mlp) loads
+                                        # from coarse_weights too and only the CRA starts seeded
     object_weights: str = ""            # Text2Pos's pointnet_acc0.86_lr1_p256.pth (or a Text2Loc / Des4Pos checkpoint's
                                         # object encoder), loaded before the first stage
     seed: int = 0
@@ -116,6 +121,10 @@ class TextRecipe:
             raise ValueError(f"duplicate_cells must be 'mask' or 'negatives', got {self.duplicate_cells!r}")
         if self.fine_loss not in ("l2", "mse"):
             raise ValueError(f"fine_loss must be 'l2' or 'mse', got {self.fine_loss!r}")
+        if self.fine_text_from not in ("seed", "coarse_weights"):
+            raise ValueError(f"fine_text_from must be 'seed' or 'coarse_weights', got {self.fine_text_from!r}")
+        if self.fine_text_from == "coarse_weights" and not self.coarse_weights:
+            raise ValueError("fine_text_from: coarse_weights needs --set coarse_weights=<checkpoint>")
 
     @property
     def stage_list(self) -> list[str]:
@@ -327,7 +336,9 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
     log(f"data: {summary['maps']} map(s), {summary['cells']} cells, {len(train_q)} training and {len(val_q)} "
         f"validation described poses")
     if recipe.coarse_weights and not resume:
-        log(load_weights_outside(model, recipe.coarse_weights, FINE_MODULES, "the fine stage", "coarse_weights"))
+        seeded, part = ((("fine",), "the CRA") if recipe.fine_text_from == "coarse_weights" else
+                        (FINE_MODULES, "the fine stage"))
+        log(load_weights_outside(model, recipe.coarse_weights, seeded, part, "coarse_weights"))
     if recipe.object_weights and not resume:
         log(load_object_weights(model, recipe.object_weights).summary())
     model.to(dev)
