@@ -11,8 +11,7 @@ object streams, per slot of the cell
   mean RGB, as make-city names it) and the centre (x, y) in the cell;
 - ``objects``: the coarse stage's object encoder output (PointNet++ and the MLPs, before MFAM);
 - ``mfam``: after MFAM (eq. 4-5), before the LSTM;
-- ``lstm``: the bidirectional LSTM's states, what ``fine.objects: coarse`` reads (the exported
-  submap graph's ``object_features``);
+- ``lstm``: the bidirectional LSTM's states (``fine.object_state: lstm``);
 
 hint streams, per hint of the description
 - ``clean``: one-hot direction, colour and class, parsed from the sentence;
@@ -85,10 +84,7 @@ def coarse_objects(model, maps, stream: str) -> np.ndarray:
         for i in range(0, len(ids), 16):
             pts, cnt, mask = cell_inputs(maps, ids[i:i + 16], "cpu")
             trace: dict = {}
-            _, lstm = model.submap(pts, cnt, mask, trace=trace, geometry=geometry[torch.from_numpy(ids[i:i + 16])])
-            if stream == "lstm":
-                out.append(lstm)
-                continue
+            model.submap(pts, cnt, mask, trace=trace, geometry=geometry[torch.from_numpy(ids[i:i + 16])])
             t = mask.shape[1]
             ar = torch.arange(t).unsqueeze(0)
             inverse = torch.argsort(torch.argsort(torch.where(mask, ar, ar + t), dim=1), dim=1)  # the encoder's sort, undone

@@ -6,7 +6,7 @@ verbs, with their times:
 1. training cities: ``radaredge make-city --out <work>/cities --cities C --seed 1 --poses P``
    (one scene each; the last by name validates);
 2. ``radaredge train --model des4pos --data <work>/cities`` with the recipe's defaults unless
-   ``--set`` says otherwise (object, prior, coarse and fine stages);
+   ``--set`` says otherwise (object, prior, coarse, hints and fine stages);
 3. ``radaredge export --checkpoint best.pth`` and ``parity-check`` of the bundle on the trained
    weights (and of the seeded bundle);
 4. held-out cities ``radaredge make-city --out <work>/heldout --cities H --seed 100``: one
@@ -19,7 +19,7 @@ Writes benchmarks/results/<card>[-<tag>]-training-<date>.json (rendered into ben
 by benchmarks/render.py) and keeps the run directory and exports under --work (default
 export/<card>-training; its cities are reused when they exist).
 
-    python benchmarks/des4pos_training.py          # 12 cities x 200 described poses, 2 held out
+    python benchmarks/des4pos_training.py          # 12 cities x 1000 described poses, 2 held out
     # the fine stage alone, again, on a finished run's weights, with a card whose fine stage differs:
     python benchmarks/des4pos_training.py --card my-des4pos.yaml --tag fine-encoder --work export/fine-encoder \
         --cities-from export/des4pos-training --set stages=fine \
@@ -67,7 +67,7 @@ def _parity(report) -> dict:
 def main(argv=None) -> int:
     ap = training_run.parser("python benchmarks/des4pos_training.py", __doc__, "des4pos")
     ap.add_argument("--cities", type=int, default=12)
-    ap.add_argument("--poses", type=int, default=200, help="described poses per city")
+    ap.add_argument("--poses", type=int, default=1000, help="described poses per city")
     ap.add_argument("--heldout", type=int, default=2, help="held-out cities (one database)")
     ap.add_argument("--heldout-poses", type=int, default=200, help="described poses per held-out city (the queries)")
     ap.add_argument("--tag", default="", help="results file <card>-<tag>-training-<date>.json (a variant run)")

@@ -246,11 +246,13 @@ def test_bench_runs_a_fine_stage_with_its_own_object_encoder(encoder_bundle):
 
 @pytest.mark.parametrize("state", ["mfam", "objects"])
 def test_object_state_picks_the_coarse_stream_the_fine_stage_reads(state, tmp_path):
-    """``fine.object_state`` makes the submap graph's object_features MFAM's or the object
-    encoder's per-object output instead of the LSTM states: the same descriptor, the chosen
-    stream (zero at padding), equal in both formulations, and the bundle passes parity."""
+    """``fine.object_state`` makes the submap graph's object_features MFAM's (the default) or the
+    object encoder's per-object output instead of the LSTM states: the same descriptor, the
+    chosen stream (zero at padding), equal in both formulations, and the bundle passes parity."""
     card = fine_card(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}")
-    model, lstm_model = create_model(card).eval(), create_model(fine_card(TINY_FINE[7:-1])).eval()
+    assert create_model(fine_card(TINY_FINE[7:-1])).submap.object_state == "mfam"       # a card's default
+    lstm = fine_card("cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: lstm")
+    model, lstm_model = create_model(card).eval(), create_model(lstm).eval()
     assert model.state_dict().keys() == lstm_model.state_dict().keys()
     lstm_model.load_state_dict(model.state_dict())
     rng = np.random.default_rng(4)

@@ -63,14 +63,15 @@ def test_coarse_stage_lowers_infonce_and_raises_recall(card, city_dir, tmp_path)
 
 
 def test_all_stages_run_resume_and_keep_each_stages_best(card, city_dir, tmp_path):
-    opts = {"object_epochs": 1, "prior_epochs": 1, "coarse_epochs": 1, "fine_epochs": 2, "coarse_batch": 16}
+    opts = {"object_epochs": 1, "prior_epochs": 1, "coarse_epochs": 1, "hints_epochs": 1, "fine_epochs": 2,
+            "coarse_batch": 16}
     report = radaredge.train(card, city_dir, tmp_path / "run", options=opts)
-    assert [r["stage"] for r in report.epochs] == ["objects", "prior", "coarse", "fine", "fine"]
-    assert set(report.stage_best) == {"objects", "prior", "coarse", "fine"}
+    assert [r["stage"] for r in report.epochs] == ["objects", "prior", "coarse", "hints", "fine", "fine"]
+    assert set(report.stage_best) == {"objects", "prior", "coarse", "hints", "fine"}
     text = "\n".join(report.lines())
     assert "object_acc" in text and "prior_cosine" in text and "cell_R@1" in text and "fine_error_m" in text
     more = radaredge.train(card, city_dir, tmp_path / "run", resume=True, options={**opts, "fine_epochs": 3})
-    assert [r["stage"] for r in more.epochs] == ["objects", "prior", "coarse", "fine", "fine", "fine"]
+    assert [r["stage"] for r in more.epochs] == ["objects", "prior", "coarse", "hints", "fine", "fine", "fine"]
     best = torch.load(tmp_path / "run" / "best.pth", map_location="cpu", weights_only=False)
     assert "fine_error_m" in best["metrics"] and "cell_R@1" in best["metrics"]
 
@@ -140,6 +141,29 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
     torch.save(partial, tmp_path / "partial.pth")
     with pytest.raises(ConfigError, match=r"outside the fine stage: missing keys \(1\): submap.mfam.v.weight"):
         radaredge.train(enc_card, city_dir, tmp_path / "bad", options={**warm, "coarse_weights": str(tmp_path / "partial.pth")})
+
+
+def test_hints_stage_warms_the_text_branch_on_the_lstm_states(card, city_dir, tmp_path):
+    """The ``hints`` stage is the fine stage on the LSTM states whatever the card's
+    ``fine.object_state`` (its first epoch is a card reading the LSTM states' fine epoch, row for
+    row) and keeps its last epoch; the ``fine`` stage after it keeps the trained text branch and
+    starts the CRA from its seed again (a warm-up epoch at a negligible rate leaves it there)."""
+    assert create_model(card).submap.object_state == "mfam"
+    lstm_card = card_from_yaml(TINY.read_text().replace("mlp_hidden: 16}", "mlp_hidden: 16, object_state: lstm}"))
+    warm = {"fine_lr": 3e-3, "fine_warmup_epochs": 1, "fine_warmup_lr": 1e-9}       # both stages' first epoch
+    lstm = radaredge.train(lstm_card, city_dir, tmp_path / "lstm", options={"stages": "fine", "fine_epochs": 1, **warm})
+    run = radaredge.train(card, city_dir, tmp_path / "run",
+                          options={"stages": "hints,fine", "hints_epochs": 2, "fine_epochs": 1, **warm})
+    strip = lambda r: {k: v for k, v in r.items() if k not in ("stage", "seconds")}  # noqa: E731
+    assert [r["stage"] for r in run.epochs] == ["hints", "hints", "fine"]
+    assert strip(run.epochs[0]) == strip(lstm.epochs[0])
+    assert run.stage_best["hints"] == 2
+    seeded = create_model(card).state_dict()
+    kept = create_model(card, tmp_path / "run" / "best.pth").state_dict()
+    text = [k for k in kept if k.startswith(("text.fine_words.", "text.fine_mlp.")) and kept[k].is_floating_point()]
+    assert text and all(not torch.equal(kept[k], seeded[k]) for k in text)
+    for k in (k for k in kept if k.startswith("fine.")):
+        torch.testing.assert_close(kept[k], seeded[k], atol=1e-6, rtol=0.0)
 
 
 def test_info_nce_masks_copies_of_the_same_cell():

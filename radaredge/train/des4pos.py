@@ -19,7 +19,14 @@ Stages, in order (``stages``; each keeps the weights of its best validation epoc
    negatives (``duplicate_cells: mask``; Text2Loc counts them as negatives, ``negatives``). The
    hints of a description are shuffled (Text2Loc). The PointNet++ stays frozen unless
    ``train_pointnet`` (Text2Loc fine-tunes it: on a CPU that is most of the time).
-4. ``fine``: eq. 13, the CRA regressor on the frozen coarse encoder's object features ("directly
+4. ``hints``: the fine text branch's warm-up. The fine stage below on the LSTM states, whatever
+   the card's ``fine.object_state``, for ``hints_epochs``, keeping the last epoch's text branch;
+   the CRA it trains beside it is thrown away (the ``fine`` stage starts its CRA seeded again).
+   A CRA on a per-object stream trained together with a seeded text branch learns the training
+   cities and not the objects; on the LSTM states, which each summarise the whole cell, it
+   cannot, and the text branch it leaves is one the ``fine`` stage's CRA learns the objects
+   from (measured: docs/models/des4pos.md, "Training"). No paper or upstream step.
+5. ``fine``: eq. 13, the CRA regressor on the frozen coarse encoder's object features ("directly
    reused", III-C) and the fine text branch: the offset of the pose from its best cell's
    centre in cell units, loss the mean L2 norm of the error (eq. 13; ``fine_loss: mse`` is
    Text2Loc's 5 x mean squared error); Adam 3e-4, batch 32, constant rate (Text2Loc; it also
@@ -68,21 +75,21 @@ from ..models.des4pos.spec import tokenizer_path
 from ..runtime.text_tokens import encode_hints, load_tokenizer
 from ..models.des4pos.weights import load_object_weights
 
-STAGES = ("objects", "prior", "coarse", "fine")
+STAGES = ("objects", "prior", "coarse", "hints", "fine")
 ALIASES = {"epochs": "coarse_epochs", "lr": "coarse_lr", "batch_size": "coarse_batch"}
 
 
 @card_ranges(object_epochs=(0, 10_000), object_lr=positive(1.0), object_batch=(1, 4096), prior_epochs=(0, 10_000),
              prior_lr=positive(1.0), prior_batch=(1, 4096), coarse_epochs=(0, 10_000), coarse_lr=positive(1.0),
              coarse_batch=(2, 4096), lr_step=(1, 10_000), lr_gamma=Range(0.0, 1.0, True), temperature=positive(10.0),
-             fine_epochs=(0, 10_000), fine_lr=positive(1.0), fine_batch=(1, 4096), fine_warmup_epochs=(0, 10_000),
+             hints_epochs=(0, 10_000), fine_epochs=(0, 10_000), fine_lr=positive(1.0), fine_batch=(1, 4096), fine_warmup_epochs=(0, 10_000),
              fine_warmup_lr=positive(1.0), seed=(0, 2**32 - 1))
 @dataclass(frozen=True)
 class TextRecipe:
     """Options of Des4Pos training (module docstring). ``epochs``, ``lr`` and ``batch_size`` given
     to ``radaredge train`` set the coarse stage's."""
 
-    stages: str = "objects,prior,coarse,fine"
+    stages: str = "objects,prior,coarse,hints,fine"
     object_epochs: int = 6
     object_lr: float = 3.2e-3           # Text2Pos "lr1": 10**-2.5
     object_batch: int = 32
@@ -98,6 +105,7 @@ class TextRecipe:
     duplicate_cells: str = "mask"       # or "negatives" (Text2Loc)
     shuffle_hints: bool = True
     train_pointnet: bool = False
+    hints_epochs: int = 4               # the fine text branch's warm-up beside a CRA on the LSTM states
     fine_epochs: int = 35               # Text2Loc
     fine_lr: float = 3e-4
     fine_batch: int = 32
@@ -250,11 +258,12 @@ def geometry_features(model, maps: TextMaps, device, progress=no_progress) -> to
     return out
 
 
-def cell_descriptors(model, maps: TextMaps, cells: np.ndarray, geometry, device):
-    """(descriptors [len(cells), D], object features [len(cells), T, D]) of the coarse encoder."""
+def cell_descriptors(model, maps: TextMaps, cells: np.ndarray, geometry, device, stream: str | None = None):
+    """(descriptors [len(cells), D], object features [len(cells), T, D] of ``stream``, default the
+    card's ``fine.object_state``) of the coarse encoder."""
     pts, cnt, mask = cell_inputs(maps, cells, device)
     geom = geometry[torch.from_numpy(cells).to(device)] if geometry is not None else None
-    return model.submap(pts, cnt, mask, geometry=geom)
+    return model.submap(pts, cnt, mask, geometry=geom, stream=stream)
 
 
 def retrieval_recall(text: torch.Tensor, cells: torch.Tensor, truth: np.ndarray, ks=(1, 3, 5)) -> dict[int, float]:
@@ -322,6 +331,7 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
     """Train ``model`` (a Des4Pos of ``card``) on the maps under ``data_root`` with ``recipe``,
     stage by stage; write the run directory ``output`` and return the report."""
     dev = pick_device(device)
+    seeded_cra = {k: v.detach().clone() for k, v in model.state_dict().items() if k.startswith("fine.")}
     run = RunDir(output, card)
     if resume:
         run.require_last()
@@ -394,16 +404,17 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
         epochs = getattr(recipe, f"{'object' if stage == 'objects' else stage}_epochs")
         if done.get(stage, 0) >= epochs and stage in report.stage_best:
             continue                                  # finished before --resume: its best weights are in last.pth
-        if stage in ("coarse", "fine") and prior is None:
+        if stage in ("coarse", "hints", "fine") and prior is None:
             with torch.no_grad():
                 model.eval()
                 prior = torch.cat([model.text.prior_tokens(tokens[sl], tmask[sl]) for sl in _chunks(len(tokens), 256)])
-        if stage in ("coarse", "fine") and geometry is None and not recipe.train_pointnet:
+        if stage in ("coarse", "hints", "fine") and geometry is None and not recipe.train_pointnet:
             geometry = geometry_features(model, maps, dev, progress)
-        runner = {"objects": _objects_stage, "prior": _prior_stage, "coarse": _coarse_stage, "fine": _fine_stage}[stage]
+        runner = {"objects": _objects_stage, "prior": _prior_stage, "coarse": _coarse_stage, "hints": _hints_stage,
+                  "fine": _fine_stage}[stage]
         best = runner(model, maps, recipe, epochs, done.get(stage, 0) + 1, dev, rng, progress, epoch_row, checkpoint,
                       keep, tokens=tokens, tmask=tmask, prior=prior, table=table, geometry=geometry, train_q=train_q,
-                      val_q=val_q, val_cells=val_cells)
+                      val_q=val_q, val_cells=val_cells, seeded_cra=seeded_cra)
         done[stage] = epochs
         if best is not None:
             report.stage_best[stage] = best
@@ -592,14 +603,31 @@ def coarse_metrics(model, maps, prior, tmask, geometry, val_q, val_cells, dev, t
     return {f"cell_R@{k}": v for k, v in retrieval_recall(text, cells, truth).items()}
 
 
-def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, *, prior, tmask,
-                table, geometry, train_q, val_q, **_):
-    """Eq. 13: the CRA regressor on the frozen coarse encoder's object features."""
+def _hints_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, **kw):
+    """The fine text branch's warm-up: eq. 13 on the LSTM states; the last epoch is kept."""
+    return _fit_fine(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, "hints",
+                     "lstm", lambda m, b: True, **kw)
+
+
+def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, *, seeded_cra,
+                **kw):
+    """Eq. 13 on the card's object stream; after a ``hints`` warm-up the CRA starts seeded again."""
+    if "hints" in recipe.stage_list and start == 1:
+        model.load_state_dict({**model.state_dict(), **seeded_cra})
+    return _fit_fine(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, "fine",
+                     None, lambda m, b: m["fine_error_m"] < b["fine_error_m"], **kw)
+
+
+def _fit_fine(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, name, stream,
+              better, *, prior, tmask, table, geometry, train_q, val_q, **_):
+    """Eq. 13: the CRA regressor and the fine text branch on the frozen coarse encoder's object
+    features (``stream``, or the card's ``fine.object_state``), stage ``name``; ``better`` picks
+    the epoch kept."""
     with torch.no_grad():
         model.eval()
         feats = []
         for sl in _chunks(len(maps.cells.ids), 16):
-            feats.append(cell_descriptors(model, maps, np.arange(len(maps.cells.ids))[sl], geometry, dev)[1])
+            feats.append(cell_descriptors(model, maps, np.arange(len(maps.cells.ids))[sl], geometry, dev, stream)[1])
         objects = torch.cat(feats)
     object_mask = torch.from_numpy(maps.cells.object_mask).to(dev)
     origin = torch.from_numpy(maps.cells.origins).to(dev)
@@ -614,8 +642,8 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
         centres, colours = object_summaries(torch.from_numpy(maps.cells.points))
         summaries = (centres.to(dev), colours.to(dev), torch.from_numpy(maps.cells.num_points).to(dev))
     names = list(FINE_MODULES)
-    stage = _Stage("fine", _set_trainable(model, names), recipe.fine_lr, epochs, start)
-    keeper = keep(stage, names, lambda m, b: m["fine_error_m"] < b["fine_error_m"])
+    stage = _Stage(name, _set_trainable(model, names), recipe.fine_lr, epochs, start)
+    keeper = keep(stage, names, better)
 
     def predict(poses):
         rows, hmask = _padded_hints(maps, table, poses, None)
@@ -641,7 +669,7 @@ def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_ro
             err_m = np.concatenate(errs)
         metrics = {"fine_error_m": float(err_m.mean()), "fine_within_5m": 100.0 * float((err_m <= 5).mean()),
                    "centre_error_m": centre_m}
-        epoch_row("fine", epoch, loss, metrics)
+        epoch_row(name, epoch, loss, metrics)
         keeper.offer(epoch, metrics)
-        checkpoint("fine", epoch)
+        checkpoint(name, epoch)
     return keeper.restore()

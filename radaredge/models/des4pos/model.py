@@ -25,8 +25,8 @@ Three parts, exported as three graphs that share one set of weights:
    R_i = Attn(R_i-2, R_i-1, R_i-1) + R_i-2; a max over the last R (``fine.pool: last``) or the
    last hint-stream R (``hints``, Text2Loc's choice) and an MLP give the offset of the pose from
    the cell centre in cell units; position = cell origin + (0.5 + offset) * cell size (Text2Loc's
-   pose-in-cell convention), in float64. N is the coarse encoder's per-object states (the LSTM's,
-   ``fine.object_state: lstm``, this reading of the paper's n_i; MFAM's or the object encoder's) or,
+   pose-in-cell convention), in float64. N is the coarse encoder's per-object states (MFAM's output,
+   ``fine.object_state: mfam``; the LSTM's or the object encoder's) or,
    with ``fine.objects: encoder``, a fine-stage object encoder's output on those states and each
    object's centre, mean colour and point count (Text2Loc trains its fine stage's own object
    encoder, with a position MLP).
@@ -149,8 +149,10 @@ class FineConfig:
     ``object_state``: which per-object state of the coarse encoder is the object stream (the
     submap graph's ``object_features``). The paper names the fine stage's input n_i, eq. 7's name
     for the LSTM's downsampled states, and says only that the coarse encoder is reused:
-    ``lstm`` (the default) reads the bidirectional LSTM's states, ``mfam`` MFAM's output (eq. 5)
-    before the LSTM, ``objects`` the object encoder's s_i (eq. 3) before MFAM.
+    ``mfam`` (the default) reads MFAM's output (eq. 5) before the LSTM, ``lstm`` the
+    bidirectional LSTM's states (each one summarises the cell's whole object sequence, and a CRA
+    on them stays near the cell centre: docs/models/des4pos.md), ``objects`` the object
+    encoder's s_i (eq. 3) before MFAM.
     """
 
     cra_layers: int = 4                # R1 .. Rn of eq. 10-12
@@ -158,7 +160,7 @@ class FineConfig:
     mlp_hidden: int = 128
     objects: str = "coarse"            # "coarse" (the paper) or "encoder" (a fine-stage object encoder, Text2Loc)
     pool: str = "last"                 # "last" (R_n, the paper) or "hints" (the last hint-stream state, Text2Loc)
-    object_state: str = "lstm"         # the coarse encoder's state read as n_i: "lstm", "mfam" or "objects"
+    object_state: str = "mfam"         # the coarse encoder's state read as n_i: "mfam", "lstm" or "objects"
 
     def __post_init__(self):
         for name, allowed in (("objects", FINE_OBJECTS), ("pool", FINE_POOLS), ("object_state", OBJECT_STATES)):
@@ -425,7 +427,7 @@ def _lstm_unrolled(x, w_ih, w_hh, b_ih, b_hh):
 class SubmapEncoder(nn.Module):
     """Cell -> (descriptor [D], per-object features [T, D] for the fine stage)."""
 
-    def __init__(self, cell: CellConfig, cfg: SubmapConfig, object_state: str = "lstm"):
+    def __init__(self, cell: CellConfig, cfg: SubmapConfig, object_state: str = "mfam"):
         super().__init__()
         if object_state not in OBJECT_STATES:
             raise ConfigError(f"fine.object_state must be one of {list(OBJECT_STATES)}, got {object_state!r}")
@@ -456,12 +458,12 @@ class SubmapEncoder(nn.Module):
         s[real] = s_real
         return s
 
-    def forward(self, points, num_points, object_mask, trace=None, geometry=None):
+    def forward(self, points, num_points, object_mask, trace=None, geometry=None, stream=None):
         """Export: points [B, T, P, 6], num_points [B, T], object_mask [B, T] bool ->
         descriptor [B, D] (L2-normalised), object_features [B, T, D] (the ``object_state``
-        stream: LSTM states, MFAM output or object encoder output; zero at padding slots).
-        ``geometry`` [B, T, 256], when given, is the PointNet++ output of every slot (training with
-        a frozen PointNet++ computes it once)."""
+        stream, or ``stream`` when given: LSTM states, MFAM output or object encoder output; zero
+        at padding slots). ``geometry`` [B, T, 256], when given, is the PointNet++ output of every
+        slot (training with a frozen PointNet++ computes it once)."""
         b, t, p, _ = points.shape
         ar = torch.arange(t, dtype=torch.int64, device=points.device).unsqueeze(0)
         order = torch.argsort(torch.where(object_mask, ar, ar + t), dim=1)        # real objects first
@@ -485,8 +487,9 @@ class SubmapEncoder(nn.Module):
         desc = F.normalize(masked_max(h, mask & self._select(t, mask.device).unsqueeze(0), 1), dim=-1)
         if trace is not None:
             trace.update(objects=s, mfam=d, lstm=h)
-        state = {"lstm": h, "mfam": d, "objects": s}[self.object_state]
-        if self.object_state != "lstm":                                             # h is zero at padding already
+        stream = stream or self.object_state
+        state = {"lstm": h, "mfam": d, "objects": s}[stream]
+        if stream != "lstm":                                                        # h is zero at padding already
             state = torch.where(mask.unsqueeze(-1), state, torch.zeros_like(state))
         return desc, torch.gather(state, 1, inverse.unsqueeze(-1).expand_as(state))
 
