@@ -21,7 +21,8 @@ Stages, in order (``stages``; each keeps the weights of its best validation epoc
    ``train_pointnet`` (Text2Loc fine-tunes it: on a CPU that is most of the time).
 4. ``hints``: the fine text branch's warm-up. The fine stage below on the LSTM states, whatever
    the card's ``fine.object_state``, for ``hints_epochs``, keeping the last epoch's text branch;
-   the CRA it trains beside it is thrown away (the ``fine`` stage starts its CRA seeded again).
+   the CRA it trains beside it is thrown away (the ``fine`` stage starts its CRA again from the
+   weights it had before ``hints``: seeded, or ``--checkpoint``'s).
    A CRA on a per-object stream trained together with a seeded text branch learns the training
    cities and not the objects; on the LSTM states, which each summarise the whole cell, it
    cannot, and the text branch it leaves is one the ``fine`` stage's CRA learns the objects
@@ -331,7 +332,7 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
     """Train ``model`` (a Des4Pos of ``card``) on the maps under ``data_root`` with ``recipe``,
     stage by stage; write the run directory ``output`` and return the report."""
     dev = pick_device(device)
-    seeded_cra = {k: v.detach().clone() for k, v in model.state_dict().items() if k.startswith("fine.")}
+    start_cra = {k: v.detach().clone() for k, v in model.state_dict().items() if k.startswith("fine.")}
     run = RunDir(output, card)
     if resume:
         run.require_last()
@@ -414,7 +415,7 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
                   "fine": _fine_stage}[stage]
         best = runner(model, maps, recipe, epochs, done.get(stage, 0) + 1, dev, rng, progress, epoch_row, checkpoint,
                       keep, tokens=tokens, tmask=tmask, prior=prior, table=table, geometry=geometry, train_q=train_q,
-                      val_q=val_q, val_cells=val_cells, seeded_cra=seeded_cra)
+                      val_q=val_q, val_cells=val_cells, start_cra=start_cra)
         done[stage] = epochs
         if best is not None:
             report.stage_best[stage] = best
@@ -609,11 +610,12 @@ def _hints_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_r
                      "lstm", lambda m, b: True, **kw)
 
 
-def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, *, seeded_cra,
+def _fine_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, *, start_cra,
                 **kw):
-    """Eq. 13 on the card's object stream; after a ``hints`` warm-up the CRA starts seeded again."""
+    """Eq. 13 on the card's object stream; after a ``hints`` warm-up the CRA starts again from the
+    weights it had when training began."""
     if "hints" in recipe.stage_list and start == 1:
-        model.load_state_dict({**model.state_dict(), **seeded_cra})
+        model.load_state_dict({**model.state_dict(), **start_cra})
     return _fit_fine(model, maps, recipe, epochs, start, dev, rng, progress, epoch_row, checkpoint, keep, "fine",
                      None, lambda m, b: m["fine_error_m"] < b["fine_error_m"], **kw)
 
