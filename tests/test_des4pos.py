@@ -204,6 +204,9 @@ def test_int8_bundle_is_checked_and_timed_as_any_export(bundle, tmp_path):
     assert report["graphs"]["text_encoder"]["quantized"] and report["graphs"]["text_encoder"]["onnx"].endswith(
         "text_encoder.int8.onnx")
     assert not report["graphs"]["submap_encoder"]["quantized"] and not report["graphs"]["fine_stage"]["quantized"]
+    meta = {p.key: p.value for p in onnx.load(str(bundle / "text_encoder.int8.onnx")).metadata_props}
+    settings = json.loads(meta["radaredge.quantization"])       # 7-bit per-channel weights: no AVX2 saturation
+    assert settings["format"] == "dynamic" and settings["per_channel"] and settings["reduce_range"]
     fresh = tmp_path / "fresh"
     shutil.copytree(bundle, fresh)
     (fresh / "text_encoder.int8.onnx").unlink()
