@@ -24,13 +24,25 @@ Upstream behaviours the conversion reproduces rather than repairs (docs/models/m
   VFE really reads, in its input order. Where a position lies past the points' columns (upstream
   fails there: MAFF-Net_TJ4D.yaml's SNR, position 5 of 5 columns) the column is taken by its
   name, and a note says so;
-- CQCA_cfa's ``DBSCAN_V`` indexes the batch points ``[batch, x, y, z, ...]``.
+- CQCA_cfa's ``DBSCAN_V`` indexes the batch points ``[batch, x, y, z, ...]``;
+- ``USE_DIRECTION_CLASSIFIER: False`` still builds and applies the direction classifier
+  (AnchorHeadSingle tests the key for presence), and ``ROI_GRID_POOL.POOL_METHOD`` is never read
+  (``build_local_aggregation_module`` always max-pools): both convert as upstream computes, with
+  a note.
+
+Keys in otherwise training-only subtrees that upstream builds test-time code from are checked:
+each head's ``BOX_CODER_CONFIG`` (its box decoder), POST_PROCESSING's NMS_THRESH type (a float
+selects the class-agnostic branch), the clustering map's origin and cells against the pillar grid,
+the anchors' stride against BACKBONE_2D's output, and the range-mask data processor.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import re
+import stat
+from fractions import Fraction
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -84,38 +96,62 @@ class ConfigFile:
     path: Path
     sha256: str
 
+    def __fspath__(self) -> str:
+        """The file as read (a ConfigFile is a path: the list of files read can be checked as paths)."""
+        return str(self.path)
 
-def _read(path: Path, where: str) -> tuple[dict, str]:
-    """A config file's mapping and the sha256 of its bytes; ConfigError naming ``where``."""
+
+def _read(path: Path, where: str | None) -> tuple[dict, str]:
+    """A config file's mapping and the sha256 of its bytes. ConfigError naming the file, and
+    ``where`` (the config and key that name it, for a base config). The size is checked with
+    ``stat`` before a byte is read (a model card's limit, :data:`MAX_CARD_BYTES`)."""
+    label = path.name if where is None else f"{where} {path.name}"
     try:
-        raw = path.read_bytes()
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{label}: not a regular file")
+        if st.st_size > MAX_CARD_BYTES:
+            raise ConfigError(f"{label}: {st.st_size} bytes; an OpenPCDet config is at most {MAX_CARD_BYTES} bytes "
+                              f"(upstream's are a few KiB)")
+        with path.open("rb") as f:
+            raw = f.read(MAX_CARD_BYTES + 1)        # a file that grew since stat is still cut off
     except OSError as exc:
-        raise ConfigError(f"{where}: cannot read {path} ({exc.strerror or exc})") from None
+        raise ConfigError(f"{label}: cannot read {path} ({exc.strerror or exc})") from None
     if len(raw) > MAX_CARD_BYTES:
-        raise ConfigError(f"{where}: {path} is {len(raw)} bytes; an OpenPCDet config is at most {MAX_CARD_BYTES}")
+        raise ConfigError(f"{label}: more than {MAX_CARD_BYTES} bytes; an OpenPCDet config is at most {MAX_CARD_BYTES}")
+    if b"\x00" in raw:
+        raise ConfigError(f"{label}: a binary file (it holds NUL bytes), not an OpenPCDet YAML config")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
-        raise ConfigError(f"{where}: {path} is not a UTF-8 text file") from None
-    data = read_yaml(text, path.name)
+        raise ConfigError(f"{label}: not a UTF-8 text file, so not an OpenPCDet YAML config") from None
+    data = read_yaml(text, label)
     if not isinstance(data, dict):
-        raise ConfigError(f"{path.name}: an OpenPCDet config is a YAML mapping, got {type(data).__name__}")
+        got = "nothing (an empty file)" if data is None else f"a YAML {_yaml_kind(data)}"
+        raise ConfigError(f"{label}: an OpenPCDet config is a YAML mapping of keys, this file holds {got}")
     return data, hashlib.sha256(raw).hexdigest()
+
+
+def _yaml_kind(value) -> str:
+    return {list: "list", str: "string", int: "number", float: "number", bool: "boolean"}.get(type(value),
+                                                                                               type(value).__name__)
 
 
 def _base_path(named: str, config: Path, override: Path | None) -> Path:
     """The file a ``_BASE_CONFIG_`` names: ``override`` (--dataset-config) if given; else the path
     as OpenPCDet opens it (relative to the working directory), then relative to the config's
     folder and each folder above it (upstream's configs name ``tools/cfgs/...`` from the
-    repository root)."""
+    repository root). The config's path is resolved first, so a relative one (``cfgs/...`` run
+    from ``tools/``) searches the same folders as its absolute path."""
     if override is not None:
         return override
-    candidates = [Path(named)] + [d / named for d in (config.parent, *config.parent.parents)]
+    folder = config.resolve().parent
+    candidates = [Path(named)] + [d / named for d in (folder, *folder.parents)]
     for c in candidates:
         if c.is_file():
             return c
     raise ConfigError(f"{config.name}: {BASE_KEY} {named!r} not found (looked in the working directory and in "
-                      f"{config.parent} and the folders above it); pass it with --dataset-config")
+                      f"{folder} and the folders above it); pass it with --dataset-config")
 
 
 def _merge(node: dict, new: dict, at: str, config: Path, override: Path | None, files: list[ConfigFile]) -> None:
@@ -150,7 +186,7 @@ def load_openpcdet_config(path: str | Path, dataset_config: str | Path | None = 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: no such OpenPCDet config file")
-    data, digest = _read(path, path.name)
+    data, digest = _read(path, None)
     override = None
     if dataset_config is not None:
         override = Path(dataset_config)
@@ -232,6 +268,10 @@ class _Ledger:
             return default
         if kind is not None and (not isinstance(v, kind) or isinstance(v, bool) and bool not in _kinds(kind)):
             raise self.error(key, f"expected {_kind_name(kind)}, got {v!r}")
+        bad = _non_finite(v, key)
+        if bad is not None:
+            raise self.error(bad[0], f"{bad[1]!r} is not a finite number (YAML's .nan / .inf); upstream's "
+                             f"computation is undefined with it")
         return v
 
     def _mark(self, key: str, fate: str, detail: str) -> None:
@@ -263,6 +303,23 @@ class _Ledger:
 
     def unaccounted(self) -> list[str]:
         return [leaf for leaf in _leaves(self.cfg) if leaf not in self.fates]
+
+
+def _non_finite(value, key: str):
+    """(dotted key, value) of the first NaN or infinite number in ``value``, or None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return key, value
+    if isinstance(value, dict):
+        items = ((f"{key}.{k}", v) for k, v in value.items())
+    elif isinstance(value, list):
+        items = ((f"{key}[{i}]", v) for i, v in enumerate(value))
+    else:
+        return None
+    for sub, v in items:
+        bad = _non_finite(v, sub)
+        if bad is not None:
+            return bad
+    return None
 
 
 def _kinds(kind) -> tuple:
@@ -344,10 +401,11 @@ def maffnet_card(cfg: dict, files: list[ConfigFile], *, name: str | None = None,
         raise led.error("MODEL.VFE.NUM_FILTERS", f"[{out_channels}]: upstream's SPA is hard-coded to 64 channels")
     card["spa"] = {"enabled": bool(spa), "capacity": DEPLOYMENT_CHOICES["spa.capacity"]}
     _voxel_cap(led, spa, ny * nx)
-    card["cfa"] = _cfa(led, cfa, columns, features)
+    card["cfa"] = _cfa(led, cfa, columns, features, pillars)
     card["caf"] = _caf(led, out_channels)
     card["backbone_2d"] = _backbone(led)
     card["dense_head"] = _dense_head(led)
+    _check_head_grid(led, card["backbone_2d"], card["dense_head"]["anchors"], ny, nx)
     nms = _post_processing(led)
     card["post_processing"] = nms
     if stage_two:
@@ -496,7 +554,13 @@ def _pillars(led: _Ledger, out_channels: int) -> tuple[dict, int, int]:
             raise led.error(key, f"expected {n} numbers, got {v}")
     if not all(s > 0 for s in size):
         raise led.error(f"{vox}.VOXEL_SIZE", f"entries must be > 0, got {size}")
+    for i, axis in enumerate("xyz"):
+        if not rng[i] < rng[i + 3]:
+            raise led.error("DATA_CONFIG.POINT_CLOUD_RANGE", f"{rng}: [x_min, y_min, z_min, x_max, y_max, z_max] "
+                            f"needs {axis}_min < {axis}_max")
     nx, ny = (round((rng[i + 3] - rng[i]) / size[i]) for i in (0, 1))
+    if nx < 1 or ny < 1:
+        raise led.error(f"{vox}.VOXEL_SIZE", f"{size}: larger than the range {rng}, the pillar grid has no cell")
     pillars = {"point_cloud_range": [float(x) for x in rng], "voxel_size": [float(x) for x in size],
                "max_points_per_pillar": per, "out_channels": out_channels}
     return pillars, ny, nx
@@ -519,8 +583,9 @@ def _voxel_cap(led: _Ledger, spa: bool, cells: int) -> None:
     led.ignore(key, f"test-time pillar cap {test} >= {need}: never reached by a scan the graph accepts")
 
 
-def _cfa(led: _Ledger, cfa: str | None, columns: list[str], features: list[str]) -> dict:
-    """``cfa``: upstream CQCA_cfa's DBSCAN map or the fork's GridDensityBEV, per ``cfa``."""
+def _cfa(led: _Ledger, cfa: str | None, columns: list[str], features: list[str], pillars: dict) -> dict:
+    """``cfa``: upstream CQCA_cfa's DBSCAN map or the fork's GridDensityBEV, per ``cfa``; its
+    origin and cells must be the pillar grid's (:func:`_check_map_on_grid`)."""
     ib = "MODEL.IMAGE_BACKBONE"
     module = led.check(f"{ib}.NAME", tuple(CFA_MODULES), "CQCA_cfa's DBSCAN map or the fork's GridDensityBEV")
     method = cfa or CFA_MODULES[module]
@@ -537,6 +602,7 @@ def _cfa(led: _Ledger, cfa: str | None, columns: list[str], features: list[str])
     eps = led.map(f"{ib}.DBSCAN_EPS", "cfa eps", kind=NUMBER)
     samples = led.map(f"{ib}.DBSCAN_SAMPLE", "cfa minimum density / samples", kind=int)
     led.check(f"{ib}.DBSCAN_FEATURE", (MAP_CHANNELS,), "a 3-channel clustering map", default=MAP_CHANNELS)
+    _check_map_on_grid(led, float(res), float(y_off), pillars)
     for key in ("POINTX", "POINTY"):
         led.ignore(f"{ib}.{key}", "read by CQCA_cfa's constructor, never used")
     if method == "dbscan":
@@ -559,6 +625,37 @@ def _cfa(led: _Ledger, cfa: str | None, columns: list[str], features: list[str])
     return out
 
 
+def _close(a: float, b: float) -> bool:
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-6)
+
+
+def _check_map_on_grid(led: _Ledger, res: float, y_off: float, pillars: dict) -> None:
+    """The clustering map must lie on the pillar grid: CQCA_caf fuses the two maps cell by cell.
+
+    CQCA_cfa bins a point into column ``int(x / RESOLUTION) - 1`` and row
+    ``int((y + DBSCAN_Y) / RESOLUTION) - 1``: its map starts at x = 0 (no key moves it) and
+    y = -DBSCAN_Y, in cells of RESOLUTION metres. The pillar grid starts at POINT_CLOUD_RANGE's
+    (x_min, y_min), in VOXEL_SIZE cells. Another origin or cell size would fuse each pillar with
+    another place's clustering cell and put points of the range outside the map (upstream's
+    indexing then wraps or fails); radaredge refuses it (the cell counts are checked when the
+    model is built)."""
+    ib = "MODEL.IMAGE_BACKBONE"
+    (x_min, y_min), (vx, vy) = pillars["point_cloud_range"][:2], pillars["voxel_size"][:2]
+    vox = "VOXEL_SIZE of DATA_CONFIG.DATA_PROCESSOR's transform_points_to_voxels"
+    if not (_close(res, vx) and _close(res, vy)):
+        raise led.error(f"{ib}.RESOLUTION", f"{res:g} m cells, but the pillar grid's are {vx:g} x {vy:g} m ({vox}); "
+                        "the clustering map is fused with the pillar map cell by cell, so RESOLUTION must equal "
+                        "the voxel size in x and y")
+    if not _close(x_min, 0.0):
+        raise led.error("DATA_CONFIG.POINT_CLOUD_RANGE", f"x_min {x_min:g}: CQCA_cfa's clustering map starts at "
+                        "x = 0 (it bins x / RESOLUTION, no key offsets it), so the pillar grid it is fused with "
+                        "must start there too")
+    if not _close(-y_off, y_min):
+        raise led.error(f"{ib}.DBSCAN_Y", f"{y_off:g} starts the clustering map at y = {-y_off:g} m, but the pillar "
+                        f"grid starts at POINT_CLOUD_RANGE y_min {y_min:g} m; the two maps are fused cell by cell, "
+                        f"so DBSCAN_Y must be {-y_min:g}")
+
+
 def _caf(led: _Ledger, pillar_channels: int) -> dict:
     """``caf``: CQCA_caf's channels (its attention constants are the module's, not config keys)."""
     fu = "MODEL.FUSER"
@@ -579,23 +676,23 @@ def _backbone(led: _Ledger) -> dict:
             for k in ("LAYER_NUMS", "LAYER_STRIDES", "NUM_FILTERS", "UPSAMPLE_STRIDES", "NUM_UPSAMPLE_FILTERS")}
 
 
-ANCHOR_KEYS = ("class_name", "anchor_sizes", "anchor_rotations", "anchor_bottom_heights", "align_center",
-               "feature_map_stride")
-
-
 def _dense_head(led: _Ledger) -> dict:
     h = "MODEL.DENSE_HEAD"
     led.check(f"{h}.NAME", ("AnchorHeadSingle",), "OpenPCDet's AnchorHeadSingle")
     led.check(f"{h}.CLASS_AGNOSTIC", (False,), "a class logit per class and anchor")
-    led.check(f"{h}.USE_DIRECTION_CLASSIFIER", (True,), "the heading with its direction bin")
+    # AnchorHeadSingle builds (and AnchorHeadTemplate applies) the direction classifier whenever
+    # the key is present: ``model_cfg.get('USE_DIRECTION_CLASSIFIER', None) is not None``
+    if led.check(f"{h}.USE_DIRECTION_CLASSIFIER", (True, False),
+                 "the heading with its direction bin, which upstream builds whenever the key is present") is False:
+        led.notes.append(f"{h}.USE_DIRECTION_CLASSIFIER: False still builds and applies upstream's direction "
+                         "classifier (AnchorHeadSingle tests the key for presence, not truth); the card does too")
     out = {"dir_offset": float(led.map(f"{h}.DIR_OFFSET", "dense_head.dir_offset", kind=NUMBER)),
            "dir_limit_offset": float(led.map(f"{h}.DIR_LIMIT_OFFSET", "dense_head.dir_limit_offset", kind=NUMBER)),
            "num_dir_bins": led.map(f"{h}.NUM_DIR_BINS", "dense_head.num_dir_bins", kind=int),
            "cls_prior": DEPLOYMENT_CHOICES["dense_head.cls_prior"]}
     ta = f"{h}.TARGET_ASSIGNER_CONFIG"
     led.check(f"{ta}.BOX_CODER", ("ResidualCoder",), "OpenPCDet's ResidualCoder box decoding")
-    if led.has(f"{ta}.BOX_CODER_CONFIG"):
-        raise led.error(f"{ta}.BOX_CODER_CONFIG", "radaredge decodes with the plain 7-value ResidualCoder")
+    _box_coder_config(led, f"{ta}.BOX_CODER_CONFIG", "the anchor head's boxes")
     led.training(ta, "anchor target assignment (training only)")
     led.training(f"{h}.LOSS_CONFIG", "loss (training only)")
     entries = led.value(f"{h}.ANCHOR_GENERATOR_CONFIG", kind=list)
@@ -604,17 +701,117 @@ def _dense_head(led: _Ledger) -> dict:
         key = f"{h}.ANCHOR_GENERATOR_CONFIG[{i}]"
         if not isinstance(e, dict):
             raise led.error(key, f"expected a mapping of one class's anchors, got {e!r}")
-        anchors.append({k: led.map(f"{key}.{k}", f"dense_head.anchors[{i}].{k}") for k in ANCHOR_KEYS})
+        anchors.append(_anchor_class(led, key, f"dense_head.anchors[{i}]"))
         for k in ("matched_threshold", "unmatched_threshold"):
             led.training(f"{key}.{k}", "anchor target assignment (training only)")
     out["anchors"] = anchors
     return out
 
 
-def _nms(led: _Ledger, key: str, card_field: str) -> dict:
-    """An NMS_CONFIG's class-agnostic rotated NMS as the card's (iou_thresh, pre_max, post_max)."""
+def _numbers(v) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, NUMBER) and not isinstance(x, bool) for x in v)
+
+
+def _anchor_class(led: _Ledger, key: str, card_field: str) -> dict:
+    """One ANCHOR_GENERATOR_CONFIG entry as upstream's AnchorGenerator reads it: a class's
+    anchors at each location are its sizes x rotations x bottom heights, so an empty list would
+    leave the class without anchors (no box of it could ever be output)."""
+    name = led.map(f"{key}.class_name", f"{card_field}.class_name", kind=str)
+    sizes = led.map(f"{key}.anchor_sizes", f"{card_field}.anchor_sizes", kind=list)
+    if not sizes or not all(_numbers(sz) and len(sz) == 3 and all(x > 0 for x in sz) for sz in sizes):
+        raise led.error(f"{key}.anchor_sizes", f"expected a non-empty list of [dx, dy, dz] sizes > 0, got {sizes} "
+                        "(with none, the class has no anchor and no box of it is ever output)")
+    rots = led.map(f"{key}.anchor_rotations", f"{card_field}.anchor_rotations", kind=list)
+    if not _numbers(rots):
+        raise led.error(f"{key}.anchor_rotations", f"expected a non-empty list of headings in radians, got {rots} "
+                        "(with none, the class has no anchor and no box of it is ever output)")
+    heights = led.map(f"{key}.anchor_bottom_heights", f"{card_field}.anchor_bottom_heights", kind=list)
+    if not _numbers(heights) or len(heights) != 1:
+        raise led.error(f"{key}.anchor_bottom_heights", f"expected one bottom height, got {heights}: radaredge's "
+                        "anchor head has one anchor height per class")
+    align = led.map(f"{key}.align_center", f"{card_field}.align_center", default=False, kind=bool)
+    stride = led.map(f"{key}.feature_map_stride", f"{card_field}.feature_map_stride", kind=int)
+    if stride < 1:
+        raise led.error(f"{key}.feature_map_stride", f"expected a stride >= 1, got {stride}")
+    return {"class_name": name, "anchor_sizes": sizes, "anchor_rotations": rots, "anchor_bottom_heights": heights,
+            "align_center": align, "feature_map_stride": stride}
+
+
+def _box_coder_config(led: _Ledger, key: str, what: str) -> None:
+    """A ResidualCoder's BOX_CODER_CONFIG (its keyword arguments). Upstream builds the decoder of
+    ``what`` from it at test time: ``encode_angle_by_sincos: True`` makes the code 8 values
+    (cos and sin residuals of the heading, decoded with atan2) and ``code_size`` changes the
+    regression layer's width. radaredge decodes 7 values with one heading residual, so only
+    the values that keep that are accepted; any other key is refused by name."""
+    if not led.has(key):
+        return
+    known = ("encode_angle_by_sincos", "code_size")
+    for k in led.value(key, kind=dict):
+        if k not in known:
+            raise led.error(f"{key}.{k}", f"not a ResidualCoder setting radaredge reproduces; it decodes {what} "
+                            "with the 7-value code (encode_angle_by_sincos: False, code_size: 7)")
+    sincos = led.value(f"{key}.encode_angle_by_sincos", False, kind=bool)
+    if sincos:
+        raise led.error(f"{key}.encode_angle_by_sincos", f"True makes upstream decode {what} from 8 values (the "
+                        "heading as cos and sin residuals, joined by atan2); radaredge decodes the 7-value "
+                        "ResidualCoder code (one heading residual): encode_angle_by_sincos False only")
+    size = led.value(f"{key}.code_size", 7, kind=int)
+    if size != 7:
+        raise led.error(f"{key}.code_size", f"{size}: radaredge decodes {what} from the 7-value ResidualCoder "
+                        "code (x, y, z, dx, dy, dz, heading): code_size 7 only")
+    why = f"{what} decoded from the 7-value ResidualCoder code"
+    led.check(f"{key}.encode_angle_by_sincos", (False,), why, default=False)
+    led.check(f"{key}.code_size", (7,), why, default=7)
+
+
+def _check_head_grid(led: _Ledger, backbone: dict, anchors: list[dict], ny: int, nx: int) -> None:
+    """The anchors must tile the map the head convolves: upstream's AnchorGenerator makes
+    (pillar grid // feature_map_stride) anchor locations and AnchorHeadSingle predicts one set per
+    cell of BaseBEVBackbone's output; the backbone concatenates its blocks' upsampled maps, so
+    they must have one size. A mismatch fails upstream's reshape, and would leave the card's
+    anchors beside the wrong cells."""
+    b = "MODEL.BACKBONE_2D"
+    strides, ups = backbone["layer_strides"], backbone["upsample_strides"]
+    if not (len(strides) == len(ups) >= 1 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
+                                                  for v in strides)
+            and all(isinstance(u, NUMBER) and not isinstance(u, bool) and u > 0 for u in ups)):
+        return          # the model refuses these with the card's own message
+    sizes, hw = [], (ny, nx)
+    for s, u in zip(strides, ups):
+        hw = tuple(-(-n // s) for n in hw)                       # 3x3 conv, padding 1, stride s
+        up = Fraction(u).limit_denominator(1000)
+        if up >= 1 and up.denominator != 1 or up < 1 and up.numerator != 1:
+            return      # a transposed conv of a fractional stride: the model refuses it
+        sizes.append(tuple(n * int(up) for n in hw) if up >= 1 else tuple(n // round(1 / up) for n in hw))
+    if len(set(sizes)) != 1:
+        raise led.error(f"{b}.UPSAMPLE_STRIDES", f"{ups}: the blocks' upsampled maps are {sizes} cells (rows x "
+                        "columns); BaseBEVBackbone concatenates them, so they must have one size")
+    head = sizes[0]
+    for i, a in enumerate(anchors):
+        grid = (ny // a["feature_map_stride"], nx // a["feature_map_stride"])
+        if grid != head:
+            raise led.error(f"MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG[{i}].feature_map_stride",
+                            f"{a['feature_map_stride']} gives {grid[0]} x {grid[1]} anchor locations on the "
+                            f"{ny} x {nx} pillar grid, but the head predicts on BACKBONE_2D's {head[0]} x {head[1]} "
+                            "map; they must match")
+
+
+def _nms(led: _Ledger, key: str, card_field: str, final: bool = False) -> dict:
+    """An NMS_CONFIG's class-agnostic rotated NMS as the card's (iou_thresh, pre_max, post_max).
+
+    ``final``: POST_PROCESSING's, where MAFF-Net's ``Detector3DTemplate.post_processing`` runs
+    one class-agnostic NMS only when NMS_THRESH is a float (``isinstance(..., float)``); any other
+    value takes its per-class branch (thresholds NMS_THRESH.CAR / PED / CYC by label), which
+    radaredge has no formulation of, and which an integer makes fail."""
     led.check(f"{key}.MULTI_CLASSES_NMS", (False,), "class-agnostic NMS")
     led.check(f"{key}.NMS_TYPE", ("nms_gpu",), "rotated BEV NMS (OpenPCDet's nms_gpu)")
+    thresh = led.value(f"{key}.NMS_THRESH")
+    if final and isinstance(thresh, dict):
+        raise led.error(f"{key}.NMS_THRESH", f"{thresh}: per-class NMS thresholds (upstream's CAR/PED/CYC branch) "
+                        "are not supported: radaredge computes one class-agnostic NMS with a single threshold")
+    if final and isinstance(thresh, int) and not isinstance(thresh, bool):
+        raise led.error(f"{key}.NMS_THRESH", f"{thresh} is an integer: upstream's post_processing runs its "
+                        f"class-agnostic NMS only for a float and fails on an integer; write it as {float(thresh)}")
     return {"iou_thresh": float(led.map(f"{key}.NMS_THRESH", f"{card_field}.iou_thresh", kind=NUMBER)),
             "pre_max": led.map(f"{key}.NMS_PRE_MAXSIZE", f"{card_field}.pre_max", kind=int),
             "post_max": led.map(f"{key}.NMS_POST_MAXSIZE", f"{card_field}.post_max", kind=int)}
@@ -623,7 +820,7 @@ def _nms(led: _Ledger, key: str, card_field: str) -> dict:
 def _post_processing(led: _Ledger) -> dict:
     p = "MODEL.POST_PROCESSING"
     out = {"score_thresh": float(led.map(f"{p}.SCORE_THRESH", "post_processing.score_thresh", kind=NUMBER))}
-    out.update(_nms(led, f"{p}.NMS_CONFIG", "post_processing"))
+    out.update(_nms(led, f"{p}.NMS_CONFIG", "post_processing", final=True))
     led.check(f"{p}.OUTPUT_RAW_SCORE", (False,), "sigmoid scores", default=False)
     led.ignore(f"{p}.RECALL_THRESH_LIST", "evaluation only (upstream's recall statistics)")
     led.ignore(f"{p}.EVAL_METRIC", "evaluation only (radaredge eval scores with the dataset's devkit protocol)")
@@ -661,7 +858,12 @@ def _stage_two(led: _Ledger, nms: dict) -> dict:
     led.check(f"{rh}.NAME", ("PVRCNNHead",), "OpenPCDet's PVRCNNHead")
     led.check(f"{rh}.CLASS_AGNOSTIC", (True,), "a class-agnostic ROI head (labels from the proposals)")
     grid = f"{rh}.ROI_GRID_POOL"
-    led.check(f"{grid}.POOL_METHOD", ("max_pool",), "max pooling over each ball", default="max_pool")
+    # build_local_aggregation_module: StackSAModuleMSG(..., pool_method='max_pool'), POOL_METHOD never read
+    pool = led.value(f"{grid}.POOL_METHOD", "max_pool")
+    led.ignore(f"{grid}.POOL_METHOD", "never read: upstream's build_local_aggregation_module always max-pools")
+    if pool != "max_pool":
+        led.notes.append(f"{grid}.POOL_METHOD: {pool!r} is never read; upstream's build_local_aggregation_module "
+                         "builds its StackSAModuleMSG with max_pool, and so does the card")
     roi_head = {"shared_fc": led.map(f"{rh}.SHARED_FC", "stage_two.roi_head.shared_fc", kind=list),
                 "cls_fc": led.map(f"{rh}.CLS_FC", "stage_two.roi_head.cls_fc", kind=list),
                 "reg_fc": led.map(f"{rh}.REG_FC", "stage_two.roi_head.reg_fc", kind=list),
@@ -670,6 +872,8 @@ def _stage_two(led: _Ledger, nms: dict) -> dict:
                 "grid_size": led.map(f"{grid}.GRID_SIZE", "stage_two.roi_head.grid_size", kind=int),
                 "roi_grid_pool": _sa(led, grid, "stage_two.roi_head.roi_grid_pool")}
     led.check(f"{rh}.TARGET_CONFIG.BOX_CODER", ("ResidualCoder",), "OpenPCDet's ResidualCoder decoding of the rois")
+    # RoIHeadTemplate builds its test-time box decoder from TARGET_CONFIG.BOX_CODER(_CONFIG)
+    _box_coder_config(led, f"{rh}.TARGET_CONFIG.BOX_CODER_CONFIG", "the ROI head's refined boxes")
     led.training(f"{rh}.TARGET_CONFIG", "proposal targets (training only)")
     led.training(f"{rh}.LOSS_CONFIG", "loss (training only)")
     led.training(f"{rh}.NMS_CONFIG.TRAIN", "proposals while training")
@@ -681,6 +885,8 @@ def _stage_two(led: _Ledger, nms: dict) -> dict:
 
 
 def _sa(led: _Ledger, key: str, card_field: str) -> dict:
+    led.check(f"{key}.NAME", ("StackSAModuleMSG",), "multi-scale set abstraction (StackSAModuleMSG, upstream's "
+              "default)", default="StackSAModuleMSG")
     return {"radii": led.map(f"{key}.POOL_RADIUS", f"{card_field}.radii", kind=list),
             "nsample": led.map(f"{key}.NSAMPLE", f"{card_field}.nsample", kind=list),
             "mlps": led.map(f"{key}.MLPS", f"{card_field}.mlps", kind=list)}
@@ -698,9 +904,15 @@ def _training_and_data_keys(led: _Ledger) -> None:
         raise led.error("DATA_CONFIG.GET_ITEM_LIST", f"{items}: MAFF-Net reads points")
     led.ignore("DATA_CONFIG.GET_ITEM_LIST", "the dataset's items (points)")
     mask = _processor(led, "mask_points_and_boxes_outside_range")
-    if mask:
-        led.check(f"{mask}.NAME", ("mask_points_and_boxes_outside_range",), "the range mask")
-        led.training(f"{mask}.REMOVE_OUTSIDE_BOXES", "ground-truth boxes (training only)")
+    if mask is None:
+        # upstream's batch_dict['points'] (the CFA's clustering, the CDA keypoints, the VSA) are the
+        # points after the data processor; radaredge's graph always takes them cropped to the range
+        raise led.error("DATA_CONFIG.DATA_PROCESSOR", "no mask_points_and_boxes_outside_range step: upstream would "
+                        "cluster and sample the points outside POINT_CLOUD_RANGE too, and radaredge's graph always "
+                        "crops them to the range (add the step, as upstream's configs have it)")
+    led.check(f"{mask}.NAME", ("mask_points_and_boxes_outside_range",), "the range mask")
+    led.training(f"{mask}.REMOVE_OUTSIDE_BOXES", "ground-truth boxes (training only)")
+    led.training(f"{mask}.min_num_corners", "ground-truth boxes (training only)")
     shuffle = _processor(led, "shuffle_points")
     if shuffle:
         led.check(f"{shuffle}.NAME", ("shuffle_points",), "the points in the order given")

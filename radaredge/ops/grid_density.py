@@ -60,8 +60,8 @@ MAX_MAP_CELLS = 2**20      # CFA map cells: 64 float32 channels of it make 256 M
 class GridDensityConfig:
     """Model-card section of GridDensityBEV (metres, cells, point counts); VoD values by default."""
 
-    map_h: int = 320              # rows = y cells (DBSCAN_MAP_H)
-    map_w: int = 320              # columns = x cells (DBSCAN_MAP_W)
+    map_h: int = 320              # rows = y cells (upstream's DBSCAN_MAP_W: its first axis is y)
+    map_w: int = 320              # columns = x cells (upstream's DBSCAN_MAP_H)
     resolution: float = 0.16      # m per cell (RESOLUTION)
     x_min: float = 0.0            # m, x of the first column's lower edge
     y_min: float = -25.6          # m, y of the first row's lower edge (-DBSCAN_Y)
