@@ -1,10 +1,16 @@
 """Fleet scale: `radaredge run` on an embedded Ray instance (outputs equal the sequential runtime's bit
 for bit, a killed run resumes), `radaredge map build` / `map query` (the same Recall@N as `radaredge
-eval` with the exact index), the runtime's backend choice, and bad input named in one error line."""
+eval` with the exact index), the runtime's backend choice, and bad input named in one error line.
+Nothing lost or silently wrong: drives whose paths flatten alike keep their own shards, a failed run
+leaves the previous one as it was, a missing shard is named and repaired, a resumed run follows the
+data as it is now, and threads or workers beyond the CPUs are cut down instead of hanging."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
+import signal
 
 import numpy as np
 import pytest
@@ -12,7 +18,8 @@ import pytest
 from radaredge import runtime
 from radaredge.data.pr_benchmark import make_pr_benchmark
 from radaredge.fleet import maps
-from radaredge.fleet.pipeline import ShardWorker, plan_shards, run_graph, run_sequential
+from radaredge.errors import InputError
+from radaredge.fleet.pipeline import ShardWorker, available_cpus, plan_shards, run_graph, run_sequential
 from radaredge.data.run_shards import MANIFEST, read_run
 from conftest import TINY_CARD, invoke, one_error_line
 
@@ -192,3 +199,182 @@ def test_a_detector_runs_over_every_frame_of_vod_bin_drives(tmp_path):
         want = model.run([seq.scan(i, model.features)])
         assert np.array_equal(np.asarray(outputs["boxes"][i]), want["boxes"]), i
     assert poses["frame"].tolist() == list(range(6))
+
+
+@contextlib.contextmanager
+def _deadline(seconds: float):
+    """Fail the test with TimeoutError after ``seconds`` instead of hanging (main thread only)."""
+    def expire(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+    old = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _fleet(root, town_data, **drives):
+    """Drives under ``root``: name (a relative path) -> the town's drive ("database" or "queries") copied there."""
+    for name, source in drives.items():
+        (drive,) = (town_data / source).iterdir()
+        shutil.copytree(drive, root / name)
+    return root
+
+
+def _last_scan(drive):
+    return sorted((drive / "scans").iterdir())[-1]
+
+
+def _shard_files(out):
+    return {p.name: p.read_bytes() for p in (out / "shards").iterdir()} if (out / "shards").is_dir() else {}
+
+
+def _descriptors_of(onnx, drive):
+    """The runtime's descriptors of every window of one drive, window by window."""
+    worker = ShardWorker(str(onnx), 1)
+    (plan,) = plan_shards(drive, worker.model.frames, 1 << 30)
+    return np.stack([o["descriptor_normalized"] for o in worker.outputs(plan)[1]])
+
+
+def test_drives_whose_paths_flatten_alike_keep_their_own_shards(town, tmp_path):
+    """`a/b` and `a__b` were both shard `a__b-00000`: one drive's windows vanished from the run and the map."""
+    data, onnx = town
+    root = _fleet(tmp_path / "fleet", data, **{"a/b": "database", "a__b": "queries"})
+    res = invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx,
+                 "--drives", root, "--out", tmp_path / "map", "--workers", 1, "--json")
+    assert res.exit_code == 0, res.output
+    manifest, poses, outputs = read_run(tmp_path / "map" / "run")
+    assert poses["drive"].tolist() == ["a/b"] * 12 + ["a__b"] * 12
+    for drive in ("a/b", "a__b"):
+        mine = poses["drive"] == drive
+        assert outputs["descriptor_normalized"][mine].tobytes() == _descriptors_of(onnx, root / drive).tobytes(), drive
+    # run.json maps each drive to its own shards, and each shard back to its drive
+    assert set(manifest["drives"]) == {"a/b", "a__b"}
+    owned = {name: drive for drive, info in manifest["drives"].items() for name in info["shards"]}
+    assert len(owned) == 2 and all(manifest["shards"][n]["drive"] == d for n, d in owned.items())
+    assert {p.stem for p in (tmp_path / "map" / "run" / "shards").iterdir()} == set(owned)
+    info = json.loads((tmp_path / "map" / "map.json").read_text())
+    assert info["drives"] == ["a/b", "a__b"] and info["windows"] == 24 == json.loads(res.stdout)["windows"]
+    with np.load(tmp_path / "map" / "poses.npz") as z:
+        assert sorted(set(z["drive"].tolist())) == ["a/b", "a__b"]
+
+
+def test_a_failed_run_leaves_the_previous_run_as_it_was(town, tmp_path):
+    """A corrupt scan, or one with the wrong column count, fails the run with one error naming the file
+    and leaves no run.json or shard of the failed attempt: the previous run stays as it was."""
+    data, onnx = town
+    root, out = _fleet(tmp_path / "fleet", data, d1="database", d2="queries"), tmp_path / "out"
+    bad = _last_scan(root / "d2")                  # in d2's last shard: d1's shards finish before it fails
+    good = bad.read_bytes()
+    bad.write_bytes(good[:70])                      # a truncated .npy
+    args = ("run", "--onnx", onnx, "--data", root, "--out", out, "--workers", 1, "--shard-windows", 5)
+    one_error_line(invoke(*args), str(bad.resolve()))
+    assert not (out / MANIFEST).exists() and not _shard_files(out)
+    np.save(bad, np.zeros((9, 4), np.float32))    # TransLoc .npy scans have 5 columns
+    one_error_line(invoke(*args), str(bad.resolve()), "4 columns")
+    assert not (out / MANIFEST).exists() and not _shard_files(out)
+    bad.write_bytes(good)
+    res = invoke(*args)
+    assert res.exit_code == 0, res.output
+    assert "finished by an earlier attempt that failed, reused" in res.output     # d1's, staged by the first
+    manifest, shards = (out / MANIFEST).read_bytes(), _shard_files(out)
+    assert len(shards) == 6 and not (out / ".staging").exists()
+    # a run over more drives, one of them bad, fails and leaves that run as it was
+    _fleet(root, data, d3="database", d4="queries")
+    worse = _last_scan(root / "d4")
+    worse.write_bytes(worse.read_bytes()[:70])
+    one_error_line(invoke(*args), str(worse.resolve()))
+    assert (out / MANIFEST).read_bytes() == manifest and _shard_files(out) == shards
+    assert sorted(set(read_run(out)[1]["drive"].tolist())) == ["d1", "d2"]
+
+
+def test_a_missing_shard_is_named_when_read_and_recomputed_on_resume(town, tmp_path):
+    data, onnx = town
+    out = tmp_path / "out"
+    run_sequential(onnx, data, out, shard_windows=5)
+    name = sorted(json.loads((out / MANIFEST).read_text())["shards"])[1]
+    victim = out / "shards" / f"{name}.parquet"
+    before = victim.read_bytes()
+    victim.unlink()
+    with pytest.raises(InputError) as caught:
+        read_run(out)
+    assert name in str(caught.value) and "is missing" in str(caught.value)
+    assert "`radaredge run` with the same arguments" in str(caught.value)
+    res = invoke("run", "--onnx", onnx, "--data", data, "--out", out)
+    assert res.exit_code == 0, res.output
+    assert "1 shard(s) named in run.json but missing, recomputed" in res.output and name in res.output
+    assert victim.read_bytes() == before
+    assert len(read_run(out)[1]["frame"]) == 24
+
+
+def test_a_resumed_run_follows_the_data_as_it_is_now(town, tmp_path):
+    """A drive removed from the data leaves the run; a drive whose scans changed is recomputed."""
+    data, onnx = town
+    root, out = _fleet(tmp_path / "fleet", data, d1="database", d2="queries", d3="database"), tmp_path / "out"
+    run_sequential(onnx, root, out, shard_windows=5)
+    shutil.rmtree(root / "d2")
+    scan = sorted((root / "d3" / "scans").iterdir())[4]
+    np.save(scan, np.load(scan)[:-3])              # three points fewer in one scan of d3
+    res = invoke("run", "--onnx", onnx, "--data", root, "--out", out, "--workers", 1)
+    assert res.exit_code == 0, res.output
+    assert "1 drive(s) no longer in the data, their shards dropped: d2" in res.output
+    assert "1 drive(s) whose scans or gps.csv changed, their shards recomputed: d3" in res.output
+    manifest, poses, outputs = read_run(out)
+    assert sorted(set(poses["drive"].tolist())) == ["d1", "d3"] and set(manifest["drives"]) == {"d1", "d3"}
+    assert {p.stem for p in (out / "shards").iterdir()} == set(manifest["shards"])      # d2's and d3's old files gone
+    fresh = run_sequential(onnx, root, tmp_path / "fresh", shard_windows=5)
+    assert fresh.windows == 24
+    _, _, want = read_run(tmp_path / "fresh")
+    assert outputs["descriptor_normalized"].tobytes() == want["descriptor_normalized"].tobytes()
+    # --json carries the same account
+    again = json.loads(invoke("run", "--onnx", onnx, "--data", root, "--out", out, "--json").stdout)
+    assert again["computed_shards"] == 0 and again["changes"]["removed"] == [] and again["changes"]["changed"] == []
+
+
+def test_a_run_json_of_the_older_format_is_read_and_recomputed_on_resume(town, tmp_path):
+    data, onnx = town
+    out = tmp_path / "out"
+    run_sequential(onnx, data, out, shard_windows=5)
+    _, poses, outputs = read_run(out)
+    # what radaredge wrote before drive fingerprints: no format or drives, shards named <drive>-<n>
+    new = json.loads((out / MANIFEST).read_text())
+    old = {k: v for k, v in new.items() if k not in ("format", "drives")}
+    old["shards"] = {}
+    for name, entry in new["shards"].items():
+        old_name = f"{entry['drive'].replace('/', '__')}-{entry['first'] // 5:05d}"
+        (out / "shards" / f"{name}.parquet").rename(out / "shards" / f"{old_name}.parquet")
+        old["shards"][old_name] = entry
+    (out / MANIFEST).write_text(json.dumps(old))
+    assert read_run(out)[2]["descriptor_normalized"].tobytes() == outputs["descriptor_normalized"].tobytes()
+    report = run_sequential(onnx, data, out)
+    assert report.computed_shards == 6 and report.changes["older_format"]
+    assert json.loads((out / MANIFEST).read_text()) == new
+    assert {p.stem for p in (out / "shards").iterdir()} == set(new["shards"])
+    # a manifest of a newer format is refused, not misread
+    (out / MANIFEST).write_text(json.dumps({**new, "format": 99}))
+    with pytest.raises(InputError, match="newer radaredge"):
+        read_run(out)
+
+
+def test_threads_and_workers_beyond_the_cpus_are_cut_down_with_a_warning(town, tmp_path):
+    """`run --threads 64` on a 2-core machine waited for ever for a Ray actor that could not start."""
+    data, onnx = town
+    many = max(64, 4 * available_cpus())
+    with _deadline(240):
+        res = invoke("run", "--onnx", onnx, "--data", data / "database", "--out", tmp_path / "out",
+                     "--threads", many, "--workers", many)
+    assert res.exit_code == 0, res.output
+    warned = [ln for ln in res.output.splitlines() if ln.startswith("warning:")]
+    assert any(f"--threads {many}: more than the" in w for w in warned), res.output
+    assert any(f"--workers {many}: more than the" in w for w in warned), res.output
+    assert len(read_run(tmp_path / "out")[1]["frame"]) == 12
+    with _deadline(240):
+        res = invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx,
+                     "--drives", data / "database", "--out", tmp_path / "map", "--threads", many, "--workers", many)
+    assert res.exit_code == 0, res.output
+    assert f"warning: --threads {many}: more than the" in res.output
+    res = invoke("map", "query", "--map", tmp_path / "map", "--drive", data / "queries", "--threads", many)
+    assert res.exit_code == 0, res.output
+    assert f"warning: --threads {many}: more than the {available_cpus()} CPU(s)" in res.output

@@ -31,8 +31,8 @@ from .. import atomic
 from ..errors import ConfigError, InputError
 from ..eval.places import RECALL_NS, recall_of_ranking
 from .. import runtime
-from .pipeline import ShardWorker, plan_shards, run_graph
-from ..data.run_shards import read_run
+from .pipeline import ShardWorker, available_cpus, bound_threads, plan_shards, run_graph
+from ..data.run_shards import RunChanges, read_run
 
 DESCRIPTOR = "descriptor_normalized"
 EXACT_LIMIT = 100_000
@@ -108,14 +108,17 @@ class MapReport:
         return [f"{self.map}: {self.windows} windows of {len(self.drives)} drive(s), {self.index['kind']} index "
                 f"built in {self.build_seconds:.1f} s",
                 f"descriptors: {self.run['computed_windows']} computed, "
-                f"{self.run['windows'] - self.run['computed_windows']} from earlier shards"]
+                f"{self.run['windows'] - self.run['computed_windows']} from earlier shards",
+                *RunChanges(**self.run.get("changes", {})).lines()]
 
 
 def build_map(graph: str | Path, drives: str | Path, out: str | Path, *, index: str = "auto",
               workers: int | None = None, threads: int = 1, backend: str = "onnxruntime",
               ray_address: str | None = None, fmt: str | None = None, progress: Callable | None = None) -> MapReport:
     """Describe every window of the drives under ``drives`` with the place-recognition graph
-    ``graph`` (:func:`run_graph`, into ``out/run``) and index the descriptors in ``out``."""
+    ``graph`` (:func:`run_graph`, into ``out/run``: resumable, checked against the data as it is
+    now, ``threads`` and ``workers`` cut down to the CPUs there with a warning) and index the
+    descriptors in ``out`` (index.faiss, poses.npz and map.json replaced together)."""
     out = Path(out)
     model = runtime.load(graph, threads=1)
     if DESCRIPTOR not in model.output_names:
@@ -131,16 +134,19 @@ def build_map(graph: str | Path, drives: str | Path, out: str | Path, *, index: 
     seconds = time.perf_counter() - start
     # optional: faiss comes with the eval and export extras
     import faiss
-    with atomic.atomic_path(out / "index.faiss") as tmp:
-        faiss.write_index(built, str(tmp))
-    with atomic.atomic_path(out / "poses.npz") as tmp:
-        np.savez(tmp, **{k: (v.astype(str) if k == "drive" else v) for k, v in poses.items()})
     drive_names = list(dict.fromkeys(poses["drive"].tolist()))
-    atomic.write_json(out / MAP_JSON, {
-        "model": model.card.name, "card": model.card.to_yaml(), "graph": str(Path(graph).resolve()),
-        "weights_sha256": model.weights_sha256, "descriptor": DESCRIPTOR, "windows": int(len(desc)),
-        "dim": int(desc.shape[1]), "index": params, "drives": drive_names, "data": manifest["data"],
-        "window_frames": manifest["window_frames"]})
+    # the index, its poses and map.json are moved into place together: a map never pairs one
+    # build's index with another's poses
+    with atomic.Staging(out) as staging:
+        faiss.write_index(built, str(staging.path(out / "index.faiss")))
+        np.savez(staging.path(out / "poses.npz"),
+                 **{k: (v.astype(str) if k == "drive" else v) for k, v in poses.items()})
+        staging.path(out / MAP_JSON).write_text(atomic.dumps({
+            "model": model.card.name, "card": model.card.to_yaml(), "graph": str(Path(graph).resolve()),
+            "weights_sha256": model.weights_sha256, "descriptor": DESCRIPTOR, "windows": int(len(desc)),
+            "dim": int(desc.shape[1]), "index": params, "drives": drive_names, "data": manifest["data"],
+            "window_frames": manifest["window_frames"]}), encoding="utf-8")
+        staging.commit()
     return MapReport(str(out), int(len(desc)), drive_names, params, seconds, report.to_dict())
 
 
@@ -199,6 +205,7 @@ def query_map(map_dir: str | Path, drive: str | Path, *, onnx: str | Path | None
     """Localise every window of the drive ``drive`` against the map: its descriptors by the map's
     graph (``onnx``, default the one recorded; its weights must be the map's), the top ``top_k``
     map windows with their poses and, from the drive's positions, Recall@N within ``radius`` m."""
+    threads = bound_threads(threads, available_cpus())
     info, index, poses = load_map(map_dir)
     graph = Path(onnx) if onnx is not None else Path(info["graph"])
     worker = ShardWorker(str(graph), threads, backend)
