@@ -41,8 +41,8 @@ from ..data.sequences import (RadarSequence, drive_directories, load_sequence, n
                               windows)
 from ..data.run_shards import read_run
 from ..errors import ConfigError, InputError
-from ..export.graphs import require_same_weights
-from ..models import create_model
+from ..export.graphs import DEBUG_PREFIX, require_same_weights
+from ..models import create_model, model_spec
 from .. import runtime
 from .baselines import polar_occupancy
 from .recall_stats import bootstrap_interval
@@ -342,14 +342,27 @@ def baseline_backend(features: Sequence[str]) -> Backend:
 
 
 def check_export(card: ModelCard, exported) -> None:
-    """ConfigError unless the exported graph (a :class:`radaredge.runtime.RadarModel`) was made
-    from ``card``: the same name, frame count and feature columns."""
+    """ConfigError unless the exported graph (a :class:`radaredge.runtime.RadarModel`, loaded
+    with its contents and card checked) was made from ``card``: the same name, frame count and
+    feature columns; InputError naming the file when the card embedded in the graph implies other
+    point-frame inputs or outputs than the graph has (the model family's signature of that card,
+    which the torch-free runtime cannot derive: a card edited after export, or a graph it does
+    not belong to)."""
     if exported.card.name != card.name:
         raise ConfigError(f"{exported.path} is an export of card {exported.card.name!r}, not {card.name!r}; "
                           f"pass the --model/--config it was exported with")
-    if exported.frames != int(card.get("frames", 1)) or exported.features != card.features:
+    graph = model_spec(exported.card).graph(exported.info.part)
+    frames, outputs = graph.frame_inputs(exported.card), graph.output_names(exported.card)
+    have = exported.output_names        # a debug copy adds debug.<intermediate> outputs, renaming an output it traces
+    if exported.info.frame_inputs != frames or any(o not in have and DEBUG_PREFIX + o not in have for o in outputs) \
+            or any(not o.startswith(DEBUG_PREFIX) and o not in outputs for o in have):
+        raise InputError(f"{exported.path}: its embedded card disagrees with the graph: the card's {graph.name} graph "
+                         f"takes point frames {frames} and gives {outputs}, this graph takes "
+                         f"{exported.info.frame_inputs} and gives {exported.output_names}; re-export it")
+    want = len(model_spec(card).graph(exported.info.part).frame_inputs(card))
+    if exported.frames != want or exported.features != card.features:
         raise ConfigError(f"{exported.path} takes {exported.frames} frame(s) of {exported.features}, but card "
-                          f"{card.name!r} declares {card.get('frames', 1)} of {card.features}; re-export it")
+                          f"{card.name!r} declares {want} of {card.features}; re-export it")
 
 
 @dataclass

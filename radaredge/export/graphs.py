@@ -4,7 +4,10 @@ directory (the files of :mod:`radaredge.artifacts`).
 
 The card, the feature columns, the input signature, the runtime checks, the package versions
 and a hash of the weights travel inside each graph's ``metadata_props``
-(:mod:`radaredge.runtime.metadata`), so an embedded app needs nothing else.
+(:mod:`radaredge.runtime.metadata`), so an embedded app needs nothing else. Every graph written
+(fp32, debug and int8 copies, each graph of a bundle) also records the hash of its own contents,
+``radaredge.content_sha256`` (:mod:`radaredge.runtime.integrity`), which the runtime recomputes
+when it loads the graph; a bundle's manifest records each part's.
 """
 
 from __future__ import annotations
@@ -30,10 +33,36 @@ from ..models import weights_hash
 from ..models.spec import GraphSpec, ModelSpec
 from ..runtime import RadarModel
 from ..runtime.flags import BITS as FLAG_BITS, OUTPUT as FLAGS_OUTPUT, input_error_bits
-from ..runtime.metadata import GraphMetadata
+from ..runtime.integrity import content_hash_of
+from ..runtime.metadata import CONTENT_SHA256, GraphMetadata
 from .onnx_call import DEFAULT_OPSET, export_onnx
 
 DEBUG_PREFIX = "debug."   # debug-export outputs are named debug.<intermediate>
+
+
+def stamp_content_hash(proto: onnx.ModelProto) -> str:
+    """Record ``proto``'s content hash (:mod:`radaredge.runtime.integrity`) in its metadata as
+    ``radaredge.content_sha256``, replacing one recorded before (an int8 copy carries its fp32
+    graph's metadata); return it. The last change to ``proto`` before it is saved."""
+    kept = [(p.key, p.value) for p in proto.metadata_props if p.key != CONTENT_SHA256]
+    del proto.metadata_props[:]
+    for key, value in kept:
+        proto.metadata_props.add(key=key, value=value)
+    digest = content_hash_of(proto.SerializeToString()).computed
+    proto.metadata_props.add(key=CONTENT_SHA256, value=digest)
+    return digest
+
+
+def save_stamped(proto: onnx.ModelProto, path: str | Path) -> str:
+    """Save ``proto`` to ``path`` with its content hash recorded (:func:`stamp_content_hash`),
+    checked by hashing the written file as the runtime will; return the hash. ExportError when
+    the file does not verify (a serializer that wrote other bytes than it hashed)."""
+    digest = stamp_content_hash(proto)
+    onnx.save(proto, str(path))
+    written = content_hash_of(Path(path).read_bytes())
+    if written.status != "verified" or written.computed != digest:
+        raise ExportError(f"{path}: the written graph hashes to {written.computed}, not the {digest} recorded in it")
+    return digest
 
 
 def require_same_weights(exported: RadarModel, model: torch.nn.Module, checkpoint=None) -> None:
@@ -151,7 +180,7 @@ def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: tor
         onnx.checker.check_model(proto, full_check=True)
     except onnx.checker.ValidationError as exc:
         raise ExportError(f"onnx.checker rejected the exported graph: {exc}") from exc
-    onnx.save(proto, str(path))
+    meta.content_sha256 = save_stamped(proto, path)
     hist = dict(sorted(collections.Counter(n.op_type for n in proto.graph.node).items(), key=lambda kv: -kv[1]))
     custom = sorted({n.domain for n in proto.graph.node if n.domain not in ("", "ai.onnx")})
     if custom:
@@ -163,7 +192,7 @@ def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: tor
         "debug_outputs": list(graph.trace_order(card)) if debug else [],
         "inputs": [{"name": i.name, "shape": _shape(i)} for i in proto.graph.input],
         "outputs": [{"name": o.name, "shape": _shape(o)} for o in proto.graph.output],
-        "op_histogram": hist, "weights_sha256": meta.weights_sha256,
+        "op_histogram": hist, "weights_sha256": meta.weights_sha256, "content_sha256": meta.content_sha256,
         "versions": meta.versions,
     }, indent=2))
     return result
@@ -265,7 +294,7 @@ def write_export(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, outpu
 def write_manifest(card: ModelCard, spec: ModelSpec, out_dir: Path, graphs: dict[str, GraphExport], opset: int,
                    bundle_hash: str) -> Path:
     """Copy the model's shared files into ``out_dir`` and write its manifest: the graphs with
-    their hashes, the files and the card."""
+    their hashes (weights, and contents as recorded in each graph), the files and the card."""
     files = {}
     for fname, src in spec.files(card).items():
         shutil.copyfile(src, out_dir / fname)
@@ -274,7 +303,8 @@ def write_manifest(card: ModelCard, spec: ModelSpec, out_dir: Path, graphs: dict
     manifest.write_text(json.dumps({
         "model": card.name, "family": card.model, "opset": opset, "weights_sha256": bundle_hash,
         "parts": {n: {"onnx": r.path.name, "sidecar": r.sidecar.name, "size_bytes": r.size_bytes,
-                      "weights_sha256": r.metadata.weights_sha256} for n, r in graphs.items()},
+                      "weights_sha256": r.metadata.weights_sha256, "content_sha256": r.metadata.content_sha256}
+                  for n, r in graphs.items()},
         "files": files, "card": card.data,
     }, indent=2))
     return manifest

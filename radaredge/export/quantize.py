@@ -9,8 +9,9 @@ fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-ve
 (GridSample) and the index math. A card can keep more in fp32: the Conv/MatMul/Gemm layers of
 the modules it lists under ``quantization.keep_fp32`` (module names as in the state dict, ``*``
 matching any run of characters, submodules included), for layers whose int8 error the model
-cannot absorb. The radaredge metadata (card, features, weights hash) is copied over, and the
-quantisation settings are added under ``radaredge.quantization``.
+cannot absorb. The radaredge metadata (card, features, weights hash) is copied over, the
+quantisation settings are added under ``radaredge.quantization``, and the int8 graph records
+its own content hash (``radaredge.content_sha256``).
 
 The format is uint8 activations x int8 weights with the weights on a 7-bit range
 (``quantization.reduce_range``, default true). On x86 CPUs without VNNI (AVX2 only)
@@ -43,21 +44,24 @@ from ..models import model_spec
 from ..models.spec import GraphSpec, ModelSpec
 from ..node_scopes import fused_from, module_names
 from ..runtime import FrameFeeds
-from ..runtime.metadata import QUANTIZATION
+from ..runtime.metadata import CONTENT_SHA256, QUANTIZATION
+from .graphs import save_stamped
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
 
 
 def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: dict) -> None:
     """Give the quantised graph at ``out_path`` the fp32 graph's ``metadata_props`` (card, weights
-    hash, ...) plus ``radaredge.quantization`` = ``quantization`` (JSON)."""
+    hash, ...) plus ``radaredge.quantization`` = ``quantization`` (JSON), and record the int8
+    graph's own content hash (not the fp32 graph's: :func:`radaredge.export.graphs.save_stamped`)."""
     src = onnx.load(str(fp32_path), load_external_data=False)
     q = onnx.load(str(out_path))
     del q.metadata_props[:]
     for prop in src.metadata_props:
-        q.metadata_props.add(key=prop.key, value=prop.value)
+        if prop.key != CONTENT_SHA256:
+            q.metadata_props.add(key=prop.key, value=prop.value)
     q.metadata_props.add(key=QUANTIZATION, value=json.dumps(quantization))
-    onnx.save(q, str(out_path))
+    save_stamped(q, out_path)
 
 
 def keep_fp32_patterns(card: ModelCard) -> list[str]:

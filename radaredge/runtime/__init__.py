@@ -10,7 +10,8 @@ package), so an embedded application needs neither torch nor the radaredge model
 
 The package: :mod:`.model` (the exported-graph wrapper), :mod:`.session` (onnxruntime session options), :mod:`.openvino` (OpenVINO's CPU
 plugin), :mod:`.runners` (either runtime behind one callable), :mod:`.metadata` (the
-``radaredge.*`` metadata contract), :mod:`.des4pos` and :mod:`.text_tokens` (the Des4Pos query
+``radaredge.*`` metadata contract), :mod:`.integrity` (each graph's content hash, recomputed from
+the file whenever :func:`load` or :func:`inspect_export` reads it), :mod:`.des4pos` and :mod:`.text_tokens` (the Des4Pos query
 path: tokens, map index, locate).
 """
 

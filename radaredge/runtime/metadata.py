@@ -18,6 +18,7 @@ Standard library only (no numpy, no torch). Every key is named here; nothing els
 | ``radaredge.quantization`` | JSON: how an int8 copy was made (absent in fp32 graphs) |
 | ``radaredge.input_flags`` | JSON: bit (as a string) -> meaning, for a graph with an ``input_flags`` output (:mod:`radaredge.ops.input_flags`) |
 | ``radaredge.input_errors`` | the ``input_flags`` bits (an integer mask) that mean the input was wrong: the caller refuses the frame |
+| ``radaredge.content_sha256`` | hash of the graph file's own contents: every node and initializer and every other ``radaredge.*`` entry (:mod:`radaredge.runtime.integrity` defines it); the runtime recomputes it on load |
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ BUNDLE_WEIGHTS_SHA256 = PREFIX + "bundle_weights_sha256"
 QUANTIZATION = PREFIX + "quantization"
 INPUT_FLAGS = PREFIX + "input_flags"
 INPUT_ERRORS = PREFIX + "input_errors"
+CONTENT_SHA256 = PREFIX + "content_sha256"
 
 
 @dataclass(frozen=True)
@@ -107,6 +109,7 @@ class GraphMetadata:
     quantization: dict | None = None
     input_flags: dict[str, str] | None = None
     input_errors: int | None = None
+    content_sha256: str | None = None      # written by the exporter once the graph is final (absent before)
 
     def to_props(self) -> dict[str, str]:
         """``metadata_props`` entries, key -> string value."""
@@ -131,6 +134,8 @@ class GraphMetadata:
             props[INPUT_FLAGS] = json.dumps(self.input_flags)
         if self.input_errors is not None:
             props[INPUT_ERRORS] = str(self.input_errors)
+        if self.content_sha256 is not None:
+            props[CONTENT_SHA256] = self.content_sha256
         return props
 
     @classmethod
@@ -154,7 +159,8 @@ class GraphMetadata:
                 part=props.get(PART), bundle_weights_sha256=props.get(BUNDLE_WEIGHTS_SHA256),
                 quantization=json.loads(props[QUANTIZATION]) if QUANTIZATION in props else None,
                 input_flags=json.loads(props[INPUT_FLAGS]) if INPUT_FLAGS in props else None,
-                input_errors=int(props[INPUT_ERRORS]) if INPUT_ERRORS in props else None)
+                input_errors=int(props[INPUT_ERRORS]) if INPUT_ERRORS in props else None,
+                content_sha256=props.get(CONTENT_SHA256))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{where}: unreadable radaredge metadata ({type(exc).__name__}: {exc}); "
                              f"re-export it with this radaredge") from None

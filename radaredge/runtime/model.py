@@ -1,5 +1,12 @@
 """The exported-graph wrapper: :class:`RadarModel` (load, check input, run, apply the graph's
-declared checks), :class:`FrameFeeds` (raw frames -> the graph's feeds) and :func:`inspect_export`."""
+declared checks), :class:`FrameFeeds` (raw frames -> the graph's feeds) and :func:`inspect_export`.
+
+Loading a graph checks it before anything runs on it: its radaredge metadata against the graph's
+own inputs and outputs (:func:`check_signature`), its contents against the content hash recorded
+at export (:mod:`.integrity`) and its embedded card against the graph (:func:`card_findings`).
+:func:`load` refuses a graph that fails one (InputError naming the file); :func:`inspect_export`
+reports what it found instead.
+"""
 
 
 from __future__ import annotations
@@ -12,8 +19,8 @@ import onnxruntime as ort
 
 from ..cards import ModelCard, card_from_yaml, implausible_policy, plausible_ranges
 from ..errors import CapacityError, InputError
-from . import backends
-from .bundle import bundle_graphs
+from . import backends, integrity
+from .bundle import bundle_graphs, part_findings
 from .flags import INPUT_ERRORS, OUTPUT as FLAGS_OUTPUT, describe
 from .metadata import GraphMetadata
 from .session import make_session, run_session
@@ -146,9 +153,16 @@ class FrameFeeds:
 
 
 class RadarModel:
-    """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``."""
+    """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``.
 
-    def __init__(self, session: ort.InferenceSession, path: Path, backend: str = "onnxruntime", threads: int = 2):
+    ``strict`` (the default) refuses a graph whose contents do not match the content hash
+    recorded at export, or whose embedded card disagrees with the graph (InputError naming the
+    file), and warns about a graph exported before content hashes; with ``strict=False`` (what
+    ``inspect`` uses) the findings are kept in ``.content`` and ``.card_findings`` instead.
+    Metadata that does not describe the graph (:func:`check_signature`) is refused either way."""
+
+    def __init__(self, session: ort.InferenceSession, path: Path, backend: str = "onnxruntime", threads: int = 2,
+                 strict: bool = True):
         self.session = session
         self.path = path
         self.metadata = session.get_modelmeta().custom_metadata_map
@@ -159,6 +173,12 @@ class RadarModel:
         self.output_names = [o.name for o in session.get_outputs()]
         self.weights_sha256: str = self.info.weights_sha256
         check_signature(session, self.info, self.card, path)
+        # the contents as they are now (cached per file identity), and the card against the graph
+        self.content: integrity.ContentHash = integrity.check_content(path) if strict else integrity.content_hash(path)
+        self.content_sha256: str = self.content.computed
+        self.card_findings: list[str] = card_findings(session, self.info, self.card)
+        if strict and self.card_findings:
+            raise InputError(f"{path}: {CARD_DISAGREES}: {'; '.join(self.card_findings)}; re-export it")
         self.inputs = FrameFeeds.of_card(self.card, self.info.frame_inputs, self.info.timestamps_input,
                                          f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})")
         self.errors = INPUT_ERRORS if self.info.input_errors is None else self.info.input_errors
@@ -242,11 +262,54 @@ def check_signature(session: ort.InferenceSession, info: GraphMetadata, card: Mo
                              f"float [{len(info.frame_inputs)}]")
 
 
+CARD_DISAGREES = "its embedded card disagrees with the graph"
+
+
+def card_findings(session: ort.InferenceSession, info: GraphMetadata, card: ModelCard) -> list[str]:
+    """Where the card embedded in a graph's metadata disagrees with the graph itself, one phrase
+    each (none when they agree). What a card fixes that the graph's signature shows:
+
+    - its name is the metadata's ``radaredge.model``;
+    - ``frames`` (when the card states it) is the number of point-frame inputs, and a static
+      timestamps length is that number too;
+    - every point frame takes any number of points (up to the card's ``max_points_per_frame``,
+      checked before the graph runs), so its point axis is dynamic.
+
+    The feature columns (the card's, the metadata's and each frame input's width) and the output
+    names (metadata against graph) are :func:`check_signature`'s. The output names a card implies
+    follow from the model family's code (torch side): ``radaredge eval`` and ``map build`` check
+    them (:func:`radaredge.eval.places.check_export`)."""
+    found = []
+    inputs = {i.name: i for i in session.get_inputs()}
+    if info.model != card.name:
+        found.append(f"its metadata names model {info.model!r}, its card {card.name!r}")
+    frames = [n for n in info.frame_inputs if n in inputs]
+    stated = card.data.get("frames")
+    if frames and stated is not None and stated != len(frames):
+        found.append(f"the card says frames: {stated}, the graph takes {len(frames)} point frame(s) "
+                     f"({', '.join(frames)})")
+    for name in frames:
+        shape = inputs[name].shape
+        if len(shape) == 2 and isinstance(shape[0], int):
+            found.append(f"input {name!r} takes exactly {shape[0]} points, the card any number up to "
+                         f"max_points_per_frame = {max_points_per_frame(card)}")
+    ts = info.timestamps_input
+    if ts in inputs and len(inputs[ts].shape) == 1 and isinstance(inputs[ts].shape[0], int) \
+            and inputs[ts].shape[0] != len(frames):
+        found.append(f"input {ts!r} takes {inputs[ts].shape[0]} frame times for {len(frames)} point frame(s)")
+    return found
+
+
 def load(path: str | Path, threads: int = 2, backend: str = "onnxruntime") -> RadarModel:
     """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads in
     ``backend``: ``onnxruntime``, ``openvino`` (the openvino extra) or ``auto`` (the faster of
     the two on this machine, timed on the first input and remembered: :mod:`.backends`). The
-    input checks and the outputs' names are the same whichever runs it."""
+    input checks and the outputs' names are the same whichever runs it.
+
+    The graph is checked first (:class:`RadarModel`, strict): InputError when its contents do
+    not match the content hash recorded at export (``<path>: its contents do not match the hash
+    recorded at export: ...``) or its embedded card disagrees with it; a RuntimeWarning when it
+    was exported before content hashes were recorded."""
     path = Path(path)
     backends.check_backend(backend)
     return RadarModel(make_session(path, threads=threads), path, backend, threads)
@@ -257,11 +320,28 @@ def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
     (its manifest lists them), the card name, graph name, feature columns, frame inputs,
     inputs and outputs with their shapes, runtime checks, input flag bits, weights hash,
     versions and the card's ``source`` when it has one; with ``targets``, what each deployment
-    target does not support (:mod:`radaredge.targets`, which needs the onnx package)."""
-    files = list(bundle_graphs(path).values())
-    graphs = []
-    for f in files:
-        m = load(f)
+    target does not support (:mod:`radaredge.targets`, which needs the onnx package).
+
+    And whether each graph is what was exported: ``content_sha256`` (the hash recorded at export,
+    None before radaredge recorded one), ``integrity`` (``verified``, ``not recorded`` or
+    ``MISMATCH`` with both hashes) and ``findings``: the contents not matching the recorded hash,
+    the embedded card disagreeing with the graph (:func:`card_findings`), a bundle part whose
+    contents are not the ones its manifest recorded. The top-level ``findings`` lists them all
+    (``<file>: <finding>``) and ``ok`` is true when there are none; ``radaredge inspect`` exits 1
+    when it is false. Metadata that cannot be read, or does not describe its graph, is an
+    InputError as for :func:`load`."""
+    path = Path(path)
+    files = bundle_graphs(path, check_parts=False)
+    replaced = part_findings(path)
+    graphs, problems = [], []
+    for part, f in files.items():
+        m = RadarModel(make_session(f), f, strict=False)
+        findings = []
+        if m.content.status == "mismatch":
+            findings.append(integrity.finding(m.content))
+        findings += [f"{CARD_DISAGREES}: {x}" for x in m.card_findings]
+        if part in replaced:
+            findings.append(replaced[part])
         graphs.append({
             "model": m.card.name, "graph": m.info.part or m.card.name, "onnx": str(f), "features": m.features,
             "frames": m.info.frame_inputs,
@@ -271,11 +351,13 @@ def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
             "input_flags": m.info.input_flags,
             "quantization": m.info.quantization,
             "weights_sha256": m.weights_sha256, "versions": m.info.versions,
+            "content_sha256": m.content.recorded, "integrity": integrity.describe(m.content), "findings": findings,
         })
+        problems += [f"{f}: {x}" for x in findings]
         if m.card.data.get("source"):        # where the card came from (an OpenPCDet config and its sha256)
             graphs[-1]["source"] = m.card.data["source"]
         if targets:
             # optional: the target checks need the onnx package, which a runtime-only install lacks
             from ..targets import check_graph
             graphs[-1]["targets"] = {t: [x.to_dict() for x in found] for t, found in check_graph(f, targets).items()}
-    return {"path": str(path), "graphs": graphs}
+    return {"path": str(path), "ok": not problems, "findings": problems, "graphs": graphs}
