@@ -116,6 +116,23 @@ def one_error_line(res, *needles) -> None:
         assert n in errors[0], (n, errors[0])
 
 
+def files_under(workdir: Path) -> set:
+    """Every path under ``workdir``, relative to it (what a failed command must leave as it was)."""
+    return {p.relative_to(workdir) for p in Path(workdir).rglob("*")}
+
+
+def assert_one_error_line(res, workdir: Path, before: set, expect: str = "") -> None:
+    """The bad-input catalogue's promise on the command line: exit code 2, exactly one line on
+    stderr, starting with ``error:`` and containing ``expect``, no traceback, and nothing
+    written under ``workdir`` (``before`` is :func:`files_under` taken before the command)."""
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert res.exit_code == 2, f"exit {res.exit_code}: {res.output}"
+    assert "Traceback" not in res.output, res.output
+    assert len(lines) == 1 and lines[0].startswith("error:"), res.stderr
+    assert expect in lines[0], f"{expect!r} not in {lines[0]!r}"
+    assert files_under(workdir) == before, "a file was left behind"
+
+
 def export_with_cli(out_dir: Path, model: str, config: Path) -> Path:
     """``radaredge export --model MODEL --config CONFIG`` into out_dir/MODEL.onnx; the path."""
     path = Path(out_dir) / f"{model}.onnx"

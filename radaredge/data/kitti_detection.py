@@ -6,7 +6,7 @@ Layout (both datasets; ROOT is what ``--data`` names)::
     ROOT/training/velodyne/<id>.bin         the radar scan (VoD: 7 float32 columns, TJ4D: 8)
     ROOT/training/label_2/<id>.txt          KITTI labels in the camera frame
     ROOT/training/calib/<id>.txt            P2 (camera intrinsics), R0_rect, Tr_velo_to_cam (radar -> camera)
-    ROOT/training/image_2/<id>.{jpg,png}    optional: only its size is read (the 2D-box clip)
+    ROOT/training/image_2/<id>.{jpg,png}    optional: only its size is read from its header (the 2D-box clip)
 
 For View-of-Delft ROOT is ``radar/``, ``radar_3frames/`` or ``radar_5frames/``; the dataset's
 top folder works too and the card's ``input.scans_accumulated`` picks the subfolder.
@@ -20,6 +20,12 @@ pi / 2) (VoD defines rotation_y about the LiDAR's -Z axis). Radar frame: x forwa
 z up; metres, radians.
 
 Every malformed file ends in an :class:`~radaredge.errors.InputError` naming the file and line.
+Every file is bounded by its size (from its stat) before it is read: a label file at most
+:data:`MAX_LABEL_BYTES`, a calibration :data:`MAX_CALIB_BYTES`, a split :data:`MAX_SPLIT_BYTES`,
+an image :data:`MAX_IMAGE_BYTES` (only its header is read), a scan as
+:mod:`radaredge.data.readers` bounds it. A frame's scan must hold points, all finite, with x, y,
+z within :data:`radaredge.data.readers.MAX_COORDINATE` m (points outside the card's
+point_cloud_range are left out later, as the graph does); a split lists each frame once.
 """
 
 from __future__ import annotations
@@ -33,9 +39,19 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .readers import read_scan
+from .readers import check_file, check_points, read_bounded, read_scan
 
 DONT_CARE = "DontCare"
+
+# Bounds on the files of a set, checked from their stat before they are read.
+MAX_LABEL_BYTES = 4 * 2**20      # KITTI labels: one line of ~100-400 bytes an object, a frame a few thousand at most
+MAX_CALIB_BYTES = 64 * 2**10     # KITTI calibration: 7 lines, about 1 KB
+MAX_SPLIT_BYTES = 16 * 2**20     # ImageSets: one frame id a line (VoD: 8,693 frames; a million ids fit)
+MAX_IMAGE_BYTES = 256 * 2**20    # a camera frame, even an uncompressed 8K 16-bit PNG (200 MB)
+MAX_IMAGE_SIDE = 65535           # px: a JPEG's largest; a camera image is far smaller
+_JPEG_HEADER_SPAN = 16 * 2**20   # bytes of JPEG segments searched for the frame header (EXIF APP1 <= 64 KiB each)
+_JPEG_HEADER_SEGMENTS = 1024     # segments before it (a camera JPEG has a dozen) ...
+_JPEG_FILL_BYTES = 64            # ... and 0xFF fill bytes before one marker
 
 
 @dataclass(frozen=True)
@@ -132,10 +148,12 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     a missing R0_rect is the identity). InputError naming the file and line for a missing key,
     a wrong number of values, a non-number, or a transform that cannot be inverted."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: calibration file missing (expected KITTI lines 'P2: ...', 'Tr_velo_to_cam: ...')")
+    text = read_bounded(path, "a KITTI calibration file", MAX_CALIB_BYTES,
+                        "P2, R0_rect and Tr_velo_to_cam lines of about 1 KB in all").decode(errors="replace")
     found: dict[str, tuple[np.ndarray, int]] = {}
-    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+    for number, line in enumerate(text.splitlines(), 1):
         if ":" not in line:
             if line.strip():
                 raise InputError(f"{path}:{number}: expected 'KEY: values', got {line.strip()[:60]!r}")
@@ -207,12 +225,16 @@ class Labels:
 def read_labels(path: str | os.PathLike, classes: tuple[str, ...]) -> Labels:
     """A KITTI label file (15 fields a line, 16 with a score). InputError naming the file and
     line for a missing file, another field count, a non-number, a negative size, or a class not
-    in ``classes``. An empty file is a frame without objects."""
+    in ``classes``; and, from its stat before it is read, for a file over :data:`MAX_LABEL_BYTES`.
+    An empty file is a frame without objects."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: label file missing (KITTI label_2: one object a line)")
+    text = read_bounded(path, "a KITTI label file", MAX_LABEL_BYTES,
+                        "one line of about 100 bytes an object, and a frame holds at most a few thousand objects"
+                        ).decode(errors="replace")
     rows, names = [], []
-    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+    for number, line in enumerate(text.splitlines(), 1):
         fields = line.split()
         if not fields:
             continue
@@ -294,24 +316,72 @@ def camera_fov_mask(xyz: np.ndarray, calib: Calibration, image_size: tuple[int, 
 # ----------------------------------------------------------------------------- the set
 
 
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
 def image_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) px of a PNG or JPEG from its header; None when unreadable."""
+    """(width, height) px of a PNG or JPEG from its header (a PNG's IHDR chunk, a JPEG's start of
+    frame); None when the file is neither, or its header is cut short or damaged. Reads the
+    header only: at most 1024 JPEG segments within the first 16 MiB."""
     with open(path, "rb") as f:
         head = f.read(32)
-        if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
+        if head[:8] == _PNG_MAGIC:
+            if len(head) < 24 or head[12:16] != b"IHDR":
+                return None
             return struct.unpack(">II", head[16:24])
         if head[:2] != b"\xff\xd8":
             return None
         f.seek(2)
-        while True:
-            marker = f.read(2)
-            if len(marker) < 2 or marker[0] != 0xFF:
+        for _ in range(_JPEG_HEADER_SEGMENTS):
+            if f.tell() >= _JPEG_HEADER_SPAN:
                 return None
-            size = struct.unpack(">H", f.read(2))[0]
-            if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):   # a start of frame
-                _, h, w = struct.unpack(">BHH", f.read(5))
+            marker = f.read(2)
+            for _ in range(_JPEG_FILL_BYTES):                   # fill bytes before a marker
+                if marker != b"\xff\xff":
+                    break
+                marker = b"\xff" + f.read(1)
+            if len(marker) < 2 or marker[0] != 0xFF or marker[1] == 0xFF:
+                return None
+            kind = marker[1]
+            if kind in (0xD9, 0xDA):                # end of image, or scan data, before any frame header
+                return None
+            if 0xD0 <= kind <= 0xD8 or kind == 0x01:    # markers without a length (RSTn, SOI, TEM)
+                continue
+            length = f.read(2)
+            if len(length) < 2:
+                return None
+            size = struct.unpack(">H", length)[0]
+            if size < 2:                            # a segment's length counts its own two bytes
+                return None
+            if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):   # a start of frame
+                body = f.read(5)
+                if len(body) < 5:
+                    return None
+                _, h, w = struct.unpack(">BHH", body)
                 return w, h
             f.seek(size - 2, 1)
+    return None
+
+
+def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) px of the PNG or JPEG ``path`` (:func:`image_size`); InputError naming
+    the file when it is missing, a directory, over :data:`MAX_IMAGE_BYTES`, not a readable PNG
+    or JPEG header, or gives a side of 0 or over :data:`MAX_IMAGE_SIDE` px."""
+    path = Path(path)
+    check_file(path, "a PNG or JPEG camera image", MAX_IMAGE_BYTES,
+               "a camera frame, even an uncompressed 8K PNG, is smaller; only its header is read")
+    try:
+        size = image_size(path)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the image ({exc.strerror or type(exc).__name__})") from None
+    if size is None:
+        raise InputError(f"{path}: not a readable PNG or JPEG header (damaged or cut short?); only the image's size "
+                         f"is read from it")
+    width, height = (int(v) for v in size)
+    if not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
+        raise InputError(f"{path}: its header gives a {width} x {height} px image; a camera image is 1 to "
+                         f"{MAX_IMAGE_SIDE} px a side (its size clips the 2D boxes and the camera-view crop)")
+    return width, height
 
 
 @dataclass(frozen=True)
@@ -334,22 +404,31 @@ class DetectionSet:
         self.root = self._resolve_root(Path(root), scans_accumulated)
         self.split = split
         self.training = self.root / "training"
-        split_file = self.root / "ImageSets" / f"{split}.txt"
-        if not split_file.is_file():
+        self.split_file = split_file = self.root / "ImageSets" / f"{split}.txt"
+        if not split_file.exists():
             have = sorted(p.stem for p in (self.root / "ImageSets").glob("*.txt"))
             raise InputError(f"{split_file}: split file missing" + (f"; ImageSets has {have}" if have else
                              "; expected ImageSets/{train,val,test}.txt with one frame id a line"))
+        text = read_bounded(split_file, "an ImageSets split file", MAX_SPLIT_BYTES,
+                            "one frame id a line; View-of-Delft lists 8,693 frames").decode(errors="replace")
         self.frame_ids: list[str] = []
-        for number, line in enumerate(split_file.read_text(errors="replace").splitlines(), 1):
+        first_line: dict[str, int] = {}
+        for number, line in enumerate(text.splitlines(), 1):
             token = line.strip()
             if not token:
                 continue
             if not re.fullmatch(r"[0-9A-Za-z_-]+", token):
                 raise InputError(f"{split_file}:{number}: {token[:40]!r} is not a frame id (one id such as 00042 "
                                  f"a line)")
+            if token in first_line:
+                raise InputError(f"{split_file}:{number}: frame {token} is listed again (first on line "
+                                 f"{first_line[token]}); a frame listed twice would be scored twice: list each "
+                                 f"frame once")
+            first_line[token] = number
             scan = self.training / "velodyne" / f"{token}.bin"
             if not scan.is_file():
-                raise InputError(f"{split_file}:{number}: frame {token} is listed but {scan} does not exist")
+                raise InputError(f"{split_file}:{number}: frame {token} is listed but {scan} "
+                                 + ("is a directory" if scan.is_dir() else "does not exist"))
             self.frame_ids.append(token)
         if not self.frame_ids:
             raise InputError(f"{split_file}: lists no frames")
@@ -371,20 +450,29 @@ class DetectionSet:
         return len(self.frame_ids)
 
     def image_size(self, frame_id: str) -> tuple[int, int]:
-        """The frame's camera image size from image_2 when present, else the dataset's."""
+        """The frame's camera image size from the header of its image_2 file when present
+        (:func:`read_image_size`), else the dataset's."""
         for suffix in (".jpg", ".png", ".jpeg"):
             p = self._image_dir / f"{frame_id}{suffix}"
-            if p.is_file():
-                size = image_size(p)
-                if size is None:
-                    raise InputError(f"{p}: not a readable PNG or JPEG (only its size is needed)")
-                return size
+            if p.exists():
+                return read_image_size(p)
         return self.layout.image_size
 
+    def scan_path(self, frame_id: str) -> Path:
+        """The radar scan file of frame ``frame_id``."""
+        return self.training / "velodyne" / f"{frame_id}.bin"
+
     def frame(self, i: int, features: list[str]) -> DetectionFrame:
-        """Frame ``i`` of the split with its scan in ``features`` columns."""
+        """Frame ``i`` of the split with its scan in ``features`` columns. InputError naming the
+        scan for an empty one (0 bytes: a labelled frame without its radar scan), a value that
+        is not finite, or a coordinate beyond ``MAX_COORDINATE`` m (module docstring)."""
         fid = self.frame_ids[i]
-        points = read_scan(self.training / "velodyne" / f"{fid}.bin", features, fmt=self.layout.scan_format)
+        path = self.scan_path(fid)
+        points = read_scan(path, features, fmt=self.layout.scan_format)
+        if not len(points):
+            raise InputError(f"{path}: an empty scan (0 bytes): a labelled frame needs its radar points (a failed "
+                             f"copy?); restore the file, or remove frame {fid} from {self.split_file}")
+        check_points(points, features, path)
         labels = read_labels(self.training / "label_2" / f"{fid}.txt", self.layout.label_classes)
         calib = read_calibration(self.training / "calib" / f"{fid}.txt")
         return DetectionFrame(fid, points, labels, calib, self.image_size(fid))

@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
@@ -96,6 +97,77 @@ _LAYOUTS = {
 }
 _BIN_FORMATS = ("vod", "tj4d")
 FILE_SUFFIX = {"vod": ".bin", "tj4d": ".bin", "transloc": ".npy"}   # scan-file formats and their suffix
+
+
+# ----------------------------------------------------------------------------- bounded files
+
+
+def check_file(path: str | os.PathLike, what: str, limit: int, why: str, error: type = InputError) -> int:
+    """The byte size of the regular file ``path``, from its stat, before anything reads it.
+    ``error`` (InputError by default) naming the file when it is missing, a directory or another
+    kind of file (a FIFO, a device), cannot be stat-ed, or holds more than ``limit`` bytes;
+    ``what`` names the file's kind with its article ("a KITTI label file"), ``why`` the reason
+    for the bound, both as the message shows them."""
+    path = Path(path)
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise error(f"{path}: no such file; expected {what}") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what} ({exc.strerror or type(exc).__name__})") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise error(f"{path} is a directory, not {what}")
+    if not stat.S_ISREG(info.st_mode):
+        raise error(f"{path} is not a regular file; expected {what}")
+    if info.st_size > limit:
+        raise error(f"{path}: {info.st_size:,} bytes, more than {what} can hold ({limit:,} bytes at most: {why})")
+    return info.st_size
+
+
+def read_bounded(path: str | os.PathLike, what: str, limit: int, why: str, error: type = InputError) -> bytes:
+    """The bytes of ``path`` after :func:`check_file`, read up to ``limit`` bytes and no further
+    (a file that grows while it is read is refused the same way)."""
+    check_file(path, what, limit, why, error)
+    try:
+        with open(path, "rb") as f:
+            data = f.read(limit + 1)
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what} ({exc.strerror or type(exc).__name__})") from None
+    if len(data) > limit:
+        raise error(f"{path}: more than {limit:,} bytes, more than {what} can hold ({why})")
+    return data
+
+
+# Scan files hold at most this many points: the largest ``max_points_per_frame`` a card can
+# declare (radaredge.cards.TOP_LEVEL_NUMBERS); a radar scan holds a few hundred to a few thousand.
+MAX_SCAN_POINTS = 2**24
+_NPY_HEADER_BYTES = 1 << 16        # room for a .npy header (NumPy reads headers of at most 10,000 bytes)
+# x, y, z of a radar point (m): far beyond any radar's reach (automotive radars see a few hundred
+# metres). Points outside a card's point_cloud_range are left out by its graph; a coordinate
+# beyond this is no measurement (a damaged scan), and far beyond it float32 arithmetic breaks
+# (voxel indices overflow near 1e37 m; the eval report's pictures fail near 1e17 m).
+MAX_COORDINATE = 1.0e6
+COORDINATES = ("x", "y", "z")
+
+
+def check_points(points: np.ndarray, features: Sequence[str], where) -> np.ndarray:
+    """``points`` [N, F] (columns ``features``) unchanged; InputError naming ``where``, the point
+    and the column for a value that is not finite, or an x, y or z beyond +-MAX_COORDINATE m."""
+    bad = ~np.isfinite(points)
+    if bad.any():
+        row, col = (int(v) for v in np.argwhere(bad)[0])
+        raise InputError(f"{where}: non-finite value {points[row, col]} at point {row}, column "
+                         f"{features[col]!r} ({int(bad.any(1).sum())} point(s) affected)")
+    coords = [i for i, f in enumerate(features) if f in COORDINATES]
+    if coords and len(points):
+        far = np.abs(points[:, coords]) > MAX_COORDINATE
+        if far.any():
+            row, k = (int(v) for v in np.argwhere(far)[0])
+            raise InputError(f"{where}: point {row}, column {features[coords[k]]!r} is {points[row, coords[k]]:.3g} "
+                             f"m; a radar point lies within {MAX_COORDINATE:g} m ({int(far.any(1).sum())} point(s) "
+                             f"beyond). Points outside the card's point_cloud_range are left out, as its graph "
+                             f"does, but this is no measurement: a damaged scan?")
+    return points
 
 
 # ----------------------------------------------------------------------------- scan files
@@ -196,7 +268,8 @@ def _read_bin(path: Path, fmt: str) -> np.ndarray:
     """A little-endian float32 ``.bin`` of ``fmt``'s columns as float32 [N, C]."""
     layout = _LAYOUTS[fmt]
     row = _bin_row_bytes(fmt)
-    size = path.stat().st_size
+    size = check_file(path, f"a {layout.title} scan", MAX_SCAN_POINTS * row,
+                      f"{MAX_SCAN_POINTS:,} points of {row} bytes, the most a card's max_points_per_frame can take")
     if size % row:
         raise InputError(f"{path}: {size} bytes is not a whole number of {layout.title} rows of "
                          f"{len(layout.columns)} float32 columns {layout.columns}: expected a multiple of {row} "
@@ -207,6 +280,9 @@ def _read_bin(path: Path, fmt: str) -> np.ndarray:
 def _read_npy(path: Path, fmt: str) -> np.ndarray:
     """A 2-D numeric ``.npy`` of ``fmt``'s columns, as float32 [N, C]."""
     layout = _LAYOUTS[fmt]
+    size = check_file(path, f"a {layout.title} .npy scan", _NPY_HEADER_BYTES + MAX_SCAN_POINTS * len(layout.columns) * 8,
+                      f"{MAX_SCAN_POINTS:,} points of {len(layout.columns)} float64 columns, the most a card's "
+                      f"max_points_per_frame can take")
     with path.open("rb") as f:
         if f.read(len(np.lib.format.MAGIC_PREFIX)) != np.lib.format.MAGIC_PREFIX:
             raise InputError(f"{path}: not a readable .npy file (no NumPy array header)")
@@ -219,9 +295,12 @@ def _read_npy(path: Path, fmt: str) -> np.ndarray:
         except (ValueError, SyntaxError) as exc:
             raise InputError(f"{path}: not a readable .npy file: {exc}") from None
     claimed = dtype.itemsize * float(np.prod(shape, dtype=np.float64))
-    if claimed > path.stat().st_size:              # checked before numpy allocates what the header claims
+    if claimed > size:              # checked before numpy allocates what the header claims
         raise InputError(f"{path}: its header claims shape {shape} of {dtype} ({claimed:.3g} bytes) but the file "
-                         f"holds {path.stat().st_size} bytes (truncated or damaged)")
+                         f"holds {size} bytes (truncated or damaged)")
+    if len(shape) == 2 and shape[0] > MAX_SCAN_POINTS:
+        raise InputError(f"{path}: its header claims {shape[0]:,} points; a scan holds at most {MAX_SCAN_POINTS:,} "
+                         f"(the most a card's max_points_per_frame can take)")
     try:
         table = np.load(path, allow_pickle=False)
     except ValueError as exc:  # behind a valid header, a pickle is an object array
@@ -246,7 +325,7 @@ def _read_table(path: str | os.PathLike, fmt: str) -> np.ndarray:
     if fmt not in _LAYOUTS:
         raise InputError(f"{path}: unknown scan format {fmt!r}; expected one of {list(_LAYOUTS)}"
                          + (" (a ROS bag holds many scans: use iter_rosbag / read_rosbag)" if fmt == "rosbag" else ""))
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: no such {_LAYOUTS[fmt].title} file")
     return _read_bin(path, fmt) if fmt in _BIN_FORMATS else _read_npy(path, fmt)
 
@@ -264,7 +343,7 @@ def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None 
     path = Path(path)
     if fmt is None:
         if not path.is_file():
-            raise InputError(f"{path}: no such scan file")
+            raise InputError(f"{path} is a directory, not a scan file" if path.is_dir() else f"{path}: no such scan file")
         fmt = infer_format([path])
     table = _read_table(path, fmt)
     return np.ascontiguousarray(table[:, _feature_columns(features, fmt)])

@@ -30,6 +30,7 @@ position are those of its last frame t, so windows and their positions line up o
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import re
@@ -40,9 +41,10 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, InputError
-from .readers import FILE_SUFFIX, TJ4D_COLUMNS, TRANSLOC_COLUMNS, VOD_COLUMNS, read_scan
+from .readers import FILE_SUFFIX, TJ4D_COLUMNS, TRANSLOC_COLUMNS, VOD_COLUMNS, check_points, read_bounded, read_scan
 
 GPS_COLUMNS = ("timestamp", "northing", "easting")
+MAX_GPS_BYTES = 64 * 2**20      # gps.csv: one row of ~50 bytes a scan; a million rows is a day of driving at 10 Hz
 _FILE_COLUMNS = {"transloc": TRANSLOC_COLUMNS, "vod": VOD_COLUMNS, "tj4d": TJ4D_COLUMNS}
 
 
@@ -70,14 +72,17 @@ class RadarSequence:
 
     def scan(self, i: int, features: Sequence[str]) -> np.ndarray:
         """Frame ``i``'s points: float32 [N, len(features)], the columns named by ``features``
-        (radar frame x forward, y left, z up; m, m/s), read with :func:`read_scan`."""
+        (radar frame x forward, y left, z up; m, m/s), read with :func:`read_scan`. InputError
+        naming the file, the point and the column for a value that is not finite or a coordinate
+        beyond :data:`radaredge.data.readers.MAX_COORDINATE` m (:func:`check_points`)."""
         if self.arrays is None:
-            return read_scan(self.scan_paths[i], features, self.fmt)
+            return check_points(read_scan(self.scan_paths[i], features, self.fmt), features, self.scan_paths[i])
         missing = [f for f in features if f not in self.array_features]
         if missing:
             raise InputError(f"{self.scan_paths[i]}: scans were read with the features {list(self.array_features)}, "
                              f"not {missing}")
-        return self.arrays[i][:, [self.array_features.index(f) for f in features]]
+        return check_points(self.arrays[i][:, [self.array_features.index(f) for f in features]], features,
+                            f"{self.scan_paths[i]}: scan {i}")
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -121,6 +126,9 @@ def _scan_files(directory: Path, fmt: str) -> list[Path]:
     if not scans.is_dir():
         raise InputError(f"{directory}: no scans/ directory; expected one scan file per frame in {scans}")
     suffix = FILE_SUFFIX[fmt]
+    folders = sorted(p.name for p in scans.iterdir() if p.suffix == suffix and p.is_dir())
+    if folders:
+        raise InputError(f"{scans / folders[0]} is a directory, not a scan file ({len(folders)} such in {scans})")
     paths = frame_order((p for p in scans.iterdir() if p.is_file() and p.suffix == suffix), scans)
     if not paths:
         found = sorted({p.suffix for p in scans.iterdir() if p.is_file()})
@@ -143,12 +151,14 @@ def _parse_value(text: str, row: int, column: str, where: str) -> float:
 def _read_gps(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(timestamps float64 [T] s, positions float64 [T, 2] northing, easting m, the timestamp
     cells as written) of gps.csv."""
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: no such file; expected a CSV with header {','.join(GPS_COLUMNS)} "
                          f"and one row per scan")
+    data = read_bounded(path, "a gps.csv", MAX_GPS_BYTES,
+                        "one row of about 50 bytes a scan, a day of driving at 10 Hz; split longer recordings into "
+                        "drives")
     try:
-        with path.open(newline="", encoding="utf-8") as f:
-            rows = [r for r in csv.reader(f) if any(cell.strip() for cell in r)]
+        rows = [r for r in csv.reader(io.StringIO(data.decode("utf-8"), newline="")) if any(c.strip() for c in r)]
     except (UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}: not a text CSV ({type(exc).__name__}: {str(exc)[:120]}); expected a header "
                          f"line {','.join(GPS_COLUMNS)} and one row per scan") from None
@@ -302,6 +312,8 @@ def name_the_scan(sequence: RadarSequence, frames: np.ndarray, message: str) -> 
     m = re.match(r"frame (\d+): (.*)", message, re.S)
     if m and int(m.group(1)) < len(frames):
         return f"{sequence.scan_paths[frames[int(m.group(1))]]}: {m.group(2)}"
+    if any(message.startswith(f"{sequence.scan_paths[f]}:") for f in frames):    # it names the file already
+        return message
     return f"{sequence.name}, window ending at frame {int(frames[-1])}: {message}"
 
 

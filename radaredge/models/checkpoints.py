@@ -2,8 +2,11 @@
 
 ``torch.load(weights_only=True)`` refuses anything but tensors and plain containers; what it
 refuses, and every other way a file can fail to be a checkpoint (missing, a directory, truncated,
-another format, non-tensor entries, NaN weights), is one ConfigError naming the file. Used by
-the exporter's checkpoint loader and by the upstream-weight loaders of the models.
+another format, non-tensor entries, NaN weights), is one ConfigError naming the file. Before
+torch.load sees the file, its size (from its stat) must be at most :data:`MAX_CHECKPOINT_BYTES`
+and it must begin as torch.save writes: a zip archive, or (the legacy format) a pickle of
+protocol 2 or later. Used by the exporter's checkpoint loader and by the upstream-weight loaders
+of the models.
 """
 
 from __future__ import annotations
@@ -15,7 +18,36 @@ from pathlib import Path
 
 import torch
 
+from ..data.readers import check_file
 from ..errors import ConfigError
+
+# The largest checkpoint radaredge reads: its models' weights are tens of MB (maffnet-vod-full
+# about 40 MB); a training run's last.pth, with the optimiser's state, about three times that.
+MAX_CHECKPOINT_BYTES = 2 * 2**30
+_ZIP_MAGIC = b"PK\x03\x04"                          # torch.save since torch 1.6
+_PICKLE_MAGIC = tuple(b"\x80" + bytes([p]) for p in (2, 3, 4, 5))   # the legacy format: a pickle, protocol >= 2
+
+
+def check_checkpoint_file(path: str | Path) -> None:
+    """ConfigError naming ``path`` unless it is a regular file of at most
+    :data:`MAX_CHECKPOINT_BYTES` that begins as torch.save writes (a zip archive, or a pickle of
+    protocol 2 or later): checked from its stat and its first bytes, before torch.load reads it."""
+    if not Path(path).exists():
+        raise ConfigError(f"checkpoint {path} does not exist")
+    check_file(path, "a torch checkpoint (.pth)", MAX_CHECKPOINT_BYTES,
+               "radaredge's models' weights are tens of MB, a training run's last.pth a few times that",
+               error=ConfigError)
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if not head:
+        raise ConfigError(f"checkpoint {path} is empty (0 bytes): not a file written by torch.save")
+    if not (head.startswith(_ZIP_MAGIC) or head[:2] in _PICKLE_MAGIC):
+        if _pickle_calls_code(path):             # an old-protocol pickle that imports or calls code
+            raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: a pickle of objects other than "
+                              f"tensors and plain containers (radaredge runs no pickled code)")
+        raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: it begins with bytes {head!r}, "
+                          f"not the zip archive (PK\\x03\\x04) or pickle (\\x80 and a protocol >= 2) that "
+                          f"torch.save writes")
 
 
 _CODE_OPCODES = {"GLOBAL", "STACK_GLOBAL", "INST", "OBJ", "REDUCE", "NEWOBJ", "NEWOBJ_EX", "BUILD"}
@@ -43,6 +75,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
     """(the state_dict of :func:`read_state_dict`, the point feature columns the weights were
     trained with when the file records them: radaredge's training checkpoints carry their card,
     whose ``features`` give the column order the first layer's weights expect; None otherwise)."""
+    check_checkpoint_file(path)
     try:
         with warnings.catch_warnings():            # torch warns about pickle protocols before refusing
             warnings.simplefilter("ignore")

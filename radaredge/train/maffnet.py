@@ -442,6 +442,21 @@ def validation_ap(model, scans: list[LabelledScan], card: ModelCard, data_format
 # ----------------------------------------------------------------------------- training
 
 
+def require_labelled_objects(card: ModelCard, root, data_format: str | None, train: list[LabelledScan]) -> None:
+    """InputError naming the training split and the card's classes when no frame of ``train``
+    holds a labelled object of those classes: every scan would be skipped and the run would
+    "succeed" with a best.pth that learnt nothing."""
+    if any(len(scan.classes) for scan in train):
+        return
+    the_set = DetectionSet(root, TRAIN_SPLIT, layout_for_card(card, data_format),
+                           int(card.get("input.scans_accumulated", 1)))
+    others = sorted({str(n) for scan in train for n in scan.frame.labels.name} - {"DontCare"})
+    found = f"their labels name only {others}" if others else "their label files hold no object"
+    raise InputError(f"{the_set.split_file}: none of the {len(train)} training frames read has a labelled object of "
+                     f"the card's classes {list(card.get('classes'))} ({found}); training would learn nothing. Train on "
+                     f"a split with labelled objects of these classes, or a card whose classes the labels use")
+
+
 def _signature(card: ModelCard, root, recipe: DetectionRecipe, validation: str, train: list, val: list) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
     keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "val_every")}
@@ -470,6 +485,7 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         run.require_last()
     frozen = frozen_parameters(model, recipe.freeze)
     train = load_split(card, data_root, TRAIN_SPLIT, data_format, recipe.train_frames)
+    require_labelled_objects(card, data_root, data_format, train)
     val = load_split(card, data_root, validation, data_format, recipe.val_frames)
     thresholds = class_thresholds(card)
     xyz = [card.features.index(c) for c in ("x", "y", "z")]
