@@ -2,14 +2,29 @@
 
 Layout (both datasets; ROOT is what ``--data`` names)::
 
-    ROOT/ImageSets/{train,val,test}.txt     one frame id per line ("00042")
+    ROOT/ImageSets/{train,val,test}.txt     one frame id per line ("00042"); optional (below)
     ROOT/training/velodyne/<id>.bin         the radar scan (VoD: 7 float32 columns, TJ4D: 8)
-    ROOT/training/label_2/<id>.txt          KITTI labels in the camera frame
+    ROOT/training/label_2/<id>.txt          KITTI labels in the camera frame (VoD's example_set: <id>.json, below)
     ROOT/training/calib/<id>.txt            P2 (camera intrinsics), R0_rect, Tr_velo_to_cam (radar -> camera)
     ROOT/training/image_2/<id>.{jpg,png}    optional: only its size is read from its header (the 2D-box clip)
 
-For View-of-Delft ROOT is ``radar/``, ``radar_3frames/`` or ``radar_5frames/``; the dataset's
-top folder works too and the card's ``input.scans_accumulated`` picks the subfolder.
+For View-of-Delft ROOT is ``radar/``, ``radar_3frames/`` or ``radar_5frames/`` (the devkit's
+docs name them ``radar_3_scans/`` and ``radar_5_scans/``: both names are read); the dataset's
+top folder works too and the card's ``input.scans_accumulated`` picks the subfolder. When the
+top folder lacks that subfolder (VoD's published ``example_set/`` holds ``radar/`` only), the
+folder of the nearest scan count is read and that is said (:func:`resolve_root`).
+
+What is read without being asked is said once (the ``notes`` of :func:`list_frames`, each a
+``warnings.warn`` from :class:`DetectionSet`): a folder whose scans a frame differ from the card's
+``input.scans_accumulated``; no ``ImageSets/`` (TJ4DRadSet's published ``Sample/``): the split is
+every frame of ``training/velodyne`` with a label, and how many; frames without an ``image_2``
+file: the image size is the card's ``input.image_size`` or the dataset's camera.
+
+VoD's annotation-tool JSON (``example_set/radar/training/label_2/<id>.json``, a list of objects
+with ``className``, ``geometry`` {``center``, ``size`` {height, width, length}, ``quaternion``
+{x, y, z, w}} and ``attributes``) is read into the KITTI labels the ``.txt`` files hold
+(:func:`read_vod_json_labels`; on the example_set's 3 frames, 62 objects, it gives the
+``lidar/training/label_2/*.txt`` labels to 1e-6 m).
 
 Labels (VoD docs/ANNOTATION.md, KITTI devkit readme): one object a line, 15 fields (16 with a
 score): class, truncated (VoD: unused, or a track id), occluded (0-2), alpha, 2D box left, top,
@@ -30,9 +45,11 @@ point_cloud_range are left out later, as the graph does); a split lists each fra
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import struct
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,7 +95,13 @@ class DetectionLayout:
     eval_classes: tuple[EvalClass, ...]
     image_size: tuple[int, int]            # (width, height) px, when no image_2 file is present
     corridor: bool
-    accumulated_dirs: dict[int, str] = field(default_factory=dict)
+    accumulated_dirs: dict[int, str] = field(default_factory=dict)        # scans a frame -> its folder
+    accumulated_aliases: dict[int, tuple[str, ...]] = field(default_factory=dict)   # other names of that folder
+    title: str = ""
+
+    def scan_folders(self) -> dict[int, tuple[str, ...]]:
+        """Scans a frame -> every name of the folder holding such frames (the primary first)."""
+        return {n: (d, *self.accumulated_aliases.get(n, ())) for n, d in self.accumulated_dirs.items()}
 
     def eval_class(self, name: str) -> EvalClass:
         for c in self.eval_classes:
@@ -96,16 +119,17 @@ VOD = DetectionLayout(
      "motor", "ride_other", "ride_uncertain", "truck", "vehicle_other", "Van", "Person_sitting", DONT_CARE),
     (EvalClass("Car", 0.5, 0.7, ("Van",)), EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
      EvalClass("Cyclist", 0.25, 0.5)),
-    (1936, 1216), True, {1: "radar", 3: "radar_3frames", 5: "radar_5frames"})
+    (1936, 1216), True, {1: "radar", 3: "radar_3frames", 5: "radar_5frames"},
+    {3: ("radar_3_scans",), 5: ("radar_5_scans",)}, "View-of-Delft")   # the devkit's docs/GETTING_STARTED.md names
 
 # TJ4DRadSet as TRV-Lab/MAFF-Net evaluates it (pcdet/datasets/TJ4DRadSet): Car, Pedestrian,
 # Cyclist, Truck at 0.5 / 0.25 / 0.25 / 0.5, the entire annotated area only.
 TJ4D = DetectionLayout(
     "tj4d", "tj4d",
-    ("Car", "Pedestrian", "Cyclist", "Truck", "Bus", "Motorcycle", "Van", "Person_sitting", DONT_CARE),
+    ("Car", "Pedestrian", "Cyclist", "Truck", "Other", "Bus", "Motorcycle", "Van", "Person_sitting", DONT_CARE),
     (EvalClass("Car", 0.5, 0.7, ("Van",)), EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
      EvalClass("Cyclist", 0.25, 0.5), EvalClass("Truck", 0.5, 0.7)),
-    (1280, 960), False)
+    (1280, 960), False, title="TJ4DRadSet")     # README: 'Car', 'Pedestrian', 'Cyclist', 'Truck', 'Other'
 
 LAYOUTS = {"vod": VOD, "tj4d": TJ4D}
 
@@ -305,6 +329,108 @@ def radar_boxes_to_labels(boxes: np.ndarray, scores: np.ndarray, names: np.ndarr
                   bbox.reshape(n, 4), dims, location, rotation_y, np.asarray(scores, np.float64).reshape(n))
 
 
+# ----------------------------------------------------------------------------- VoD's annotation JSON
+
+
+# The JSON's frame: VoD's example_set/radar/training/label_2/<id>.json gives box centres in the
+# radar frame with y and z negated (x forward, y right, z down), whatever its "sensor" field says:
+# with the radar calibration they reproduce lidar/training/label_2/<id>.txt exactly (3 frames, 62
+# objects, 1e-6 m), with the LiDAR's they miss by 2.4 m.
+_JSON_TO_RADAR = np.diag([1.0, -1.0, -1.0])
+_JSON_RIDER_CLASS = {"bicycle": "Cyclist"}       # a bicycle with has_rider is the .txt's Cyclist
+
+
+def _occlusion_level(text, where: str) -> int:
+    """KITTI's occluded (0, 1, 2) of VoD's "spatial occlusion" percentage range: up to 10 % -> 0,
+    up to 80 % -> 1, beyond -> 2 (0-10% -> 0, 10-40% and 41-80% -> 1, 80-100% -> 2, as the .txt)."""
+    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*-\s*(\d+(?:\.\d+)?)\s*%\s*", str(text))
+    if not m:
+        raise InputError(f"{where}: attributes['spatial occlusion'] is {text!r}; expected a percentage range such "
+                         f"as '10-40%'")
+    upper = float(m.group(2))
+    return 0 if upper <= 10 else 1 if upper <= 80 else 2
+
+
+def read_vod_json_labels(path: str | os.PathLike, calib: Calibration, image_size: tuple[int, int],
+                         classes: tuple[str, ...] = ()) -> Labels:
+    """View-of-Delft's annotation-tool JSON labels of one frame (a list of objects: ``className``,
+    ``geometry`` {``center`` {x, y, z}, ``size`` {height, width, length}, ``quaternion`` {x, y, z,
+    w}}, ``attributes``) as the KITTI labels its ``.txt`` files hold, in the camera frame of
+    ``calib`` (the frame's radar calibration):
+
+    - class: ``className`` matched to ``classes`` ignoring case (car -> Car, pedestrian ->
+      Pedestrian); a ``bicycle`` with ``has_rider`` is a ``Cyclist``;
+    - location: the bottom centre, centre + h / 2 along the JSON's z (down), in the radar frame as
+      (x, -y, -z) (module note above), then through Tr_velo_to_cam; size (l, h, w) from length,
+      height, width;
+    - rotation_y = yaw - pi / 2, yaw = atan2(R[1, 0], R[0, 0]) of the quaternion's rotation;
+      alpha = rotation_y - atan2(x, z) of the location, in [-pi, pi);
+    - 2D box: the projected KITTI box corners, clipped to the image (``image_size``, width and
+      height px), as the devkit computed the .txt's;
+    - occluded from ``spatial occlusion`` (0-10% 0, up to 80% 1, else 2); truncated (unused by
+      VoD) 1 for ``activity: moving``, else 0, as in the .txt; score 0.
+
+    InputError naming the file and the object for anything else; the message points at the
+    KITTI ``.txt`` labels of the same objects (VoD's ``lidar/training/label_2/``)."""
+    path = Path(path)
+    pointer = ("; the KITTI .txt labels of the same objects are in the dataset's lidar/training/label_2/ (copy "
+               "them into this folder's label_2/)")
+    raw = read_bounded(path, "a View-of-Delft JSON label file", MAX_LABEL_BYTES,
+                       "a JSON object of about 700 bytes a box, a frame holds at most a few thousand")
+    try:
+        objects = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: not readable JSON ({str(exc)[:120]}){pointer}") from None
+    if not isinstance(objects, list):
+        raise InputError(f"{path}: expected a JSON list of annotated objects, got {type(objects).__name__}{pointer}")
+    lower = {c.lower(): c for c in classes}
+    names, centres, sizes, yaws, occluded, truncated = [], [], [], [], [], []
+    for i, obj in enumerate(objects):
+        where = f"{path}: object {i}"
+        try:
+            g = obj["geometry"]
+            centre = [float(g["center"][k]) for k in "xyz"]
+            height, width, length = (float(g["size"][k]) for k in ("height", "width", "length"))
+            qx, qy, qz, qw = (float(g["quaternion"][k]) for k in "xyzw")
+            cls = str(obj["className"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{where}: expected className and geometry.center {{x, y, z}}, geometry.size "
+                             f"{{height, width, length}} and geometry.quaternion {{x, y, z, w}} numbers "
+                             f"({type(exc).__name__}: {exc}){pointer}") from None
+        values = [*centre, height, width, length, qx, qy, qz, qw]
+        if not np.isfinite(values).all() or min(height, width, length) < 0:
+            raise InputError(f"{where}: geometry holds a value that is not finite, or a negative size{pointer}")
+        norm = qx * qx + qy * qy + qz * qz + qw * qw
+        if not 0.5 < norm < 2.0:
+            raise InputError(f"{where}: geometry.quaternion has squared norm {norm:.3g}; a rotation's is 1{pointer}")
+        attributes = obj.get("attributes") or {}
+        if not isinstance(attributes, dict):
+            raise InputError(f"{where}: attributes must be a JSON object{pointer}")
+        name = _JSON_RIDER_CLASS.get(cls.lower()) if attributes.get("has_rider") is True else None
+        name = name or lower.get(cls.lower(), cls if not classes else None)
+        if name is None:
+            raise InputError(f"{where}: unknown className {cls!r}; this dataset's classes are {list(classes)}{pointer}")
+        names.append(name)
+        centres.append(centre)
+        sizes.append((length, width, height))
+        # the rotation's x axis in the JSON frame: R[0, 0] and R[1, 0] of the unit quaternion
+        r00, r10 = (1.0 - 2.0 * (qy * qy + qz * qz)) / norm, 2.0 * (qx * qy + qw * qz) / norm
+        yaws.append(float(np.arctan2(r10, r00)))
+        occluded.append(_occlusion_level(attributes.get("spatial occlusion", "0-10%"), where))
+        truncated.append(1.0 if attributes.get("activity") == "moving" else 0.0)
+    if not names:
+        return Labels.empty()
+    lwh = np.array(sizes, np.float64)
+    radar_centre = np.array(centres, np.float64) @ _JSON_TO_RADAR.T
+    yaw = np.array(yaws)
+    boxes = np.column_stack([radar_centre, lwh, -yaw])      # heading -yaw: the y axis is negated
+    labels = radar_boxes_to_labels(boxes, np.zeros(len(boxes)), np.array(names, dtype=object), calib, image_size)
+    alpha = labels.rotation_y - np.arctan2(labels.location[:, 0], labels.location[:, 2])
+    alpha = (alpha + np.pi) % (2 * np.pi) - np.pi
+    return Labels(labels.name, np.array(truncated), np.array(occluded, np.int64), alpha, labels.bbox,
+                  labels.dimensions, labels.location, yaw - np.pi / 2, labels.score)
+
+
 def camera_fov_mask(xyz: np.ndarray, calib: Calibration, image_size: tuple[int, int]) -> np.ndarray:
     """Points [N, 3] (radar frame) that project inside the image with depth >= 0 (OpenPCDet's
     ``get_fov_flag``, what ``FOV_POINTS_ONLY`` keeps)."""
@@ -396,71 +522,269 @@ class DetectionFrame:
     image_size: tuple[int, int]
 
 
+_FRAME_ID = re.compile(r"[0-9A-Za-z_-]+")
+_IMAGE_SUFFIXES = (".jpg", ".png", ".jpeg")
+_SCAN_SAMPLE_FRAMES = 4          # frames whose time column tells the scans a frame of an unnamed VoD folder
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def _scans_phrase(n: int) -> str:
+    return "single scans" if n == 1 else f"{n} accumulated scans a frame"
+
+
+def resolve_root(root: str | os.PathLike, layout: DetectionLayout, scans: int = 1) -> tuple[Path, int | None, list[str]]:
+    """(the set's folder, the scans a frame its name says or None, notes) for ``--data root``:
+    ``root`` itself when it holds ``training/``; else its subfolder for ``scans`` accumulated
+    scans (View-of-Delft: ``radar/``, ``radar_3frames/`` or ``radar_3_scans/``, ``radar_5frames/``
+    or ``radar_5_scans/``); else, said in a note, the present subfolder of the nearest scan count
+    (VoD's published example_set holds ``radar/`` only). InputError when there is none."""
+    root = Path(root)
+    folders = layout.scan_folders()
+    named = {name: n for n, names in folders.items() for name in names}
+    if (root / "training").is_dir():
+        return root, named.get(root.name), []
+    present = {n: next(d for d in names if (root / d / "training").is_dir())
+               for n, names in folders.items() if any((root / d / "training").is_dir() for d in names)}
+    if scans in present:
+        return root / present[scans], scans, []
+    wanted = "/ or ".join(folders.get(scans, ())) + "/" if scans in folders else ""
+    if present:
+        n = min(present, key=lambda k: (abs(k - scans), -k))
+        note = (f"{root}: no {wanted or 'folder of ' + _scans_phrase(scans)} (the card's input.scans_accumulated = "
+                f"{scans}); read {present[n]}/ ({_scans_phrase(n)}) instead")
+        return root / present[n], n, [note]
+    subs = sorted({d for names in folders.values() for d in names if (root / d).is_dir()})
+    raise InputError(f"{root}: no training/ folder"
+                     + (f" and no {wanted} for {scans} accumulated scans" if wanted else "")
+                     + (f" (found {subs} without training/)" if subs else "")
+                     + "; expected the KITTI layout [ImageSets/ +] training/{velodyne,label_2,calib}")
+
+
+def _read_split(split_file: Path, training: Path) -> list[str]:
+    """The frame ids of an ImageSets split file, each checked (module docstring)."""
+    text = read_bounded(split_file, "an ImageSets split file", MAX_SPLIT_BYTES,
+                        "one frame id a line; View-of-Delft lists 8,693 frames").decode(errors="replace")
+    frame_ids: list[str] = []
+    first_line: dict[str, int] = {}
+    for number, line in enumerate(text.splitlines(), 1):
+        token = line.strip()
+        if not token:
+            continue
+        if not _FRAME_ID.fullmatch(token):
+            raise InputError(f"{split_file}:{number}: {token[:40]!r} is not a frame id (one id such as 00042 "
+                             f"a line)")
+        if token in first_line:
+            raise InputError(f"{split_file}:{number}: frame {token} is listed again (first on line "
+                             f"{first_line[token]}); a frame listed twice would be scored twice: list each "
+                             f"frame once")
+        first_line[token] = number
+        scan = training / "velodyne" / f"{token}.bin"
+        if not scan.is_file():
+            raise InputError(f"{split_file}:{number}: frame {token} is listed but {scan} "
+                             + ("is a directory" if scan.is_dir() else "does not exist"))
+        frame_ids.append(token)
+    if not frame_ids:
+        raise InputError(f"{split_file}: lists no frames")
+    return frame_ids
+
+
+def label_path(training: Path, frame_id: str) -> Path | None:
+    """The frame's label file: ``label_2/<id>.txt`` (KITTI), else ``label_2/<id>.json`` (VoD's
+    annotation tool); None when it has neither."""
+    for suffix in (".txt", ".json"):
+        p = training / "label_2" / f"{frame_id}{suffix}"
+        if p.is_file():
+            return p
+    return None
+
+
+def _every_labelled_frame(root: Path, training: Path, split: str) -> tuple[list[str], str]:
+    """Every frame of ``training/velodyne`` with a label file, in name order, and the note that says so."""
+    velodyne = training / "velodyne"
+    if not velodyne.is_dir():
+        raise InputError(f"{velodyne}: no such folder; expected the radar scans <id>.bin of the KITTI layout")
+    scans = sorted(p.stem for p in velodyne.glob("*.bin") if p.is_file() and _FRAME_ID.fullmatch(p.stem))
+    ids = [fid for fid in scans if label_path(training, fid) is not None]
+    if not ids:
+        raise InputError(f"{root}: no ImageSets/ folder, and none of the {len(scans)} scans in {velodyne} has a "
+                         f"label file in {training / 'label_2'} (<id>.txt or <id>.json)")
+    left = len(scans) - len(ids)
+    note = (f"{root}: no ImageSets/ folder, so split {split!r} is every labelled frame of {training}: "
+            f"{_plural(len(ids), 'frame')}" + (f" ({_plural(left, 'scan')} without a label_2 file left out)"
+                                               if left else "")
+            + f"; write ImageSets/{split}.txt (one frame id a line) to choose the frames")
+    return ids, note
+
+
+def _scans_in_frames(training: Path, frame_ids: list[str]) -> int:
+    """Scans a frame of a View-of-Delft folder, from its time column (a scan index: 0 for the
+    current scan, -1 the one before, ...): the most distinct values in the first frames."""
+    from .readers import read_scan as _read
+    most = 0
+    for fid in frame_ids[:_SCAN_SAMPLE_FRAMES]:
+        t = _read(training / "velodyne" / f"{fid}.bin", ["time"], fmt="vod")[:, 0]
+        most = max(most, len(np.unique(t[np.isfinite(t)])))
+    return most
+
+
+_BENCHMARK_FILE, _MAX_BENCHMARK_BYTES = "benchmark.json", 2**20
+
+
+def _synthetic_set(root: Path, layout: DetectionLayout) -> bool:
+    """Whether ``root`` is (part of) a set ``radaredge make-benchmark --task detection`` wrote for
+    ``layout``: its benchmark.json beside ``training/`` or one folder up names the dataset. Its
+    frames have no images; their camera is the dataset's (detection_benchmark.CAMERAS)."""
+    for folder in (root, root.parent):
+        path = folder / _BENCHMARK_FILE
+        if not path.is_file():
+            continue
+        try:
+            doc = json.loads(read_bounded(path, "a benchmark.json", _MAX_BENCHMARK_BYTES, "a set's summary"))
+        except (InputError, ValueError):
+            return False
+        return isinstance(doc, dict) and doc.get("dataset") == layout.name and "layouts" in doc
+    return False
+
+
+@dataclass(frozen=True)
+class FrameList:
+    """The frames of one split of a KITTI-layout set (:func:`list_frames`): ``root`` the folder
+    holding ``training/``, ``frame_ids`` in split order, ``split_file`` (None: no ImageSets/,
+    every labelled frame), ``scans_per_frame`` (from the folder's name or VoD's time column, None
+    when unknown), ``image_size`` (width, height px) for frames without an image_2 file and
+    ``notes``: what was read without being asked, each a sentence to say once."""
+
+    root: Path
+    split: str
+    frame_ids: list[str]
+    split_file: Path | None
+    scans_per_frame: int | None
+    image_size: tuple[int, int]
+    notes: list[str]
+
+    @property
+    def training(self) -> Path:
+        return self.root / "training"
+
+
+def check_image_size(value, where: str = "input.image_size") -> tuple[int, int] | None:
+    """A card's ``input.image_size`` as (width, height) px; None when absent. InputError unless two
+    whole numbers of 1 to MAX_IMAGE_SIDE px."""
+    if value is None:
+        return None
+    try:
+        width, height = (int(v) for v in value)
+        ok = [width, height] == [float(v) for v in value]
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
+        raise InputError(f"{where}: expected [width, height] in whole pixels (1 to {MAX_IMAGE_SIDE}), got {value!r}")
+    return width, height
+
+
+def list_frames(root: str | os.PathLike, split: str = "val", layout: DetectionLayout = VOD,
+                scans_accumulated: int = 1, image_size=None) -> FrameList:
+    """The frames of ``split`` of the KITTI-layout set at ``root`` (:func:`resolve_root`), with the
+    notes a run says once (module docstring):
+
+    - ``ImageSets/<split>.txt`` lists them; without an ``ImageSets/`` folder, every frame of
+      ``training/velodyne`` with a ``label_2`` file (.txt or VoD's .json) is the split (noted, with
+      how many). An ``ImageSets/`` without ``<split>.txt`` is an error naming the splits it has.
+    - a folder whose scans a frame (its name, or for VoD the time column) differ from
+      ``scans_accumulated`` (the card's ``input.scans_accumulated``) is noted;
+    - frames without an ``image_2`` file take ``image_size`` (the card's ``input.image_size``),
+      else the dataset camera's size: noted with the calibration's principal point."""
+    resolved, named_scans, notes = resolve_root(root, layout, scans_accumulated)
+    training = resolved / "training"
+    image_sets = resolved / "ImageSets"
+    split_file: Path | None = image_sets / f"{split}.txt"
+    if split_file.exists():
+        frame_ids = _read_split(split_file, training)
+    elif image_sets.is_dir():
+        have = sorted(p.stem for p in image_sets.glob("*.txt"))
+        raise InputError(f"{split_file}: split file missing" + (f"; ImageSets has {have}" if have else
+                         "; expected ImageSets/{train,val,test}.txt with one frame id a line (or no ImageSets/ "
+                         "folder at all: every labelled frame is read)"))
+    else:
+        frame_ids, note = _every_labelled_frame(resolved, training, split)
+        notes.append(note)
+        split_file = None
+    scans, how = named_scans, f"its name: {resolved.name}/"
+    if scans is None and layout.scan_format == "vod":
+        scans, how = _scans_in_frames(training, frame_ids), "distinct values of its time column"
+    if scans is not None and scans != scans_accumulated:
+        folders = layout.scan_folders().get(scans_accumulated)
+        where = f" ({layout.title or layout.name}: {' or '.join(f + '/' for f in folders)})" if folders else ""
+        notes.append(f"{resolved} holds {_scans_phrase(scans)} ({how}), but the card's input.scans_accumulated is "
+                     f"{scans_accumulated}{where}: the model sees {'fewer' if scans < scans_accumulated else 'more'} "
+                     f"points a frame than it takes, and its scores are not the card's")
+    size = check_image_size(image_size)
+    without = [fid for fid in frame_ids
+               if not any((training / "image_2" / f"{fid}{s}").exists() for s in _IMAGE_SUFFIXES)]
+    if without and size is None and _synthetic_set(resolved, layout):
+        size = layout.image_size          # radaredge's own set: its camera is the dataset's, nothing to say
+    elif without:
+        source = ("the card's input.image_size" if size else
+                  f"{layout.title or layout.name}'s camera, radaredge's default; the card has no input.image_size")
+        size = size or layout.image_size
+        try:
+            p2 = read_calibration(training / "calib" / f"{without[0]}.txt").P2
+            principal = f"; P2's principal point in calib/{without[0]}.txt is ({p2[0, 2]:.0f}, {p2[1, 2]:.0f}) px"
+        except InputError:
+            principal = ""
+        notes.append(f"{_plural(len(without), 'frame')} of {len(frame_ids)} have no camera image in "
+                     f"{training / 'image_2'}: their image size is {size[0]} x {size[1]} px ({source}){principal}; "
+                     f"it clips the 2D boxes (KITTI's 40 px height rule) and the camera-view crop (input.crop)")
+    return FrameList(resolved, split, frame_ids, split_file, scans, size or layout.image_size, notes)
+
+
 class DetectionSet:
-    """The frames of one split of a KITTI-layout radar detection set (module docstring)."""
+    """The frames of one split of a KITTI-layout radar detection set (module docstring). The
+    notes of :func:`list_frames` are in ``notes`` and said once each, as a warning, when the set
+    is opened (``say=False``: kept in ``notes`` only)."""
 
-    def __init__(self, root: str | os.PathLike, split: str, layout: DetectionLayout, scans_accumulated: int = 1):
+    def __init__(self, root: str | os.PathLike, split: str, layout: DetectionLayout, scans_accumulated: int = 1,
+                 image_size=None, say: bool = True):
         self.layout = layout
-        self.root = self._resolve_root(Path(root), scans_accumulated)
-        self.split = split
+        listed = list_frames(root, split, layout, scans_accumulated, image_size)
+        self.root, self.split, self.frame_ids = listed.root, split, listed.frame_ids
         self.training = self.root / "training"
-        self.split_file = split_file = self.root / "ImageSets" / f"{split}.txt"
-        if not split_file.exists():
-            have = sorted(p.stem for p in (self.root / "ImageSets").glob("*.txt"))
-            raise InputError(f"{split_file}: split file missing" + (f"; ImageSets has {have}" if have else
-                             "; expected ImageSets/{train,val,test}.txt with one frame id a line"))
-        text = read_bounded(split_file, "an ImageSets split file", MAX_SPLIT_BYTES,
-                            "one frame id a line; View-of-Delft lists 8,693 frames").decode(errors="replace")
-        self.frame_ids: list[str] = []
-        first_line: dict[str, int] = {}
-        for number, line in enumerate(text.splitlines(), 1):
-            token = line.strip()
-            if not token:
-                continue
-            if not re.fullmatch(r"[0-9A-Za-z_-]+", token):
-                raise InputError(f"{split_file}:{number}: {token[:40]!r} is not a frame id (one id such as 00042 "
-                                 f"a line)")
-            if token in first_line:
-                raise InputError(f"{split_file}:{number}: frame {token} is listed again (first on line "
-                                 f"{first_line[token]}); a frame listed twice would be scored twice: list each "
-                                 f"frame once")
-            first_line[token] = number
-            scan = self.training / "velodyne" / f"{token}.bin"
-            if not scan.is_file():
-                raise InputError(f"{split_file}:{number}: frame {token} is listed but {scan} "
-                                 + ("is a directory" if scan.is_dir() else "does not exist"))
-            self.frame_ids.append(token)
-        if not self.frame_ids:
-            raise InputError(f"{split_file}: lists no frames")
+        self.split_file = listed.split_file if listed.split_file is not None else self.training / "velodyne"
+        self.scans_per_frame = listed.scans_per_frame
+        self.default_image_size = listed.image_size
+        self.notes = listed.notes
         self._image_dir = self.training / "image_2"
-
-    def _resolve_root(self, root: Path, scans: int) -> Path:
-        if (root / "training").is_dir():
-            return root
-        sub = self.layout.accumulated_dirs.get(scans)
-        if sub and (root / sub / "training").is_dir():
-            return root / sub
-        subs = [d for d in self.layout.accumulated_dirs.values() if (root / d).is_dir()]
-        raise InputError(f"{root}: no training/ folder"
-                         + (f" and no {sub}/ for {scans} accumulated scans" if sub else "")
-                         + (f" (found {subs})" if subs else "")
-                         + "; expected the KITTI layout ImageSets/ + training/{velodyne,label_2,calib}")
+        if say:
+            for note in self.notes:
+                warnings.warn(note, UserWarning, stacklevel=2)
 
     def __len__(self) -> int:
         return len(self.frame_ids)
 
     def image_size(self, frame_id: str) -> tuple[int, int]:
         """The frame's camera image size from the header of its image_2 file when present
-        (:func:`read_image_size`), else the dataset's."""
-        for suffix in (".jpg", ".png", ".jpeg"):
+        (:func:`read_image_size`), else the card's ``input.image_size`` or the dataset's (noted)."""
+        for suffix in _IMAGE_SUFFIXES:
             p = self._image_dir / f"{frame_id}{suffix}"
             if p.exists():
                 return read_image_size(p)
-        return self.layout.image_size
+        return self.default_image_size
 
     def scan_path(self, frame_id: str) -> Path:
         """The radar scan file of frame ``frame_id``."""
         return self.training / "velodyne" / f"{frame_id}.bin"
+
+    def labels(self, frame_id: str, calib: Calibration, image_size: tuple[int, int]) -> Labels:
+        """The frame's labels: ``label_2/<id>.txt`` (:func:`read_labels`), else VoD's
+        ``label_2/<id>.json`` (:func:`read_vod_json_labels`, with the frame's calibration and
+        image size)."""
+        path = label_path(self.training, frame_id)
+        if path is None or path.suffix == ".txt":
+            return read_labels(self.training / "label_2" / f"{frame_id}.txt", self.layout.label_classes)
+        return read_vod_json_labels(path, calib, image_size, self.layout.label_classes)
 
     def frame(self, i: int, features: list[str]) -> DetectionFrame:
         """Frame ``i`` of the split with its scan in ``features`` columns. InputError naming the
@@ -473,6 +797,7 @@ class DetectionSet:
             raise InputError(f"{path}: an empty scan (0 bytes): a labelled frame needs its radar points (a failed "
                              f"copy?); restore the file, or remove frame {fid} from {self.split_file}")
         check_points(points, features, path)
-        labels = read_labels(self.training / "label_2" / f"{fid}.txt", self.layout.label_classes)
         calib = read_calibration(self.training / "calib" / f"{fid}.txt")
-        return DetectionFrame(fid, points, labels, calib, self.image_size(fid))
+        size = self.image_size(fid)
+        labels = self.labels(fid, calib, size)
+        return DetectionFrame(fid, points, labels, calib, size)

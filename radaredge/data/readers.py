@@ -23,7 +23,9 @@ transloc  TransLoc4D-style ``.npy`` [N, 5], any       x, y, z, v_r <- v, intensi
 
 Stand-ins: TJ4DRadSet has no RCS column, so ``rcs`` is served from its Power (a received signal
 strength, not dBsm); TransLoc4D-style files have an intensity instead of an RCS, so ``rcs`` is
-served from it. A model trained on true RCS sees a different scale from these columns.
+served from it. A model trained on true RCS sees a different scale from these columns, so
+:func:`read_scan` says so (:func:`stand_in_notes`, a ``UserWarning`` of the same text for every
+file, which Python's default warning filter shows once per run).
 
 ``read_scan`` infers ``fmt`` from the file when it is not given: ``.npy`` is ``transloc``; a
 ``.bin`` is ``vod`` or ``tj4d`` only when its byte size is a whole number of rows of exactly one
@@ -61,6 +63,7 @@ from __future__ import annotations
 import contextlib
 import os
 import stat
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
@@ -96,6 +99,12 @@ _LAYOUTS = {
                         {"x": 0, "y": 1, "z": 2, "v_r": 3, "intensity": 4, "rcs": 4}),
 }
 _BIN_FORMATS = ("vod", "tj4d")
+# Features a format serves from a column that measures another quantity: fmt -> feature -> what the
+# column is (a stand-in, said by read_scan).
+STAND_INS = {
+    "tj4d": {"rcs": "its Power column (the signal-to-noise ratio in dB, not a radar cross-section in dBsm)"},
+    "transloc": {"rcs": "its intensity column (not a radar cross-section in dBsm)"},
+}
 FILE_SUFFIX = {"vod": ".bin", "tj4d": ".bin", "transloc": ".npy"}   # scan-file formats and their suffix
 
 
@@ -330,6 +339,15 @@ def _read_table(path: str | os.PathLike, fmt: str) -> np.ndarray:
     return _read_bin(path, fmt) if fmt in _BIN_FORMATS else _read_npy(path, fmt)
 
 
+def stand_in_notes(fmt: str, features: Sequence[str]) -> list[str]:
+    """One sentence per feature of ``features`` (a card's ``features``) that a ``fmt`` file serves
+    from a column measuring another quantity (:data:`STAND_INS`), naming both; none otherwise."""
+    title = _LAYOUTS[fmt].title if fmt in _LAYOUTS else fmt
+    return [f"{title} scans have no {feature!r} column: the card's features name {feature!r}, which is served "
+            f"from {what}; a model trained on {feature} sees another quantity and scale"
+            for feature, what in STAND_INS.get(fmt, {}).items() if feature in features]
+
+
 def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None = None) -> np.ndarray:
     """One scan: float32 [N, len(features)], the columns named by ``features`` in that order.
 
@@ -337,7 +355,8 @@ def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None 
     m/s, rcs, and per format those in the module docstring's table). ``fmt`` is one of ``vod``,
     ``tj4d``, ``transloc``; None infers it from the file (``.npy``: transloc; ``.bin``: by byte
     size). Raises :class:`InputError` for a missing or malformed file and for a feature the
-    format cannot provide.
+    format cannot provide. A feature served from a column of another quantity (TJ4D's Power as
+    ``rcs``) is said as a ``UserWarning`` (:func:`stand_in_notes`; the same text for every file).
     """
     features = _check_features(features)
     path = Path(path)
@@ -346,7 +365,10 @@ def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None 
             raise InputError(f"{path} is a directory, not a scan file" if path.is_dir() else f"{path}: no such scan file")
         fmt = infer_format([path])
     table = _read_table(path, fmt)
-    return np.ascontiguousarray(table[:, _feature_columns(features, fmt)])
+    columns = _feature_columns(features, fmt)
+    for note in stand_in_notes(fmt, features):
+        warnings.warn(note, UserWarning, stacklevel=2)
+    return np.ascontiguousarray(table[:, columns])
 
 
 def read_vod_bin(path: str | os.PathLike) -> np.ndarray:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -86,14 +87,16 @@ def reference_detector(net) -> Detector:
 
 def graph_detector(exported, runner=None) -> Detector:
     """Detections of an exported graph (a :class:`radaredge.runtime.RadarModel`) in onnxruntime,
-    or through ``runner`` (feeds -> outputs, e.g. OpenVINO) with the same input checks."""
+    or through ``runner`` (feeds -> outputs, e.g. OpenVINO) with the same input checks. The
+    detector's ``model`` is the graph (its ``flag_tally`` counts the input flags of onnxruntime's runs)."""
     def run(points):
         if runner is None:
             return _detections(exported.run([points]))
-        out = runner(exported.feeds([points]))
-        for check in exported.info.checks:
-            check.apply(out)
+        feeds = exported.feeds([points])
+        out = runner(feeds)
+        exported.apply_checks(out, feeds)
         return _detections(out)
+    run.model = exported
     return run
 
 
@@ -109,6 +112,8 @@ def detectors(card: ModelCard, onnx_path, checkpoint=None, reference: bool = Tru
     graphs = {name: runtime.load(p) for name, p in ((ORT, fp32), (ORT_INT8, int8)) if p.is_file()}
     if not graphs:
         raise InputError(f"{given}: no such graph")
+    for g in graphs.values():
+        g.say_flags = False           # evaluate_detection says the input flags' totals once
     for name, g in graphs.items():
         if g.card.name != card.name or g.features != card.features:
             raise ConfigError(f"{g.path} is an export of card {g.card.name!r} ({g.features}), not {card.name!r} "
@@ -131,6 +136,20 @@ def detectors(card: ModelCard, onnx_path, checkpoint=None, reference: bool = Tru
 
 
 # ----------------------------------------------------------------------------- the set
+
+
+def flag_notes(card: ModelCard, backends: dict[str, Detector]) -> list[str]:
+    """The input flags of the first graph backend's runs over the set, as sentences to say once:
+    frames with points dropped by a pillar's cap (``pillars.max_points_per_pillar``, input_flags
+    bit 8) and the share of points outside ``pillars.point_cloud_range`` (bit 4)."""
+    tally = next((d.model.flag_tally for d in backends.values()
+                  if getattr(d, "model", None) is not None and d.model.flag_tally.runs), None)
+    if tally is None:
+        return []
+    notes = [tally.capacity_note(card, "frame")] if tally.capacity else []
+    if tally.outside:
+        notes.append(tally.range_note(card, "frame"))
+    return notes
 
 
 def card_points(frame: DetectionFrame, card: ModelCard) -> np.ndarray:
@@ -207,6 +226,7 @@ class DetectionEvalReport:
     areas: tuple[str, ...]
     disagreement: list[tuple[str, int]] = field(default_factory=list)
     box_errors: dict[str, dict[str, BoxErrors]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)      # what was read or dropped unasked, said once as warnings
 
     @property
     def baseline(self) -> str:
@@ -239,6 +259,7 @@ class DetectionEvalReport:
                                 for b in backends if b != self.baseline},
             "frames_per_second": self.fps,
             "most_disagreeing_frames": [{"frame": f, "unmatched_boxes": n} for f, n in self.disagreement],
+            "notes": list(self.notes),
             "box_errors": {"matching": f"nuScenes' true-positive matching: centres within {MATCH_DISTANCE:g} m in "
                                        f"bird's-eye view, detections in descending score; radar frame, metres, "
                                        f"dz = detection minus ground truth",
@@ -359,7 +380,8 @@ def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", che
         raise ConfigError(f"{card.name} detects {card.get('classes')}, none of the classes {layout.name} evaluates "
                           f"({[c.name for c in layout.eval_classes]})")
     eval_classes = tuple(layout.eval_class(c) for c in classes)
-    the_set = DetectionSet(data, split, layout, int(card.get("input.scans_accumulated", 1)))
+    the_set = DetectionSet(data, split, layout, int(card.get("input.scans_accumulated", 1)),
+                           card.get("input.image_size"))
     backends = detectors(card, onnx_path, checkpoint, reference, openvino)
     frames = [the_set.frame(i, card.features) for i in range(len(the_set))]
     points = [card_points(f, card) for f in frames]
@@ -375,6 +397,9 @@ def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", che
                 raise InputError(f"{the_set.training / 'velodyne' / (frames[i].frame_id + '.bin')}: {exc}") from None
         fps[name] = len(frames) / max(time.perf_counter() - start, 1e-9)
         detections[name] = found
+    notes = the_set.notes + flag_notes(card, backends)
+    for note in notes[len(the_set.notes):]:
+        warnings.warn(note, UserWarning, stacklevel=2)
     areas = AREAS if layout.corridor else ("entire_area",)
     gts = [f.labels for f in frames]
     curves = {name: evaluate_frames(gts, [as_labels(d, f, card.get("classes")) for d, f in zip(dets, frames)],
@@ -384,6 +409,7 @@ def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", che
     report = DetectionEvalReport(card.name, str(onnx_path), str(checkpoint) if checkpoint else None, str(the_set.root),
                                  split, layout.name, classes, frames, points, detections, ap, curves, fps,
                                  {c.name: c.min_iou for c in eval_classes}, areas)
+    report.notes = notes
     report.box_errors = {name: {cls: class_box_errors([_class_pair(d, f, card.get("classes"), cls)
                                                        for d, f in zip(dets, frames)]) for cls in classes}
                          for name, dets in detections.items()}
@@ -456,7 +482,9 @@ def int8_ap_loss(card: ModelCard, onnx_path, checkpoint=None) -> Int8ApReport:
         for image_sets in root.glob("**/ImageSets"):
             ids = "".join((image_sets / f"{split}.txt").read_text() for split in ("train", "val", "test"))
             (image_sets / f"{INT8_AP_SPLIT}.txt").write_text(ids)
-        report = evaluate_detection(card, fp32, root, INT8_AP_SPLIT, checkpoint, reference=False, openvino=False)
+        with warnings.catch_warnings():        # the notes of a synthetic set compared with itself say nothing
+            warnings.simplefilter("ignore", UserWarning)
+            report = evaluate_detection(card, fp32, root, INT8_AP_SPLIT, checkpoint, reference=False, openvino=False)
     area = "entire_area"
     return Int8ApReport({c: report.ap[ORT][area][c]["3d"] for c in report.classes},
                         {c: report.ap[ORT_INT8][area][c]["3d"] for c in report.classes}, len(report.frames))

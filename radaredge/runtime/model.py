@@ -11,17 +11,20 @@ reports what it found instead.
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import onnxruntime as ort
 
 from ..cards import ModelCard, card_from_yaml, implausible_policy, plausible_ranges
-from ..errors import CapacityError, InputError
+from ..config import checked_arguments
+from ..errors import CapacityError, ConfigError, InputError
 from . import backends, integrity
 from .bundle import bundle_graphs, part_findings
-from .flags import INPUT_ERRORS, OUTPUT as FLAGS_OUTPUT, describe
+from .flags import CAPACITY, INPUT_ERRORS, OUT_OF_RANGE, OUTPUT as FLAGS_OUTPUT, describe
 from .metadata import GraphMetadata
 from .session import make_session, run_session
 
@@ -152,6 +155,84 @@ class FrameFeeds:
         return feeds
 
 
+def _usable(card: ModelCard, frame: np.ndarray) -> np.ndarray:
+    """[N] bool: the frame's points a graph keeps before its range: finite, and (the card's
+    ``implausible: drop``) every column within its plausible range."""
+    keep = np.isfinite(frame).all(1)
+    try:
+        ranges = plausible_ranges(card) if implausible_policy(card) == "drop" else {}
+    except ConfigError:
+        ranges = {}
+    for col, name in enumerate(card.features):
+        if name in ranges and col < frame.shape[1]:
+            lo, hi = ranges[name]
+            with np.errstate(invalid="ignore"):
+                keep &= (frame[:, col] >= lo) & (frame[:, col] <= hi)
+    return keep
+
+
+def input_counts(card: ModelCard, frames: Sequence[np.ndarray]) -> dict[str, int]:
+    """Point counts of one run's frames [N_k, F] (columns ``card.features``), the values an output
+    check's message may name beside the graph's outputs (:meth:`RadarModel.apply_checks`):
+
+    - ``points``: the points fed;
+    - ``points_in_range``: those a pillar graph's stages see as the scan (finite, plausible, x and
+      y within ``pillars.point_cloud_range``, bounds included, z not tested: OpenPCDet's
+      ``mask_points_by_range``, the points MAFF-Net's DBSCAN clusters);
+    - ``points_outside``: finite points outside ``pillars.point_cloud_range`` in x, y or z, the
+      points the pillar grid drops (``input_flags`` bit 4).
+
+    Without ``pillars.point_cloud_range`` (or x, y, z columns) only ``points``."""
+    arrays = [np.asarray(f, np.float32).reshape(-1, len(card.features)) for f in frames]
+    out = {"points": int(sum(len(a) for a in arrays))}
+    r = card.get("pillars.point_cloud_range")
+    if r is None or not all(c in card.features for c in ("x", "y", "z")):
+        return out
+    lo, hi = np.asarray(r[:3], np.float32), np.asarray(r[3:], np.float32)     # float32, as the graph compares
+    xyz_cols = [card.features.index(c) for c in ("x", "y", "z")]
+    in_range = outside = 0
+    for a in arrays:
+        xyz = a[:, xyz_cols]
+        usable = _usable(card, a)
+        with np.errstate(invalid="ignore"):
+            xy = ((xyz[:, :2] >= lo[:2]) & (xyz[:, :2] <= hi[:2])).all(1)
+            grid = ((xyz >= lo) & (xyz < hi)).all(1)
+        in_range += int((usable & xy).sum())
+        outside += int((np.isfinite(xyz).all(1) & ~grid).sum())
+    out.update(points_in_range=in_range, points_outside=outside)
+    return out
+
+
+@dataclass
+class FlagTally:
+    """What a graph's ``input_flags`` said over the runs of one :class:`RadarModel`: ``runs``;
+    runs with bit 8 (``capacity``: more points in a pillar than ``pillars.max_points_per_pillar``,
+    the rest dropped) and with bit 4 (``out_of_range``); the points fed and those of them outside
+    ``pillars.point_cloud_range``."""
+
+    runs: int = 0
+    capacity: int = 0
+    out_of_range: int = 0
+    points: int = 0
+    outside: int = 0
+
+    def capacity_note(self, card: ModelCard, what: str = "run") -> str:
+        """The totals of bit 8 as one sentence (``what`` names a run: frame, window)."""
+        return (f"input_flags bit 8 (capacity) in {self.capacity} of {_count(self.runs, what)}: a pillar held more "
+                f"points than the card's pillars.max_points_per_pillar = {card.get('pillars.max_points_per_pillar')} "
+                f"keeps, and the points beyond were dropped")
+
+    def range_note(self, card: ModelCard, what: str = "run") -> str:
+        """The share of points outside the range as one sentence."""
+        return (f"{self.outside} of {self.points} points fed ({self.outside / max(self.points, 1):.1%}; input_flags "
+                f"bit 4 in {self.out_of_range} of {_count(self.runs, what)}) lie outside the card's "
+                f"pillars.point_cloud_range {card.get('pillars.point_cloud_range')} and were dropped")
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "s")
+
+
 class RadarModel:
     """An exported radaredge pipeline: ``.card`` (from the ONNX metadata) and ``.run(frames)``.
 
@@ -191,6 +272,11 @@ class RadarModel:
         elif backend == "auto":
             self.backend = backends.cached_choice(self.weights_sha256, threads) or "auto"
         self._runner = self._runner_of(self.backend) if self.backend != "auto" else None
+        # input_flags bits 8 and 4 of every run; said once per loaded graph unless a caller (eval)
+        # sets say_flags False and says the totals itself
+        self.flag_tally = FlagTally()
+        self.say_flags = True
+        self._said: set[int] = set()
 
     def _runner_of(self, backend: str):
         if backend == "openvino":
@@ -214,15 +300,57 @@ class RadarModel:
         """The graph's input feeds for one window (:meth:`FrameFeeds.feeds`)."""
         return self.inputs.feeds(frames, timestamps)
 
+    def apply_checks(self, out: Mapping[str, np.ndarray], feeds: Mapping[str, np.ndarray]) -> None:
+        """The graph's declared output checks (capacity flags) on one run's outputs: CapacityError
+        or a warning; their messages may name the run's outputs and :func:`input_counts` of its
+        frames (``{points_in_range}``: the scan points MAFF-Net's DBSCAN counts)."""
+        if not self.info.checks:
+            return
+        frames = [feeds[n] for n in self.info.frame_inputs if n in feeds]
+        values = {**input_counts(self.card, frames), **out}
+        for check in self.info.checks:        # declared by the model at export (capacity flags)
+            check.apply(values)
+
+    def tally_flags(self, out: Mapping[str, np.ndarray], feeds: Mapping[str, np.ndarray]) -> None:
+        """Count this run's informational ``input_flags`` bits in :attr:`flag_tally`; with
+        :attr:`say_flags`, say each bit the first time it is set on this graph, naming the card
+        field that decides it (``pillars.max_points_per_pillar``, ``pillars.point_cloud_range``)."""
+        if FLAGS_OUTPUT not in out or self.card.get("pillars.point_cloud_range") is None:
+            return
+        flags = np.bitwise_or.reduce(np.asarray(out[FLAGS_OUTPUT], np.int64).ravel(), initial=0)
+        counts = input_counts(self.card, [feeds[n] for n in self.info.frame_inputs if n in feeds])
+        t = self.flag_tally
+        t.runs += 1
+        t.capacity += bool(flags & CAPACITY)
+        t.out_of_range += bool(flags & OUT_OF_RANGE)
+        t.points += counts["points"]
+        t.outside += counts.get("points_outside", 0)
+        if not self.say_flags:
+            return
+        once = (f" (first in run {t.runs} of this graph; said once, RadarModel.flag_tally counts every run)")
+        if flags & CAPACITY and CAPACITY not in self._said:
+            self._said.add(CAPACITY)
+            warnings.warn(f"{self.path}: input_flags bit 8 (capacity) is set: a pillar held more points than the "
+                          f"card's pillars.max_points_per_pillar = {self.card.get('pillars.max_points_per_pillar')} "
+                          f"keeps, and the points beyond were dropped{once}", UserWarning, stacklevel=3)
+        if flags & OUT_OF_RANGE and OUT_OF_RANGE not in self._said:
+            self._said.add(OUT_OF_RANGE)
+            n, k = counts["points"], counts.get("points_outside", 0)
+            warnings.warn(f"{self.path}: input_flags bit 4 (out_of_range) is set: {k} of the {n} points fed "
+                          f"({k / max(n, 1):.1%}) lie outside the card's pillars.point_cloud_range "
+                          f"{self.card.get('pillars.point_cloud_range')} and were dropped{once}", UserWarning,
+                          stacklevel=3)
+
     def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
-        out = self._execute(self.feeds(frames, timestamps))
-        for check in self.info.checks:        # declared by the model at export (capacity flags)
-            check.apply(out)
+        feeds = self.feeds(frames, timestamps)
+        out = self._execute(feeds)
+        self.apply_checks(out, feeds)
         refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & self.errors
         if refused.any():                      # the checks above let no such input through; the graph agrees
             k = int(np.flatnonzero(refused.ravel())[0])
             raise InputError(f"{self.path}: frame {k}: the graph flagged its input: {'; '.join(describe(refused.ravel()[k]))}")
+        self.tally_flags(out, feeds)
         return out
 
 
@@ -300,6 +428,7 @@ def card_findings(session: ort.InferenceSession, info: GraphMetadata, card: Mode
     return found
 
 
+@checked_arguments
 def load(path: str | Path, threads: int = 2, backend: str = "onnxruntime") -> RadarModel:
     """Load an exported radaredge ``.onnx`` for inference on ``threads`` CPU threads in
     ``backend``: ``onnxruntime``, ``openvino`` (the openvino extra) or ``auto`` (the faster of
@@ -315,6 +444,7 @@ def load(path: str | Path, threads: int = 2, backend: str = "onnxruntime") -> Ra
     return RadarModel(make_session(path, threads=threads), path, backend, threads)
 
 
+@checked_arguments
 def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
     """What an export holds: for a graph file, or each graph of a multi-graph export directory
     (its manifest lists them), the card name, graph name, feature columns, frame inputs,

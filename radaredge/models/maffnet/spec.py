@@ -165,9 +165,10 @@ def runtime_checks(card: ModelCard) -> list[OutputCheck]:
     method = cfa.get("method", "grid_density")
     policy = cfa.get("not_converged") or ("error" if method == "dbscan" else "warn")
     if method == "dbscan":
-        msg = (f"the scan has more points inside the range than {card.name}'s DBSCAN clusters "
-               f"(cfa.dbscan.capacity = {card.get('cfa.dbscan.capacity')}); the points beyond it were "
-               "left out of the clustering map; export with a larger capacity (--config) or crop the scan")
+        msg = (f"the scan has {{points_in_range}} points inside the range (x, y within pillars.point_cloud_range) "
+               f"but {card.name}'s DBSCAN clusters cfa.dbscan.capacity = {card.get('cfa.dbscan.capacity')}; the "
+               "points beyond it were left out of the clustering map; export with a larger capacity (--config) or "
+               "crop the scan")
     else:
         msg = (f"{card.name}'s GridDensityBEV components did not converge in cfa.grid.cc_iterations = "
                f"{card.get('cfa.grid.cc_iterations')} max-pool steps (the fork's partial labels); "
