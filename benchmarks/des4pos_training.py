@@ -94,7 +94,7 @@ def main(argv=None) -> int:
           flush=True)
     if args.run is None:
         t0 = time.perf_counter()
-        train = radaredge.train(card, cities, run, options=options, log=lambda line: print(line, flush=True)).to_dict()
+        train = radaredge.train(card, cities, run, options=options, overwrite=True, log=lambda line: print(line, flush=True)).to_dict()
         t_train = time.perf_counter() - t0
     else:
         run, train = args.run, json.loads((args.run / "train-log.json").read_text())

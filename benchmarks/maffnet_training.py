@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     run = args.run or work / "run"
     if args.run is None:
         t0 = time.perf_counter()
-        radaredge.train(card, data, run, options=options, log=lambda line: print(line, flush=True))
+        radaredge.train(card, data, run, options=options, overwrite=True, log=lambda line: print(line, flush=True))
         print(f"trained in {(time.perf_counter() - t0) / 60:.1f} min", flush=True)
     log = json.loads((run / "train-log.json").read_text())
     best = run / "best.pth"

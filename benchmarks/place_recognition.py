@@ -144,7 +144,7 @@ def main(argv=None) -> int:
     if run is None:
         run = work / "run"
         t0 = time.perf_counter()
-        report = radaredge.train(card, work / "design-towns", run, options=options,
+        report = radaredge.train(card, work / "design-towns", run, options=options, overwrite=True,
                                  log=lambda line: print(line, flush=True))
         t_train, train = time.perf_counter() - t0, report.to_dict()
     else:

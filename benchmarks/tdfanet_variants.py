@@ -95,7 +95,7 @@ def train_variant(card, design: Path, run: Path, options: dict) -> dict:
         print(f"{card.name}: reusing the finished run in {run}", flush=True)
         return report
     t0 = time.perf_counter()
-    report = radaredge.train(card, design, run, options=options,
+    report = radaredge.train(card, design, run, options=options, overwrite=True,
                              log=lambda line: print(f"{card.name}: {line}", flush=True)).to_dict()
     report["wall_seconds"] = round(time.perf_counter() - t0, 1)
     return report

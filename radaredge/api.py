@@ -23,11 +23,12 @@ import onnx as onnx_lib
 from . import artifacts, atomic
 from . import runtime as rt
 from .atomic import Staging
-from .bench.harness import BenchReport, bench
+from .bench.harness import BenchReport
+from .bench.harness import bench as _bench
 from .cards import ModelCard, parse_card, resolve_card
 from .cards.openpcdet import Conversion, load_openpcdet_config, maffnet_card, render_card
-from .config import check_count, check_writable_dir
-from .errors import ConfigError, InputError
+from .config import check_count, check_writable_dir, checked_arguments, refuse_overwriting_inputs
+from .errors import ConfigError, InputError, RadarEdgeError
 from .eval.tasks import EVALUATIONS, QUANTIZED_TASKS, EvalInputs
 from .export.calibration import DEFAULT_WINDOWS, recorded_feeds
 from .export.graphs import default_output, export_graph, graph_paths, require_same_weights, resolve_output, write_export
@@ -35,8 +36,10 @@ from .export.onnx_call import DEFAULT_OPSET
 from .export.quantize import Int8Options, int8_policy
 from .models import create_model, model_spec
 from .parity.check import ParityReport, check_graph
+from .parity.recording import DEFAULT_FRAMES, recorded_cases
 from .runtime.model import FrameFeeds
 from .train.recipes import RECIPES, TrainInputs
+from .train.run import check_run_output
 
 __all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build", "map_query",
            "ExportResult", "BenchReport", "resolve_card", "EXPORT_OPTIONS"]
@@ -129,6 +132,7 @@ class ExportResult:
         return out
 
 
+@checked_arguments
 def export(card: ModelCard | str | Path, output: str | Path | None = None, *, checkpoint: str | Path | None = None,
            model=None, opset: int | None = None, debug: bool = False, quantize: str | None = None,
            calibration: str | Path | None = None, calibration_format: str | None = None,
@@ -154,9 +158,11 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
                        calibration_windows or DEFAULT_WINDOWS, calibration_format)
     if model is None:
         model = create_model(card, checkpoint, spec)      # card and checkpoint errors first, then the output's
-    output = resolve_output(card, spec, output)
+    named, output = output, resolve_output(card, spec, output)
     # before a long export
     check_writable_dir(artifacts.bundle_root([g.name for g in spec.graphs], output), "--output")
+    refuse_overwriting_inputs({"--output": [named, *artifacts.bundle_files([g.name for g in spec.graphs], output)]},
+                              {"--config": card.path, "--checkpoint": checkpoint, "--calibration": calibration})
     report = getattr(model, "checkpoint_report", None)
     if report is not None:
         say(report.summary())
@@ -178,24 +184,46 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     return result
 
 
+@checked_arguments
 def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None,
-           model=None, cases: int = 20, seed: int = 0, quantized: bool = False, runtime: str = "onnxruntime",
+           model=None, cases: int | None = None, seed: int | None = None, quantized: bool = False,
+           runtime: str = "onnxruntime", data: str | Path | None = None, split: str | None = None,
+           frames: int | None = None, data_format: str | None = None,
            progress: Callable[[str], Callable] | None = None):
     """Parity of every graph of the card's export at ``onnx`` (the bundle: a one-graph model's
     .onnx, a multi-graph model's directory; default the export path) run in ``runtime`` against
-    the torch reference formulation, on ``cases`` synthetic cases drawn with ``seed``.
+    the torch reference formulation, on ``cases`` synthetic cases (default 20) drawn with ``seed``
+    (default 0), or with ``data`` on the user's own recording: ``frames`` frames (a model taking
+    K scans: windows of K consecutive scans; default 20) spread evenly over the drive(s), KITTI
+    layout (``split``: its ImageSets/<split>.txt, else every frame) or folder of scan files at
+    ``data`` (scan format ``data_format``, default inferred), judged by the same comparators, with
+    the graph's capacity outputs summarised over it (:mod:`radaredge.parity.recording`).
     ``quantized``: each graph's int8 copy (beside it; a one-graph model's may be named as
     ``onnx`` itself) is held to each output's int8 budget, and a graph the model's int8 policy
     keeps fp32 is checked as fp32. Returns a :class:`radaredge.parity.check.ParityReport`,
     whose truth value is the verdict."""
-    check_count("cases", cases, 1, MAX_CASES)
+    if cases is not None:
+        check_count("cases", cases, 1, MAX_CASES)
+    if frames is not None:
+        check_count("frames", frames, 1, MAX_CASES)
     card = resolve_card(card)
     spec = model_spec(card)
+    if data is None:
+        given = [o for o, v in (("--split", split), ("--frames", frames), ("--format", data_format)) if v is not None]
+        if given:
+            raise ConfigError(f"{', '.join(given)}: choose(s) the frames of a recording; add --data DIR")
+    else:
+        _check_recording_options(card, spec, cases, seed)
     onnx = Path(onnx) if onnx is not None else default_output(card, spec)
     targets = checked_graphs(card, spec, onnx, quantized)
+    recordings = {}
+    if data is not None:             # a wrong recording fails before the model is built
+        recordings = {g.name: recorded_cases(card, g, data, frames or DEFAULT_FRAMES, split, data_format)
+                      for g in spec.graphs}
     if model is None:
         model = create_model(card, checkpoint, spec)
     report = ParityReport(card.name, str(onnx), runtime, quantized)
+    report.data = next(iter(recordings.values()), None)
     for graph in spec.graphs:
         path, int8 = targets[graph.name]
         module = graph.module(model)
@@ -208,7 +236,7 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
         def debug_graph(path=path, graph=graph, module=module, exported=exported):
             """The debug export beside the graph, (re)written unless it holds these weights."""
             debug_path = artifacts.copy_path(path, artifacts.DEBUG)
-            if not debug_path.exists() or rt.load(debug_path).weights_sha256 != exported.weights_sha256:
+            if not _holds_weights(debug_path, exported.weights_sha256):
                 with Staging(debug_path.parent) as stage:
                     export_graph(card, spec, graph, module, stage.path(debug_path), debug=True,
                                  part=exported.info.part, bundle_hash=exported.info.bundle_weights_sha256)
@@ -216,12 +244,42 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
             return debug_path
 
         wrap = progress(f"parity {graph.name}") if progress else None
-        report.graphs[graph.name] = check_graph(card, graph, module, path, cases, seed, int8, runtime,
-                                                debug_onnx=None if int8 else debug_graph, progress=wrap)
+        recorded = recordings[graph.name].cases if graph.name in recordings else None
+        report.graphs[graph.name] = check_graph(card, graph, module, path, 20 if cases is None else cases,
+                                                0 if seed is None else seed, int8, runtime,
+                                                debug_onnx=None if int8 else debug_graph, progress=wrap,
+                                                recorded=recorded)
     task = QUANTIZED_TASKS.get(card.model) if quantized and runtime == "onnxruntime" else None
     if task is not None:
         report.task = task(card, onnx, checkpoint)
     return report
+
+
+def _check_recording_options(card: ModelCard, spec, cases, seed) -> None:
+    """ConfigError for parity options that do not go with ``--data``: synthetic-case options, and
+    a model whose graphs take no radar scans."""
+    given = [o for o, v in (("--cases", cases), ("--seed", seed)) if v is not None]
+    if given:
+        raise ConfigError(f"{', '.join(given)} draw(s) synthetic cases; with --data the cases are the recording's "
+                          f"frames: --frames N picks N of them (windows, for a model taking several scans)")
+    scanless = [g.name for g in spec.graphs if not g.frame_inputs(card)]
+    if scanless:
+        raise ConfigError(f"--data: {card.name} takes no radar scans (its graph(s) {', '.join(scanless)} take "
+                          f"other inputs), so a recording of scans cannot feed it; check {card.name} on synthetic "
+                          f"cases (drop --data)")
+
+
+bench = checked_arguments(_bench)
+
+
+def _holds_weights(path: Path, weights_sha256: str) -> bool:
+    """Whether ``path`` is a graph that loads (contents as exported) and computes with these weights."""
+    if not path.exists():
+        return False
+    try:
+        return rt.load(path).weights_sha256 == weights_sha256
+    except RadarEdgeError:              # edited or unreadable: rewritten like a stale one
+        return False
 
 
 def checked_graphs(card: ModelCard, spec, onnx: Path, quantized: bool) -> dict[str, tuple[Path, bool]]:
@@ -249,6 +307,7 @@ def checked_graphs(card: ModelCard, spec, onnx: Path, quantized: bool) -> dict[s
     return out
 
 
+@checked_arguments
 def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Path | None = None,
              queries: str | Path | None = None, *, map_path: str | Path | None = None,
              data: str | Path | None = None, split: str = "val", dataset: str | None = None,
@@ -275,15 +334,18 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
     return task(card, onnx, inputs)
 
 
+@checked_arguments
 def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | None = None, *,
-          checkpoint: str | Path | None = None, device: str = "cpu", resume: bool = False,
+          checkpoint: str | Path | None = None, device: str = "cpu", resume: bool = False, overwrite: bool = False,
           validation: tuple[str, ...] | list[str] | None = None, data_format: str | None = None,
           bag: dict | None = None, options: dict | None = None, progress: Callable | None = None,
           log: Callable[[str], None] | None = None):
     """Train the card's model with its paper's recipe on the data at ``data`` (TDFANet: drives
     of radar scans with positions; the model's ``train`` hook says what it reads) and write the
     run directory ``output`` (default ``runs/<card>/``): ``best.pth`` (for ``export
-    --checkpoint``), ``last.pth`` (for ``resume``) and ``train-log.json``. ``checkpoint``
+    --checkpoint``), ``last.pth`` (for ``resume``) and ``train-log.json``; a directory that holds
+    a run already is continued with ``resume`` or replaced with ``overwrite``, never silently
+    (:func:`radaredge.train.run.check_run_output`). ``checkpoint``
     initialises the weights (fine-tuning); ``options`` overrides recipe values by name (epochs,
     lr, batch_size, ...); ``bag`` says where ROS bag drives keep their radar scans and GNSS fixes
     (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
@@ -298,6 +360,9 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     if resume and checkpoint is not None:
         raise ConfigError("--resume continues the run in --output from its last.pth; drop --checkpoint")
     output = Path(output) if output is not None else Path("runs") / card.name
+    check_run_output(output, resume, overwrite, {"--data": data, "--checkpoint": checkpoint, "--config": card.path,
+                                                 **{f"--set {k}": v for k, v in (options or {}).items()
+                                                    if isinstance(v, str) and v and Path(v).exists()}})
     model = create_model(card, checkpoint, spec)
     inputs = TrainInputs(str(output), str(checkpoint) if checkpoint is not None else None, device, resume,
                          tuple(validation) if validation is not None else None, data_format, dict(bag or {}), dict(options or {}), progress, log)
@@ -307,6 +372,7 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
 CFA_CHOICES = ("dbscan", "grid_density")
 
 
+@checked_arguments
 def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, dataset_config: str | Path | None = None,
                         name: str | None = None, stage_two: bool = True, cfa: str | None = None) -> Conversion:
     """A MAFF-Net card from an OpenPCDet config (TRV-Lab/MAFF-Net ``tools/cfgs``) and its
@@ -321,6 +387,8 @@ def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, da
     if out is not None:
         check_writable_dir(Path(out).parent, "--out")
     merged, files = load_openpcdet_config(config, dataset_config)
+    refuse_overwriting_inputs({"--out": out}, {"CONFIG": config, "--dataset-config": dataset_config,
+                                               "_BASE_CONFIG_": files})
     conversion = maffnet_card(merged, files, name=name, stage_two=stage_two, cfa=cfa)
     card = parse_card(conversion.card, Path(out) if out is not None else Path(f"{conversion.card['name']}.yaml"))
     create_model(card)
@@ -329,6 +397,7 @@ def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, da
     return conversion
 
 
+@checked_arguments
 def run(onnx: str | Path, data: str | Path, out: str | Path, *, workers: int | None = None, threads: int = 1,
         backend: str = "onnxruntime", ray_address: str | None = None, shard_windows: int | None = None,
         fmt: str | None = None, progress: Callable | None = None):
@@ -339,10 +408,12 @@ def run(onnx: str | Path, data: str | Path, out: str | Path, *, workers: int | N
     # lazy: ray and pyarrow are the scale extra, loaded by the fleet commands only
     from .fleet.pipeline import run_graph
     check_writable_dir(Path(out), "--out")
+    refuse_overwriting_inputs({"--out": out}, {"--onnx": onnx, "--data": data})
     return run_graph(onnx, data, out, workers=workers, threads=threads, backend=backend, ray_address=ray_address,
                      shard_windows=shard_windows, fmt=fmt, progress=progress)
 
 
+@checked_arguments
 def map_build(card: ModelCard | str | Path, onnx: str | Path, drives: str | Path, out: str | Path, *,
               index: str = "auto", workers: int | None = None, threads: int = 1, backend: str = "onnxruntime",
               ray_address: str | None = None, fmt: str | None = None, progress: Callable | None = None):
@@ -354,10 +425,12 @@ def map_build(card: ModelCard | str | Path, onnx: str | Path, drives: str | Path
     card = resolve_card(card)
     check_export(card, rt.load(onnx, threads=1))
     check_writable_dir(Path(out), "--out")
+    refuse_overwriting_inputs({"--out": out}, {"--onnx": onnx, "--drives": drives, "--config": card.path})
     return build_map(onnx, drives, out, index=index, workers=workers, threads=threads, backend=backend,
                      ray_address=ray_address, fmt=fmt, progress=progress)
 
 
+@checked_arguments
 def map_query(map_dir: str | Path, drive: str | Path, *, onnx: str | Path | None = None, top_k: int = 10,
               radius: float = 5.0, threads: int = 2, backend: str = "onnxruntime"):
     """Localise the windows of ``drive`` against a map made by :func:`map_build`: top-k map

@@ -89,6 +89,14 @@ def graph_files(graphs: list[str] | tuple[str, ...], bundle: str | Path) -> dict
     return {g: bundle / f"{g}{ARTIFACTS[GRAPH].suffix}" for g in graphs}
 
 
+def bundle_files(graphs: list[str] | tuple[str, ...], bundle: str | Path) -> list[Path]:
+    """Every path an export of ``graphs`` into ``bundle`` may write: each graph with its sidecar,
+    int8 and debug copies, and a multi-graph bundle's directory and manifest."""
+    files = [copy for g in graph_files(graphs, bundle).values()
+             for copy in (g, *(copy_path(g, k) for k in (SIDECAR, *COPY_KINDS)))]
+    return files if len(graphs) == 1 else [Path(bundle), manifest_path(bundle), *files]
+
+
 def bundle_root(graphs: list[str] | tuple[str, ...], bundle: str | Path) -> Path:
     """The directory the files of a bundle are written into (a one-graph bundle's parent)."""
     return Path(bundle) if len(graphs) > 1 else Path(bundle).parent

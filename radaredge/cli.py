@@ -8,7 +8,9 @@ parity check, or a bench whose backend failed, exits 1.
 
 from __future__ import annotations
 
+import atexit
 import functools
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -18,7 +20,7 @@ import click
 from . import artifacts, atomic
 from .cards import available_cards, load_card
 from .cards.openpcdet import describe_source
-from .config import check_writable_dir, parse_settings
+from .config import check_writable_dir, parse_settings, refuse_overwriting_inputs
 from .errors import ConfigError, RadarEdgeError
 from .runtime.runners import RUNTIMES
 
@@ -113,6 +115,7 @@ class OneLineUsageErrors(click.Group):
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         atomic.exit_on_sigterm()
+        atexit.unregister(_exiting)
         try:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         except click.exceptions.NoArgsIsHelpError as exc:     # a bare `radaredge`: the help, as --help shows it
@@ -125,6 +128,14 @@ class OneLineUsageErrors(click.Group):
         except click.Abort:
             click.echo("aborted", err=True)
             sys.exit(1)
+        finally:
+            atexit.register(_exiting)          # the last registered: it runs before the others
+
+
+def _exiting() -> None:
+    """The first exit handler of a finished command: a Ctrl-C while the interpreter exits (removing
+    temporaries, shutting Ray down) is ignored, so it cannot print a traceback from an exit handler."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @click.group(cls=OneLineUsageErrors, context_settings={"help_option_names": ["-h", "--help"]})
@@ -155,8 +166,9 @@ def list_cmd(as_json):
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
 def inspect(onnx_path, targets, as_json):
-    """Show an exported graph's (or a multi-graph export directory's) inputs, outputs, card and versions;
-    with --targets, the ops a deployment target does not support (exit 1 when one does not)."""
+    """Show an exported graph's (or a multi-graph export directory's) inputs, outputs, card, versions and
+    whether its contents and embedded card check out (exit 1 when they do not); with --targets, the ops a
+    deployment target does not support (exit 1 when one does not)."""
     # lazy: loads onnxruntime, which `list` and `--help` must not
     from .runtime import inspect_export
     chosen = ()
@@ -181,7 +193,7 @@ def inspect(onnx_path, targets, as_json):
                             if f["level"] == "note"))
     refused = any(f["level"] == "unsupported" for g in info["graphs"] for fs in g.get("targets", {}).values()
                   for f in fs)
-    sys.exit(1 if refused else 0)
+    sys.exit(1 if refused or not info.get("ok", True) else 0)
 
 
 @main.group("card")
@@ -258,8 +270,19 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
               help="The .onnx; for a multi-graph model (des4pos) the export directory.")
 @click.option("--config", type=click.Path(dir_okay=False))
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
-@click.option("--cases", default=20, show_default=True, type=int)
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--cases", type=int, help="Synthetic cases  [default: 20]")
+@click.option("--seed", type=int, help="Seeds the synthetic cases  [default: 0]")
+@click.option("--data", "data_dir", type=click.Path(),
+              help="Check on your own recording instead of synthetic cases: a drive (scans/ + gps.csv) or a directory "
+                   "of drives, a KITTI layout (View-of-Delft, TJ4DRadSet: training/velodyne/) or a folder of scan "
+                   "files (.bin/.npy, frames in name order). TDFANet: windows of K consecutive scans, timed by "
+                   "gps.csv or else the card's frame_rate; MAFF-Net: one scan a case. Not des4pos.")
+@click.option("--split", help="With --data on a KITTI layout: the frames of ImageSets/<split>.txt  [default: every frame]")
+@click.option("--frames", type=int,
+              help="With --data: frames (TDFANet: windows) checked, spread evenly over the recording, first and last "
+                   "included  [default: 20]")
+@click.option("--format", "data_format", type=click.Choice(["vod", "tj4d", "transloc"]),
+              help="With --data: the scan format (default: inferred from the files).")
 @click.option("--quantized", is_flag=True,
               help="Check the int8 copies (beside each graph; a one-graph model's may be passed as --onnx): "
                    "descriptors need cosine >= 0.99 and top-1 agreement >= 98 %; detections need matched-box "
@@ -271,13 +294,16 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
               help="Run the graph in onnxruntime or in OpenVINO's CPU plugin (pip install 'radaredge[openvino]').")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
-def parity_check(model, onnx_path, config, checkpoint, cases, seed, quantized, runtime_name, as_json):
+def parity_check(model, onnx_path, config, checkpoint, cases, seed, data_dir, split, frames, data_format, quantized,
+                 runtime_name, as_json):
     """Run the ONNX in onnxruntime (or OpenVINO) and the reference formulation in torch on the
-    same synthetic cases; PASSED/FAILED against per-output tolerances (exit 0/1)."""
+    same synthetic cases, or on your recording (--data); PASSED/FAILED against per-output
+    tolerances (exit 0/1)."""
     # lazy: the API imports torch (see export)
     from .api import parity
     report = parity(_card(model, config), onnx_path, checkpoint=checkpoint, cases=cases, seed=seed,
-                    quantized=quantized, runtime=runtime_name, progress=_progress)
+                    quantized=quantized, runtime=runtime_name, data=data_dir, split=split, frames=frames,
+                    data_format=data_format, progress=_progress)
     _emit(as_json, report)
     sys.exit(0 if report else 1)
 
@@ -310,6 +336,8 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
     from .api import bench as bench_verb
     if save_path:
         check_writable_dir(Path(save_path).parent, "--save")     # before the runs, not after them
+        refuse_overwriting_inputs({"--save": save_path}, {"--onnx": onnx_path, "--config": config,
+                                                           "--checkpoint": checkpoint})
     report = bench_verb(_card(model, config), onnx_path, checkpoint=checkpoint, threads=threads, runs=runs,
                         warmup=warmup, reference=not no_reference, int8=True if int8_path == "" else int8_path,
                         profile=profile,
@@ -461,6 +489,12 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
     check_writable_dir(report_path.parent, "--report")          # before the evaluation, not after it
     check_writable_dir(plot_path.parent, "--plot")
     check_writable_dir(report_dir.parent, "--report-dir")
+    graph = Path(onnx_path)
+    refuse_overwriting_inputs(
+        {"--report": report_path, "--plot": plot_path, "--report-dir": report_dir},
+        {"--onnx": [graph, *(artifacts.copy_path(graph, k) for k in artifacts.COPY_KINDS)] if graph.suffix == ".onnx"
+         else graph, "--database": database, "--queries": queries, "--map": map_path, "--data": data_root,
+         "--config": config, "--checkpoint": checkpoint})
     report = evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, data=data_root,
                       split=split, dataset=dataset, checkpoint=checkpoint, radius=radius, reference=not no_reference,
                       progress=_progress)
@@ -512,10 +546,12 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
               help="ROS bag drives: -1 when the sensor's Doppler is positive approaching.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @click.option("--resume", is_flag=True, help="Continue the run in --output after its last finished epoch.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace the run --output holds (without it, or --resume, a directory with a run is refused).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
 def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, seed, settings, freeze, validation,
-          data_format, radar_topic, gps_topic, field_map, doppler_sign, device, resume, as_json):
+          data_format, radar_topic, gps_topic, field_map, doppler_sign, device, resume, overwrite, as_json):
     """Train a model with its paper's recipe (TDFANet: the lazy quadruplet loss, Adam 8e-4 decayed 0.9
     per epoch; Des4Pos: object, prior, coarse InfoNCE and fine stages), validate every epoch and keep
     the best checkpoint for `radaredge export --checkpoint`."""
@@ -529,7 +565,7 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
                          for k, v in parse_settings(field_map, "--field-map", "v_r=0").items()} or None,
            "doppler_sign": float(doppler_sign) if doppler_sign else None}
     report = train_verb(_card(model, config), data_dir, output, checkpoint=checkpoint, device=device, resume=resume,
-                        validation=validation or None, data_format=data_format, bag=bag, options=options,
+                        overwrite=overwrite, validation=validation or None, data_format=data_format, bag=bag, options=options,
                         progress=_bar, log=_log)
     _emit(as_json, report)
 
@@ -543,8 +579,11 @@ _BACKEND = click.Choice(["onnxruntime", "openvino", "auto"])
               help="A drive (scans/ + gps.csv) or a directory of drives.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="The run directory: run.json and shards/*.parquet; an interrupted run resumes there.")
-@click.option("--workers", type=click.IntRange(min=1), help="Ray actors  [default: the cluster's CPUs / --threads]")
-@click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1), help="Threads per worker.")
+@click.option("--workers", type=click.IntRange(min=1),
+              help="Ray actors; more than the CPUs hold are cut down with a warning  [default: the cluster's CPUs / "
+                   "--threads]")
+@click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Threads per worker; more than a node's CPUs are cut down with a warning.")
 @click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True,
               help="The runtime of each worker; auto times both on this machine once and keeps the faster.")
 @click.option("--ray-address", help="Run on this Ray cluster (default: $RAY_ADDRESS, else an embedded local instance).")
@@ -582,8 +621,11 @@ def map_group():
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="The map directory.")
 @click.option("--index", type=click.Choice(["auto", "flat", "ivfpq", "hnsw"]), default="auto", show_default=True,
               help="auto: exact up to 100,000 windows, IVF-PQ with exact re-ranking above.")
-@click.option("--workers", type=click.IntRange(min=1), help="Ray actors  [default: the cluster's CPUs / --threads]")
-@click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1), help="Threads per worker.")
+@click.option("--workers", type=click.IntRange(min=1),
+              help="Ray actors; more than the CPUs hold are cut down with a warning  [default: the cluster's CPUs / "
+                   "--threads]")
+@click.option("--threads", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Threads per worker; more than a node's CPUs are cut down with a warning.")
 @click.option("--backend", type=_BACKEND, default="onnxruntime", show_default=True)
 @click.option("--ray-address", help="Run on this Ray cluster (default: $RAY_ADDRESS, else an embedded local instance).")
 @click.option("--format", "data_format", type=click.Choice(["transloc", "vod", "tj4d"]),
@@ -643,9 +685,11 @@ def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, 
     """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
     query poses with template descriptions ("The pose is north of a red box.")."""
     # lazy: the city generator is loaded only by the command that runs it
-    from .data.text_city import check_city_output, make_city_for_card, write_cities
+    from .data.text_city import check_city_output, check_city_work, make_city_for_card, write_cities
     card = _card(model, config)
     check_city_output(out_path, cities)
+    check_city_work(cities, poses)
+    refuse_overwriting_inputs({"--out": out_path}, {"--config": config})
     if cities == 1:
         m = make_city_for_card(card, seed=seed, world=world, objects=objects, poses=poses)
         m.save(out_path)

@@ -1,15 +1,23 @@
-"""Build an op's config dataclass from a model-card section, with errors that name the field."""
+"""Build an op's config dataclass from a model-card section, with errors that name the field; and
+the checks every verb makes of its arguments before it works (types, counts, writable and
+non-destructive output paths, ``--set`` pairs)."""
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
+import functools
+import inspect
 import math
+import os
+import types
+import typing
+from pathlib import Path
 from typing import Any, Callable, Mapping, Type, TypeVar
 
-from .errors import ConfigError
-import os
-from pathlib import Path
 import yaml
+
+from .errors import ConfigError
 
 T = TypeVar("T")
 
@@ -163,6 +171,111 @@ def check_writable_dir(directory, option: str, create: bool = False) -> None:
         raise ConfigError(f"{option}: cannot create {directory}: {existing} is not a directory")
     if not os.access(existing, os.W_OK):
         raise ConfigError(f"{option}: {existing} is not writable")
+
+
+def _accepts(hint, value) -> bool:
+    """Whether ``value`` is of the annotated type ``hint`` (a class, a union, a parametrised
+    list / tuple / dict / Callable; their items are not looked into). A ``Path`` accepts any
+    ``os.PathLike``, a ``float`` an ``int``; ``Any`` anything."""
+    if hint is Any or hint is object:
+        return True
+    if hint is None or hint is type(None):
+        return value is None
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_accepts(h, value) for h in typing.get_args(hint))
+    if origin is collections.abc.Callable or hint is collections.abc.Callable:
+        return callable(value)
+    cls = origin or hint
+    if not isinstance(cls, type):
+        return True                                   # a TypeVar, a Literal: left to the function
+    if issubclass(cls, os.PathLike) or cls is Path:
+        return isinstance(value, (str, os.PathLike))
+    if cls is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, cls)
+
+
+def _type_name(hint) -> str:
+    if hint is None or hint is type(None):
+        return "None"
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(h) for h in typing.get_args(hint))
+    if typing.get_origin(hint) is collections.abc.Callable or hint is collections.abc.Callable:
+        return "a callable"
+    cls = typing.get_origin(hint) or hint
+    return "a path" if cls is Path else getattr(cls, "__name__", str(hint))
+
+
+def checked_arguments(fn: Callable) -> Callable:
+    """``fn`` with every argument checked against its annotation before the call: a value of
+    another type (None where a path is needed, an int for a path, a generator for a list) is a
+    ConfigError naming the function, the parameter and what it takes, never a TypeError from
+    deep inside. The API verbs and the runtime's loaders are wrapped with it."""
+    signature = inspect.signature(fn)
+    hints: dict = {}
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if not hints:
+            hints.update(typing.get_type_hints(fn))
+            hints.pop("return", None)
+        try:
+            bound = signature.bind(*args, **kwargs)
+        except TypeError as exc:
+            raise ConfigError(f"{fn.__name__}: {exc}") from None
+        for name, value in bound.arguments.items():
+            hint = hints.get(name)
+            if hint is not None and signature.parameters[name].kind not in (
+                    inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD) and not _accepts(hint, value):
+                shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+                raise ConfigError(f"{fn.__name__}: {name}: expected {_type_name(hint)}, got "
+                                  f"{type(value).__name__} {shown}")
+        return fn(*args, **kwargs)
+    return wrapper
+
+
+def same_path(a, b) -> bool:
+    """True when ``a`` and ``b`` name the same file or directory: :func:`os.path.samefile` when
+    both exist (symlinks followed, hard links seen), else their absolute, symlink-resolved paths
+    are equal (a file not yet written)."""
+    a, b = Path(a), Path(b)
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+        return a.resolve() == b.resolve()
+    except (OSError, RuntimeError):              # a symlink loop, a path too long: not the same file
+        return False
+
+
+def _paths(value) -> list[Path]:
+    """``value`` as a list of paths: None is none, a path one, an iterable of paths each."""
+    if value is None:
+        return []
+    if isinstance(value, (str, os.PathLike)):
+        return [Path(value)]
+    return [Path(v) for v in value if v is not None]
+
+
+def refuse_overwriting_inputs(outputs: Mapping[str, Any], inputs: Mapping[str, Any]) -> None:
+    """ConfigError (before anything is written) when a path the command would write is one of
+    its inputs, or two of its outputs are one file. ``outputs`` maps an option (``--out``) to
+    the path, or the paths, written under it (a directory output lists the directory and the
+    files it will hold); ``inputs`` maps an option to the path or paths it reads (None: not
+    given). Paths are compared resolved, symlinks and hard links followed (:func:`same_path`)."""
+    given = [(option, path) for option, value in inputs.items() for path in _paths(value)]
+    seen: list[tuple[str, Path]] = []
+    for option, value in outputs.items():
+        for path in _paths(value):
+            for in_option, source in given:
+                if same_path(path, source):
+                    raise ConfigError(f"{option} {path}: that is the {in_option} input {source}; writing it "
+                                      f"would destroy the input: choose another {option}")
+            for other_option, other in seen:
+                if other_option != option and same_path(path, other):
+                    raise ConfigError(f"{option} {path}: {other_option} writes the same file; give them "
+                                      f"different paths")
+            seen.append((option, path))
 
 
 def parse_settings(pairs: tuple[str, ...], option: str = "--set", example: str = "negatives=8") -> dict:

@@ -176,3 +176,15 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(good, t
         runtime.load(work / "model.onnx")
         outcomes.append("kept" if now == old else "replaced")
     assert "kept" in outcomes                                # most moments fall before the commit
+
+
+def test_a_ctrl_c_while_exiting_prints_no_traceback(tmp_path):
+    """A Ctrl-C that lands in an exit handler (here one registered before the command, so it runs
+    after the CLI's) is ignored once the command has finished: no 'Exception ignored in atexit
+    callback' traceback, and the command's own exit code."""
+    script = tmp_path / "late.py"
+    script.write_text("import atexit, os, signal, sys, time\nimport radaredge.cli\n"
+                      "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(0.3)))\n"
+                      "sys.argv = ['radaredge', 'list']\nradaredge.cli.main()\n")
+    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "Traceback" not in res.stderr and "KeyboardInterrupt" not in res.stderr, res.stderr

@@ -131,6 +131,8 @@ def files(tmp_path_factory, tiny_export):
     with open(d / "malicious.pth", "wb") as f:
         pickle.dump(_Exploit(), f)
     (d / "a-file").write_text("not a directory")
+    (d / "garbage-run").mkdir()
+    (d / "garbage-run" / "last.pth").write_bytes(b"\x00garbage" * 100)
     (d / "empty-dir").mkdir()
     (d / "binary.yaml").write_bytes(b"\xff\xfe\x00\x01" * 64)
     (d / "huge.yaml").write_text("# " + "x" * 300_000)
@@ -270,10 +272,16 @@ CLI = [
     ("make-benchmark-seed-negative", ["make-benchmark", "--out", "b", "--seed", "-1"], "seed"),
     ("make-benchmark-towns-0", ["make-benchmark", "--out", "b", "--towns", "0"], "towns"),
     ("make-benchmark-towns-huge", ["make-benchmark", "--out", "b", "--towns", "100000"], "--towns"),
+    ("make-benchmark-seed-beyond-gps", ["make-benchmark", "--out", "b", "--seed", "2001", "--frames", "2"],
+     "use seeds up to 1990"),
+    ("make-benchmark-towns-beyond-gps", ["make-benchmark", "--out", "b", "--seed", "1985", "--towns", "10",
+                                         "--frames", "2"], "use seeds up to 1990"),
     ("make-city-cities-0", ["make-city", "--out", "c", "--cities", "0"], "--cities"),
     ("make-city-cities-huge", ["make-city", "--out", "c", "--cities", "100000"], "--cities"),
     ("make-benchmark-out-under-file", ["make-benchmark", "--out", "{f}/a-file/b", "--frames", "2"], "a-file"),
     ("make-city-objects-0", ["make-city", "--out", "c.npz", "--objects", "0"], "objects"),
+    ("make-city-poses-unbounded", ["make-city", "--out", "c", "--cities", "1000", "--poses", "100000"],
+     "described poses; at most"),
     ("make-city-poses-negative", ["make-city", "--out", "c.npz", "--poses", "-1"], "poses"),
     ("make-city-world-0", ["make-city", "--out", "c.npz", "--world", "0"], "world"),
     ("make-city-world-nan", ["make-city", "--out", "c.npz", "--world", "nan"], "world"),
@@ -334,6 +342,9 @@ CLI = [
     ("train-device", ["train", "--model", "tdfanet", "--data", "x", "--device", "tpu"], "--device"),
     ("train-resume-without-state", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
                                     "{f}/town", "--output", "run", "--resume"], "last.pth"),
+    ("train-resume-garbage-state", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
+                                    "{f}/town", "--output", "{f}/garbage-run", "--resume"],
+     "not a readable torch checkpoint"),
     ("train-resume-and-checkpoint", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
                                      "{f}/town", "--resume", "--checkpoint", "{f}/good.pth"], "--checkpoint"),
     ("train-field-map", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
@@ -918,12 +929,25 @@ def _map_edit(path: Path, dst: Path, how: str) -> Path:
         data["pose_text"] = data["pose_text"][:1]
     elif how == "zero-size":
         data["sizes"][0] = 0.0
+    elif how.startswith(("nan-", "huge-")):        # every numeric array of the map, by class
+        value = np.nan if how.startswith("nan-") else 1e30
+        name, index = MAP_NUMBERS[how.split("-", 1)[1].removesuffix("-no-poses")]
+        data[name] = data[name].astype(np.float64 if data[name].dtype == np.float64 else np.float32)
+        data[name][index] = value
+    if how.endswith("-no-poses"):
+        data.update(pose_w=np.zeros((0, 2)), pose_cell=np.zeros(0, "<U1"), pose_text=np.zeros(0, "<U1"))
     np.savez(dst, **data)
     return dst
 
 
+# A numeric array of a cell map -> the element a NaN or a huge value is written to (cell 0's first
+# real object). A map without described poses (a locate database) is checked as fully as one with.
+MAP_NUMBERS = {"origins": ("origins", (0, 0)), "sizes": ("sizes", 0), "xyz": ("points", (0, 0, 0, 1)),
+               "rgb": ("points", (0, 0, 0, 4)), "num-points": ("num_points", (0, 0)), "pose": ("pose_w", (0, 1))}
 MAPS = ["no-cells", "nan-origin", "inf-origin", "float-mask", "string-points", "int-ids", "nan-pose",
-        "short-pose-text", "zero-size"]
+        "short-pose-text", "zero-size",
+        *[f"{v}-{n}{tail}" for v in ("nan", "huge") for n in MAP_NUMBERS for tail in ("", "-no-poses")
+          if not (n == "pose" and tail)]]
 
 
 @pytest.mark.parametrize("how", MAPS)
@@ -932,6 +956,16 @@ def test_des4pos_maps(des4pos_bundle, workdir, how):
     before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
     res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", str(des4pos_bundle / "bundle"), "--map",
                  str(bad), "--text", "The pose is north of a red box.", "--no-cache")
+    assert_one_error_line(res, workdir, before)
+
+
+@pytest.mark.parametrize("how", [m for m in MAPS if m.startswith(("nan-", "huge-")) and not m.endswith("no-poses")])
+def test_des4pos_maps_evaluated(des4pos_bundle, workdir, how):
+    """``eval --map`` refuses what locate refuses: never null positions and exit 0."""
+    bad = _map_edit(des4pos_bundle / "city.npz", workdir / "bad.npz", how)
+    before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
+    res = invoke("eval", "--model", "des4pos-tiny", "--config", str(DES4POS_TINY), "--onnx",
+                 str(des4pos_bundle / "bundle"), "--map", str(bad), "--no-reference", "--report", "r.json")
     assert_one_error_line(res, workdir, before)
 
 
@@ -1061,6 +1095,8 @@ GRIDS = [("tdfanet-voxel-0.05", TINY_CARD, lambda d: d["pillars"].update(voxel_s
          ("tdfanet-channels", TINY_CARD, lambda d: d["pillars"].update(point_cloud_range=[0, -40, -3, 70, 40, 2],
                                                                        voxel_size=[0.1, 0.1, 5.0], out_channels=512),
           "MiB BEV map"),
+         ("tdfanet-voxel-0.016", TINY_CARD, lambda d: d["pillars"].update(voxel_size=[0.016, 0.016, 13.0]),
+          "BEV maps per window"),        # 4 M cells of 8 channels in 3 frames: the export needed 8 GB
          ("maffnet-cfa-map", MAFF_TINY, lambda d: d["cfa"]["grid"].update(map_h=4096, map_w=4096), "cells"),
          ("dbscan-map", MAFF_DBSCAN, lambda d: d["cfa"]["dbscan"].update(map_rows=2048, map_cols=2048), "cells")]
 
@@ -1119,3 +1155,44 @@ def test_json_failures_print_a_json_document(files, workdir, case, args, expect)
     assert res.exit_code == 2, res.output
     doc = json.loads(res.stdout)
     assert doc["exit_code"] == 2 and doc["error"]
+
+
+# -- the Python API given values of the wrong type (None where a path is needed, an int, a generator)
+def _api_cases():
+    import inspect
+    import typing
+
+    from radaredge import api
+    from radaredge.config import _accepts
+    cases = []
+    for verb in ("export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build",
+                 "map_query"):
+        fn = getattr(api, verb)
+        hints = typing.get_type_hints(fn.__wrapped__)
+        for name, param in inspect.signature(fn).parameters.items():
+            hint = hints.get(name)
+            if hint is None or not _accepts(hint, "x"):
+                continue                                   # counts, flags, callables: checked elsewhere
+            for label, value in (("int", 5), ("generator", "gen"), ("none", None)):
+                if value is None and _accepts(hint, None):
+                    continue
+                cases.append((verb, name, label))
+    return cases
+
+
+API_CASES = _api_cases()
+
+
+@pytest.mark.parametrize("verb, name, label", API_CASES, ids=[f"{v}-{n}-{k}" for v, n, k in API_CASES])
+def test_api_arguments_of_the_wrong_type(verb, name, label):
+    """Every path or name argument of every API verb: a value of another type is a ConfigError naming
+    the verb and the parameter, raised before any work (it was a TypeError from pathlib)."""
+    import inspect
+
+    from radaredge import api
+    fn = getattr(api, verb)
+    required = {n: "x" for n, p in inspect.signature(fn).parameters.items()
+                if p.default is inspect.Parameter.empty and p.kind is not inspect.Parameter.VAR_KEYWORD}
+    value = {"int": 5, "generator": (c for c in "ab"), "none": None}[label]
+    with pytest.raises(RadarEdgeError, match=f"{verb}: {name}: expected"):
+        fn(**{**required, name: value})

@@ -230,7 +230,7 @@ def _stage_ms(graph, module, cases, n: int, reference: bool, onnx_path, profile)
     return out
 
 
-def bench(card, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None, model=None,
+def bench(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None, model=None,
           threads: int = 2, runs: int = 20, warmup: int = 3, reference: bool = True,
           int8: str | Path | bool | None = None, profile: bool = False, openvino: bool | None = None,
           progress: Callable[[str], Callable] | None = None, log: Callable[[str], None] | None = None) -> BenchReport:

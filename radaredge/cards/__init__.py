@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import difflib
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Type, TypeVar
@@ -24,6 +25,7 @@ from ..errors import ConfigError
 
 T = TypeVar("T")
 REQUIRED = ("name", "description", "model", "features")
+CARD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
 # Top-level numbers every model reads: (range, integral). Sections are checked by their dataclasses.
 TOP_LEVEL_NUMBERS = {
     "frames": (Range(1, 64), True),                       # scans per window
@@ -56,6 +58,12 @@ MAX_PLAUSIBLE = 3.0e38               # inside float32: the graphs compare in flo
 # a window's points are ranked by a float32 CumSum (RANSAC order; TensorRT takes no integer
 # CumSum), exact up to 2**24; the graph adds at most a few padding rows
 MAX_WINDOW_POINTS = 2**24 - 64
+# The BEV maps of one window (frames x x cells x y cells x pillars.out_channels float32) a card may
+# ask for. Exporting or running a model keeps many maps of this size at once: measured peak
+# tensor memory of a forward pass, 24-31 times the window's BEV bytes for TDFANet and 16 times for
+# MAFF-Net, so this bound keeps an export within about 4 GB (a 0.016 m tdfanet-tiny grid,
+# 4 M cells of 8 channels, 3 frames, needed 8 GB and is refused when the card is read).
+MAX_WINDOW_BEV_BYTES = 128 * 2**20
 
 
 # Top-level card fields every model takes, and each model's own sections: any other field of a
@@ -133,6 +141,27 @@ class ModelCard:
         return yaml.safe_dump(self.data, sort_keys=False)
 
 
+
+def _check_window_bev(data: dict, where: str) -> None:
+    """ConfigError when a window's BEV maps (``frames`` x the ``pillars`` grid x ``out_channels``
+    float32) exceed :data:`MAX_WINDOW_BEV_BYTES`. A malformed pillars section is left to its own
+    checks, which name the field."""
+    pillars = data.get("pillars")
+    try:
+        lo, hi, size = pillars["point_cloud_range"][:3], pillars["point_cloud_range"][3:6], pillars["voxel_size"]
+        nx, ny = [max(1, round((float(b) - float(a)) / float(v))) for a, b, v in zip(lo, hi, size)][:2]
+        frames, channels = int(data.get("frames", 1)), int(pillars.get("out_channels", 64))
+    except (TypeError, KeyError, ValueError, ZeroDivisionError, OverflowError, IndexError):
+        return
+    cells = (nx, ny)
+    window = frames * nx * ny * channels * 4
+    if window > MAX_WINDOW_BEV_BYTES:
+        raise ConfigError(f"{where}: pillars: {frames} frame(s) of a {cells[0]} x {cells[1]} grid of {channels} channels "
+                          f"are {window / 2**20:.0f} MiB BEV maps per window; at most "
+                          f"{MAX_WINDOW_BEV_BYTES // 2**20} MiB (an export holds 16-31 times that): a coarser "
+                          f"pillars.voxel_size, a smaller point_cloud_range, fewer out_channels or frames")
+
+
 def parse_card(data: Any, path: Path | None = None) -> ModelCard:
     """Validate the top level of a card mapping."""
     where = path.name if path else "<card>"
@@ -151,6 +180,10 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
     for key in ("name", "description", "model"):
         if not isinstance(data[key], str) or not data[key]:
             raise ConfigError(f"{where}: {key} must be a non-empty string, got {data[key]!r}")
+    if not CARD_NAME.fullmatch(data["name"]) or ".." in data["name"]:
+        raise ConfigError(f"{where}: name {data['name']!r}: a card name becomes file names (export/<name>.onnx, "
+                          f"runs/<name>/), so it is letters, digits and . _ + - only, starting with a letter or "
+                          f"digit, without '..' (e.g. maffnet-vod-edge)")
     for key, (rng, integral) in TOP_LEVEL_NUMBERS.items():
         if key in data:
             if isinstance(data[key], (list, tuple, dict)):
@@ -162,9 +195,11 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
         raise ConfigError(f"{where}: frames x max_points_per_frame is {window_points:,}; at most "
                           f"{MAX_WINDOW_POINTS:,} points per window (the graphs count points in float32, "
                           f"exact to 2**24)")
+    _check_window_bev(data, where)
     classes = data.get("classes", [])
-    if not isinstance(classes, list) or not all(isinstance(c, str) and c for c in classes):
-        raise ConfigError(f"{where}: classes must be a list of class names, got {classes!r}")
+    if not isinstance(classes, list) or not all(isinstance(c, str) and CARD_NAME.fullmatch(c) for c in classes):
+        raise ConfigError(f"{where}: classes must be a list of class names (letters, digits and . _ + -, as the "
+                          f"labels spell them: they name report files too), got {classes!r}")
     known = COMMON_FIELDS + CARD_SECTIONS.get(data["model"], ())
     unknown = [k for k in data if k not in known]
     if unknown and data["model"] in CARD_SECTIONS:
@@ -238,13 +273,24 @@ def load_card(name_or_path: str | Path) -> ModelCard:
     p = Path(name_or_path)
     if p.suffix not in (".yaml", ".yml"):
         p = cards_dir() / f"{name_or_path}.yaml"
+    if p.is_dir():
+        raise ConfigError(f"{p} is a directory, not a model card (a YAML file)")
     if not p.is_file():
         raise ConfigError(f"no model card {str(name_or_path)!r}: {p} does not exist; "
                           f"available: {', '.join(available_cards()) or 'none'}")
-    if p.stat().st_size > MAX_CARD_BYTES:
-        raise ConfigError(f"{p.name}: {p.stat().st_size} bytes; a model card is at most {MAX_CARD_BYTES} bytes")
+    size = p.stat().st_size          # bounded before anything is read: a sparse 4 GB "card" costs nothing here
+    if size > MAX_CARD_BYTES:
+        raise ConfigError(f"{p.name}: {size} bytes; a model card is at most {MAX_CARD_BYTES} bytes (the shipped "
+                          f"cards are a few KiB)")
     try:
-        text = p.read_text(encoding="utf-8")
+        with open(p, "rb") as f:
+            raw = f.read(MAX_CARD_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the model card ({exc.strerror or type(exc).__name__})") from None
+    if len(raw) > MAX_CARD_BYTES:    # it grew after its stat
+        raise ConfigError(f"{p.name}: more than {MAX_CARD_BYTES} bytes; a model card is at most {MAX_CARD_BYTES} bytes")
+    try:
+        text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise ConfigError(f"{p.name}: not a text file (a model card is UTF-8 YAML)") from None
     return parse_card(read_yaml(text, p.name), p)

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .road_network import NetworkConfig, RoadNetwork, RouteDrive, frames_for
-from .sequences import write_sequence
+from .sequences import MAX_POSITION, write_sequence
 from .synthetic import RadarScan, SceneConfig, generate_sequence
 
 DATABASE_DIR = "database"
@@ -48,6 +48,9 @@ DAY_S = 86400.0                   # s between the starts of consecutive drives
 DYNAMIC_FRACTION = (0.1, 0.3)     # range of the per-day share of points on moving objects
 CURVE_RADIUS = (80.0, 150.0)      # m, range of the street's radius of curvature
 TOWN_SPACING = 10_000.0           # m of easting between the towns of consecutive seeds
+# The largest town seed whose drives stay within the +-MAX_POSITION m a gps.csv may hold (100 km to spare
+# for the town itself): a larger one would write a benchmark its own reader refuses.
+MAX_TOWN_SEED = int((MAX_POSITION - 100_000.0) // TOWN_SPACING)
 LANE_OFFSET = 1.75                # m from a street's centreline to the centre of either lane
 OPPOSITE = 0.25                   # most of a query route's length driven against the database circuit
 SECTION_M = (150.0, 400.0)        # m, length range of the sections of a query route
@@ -78,6 +81,7 @@ def _check_options(drives: int, frames_per_drive: int, seed: int, speed: tuple[f
     for name, value, low in (("drives", drives, 2), ("frames_per_drive", frames_per_drive, 1), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+    _check_town_seeds(seed, 1)
     if len(speed) != 2 or not 0 < speed[0] <= speed[1]:
         raise ConfigError(f"speed must be (low, high) m/s with 0 < low <= high, got {speed!r}")
 
@@ -124,6 +128,15 @@ def make_pr_benchmark(out_dir: str | os.PathLike, drives: int = 3, frames_per_dr
     return plan
 
 
+def _check_town_seeds(seed: int, towns: int) -> None:
+    """ConfigError when a town of seed ``seed`` .. ``seed + towns - 1`` would lie beyond the
+    positions a gps.csv may hold (the town of seed s lies s x 10 km east)."""
+    if seed + towns - 1 > MAX_TOWN_SEED:
+        raise ConfigError(f"seed {seed}" + (f" with {towns} towns" if towns > 1 else "") + f": the town of seed s lies "
+                          f"s x {TOWN_SPACING / 1000:g} km east, and gps.csv holds positions within "
+                          f"{MAX_POSITION:g} m; use seeds up to {MAX_TOWN_SEED}")
+
+
 def make_pr_towns(out_dir: str | os.PathLike, towns: int, seed: int, make_town: Callable[[Path, int], list]) -> dict[str, list]:
     """``towns`` benchmarks of consecutive seeds ``seed``, ``seed + 1``, ... in ``out_dir/town-<seed>``,
     each written by ``make_town(directory, seed)`` (:func:`make_pr_benchmark` or
@@ -131,6 +144,7 @@ def make_pr_towns(out_dir: str | os.PathLike, towns: int, seed: int, make_town: 
     ``radaredge train``, as the towns lie 10 km apart. Returns {town directory name: its plan}."""
     if isinstance(towns, bool) or not isinstance(towns, (int, np.integer)) or towns < 1:
         raise ConfigError(f"towns must be an integer >= 1, got {towns!r}")
+    _check_town_seeds(seed, towns)
     return {f"town-{s}": make_town(Path(out_dir) / f"town-{s}", s) for s in range(seed, seed + int(towns))}
 
 

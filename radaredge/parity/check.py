@@ -1,6 +1,7 @@
 """Parity between exported graphs (onnxruntime or OpenVINO) and the reference formulation (torch).
 
-Per graph, three phases on the same synthetic cases: **run** the graph and the reference,
+Per graph, three phases on the same cases (synthetic, or the scans of a recording:
+:mod:`radaredge.parity.recording`): **run** the graph and the reference,
 **condition** (each stage that follows a discrete decision -- NMS, proposals, keypoint
 sampling -- run by the reference on the graph's own inputs to that stage, where the graph has
 such stages), **compare** every output with its comparator (:mod:`radaredge.parity.comparators`): a
@@ -19,6 +20,8 @@ import numpy as np
 import torch
 
 from ..cards import ModelCard
+from ..errors import CapacityError
+from .capacity import CapacityTally
 from .comparators import CaseResult, Comparator, OutputSummary
 from .judges import comparators
 from ..export.graphs import DEBUG_PREFIX
@@ -37,10 +40,12 @@ class GraphParity:
     summary: dict[str, OutputSummary] = field(default_factory=dict)
     divergence: dict | None = None
     quantized: bool = False                                  # judged on the int8 budgets
+    skipped: list[dict] = field(default_factory=list)        # recorded cases the reference refuses: {case, reason}
+    capacity: CapacityTally | None = None                    # recordings: what the graph's capacities did
 
     @property
     def passed(self) -> bool:
-        return all(self.summary.values())
+        return bool(self.cases) and all(self.summary.values())
 
     def __bool__(self) -> bool:
         return self.passed
@@ -50,10 +55,12 @@ class GraphParity:
                 "summary": {k: s.to_dict() for k, s in self.summary.items()},
                 "cases": [{"case": c["case"], "outputs": {k: asdict(r) for k, r in c["outputs"].items()}}
                           for c in self.cases],
-                "divergence": self.divergence}
+                "divergence": self.divergence, "skipped": list(self.skipped),
+                "capacity": self.capacity.to_dict() if self.capacity is not None else None}
 
-    def lines(self) -> list[str]:
-        """The per-output table, comparator notes and the divergence report."""
+    def lines(self, unit: str = "frame") -> list[str]:
+        """The per-output table, comparator notes, the divergence report and, for a recording,
+        the cases the reference refused and the capacity summary (``unit``: frame or window)."""
         out = [f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos/IoU':>12}  verdict"]
         for comp in self.comparators:
             s = self.summary[comp.name]
@@ -69,6 +76,14 @@ class GraphParity:
             else:
                 out.append(f"no intermediate diverges beyond tolerance in case {d['case']}: "
                            "the difference arises in the final outputs")
+        if self.skipped:
+            out.append(f"not compared: {len(self.skipped)} {unit}(s) the reference refuses (the graph masks what does "
+                       f"not fit its capacity; the runtime refuses these inputs):")
+            out += [f"  {s['case']}: {s['reason']}" for s in self.skipped[:6]]
+        if not self.cases:
+            out.append(f"no {unit} could be compared: FAILED")
+        if self.capacity is not None:
+            out += self.capacity.lines(unit)
         return out
 
 
@@ -82,6 +97,7 @@ class ParityReport:
     quantized: bool = False
     graphs: dict[str, GraphParity] = field(default_factory=dict)
     task: object | None = None      # with --quantized, the int8 graph's task metric (lines, to_dict, bool)
+    data: object | None = None      # with --data, the recording (radaredge.parity.recording.Recording)
 
     @property
     def passed(self) -> bool:
@@ -97,16 +113,21 @@ class ParityReport:
     def to_dict(self) -> dict:
         return {"model": self.model, "onnx": self.onnx, "runtime": self.runtime, "quantized": self.quantized,
                 "passed": self.passed, "graphs": {n: g.to_dict() for n, g in self.graphs.items()},
-                "task": self.task.to_dict() if self.task is not None else None}
+                "task": self.task.to_dict() if self.task is not None else None,
+                "data": self.data.to_dict() if self.data is not None else None}
 
     def lines(self) -> list[str]:
         out = []
+        unit = self.data.unit if self.data is not None else "case"
         for name, g in self.graphs.items():
             budget = (" [int8 budget]" if g.quantized else
                       " [fp32: the model's int8 policy keeps this graph fp32]" if self.quantized else "")
+            cases = (f"{len(g.cases)} recorded {unit}s" if self.data is not None else f"{len(g.cases)} cases")
             out.append(f"parity {self.model}: {Path(g.onnx).name} ({self.runtime}) vs reference (torch), "
-                       f"{len(g.cases)} cases{budget}")
-            out += g.lines()
+                       f"{cases}{budget}")
+            if self.data is not None:
+                out += self.data.lines()
+            out += g.lines(unit)
             if len(self.graphs) > 1:
                 out.append(f"{name}: {'PASSED' if g else 'FAILED'}")
         if self.runtime == "openvino" and not self.passed:
@@ -126,9 +147,14 @@ def _numpy(outputs: dict) -> dict[str, np.ndarray]:
 
 def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx_path, cases_n: int = 20,
                 seed: int = 0, quantized: bool = False, runtime: str = "onnxruntime", debug_onnx=None,
-                progress=None) -> GraphParity:
+                progress=None, recorded: list | None = None) -> GraphParity:
     """Parity of one graph: ``onnx_path`` run in ``runtime`` (onnxruntime, or OpenVINO's CPU plugin)
-    against ``graph``'s reference formulation of ``module`` on ``cases_n`` cases drawn with ``seed``.
+    against ``graph``'s reference formulation of ``module`` on ``cases_n`` cases drawn with ``seed``,
+    or on ``recorded`` cases ([(name, feeds)] of a recording,
+    :func:`radaredge.parity.recording.recorded_cases`): then the report also summarises the
+    graph's capacity outputs over them (:class:`radaredge.parity.capacity.CapacityTally`), and a
+    case the reference refuses for a capacity (more non-empty pillars than MAFF-Net's sparse
+    attention holds) is listed as not compared instead of ending the check.
 
     ``quantized`` holds each output to its int8 budget (:meth:`Comparator.quantized`).
     ``debug_onnx`` (a path, or a callable returning one, called only on failure) names the debug
@@ -137,23 +163,33 @@ def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx
     judged = comparators(card, graph.name)
     judged = tuple(c.quantized() for c in judged) if quantized else tuple(judged)
     run_graph = graph_runner(onnx_path, runtime)
-    cases = graph.make_cases(card, cases_n, seed)
+    cases = graph.make_cases(card, cases_n, seed) if recorded is None else list(recorded)
     conditioned = graph.postprocess_reference is not None and any(c.uses_post for c in judged)
+    report = GraphParity(graph.name, str(onnx_path), judged, quantized=quantized)
+    if recorded is not None:
+        report.capacity = CapacityTally(card, graph.frame_inputs(card))
     # phase 1: run the graph and the reference on every case; phase 2: the reference stages that
     # follow a discrete decision, run on the graph's own inputs to them (see GraphSpec)
-    got_all, ref_all, post_all = [], [], []
-    for _, feeds in (progress(cases) if progress else cases):
+    got_all, ref_all, post_all, names = [], [], [], []
+    for name, feeds in (progress(cases) if progress else cases):
         got = run_graph(feeds)
+        if report.capacity is not None:
+            report.capacity.add(name, feeds, got)
         trace: dict = {}
-        with torch.no_grad():
-            ref = _numpy(graph.run_reference(module, feeds, trace if conditioned else None))
-            post = _numpy(graph.postprocess_reference(module, feeds, got, ref, trace)) if conditioned else None
+        try:
+            with torch.no_grad():
+                ref = _numpy(graph.run_reference(module, feeds, trace if conditioned else None))
+                post = _numpy(graph.postprocess_reference(module, feeds, got, ref, trace)) if conditioned else None
+        except CapacityError as exc:
+            if recorded is None:
+                raise
+            report.skipped.append({"case": name, "reason": str(exc)})
+            continue
+        names.append(name)
         got_all.append(got)
         ref_all.append(ref)
         post_all.append(post)
     # phase 3: compare
-    report = GraphParity(graph.name, str(onnx_path), judged, quantized=quantized)
-    names = [name for name, _ in cases]
     per_output: dict[str, list[CaseResult]] = {c.name: [] for c in judged}
     for name, got, ref, post in zip(names, got_all, ref_all, post_all):
         row = {c.name: c.compare(got, ref, post) for c in judged}
@@ -161,7 +197,7 @@ def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx
             per_output[k].append(r)
         report.cases.append({"case": name, "outputs": row})
     report.summary = {c.name: c.summarise(per_output[c.name], names, got_all, ref_all) for c in judged}
-    if not report.passed and debug_onnx is not None and graph.trace_order(card):
+    if names and not report.passed and debug_onnx is not None and graph.trace_order(card):
         path = debug_onnx() if callable(debug_onnx) else debug_onnx
         report.divergence = locate_divergence(card, graph, module, path, report, cases, runtime)
     return report

@@ -23,6 +23,12 @@ from ..errors import InputError
 from . import kitti360pose
 
 
+MAX_WORLD_M = 2.0e7          # |world x, y| of cell origins and poses, m (a UTM northing is below 1e7)
+MAX_CELL_M = 1.0e4           # a cell's edge, m
+MAX_CELL_COORD = 1.0e3       # |normalised x, y, z| of an object's points, in cell sizes
+MAX_OBJECT_POINTS = 1.0e9    # an object's original point count
+
+
 @dataclass
 class CellMap:
     ids: np.ndarray                  # [C] str, e.g. 2013_05_28_drive_0003_sync_00012 / city_00012
@@ -112,13 +118,14 @@ def validate_map(m: CellMap, where: str = "map", slots: tuple[int, int] | None =
     if not np.isfinite(m.origins).all():
         ci = int(np.flatnonzero(~np.isfinite(m.origins).all(1))[0])
         raise InputError(f"{where}: cell {m.ids[ci]} has a non-finite origin {m.origins[ci].tolist()}")
-    q = len(m.pose_w)
-    if m.pose_w.size == m.pose_cell.size == m.pose_text.size == 0:
-        return
-    if m.pose_w.shape != (q, 2) or m.pose_cell.shape != (q,) or m.pose_text.shape != (q,) \
-            or not np.isfinite(m.pose_w).all():
-        raise InputError(f"{where}: described poses need pose_w [Q, 2] finite m, pose_cell [Q] and pose_text [Q]; got "
-                         f"{m.pose_w.shape}, {m.pose_cell.shape}, {m.pose_text.shape}")
+    far = np.flatnonzero(np.abs(m.origins).max(1) > MAX_WORLD_M)
+    if len(far):
+        raise InputError(f"{where}: cell {m.ids[far[0]]} has its origin at {m.origins[far[0]].tolist()}; world "
+                         f"positions are metres within {MAX_WORLD_M:g} (UTM or a local frame)")
+    if not (np.isfinite(m.sizes).all() and (m.sizes > 0).all() and (m.sizes <= MAX_CELL_M).all()):
+        ci = int(np.flatnonzero(~(np.isfinite(m.sizes) & (m.sizes > 0) & (m.sizes <= MAX_CELL_M)))[0])
+        raise InputError(f"{where}: cell {m.ids[ci]} has size {m.sizes[ci]!r}; cell sizes are positive distances in "
+                         f"metres up to {MAX_CELL_M:g} (KITTI360Pose cells are 30 m)")
     empty = np.flatnonzero(~m.object_mask.any(1))
     if len(empty):
         raise InputError(f"{where}: cell {m.ids[empty[0]]} has no object ({len(empty)} empty cell(s)); drop empty cells")
@@ -126,13 +133,34 @@ def validate_map(m: CellMap, where: str = "map", slots: tuple[int, int] | None =
     if bad.any():
         ci, oi = np.argwhere(bad)[0]
         raise InputError(f"{where}: cell {m.ids[ci]}, object {oi} ({m.labels[ci, oi]}) has non-finite points")
-    low = (m.num_points < 1) & m.object_mask
+    xyz, rgb = np.abs(m.points[..., :3]).max((2, 3)), m.points[..., 3:]
+    far = (xyz > MAX_CELL_COORD) & m.object_mask
+    if far.any():
+        ci, oi = np.argwhere(far)[0]
+        raise InputError(f"{where}: cell {m.ids[ci]}, object {oi} ({m.labels[ci, oi]}) has a point at "
+                         f"{xyz[ci, oi]:g} cell sizes from the cell; x, y, z are normalised to the cell (0 to 1 inside "
+                         f"it), at most {MAX_CELL_COORD:g} away")
+    off = ((rgb < 0) | (rgb > 1)).any((2, 3)) & m.object_mask
+    if off.any():
+        ci, oi = np.argwhere(off)[0]
+        raise InputError(f"{where}: cell {m.ids[ci]}, object {oi} ({m.labels[ci, oi]}) has colours outside [0, 1] "
+                         f"(from {float(rgb[ci, oi].min()):g} to {float(rgb[ci, oi].max()):g}); r, g, b are in [0, 1]")
+    low = ((m.num_points < 1) | ~np.isfinite(m.num_points) | (m.num_points > MAX_OBJECT_POINTS)) & m.object_mask
     if low.any():
         ci, oi = np.argwhere(low)[0]
         raise InputError(f"{where}: cell {m.ids[ci]}, object {oi} has a point count of {m.num_points[ci, oi]}; "
-                         f"a real object has at least one point")
-    if not (np.isfinite(m.sizes).all() and (m.sizes > 0).all()):
-        raise InputError(f"{where}: cell sizes must be positive distances in metres")
+                         f"a real object has 1 to {MAX_OBJECT_POINTS:,} points")
+    q = len(m.pose_w)
+    if m.pose_w.size == m.pose_cell.size == m.pose_text.size == 0:
+        return
+    if m.pose_w.shape != (q, 2) or m.pose_cell.shape != (q,) or m.pose_text.shape != (q,) \
+            or not np.isfinite(m.pose_w).all():
+        raise InputError(f"{where}: described poses need pose_w [Q, 2] finite m, pose_cell [Q] and pose_text [Q]; got "
+                         f"{m.pose_w.shape}, {m.pose_cell.shape}, {m.pose_text.shape}")
+    far = np.flatnonzero(np.abs(m.pose_w).max(1) > MAX_WORLD_M)
+    if len(far):
+        raise InputError(f"{where}: described pose {int(far[0])} lies at {m.pose_w[far[0]].tolist()}; world positions "
+                         f"are metres within {MAX_WORLD_M:g}")
 
 
 def _seed(key: str) -> int:

@@ -28,9 +28,9 @@ import torch
 
 from ..cards import ModelCard
 from ..atomic import atomic_path, write_json
-from ..config import check_numbers, check_writable_dir, field_range
+from ..config import check_numbers, check_writable_dir, field_range, refuse_overwriting_inputs
 from ..errors import ConfigError
-from ..models.checkpoints import read_checkpoint
+from ..models.checkpoints import check_checkpoint_file, read_checkpoint
 from ..models.factory import check_weight_values
 
 BEST, LAST, LOG = "best.pth", "last.pth", "train-log.json"
@@ -136,6 +136,21 @@ def load_weights_outside(model: torch.nn.Module, path, seeded: tuple[str, ...], 
     return f"{option}: {len(outside)} tensors from {path}; {part}'s {n_seeded} stay as they are"
 
 
+def check_run_output(output: Path, resume: bool, overwrite: bool, inputs: dict) -> None:
+    """ConfigError, before any training, when ``output`` (a run directory) would lose something:
+    it holds a previous run (best.pth, last.pth or train-log.json) and neither ``resume`` (go on
+    with it) nor ``overwrite`` (replace it) was asked for, or one of the files a run writes is one
+    of its ``inputs`` (option -> path: the data, the initial checkpoint, a recipe's weights)."""
+    if resume and overwrite:
+        raise ConfigError("--resume continues the run in --output and --overwrite replaces it: choose one")
+    files = [output / name for name in (BEST, LAST, LOG)]
+    refuse_overwriting_inputs({"--output": [output, *files]}, inputs)
+    held = [f.name for f in files if f.exists()]
+    if held and not resume and not overwrite:
+        raise ConfigError(f"--output {output}: holds a previous run ({', '.join(held)}); continue it with --resume, "
+                          f"replace it with --overwrite, or choose another --output")
+
+
 @dataclass
 class RunDir:
     """A training run's directory (module docstring) for ``card``'s model."""
@@ -170,10 +185,15 @@ class RunDir:
         return write_json(self.log, log)
 
     def require_last(self) -> None:
-        """ConfigError unless ``last.pth`` exists (``--resume`` needs it)."""
+        """ConfigError unless ``last.pth`` exists and is bounded and headed as torch.save writes
+        (``--resume`` needs it; checked before the data is read)."""
         if not self.last.is_file():
             raise ConfigError(f"--resume: {self.last} does not exist; start without --resume (or pass the --output "
                               f"of the run to continue)")
+        try:
+            check_checkpoint_file(self.last)
+        except ConfigError as exc:
+            raise ConfigError(f"--resume: {exc}") from None
 
     def load_last(self, signature: dict) -> dict:
         """The state of ``last.pth`` to resume from; ConfigError when there is none or it was
