@@ -39,7 +39,7 @@ from .parity.check import ParityReport, check_graph
 from .parity.recording import DEFAULT_FRAMES, recorded_cases
 from .runtime.model import FrameFeeds
 from .train.recipes import RECIPES, TrainInputs
-from .train.run import check_run_output
+from .train.run import prepare_run_output
 
 __all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build", "map_query",
            "ExportResult", "BenchReport", "resolve_card", "EXPORT_OPTIONS"]
@@ -345,7 +345,7 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     run directory ``output`` (default ``runs/<card>/``): ``best.pth`` (for ``export
     --checkpoint``), ``last.pth`` (for ``resume``) and ``train-log.json``; a directory that holds
     a run already is continued with ``resume`` or replaced with ``overwrite``, never silently
-    (:func:`radaredge.train.run.check_run_output`). ``checkpoint``
+    (:func:`radaredge.train.run.prepare_run_output`). ``checkpoint``
     initialises the weights (fine-tuning); ``options`` overrides recipe values by name (epochs,
     lr, batch_size, ...); ``bag`` says where ROS bag drives keep their radar scans and GNSS fixes
     (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
@@ -360,10 +360,10 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     if resume and checkpoint is not None:
         raise ConfigError("--resume continues the run in --output from its last.pth; drop --checkpoint")
     output = Path(output) if output is not None else Path("runs") / card.name
-    check_run_output(output, resume, overwrite, {"--data": data, "--checkpoint": checkpoint, "--config": card.path,
-                                                 **{f"--set {k}": v for k, v in (options or {}).items()
-                                                    if isinstance(v, str) and v and Path(v).exists()}})
-    model = create_model(card, checkpoint, spec)
+    model = create_model(card, checkpoint, spec)                # card and checkpoint errors first
+    prepare_run_output(output, resume, overwrite, {"--data": data, "--checkpoint": checkpoint, "--config": card.path,
+                                                   **{f"--set {k}": v for k, v in (options or {}).items()
+                                                      if isinstance(v, str) and v and Path(v).exists()}})
     inputs = TrainInputs(str(output), str(checkpoint) if checkpoint is not None else None, device, resume,
                          tuple(validation) if validation is not None else None, data_format, dict(bag or {}), dict(options or {}), progress, log)
     return recipe(card, model, data, inputs)

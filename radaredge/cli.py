@@ -547,7 +547,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @click.option("--resume", is_flag=True, help="Continue the run in --output after its last finished epoch.")
 @click.option("--overwrite", is_flag=True,
-              help="Replace the run --output holds (without it, or --resume, a directory with a run is refused).")
+              help="Replace the run --output holds: its best.pth, last.pth and train-log.json are removed first "
+                   "(without it, or --resume, a directory with a run is refused).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
 def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, seed, settings, freeze, validation,

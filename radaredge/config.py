@@ -9,12 +9,14 @@ import dataclasses
 import functools
 import inspect
 import math
+import numbers
 import os
 import types
 import typing
 from pathlib import Path
 from typing import Any, Callable, Mapping, Type, TypeVar
 
+import numpy as np
 import yaml
 
 from .errors import ConfigError
@@ -191,8 +193,9 @@ def _accepts(hint, value) -> bool:
         return True                                   # a TypeVar, a Literal: left to the function
     if issubclass(cls, os.PathLike) or cls is Path:
         return isinstance(value, (str, os.PathLike))
-    if cls is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if cls in (int, float):             # numpy's scalars too (np.int64, np.float32); a bool is no count
+        wanted = numbers.Integral if cls is int else numbers.Real
+        return isinstance(value, wanted) and not isinstance(value, (bool, np.bool_))
     return isinstance(value, cls)
 
 

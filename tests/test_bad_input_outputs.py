@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from radaredge.config import refuse_overwriting_inputs, same_path
+from radaredge.train.run import prepare_run_output
 from radaredge.errors import ConfigError
 
 from conftest import TINY_CARD, invoke
@@ -156,6 +157,7 @@ def test_same_path_follows_links_and_spellings(tmp_path):
     a.write_text("x")
     (tmp_path / "s").symlink_to(a)
     os.link(a, tmp_path / "h")
+    (tmp_path / "d").mkdir()
     for other in (a, tmp_path / "s", tmp_path / "h", tmp_path / "." / "a.txt", tmp_path / "d" / ".." / "a.txt"):
         assert same_path(a, other), other
     assert not same_path(a, tmp_path / "b.txt")
@@ -163,3 +165,12 @@ def test_same_path_follows_links_and_spellings(tmp_path):
     with pytest.raises(ConfigError, match="--out .*is the --in input"):
         refuse_overwriting_inputs({"--out": [tmp_path / "x", tmp_path / "s"]}, {"--in": a, "--none": None})
     refuse_overwriting_inputs({"--out": tmp_path / "b.txt"}, {"--in": [a, None]})
+
+
+def test_overwrite_removes_the_previous_run_before_the_new_one_starts(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("best.pth", "last.pth", "train-log.json", "notes.txt"):
+        (run / name).write_text("old")
+    prepare_run_output(run, resume=False, overwrite=True, inputs={"--data": tmp_path / "data"})
+    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]          # the run's files only

@@ -413,8 +413,9 @@ def read_vod_json_labels(path: str | os.PathLike, calib: Calibration, image_size
         names.append(name)
         centres.append(centre)
         sizes.append((length, width, height))
-        # the rotation's x axis in the JSON frame: R[0, 0] and R[1, 0] of the unit quaternion
-        r00, r10 = (1.0 - 2.0 * (qy * qy + qz * qz)) / norm, 2.0 * (qx * qy + qw * qz) / norm
+        # the rotation's x axis in the JSON frame: R[0, 0] and R[1, 0] of the quaternion over its
+        # squared norm (exact for a quaternion that is not of unit length too)
+        r00, r10 = (qw * qw + qx * qx - qy * qy - qz * qz) / norm, 2.0 * (qx * qy + qw * qz) / norm
         yaws.append(float(np.arctan2(r10, r00)))
         occluded.append(_occlusion_level(attributes.get("spatial occlusion", "0-10%"), where))
         truncated.append(1.0 if attributes.get("activity") == "moving" else 0.0)

@@ -221,8 +221,11 @@ def first_divergence(trace_order, got_trace: dict, ref_trace: dict, atol: float 
 def locate_divergence(card, graph: GraphSpec, module, debug_onnx, report: GraphParity, cases,
                       runtime: str = "onnxruntime") -> dict | None:
     """Re-run the first failing case through the debug export (in ``runtime``) and the traced reference."""
+    compared = dict(cases)
     failing = next((c["case"] for c in report.cases if not all(c["outputs"].values())), None)
-    feeds = dict(cases)[failing] if failing else cases[0][1]
+    # a summary that failed with no single case failing: the first compared case (never one the
+    # reference refused for a capacity, which report.cases leaves out)
+    feeds = compared[failing or report.cases[0]["case"]]
     got = {k[len(DEBUG_PREFIX):]: v for k, v in graph_runner(debug_onnx, runtime)(feeds).items()
            if k.startswith(DEBUG_PREFIX)}
     ref_trace: dict = {}

@@ -39,7 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from ..cards import ModelCard
-from ..data.kitti_detection import LAYOUTS, DetectionSet, camera_fov_mask, read_calibration, read_image_size
+from ..data.kitti_detection import (LAYOUTS, DetectionSet, camera_fov_mask, check_image_size, read_calibration,
+                                    read_image_size)
 from ..data.readers import FILE_SUFFIX, check_points, infer_format, read_scan
 from ..data.sequences import POINTCLOUDS, frame_order, load_sequence
 from ..errors import CapacityError, ConfigError, InputError
@@ -169,7 +170,11 @@ def _kitti_streams(root: Path, card: ModelCard, split: str | None, fmt: str | No
             raise InputError(f"--split {split}: {root / 'ImageSets' / (split + '.txt')} does not exist"
                              + (f"; ImageSets has {have}" if have else "; without ImageSets, drop --split to check "
                                 "every frame"))
-        the_set = DetectionSet(root, split, LAYOUTS["vod"], 1)
+        dataset = _format(_scan_files(velodyne, fmt), fmt, root)
+        if dataset not in LAYOUTS:
+            raise InputError(f"--data {root}: a KITTI layout holds View-of-Delft or TJ4DRadSet scans, not {dataset}")
+        the_set = DetectionSet(root, split, LAYOUTS[dataset], int(card.get("input.scans_accumulated", 1)),
+                               card.get("input.image_size"), say=False)
         paths = [the_set.scan_path(fid) for fid in the_set.frame_ids]
     accumulated = {d: n for layout in LAYOUTS.values() for n, ds in layout.scan_folders().items() for d in ds}
     want = int(card.get("input.scans_accumulated", 1))
@@ -241,8 +246,8 @@ def _drive_stream(drive: Path, top: Path, fmt: str | None) -> tuple[Stream, str]
 
 
 def spread(count: int, n: int) -> np.ndarray:
-    """Indices of ``n`` of ``count`` items spread evenly, the first and the last included; all of
-    them when ``count`` <= ``n``."""
+    """Indices of ``n`` of ``count`` items spread evenly, the first and (for ``n`` >= 2) the last
+    included; all of them when ``count`` <= ``n``."""
     if count <= n:
         return np.arange(count)
     return np.unique(np.round(np.linspace(0, count - 1, n)).astype(np.int64))
@@ -264,7 +269,8 @@ def _read(path: Path, card: ModelCard, fmt: str, kitti_root: Path | None) -> np.
     training = kitti_root / "training"
     calib = read_calibration(training / "calib" / f"{path.stem}.txt")
     images = (training / "image_2" / f"{path.stem}{suffix}" for suffix in (".jpg", ".png", ".jpeg"))
-    size = next((read_image_size(p) for p in images if p.exists()), LAYOUTS[fmt if fmt in LAYOUTS else "vod"].image_size)
+    size = next((read_image_size(p) for p in images if p.exists()), None) \
+        or check_image_size(card.get("input.image_size")) or LAYOUTS[fmt if fmt in LAYOUTS else "vod"].image_size
     xyz = points[:, [card.features.index(c) for c in ("x", "y", "z")]]
     return points[camera_fov_mask(xyz, calib, size)]
 

@@ -136,19 +136,24 @@ def load_weights_outside(model: torch.nn.Module, path, seeded: tuple[str, ...], 
     return f"{option}: {len(outside)} tensors from {path}; {part}'s {n_seeded} stay as they are"
 
 
-def check_run_output(output: Path, resume: bool, overwrite: bool, inputs: dict) -> None:
-    """ConfigError, before any training, when ``output`` (a run directory) would lose something:
-    it holds a previous run (best.pth, last.pth or train-log.json) and neither ``resume`` (go on
-    with it) nor ``overwrite`` (replace it) was asked for, or one of the files a run writes is one
-    of its ``inputs`` (option -> path: the data, the initial checkpoint, a recipe's weights)."""
+def prepare_run_output(output: Path, resume: bool, overwrite: bool, inputs: dict) -> None:
+    """Make ``output`` (a run directory) ready for a run, before any training, losing nothing it
+    was not told to: ConfigError when it holds a previous run (best.pth, last.pth or
+    train-log.json) and neither ``resume`` (go on with it) nor ``overwrite`` was asked for, or
+    when one of the files a run writes is one of its ``inputs`` (option -> path: the data, the
+    initial checkpoint, a recipe's weights). With ``overwrite`` the previous run's files are
+    removed, so no old best.pth outlives the start of the new run."""
     if resume and overwrite:
         raise ConfigError("--resume continues the run in --output and --overwrite replaces it: choose one")
     files = [output / name for name in (BEST, LAST, LOG)]
     refuse_overwriting_inputs({"--output": [output, *files]}, inputs)
-    held = [f.name for f in files if f.exists()]
+    held = [f for f in files if f.exists()]
     if held and not resume and not overwrite:
-        raise ConfigError(f"--output {output}: holds a previous run ({', '.join(held)}); continue it with --resume, "
-                          f"replace it with --overwrite, or choose another --output")
+        raise ConfigError(f"--output {output}: holds a previous run ({', '.join(f.name for f in held)}); continue it "
+                          f"with --resume, replace it with --overwrite, or choose another --output")
+    if overwrite:
+        for f in held:
+            f.unlink()
 
 
 @dataclass
