@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ import numpy as np
 from radaredge.bench.timing import cpu_name
 from radaredge.cards import load_card
 from radaredge.eval.detection import ap_table, as_labels, evaluate_detection, evaluate_frames, layout_for_card
+from result_file import sha256_of, write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 SHIFTS = (-0.2, -0.1, -0.05, -0.01, -0.004, 0.0, 0.004, 0.01, 0.05)     # m, along z
@@ -69,12 +69,12 @@ def main(argv=None) -> int:
         for dz, per in r["ap"].items():
             print(f"{backend:18s} dz {dz} m: " + ", ".join(f"{c} {v['3d']:.2f} (BEV {v['bev']:.2f})" for c, v in per.items()))
     now = dt.datetime.now(dt.timezone.utc)
-    doc = {"model": args.model, "onnx": str(args.onnx), "data": str(args.data), "split": args.split,
+    doc = {"model": args.model, "onnx": str(args.onnx), "onnx_sha256": sha256_of(args.onnx), "data": str(args.data),
+           "split": args.split,
            "shifts_m": list(shifts), "backends": result, "date": now.strftime("%Y-%m-%d %H:%M UTC"), "cpu": cpu_name()}
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"ap-height-shift-{args.model}-{now:%Y-%m-%d}.json"
-    path.write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"wrote {path}")
+    write_result(path, doc)
     return 0
 
 

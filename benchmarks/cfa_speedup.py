@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -37,6 +36,7 @@ from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.runtime.session import make_session
 from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
+from result_file import write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -159,8 +159,7 @@ def main(argv=None) -> int:
     print(table(result))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"cfa-speedup-{datetime.date.today().isoformat()}.json"
-    path.write_text(json.dumps(result, indent=2))
-    print(f"wrote {path}")
+    write_result(path, result)
     return 0
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -28,6 +27,7 @@ from radaredge.bench.profiling import profile_runs, stage_times_from_profile
 from radaredge.models import model_spec
 from radaredge.runtime.session import make_session, run_session
 from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
+from result_file import write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -89,9 +89,8 @@ def main(argv=None) -> int:
     result = compare(args.model, args.a, args.b, args.runs, args.threads, args.cases, args.case, args.rounds)
     result.update(date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), cpu=cpu_name(), cores=cores)
     path = ROOT / "benchmarks" / "results" / f"compare-{args.label}-{result['date'][:10]}.json"
-    path.write_text(json.dumps(result, indent=2))
     print(table(result))
-    print(f"wrote {path}")
+    write_result(path, result)
     return 0
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 import os
 import shutil
 import sys
@@ -36,6 +35,7 @@ from radaredge.data.pr_benchmark import make_pr_benchmark  # noqa: E402
 from radaredge.fleet import maps  # noqa: E402
 from radaredge.fleet.pipeline import run_graph, run_sequential  # noqa: E402
 from radaredge.runtime.backends import cpu_model  # noqa: E402
+from result_file import write_result  # noqa: E402
 
 
 def throughput(frames: int, work: Path) -> dict:
@@ -108,8 +108,7 @@ def main(argv=None) -> int:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     out = HERE / "results" / f"fleet-scale-{dt.date.today().isoformat()}.json"
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {out}")
+    write_result(out, result)
     return 0
 
 

@@ -47,6 +47,7 @@ from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import STAGE_TWO_MODULES
 from radaredge.runtime.session import make_session, run_session
 from radaredge import runtime
+from result_file import portable, sha256_of, write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -121,7 +122,10 @@ def earlier_probes(path: Path | None, result: dict, probed: list[str]) -> list[d
         return []
     earlier = json.loads(path.read_text())
     fp32 = [{c: round(v, 2) for c, v in r.get("choose_fp32_ap", {}).items()} for r in (earlier, result)]
-    if any(earlier.get(k) != result[k] for k in ("checkpoint", "data", "choose_split")) or fp32[0] != fp32[1]:
+    same = [portable(earlier.get(k)) == portable(result[k]) for k in ("checkpoint", "data", "choose_split")]
+    if earlier.get("checkpoint_sha256") and earlier["checkpoint_sha256"] != result["checkpoint_sha256"]:
+        same.append(False)
+    if not all(same) or fp32[0] != fp32[1]:
         return []
     return [{**r, "earlier_run": r.get("earlier_run", earlier.get("date"))}
             for r in earlier.get("groups", [])[1:] if r["group"] not in probed]
@@ -188,7 +192,8 @@ def main(argv=None) -> int:
         print(f"only {g:<24} int8 loses {', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
     fp32_ap, card_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.split)
     print(f"{args.split}: fp32 {fp32_ap}\ncard's int8 {card_int8}", flush=True)
-    result = {"model": card.name, "checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split,
+    result = {"model": card.name, "checkpoint": str(args.checkpoint), "checkpoint_sha256": sha256_of(args.checkpoint),
+              "data": str(args.data), "split": args.split,
               "choose_split": args.choose_split, "choose_fp32_ap": choose_fp32,
               "budget_ap_points": INT8_AP_BUDGET, "fp32_ap": fp32_ap,
               "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
@@ -212,8 +217,7 @@ def main(argv=None) -> int:
     result.update(date=date, cpu=cpu_name(), threads=args.threads, cores=cores)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"int8-sensitivity-{card.name}-{date[:10]}.json"
-    path.write_text(json.dumps(result, indent=2))
-    print(f"wrote {path}")
+    write_result(path, result)
     return 0
 
 

@@ -16,7 +16,6 @@ capacities. Run: ``python benchmarks/maffnet_capacity.py``.
 from __future__ import annotations
 
 import datetime as dt
-import json
 import sys
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from radaredge.data.synthetic import generate_sequence, vod_accumulated_table
 from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import scan_points
 from radaredge.models.maffnet.spec import DENSE_TRAFFIC, VOD_CAMERA_FOV_DEG
+from result_file import write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 SEEDS = range(12)
@@ -60,7 +60,7 @@ def main() -> int:
     result = measure()
     result["date"] = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     path = ROOT / "benchmarks" / "results" / f"maffnet-capacity-{result['date'][:10]}.json"
-    path.write_text(json.dumps(result, indent=2))
+    write_result(path, result)
     for key in ("camera_fov", "no_crop"):
         m = result[key]
         print(f"{key}: at most {m['pillars']} pillars (spa.capacity {result['spa_capacity']}, "

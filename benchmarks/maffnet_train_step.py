@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import statistics
 import sys
 import time
@@ -32,6 +31,7 @@ from radaredge.bench.timing import cpu_name, pin_threads
 from radaredge.cards import load_card
 from radaredge.models import create_model
 from radaredge.train import maffnet as tm
+from result_file import write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 FORMULATIONS = {        # name -> (export pillars, memory format)
@@ -128,8 +128,7 @@ def main(argv=None) -> int:
     print(table(result))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"maffnet-train-step-{datetime.date.today().isoformat()}.json"
-    path.write_text(json.dumps(result, indent=2))
-    print(f"wrote {path}")
+    write_result(path, result)
     return 0
 
 

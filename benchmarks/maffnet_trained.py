@@ -27,7 +27,6 @@ import argparse
 import copy
 import datetime as dt
 import hashlib
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -45,6 +44,7 @@ from radaredge.data.kitti_detection import DetectionSet
 from radaredge.eval.detection import card_points, layout_for_card
 from radaredge.models import create_model, model_spec
 from radaredge.runtime.session import make_session, run_session
+from result_file import write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 WORST_LOGIT_SHIFT = 30.0          # added to every class bias: sigmoid(logit + 30) > 0.999 for any logit > -23
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     result.update(date=date, cpu=cpu_name(), cores=cores, note=args.note)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"maffnet-trained-{result['model']}-{date[:10]}.json"
-    path.write_text(json.dumps(result, indent=2))
+    write_result(path, result)
     for row in result["rows"]:
         split = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
         share = "-" if row["nms_share"] is None else f"{100 * row['nms_share']:.1f} %"

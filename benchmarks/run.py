@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 import sys
 from pathlib import Path
 
@@ -34,6 +33,8 @@ from radaredge.export.quantize import QUANTIZED_OPS
 from radaredge.models import model_spec
 from radaredge.runtime.openvino import openvino_installed
 from radaredge.bench.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
+sys.path.insert(0, str(Path(__file__).resolve().parent))    # the sibling modules, also when loaded by path (tests)
+from result_file import write_result  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
@@ -149,7 +150,7 @@ def main(argv=None) -> int:
     for name in args.models:
         print(f"{name}: benchmarking {', '.join(backends)}", flush=True)
         suite["models"].append(bench_card(name, args.runs, args.threads, peak, args.export_dir, openvino))
-    json_path.write_text(json.dumps(suite, indent=2))
+    write_result(json_path, suite)
     (args.out / "README.md").write_text(_render_readme(results_dir))
     chart(suite, args.out / "suite.png")
     print(f"wrote {json_path}, {args.out / 'README.md'}, {args.out / 'suite.png'}")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 import os
 import platform
 from pathlib import Path
@@ -15,6 +14,7 @@ import torch
 from radaredge.cards import ModelCard, load_card
 from radaredge.config import parse_settings
 from radaredge.bench.timing import cpu_name
+from result_file import write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 THREADS = 2
@@ -49,10 +49,8 @@ def settings_text(options: dict) -> str:
 
 
 def write(path: Path, result: dict) -> Path:
-    """Writes ``result`` as indented JSON to ``path`` and says so."""
-    path.write_text(json.dumps(result, indent=2, default=str) + "\n")
-    print(f"wrote {path}")
-    return path
+    """Writes ``result`` as portable JSON to ``path`` (:func:`result_file.write_result`)."""
+    return write_result(path, result)
 
 
 def save(card: ModelCard, stamp: str, result: dict) -> Path:

@@ -4,6 +4,7 @@ relative link in README.md and docs/ points at a file (and heading) that exists.
 
 from __future__ import annotations
 
+import json
 import importlib.util
 import re
 from pathlib import Path
@@ -271,3 +272,27 @@ def test_readme_states_the_bad_input_catalogue_size():
                 and "good_pickle" not in line)
     stated = re.search(r"catalogue of (\d+) bad inputs", " ".join(README.read_text().split()))
     assert stated and int(stated.group(1)) == cases, (stated and stated.group(0), cases)
+
+
+MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|scratch|Users|private)/[^\s\"'`,;()\[\]{}<>|]*")
+
+
+def test_no_result_or_generated_page_holds_a_machine_path():
+    """Result JSONs and the generated benchmarks page name paths relative to the repository or
+    shortened (benchmarks/result_file.py); never this machine's directories."""
+    files = [*sorted((ROOT / "benchmarks" / "results").glob("*.json")), ROOT / "benchmarks" / "README.md"]
+    found = [f"{f.relative_to(ROOT)}: {m.group(0)}" for f in files for m in MACHINE_PATH.finditer(f.read_text())]
+    assert not found, found[:10]
+
+
+def test_results_are_written_portable(tmp_path):
+    spec = importlib.util.spec_from_file_location("result_file", ROOT / "benchmarks" / "result_file.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    doc = {"checkpoint": "/work/scratch/mv12/run/best.pth", "data": "/tmp/set", "ours": str(ROOT / "export" / "a.onnx"),
+           "command": "radaredge train --set coarse_weights=/work/x/run/best.pth --data set", "speed": "3 m/s",
+           "link": "https://github.com/tudelft-iv/view-of-delft-dataset", "given": "runs/x/best.pth"}
+    written = json.loads(module.write_result(tmp_path / "r.json", doc).read_text())
+    assert written == {"checkpoint": "…/run/best.pth", "data": "…/set", "ours": "export/a.onnx",
+                       "command": "radaredge train --set coarse_weights=…/run/best.pth --data set", "speed": "3 m/s",
+                       "link": "https://github.com/tudelft-iv/view-of-delft-dataset", "given": "runs/x/best.pth"}

@@ -209,6 +209,18 @@ def _bin_row_bytes(fmt: str) -> int:
     return 4 * len(_LAYOUTS[fmt].columns)
 
 
+def scan_format(paths: Sequence[Path], fmt: str | None, where: str, option: str) -> str:
+    """``fmt`` when given, else :func:`infer_format` of ``paths``, whose InputError (a folder that
+    mixes .npy and .bin files, .bin sizes that do not tell vod from tj4d) is prefixed by ``where``
+    and names the command-line ``option`` that sets the format."""
+    if fmt is not None:
+        return fmt
+    try:
+        return infer_format(paths)
+    except InputError as exc:
+        raise InputError(f"{where}: {exc} ({option})") from None
+
+
 def infer_format(paths: Sequence[Path]) -> str:
     """The one scan format that reads every file of ``paths``: ``transloc`` when all are
     ``.npy``; for ``.bin`` files, ``vod`` or ``tj4d`` when the byte sizes and the content of the

@@ -25,7 +25,7 @@ import numpy as np
 from onnxruntime.quantization import CalibrationDataReader
 
 from ..cards import ModelCard
-from ..data.readers import FILE_SUFFIX, infer_format, read_scan
+from ..data.readers import FILE_SUFFIX, read_scan, scan_format
 from ..data.sequences import frame_order
 from ..errors import ConfigError, InputError
 from ..models import model_spec
@@ -74,15 +74,8 @@ def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) ->
 
 def recording_format(paths: list[Path], fmt: str | None = None) -> str:
     """The scan format of the recording's files ``paths`` (:func:`recorded_scan_paths`):
-    ``fmt`` when given, else :func:`radaredge.data.readers.infer_format`, whose InputError (a
-    folder that mixes .npy and .bin files, .bin sizes that do not tell vod from tj4d) is told
-    the command-line option."""
-    if fmt is not None:
-        return fmt
-    try:
-        return infer_format(paths)
-    except InputError as exc:
-        raise InputError(f"calibration: {exc} (radaredge export: --calibration-format)") from exc
+    ``fmt`` when given, else inferred (:func:`radaredge.data.readers.scan_format`)."""
+    return scan_format(paths, fmt, "calibration", "radaredge export: --calibration-format")
 
 
 def check_recording(directory: str | os.PathLike, k: int, n: int,

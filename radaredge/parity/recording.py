@@ -41,7 +41,7 @@ import numpy as np
 from ..cards import ModelCard
 from ..data.kitti_detection import (LAYOUTS, DetectionSet, camera_fov_mask, check_image_size, read_calibration,
                                     read_image_size)
-from ..data.readers import FILE_SUFFIX, check_points, infer_format, read_scan
+from ..data.readers import FILE_SUFFIX, check_points, read_scan, scan_format
 from ..data.sequences import POINTCLOUDS, frame_order, load_sequence
 from ..errors import CapacityError, ConfigError, InputError
 from ..models.spec import GraphSpec
@@ -131,13 +131,8 @@ def _scan_files(folder: Path, fmt: str | None) -> list[Path]:
 
 
 def _format(paths: list[Path], fmt: str | None, where) -> str:
-    """``fmt``, or the one format that reads every file (:func:`radaredge.data.readers.infer_format`)."""
-    if fmt is not None:
-        return fmt
-    try:
-        return infer_format(paths)
-    except InputError as exc:
-        raise InputError(f"--data {where}: {exc} (pass --format vod|tj4d|transloc)") from None
+    """``fmt``, or the one format that reads every file (:func:`radaredge.data.readers.scan_format`)."""
+    return scan_format(paths, fmt, f"--data {where}", "pass --format vod|tj4d|transloc")
 
 
 def _kitti_root(directory: Path, card: ModelCard) -> Path | None:
