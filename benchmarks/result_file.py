@@ -19,7 +19,10 @@ MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scra
 
 
 def portable_path(text: str) -> str:
-    """``text`` with every absolute machine path in it made portable (module docstring)."""
+    """``text`` with every absolute machine path in it made portable (module docstring). A path
+    inside the repository is recognised wherever the checkout lives, not only under the roots of
+    :data:`MACHINE_PATH`."""
+    text = re.sub(rf"(?<![\w.~/-]){re.escape(str(ROOT))}/", "", text)
     def shown(match: re.Match) -> str:
         path = Path(match.group(0).rstrip("."))
         tail = match.group(0)[len(str(path)):]
