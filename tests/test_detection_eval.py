@@ -51,6 +51,21 @@ def test_eval_scores_every_backend_in_one_table(labelled, maffnet_tiny_export, t
     assert {"3d", "bev", "aos", "3d_r40", "num_gt"} <= set(car) and car["num_gt"] > 0
     delta = report["delta_ap_points"][ORT]["entire_area"]["Car"]["3d"]
     assert delta == pytest.approx(car["3d"] - report["ap"][REFERENCE]["entire_area"]["Car"]["3d"])
+    # every AP and mAP with its bootstrap interval over frames, every difference with its paired one
+    assert "bootstrap over frames" in report["protocol"]["interval"] and "[95 % interval" in res.output
+    for backend in report["ap"]:
+        for area in ("entire_area", "corridor"):
+            for cls in ("Car", "Pedestrian", "Cyclist", "mAP"):
+                for metric in ("3d", "bev"):
+                    low, high = report["ap_interval"][backend][area][cls][metric]
+                    assert 0.0 <= low <= high <= 100.0, (backend, area, cls, metric)
+                    if backend != REFERENCE:
+                        d_low, d_high = report["delta_ap_interval"][backend][area][cls][metric]
+                        assert -100.0 <= d_low <= d_high <= 100.0
+    low, high = report["ap_interval"][ORT]["entire_area"]["mAP"]["3d"]
+    mean = report["map"][ORT]["entire_area"]["3d"]
+    assert low - 1e-9 <= mean <= high + 1e-9
+    assert REFERENCE not in report["delta_ap_interval"]
     files = sorted(p.name for p in (tmp_path / "report").iterdir())
     assert "report.json" in files and {"pr-Car.png", "pr-Pedestrian.png", "pr-Cyclist.png"} <= set(files)
     assert sum(f.startswith("bev-") for f in files) == 4

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from radaredge.data.kitti_detection import TJ4D, VOD, Labels
-from radaredge.eval.kitti_ap import ap_table, evaluate_frames, recall_thresholds
+from radaredge.eval.kitti_ap import ap_table, bootstrap_rows, evaluate_frames, recall_thresholds, resampled_ap
 from references import vod_devkit_eval as devkit
 
 SIZES = {"Car": (4.2, 1.6, 1.8), "Van": (5.0, 2.0, 2.0), "Truck": (8.0, 3.0, 2.5), "Pedestrian": (0.7, 1.7, 0.6),
@@ -125,3 +125,68 @@ def test_recall_thresholds_thin_to_41_positions():
     scores = np.linspace(1.0, 0.01, 100)
     t = recall_thresholds(scores, 100)
     assert len(t) == 41 and t[0] == 1.0 and t[-1] == pytest.approx(0.01)
+
+
+def test_recall_thresholds_equal_the_devkit_walk():
+    """The kept scores equal the devkit's score-by-score walk (the reference), ties, few ground
+    truth (every score kept) and many (thinned) alike."""
+    rng = np.random.default_rng(3)
+    for trial in range(300):
+        n = int(rng.integers(0, 120))
+        scores = rng.choice(rng.random(max(n // 3, 1)), n) if trial % 3 == 0 else rng.random(n)
+        num_gt = n + int(rng.integers(1, 200)) if trial % 2 else max(n, 1)
+        ours = recall_thresholds(scores, num_gt)
+        assert ours.tolist() == devkit._recall_thresholds(scores, num_gt), (trial, n, num_gt)
+
+
+def _many_frames(seed: int, n: int) -> tuple[list[dict], list[dict]]:
+    gts, dts = [], []
+    for k in range(n):
+        g, d = _case(seed * 100 + k)
+        gts += g
+        dts += d
+    return gts, dts
+
+
+def test_a_resample_scores_as_the_devkit_on_its_frames():
+    """The bootstrap's AP of a resample is the devkit's AP (the independent reference) on the
+    resampled frames, duplicates included; the identity resample gives the set's own AP."""
+    gts, dts = _many_frames(5, 12)
+    curves = evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in dts], VOD.eval_classes,
+                             tables=("3d", "bev"))
+    rows = np.vstack([np.arange(len(gts)), bootstrap_rows(len(gts), 6, seed=1)])
+    checked = 0
+    for area in ("entire_area", "corridor"):
+        for cls in ("Car", "Pedestrian", "Cyclist"):
+            for metric in ("3d", "bev"):
+                curve = curves[area][cls][metric]
+                ap11, ap40 = resampled_ap(curve.frames, rows)
+                assert ap11[0] == pytest.approx(curve.ap11, abs=1e-9) and ap40[0] == pytest.approx(curve.ap40, abs=1e-9)
+                for r, row in enumerate(rows[1:], 1):
+                    ref = devkit.evaluate([gts[i] for i in row], [dts[i] for i in row],
+                                          ["Car", "Pedestrian", "Cyclist"], corridor=area == "corridor")[cls]
+                    assert ap11[r] == pytest.approx(ref[metric], abs=1e-4), (area, cls, metric, r)
+                    assert ap40[r] == pytest.approx(ref[metric + "_r40"], abs=1e-4), (area, cls, metric, r)
+                    checked += ref[metric] > 0
+    assert checked > 20
+
+
+def test_paired_intervals_of_a_detector_against_itself_and_a_worse_one():
+    """The same detections twice: equal intervals and a paired difference of exactly 0; the
+    detections with every second true box dropped: a paired difference whose interval lies below 0."""
+    from radaredge.eval.detection import ap_intervals
+    rng = np.random.default_rng(11)
+    gts = [_objects(rng, ["Car"] * 6) for _ in range(30)]
+    for g in gts:
+        g["bbox"][:, 3] = g["bbox"][:, 1] + 100
+        g["occluded"][:] = 0
+    dts = [{**g, "score": rng.uniform(0.5, 1.0, len(g["name"]))} for g in gts]
+    worse = [{k: v[::2] for k, v in d.items()} for d in dts]
+    classes = (VOD.eval_class("Car"),)
+    curves = {name: evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in ds], classes, ("entire_area",),
+                                    ("3d", "bev"))
+              for name, ds in (("a", dts), ("b", dts), ("worse", worse))}
+    intervals, deltas = ap_intervals(curves, ["Car"], ("entire_area",), "a", samples=200)
+    assert intervals["a"] == intervals["b"] and deltas["b"]["entire_area"]["Car"]["3d"] == (0.0, 0.0)
+    low, high = deltas["worse"]["entire_area"]["mAP"]["3d"]
+    assert high < 0.0 and intervals["worse"]["entire_area"]["Car"]["3d"][1] < 100.0

@@ -45,12 +45,15 @@ from ..ops.box_iou import bev_iou_paired
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import graph_runner
 from .box_errors import MATCH_DISTANCE, BoxErrors, box_error_lines, class_box_errors
-from .kitti_ap import AREAS, ClassCurve, ap_table, evaluate_frames
+from .kitti_ap import AREAS, ClassCurve, ap_table, bootstrap_rows, evaluate_frames, resampled_ap
+from .recall_stats import percentile_interval
 
 REFERENCE, ORT, ORT_INT8, OPENVINO = "torch reference", "onnxruntime", "onnxruntime int8", "openvino"
 PICTURE_FRAMES = 4          # BEV pictures in the report directory, the frames where backends disagree most
 PICTURE_BOXES = 20          # detections drawn (and compared) per backend and frame, highest scores first
 AREA_LABELS = {"entire_area": "entire area", "corridor": "corridor"}
+AP_RESAMPLES, AP_INTERVAL_METRICS = 1000, ("3d", "bev")   # bootstrap over frames (seed 0) behind each AP interval
+MEAN = "mAP"
 
 Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
@@ -180,13 +183,14 @@ def _class_pair(detections, frame: DetectionFrame, classes: list[str], cls: str)
     return boxes[mine], scores[mine], labels_to_radar_boxes(gt, frame.calib)
 
 
-def _matched_counts(a, b) -> int:
-    """Boxes of two detection sets ((boxes, scores, labels), top PICTURE_BOXES of each) that find
-    no box of the same class with BEV IoU >= 0.5 in the other, greedily by score."""
-    def top(d):
-        order = np.argsort(-d[1], kind="stable")[:PICTURE_BOXES]
+def unmatched_boxes(a, b, top: int = PICTURE_BOXES) -> int:
+    """Boxes of two detection sets ((boxes [D, 7], scores [D], labels [D]), the ``top`` highest
+    scores of each) that find no box of the same class with BEV IoU >= 0.5 in the other, greedily
+    by score: 0 when the two detectors agree on every box."""
+    def top_boxes(d):
+        order = np.argsort(-d[1], kind="stable")[:top]
         return d[0][order], d[2][order]
-    (ba, la), (bb, lb) = top(a), top(b)
+    (ba, la), (bb, lb) = top_boxes(a), top_boxes(b)
     if not len(ba) or not len(bb):
         return len(ba) + len(bb)
     n, m = len(ba), len(bb)
@@ -227,6 +231,9 @@ class DetectionEvalReport:
     disagreement: list[tuple[str, int]] = field(default_factory=list)
     box_errors: dict[str, dict[str, BoxErrors]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)      # what was read or dropped unasked, said once as warnings
+    # 95 % bootstrap intervals over frames (:func:`ap_intervals`): [backend][area][class or "mAP"][metric]
+    intervals: dict = field(default_factory=dict)
+    delta_intervals: dict = field(default_factory=dict)   # paired, against the baseline; other backends only
 
     @property
     def baseline(self) -> str:
@@ -249,6 +256,8 @@ class DetectionEvalReport:
             "split": self.split, "dataset": self.layout, "frames": len(self.frames), "classes": self.classes,
             "protocol": {"min_iou_3d_bev": self.min_iou, "areas": list(self.areas),
                          "ap": "11 recall positions (VoD's reported figure); *_r40: 40 positions",
+                         "interval": f"95 % percentile bootstrap over frames ({AP_RESAMPLES} resamples, seed 0), the "
+                                     f"devkit's AP recomputed on each; differences paired (same resamples)",
                          "corridor": "camera x in [-4, 4] m, z <= 25 m", "min_box_height_px": 40},
             "backends": backends, "reference": self.baseline,
             "ap": self.ap,
@@ -257,6 +266,8 @@ class DetectionEvalReport:
             "delta_ap_points": {b: {a: {c: {m: self.delta(b, a, c, m) for m in ("3d", "bev", "aos")}
                                         for c in self.classes} for a in self.areas}
                                 for b in backends if b != self.baseline},
+            "ap_interval": self.intervals,
+            "delta_ap_interval": self.delta_intervals,
             "frames_per_second": self.fps,
             "most_disagreeing_frames": [{"frame": f, "unmatched_boxes": n} for f, n in self.disagreement],
             "notes": list(self.notes),
@@ -275,23 +286,33 @@ class DetectionEvalReport:
         lines = [f"eval {self.model} on {self.data} ({self.layout}, split {self.split}): {len(self.frames)} frames; "
                  f"AP in % at 11 recall positions (VoD's protocol); min IoU "
                  + ", ".join(f"{c} {v:g}" for c, v in self.min_iou.items())]
+        if self.intervals:
+            lines.append(f"[95 % interval: percentile bootstrap over frames, {AP_RESAMPLES} resamples; diff: paired, "
+                         f"against {self.baseline}]")
+
+        def cell(backend: str, area: str, cls: str, metric: str, value: float) -> str:
+            iv = self.intervals.get(backend, {}).get(area, {}).get(cls, {}).get(metric)
+            return f"{value:>24.2f}" if iv is None else f"{f'{value:6.2f} [{iv[0]:5.1f}, {iv[1]:5.1f}]':>24}"
+
+        def diff(backend: str, area: str, cls: str, metric: str, value: float) -> str:
+            iv = self.delta_intervals.get(backend, {}).get(area, {}).get(cls, {}).get(metric)
+            return f"{value:>+22.2f}" if iv is None else f"{f'{value:+6.2f} [{iv[0]:+5.1f}, {iv[1]:+5.1f}]':>22}"
+
         for metric, title in (("3d", "3D AP"), ("bev", "BEV AP")):
-            head = f"{title:<12}{'area':<13}{'objects':>8}" + f"{self.baseline:>18}"
-            head += "".join(f"{b:>18}{'diff':>8}" for b in others)
+            head = f"{title:<12}{'area':<13}{'objects':>8}" + f"{self.baseline:>24}"
+            head += "".join(f"{b:>24}{'diff':>22}" for b in others)
             lines += ["", head]
             for area in self.areas:
-                for cls in [*self.classes, "mean"]:
-                    if cls == "mean":
-                        row = f"{'mAP':<12}{AREA_LABELS[area]:<13}{sum(n_gt[area].values()):>8}"
-                        row += f"{self.mean_ap(self.baseline, area, metric):>18.2f}"
-                        base = self.mean_ap(self.baseline, area, metric)
-                        row += "".join(f"{self.mean_ap(b, area, metric):>18.2f}"
-                                       f"{self.mean_ap(b, area, metric) - base:>+8.2f}" for b in others)
+                for cls in [*self.classes, MEAN]:
+                    if cls == MEAN:
+                        value = {b: self.mean_ap(b, area, metric) for b in backends}
+                        row = f"{MEAN:<12}{AREA_LABELS[area]:<13}{sum(n_gt[area].values()):>8}"
                     else:
+                        value = {b: self.ap[b][area][cls][metric] for b in backends}
                         row = f"{cls:<12}{AREA_LABELS[area]:<13}{n_gt[area][cls]:>8}"
-                        row += f"{self.ap[self.baseline][area][cls][metric]:>18.2f}"
-                        row += "".join(f"{self.ap[b][area][cls][metric]:>18.2f}"
-                                       f"{self.delta(b, area, cls, metric):>+8.2f}" for b in others)
+                    row += cell(self.baseline, area, cls, metric, value[self.baseline])
+                    row += "".join(cell(b, area, cls, metric, value[b])
+                                   + diff(b, area, cls, metric, value[b] - value[self.baseline]) for b in others)
                     lines.append(row)
         if self.box_errors:
             lines += ["", *box_error_lines(self.box_errors),
@@ -369,6 +390,30 @@ class DetectionEvalReport:
         return path
 
 
+def ap_intervals(curves: dict, classes: list[str], areas: tuple[str, ...], baseline: str,
+                 samples: int = AP_RESAMPLES, seed: int = 0) -> tuple[dict, dict]:
+    """95 % percentile-bootstrap intervals over frames (``samples`` resamples drawn with
+    ``seed``) of every backend's 11-point AP (%) in ``curves`` [backend][area][class][metric] for
+    the metrics of :data:`AP_INTERVAL_METRICS`, per class and for the mean over ``classes``
+    ("mAP"); and of each other backend's difference from ``baseline``, paired (the same resamples).
+    Returns ([backend][area][class][metric] -> (low, high), the same for the differences)."""
+    frames = len(curves[baseline][areas[0]][classes[0]][AP_INTERVAL_METRICS[0]].frames)
+    rows = bootstrap_rows(frames, samples, seed)
+    draws = {b: {a: {c: {m: resampled_ap(per_class[c][m].frames, rows)[0] for m in AP_INTERVAL_METRICS}
+                     for c in classes} for a, per_class in per_area.items() if a in areas}
+             for b, per_area in curves.items()}
+    for per_area in draws.values():
+        for per_class in per_area.values():
+            per_class[MEAN] = {m: np.mean([per_class[c][m] for c in classes], 0) for m in AP_INTERVAL_METRICS}
+
+    def intervals(pick) -> dict:
+        return {a: {c: {m: percentile_interval(pick(a, c, m)) for m in AP_INTERVAL_METRICS} for c in [*classes, MEAN]}
+                for a in areas}
+    return ({b: intervals(lambda a, c, m, b=b: draws[b][a][c][m]) for b in draws},
+            {b: intervals(lambda a, c, m, b=b: draws[b][a][c][m] - draws[baseline][a][c][m])
+             for b in draws if b != baseline})
+
+
 def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", checkpoint=None,
                        reference: bool = True, dataset: str | None = None, openvino: bool | None = None,
                        progress: Callable[[str], Callable] | None = None) -> DetectionEvalReport:
@@ -403,18 +448,19 @@ def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", che
     areas = AREAS if layout.corridor else ("entire_area",)
     gts = [f.labels for f in frames]
     curves = {name: evaluate_frames(gts, [as_labels(d, f, card.get("classes")) for d, f in zip(dets, frames)],
-                                    eval_classes, areas)
+                                    eval_classes, areas, AP_INTERVAL_METRICS)
               for name, dets in detections.items()}
     ap = {name: ap_table(c) for name, c in curves.items()}
     report = DetectionEvalReport(card.name, str(onnx_path), str(checkpoint) if checkpoint else None, str(the_set.root),
                                  split, layout.name, classes, frames, points, detections, ap, curves, fps,
                                  {c.name: c.min_iou for c in eval_classes}, areas)
     report.notes = notes
+    report.intervals, report.delta_intervals = ap_intervals(curves, classes, areas, report.baseline)
     report.box_errors = {name: {cls: class_box_errors([_class_pair(d, f, card.get("classes"), cls)
                                                        for d, f in zip(dets, frames)]) for cls in classes}
                          for name, dets in detections.items()}
     base = detections[report.baseline]
-    score = [max((_matched_counts(base[i], dets[i]) for name, dets in detections.items() if name != report.baseline),
+    score = [max((unmatched_boxes(base[i], dets[i]) for name, dets in detections.items() if name != report.baseline),
                  default=0) for i in range(len(frames))]
     order = sorted(range(len(frames)), key=lambda i: -score[i])
     report.disagreement = [(frames[i].frame_id, int(score[i])) for i in order[:max(PICTURE_FRAMES, 10)]]

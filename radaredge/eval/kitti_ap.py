@@ -26,6 +26,13 @@ VoD's cleaning), in the camera frame of the labels:
 * Minimum IoU: 3D and BEV Car 0.5, Pedestrian 0.25, Cyclist 0.25 (TJ4D Truck 0.5); 2D box (and
   AOS) Car 0.7, Pedestrian 0.5, Cyclist 0.5 (TJ4D Truck 0.7).
 
+**Intervals** (radaredge's, not the devkit's): the 95 % percentile bootstrap over frames. Each
+resample draws the frames with replacement and recomputes the devkit's AP on it, thresholds
+included (:func:`resampled_ap`, from a per-frame table of each frame's counts at each of its own
+detection scores, :class:`FrameTable`); two detectors are resampled on the same frames, so their
+difference gets a paired interval. Frames of one drive are not independent, so the interval is on
+the narrow side.
+
 Two deviations from the devkit's code, neither of which changes a figure except at exact ties:
 IoU is computed in float64 (the devkit rounds boxes to float32), and the rotated overlap is
 :func:`radaredge.ops.box_iou.bev_overlap_paired` (edge clipping) rather than the devkit's
@@ -220,17 +227,25 @@ def statistics(overlap: np.ndarray, gt_alpha: np.ndarray, dt_alpha: np.ndarray, 
 
 def recall_thresholds(scores: np.ndarray, num_gt: int, num_sample_pts: int = N_SAMPLE_PTS) -> np.ndarray:
     """The devkit's ``get_thresholds``: the true-positive scores, highest first, kept where recall
-    passes the next of ``num_sample_pts`` evenly spaced positions."""
+    passes the next of ``num_sample_pts`` evenly spaced positions. The devkit walks every score;
+    this finds each kept one at once (the skip test is monotone in the rank), with the devkit's
+    own float operations, so the result is the same."""
     scores = np.sort(np.asarray(scores, np.float64))[::-1]
-    out, current = [], 0.0
-    for i, score in enumerate(scores):
-        left = (i + 1) / num_gt
-        right = (i + 2) / num_gt if i < len(scores) - 1 else left
-        if (right - current) < (current - left) and i < len(scores) - 1:
-            continue
-        out.append(score)
+    n = len(scores)
+    if n == 0:
+        return np.zeros(0, np.float64)
+    rank = np.arange(n)
+    left = (rank + 1) / num_gt
+    right = np.where(rank < n - 1, (rank + 2) / num_gt, left)
+    kept, current, last = [], 0.0, -1
+    while last < n - 1:
+        keep = ~((right - current) < (current - left))
+        keep[n - 1] = True                      # the last score is always kept
+        keep[: last + 1] = False
+        last = int(np.argmax(keep))
+        kept.append(last)
         current += 1.0 / (num_sample_pts - 1.0)
-    return np.array(out, np.float64)
+    return scores[kept]
 
 
 @dataclass(frozen=True)
@@ -244,6 +259,7 @@ class ClassCurve:
     orientation: np.ndarray | None
     num_gt: int
     filled: int = 0
+    frames: "FrameTable | None" = None      # per frame, for the bootstrap (:func:`resampled_ap`)
 
     @property
     def ap11(self) -> float:
@@ -265,8 +281,9 @@ class ClassCurve:
 
 
 def class_curve(gts: list[Labels], dts: list[Labels], cls: EvalClass, metric: str, corridor: bool,
-                frame_overlaps: list[np.ndarray] | None = None) -> ClassCurve:
-    """The devkit's ``eval_class`` for one class, metric and area over all frames."""
+                frame_overlaps: list[np.ndarray] | None = None, table: bool = False) -> ClassCurve:
+    """The devkit's ``eval_class`` for one class, metric and area over all frames; ``table``
+    keeps the per-frame :class:`FrameTable` the bootstrap resamples."""
     if len(gts) != len(dts):
         raise ValueError(f"{len(gts)} ground-truth frames but {len(dts)} detection frames")
     min_overlap = cls.min_iou_image if metric == "bbox" else cls.min_iou
@@ -274,18 +291,36 @@ def class_curve(gts: list[Labels], dts: list[Labels], cls: EvalClass, metric: st
     ovs = frame_overlaps if frame_overlaps is not None else [overlaps(metric, d, g) for g, d in zip(gts, dts)]
     cleaned = [clean(g, d, cls, corridor) for g, d in zip(gts, dts)]
     num_gt = sum(c.num_valid_gt for c in cleaned)
-    found = []
-    for g, d, c, ov in zip(gts, dts, cleaned, ovs):
-        found.extend(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap).thresholds)
-    thresholds = recall_thresholds(np.array(found), num_gt) if num_gt else np.zeros(0)
+    found = [np.asarray(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap).thresholds,
+                        np.float64) for g, d, c, ov in zip(gts, dts, cleaned, ovs)]
+    thresholds = recall_thresholds(np.concatenate(found or [np.zeros(0)]), num_gt) if num_gt else np.zeros(0)
     pr = np.zeros((len(thresholds), 4))
     for g, d, c, ov in zip(gts, dts, cleaned, ovs):
         for t, thresh in enumerate(thresholds):
             s = statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap, thresh, True, aos)
             pr[t] += (s.tp, s.fp, s.fn, s.similarity if s.similarity != -1 else 0.0)
+    precision, recall, orientation = _curve(pr, aos)
+    frames = None
+    if table:
+        cuts = [np.unique(np.asarray(d.score, np.float64)) for d in dts]
+        counts = [np.array([_counts(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap, t, True))
+                            for t in (*cut, np.inf)], np.float64).reshape(-1, 3)
+                  for g, d, c, ov, cut in zip(gts, dts, cleaned, ovs, cuts)]
+        frames = FrameTable(tuple(found), np.array([c.num_valid_gt for c in cleaned], np.int64), tuple(cuts),
+                            tuple(counts))
+    return ClassCurve(precision, recall, orientation, num_gt, len(thresholds), frames)
+
+
+def _counts(s: _Stats) -> tuple[int, int, int]:
+    return s.tp, s.fp, s.fn
+
+
+def _curve(pr: np.ndarray, aos: bool = False):
+    """Precision, recall (and orientation similarity) at the 41 positions from the summed
+    (tp, fp, fn[, similarity]) at each threshold [T, 3 or 4], each a running maximum from the right."""
     precision, recall = np.zeros(N_SAMPLE_PTS), np.zeros(N_SAMPLE_PTS)
     orientation = np.zeros(N_SAMPLE_PTS) if aos else None
-    n = len(thresholds)
+    n = len(pr)
     with np.errstate(divide="ignore", invalid="ignore"):
         recall[:n] = pr[:, 0] / (pr[:, 0] + pr[:, 2])
         precision[:n] = pr[:, 0] / (pr[:, 0] + pr[:, 1])
@@ -296,15 +331,64 @@ def class_curve(gts: list[Labels], dts: list[Labels], cls: EvalClass, metric: st
         recall[i] = np.max(recall[i:])
         if aos:
             orientation[i] = np.max(orientation[i:])
-    return ClassCurve(precision, recall, orientation, num_gt, n)
+    return precision, recall, orientation
+
+
+@dataclass(frozen=True)
+class FrameTable:
+    """One class, metric and area, frame by frame: what the devkit's AP of any resample of the
+    frames needs. ``found[f]``: the scores of frame f's true positives in the threshold pass;
+    ``num_gt[f]``: its counted ground truth; ``cuts[f]``: its detections' distinct scores,
+    ascending; ``counts[f]`` [len(cuts[f]) + 1, 3]: its (tp, fp, fn) when the detections scoring
+    at least ``cuts[f][k]`` take part, the last row with none (a threshold above every score)."""
+
+    found: tuple
+    num_gt: np.ndarray
+    cuts: tuple
+    counts: tuple
+
+    def __len__(self) -> int:
+        return len(self.num_gt)
+
+
+def bootstrap_rows(frames: int, samples: int = 1000, seed: int = 0) -> np.ndarray:
+    """int64 [samples, frames]: frame indices drawn with replacement, one resample a row."""
+    return np.random.default_rng(seed).integers(0, frames, (samples, frames)) if frames else np.zeros((samples, 0),
+                                                                                                       np.int64)
+
+
+def resampled_ap(table: FrameTable, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(11-point AP, 40-point AP) in % [S] of each resample ``rows`` [S, F] of the frames: the
+    devkit's AP on the frames of the row, thresholds recomputed on them (module docstring). Every
+    threshold of a resample is one of the set's true-positive scores, so each frame's counts are
+    looked up once for each of those scores, and a resample sums them with its frame weights."""
+    ap11, ap40 = np.zeros(len(rows)), np.zeros(len(rows))
+    found_frame = np.concatenate([np.full(len(f), i, np.int64) for i, f in enumerate(table.found)]
+                                 or [np.zeros(0, np.int64)])
+    found = np.concatenate(list(table.found) or [np.zeros(0)])
+    candidates = np.unique(found)
+    at = np.stack([c[np.searchsorted(cut, candidates, side="left")] for cut, c in zip(table.cuts, table.counts)]) \
+        if len(table) else np.zeros((0, len(candidates), 3))                         # [F, U, 3]
+    for s, row in enumerate(rows):
+        weight = np.bincount(row, minlength=len(table))
+        num_gt = int(weight @ table.num_gt)
+        if num_gt == 0:
+            continue
+        thresholds = recall_thresholds(np.repeat(found, weight[found_frame]), num_gt)
+        pr = np.einsum("f,ftk->tk", weight.astype(np.float64), at[:, np.searchsorted(candidates, thresholds)])
+        precision = _curve(pr)[0]
+        ap11[s], ap40[s] = np.sum(precision[0::4]) / 11 * 100, np.sum(precision[1:]) / 40 * 100
+    return ap11, ap40
 
 
 def evaluate_frames(gts: list[Labels], dts: list[Labels], classes: tuple[EvalClass, ...],
-                    areas: tuple[str, ...] = AREAS) -> dict[str, dict[str, dict[str, ClassCurve]]]:
+                    areas: tuple[str, ...] = AREAS,
+                    tables: tuple[str, ...] = ()) -> dict[str, dict[str, dict[str, ClassCurve]]]:
     """area -> class name -> metric -> :class:`ClassCurve` over paired frames of ground truth
-    and detections (camera-frame KITTI labels; detections carry scores)."""
+    and detections (camera-frame KITTI labels; detections carry scores); the metrics in
+    ``tables`` keep their per-frame tables for the bootstrap."""
     ovs = {m: [overlaps(m, d, g) for g, d in zip(gts, dts)] for m in METRICS}
-    return {area: {c.name: {m: class_curve(gts, dts, c, m, area == "corridor", ovs[m]) for m in METRICS}
+    return {area: {c.name: {m: class_curve(gts, dts, c, m, area == "corridor", ovs[m], m in tables) for m in METRICS}
                    for c in classes} for area in areas}
 
 

@@ -68,8 +68,14 @@ def bootstrap_interval(hits: np.ndarray, samples: int = BOOTSTRAP_SAMPLES, level
     for i in range(0, samples, 256):
         rows = rng.integers(0, hits.size, (min(256, samples - i), hits.size))
         means[i:i + len(rows)] = hits[rows].mean(1)
-    low, high = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
-    return 100.0 * float(low), 100.0 * float(high)
+    low, high = percentile_interval(100.0 * means, level)
+    return low, high
+
+
+def percentile_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """The central ``level`` interval of bootstrap ``values`` (their percentiles)."""
+    low, high = np.quantile(np.asarray(values, np.float64), [(1 - level) / 2, (1 + level) / 2])
+    return float(low), float(high)
 
 
 def benchmark_positions(root: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
