@@ -62,7 +62,8 @@ def _vod_objects(seed: int, calib):
     keep = (boxes[:, 0] > 3) & (np.abs(boxes[:, 1]) < boxes[:, 0])          # in front of the camera
     boxes = boxes[keep][:8]
     kinds = [("car", {}, "Car"), ("pedestrian", {}, "Pedestrian"), ("bicycle", {"has_rider": True}, "Cyclist"),
-             ("bicycle", {"has_rider": False}, "bicycle"), ("rider", {}, "rider"), ("moped_scooter", {}, "moped_scooter")]
+             ("bicycle", {"has_rider": False}, "bicycle"), ("rider", {}, "rider"),
+             ("moped_scooter", {}, "moped_scooter")]
     objects, lines = [], []
     for i, b in enumerate(boxes):
         json_class, extra, kitti_class = kinds[i % len(kinds)]
@@ -98,9 +99,10 @@ def write_vod_example_set(top: Path, frames=("00549", "01047", "01201")) -> Path
             for sub in ("calib", "image_2", "label_2", "pose", "velodyne"):
                 (t / sub).mkdir(parents=True, exist_ok=True)
             (t / "calib" / f"{fid}.txt").write_text(_calib_text(calib))
-            (t / "image_2" / f"{fid}.jpg").write_bytes(b"\xff\xd8" + b"\xff\xc0\x00\x11\x08" + VOD_SIZE[1].to_bytes(2, "big")
-                                                       + VOD_SIZE[0].to_bytes(2, "big") + b"\x03" + b"\x00" * 9)
-            (t / "pose" / f"{fid}.json").write_text('{"odomToCamera": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}\n')
+            sof = b"\xff\xc0\x00\x11\x08" + VOD_SIZE[1].to_bytes(2, "big") + VOD_SIZE[0].to_bytes(2, "big")
+            (t / "image_2" / f"{fid}.jpg").write_bytes(b"\xff\xd8" + sof + b"\x03" + b"\x00" * 9)
+            identity = "[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]"
+            (t / "pose" / f"{fid}.json").write_text(f'{{"odomToCamera": {identity}}}\n')
         scan = generate_scan(seed=k + 3)
         rows = np.column_stack([scan.points[:, :3], scan.points[:, 4], scan.points[:, 3], scan.points[:, 3],
                                 np.zeros(len(scan.points))]).astype("<f4")                 # one scan: time 0
@@ -176,7 +178,8 @@ def test_vod_json_label_problems_point_at_the_txt_labels(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ds = DetectionSet(example, "val", VOD)
-    with pytest.raises(InputError, match=r"00549.json: object 1: unknown className 'hovercraft'.*lidar/training/label_2"):
+    unknown = r"00549.json: object 1: unknown className 'hovercraft'.*lidar/training/label_2"
+    with pytest.raises(InputError, match=unknown):
         ds.frame(0, VOD_FEATURES)
     del objects[1]["className"]
     label.write_text(json.dumps(objects))
@@ -276,6 +279,22 @@ def test_a_make_benchmark_set_says_nothing(tmp_path):
         warnings.simplefilter("always")
         DetectionSet(tmp_path / "copy", "val", VOD, 1)
     assert len(_said(caught, "1936 x 1216 px (View-of-Delft's camera")) == 1
+
+
+def test_times_in_seconds_are_said(tmp_path):
+    """VoD's time column is the scan index (0, -1, ..., -4); radaredge's set writes it so, and a
+    radar_5frames folder written with times in seconds (-0.1 s a scan) is said once, with the value."""
+    from radaredge.data.detection_benchmark import make_detection_benchmark
+    make_detection_benchmark(tmp_path / "set", drives=2, frames=2, seed=0)
+    for path in (tmp_path / "set" / "radar_5frames" / "training" / "velodyne").glob("*.bin"):
+        table = np.fromfile(path, "<f4").reshape(-1, 7)
+        assert set(np.unique(table[:, 6]).tolist()) == {-4.0, -3.0, -2.0, -1.0, 0.0}
+        table[:, 6] *= 0.1
+        table.tofile(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        DetectionSet(tmp_path / "set", "val", VOD, 5)
+    assert len(_said(caught, "not a whole number: View-of-Delft's time is the scan index")) == 1
 
 
 # ----------------------------------------------------------------------------- item 4: said once

@@ -94,13 +94,13 @@ def test_files_written_by_the_synthetic_generator_read_back_as_the_card_columns(
 
 
 def test_vod_radar_5frames_layout_reads_into_the_maffnet_vod_columns(tmp_path):
-    """VoD's radar_5frames files (5 scans in the newest scan's frame, time <= 0 s) have the
+    """VoD's radar_5frames files (5 scans in the newest scan's frame, time the scan index 0 .. -4) have the
     single-scan layout; they read into MAFF-Net's VoD features unchanged, time column included."""
     table = vod_accumulated_table(generate_sequence(5, seed=1), fov_deg=32.9)
     table.astype("<f4").tofile(tmp_path / "00042.bin")
     pts = read_scan(tmp_path / "00042.bin", ["x", "y", "z", "rcs", "v_r", "v_r_comp", "time"])
     np.testing.assert_array_equal(pts, table)
-    assert (pts[:, 6] <= 0).all() and len(np.unique(pts[:, 6])) == 5
+    assert np.unique(pts[:, 6]).tolist() == [-4.0, -3.0, -2.0, -1.0, 0.0]
     assert (np.abs(np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))) <= 32.9).all()
 
 

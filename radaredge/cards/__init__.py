@@ -48,7 +48,7 @@ PLAUSIBLE_DEFAULTS = {
     "range": (0.0, 1000.0),        # m
     "alpha": (-360.0, 360.0),      # azimuth angle (degrees or radians)
     "beta": (-360.0, 360.0),       # elevation angle (degrees or radians)
-    "time": (-10.0, 10.0),         # s: a point's time relative to its scan (VoD radar_5frames)
+    "time": (-10.0, 10.0),         # VoD radar_5frames: the point's scan index, 0 the current, -1 the one before
     "r": (0.0, 1.0), "g": (0.0, 1.0), "b": (0.0, 1.0),    # colour of a map object's points (Des4Pos)
 }
 COORDINATES = ("x", "y", "z")
@@ -156,8 +156,8 @@ def _check_window_bev(data: dict, where: str) -> None:
     cells = (nx, ny)
     window = frames * nx * ny * channels * 4
     if window > MAX_WINDOW_BEV_BYTES:
-        raise ConfigError(f"{where}: pillars: {frames} frame(s) of a {cells[0]} x {cells[1]} grid of {channels} channels "
-                          f"are {window / 2**20:.0f} MiB BEV maps per window; at most "
+        raise ConfigError(f"{where}: pillars: {frames} frame(s) of a {cells[0]} x {cells[1]} grid of {channels} "
+                          f"channels are {window / 2**20:.0f} MiB BEV maps per window; at most "
                           f"{MAX_WINDOW_BEV_BYTES // 2**20} MiB (an export holds 16-31 times that): a coarser "
                           f"pillars.voxel_size, a smaller point_cloud_range, fewer out_channels or frames")
 

@@ -16,7 +16,8 @@ folder of the nearest scan count is read and that is said (:func:`resolve_root`)
 
 What is read without being asked is said once (the ``notes`` of :func:`list_frames`, each a
 ``warnings.warn`` from :class:`DetectionSet`): a folder whose scans a frame differ from the card's
-``input.scans_accumulated``; no ``ImageSets/`` (TJ4DRadSet's published ``Sample/``): the split is
+``input.scans_accumulated``; a VoD time column in seconds rather than the devkit's scan index
+(0 the current scan, -1 the one before, ...); no ``ImageSets/`` (TJ4DRadSet's published ``Sample/``): the split is
 every frame of ``training/velodyne`` with a label, and how many; frames without an ``image_2``
 file: the image size is the card's ``input.image_size`` or the dataset's camera.
 
@@ -536,7 +537,8 @@ def _scans_phrase(n: int) -> str:
     return "single scans" if n == 1 else f"{n} accumulated scans a frame"
 
 
-def resolve_root(root: str | os.PathLike, layout: DetectionLayout, scans: int = 1) -> tuple[Path, int | None, list[str]]:
+def resolve_root(root: str | os.PathLike, layout: DetectionLayout,
+                 scans: int = 1) -> tuple[Path, int | None, list[str]]:
     """(the set's folder, the scans a frame its name says or None, notes) for ``--data root``:
     ``root`` itself when it holds ``training/``; else its subfolder for ``scans`` accumulated
     scans (View-of-Delft: ``radar/``, ``radar_3frames/`` or ``radar_3_scans/``, ``radar_5frames/``
@@ -620,15 +622,20 @@ def _every_labelled_frame(root: Path, training: Path, split: str) -> tuple[list[
     return ids, note
 
 
-def _scans_in_frames(training: Path, frame_ids: list[str]) -> int:
-    """Scans a frame of a View-of-Delft folder, from its time column (a scan index: 0 for the
-    current scan, -1 the one before, ...): the most distinct values in the first frames."""
+def _time_column(training: Path, frame_ids: list[str]) -> tuple[int, float | None]:
+    """From the time column of the first frames of a View-of-Delft folder (a scan index: 0 for
+    the current scan, -1 the one before, ...): the scans a frame (the most distinct values), and
+    a value that is no whole number (times in seconds, not the devkit's scan index), else None."""
     from .readers import read_scan as _read
-    most = 0
+    most, odd = 0, None
     for fid in frame_ids[:_SCAN_SAMPLE_FRAMES]:
         t = _read(training / "velodyne" / f"{fid}.bin", ["time"], fmt="vod")[:, 0]
-        most = max(most, len(np.unique(t[np.isfinite(t)])))
-    return most
+        t = t[np.isfinite(t)]
+        most = max(most, len(np.unique(t)))
+        fractional = t[t != np.round(t)]
+        if odd is None and len(fractional):
+            odd = float(fractional[0])
+    return most, odd
 
 
 _BENCHMARK_FILE, _MAX_BENCHMARK_BYTES = "benchmark.json", 2**20
@@ -695,7 +702,8 @@ def list_frames(root: str | os.PathLike, split: str = "val", layout: DetectionLa
       ``training/velodyne`` with a ``label_2`` file (.txt or VoD's .json) is the split (noted, with
       how many). An ``ImageSets/`` without ``<split>.txt`` is an error naming the splits it has.
     - a folder whose scans a frame (its name, or for VoD the time column) differ from
-      ``scans_accumulated`` (the card's ``input.scans_accumulated``) is noted;
+      ``scans_accumulated`` (the card's ``input.scans_accumulated``) is noted, and so is a VoD
+      time column that holds no scan index (a value that is no whole number: seconds);
     - frames without an ``image_2`` file take ``image_size`` (the card's ``input.image_size``),
       else the dataset camera's size: noted with the calibration's principal point."""
     resolved, named_scans, notes = resolve_root(root, layout, scans_accumulated)
@@ -714,8 +722,14 @@ def list_frames(root: str | os.PathLike, split: str = "val", layout: DetectionLa
         notes.append(note)
         split_file = None
     scans, how = named_scans, f"its name: {resolved.name}/"
-    if scans is None and layout.scan_format == "vod":
-        scans, how = _scans_in_frames(training, frame_ids), "distinct values of its time column"
+    if layout.scan_format == "vod" and frame_ids:
+        counted, odd = _time_column(training, frame_ids)
+        if scans is None:
+            scans, how = counted, "distinct values of its time column"
+        if odd is not None:
+            notes.append(f"{training / 'velodyne'}: the time column holds {odd:g}, not a whole number: "
+                         f"View-of-Delft's time is the scan index (0 the current scan, -1 the one before, ...), "
+                         f"not seconds; a card trained on View-of-Delft reads the column as scans")
     if scans is not None and scans != scans_accumulated:
         folders = layout.scan_folders().get(scans_accumulated)
         where = f" ({layout.title or layout.name}: {' or '.join(f + '/' for f in folders)})" if folders else ""

@@ -24,7 +24,8 @@ The scene
   curvature and grade are otherwise drawn with the ego motion (from ``seed``); give them all one
   ``road_curvature`` and ``ego_vertical_max`` = 0 (a flat road) to share one world frame.
 * **Traffic.** Cars, pedestrians and cyclists move parallel to the road at constant speed in
-  their lanes (with ``vru_on_road``, some pedestrians and cyclists on the carriageway). They live in a window from 30 m behind to 90 m ahead of the ego, both ends
+  their lanes (with ``vru_on_road``, some pedestrians and cyclists on the carriageway). They live in
+  a window from 30 m behind to 90 m ahead of the ego, both ends
   outside the field of view (FOV), and wrap around in it, so traffic keeps flowing through
   long sequences.
 * **Ego.** The radar moves along the ego lane at a constant speed and yaw rate; a small
@@ -878,7 +879,7 @@ def _write_table(path: str | os.PathLike, table: np.ndarray) -> Path:
 
 def vod_table(scan: RadarScan) -> np.ndarray:
     """``scan`` as View-of-Delft radar rows, float32 [N, 7] of ``radaredge.data.readers.VOD_COLUMNS`` =
-    x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (s).
+    x, y, z (m), rcs (dBsm), v_r (m/s), v_r_compensated (m/s), time (scan index).
 
     v_r_compensated = v_r + r̂·v_ego (about 0 on static points); time = 0, the current scan, as
     in VoD single-scan files.
@@ -892,19 +893,21 @@ def vod_table(scan: RadarScan) -> np.ndarray:
 def vod_accumulated_table(scans: list[RadarScan], fov_deg: float | None = None) -> np.ndarray:
     """View-of-Delft ``radar_5frames``-style rows [N, 7] (the :func:`vod_table` columns) from
     consecutive scans, the newest last: every scan's points moved into the newest scan's radar
-    frame (through the poses), ``time`` = the scan's timestamp minus the newest one (s, <= 0),
-    velocities as each scan measured them. ``fov_deg`` keeps the points within that azimuth of
+    frame (through the poses), ``time`` = the scan's index from the newest one (0 for the newest,
+    -1 the one before, ...; View-of-Delft's devkit: "a point from the third most recent scan has
+    t = -2", a scan index, not seconds), velocities as each scan measured them. ``fov_deg`` keeps the
+    points within that azimuth of
     the x axis (a camera field-of-view crop, as VoD's FOV_POINTS_ONLY); None keeps all."""
     if not scans:
         raise InputError("vod_accumulated_table: no scans given")
     newest = scans[-1]
     to_newest = np.linalg.inv(newest.pose)
     rows = []
-    for scan in scans:
+    for k, scan in enumerate(scans):
         table = vod_table(scan).astype(np.float64)
         xyz1 = np.column_stack([table[:, :3], np.ones(len(table))])
         table[:, :3] = (xyz1 @ (to_newest @ scan.pose).T)[:, :3]
-        table[:, 6] = scan.timestamp - newest.timestamp
+        table[:, 6] = k - (len(scans) - 1)
         rows.append(table)
     out = np.concatenate(rows)
     if fov_deg is not None:
