@@ -88,6 +88,8 @@ def _kind(stem: str, data) -> str:
         return "places"
     if stem.startswith("tdfanet-variants-"):
         return "variants"
+    if stem == "real-data":
+        return "real"
     if stem.endswith("-training") and "train" in data:
         return "training"
     if any(k in data for k in ("tasks", "results", "rows", "query")):
@@ -376,6 +378,59 @@ def cfa_section(r: Result | None, results_dir: Path) -> list[str]:
     return out
 
 
+def real_data_section(r: Result | None, results_dir: Path) -> list[str]:
+    if r is None:
+        return []
+    d = r.data
+    cards = d.get("cards", [])
+    out = ["## Recorded radar: the published View-of-Delft and TJ4DRadSet frames", "",
+           f"`benchmarks/real_data.py`, {_stamp(r, d)}; {d.get('weights', '?')}. Every card that takes scans on "
+           "its dataset's published sample (View-of-Delft `example_set`: 3 frames; TJ4DRadSet `Sample`: 41 "
+           "consecutive frames; docs/data.md), fed as `parity-check --data` feeds it. Time: p50 of the fp32 graph "
+           "in onnxruntime, recorded frames and the speed suite's synthetic cases interleaved in one run; peak "
+           "memory: a fresh numpy + onnxruntime process. Command: "
+           f"`{d.get('command', '?')}`. JSON: {_link(r, results_dir)}.", ""]
+    rows = []
+    for c in cards:
+        p, t, m = c["points"], c["p50_ms"], c["peak_rss_mib"]
+        rows.append([f"`{c['card']}`", f"{c['timed']} of {c['available']} {c['unit']}s", f"{p['points_per_scan']:,.0f}",
+                     f"{100 * p['in_range_share']:.0f} %", f"{100 * p['over_pillar_cap_share']:.1f} %",
+                     f"{t['recording']:,.0f}", f"{t['synthetic']:,.0f}", f"{t['recording'] / t['synthetic']:.2f}x",
+                     f"{m['recording']:,.0f} / {m['synthetic']:,.0f}"])
+    out += _table(["card", "timed", "points a scan", "in range", "over a pillar's cap", "recorded ms", "synthetic ms",
+                   "ratio", "peak MiB (recorded / synthetic)"], rows, ["---"] + ["---:"] * 8) + [""]
+    grids = [c for c in cards if "grid_density" in c]
+    if grids:
+        out += ["GridDensityBEV's max-pool labelling on every frame of the recording: the frames whose components "
+                "converge in the card's `cc_iterations`, the max-pool steps the frames need, the share of non-noise "
+                "cells whose label is partial, and the labels against the true (exact) components:", ""]
+        rows = []
+        for c in grids:
+            g = c["grid_density"]
+            rows.append([f"`{c['card']}`", f"{g['cc_mode']}, {g['cc_iterations']}",
+                         f"{g['converged']} of {g['frames']}",
+                         f"{g['steps_median']:.0f} / {g['steps_max']}", f"{100 * g['partial_cell_share']:.0f} %",
+                         f"{g['labels']:,} / {g['components']:,}"])
+        out += _table(["card", "cc (mode, iterations)", "converged", "steps needed (median / max)",
+                       "cells with a partial label", "labels / components"], rows, ["---"] + ["---:"] * 5) + [""]
+    varied = [c for c in cards if c.get("variants")]
+    if varied:
+        out += ["Where frames do not converge, the same graph with the components made exact, on the timed frames "
+                "(boxes: top 20 by score per frame, same class, BEV IoU >= 0.5 against the card's own graph):", ""]
+        rows = []
+        for c in varied:
+            base = c["p50_ms"]["recording"]
+            for v in c["variants"]:
+                ms = c["p50_ms"][v["name"]]
+                compared = (f"of {v['boxes_compared']:,}" if "boxes_compared" in v
+                            else f"(top 20 a frame; {v['boxes']:,} boxes in all)")
+                rows.append([f"`{c['card']}`", v["name"], f"{v['converged']} of {c['timed']}",
+                             f"{ms:,.0f} ({ms / base:.2f}x)", f"{v['boxes_changed']} {compared}"])
+        out += _table(["card", "setting", "converged", "recorded ms (vs the card's)", "boxes changed"], rows,
+                      ["---", "---"] + ["---:"] * 3) + [""]
+    return out
+
+
 def train_step_section(r: Result | None, results_dir: Path) -> list[str]:
     if r is None:
         return []
@@ -408,7 +463,8 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
         out += ["## TDFANet training", "",
                 f"`benchmarks/tdfanet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
                 f"`{d['command']}`: {data.get('drives', '?')} drives, {data.get('training_windows', '?')} training and "
-                f"{data.get('validation_windows', '?')} validation windows, {data.get('queries_per_epoch', '?')} tuples "
+                f"{data.get('validation_windows', '?')} validation windows, "
+                f"{data.get('queries_per_epoch', '?')} tuples "
                 f"per epoch. Training took {d['train_seconds'] / 60:.1f} min. JSON: {_link(r, results_dir)}.", ""]
         rows = [[str(e["epoch"]), "-" if e["loss"] != e["loss"] else f"{e['loss']:.4f}",
                  *(_num(e[f"val_R@{n}"]) for n in (1, 5, 10)), _num(e["seconds"] / 60),
@@ -548,7 +604,8 @@ def _summary(r: Result) -> str:
     if r.kind == "suite":
         return f"{r.when}, {', '.join(m['model'] for m in d.get('models', []))}, {d.get('runs', '?')} runs"
     if r.kind == "compare":
-        return f"{r.when}, {d.get('model', '?')}: " + " vs ".join(f"`{g.get('onnx', '?')}`" for g in d.get("graphs", []))
+        graphs = d.get("graphs", [])
+        return f"{r.when}, {d.get('model', '?')}: " + " vs ".join(f"`{g.get('onnx', '?')}`" for g in graphs)
     if r.kind == "bench":
         return f"{r.when}, `radaredge bench --model {d.get('model', r.stem)}`"
     if r.kind == "training":
@@ -579,7 +636,8 @@ def fleet_section(r: Result | None, results_dir: Path) -> list[str]:
              _num(row.get("windows_per_second"))] for name, row in t.get("rows", {}).items()]
     out += _table(["engine", "workers", "windows", "s", "windows/s"], rows, ["---", "---:", "---:", "---:", "---:"])
     out += ["", f"Throughput 2 workers / 1 worker: {_num(t.get('ratio_2_to_1_workers'), '.2f')}x. Ray's overhead "
-            f"against the plain loop (1 worker): {_num(100 * t['ray_overhead'] if 'ray_overhead' in t else None)} %.", ""]
+            f"against the plain loop (1 worker): "
+            f"{_num(100 * t['ray_overhead'] if 'ray_overhead' in t else None)} %.", ""]
     if ix:
         p = ix.get("index", {})
         kind = (f"IVF-PQ {p.get('nlist')} lists, {p.get('m')} x {p.get('nbits')}-bit codes, {p.get('nprobe')} probed, "
@@ -587,8 +645,9 @@ def fleet_section(r: Result | None, results_dir: Path) -> list[str]:
         out += _table(["vectors", "index", "recall@1 vs exact", "build s", "query p50 ms (2 threads)",
                        "exact search ms a query (1,000 batched)", "index MiB", "vectors MiB"],
                       [[f"{ix.get('vectors'):,} x {ix.get('dim')}", kind, _num(ix.get("recall_at_1_vs_exact"), ".3f"),
-                        _num(ix.get("build_s")), _num(ix.get("query_p50_ms"), ".2f"), _num(ix.get("exact_query_ms"), ".1f"),
-                        _num(ix.get("index_bytes", 0) / 2**20, ".0f"), _num(ix.get("vectors_bytes", 0) / 2**20, ".0f")]],
+                        _num(ix.get("build_s")), _num(ix.get("query_p50_ms"), ".2f"),
+                        _num(ix.get("exact_query_ms"), ".1f"), _num(ix.get("index_bytes", 0) / 2**20, ".0f"),
+                        _num(ix.get("vectors_bytes", 0) / 2**20, ".0f")]],
                       ["---:", "---", "---:", "---:", "---:", "---:", "---:", "---:"])
         out += ["", f"Descriptors: unit vectors around {ix.get('places', '?'):,} places, {ix.get('queries', '?')} "
                 "queries that are other windows of those places; recall@1 counts a query whose first result is the "
@@ -648,7 +707,8 @@ def places_section(results: list[Result], results_dir: Path) -> list[str]:
                     + ", ".join(f"{counts[w]['evaluated']} {w}" for w in ("with", "against") if w in counts)
                     + " queries):", ""]
             out += _table(["descriptor", "with", "against"],
-                          [[label, *(_direction_cell(by.get(w)) for w in ("with", "against"))] for label, by in split]) + [""]
+                          [[label, *(_direction_cell(by.get(w)) for w in ("with", "against"))]
+                           for label, by in split]) + [""]
     return out
 
 
@@ -769,6 +829,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     trained = newest_by_key(results, "trained")
     places = newest_by_key(results, "places")
     variants = newest_by_key(results, "variants")
+    real = (newest_by_key(results, "real") or [None])[-1]
     out = ["# Benchmarks", "",
            "Generated by `python benchmarks/render.py` from the JSON files in [results/](results/); do not edit "
            "it by hand. `make bench` writes a new `suite-<date>.json` and regenerates this page; the other "
@@ -781,6 +842,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     out += compare_section(compares, results_dir)
     out += capacity_section(capacity, results_dir)
     out += cfa_section(cfa, results_dir)
+    out += real_data_section(real, results_dir)
     out += fleet_section(fleet, results_dir)
     out += trained_section(trained, trainings, results_dir)
     out += places_section(places, results_dir)
@@ -788,7 +850,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     out += training_section(trainings, results_dir)
     out += train_step_section(train_step, results_dir)
     rendered = {r.path for r in suites + benches + compares + trainings + trained + places + variants} | {
-        r.path for r in (capacity, cfa, fleet, train_step) if r is not None}
+        r.path for r in (capacity, cfa, real, fleet, train_step) if r is not None}
     out += history_section(results, rendered, results_dir)
     others = [r for r in results if r.kind == "other"]
     if others:

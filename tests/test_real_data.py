@@ -76,6 +76,20 @@ def test_parity_and_capacity_on_the_recordings(exports, card, data, frames):
             assert cfa["max_scan_points"] <= 0.5 * cfa["capacity"], cfa
 
 
+@pytest.mark.parametrize("card, data", [("maffnet-vod-edge", VOD), ("maffnet-tj4d", TJ4D)], ids=["vod", "tj4d"])
+def test_eval_runs_on_the_samples_as_published(exports, card, data, tmp_path):
+    """`radaredge eval` on each sample as cloned (no ImageSets, VoD's JSON labels, TJ4D without
+    images): every labelled frame scored, each AP with its interval, the notes said."""
+    onnx = _export(exports, card)
+    res = invoke("eval", "--model", card, "--onnx", onnx, "--data", data, "--no-reference",
+                 "--report", tmp_path / "r.json", "--report-dir", tmp_path / "report")
+    assert res.exit_code == 0, res.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["frames"] == (3 if data == VOD else 41), report["frames"]
+    assert report["ap"] and report["ap_interval"]
+    assert any("every labelled frame" in note for note in report["notes"]), report["notes"]
+
+
 def test_the_ego_velocity_is_steady_along_the_tj4d_sequence(exports):
     """tdfanet-edge's in-graph RANSAC against a least-squares fit of the Doppler equation over the
     static points: forward speed steady along the 41 consecutive frames (the car drives straight)."""

@@ -106,13 +106,14 @@ def _maxpool_components(mask: torch.Tensor, iterations: int):
     ids = torch.arange(1, h * w + 1, dtype=torch.float32, device=mask.device).view(1, h, w)
     labels = torch.where(mask, ids, 0.0)
     for _ in range(iterations):
-        labels = _propagate(labels, mask)
-    converged = (_propagate(labels, mask) == labels).flatten(1).all(1)
+        labels = propagate_labels(labels, mask)
+    converged = (propagate_labels(labels, mask) == labels).flatten(1).all(1)
     return labels.to(torch.int64), converged
 
 
-def _propagate(labels: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """One max-pool step restricted to the mask: [B, H, W] float -> [B, H, W] float."""
+def propagate_labels(labels: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """One step of the ``maxpool`` labelling: each cell of ``mask`` [B, H, W] bool takes the
+    largest label of its 3 x 3 neighbourhood; [B, H, W] float -> [B, H, W] float, 0 off the mask."""
     pooled = F.max_pool2d(labels.unsqueeze(1), 3, stride=1, padding=1).squeeze(1)
     return torch.where(mask, pooled, 0.0)
 
