@@ -21,11 +21,12 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-# The layers first (import-linter, contracts in pyproject.toml), then the suite. A worker that
+# The layers (import-linter, contracts in pyproject.toml) and the lint (ruff) first, then the suite. A worker that
 # crashes ends the run at once: under --dist loadfile the rest of its file is never rescheduled
 # and the run would wait for it until CI times out.
 test: $(STAMP)
 	$(BIN)/lint-imports
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart=0 tests
 
 # The main job on built-in defaults: export the model, prove parity, measure speed.

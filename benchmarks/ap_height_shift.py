@@ -58,7 +58,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True)
     ap.add_argument("--onnx", type=Path, required=True, help="The fp32 graph; its .int8.onnx beside it is scored too.")
-    ap.add_argument("--data", type=Path, required=True, help="A labelled set (radaredge make-benchmark --task detection).")
+    ap.add_argument("--data", type=Path, required=True,
+                    help="A labelled set (radaredge make-benchmark --task detection).")
     ap.add_argument("--split", default="test")
     ap.add_argument("--shifts", default=",".join(str(s) for s in SHIFTS), help="Comma-separated z shifts in metres.")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
@@ -67,7 +68,8 @@ def main(argv=None) -> int:
     result = shifted_ap(args.model, args.onnx, args.data, args.split, shifts)
     for backend, r in result.items():
         for dz, per in r["ap"].items():
-            print(f"{backend:18s} dz {dz} m: " + ", ".join(f"{c} {v['3d']:.2f} (BEV {v['bev']:.2f})" for c, v in per.items()))
+            print(f"{backend:18s} dz {dz} m: "
+                  + ", ".join(f"{c} {v['3d']:.2f} (BEV {v['bev']:.2f})" for c, v in per.items()))
     now = dt.datetime.now(dt.timezone.utc)
     doc = {"model": args.model, "onnx": str(args.onnx), "onnx_sha256": sha256_of(args.onnx), "data": str(args.data),
            "split": args.split,

@@ -87,7 +87,8 @@ def coarse_objects(model, maps, stream: str) -> np.ndarray:
             model.submap(pts, cnt, mask, trace=trace, geometry=geometry[torch.from_numpy(ids[i:i + 16])])
             t = mask.shape[1]
             ar = torch.arange(t).unsqueeze(0)
-            inverse = torch.argsort(torch.argsort(torch.where(mask, ar, ar + t), dim=1), dim=1)  # the encoder's sort, undone
+            # the encoder's sort, undone
+            inverse = torch.argsort(torch.argsort(torch.where(mask, ar, ar + t), dim=1), dim=1)
             x = trace[stream]
             out.append(torch.gather(x, 1, inverse.unsqueeze(-1).expand_as(x)))
     return torch.cat(out).numpy()
@@ -168,7 +169,8 @@ def train_read_out(fine_config, width, maps, objects, hints, hint_mask, epochs, 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python benchmarks/des4pos_fine_inputs.py", description=__doc__.splitlines()[0])
     ap.add_argument("--card", default="des4pos")
-    ap.add_argument("--checkpoint", type=Path, required=True, help="a trained run's best.pth (its coarse stage is used)")
+    ap.add_argument("--checkpoint", type=Path, required=True,
+                    help="a trained run's best.pth (its coarse stage is used)")
     ap.add_argument("--cities", type=Path, required=True, help="make-city maps; the last by name validates")
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--lr", type=float, default=3e-4)
@@ -202,8 +204,10 @@ def main(argv=None) -> int:
            "command": f"python benchmarks/des4pos_fine_inputs.py --checkpoint {args.checkpoint} --cities {args.cities}"
                       f" --epochs {args.epochs} --lr {args.lr:g} --batch {args.batch}",
            "training_poses": int((~maps.validation).sum()), "validation_poses": len(val_q), "cells": len(cells.ids),
-           "centre": {"error_m": float(centre.mean()), "within_5m": 100 * float((centre <= 5).mean())}, "runs": runs}
-    training_run.write(training_run.ROOT / "benchmarks" / "results" / f"des4pos-fine-inputs-{out['date'][:10]}.json", out)
+           "centre": {"error_m": float(centre.mean()), "within_5m": 100 * float((centre <= 5).mean())},
+           "runs": runs}
+    training_run.write(training_run.ROOT / "benchmarks" / "results" / f"des4pos-fine-inputs-{out['date'][:10]}.json",
+                       out)
     return 0
 
 

@@ -94,7 +94,8 @@ def main(argv=None) -> int:
           flush=True)
     if args.run is None:
         t0 = time.perf_counter()
-        train = radaredge.train(card, cities, run, options=options, overwrite=True, log=lambda line: print(line, flush=True)).to_dict()
+        train = radaredge.train(card, cities, run, options=options, overwrite=True,
+                                log=lambda line: print(line, flush=True)).to_dict()
         t_train = time.perf_counter() - t0
     else:
         run, train = args.run, json.loads((args.run / "train-log.json").read_text())
@@ -125,7 +126,8 @@ def main(argv=None) -> int:
         "command": f"radaredge make-city --out cities --cities {args.cities} --seed 1 --poses {args.poses}; "
                    f"radaredge train --model {card.name} --data cities"
                    + training_run.settings_text(options),
-        "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 --poses {args.heldout_poses}; "
+        "eval_command": f"radaredge make-city --out heldout --cities {args.heldout} --seed 100 "
+                        f"--poses {args.heldout_poses}; "
                         f"radaredge eval --model {card.name} --onnx <bundle> --map heldout",
         "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1), "eval_seconds": round(t_eval, 1),
         "train": train,

@@ -103,7 +103,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="fleet-scale-"))
     try:
-        result = {"date": dt.datetime.now().isoformat(timespec="seconds"), "cpu": f"{cpu_model()}, {os.cpu_count()} cores",
+        result = {"date": dt.datetime.now().isoformat(timespec="seconds"),
+                  "cpu": f"{cpu_model()}, {os.cpu_count()} cores",
                   "throughput": throughput(args.frames, work), "index": index_scale(args.vectors)}
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -59,7 +59,8 @@ def layer_groups(model) -> list[str]:
     groups += [f"backbone_2d.blocks.{i}" for i in range(len(model.backbone_2d.blocks))]
     groups.append("dense_head")
     groups += [m for m in STAGE_TWO_MODULES if hasattr(model, m)]      # a two-stage card's stage two
-    quantised = [n for n, m in model.named_modules() if isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Linear))]
+    quantised = [n for n, m in model.named_modules()
+                 if isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Linear))]
     return [g for g in groups if any(n.startswith(g + ".") for n in quantised)]
 
 

@@ -65,7 +65,8 @@ def main() -> int:
         m = result[key]
         print(f"{key}: at most {m['pillars']} pillars (spa.capacity {result['spa_capacity']}, "
               f"{result['spa_capacity'] / m['pillars']:.1f}x), {m['scan_points']} scan points "
-              f"(cfa.dbscan.capacity {result['dbscan_capacity']}, {result['dbscan_capacity'] / m['scan_points']:.1f}x), "
+              f"(cfa.dbscan.capacity {result['dbscan_capacity']}, "
+              f"{result['dbscan_capacity'] / m['scan_points']:.1f}x), "
               f"{m['points']} points")
     print(f"wrote {path}")
     return 0

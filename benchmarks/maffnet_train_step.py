@@ -80,7 +80,8 @@ def run(card_name: str, data: Path, steps: int, warmup: int, batch_size: int, th
         for scan in scans[first:first + batch_size]:
             points, boxes = tm.augment(scan.points, scan.boxes, xyz, recipe, rng)
             keep = tm.boxes_in_range(boxes, pc_range)
-            batch.append((torch.from_numpy(points), torch.from_numpy(boxes[keep]), torch.from_numpy(scan.classes[keep])))
+            batch.append((torch.from_numpy(points), torch.from_numpy(boxes[keep]),
+                          torch.from_numpy(scan.classes[keep])))
         batches.append(batch)
     variants = {(p, name): _variant(card, p, *spec, recipe.lr / recipe.div_factor)
                 for p in tm.PRECISIONS for name, spec in FORMULATIONS.items()}
@@ -99,8 +100,8 @@ def run(card_name: str, data: Path, steps: int, warmup: int, batch_size: int, th
         r["speedup"] = base[r["precision"]] / r["median_s"]
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "date": stamp,
-            "batch_size": batch_size, "steps": steps, "warmup": warmup, "weights": f"seeded (card seed {card.get('seed', 0)})",
-            "rows": rows}
+            "batch_size": batch_size, "steps": steps, "warmup": warmup,
+            "weights": f"seeded (card seed {card.get('seed', 0)})", "rows": rows}
 
 
 def table(result: dict) -> str:
@@ -114,7 +115,8 @@ def table(result: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True, help="a labelled set (radaredge make-benchmark --task detection)")
+    ap.add_argument("--data", type=Path, required=True,
+                    help="a labelled set (radaredge make-benchmark --task detection)")
     ap.add_argument("--card", default="maffnet-vod")
     ap.add_argument("--steps", type=int, default=5, help="timed optimiser steps per variant")
     ap.add_argument("--warmup", type=int, default=1)

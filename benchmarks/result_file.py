@@ -1,7 +1,8 @@
 """How every benchmark writes its result JSON: strict JSON, written atomically, with no path of
 the machine that ran it. A path inside the repository is written relative to it; any other
 absolute path (a work directory, a data set, a checkpoint elsewhere) keeps only its last two
-parts below the machine's root folder, after ``…/``, since the machine's directories mean nothing to a reader. What identifies a
+parts below the machine's root folder, after ``…/``, since the machine's directories mean nothing to
+a reader. What identifies a
 checkpoint or a graph is its sha256 (:func:`sha256_of`), which the scripts record beside it.
 """
 
@@ -15,7 +16,8 @@ from radaredge import atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 # An absolute path under one of the roots a machine keeps work in (not "m/s", not a URL).
-MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/[^\s\"'`,;()\[\]{}<>|]*")
+MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/"
+                          r"[^\s\"'`,;()\[\]{}<>|]*")
 
 
 def portable_path(text: str) -> str:

@@ -52,7 +52,8 @@ def main(argv=None) -> int:
     t_data = time.perf_counter() - t0
     print(f"data: {args.towns} towns x {args.drives} drives x {args.frames} scans ({t_data:.0f} s)", flush=True)
     t0 = time.perf_counter()
-    report = radaredge.train(card, towns, run, options=options, overwrite=True, log=lambda line: print(line, flush=True))
+    report = radaredge.train(card, towns, run, options=options, overwrite=True,
+                             log=lambda line: print(line, flush=True))
     t_train = time.perf_counter() - t0
     best = run / "best.pth"
     fp32 = graphs / f"{card.name}.onnx"

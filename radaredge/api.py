@@ -88,11 +88,11 @@ class ExportResult:
 
     model: str
     output: Path
-    graphs: dict = field(default_factory=dict)            # graph name -> exporter.GraphExport
+    graphs: dict = field(default_factory=dict)            # graph name -> export.graphs.GraphExport
     debug: dict[str, Path] = field(default_factory=dict)
     int8: dict[str, Path] = field(default_factory=dict)
     manifest: Path | None = None
-    checkpoint: object | None = None                       # exporter.LoadReport
+    checkpoint: object | None = None                       # models.factory.LoadReport
 
     @property
     def path(self) -> Path:
@@ -365,7 +365,8 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
                                                    **{f"--set {k}": v for k, v in (options or {}).items()
                                                       if isinstance(v, str) and v and Path(v).exists()}})
     inputs = TrainInputs(str(output), str(checkpoint) if checkpoint is not None else None, device, resume,
-                         tuple(validation) if validation is not None else None, data_format, dict(bag or {}), dict(options or {}), progress, log)
+                         tuple(validation) if validation is not None else None, data_format, dict(bag or {}),
+                         dict(options or {}), progress, log)
     return recipe(card, model, data, inputs)
 
 

@@ -62,7 +62,8 @@ def _friendly_errors(fn):
             except OSError as exc:             # a path that cannot be read or written (read-only, not a directory)
                 if exc.filename is None:
                     raise
-                why = "not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or exc
+                why = ("not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError))
+                       else exc.strerror or exc)
                 _fail(f"{exc.filename}: {why}", as_json)
         for message in dict.fromkeys(str(w.message) for w in caught):
             click.echo(f"warning: {message}", err=True)
@@ -277,7 +278,8 @@ def export(model, config, checkpoint, output, opset, debug, quantize, calibratio
                    "of drives, a KITTI layout (View-of-Delft, TJ4DRadSet: training/velodyne/) or a folder of scan "
                    "files (.bin/.npy, frames in name order). TDFANet: windows of K consecutive scans, timed by "
                    "gps.csv or else the card's frame_rate; MAFF-Net: one scan a case. Not des4pos.")
-@click.option("--split", help="With --data on a KITTI layout: the frames of ImageSets/<split>.txt  [default: every frame]")
+@click.option("--split",
+              help="With --data on a KITTI layout: the frames of ImageSets/<split>.txt  [default: every frame]")
 @click.option("--frames", type=int,
               help="With --data: frames (TDFANet: windows) checked, spread evenly over the recording, first and last "
                    "included  [default: 20]")
@@ -524,7 +526,8 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
               help="Run directory: best.pth, last.pth, train-log.json  [default: runs/<model>]")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Initial weights (fine-tuning); default: seeded.")
 @click.option("--epochs", type=int, help="Epochs to train (the recipe's default otherwise).")
-@click.option("--batch-size", type=int, help="Training tuples (TDFANet paper: 1) or descriptions (Des4Pos coarse: 64) per step.")
+@click.option("--batch-size", type=int,
+              help="Training tuples (TDFANet paper: 1) or descriptions (Des4Pos coarse: 64) per step.")
 @click.option("--lr", type=float, help="Initial learning rate (TDFANet paper: 8e-4; Des4Pos coarse: 5e-4).")
 @click.option("--seed", type=int, help="Seeds the tuple order, the mining and dropout.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
@@ -566,8 +569,8 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
                          for k, v in parse_settings(field_map, "--field-map", "v_r=0").items()} or None,
            "doppler_sign": float(doppler_sign) if doppler_sign else None}
     report = train_verb(_card(model, config), data_dir, output, checkpoint=checkpoint, device=device, resume=resume,
-                        overwrite=overwrite, validation=validation or None, data_format=data_format, bag=bag, options=options,
-                        progress=_bar, log=_log)
+                        overwrite=overwrite, validation=validation or None, data_format=data_format, bag=bag,
+                        options=options, progress=_bar, log=_log)
     _emit(as_json, report)
 
 
@@ -575,7 +578,8 @@ _BACKEND = click.Choice(["onnxruntime", "openvino", "auto"])
 
 
 @main.command("run")
-@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False), help="An exported single-graph .onnx.")
+@click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False),
+              help="An exported single-graph .onnx.")
 @click.option("--data", "data_root", required=True, type=click.Path(file_okay=False),
               help="A drive (scans/ + gps.csv) or a directory of drives.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),

@@ -106,7 +106,8 @@ class _Graph:
                 self.ranks[init.name] = len(init.dims)
                 self.constants[init.name] = init
             for node in graph.node:
-                if node.op_type == "Constant" and node.attribute and node.attribute[0].type == onnx.AttributeProto.TENSOR:
+                if (node.op_type == "Constant" and node.attribute
+                        and node.attribute[0].type == onnx.AttributeProto.TENSOR):
                     self.constants[node.output[0]] = node.attribute[0].t
                     self.types[node.output[0]] = node.attribute[0].t.data_type
         self.nodes = [n for g in _graphs(model.graph) for n in g.node]
@@ -166,13 +167,15 @@ def _tensorrt(g: _Graph):
         elif op == "ScatterElements" and g.text(n, "reduction", "none") != "none":
             red = g.text(n, "reduction")
             yield ("note", op, f"reduction '{red}' runs as TensorRT's ScatterElements plugin: initialise the plugin "
-                               f"library (trt.init_libnvinfer_plugins; trtexec does) before parsing; int64 indices only", n)
+                               f"library (trt.init_libnvinfer_plugins; trtexec does) before parsing; "
+                               f"int64 indices only", n)
             if g.types.get(n.input[1]) not in (None, TensorProto.INT64):
                 yield "unsupported", op, "the ScatterElements plugin takes int64 indices only", n
         elif op == "TopK":
             k = g.const(n.input[1]) if len(n.input) > 1 else None
             if k is None:
-                yield "note", op, f"K is computed at run time; TensorRT fails a run whose K reaches {TOPK_MAX_TENSORRT}", n
+                yield ("note", op, f"K is computed at run time; TensorRT fails a run whose K reaches "
+                                   f"{TOPK_MAX_TENSORRT}", n)
             elif int(k.reshape(-1)[0]) >= TOPK_MAX_TENSORRT:
                 yield "unsupported", op, f"K = {int(k.reshape(-1)[0])}; TensorRT needs K < {TOPK_MAX_TENSORRT}", n
         elif op == "GridSample" and g.ranks.get(n.input[0], 4) != 4:
@@ -199,7 +202,8 @@ def _openvino(g: _Graph):
         if any(g.types.get(o) == TensorProto.DOUBLE for o in n.output):
             doubles += 1
     if doubles:
-        yield "note", "float64", f"{doubles} node(s) compute in float64; OpenVINO's CPU plugin runs them in float32", None
+        yield ("note", "float64", f"{doubles} node(s) compute in float64; OpenVINO's CPU plugin runs them in float32",
+               None)
 
 
 def _ort_mobile(g: _Graph):

@@ -214,7 +214,8 @@ def test_bench_takes_only_the_int8_copy_of_its_own_graph(tiny_export, tmp_path):
     reseeded = tmp_path / "tdfanet-tiny.yaml"
     reseeded.write_text(yaml.safe_dump({**yaml.safe_load(Path(TINY_CARD).read_text()), "seed": 5}))
     other = radaredge.export(str(reseeded), tmp_path / "other.onnx", quantize="int8").int8["tdfanet"]
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8", other, "--runs", 1)
+    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", path, "--int8", other,
+                 "--runs", 1)
     assert res.exit_code == 2 and "is the int8 copy of another graph" in res.output
 
 
@@ -262,7 +263,8 @@ def test_non_finite_card_numbers_are_refused_by_field(tmp_path, value):
 
 @pytest.mark.parametrize("args, message", [
     (("bench", "--nope"), "error: No such option '--nope'."),
-    (("export", "--model", "tdfanet", "--opset", "x"), "error: Invalid value for '--opset': 'x' is not a valid integer."),
+    (("export", "--model", "tdfanet", "--opset", "x"),
+     "error: Invalid value for '--opset': 'x' is not a valid integer."),
     (("export",), "error: Missing option '--model'."),
     (("no-such-command",), "error: No such command 'no-such-command'."),
 ])

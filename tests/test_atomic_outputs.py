@@ -136,7 +136,8 @@ def test_a_directory_output_receives_the_card_name(tmp_path):
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["tdfanet-tiny.json", "tdfanet-tiny.onnx"]
     (tmp_path / "existing").mkdir()
-    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(tmp_path / "existing"))
+    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
+                 "--output", str(tmp_path / "existing"))
     assert res.exit_code == 0 and (tmp_path / "existing" / "tdfanet-tiny.onnx").is_file(), res.output
 
 

@@ -203,14 +203,16 @@ CLI = [
     ("export-opset-99", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--opset", "99"], "opset"),
     ("export-quantize-int4", ["export", "--model", "tdfanet", "--quantize", "int4"], "--quantize"),
     ("export-calibration-alone", ["export", "--model", "tdfanet", "--calibration", "{f}/town"], "--quantize"),
-    ("export-calibration-windows-0", ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration-windows", "0"],
-     "--calibration-windows"),
-    ("export-calibration-format", ["export", "--model", "tdfanet", "--calibration-format", "x"], "--calibration-format"),
+    ("export-calibration-windows-0", ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration-windows",
+                                      "0"], "--calibration-windows"),
+    ("export-calibration-format", ["export", "--model", "tdfanet", "--calibration-format", "x"],
+     "--calibration-format"),
     ("export-calibration-missing", ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration",
                                     "{f}/nowhere"], "nowhere"),
     ("export-calibration-truncated-scan", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                                           "--quantize", "int8", "--calibration", "{f}/recording", "--calibration-format",
-                                           "vod", "--calibration-windows", "4", "--output", "out/t.onnx"],
+                                           "--quantize", "int8", "--calibration", "{f}/recording",
+                                           "--calibration-format", "vod", "--calibration-windows", "4",
+                                           "--output", "out/t.onnx"],
      "recording/000003.bin: 50 bytes"),
     ("export-output-under-file", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output",
                                   "{f}/a-file/x.onnx"], "a-file"),
@@ -218,8 +220,8 @@ CLI = [
     ("export-config-binary", ["export", "--model", "x", "--config", "{f}/binary.yaml"], "not a text file"),
     ("export-config-huge", ["export", "--model", "x", "--config", "{f}/huge.yaml"], "at most"),
     ("parity-no-onnx", ["parity-check", "--model", "tdfanet"], "Missing option '--onnx'"),
-    ("parity-cases-0", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                        "--cases", "0"], "cases"),
+    ("parity-cases-0", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
+                        "{f}/tiny.onnx", "--cases", "0"], "cases"),
     ("parity-cases-negative", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
                                "{f}/tiny.onnx", "--cases", "-3"], "cases"),
     ("parity-cases-huge", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
@@ -237,7 +239,8 @@ CLI = [
                                "{f}/tiny.onnx", "--save", "{f}/a-file/b.json"], "a-file"),
     ("eval-no-onnx", ["eval", "--model", "tdfanet"], "Missing option '--onnx'"),
     ("eval-missing-database", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                               "{f}/tiny.onnx", "--database", "{f}/nowhere", "--queries", "{f}/town/queries"], "nowhere"),
+                               "{f}/tiny.onnx", "--database", "{f}/nowhere", "--queries", "{f}/town/queries"],
+     "nowhere"),
     ("eval-empty-database", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
                              "--database", "{f}/empty-dir", "--queries", "{f}/town/queries"], "no drives"),
     ("eval-no-gps", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
@@ -252,9 +255,11 @@ CLI = [
     ("eval-radius-0", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
                        "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "0"], "radius"),
     ("eval-radius-nan", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "nan"], "radius"),
+                         "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "nan"],
+     "radius"),
     ("eval-radius-inf", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "inf"], "radius"),
+                         "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "inf"],
+     "radius"),
     ("eval-report-under-file", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
                                 "{f}/tiny.onnx", "--database", "{f}/town/database", "--queries", "{f}/town/queries",
                                 "--report", "{f}/a-file/r.json"], "a-file"),
@@ -417,7 +422,8 @@ for base, model, sections in (
         (MAFF_TINY, "maffnet-tiny", (("spa", SpaConfig), ("cfa.grid", GridDensityConfig), ("caf", CafConfig),
                                      ("backbone_2d", BackboneConfig), ("post_processing", NmsConfig))),
         (MAFF_DBSCAN, "maffnet-tiny-full-dbscan",
-         (("cfa.dbscan", DbscanConfig), ("stage_two.proposals", ProposalConfig), ("stage_two.keypoints", KeypointConfig),
+         (("cfa.dbscan", DbscanConfig), ("stage_two.proposals", ProposalConfig),
+          ("stage_two.keypoints", KeypointConfig),
           ("stage_two.vsa", VsaConfig), ("stage_two.vsa.sa_clusterpoints", SAConfig),
           ("stage_two.roi_head", RoiHeadConfig), ("stage_two.roi_head.roi_grid_pool", SAConfig),
           ("stage_two.post_processing", NmsConfig))),
@@ -1044,7 +1050,8 @@ def test_pickle_bombs(tmp_path, text2loc, depth, width):
     for _ in range(depth):
         nested = [nested] * width
     obj = make("Object3d", dict(xyz=nested, rgb=nested, label="car"))
-    cell = make("Cell", dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0), objects=[obj] * width))
+    cell = make("Cell", dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0),
+                             objects=[obj] * width))
     path = tmp_path / "cells.pkl"
     path.write_bytes(pickle.dumps([cell] * width))
     assert path.stat().st_size < 200_000
@@ -1073,7 +1080,8 @@ def _card_text(edit: str) -> str:
     raise AssertionError(edit)
 
 
-CARD_TEXTS = [("duplicate-top", "given twice"), ("repeated-section", "given twice"), ("duplicate-nested", "given twice"),
+CARD_TEXTS = [("duplicate-top", "given twice"), ("repeated-section", "given twice"),
+              ("duplicate-nested", "given twice"),
               *[(f"misspelt-{name}", name) for name in ("pillarz", "netwrok", "preproces", "pilars", "quantisation")],
               *[(f"nested-{d}", "nested deeper") for d in (20, 200, 5000)],
               *[(f"digits-{n}", "digits") for n in (20, 400, 5000)]]
@@ -1083,8 +1091,8 @@ CARD_TEXTS = [("duplicate-top", "given twice"), ("repeated-section", "given twic
 def test_cards_parsed_strictly(files, workdir, edit, expect):
     card = workdir / "card.yaml"
     card.write_text(_card_text(edit))
-    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(card), "--output", str(workdir / "o" / "x.onnx")],
-         expect)
+    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(card),
+                   "--output", str(workdir / "o" / "x.onnx")], expect)
     bad = _edit_metadata(files / "tiny.onnx", workdir / "carded.onnx", "radaredge.card", lambda t: _card_text(edit))
     _cli(workdir, ["inspect", str(bad)], expect)                   # the card inside a graph, parsed the same way
 
@@ -1105,7 +1113,8 @@ GRIDS = [("tdfanet-voxel-0.05", TINY_CARD, lambda d: d["pillars"].update(voxel_s
 def test_grids_the_runtime_cannot_allocate(workdir, case, base, edit, expect):
     card = _card_with(base, workdir / "card.yaml", edit)
     model = yaml.safe_load(card.read_text())["name"]
-    _cli(workdir, ["export", "--model", model, "--config", str(card), "--output", str(workdir / "o" / "x.onnx")], expect)
+    _cli(workdir, ["export", "--model", model, "--config", str(card), "--output", str(workdir / "o" / "x.onnx")],
+         expect)
 
 
 def test_features_reordered_against_a_trained_checkpoint(files, workdir):

@@ -219,7 +219,8 @@ READERS = {
                         named=lambda p: p.name),
     "checkpoint-pth": Reader(_checkpoint, lambda b: b[:200],
                              lambda p: torch.save({"w": torch.full((4,), float("nan")), "b": torch.zeros(2)}, p)),
-    "gps-csv": Reader(_gps, lambda b: b[:-9], lambda p: p.write_text(p.read_text().replace("\n0.1,1.0,", "\n0.1,nan,"))),
+    "gps-csv": Reader(_gps, lambda b: b[:-9],
+                      lambda p: p.write_text(p.read_text().replace("\n0.1,1.0,", "\n0.1,nan,"))),
 }
 
 

@@ -37,8 +37,10 @@ def special_pairs(rng):
 
 def test_iou_known_values():
     unit = np.array([0, 0, 0, 1, 1, 1, 0], np.float32)
-    half = unit.copy(); half[0] = 0.5
-    diamond = unit.copy(); diamond[6] = math.pi / 4
+    half = unit.copy()
+    half[0] = 0.5
+    diamond = unit.copy()
+    diamond[6] = math.pi / 4
     assert bev_iou_reference(unit, half) == pytest.approx(1 / 3)
     # unit square vs the same square rotated 45 deg: overlap = regular octagon of area 2(sqrt(2)-1)
     octagon = 2 * (math.sqrt(2) - 1)

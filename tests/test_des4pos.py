@@ -184,7 +184,8 @@ def test_bundle_export_and_parity_of_every_part(bundle):
     side = json.loads((bundle / "text_encoder.json").read_text())
     assert side["inputs"] == [{"name": "input_ids", "shape": ["hints", "tokens"]},
                               {"name": "attention_mask", "shape": ["hints", "tokens"]}]
-    res = invoke("parity-check", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--cases", "4", "--json")
+    res = invoke("parity-check", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--cases", "4",
+                 "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     parts = report["graphs"]
@@ -302,7 +303,8 @@ def test_map_errors_name_the_cell_and_object():
     with pytest.raises(InputError, match="cell c3 has no object"):
         pack_cells([{"id": "c3", "scene": "s", "origin": [0, 0], "size": 30.0, "objects": []}], 4, 8)
     many = pack_cells([{"id": "c4", "scene": "s", "origin": [0, 0], "size": 30.0,
-                        "objects": [dict(obj, xyz=np.random.rand(n, 3), rgb=np.random.rand(n, 3)) for n in (5, 50, 9, 30)]}],
+                        "objects": [dict(obj, xyz=np.random.rand(n, 3), rgb=np.random.rand(n, 3))
+                                    for n in (5, 50, 9, 30)]}],
                       3, 8)
     assert many.dropped_objects.tolist() == [1] and sorted(many.num_points[0].tolist()) == [9, 30, 50]
 

@@ -42,7 +42,8 @@ def test_reads_text2loc_cells_and_poses(tmp_path, text2loc_classes):
     cells = []
     for k in range(2):
         c = mod.Cell()
-        c.id, c.scene_name, c.cell_size = f"2013_05_28_drive_0003_sync_{k:05d}"[-10:], "2013_05_28_drive_0003_sync", 30.0
+        c.id, c.scene_name, c.cell_size = (f"2013_05_28_drive_0003_sync_{k:05d}"[-10:], "2013_05_28_drive_0003_sync",
+                                           30.0)
         c.bbox_w = np.array([100.0 + 10 * k, 200.0, 0.0, 130.0 + 10 * k, 230.0, 30.0])
         c.objects = [_obj(mod, j, lab, n, rng) for j, (lab, n) in enumerate([("pole", 40), ("building", 900)])]
         cells.append(c)

@@ -79,7 +79,8 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
     res = out["results"]["onnxruntime"]
     assert out["queries"] == 6 and set(res["localization"]) == {"1", "5", "10"}
     assert set(res["localization"]["5"]) == {"5", "10", "15"} and set(res["retrieval"]) == {"1", "3", "5"}
-    assert set(res["localization_centre"]["10"]) == {"5", "10", "15"} and len(res["localization_interval"]["1"]["5"]) == 2
+    assert (set(res["localization_centre"]["10"]) == {"5", "10", "15"}
+            and len(res["localization_interval"]["1"]["5"]) == 2)
     lines = report.lines()
     assert lines[1].startswith("Table I") and lines[3].split()[0] == "top-1" and "[" in lines[3]
     assert lines[6].startswith("Table I without the fine stage") and lines[11].startswith("The fine stage's gain")

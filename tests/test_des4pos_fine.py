@@ -272,7 +272,8 @@ def test_object_state_picks_the_coarse_stream_the_fine_stage_reads(state, tmp_pa
     path = tmp_path / "des4pos-tiny-state.yaml"
     path.write_text(fine_card_text(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}")
                     .replace("name: des4pos-tiny", "name: des4pos-tiny-state"))
-    assert invoke("export", "--model", "des4pos-tiny-state", "--config", path, "--output", tmp_path / "b").exit_code == 0
+    assert invoke("export", "--model", "des4pos-tiny-state", "--config", path,
+                  "--output", tmp_path / "b").exit_code == 0
     res = invoke("parity-check", "--model", "des4pos-tiny-state", "--config", path, "--onnx", tmp_path / "b",
                  "--cases", "4", "--json")
     assert res.exit_code == 0 and json.loads(res.stdout)["passed"], res.output

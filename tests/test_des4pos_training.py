@@ -126,8 +126,8 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
     moved_text = {k: v + 0.25 if k.startswith(("text.fine_words.", "text.fine_mlp.")) and v.is_floating_point()
                   else v for k, v in trained.items()}
     torch.save(moved_text, tmp_path / "text.pth")
-    radaredge.train(enc_card, city_dir, tmp_path / "text", options={**warm, "coarse_weights": str(tmp_path / "text.pth"),
-                                                                     "fine_text_from": "coarse_weights"})
+    radaredge.train(enc_card, city_dir, tmp_path / "text",
+                    options={**warm, "coarse_weights": str(tmp_path / "text.pth"), "fine_text_from": "coarse_weights"})
     kept = create_model(enc_card, tmp_path / "text" / "best.pth").state_dict()
     for k, v in kept.items():
         if k.startswith("fine."):
@@ -136,11 +136,13 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
             torch.testing.assert_close(v, moved_text[k], atol=1e-6, rtol=0.0)
             assert not torch.equal(v, seeded[k]), k
     with pytest.raises(ConfigError, match="fine_text_from: coarse_weights needs"):
-        radaredge.train(enc_card, city_dir, tmp_path / "none", options={"stages": "fine", "fine_text_from": "coarse_weights"})
+        radaredge.train(enc_card, city_dir, tmp_path / "none",
+                        options={"stages": "fine", "fine_text_from": "coarse_weights"})
     partial = {k: v for k, v in trained.items() if k != "submap.mfam.v.weight"}
     torch.save(partial, tmp_path / "partial.pth")
     with pytest.raises(ConfigError, match=r"outside the fine stage: missing keys \(1\): submap.mfam.v.weight"):
-        radaredge.train(enc_card, city_dir, tmp_path / "bad", options={**warm, "coarse_weights": str(tmp_path / "partial.pth")})
+        radaredge.train(enc_card, city_dir, tmp_path / "bad",
+                        options={**warm, "coarse_weights": str(tmp_path / "partial.pth")})
 
 
 def test_hints_stage_warms_the_text_branch_on_the_lstm_states(card, city_dir, tmp_path):
@@ -200,7 +202,8 @@ def test_tensors_made_in_the_training_path_follow_the_input_device(card, city_di
         tokens, tmask = backbone_features(model, table, "cpu")
         prior = model.text.prior_tokens(tokens, tmask)
         geometry = geometry_features(model, maps, "cpu")
-        outs = [*cell_descriptors(model, maps, cells, geometry, "cpu"), *cell_descriptors(model, maps, cells, None, "cpu")]
+        outs = [*cell_descriptors(model, maps, cells, geometry, "cpu"),
+                *cell_descriptors(model, maps, cells, None, "cpu")]
         model.train()
         desc, objects = cell_descriptors(model, maps, cells, None, "cpu")
         rows, hmask = _padded_hints(maps, table, np.flatnonzero(~maps.validation)[:4], None)
@@ -212,4 +215,5 @@ def test_tensors_made_in_the_training_path_follow_the_input_device(card, city_di
     outs += [tokens, prior, geometry, desc, t, offsets]
     assert all(o.device.type == "cpu" and torch.isfinite(o).all() for o in outs)
     grads = {n: p.grad for n, p in model.submap.named_parameters() if p.grad is not None}
-    assert {"mfam.o.weight", "lstm.weight_hh_l0", "objects.mlp_merge.0.0.weight"} <= set(grads) and all(g.device.type == "cpu" for g in grads.values()), sorted(grads)
+    assert ({"mfam.o.weight", "lstm.weight_hh_l0", "objects.mlp_merge.0.0.weight"} <= set(grads)
+            and all(g.device.type == "cpu" for g in grads.values())), sorted(grads)

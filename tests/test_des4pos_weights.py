@@ -83,7 +83,8 @@ def test_weights_that_do_not_fit_name_their_keys(model, tmp_path):
         load_object_weights(model, path)
     del sd["sa2.point_conv.local_nn.0.0.weight"]
     torch.save(sd, path)
-    with pytest.raises(ConfigError, match="PointNet\\+\\+ keys missing \\(1\\): pointnet.sa2.point_conv.local_nn.0.0.weight"):
+    with pytest.raises(ConfigError,
+                       match="PointNet\\+\\+ keys missing \\(1\\): pointnet.sa2.point_conv.local_nn.0.0.weight"):
         load_object_weights(model, path)
     torch.save({"backbone.conv.weight": torch.zeros(2)}, path)
     with pytest.raises(ConfigError, match="neither Text2Pos PointNet"):

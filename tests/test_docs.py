@@ -112,8 +112,9 @@ def test_render_handles_every_result_kind(tmp_path):
     (res / "m-2030-01-01.json").write_text(json.dumps({"model": "m", "date": "2030-01-01 00:00 UTC", "results": [row]}))
     (res / "compare-x-2030-01-01.json").write_text(json.dumps({
         "model": "m", "cases": ["c"], "points": [3], "runs": 5, "threads": 2, "profile_rounds": 5,
-        "date": "2030-01-01 00:00 UTC", "graphs": [{"onnx": "a.onnx", "p50_ms": 1.0, "p90_ms": 2.0, "stage_ms": {"s": 1.0}},
-                                                   {"onnx": "b.onnx", "p50_ms": 1.5, "p90_ms": 2.5, "stage_ms": {"s": 1.2}}]}))
+        "date": "2030-01-01 00:00 UTC",
+        "graphs": [{"onnx": "a.onnx", "p50_ms": 1.0, "p90_ms": 2.0, "stage_ms": {"s": 1.0}},
+                   {"onnx": "b.onnx", "p50_ms": 1.5, "p90_ms": 2.5, "stage_ms": {"s": 1.2}}]}))
     (res / "maffnet-capacity-2030-01-01.json").write_text(json.dumps({
         "card": "m", "spa_capacity": 10, "dbscan_capacity": 20, "clouds": [{"seed": 0}, {"seed": 0}],
         "camera_fov": {"points": 8, "scan_points": 5, "pillars": 4},
@@ -131,7 +132,8 @@ def test_render_handles_every_result_kind(tmp_path):
                    "detections_median": 5.0}
     (res / "maffnet-trained-m-2030-01-01.json").write_text(json.dumps({
         "model": "m", "checkpoint": "best.pth", "checkpoint_sha256": "ab" * 32, "data": "set", "split": "test",
-        "frames": ["00001"], "points_median": 900.0, "passes": 3, "date": "2030-01-01 00:00 UTC", "cpu": "cpu", "rows": [
+        "frames": ["00001"], "points_median": 900.0, "passes": 3, "date": "2030-01-01 00:00 UTC", "cpu": "cpu",
+        "rows": [
             {**trained_row, "graph": "fp32", "stage_ms": {"NMS": 2.0, "backbone+head": 30.0}, "nms_share": 0.0625},
             {**trained_row, "graph": "int8", "stage_ms": {}, "nms_share": None},
             {**trained_row, "graph": "worst case", "stage_ms": {"NMS": 90.0}, "nms_share": 0.75}]}))
@@ -199,12 +201,15 @@ def test_render_handles_every_result_kind(tmp_path):
     assert "| sum | yes | yes | no (sum) | 50.0 [43.0, 57.0] | 40.0 [30.0, 50.0] " in longer
     assert "| 40.0 [30.0, 50.0] | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] | 15.0 |" in longer
     assert "## Place recognition on street-network towns: m" in current
-    assert "| window | each window's own batch statistics while training | 2 | 50.0 [43.0, 57.0] | 70.0 | 10.0 |" in current
+    assert ("| window | each window's own batch statistics while training | 2 | 50.0 [43.0, 57.0] "
+            "| 70.0 | 10.0 |") in current
     assert ("| sum | yes | yes | no (sum) | 50.0 [43.0, 57.0] | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] "
             "| 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] | - | - | 10.0 |") in short
-    assert "| trained, int8 | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] | 70.0 [60.0, 80.0] | 40.0 [30.0, 50.0] |" in current
+    assert ("| trained, int8 | 40.0 [30.0, 50.0] | 60.0 [50.0, 70.0] | 70.0 [60.0, 80.0] "
+            "| 40.0 [30.0, 50.0] |") in current
     assert "| chance (random ranking) | 0.35 | - | - | 2.10 |" in current
-    assert "80 with, 10 against queries" in current and "| trained, int8 | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] |" in current
+    assert ("80 with, 10 against queries" in current
+            and "| trained, int8 | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] |" in current)
     assert "| m | cpu | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current    # CPU, FPS beside the test mAP
     assert "## MAFF-Net training: m" in current and "| trained, onnxruntime int8 | 50.00 (60.00) |" in current
     for heading in ("## Speed suite", "## Per-model benches", "## Graph comparisons", "## MAFF-Net capacity",

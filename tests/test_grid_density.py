@@ -52,7 +52,8 @@ def hostile_scan(seed: int):
     blob_outside = np.c_[rng.normal(-0.5, 0.1, (20, 1)), rng.normal(5.0, 0.1, (20, 1)), np.ones((20, 1))]
     bad = np.array([[np.nan, 1.0, 0.0], [5.0, np.inf, 0.0], [5.0, 1.0, -np.inf]], np.float32)
     edges = np.c_[np.float32(0.16) * np.arange(40, 52), np.full(12, -25.6), np.linspace(-1, 1, 12)]
-    ridge = np.c_[np.float32(0.16) * rng.integers(100, 110, (30, 1)), np.float32(0.16) * rng.integers(150, 160, (30, 1)),
+    ridge = np.c_[np.float32(0.16) * rng.integers(100, 110, (30, 1)),
+                  np.float32(0.16) * rng.integers(150, 160, (30, 1)),
                   rng.normal(3.0, 0.5, (30, 1))]                       # points exactly on cell corners
     points = np.concatenate([points, outside, blob_outside, bad, edges, ridge]).astype(np.float32)
     valid = rng.random(len(points)) > 0.05

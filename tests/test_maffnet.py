@@ -44,10 +44,12 @@ def expected_vod_keys() -> dict[str, tuple]:
     for b, (cin, f, n) in enumerate(zip(chans, filters, nums)):
         keys.update(_conv_bn((f"backbone_2d.blocks.{b}.1", f"backbone_2d.blocks.{b}.2"), f, cin, 3))
         for j in range(n):
-            keys.update(_conv_bn((f"backbone_2d.blocks.{b}.{4 + 3 * j}", f"backbone_2d.blocks.{b}.{5 + 3 * j}"), f, f, 3))
+            keys.update(_conv_bn((f"backbone_2d.blocks.{b}.{4 + 3 * j}", f"backbone_2d.blocks.{b}.{5 + 3 * j}"),
+                                 f, f, 3))
     for b, (f, up) in enumerate(zip(filters, [1, 2, 4])):
         keys[f"backbone_2d.deblocks.{b}.0.weight"] = (f, 128, up, up)
-        keys.update({f"backbone_2d.deblocks.{b}.1.{n}": (128,) for n in ("weight", "bias", "running_mean", "running_var")})
+        keys.update({f"backbone_2d.deblocks.{b}.1.{n}": (128,)
+                     for n in ("weight", "bias", "running_mean", "running_var")})
         keys[f"backbone_2d.deblocks.{b}.1.num_batches_tracked"] = ()
     for name, ch in (("conv_cls", 18), ("conv_box", 42), ("conv_dir_cls", 12)):
         keys.update({f"dense_head.{name}.weight": (ch, 384, 1, 1), f"dense_head.{name}.bias": (ch,)})

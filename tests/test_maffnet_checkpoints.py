@@ -55,7 +55,8 @@ def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, t
 
 def test_stage_two_keys_of_the_full_cards_are_upstreams():
     for card, dataset in (("maffnet-vod-full", "vod"), ("maffnet-tj4d-full", "tj4d")):
-        own = {k: tuple(v.shape) for k, v in create_model(load_card(ROOT / "models" / f"{card}.yaml")).state_dict().items()}
+        own = {k: tuple(v.shape)
+               for k, v in create_model(load_card(ROOT / "models" / f"{card}.yaml")).state_dict().items()}
         up = upstream_state_dict_shapes(dataset)
         two = {k: s for k, s in up.items() if k.startswith(STAGE_TWO_PREFIXES)}
         assert {k: own.get(k) for k in two} == two, card

@@ -116,7 +116,8 @@ def test_cda_sampler_matches_reference(case):
     assert kp_valid.all() != (case == "nothing")            # every slot filled unless the scan is empty
     if case == "few":                                       # the cylinder points first, in index order
         np.testing.assert_array_equal(kp[:3], xyz[[3, 50, 120]])
-        np.testing.assert_array_equal(kp[3], xyz[np.flatnonzero(scan)[0]])   # then FPS over the scan from its first point
+        # then FPS over the scan from its first point
+        np.testing.assert_array_equal(kp[3], xyz[np.flatnonzero(scan)[0]])
     if case == "no-selection":                              # upstream points[:1]: the first cluster point
         np.testing.assert_array_equal(kp[0], xyz[np.flatnonzero(cluster)[0]])
     if case == "padded-only":                               # upstream: the zero rois select around the origin
@@ -294,7 +295,8 @@ def _bn(prefix, c):
 
 
 def expected_vod_stage_two_keys() -> dict[str, tuple]:
-    """Upstream keys and shapes of MAFF-Net_vod.yaml's stage two (VoxelSetAbstraction_cda, PointHeadSimple, PVRCNNHead)."""
+    """Upstream keys and shapes of MAFF-Net_vod.yaml's stage two (VoxelSetAbstraction_cda, PointHeadSimple,
+    PVRCNNHead)."""
     keys: dict[str, tuple] = {}
     for s in (0, 1):
         keys[f"pfe.SA_clusterpoints.mlps.{s}.0.weight"] = (16, 7, 1, 1)
@@ -309,7 +311,8 @@ def expected_vod_stage_two_keys() -> dict[str, tuple]:
     keys.update({"point_head.cls_layers.0.weight": (256, 96), "point_head.cls_layers.3.weight": (256, 256),
                  "point_head.cls_layers.6.weight": (1, 256), "point_head.cls_layers.6.bias": (1,),
                  **_bn("point_head.cls_layers.1", 256), **_bn("point_head.cls_layers.4", 256)})
-    keys.update({"roi_head.shared_fc_layer.0.weight": (256, 27648, 1), "roi_head.shared_fc_layer.4.weight": (256, 256, 1),
+    keys.update({"roi_head.shared_fc_layer.0.weight": (256, 27648, 1),
+                 "roi_head.shared_fc_layer.4.weight": (256, 256, 1),
                  **_bn("roi_head.shared_fc_layer.1", 256), **_bn("roi_head.shared_fc_layer.5", 256)})
     for name, out in (("cls_layers", 1), ("reg_layers", 7)):
         keys.update({f"roi_head.{name}.0.weight": (256, 256, 1), f"roi_head.{name}.4.weight": (256, 256, 1),
@@ -335,7 +338,8 @@ def test_vod_full_card_keys_and_stage_one():
     assert set(own) == set(stage_one) | set(two)
     # the stage-one part of the two cards is the same card; int8 also keeps the ROI head in fp32
     full, base = load_card(VOD_FULL).data, load_card(ROOT / "models" / "maffnet-vod.yaml").data
-    assert {k: v for k, v in full.items() if k not in ("name", "description", "stage_two", "source", "quantization")} == \
+    assert {k: v for k, v in full.items()
+            if k not in ("name", "description", "stage_two", "source", "quantization")} == \
         {k: v for k, v in base.items() if k not in ("name", "description", "source", "quantization")}
     assert full["quantization"] == {**base["quantization"],
                                     "keep_fp32": ["roi_head", *base["quantization"]["keep_fp32"]]}

@@ -124,7 +124,8 @@ def test_stage_one_weights_start_a_two_stage_card(labelled, tmp_path):
             p.add_(0.01)                                     # unlike the full card's seeded stage one
     save_checkpoint(one, tmp_path / "one.pth")
     common = ["train", "--model", "maffnet-tiny-full", "--config", MAFFNET_TINY_FULL_CARD, "--data", labelled,
-              "--epochs", 1, "--set", "train_frames=2", "--set", "val_frames=1", "--set", "freeze=" + ",".join(STAGE_ONE)]
+              "--epochs", 1, "--set", "train_frames=2", "--set", "val_frames=1",
+              "--set", "freeze=" + ",".join(STAGE_ONE)]
     res = invoke(*common, "--output", tmp_path / "run", "--set", f"stage_one_weights={tmp_path / 'one.pth'}")
     assert res.exit_code == 0, res.output
     assert f"stage_one_weights: {len(one.state_dict())} tensors" in res.output
@@ -217,7 +218,8 @@ def test_training_pillar_stage_gives_the_export_canvas_and_gradient(labelled, ca
             canvas, num, overflow = stage(points)
             (canvas * torch.linspace(-1, 1, canvas.numel()).reshape(canvas.shape)).sum().backward()
             outputs.append((canvas.detach(), int(num), bool(overflow)))
-            grads.append({n: p.grad for n, p in model.named_parameters() if p.grad is not None and not n.endswith("k_mlp.bias")})
+            grads.append({n: p.grad for n, p in model.named_parameters()
+                          if p.grad is not None and not n.endswith("k_mlp.bias")})
         (want, *counts), (got, *counts_t) = outputs
         assert counts_t == counts and counts[0] > 10
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
@@ -304,7 +306,8 @@ def test_boxes_in_range_keeps_a_box_with_one_corner_inside():
     (("--set", "epoch=3"), "unknown MAFF-Net training option"),
     (("--set", "scale_min=1.2"), "scale_min (1.2) must not exceed scale_max"),
     (("--set", "precision=fp16"), "precision must be one of fp32, bf16, not 'fp16'"),
-    (("--set", "stage_one_weights=x.pth"), "stage_one_weights is for a card with a second stage; maffnet-tiny has none"),
+    (("--set", "stage_one_weights=x.pth"),
+     "stage_one_weights is for a card with a second stage; maffnet-tiny has none"),
     (("--radar-topic", "/r"), "--radar-topic describe ROS bag drives"),
     (("--resume",), "--resume"),
 ])

@@ -52,7 +52,8 @@ def test_a_bias_free_layer_reads_a_constant_zero_bias(onnx_roundtrip, tmp_path):
     example = {"x": torch.randn(1, 3, 6, 5)}
     rt = onnx_roundtrip(ConvWithoutBias(), example, ["y"])
     graph = onnx.load(str(tmp_path / "ConvWithoutBias.onnx")).graph
-    constants = {t.name for t in graph.initializer} | {o for n in graph.node if n.op_type == "Constant" for o in n.output}
+    constants = ({t.name for t in graph.initializer}
+                 | {o for n in graph.node if n.op_type == "Constant" for o in n.output})
     assert [n.op_type for n in graph.node if n.op_type in ("Expand", "ConstantOfShape", "Tile")] == []
     conv = next(n for n in graph.node if n.op_type == "Conv")
     assert len(conv.input) == 3 and conv.input[2] in constants

@@ -81,7 +81,8 @@ def test_every_config_key_has_one_fate():
     assert fates["OPTIMIZATION.LR"].fate == "training-only"
     assert fates["DATA_CONFIG.DATA_AUGMENTOR.AUG_CONFIG_LIST[0].NAME"].fate == "training-only"
     assert fates["MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG[2].matched_threshold"].fate == "training-only"
-    assert fates["MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG[2].anchor_sizes"].detail == "dense_head.anchors[2].anchor_sizes"
+    assert (fates["MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG[2].anchor_sizes"].detail
+            == "dense_head.anchors[2].anchor_sizes")
     assert fates["MODEL.IMAGE_BACKBONE.POINTX"].fate == "ignored"
     assert fates["MODEL.VFE.USE_NORM"].fate == "checked"
     assert fates["MODEL.ROI_HEAD.NMS_CONFIG.TEST.NMS_PRE_MAXSIZE"].detail == "stage_two.proposals.pre_max"
@@ -145,7 +146,8 @@ def _set(path: str, value):
      ["DATA_CONFIG.DATA_PROCESSOR[3]", "sample_points"]),
     (_set("MODEL.NAME", "PVRCNN"), ["MODEL.NAME", "MAFF_Net"]),
     # a valid-looking config the model cannot build: the CFA map must cover the pillar grid
-    (_set("MODEL.IMAGE_BACKBONE.DBSCAN_MAP_W", 300), ["cfa.dbscan is 300 x 320 cells but the pillar grid is 320 x 320"]),
+    (_set("MODEL.IMAGE_BACKBONE.DBSCAN_MAP_W", 300),
+     ["cfa.dbscan is 300 x 320 cells but the pillar grid is 320 x 320"]),
 ])
 def test_unknown_or_unsupported_keys_end_with_one_error_line(tmp_path, edit, needles):
     res = invoke("card", "from-openpcdet", _edited(tmp_path, edit), "--out", tmp_path / "card.yaml")
@@ -170,7 +172,8 @@ def _modified(cfg: dict) -> None:
                                        NUM_UPSAMPLE_FILTERS=[64, 64, 64])
     anchors = cfg["MODEL"]["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"]
     anchors[0]["anchor_sizes"] = [[4.2, 1.8, 1.6]]
-    anchors.append(dict(copy.deepcopy(anchors[0]), class_name="Truck", anchor_sizes=[[10.8, 2.7, 3.6]], anchor_bottom_heights=[-1.4]))
+    anchors.append(dict(copy.deepcopy(anchors[0]), class_name="Truck", anchor_sizes=[[10.8, 2.7, 3.6]],
+                        anchor_bottom_heights=[-1.4]))
 
 
 def test_a_modified_config_converts_exports_with_its_checkpoint_and_passes_parity(tmp_path):
@@ -216,7 +219,8 @@ def test_the_converted_card_names_its_source_and_the_choices_that_are_not_config
     assert doc["name"] == "maffnet-tj4d" and doc["source"]["config"] == "maffnet_tj4d.yaml"
     assert any("past the 5 columns" in n for n in doc["notes"])        # RadarPillarVFE_TJ's SNR, position 5
     text = (tmp_path / "tj.yaml").read_text()
-    assert text.startswith("# Written by `radaredge card from-openpcdet` from maffnet_tj4d.yaml + tj4d_dataset_radar.yaml")
+    assert text.startswith("# Written by `radaredge card from-openpcdet` from maffnet_tj4d.yaml "
+                           "+ tj4d_dataset_radar.yaml")
     assert "spa.capacity" in text.splitlines()[3]
     assert load_card(tmp_path / "tj.yaml").get("vfe_features") == ["x", "y", "z", "snr", "v_r"]
     assert copy.deepcopy(doc["counts"]) == {"mapped": 79, "checked": 37, "training-only": 67, "ignored": 13}

@@ -147,7 +147,8 @@ def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
     rt = onnx_roundtrip(_ScansAtOnce(net, 3), example, ["canvas", "occupied"],
                         {n: {0: f"N{k}"} for k, n in enumerate(example)})
     for sizes in [(400, 3, 90), (0, 120, 0)]:
-        inputs = {f"points_{k}": torch.from_numpy(scan(n, 10 + k)[: n if n == 0 else None]) for k, n in enumerate(sizes)}
+        inputs = {f"points_{k}": torch.from_numpy(scan(n, 10 + k)[: n if n == 0 else None])
+                  for k, n in enumerate(sizes)}
         ref, got = rt(inputs)
         np.testing.assert_allclose(got["canvas"], ref["canvas"], atol=1e-5)
         assert np.array_equal(got["occupied"], ref["occupied"])

@@ -41,7 +41,8 @@ def test_layout_positions_and_times(tmp_path):
         assert len(seq) == 6 and seq.scan_paths[0].suffix == ".npy"
         np.testing.assert_allclose(seq.timestamps, d * DAY_S + np.arange(6) / 10.0)
         np.testing.assert_allclose(seq.positions[:, 0], [s.pose[1, 3] for s in scans])   # northing = world y
-        np.testing.assert_allclose(seq.positions[:, 1], [s.pose[0, 3] + 10_000.0 for s in scans])   # easting = world x + 10 km x seed
+        # easting = world x + 10 km x seed
+        np.testing.assert_allclose(seq.positions[:, 1], [s.pose[0, 3] + 10_000.0 for s in scans])
         np.testing.assert_array_equal(seq.scan(2, ["x", "y", "z", "v_r", "rcs"]), scans[2].points)
     speeds = [d.config.ego_speed_max for d in plan]
     assert speeds[0] == 10.0 and all(7.0 <= v <= 10.0 for v in speeds) and len(set(speeds)) == 3

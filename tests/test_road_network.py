@@ -102,7 +102,8 @@ def test_days_share_the_town_but_not_the_clutter():
     np.testing.assert_allclose(step, first.config.ego_speed_max / first.config.frame_rate, rtol=0.02)
     yaw = np.unwrap([math.atan2(s.pose[1, 0], s.pose[0, 0]) for s in a])
     np.testing.assert_allclose(np.diff(yaw), [s.yaw_rate * 0.1 for s in a[:-1]], atol=0.02)
-    static = [s.points[~s.dynamic & ~s.ghost, :3].astype(np.float64) @ s.pose[:3, :3].T + s.pose[:3, 3] for s in (a[5], b[5])]
+    static = [s.points[~s.dynamic & ~s.ghost, :3].astype(np.float64) @ s.pose[:3, :3].T + s.pose[:3, 3]
+              for s in (a[5], b[5])]
     shared = np.mean([np.linalg.norm(static[1][:, :2] - p[:2], axis=1).min() < 1.0 for p in static[0]])
     assert shared > 0.5
 

@@ -41,7 +41,8 @@ def test_runtime_runs_without_torch(onnx_path, frames, tmp_path):
         frames = [np.load({str(tmp_path)!r} + f"/f{{k}}.npy") for k in range(3)]
         out = m.run(frames)
         assert "torch" not in [k for k, v in sys.modules.items() if v is not None]
-        print(m.card.name, out["descriptor_normalized"].shape, round(float(np.linalg.norm(out["descriptor_normalized"])), 4))
+        print(m.card.name, out["descriptor_normalized"].shape,
+              round(float(np.linalg.norm(out["descriptor_normalized"])), 4))
     """)
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
@@ -52,7 +53,8 @@ def test_runtime_matches_session_outputs(onnx_path, frames):
     m = runtime.load(onnx_path)
     out = m.run(frames[0], frames[1])
     assert set(out) == {"descriptor", "descriptor_normalized", "ego_velocity", "ego_valid", "input_flags"}
-    assert out["input_flags"].shape == (3,) and m.card.name == "tdfanet-tiny" and m.features == ["x", "y", "z", "v_r", "rcs"]
+    assert (out["input_flags"].shape == (3,) and m.card.name == "tdfanet-tiny"
+            and m.features == ["x", "y", "z", "v_r", "rcs"])
 
 
 @pytest.mark.parametrize("mutate, message", [
@@ -150,7 +152,8 @@ def test_points_per_frame_are_capped_by_the_card(tiny_export, frames, tmp_path):
     from radaredge.errors import CapacityError
     m = runtime.load(tiny_export[2])
     big = np.zeros((65_537, 5), np.float32)
-    with pytest.raises(CapacityError, match=r"frame 1: 65537 points; tdfanet-tiny takes at most max_points_per_frame = 65536"):
+    with pytest.raises(CapacityError,
+                       match=r"frame 1: 65537 points; tdfanet-tiny takes at most max_points_per_frame = 65536"):
         m.run([frames[0][0], big, frames[0][2]])
     m.inputs.max_points = 10
     with pytest.raises(CapacityError, match="frame 0"):

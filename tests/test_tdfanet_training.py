@@ -161,7 +161,8 @@ def test_pillar_batch_statistics_are_openpcdets_padded_ones(card):
     a.eval()                                   # eval outputs are those of the running statistics
     b.eval()
     torch.testing.assert_close(a.vfe(points, torch.ones(len(points), dtype=torch.bool)),
-                               scatter_pillars_reference(*pillar_features_reference(b.vfe, points.numpy()), b.vfe.config),
+                               scatter_pillars_reference(*pillar_features_reference(b.vfe, points.numpy()),
+                                                         b.vfe.config),
                                atol=2e-5, rtol=1e-5)
 
 
@@ -258,8 +259,8 @@ def test_ablation_switches_export_with_parity(switch, tmp_path):
 
 def _train(town, out, epochs, *extra):
     return invoke("train", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--data", town, "--output", out,
-                  "--epochs", epochs, "--set", "negatives=6", "--set", "hard_negatives=3", "--set", "tuples_per_epoch=12",
-                  *extra)
+                  "--epochs", epochs, "--set", "negatives=6", "--set", "hard_negatives=3",
+                  "--set", "tuples_per_epoch=12", *extra)
 
 
 def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_path):

@@ -132,13 +132,15 @@ class BenchReport:
                                "openvino_vs_onnxruntime_max_abs": g.openvino_max_abs} for n, g in self.graphs.items()}}
 
     def lines(self) -> list[str]:
-        out = [f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu}, {self.runs} runs, {self.date}"]
+        out = [f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu}, {self.runs} runs, "
+               f"{self.date}"]
         for t in self.tasks.values():
             if t.title:
                 out.append(t.title + ":")
             out.append(results_table(t.rows, t.baseline, t.items_per_case, t.item_unit))
             if t.onnxruntime_speedup:
-                out.append("onnxruntime speed-up: " + ", ".join(f"{v:.2f}x vs {k}" for k, v in t.onnxruntime_speedup.items()))
+                out.append("onnxruntime speed-up: "
+                           + ", ".join(f"{v:.2f}x vs {k}" for k, v in t.onnxruntime_speedup.items()))
             if t.int8_vs_fp32 is not None:
                 out.append(f"int8 vs fp32: {t.int8_vs_fp32:.2f}x" +
                            ("  (int8 is SLOWER than fp32 on this CPU)" if t.int8_vs_fp32 < 1 else ""))
@@ -151,15 +153,17 @@ class BenchReport:
             label = f"{name}: " if len(self.graphs) > 1 else ""
             if g.stage_ms:
                 names = list(dict.fromkeys(k for row in g.stage_ms.values() for k in row))
-                out.append(f"{label}per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names))
+                out.append(f"{label}per-stage ms (torch: median; onnxruntime: mean from its profiler): "
+                           + " | ".join(names))
                 for backend, row in g.stage_ms.items():
-                    out.append(f"  {backend:<16}" + "".join(f"{row[k]:>14.1f}" if k in row else f"{'-':>14}" for k in names))
+                    out.append(f"  {backend:<16}"
+                               + "".join(f"{row[k]:>14.1f}" if k in row else f"{'-':>14}" for k in names))
             if g.peak_rss_mib is not None:
                 out.append(f"{label}onnxruntime peak RSS: {g.peak_rss_mib:.0f} MiB (a separate numpy + onnxruntime "
                            f"process running the bench inputs once)")
             if g.top_ops:
-                out.append(f"{label}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a separately "
-                           "profiled session; the profiler slows small ops):")
+                out.append(f"{label}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a "
+                           "separately profiled session; the profiler slows small ops):")
                 out += [f"  {op:<24}{ms:10.1f}" for op, ms in g.top_ops]
         return out
 
@@ -230,8 +234,8 @@ def _stage_ms(graph, module, cases, n: int, reference: bool, onnx_path, profile)
     return out
 
 
-def bench(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None, model=None,
-          threads: int = 2, runs: int = 20, warmup: int = 3, reference: bool = True,
+def bench(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None,
+          model=None, threads: int = 2, runs: int = 20, warmup: int = 3, reference: bool = True,
           int8: str | Path | bool | None = None, profile: bool = False, openvino: bool | None = None,
           progress: Callable[[str], Callable] | None = None, log: Callable[[str], None] | None = None) -> BenchReport:
     """Time every backend of the card's model on ``threads`` pinned cores, ``runs`` timed runs
@@ -289,7 +293,8 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     report = BenchReport(card.name, threads, cores, cpu_name(), runs, stamp)
     for t in tasks:
-        rows = benchmark(t.backends, t.cases, t.runs, t.warmup, progress=progress(f"bench {t.name}") if progress else None)
+        rows = benchmark(t.backends, t.cases, t.runs, t.warmup,
+                         progress=progress(f"bench {t.name}") if progress else None)
         report.tasks[t.name] = TaskResult(t.name, t.title, rows, t.baseline, t.items_per_case, t.item_unit, t.facts)
     n_profiled = max(3, min(runs, 10))
     for g in spec.graphs:

@@ -327,7 +327,8 @@ def _kinds(kind) -> tuple:
 
 
 def _kind_name(kind) -> str:
-    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "a mapping", bool: "true/false"}
+    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "a mapping",
+             bool: "true/false"}
     return " or ".join(names.get(k, k.__name__) for k in _kinds(kind))
 
 
@@ -490,7 +491,8 @@ def _vfe(led: _Ledger, columns: list[str]) -> tuple[list[str], int]:
             wanted.append(feature)
     filters = led.map("MODEL.VFE.NUM_FILTERS", "pillars.out_channels", kind=list)
     if len(filters) != 1 or not isinstance(filters[0], int) or isinstance(filters[0], bool):
-        raise led.error("MODEL.VFE.NUM_FILTERS", f"radaredge's VFE has one PFN layer; expected [channels], got {filters}")
+        raise led.error("MODEL.VFE.NUM_FILTERS",
+                        f"radaredge's VFE has one PFN layer; expected [channels], got {filters}")
     read = []
     for feature in wanted:
         pos = available.index(feature)

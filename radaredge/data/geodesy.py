@@ -62,7 +62,8 @@ def utm_from_latlon(lat_deg, lon_deg, zone: int | None = None, south: bool | Non
     lat = np.asarray(lat_deg, np.float64).ravel()
     lon = np.asarray(lon_deg, np.float64).ravel()
     if lat.shape != lon.shape or lat.size == 0:
-        raise InputError(f"latitudes and longitudes must be two equal, non-empty lists, got {lat.shape} and {lon.shape}")
+        raise InputError(f"latitudes and longitudes must be two equal, non-empty lists, "
+                         f"got {lat.shape} and {lon.shape}")
     bad = ~(np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 84.0) & (np.abs(lon) <= 180.0))
     if bad.any():
         i = int(np.flatnonzero(bad)[0])

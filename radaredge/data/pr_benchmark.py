@@ -2,7 +2,8 @@
 
 The town is one static world (``SceneConfig.world_seed`` = the benchmark ``seed``) along a
 flat street that bends gently (``SceneConfig.road_curvature``, a radius of 80-150 m, drawn from
-``seed``): facades, poles, parked cars, vegetation and road clutter, the same on every day. Each drive is another day (its own ``SceneConfig.seed``) through that street, from
+``seed``): facades, poles, parked cars, vegetation and road clutter, the same on every day. Each
+drive is another day (its own ``SceneConfig.seed``) through that street, from
 the same start, with its own ego speed, lateral velocity (a small heading offset of the radar,
 at most ``SceneConfig.ego_lateral_max``), traffic, share of points on moving objects and
 measurement noise. On the query days a fraction ``parked_change`` of the parked cars is gone or
@@ -137,7 +138,8 @@ def _check_town_seeds(seed: int, towns: int) -> None:
                           f"{MAX_POSITION:g} m; use seeds up to {MAX_TOWN_SEED}")
 
 
-def make_pr_towns(out_dir: str | os.PathLike, towns: int, seed: int, make_town: Callable[[Path, int], list]) -> dict[str, list]:
+def make_pr_towns(out_dir: str | os.PathLike, towns: int, seed: int,
+                  make_town: Callable[[Path, int], list]) -> dict[str, list]:
     """``towns`` benchmarks of consecutive seeds ``seed``, ``seed + 1``, ... in ``out_dir/town-<seed>``,
     each written by ``make_town(directory, seed)`` (:func:`make_pr_benchmark` or
     :func:`make_route_benchmark` with their other arguments bound); one training directory for
@@ -221,9 +223,11 @@ def plan_route_drives(days: int = 3, route_m: float = 2200.0, seed: int = 0, spe
                       ) -> tuple[RoadNetwork, list[RouteBenchmarkDrive]]:
     """The town of ``seed`` and its drives, without generating scans. Day 0 (the database) drives
     a circuit of at least ``route_m`` m through the town (:meth:`RoadNetwork.circuit`: back where it
-    started) at ``speed[1]`` m/s in the right-hand lane, with the canonical parking. Days 1.. (queries) each drive a route
+    started) at ``speed[1]`` m/s in the right-hand lane, with the canonical parking. Days 1.. (queries) each
+    drive a route
     of half that length made of sections of the database circuit, up to a share ``opposite``
-    of them driven against the circuit (:func:`_query_route`), at speeds uniform in ``speed``; odd query days keep right, even ones drive the other lane. Each
+    of them driven against the circuit (:func:`_query_route`), at speeds uniform in ``speed``; odd query days
+    keep right, even ones drive the other lane. Each
     day has its own traffic, heading offset, transient clutter and share ``parked_change`` of the
     parked cars moved; every route starts at a junction drawn from ``seed``."""
     _check_options(days, 1, seed, speed)

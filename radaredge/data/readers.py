@@ -301,7 +301,8 @@ def _read_bin(path: Path, fmt: str) -> np.ndarray:
 def _read_npy(path: Path, fmt: str) -> np.ndarray:
     """A 2-D numeric ``.npy`` of ``fmt``'s columns, as float32 [N, C]."""
     layout = _LAYOUTS[fmt]
-    size = check_file(path, f"a {layout.title} .npy scan", _NPY_HEADER_BYTES + MAX_SCAN_POINTS * len(layout.columns) * 8,
+    size = check_file(path, f"a {layout.title} .npy scan",
+                      _NPY_HEADER_BYTES + MAX_SCAN_POINTS * len(layout.columns) * 8,
                       f"{MAX_SCAN_POINTS:,} points of {len(layout.columns)} float64 columns, the most a card's "
                       f"max_points_per_frame can take")
     with path.open("rb") as f:
@@ -374,7 +375,8 @@ def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None 
     path = Path(path)
     if fmt is None:
         if not path.is_file():
-            raise InputError(f"{path} is a directory, not a scan file" if path.is_dir() else f"{path}: no such scan file")
+            raise InputError(f"{path} is a directory, not a scan file" if path.is_dir()
+                             else f"{path}: no such scan file")
         fmt = infer_format([path])
     table = _read_table(path, fmt)
     columns = _feature_columns(features, fmt)

@@ -146,7 +146,8 @@ def make_city(slots: int, points: int, seed: int = 0, world: float = 90.0, size:
         pose_w.append(p)
         pose_cell.append(m.ids[best])
         pose_text.append(" ".join(hints))
-    m.pose_w, m.pose_cell, m.pose_text = np.array(pose_w), np.array(pose_cell, dtype=str), np.array(pose_text, dtype=str)
+    m.pose_w, m.pose_cell, m.pose_text = (np.array(pose_w), np.array(pose_cell, dtype=str),
+                                          np.array(pose_text, dtype=str))
     return m
 
 

@@ -33,7 +33,8 @@ def find_maps(root: str | os.PathLike) -> list[Path]:
     if not root.is_dir():
         raise InputError(f"{root} does not exist; expected a cell map (.npz from `radaredge make-city`, a KITTI360Pose "
                          f"cells/<scene>.pkl) or a directory of them")
-    maps = sorted(p for p in root.glob("*.npz") if not is_index_cache(p)) + sorted((root / "cells").glob("*.pkl")) + sorted(root.glob("*/cells/*.pkl"))
+    maps = (sorted(p for p in root.glob("*.npz") if not is_index_cache(p)) + sorted((root / "cells").glob("*.pkl"))
+            + sorted(root.glob("*/cells/*.pkl")))
     if not maps:
         raise InputError(f"{root}: no cell maps; expected .npz maps from `radaredge make-city` or KITTI360Pose "
                          f"cells/<scene>.pkl with poses/<scene>.pkl")
@@ -97,8 +98,8 @@ def load_text_maps(root: str | os.PathLike, slots: int, points: int, max_hints: 
         texts = np.asarray(m.pose_text, str)
         described = np.flatnonzero(np.char.str_len(texts) > 0)
         if not len(described):
-            raise InputError(f"{path}: no described pose; make maps with poses (`radaredge make-city --poses N`) or put "
-                             f"KITTI360Pose's poses/<scene>.pkl beside cells/")
+            raise InputError(f"{path}: no described pose; make maps with poses (`radaredge make-city --poses N`) "
+                             f"or put KITTI360Pose's poses/<scene>.pkl beside cells/")
         index = {cid: j for j, cid in enumerate(m.ids.tolist())}
         for q in described:
             cell = index.get(str(m.pose_cell[q]))

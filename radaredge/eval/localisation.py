@@ -77,7 +77,8 @@ def localization_hits(pred_w: np.ndarray, pose_w: np.ndarray, ks: Sequence[int],
 def _intervals(hits: dict) -> dict[int, dict[float, tuple[float, float]]]:
     """The 95 % percentile-bootstrap interval (fractions) of the mean of every (k, t) of ``hits``
     (per-query hits, or per-query differences of two hit arrays)."""
-    return {k: {t: tuple(v / 100.0 for v in bootstrap_interval(h)) for t, h in by_t.items()} for k, by_t in hits.items()}
+    return {k: {t: tuple(v / 100.0 for v in bootstrap_interval(h)) for t, h in by_t.items()}
+            for k, by_t in hits.items()}
 
 
 @dataclass
@@ -219,7 +220,8 @@ def _onnx_backend(bundle: Des4PosBundle, maps: TextMaps, depth: int, fine_k: int
         try:
             desc, hints = bundle.encode_text(" ".join(maps.pose_hints[q]))
         except InputError as exc:
-            raise InputError(f"{maps.paths[maps.map_of_cell[maps.pose_cell[q]]]}: pose {maps.pose_id[q]}: {exc}") from None
+            raise InputError(f"{maps.paths[maps.map_of_cell[maps.pose_cell[q]]]}: pose {maps.pose_id[q]}: "
+                             f"{exc}") from None
         retrieved[q] = index.search(desc[None], depth)[1][0]
         positions[q] = bundle.fine(index, retrieved[q, :fine_k], hints)[1]
     return retrieved, positions, all(i.from_cache for i in indices)

@@ -531,7 +531,8 @@ def evaluate(card: ModelCard, onnx_path: str | os.PathLike, database: str | os.P
     for name, backend in backends.items():
         db_desc = (db_windows.descriptors if isinstance(db_windows, MapWindows) else
                    describe_windows(db_windows, exported.features, backend, wrap(f"database {BACKEND_LABELS[name]}")))
-        query_desc = describe_windows(query_windows, exported.features, backend, wrap(f"queries {BACKEND_LABELS[name]}"))
+        query_desc = describe_windows(query_windows, exported.features, backend,
+                                      wrap(f"queries {BACKEND_LABELS[name]}"))
         results[name] = recall_at_n(query_desc, query_windows.positions, db_desc, db_windows.positions, CURVE_NS,
                                     radius)
     agreement = place = None
@@ -571,7 +572,8 @@ def localization_recall(pred_w, pose_w, ks: Sequence[int] = LOCALIZATION_KS,
     pred = np.asarray(pred_w, np.float64)
     pose = np.asarray(pose_w, np.float64)
     if pred.ndim != 3 or pred.shape[2] != 2 or pose.shape != (pred.shape[0], 2) or pred.shape[0] == 0:
-        raise InputError(f"expected predictions [Q, K, 2] and poses [Q, 2] (m) with Q >= 1, got {pred.shape} and {pose.shape}")
+        raise InputError(f"expected predictions [Q, K, 2] and poses [Q, 2] (m) with Q >= 1, "
+                         f"got {pred.shape} and {pose.shape}")
     if not (np.isfinite(pred).all() and np.isfinite(pose).all()):
         raise InputError("predicted and ground-truth positions must be finite")
     ks, thresholds = localization_levels(ks, thresholds)

@@ -156,7 +156,8 @@ def load_map(map_dir: str | Path) -> tuple[dict, object, dict[str, np.ndarray]]:
     try:
         info = json.loads((map_dir / MAP_JSON).read_text())
     except (OSError, ValueError):
-        raise InputError(f"{map_dir}: no readable {MAP_JSON}; expected a directory made by `radaredge map build`") from None
+        raise InputError(f"{map_dir}: no readable {MAP_JSON}; "
+                         f"expected a directory made by `radaredge map build`") from None
     import faiss
     try:
         index = faiss.read_index(str(map_dir / "index.faiss"))

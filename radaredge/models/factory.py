@@ -138,7 +138,8 @@ def check_weight_values(model: torch.nn.Module, state: dict, path) -> None:
                 raise ConfigError(f"checkpoint {path}: {prefix}p = {p:.3g}; GeM pooling needs an exponent p > 0")
 
 
-def create_model(card: ModelCard, checkpoint: str | Path | None = None, spec: ModelSpec | None = None) -> torch.nn.Module:
+def create_model(card: ModelCard, checkpoint: str | Path | None = None,
+                 spec: ModelSpec | None = None) -> torch.nn.Module:
     """The card's model (``spec`` when the caller resolved it), seeded, with ``checkpoint``
     loaded when given (its :class:`LoadReport` as ``model.checkpoint_report``)."""
     model = (spec or model_spec(card)).build(card)

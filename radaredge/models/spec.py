@@ -52,7 +52,8 @@ class GraphSpec:
     Optional: ``postprocess_reference(module, feeds, graph outputs, reference outputs, reference
     trace)`` -> each stage that follows a discrete decision (NMS, proposals, keypoint sampling)
     run by the reference on the graph's own inputs to that stage, which parity judges the graph
-    against: a decision within float noise of a tie cannot then flip the verdict; ``stage_times(module, feeds, reference)`` ->
+    against: a decision within float noise of a tie cannot then flip the verdict;
+    ``stage_times(module, feeds, reference)`` ->
     {stage: s} for one torch run; ``onnx_stages`` (stage, module prefixes) and
     ``onnx_post_outputs``, the same stages inside onnxruntime (:mod:`radaredge.bench.profiling`).
     """

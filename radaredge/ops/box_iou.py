@@ -50,7 +50,8 @@ def _next_corner(corner: torch.Tensor) -> torch.Tensor:
 
 
 def _clipped_boundary_area(px: torch.Tensor, py: torch.Tensor, p_len: torch.Tensor, qx: torch.Tensor,
-                           qy: torch.Tensor, q_len: torch.Tensor, tol: float, skip_shared: torch.Tensor) -> torch.Tensor:
+                           qy: torch.Tensor, q_len: torch.Tensor, tol: float,
+                           skip_shared: torch.Tensor) -> torch.Tensor:
     """Sum over the edges of polygon p (corners ``px``, ``py`` [4, P]) of cross(start, end)/2 of
     the part of the edge inside polygon q (``qx``, ``qy`` [4, P]); both counter-clockwise,
     ``*_len`` [4, P] the edge lengths. An edge parallel to a side of q and within ``tol`` of its
@@ -118,8 +119,10 @@ def bev_iou_upper_bound(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.T
     area_b - u). It equals the IoU for two axis-aligned boxes and is 0 for disjoint rectangles."""
     exa, eya = bev_half_extents(boxes_a)
     exb, eyb = bev_half_extents(boxes_b)
-    ix = torch.minimum(boxes_a[:, 0] + exa, boxes_b[:, 0] + exb) - torch.maximum(boxes_a[:, 0] - exa, boxes_b[:, 0] - exb)
-    iy = torch.minimum(boxes_a[:, 1] + eya, boxes_b[:, 1] + eyb) - torch.maximum(boxes_a[:, 1] - eya, boxes_b[:, 1] - eyb)
+    ix = (torch.minimum(boxes_a[:, 0] + exa, boxes_b[:, 0] + exb)
+          - torch.maximum(boxes_a[:, 0] - exa, boxes_b[:, 0] - exb))
+    iy = (torch.minimum(boxes_a[:, 1] + eya, boxes_b[:, 1] + eyb)
+          - torch.maximum(boxes_a[:, 1] - eya, boxes_b[:, 1] - eyb))
     area_a, area_b = boxes_a[:, 3] * boxes_a[:, 4], boxes_b[:, 3] * boxes_b[:, 4]
     u = torch.minimum(torch.clamp(ix, min=0.0) * torch.clamp(iy, min=0.0), torch.minimum(area_a, area_b))
     return u / torch.clamp(area_a + area_b - u, min=EPS_UNION)

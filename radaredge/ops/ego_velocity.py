@@ -29,7 +29,8 @@ Defined results for bad input (never NaN, never an exception inside the graph):
 - Fewer than 3 eligible points, no non-degenerate hypothesis, fewer than ``min_inliers``
   inliers, fewer than ``min_inlier_ratio`` of the eligible points as inliers, a singular refit,
   or an implausible speed (``|v_ego| > max_speed``, default 70 m/s = 252 km/h; scans with no
-  static points or a swapped Doppler column produce such fits): ``valid`` is False, ``v_ego`` is 0, and ``static_mask`` keeps
+  static points or a swapped Doppler column produce such fits): ``valid`` is False, ``v_ego`` is 0,
+  and ``static_mask`` keeps
   every finite, valid point (nothing can be classified, so nothing is removed).
 - An all-zero-velocity scan (ego standing still, static world) is a regular case: v_ego = 0,
   every point static, ``valid`` True.

@@ -14,7 +14,8 @@ above the threshold (a prefix of the top-k list, taken with NonZero, plus 8 inva
 rows so no size is ever 0 or 1), so the pairwise work follows the number of boxes that pass the
 threshold, not ``pre_max``; IoU only for the pairs whose axis-aligned bounding rectangles
 overlap and whose IoU bound from those rectangles exceeds the threshold (no other pair can
-suppress), gathered with NonZero; the greedy walk as its fixed point: keep[j] = valid[j] and no kept i < j suppresses j. Iterating that map
+suppress), gathered with NonZero; the greedy walk as its fixed point: keep[j] = valid[j] and no
+kept i < j suppresses j. Iterating that map
 from "all valid" settles index j after at most j + 1 rounds and stops at the first round that
 changes nothing, which is exactly the greedy result (entry j depends only on entries before
 it, so the fixed point is unique). The loop is a ``torch.while_loop`` (an ONNX ``Loop``); its

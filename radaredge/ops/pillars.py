@@ -148,7 +148,8 @@ class PFNLayer(nn.Module):
         y = self.linear(x.reshape(-1, shape[-1]))
         return torch.relu(self.norm(y)).reshape(*shape[:-1], y.shape[-1])
 
-    def forward_slots(self, x: torch.Tensor, weight: torch.Tensor, slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward_slots(self, x: torch.Tensor, weight: torch.Tensor,
+                      slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The points of padded pillars without the padding: x [N, in] (rows with ``weight`` 0 are
         not points), ``slots`` [] the number of pillar slots the points occupy, OpenPCDet's
         pillars x ``max_points_per_pillar``. Returns (per-point output [N, out], the output of an
@@ -449,7 +450,8 @@ def scatter_pillars_reference(features: torch.Tensor, coords: np.ndarray, config
     return canvas.reshape(features.shape[1], ny, nx)
 
 
-def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None) -> torch.Tensor:
+def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray,
+                             valid: np.ndarray | None = None) -> torch.Tensor:
     """Reference formulation: voxelize, PillarVFE on padded pillars as OpenPCDet, scatter. [C, ny, nx]."""
     pillar, coords = pillar_features_reference(net, points, valid)
     return scatter_pillars_reference(pillar, coords, net.config)

@@ -72,7 +72,8 @@ class GraphParity:
         d = self.divergence
         if d:
             if d["tensor"]:
-                out.append(f"first diverging intermediate (case {d['case']}): {d['tensor']} (max abs {d['max_abs']:.3g})")
+                out.append(f"first diverging intermediate (case {d['case']}): {d['tensor']} "
+                           f"(max abs {d['max_abs']:.3g})")
             else:
                 out.append(f"no intermediate diverges beyond tolerance in case {d['case']}: "
                            "the difference arises in the final outputs")

@@ -534,7 +534,8 @@ class Proposals(Comparator):
                         "reference_rois": sum(r.end_to_end["reference_rois"] for r in results),
                         "cases_with_unmatched": [n for n, r in zip(case_names, results) if r.end_to_end["unmatched"]],
                         "near_ties": ties,
-                        "rcnn_score_diff": max((r.end_to_end.get("rcnn_score_diff", 0.0) for r in results), default=0.0)}
+                        "rcnn_score_diff": max((r.end_to_end.get("rcnn_score_diff", 0.0) for r in results),
+                                               default=0.0)}
         return s
 
     def quantized(self):

@@ -8,11 +8,12 @@ package), so an embedded application needs neither torch nor the radaredge model
     out = model.run([scan_t2, scan_t1, scan_t0])     # oldest first, each [N_k, 5] x,y,z,v_r,rcs
     out["descriptor_normalized"]                      # 256-d place descriptor
 
-The package: :mod:`.model` (the exported-graph wrapper), :mod:`.session` (onnxruntime session options), :mod:`.openvino` (OpenVINO's CPU
-plugin), :mod:`.runners` (either runtime behind one callable), :mod:`.metadata` (the
-``radaredge.*`` metadata contract), :mod:`.integrity` (each graph's content hash, recomputed from
-the file whenever :func:`load` or :func:`inspect_export` reads it), :mod:`.des4pos` and :mod:`.text_tokens` (the Des4Pos query
-path: tokens, map index, locate).
+The package: :mod:`.model` (the exported-graph wrapper), :mod:`.session` (onnxruntime session
+options), :mod:`.openvino` (OpenVINO's CPU plugin), :mod:`.runners` (either runtime behind one
+callable), :mod:`.metadata` (the ``radaredge.*`` metadata contract), :mod:`.integrity` (each
+graph's content hash, recomputed from the file whenever :func:`load` or :func:`inspect_export`
+reads it), :mod:`.des4pos` and :mod:`.text_tokens` (the Des4Pos query path: tokens, map index,
+locate).
 """
 
 from __future__ import annotations

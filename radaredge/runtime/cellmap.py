@@ -107,7 +107,8 @@ def validate_map(m: CellMap, where: str = "map", slots: tuple[int, int] | None =
     if m.scenes.shape != (c,) or m.labels.shape != m.points.shape[:2]:
         raise InputError(f"{where}: scenes must be [{c}] and labels [{c}, objects]")
     if m.points.ndim != 4 or m.points.shape[0] != c or m.points.shape[3] != 6:
-        raise InputError(f"{where}: points must be [cells, objects, points, 6] (x, y, z, r, g, b), got {m.points.shape}")
+        raise InputError(f"{where}: points must be [cells, objects, points, 6] (x, y, z, r, g, b), "
+                         f"got {m.points.shape}")
     if slots is not None and m.points.shape[1:3] != tuple(slots):
         raise InputError(f"{where}: cells have {m.points.shape[1]} object slots of {m.points.shape[2]} points; the "
                          f"model takes {slots[0]} slots of {slots[1]} points (re-make the map for this card)")
@@ -128,7 +129,8 @@ def validate_map(m: CellMap, where: str = "map", slots: tuple[int, int] | None =
                          f"metres up to {MAX_CELL_M:g} (KITTI360Pose cells are 30 m)")
     empty = np.flatnonzero(~m.object_mask.any(1))
     if len(empty):
-        raise InputError(f"{where}: cell {m.ids[empty[0]]} has no object ({len(empty)} empty cell(s)); drop empty cells")
+        raise InputError(f"{where}: cell {m.ids[empty[0]]} has no object ({len(empty)} empty cell(s)); "
+                         f"drop empty cells")
     bad = ~np.isfinite(m.points).all((2, 3)) & m.object_mask
     if bad.any():
         ci, oi = np.argwhere(bad)[0]
@@ -192,7 +194,8 @@ def pack_cells(cells: list[dict], slots: int, points: int, where: str = "map") -
     if need > MAX_PACKED_BYTES:
         raise InputError(f"{where}: {c} cells of {slots} objects x {points} points pack into {need / 2**30:.1f} GiB; "
                          f"at most {MAX_PACKED_BYTES / 2**30:g} GiB per map (split the map)")
-    out = CellMap(ids=np.array([x["id"] for x in cells], dtype=str), scenes=np.array([x["scene"] for x in cells], dtype=str),
+    out = CellMap(ids=np.array([x["id"] for x in cells], dtype=str),
+                  scenes=np.array([x["scene"] for x in cells], dtype=str),
                   origins=np.zeros((c, 2)), sizes=np.zeros(c), points=np.zeros((c, slots, points, 6), np.float32),
                   num_points=np.zeros((c, slots), np.float32), object_mask=np.zeros((c, slots), bool),
                   labels=np.full((c, slots), "", dtype="<U24"), dropped_objects=np.zeros(c, np.int64))

@@ -290,8 +290,8 @@ def locate_description(directory: str | Path, map_path: str | Path, text: str, t
         raise ConfigError(f"--top-k: expected an integer >= 1 (candidate cells), got {top_k!r}")
     checked_threads(threads)
     if not Path(map_path).is_file():
-        raise InputError(f"--map: {map_path} does not exist; make one with `radaredge make-city` or pass a KITTI360Pose "
-                         f"cells/<scene>.pkl")
+        raise InputError(f"--map: {map_path} does not exist; make one with `radaredge make-city` or pass a "
+                         f"KITTI360Pose cells/<scene>.pkl")
     if not split_hints(text):
         raise InputError("--text: the description is empty; give one or more sentences, e.g. "
                          "\"The pose is north of a red box.\"")

@@ -3,22 +3,29 @@ the exporter, which writes them, and the runtime, which reads them.
 
 Standard library only (no numpy, no torch). Every key is named here; nothing else spells one.
 
-| key | value |
-|---|---|
-| ``radaredge.model`` | card name |
-| ``radaredge.card`` | the whole card, YAML |
-| ``radaredge.features`` | JSON list: the point columns, in order (x, y, z first) |
-| ``radaredge.inputs`` | JSON: ``names`` (graph order), ``dynamic_axes``, ``frames`` (the inputs that take one point cloud each, oldest first), ``timestamps`` (the input taking per-frame times in s, or null) |
-| ``radaredge.outputs`` | JSON list: output names, graph order |
-| ``radaredge.checks`` | JSON list of :class:`OutputCheck`: flag outputs the runtime turns into an error or a warning |
-| ``radaredge.weights_sha256`` | hash of the weights this graph computes with |
-| ``radaredge.versions`` | JSON: radaredge, torch, onnx, onnxruntime, opset at export |
-| ``radaredge.part`` | graph name inside a multi-graph model (absent for one-graph models) |
-| ``radaredge.bundle_weights_sha256`` | hash of the whole multi-graph model's weights |
-| ``radaredge.quantization`` | JSON: how an int8 copy was made (absent in fp32 graphs) |
-| ``radaredge.input_flags`` | JSON: bit (as a string) -> meaning, for a graph with an ``input_flags`` output (:mod:`radaredge.ops.input_flags`) |
-| ``radaredge.input_errors`` | the ``input_flags`` bits (an integer mask) that mean the input was wrong: the caller refuses the frame |
-| ``radaredge.content_sha256`` | hash of the graph file's own contents: every node and initializer and every other ``radaredge.*`` entry (:mod:`radaredge.runtime.integrity` defines it); the runtime recomputes it on load |
+The keys and their values:
+
+- ``radaredge.model``: card name
+- ``radaredge.card``: the whole card, YAML
+- ``radaredge.features``: JSON list: the point columns, in order (x, y, z first)
+- ``radaredge.inputs``: JSON: ``names`` (graph order), ``dynamic_axes``, ``frames`` (the inputs that
+  take one point cloud each, oldest first), ``timestamps`` (the input taking per-frame times in s,
+  or null)
+- ``radaredge.outputs``: JSON list: output names, graph order
+- ``radaredge.checks``: JSON list of :class:`OutputCheck`: flag outputs the runtime turns into an
+  error or a warning
+- ``radaredge.weights_sha256``: hash of the weights this graph computes with
+- ``radaredge.versions``: JSON: radaredge, torch, onnx, onnxruntime, opset at export
+- ``radaredge.part``: graph name inside a multi-graph model (absent for one-graph models)
+- ``radaredge.bundle_weights_sha256``: hash of the whole multi-graph model's weights
+- ``radaredge.quantization``: JSON: how an int8 copy was made (absent in fp32 graphs)
+- ``radaredge.input_flags``: JSON: bit (as a string) -> meaning, for a graph with an ``input_flags``
+  output (:mod:`radaredge.ops.input_flags`)
+- ``radaredge.input_errors``: the ``input_flags`` bits (an integer mask) that mean the input was
+  wrong: the caller refuses the frame
+- ``radaredge.content_sha256``: hash of the graph file's own contents: every node and initializer
+  and every other ``radaredge.*`` entry (:mod:`radaredge.runtime.integrity` defines it); the runtime
+  recomputes it on load
 """
 
 from __future__ import annotations

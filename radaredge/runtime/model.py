@@ -349,7 +349,8 @@ class RadarModel:
         refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & self.errors
         if refused.any():                      # the checks above let no such input through; the graph agrees
             k = int(np.flatnonzero(refused.ravel())[0])
-            raise InputError(f"{self.path}: frame {k}: the graph flagged its input: {'; '.join(describe(refused.ravel()[k]))}")
+            raise InputError(f"{self.path}: frame {k}: the graph flagged its input: "
+                             f"{'; '.join(describe(refused.ravel()[k]))}")
         self.tally_flags(out, feeds)
         return out
 

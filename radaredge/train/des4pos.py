@@ -83,8 +83,8 @@ ALIASES = {"epochs": "coarse_epochs", "lr": "coarse_lr", "batch_size": "coarse_b
 @card_ranges(object_epochs=(0, 10_000), object_lr=positive(1.0), object_batch=(1, 4096), prior_epochs=(0, 10_000),
              prior_lr=positive(1.0), prior_batch=(1, 4096), coarse_epochs=(0, 10_000), coarse_lr=positive(1.0),
              coarse_batch=(2, 4096), lr_step=(1, 10_000), lr_gamma=Range(0.0, 1.0, True), temperature=positive(10.0),
-             hints_epochs=(0, 10_000), fine_epochs=(0, 10_000), fine_lr=positive(1.0), fine_batch=(1, 4096), fine_warmup_epochs=(0, 10_000),
-             fine_warmup_lr=positive(1.0), seed=(0, 2**32 - 1))
+             hints_epochs=(0, 10_000), fine_epochs=(0, 10_000), fine_lr=positive(1.0), fine_batch=(1, 4096),
+             fine_warmup_epochs=(0, 10_000), fine_warmup_lr=positive(1.0), seed=(0, 2**32 - 1))
 @dataclass(frozen=True)
 class TextRecipe:
     """Options of Des4Pos training (module docstring). ``epochs``, ``lr`` and ``batch_size`` given
@@ -480,7 +480,8 @@ def _objects_stage(model, maps, recipe, epochs, start, dev, rng, progress, epoch
     if (labels < 0).any():
         c, s = slots[np.flatnonzero(labels < 0)[0]]
         raise InputError(f"cell {cells.ids[c]}, object {s}: label {cells.labels[c, s]!r} is not one of the card's "
-                         f"submap.object_classes ({len(classes)} classes); the object stage trains a classifier over them")
+                         f"submap.object_classes ({len(classes)} classes); the object stage trains a classifier "
+                         f"over them")
     held = maps.cell_validation[slots[:, 0]]
     train_i, val_i = np.flatnonzero(~held), np.flatnonzero(held)
     if not len(val_i):                                # one map: every 10th object is held out instead

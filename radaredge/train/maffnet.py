@@ -287,7 +287,8 @@ def stage_two_terms(model, scan: dict, cls, box, direction, gt, gt_labels, setup
     before, point_features = model.pfe(scan["fused"][0], keypoints, xyz, feats, in_scan)
     logits = model.point_head.logits(before)
     rcnn_cls, rcnn_reg = model.roi_head(t["rois"], keypoints, valid, point_features * torch.sigmoid(logits)[:, None])
-    return {"point": point_head_loss(logits, point_labels(keypoints, valid, gt)), **roi_head_loss(rcnn_cls, rcnn_reg, t)}
+    return {"point": point_head_loss(logits, point_labels(keypoints, valid, gt)),
+            **roi_head_loss(rcnn_cls, rcnn_reg, t)}
 
 
 def scan_terms(model, points: torch.Tensor, gt: torch.Tensor, gt_classes: torch.Tensor, setup: LossSetup) -> dict:
@@ -453,8 +454,8 @@ def require_labelled_objects(card: ModelCard, root, data_format: str | None, tra
     others = sorted({str(n) for scan in train for n in scan.frame.labels.name} - {"DontCare"})
     found = f"their labels name only {others}" if others else "their label files hold no object"
     raise InputError(f"{the_set.split_file}: none of the {len(train)} training frames read has a labelled object of "
-                     f"the card's classes {list(card.get('classes'))} ({found}); training would learn nothing. Train on "
-                     f"a split with labelled objects of these classes, or a card whose classes the labels use")
+                     f"the card's classes {list(card.get('classes'))} ({found}); training would learn nothing. "
+                     f"Train on a split with labelled objects of these classes, or a card whose classes the labels use")
 
 
 def _signature(card: ModelCard, root, recipe: DetectionRecipe, validation: str, train: list, val: list) -> dict:

@@ -118,7 +118,8 @@ def _draw(indices: torch.Tensor, n: int, gen: torch.Generator | None = None) -> 
     return indices[torch.randint(len(indices), (n,), generator=gen, device=_draw_device(gen)).to(indices.device)]
 
 
-def _background(hard: torch.Tensor, easy: torch.Tensor, n: int, ratio: float, gen: torch.Generator | None = None) -> torch.Tensor:
+def _background(hard: torch.Tensor, easy: torch.Tensor, n: int, ratio: float,
+                gen: torch.Generator | None = None) -> torch.Tensor:
     """OpenPCDet sample_bg_inds: ``n`` background rois with replacement, int(n * ratio) of them hard
     (at most as many as there are) when both kinds exist, else all of the kind there is."""
     if len(hard) and len(easy):
@@ -146,7 +147,8 @@ def subsample_rois(iou: torch.Tensor, cfg: RoiSampling, gen: torch.Generator | N
     raise ValueError(f"no roi has a finite IoU with the boxes (IoUs {iou[:8].tolist()} ...)")
 
 
-def sample_rois(rois, roi_labels, gt, gt_labels, cfg: RoiSampling, gen: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+def sample_rois(rois, roi_labels, gt, gt_labels, cfg: RoiSampling,
+                gen: torch.Generator | None = None) -> dict[str, torch.Tensor]:
     """The proposal target layer for one scan (module docstring, step 2): rois [S, 7], roi_labels
     [S], iou [S], gt_of_rois [S, 7] (the matched box, in the radar frame), reg_valid [S] bool,
     cls_labels [S] float in [0, 1]; S = roi_per_image. Draws from ``gen`` (default: torch's global
@@ -243,7 +245,8 @@ def roi_head_loss(cls_logit: torch.Tensor, residuals: torch.Tensor, t: dict) -> 
         rois = t["rois"][fg]
         centred = torch.cat([torch.zeros_like(rois[:, :3]), rois[:, 3:6], torch.zeros_like(rois[:, 6:])], 1)
         target = encode_boxes(canonical_boxes(rois, t["gt_of_rois"][fg]), centred)
-        terms["rcnn_reg"] = LOSS_WEIGHTS["rcnn_reg"] * smooth_l1(residuals[fg] - target, 1.0 / 9.0).sum() / int(fg.sum())
+        terms["rcnn_reg"] = (LOSS_WEIGHTS["rcnn_reg"] * smooth_l1(residuals[fg] - target, 1.0 / 9.0).sum()
+                             / int(fg.sum()))
         decoded = decode_roi_residuals(residuals[fg], rois)
         terms["rcnn_corner"] = LOSS_WEIGHTS["rcnn_corner"] * corner_loss(decoded, t["gt_of_rois"][fg]).mean()
     return terms

@@ -257,7 +257,8 @@ class TrainReport:
             out.append(f"{'epoch':>5}" + "".join(f"{k:>{w}}" for k, w in zip(keys, width)))
             for e in rows:
                 mark = "  *" if e["epoch"] == best else ""
-                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e.get(k, '-')):>{w}}" for k, w in zip(keys, width)) + mark)
+                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e.get(k, '-')):>{w}}" for k, w in zip(keys, width))
+                           + mark)
                 if mark:
                     metric = metric or keys[1]
                     bests.append(f"{stage + ' ' if stage else ''}epoch {best} ({metric} {_fmt(e[metric])})")

@@ -85,7 +85,8 @@ class _CrossAttention(nn.Module):
             return t.contiguous().view(b, n, self.h, self.dk).permute(0, 2, 1, 3)
 
         v_in, i_in = self.LN1(vis), self.LN2(ir)
-        q_vis, k_vis, v_vis = split(self.que_proj_vis(v_in)), split(self.key_proj_vis(v_in)), split(self.val_proj_vis(v_in))
+        q_vis, k_vis, v_vis = (split(self.que_proj_vis(v_in)), split(self.key_proj_vis(v_in)),
+                               split(self.val_proj_vis(v_in)))
         q_ir, k_ir, v_ir = split(self.que_proj_ir(i_in)), split(self.key_proj_ir(i_in)), split(self.val_proj_ir(i_in))
         att_vis = torch.softmax(q_ir @ k_vis.transpose(-1, -2) / np.sqrt(self.dk), -1)   # pillar queries, CFA keys
         att_ir = torch.softmax(q_vis @ k_ir.transpose(-1, -2) / np.sqrt(self.dk), -1)    # CFA queries, pillar keys
@@ -104,7 +105,8 @@ class _CrossTransformerBlock(nn.Module):
         self.ln_input = nn.LayerNorm(d_model)
         self.ln_output = nn.LayerNorm(d_model)
         self.crossatt = _CrossAttention(d_model, h)
-        self.mlp_vis, self.mlp_ir, self.mlp = _mlp(d_model, block_exp), _mlp(d_model, block_exp), _mlp(d_model, block_exp)
+        self.mlp_vis, self.mlp_ir, self.mlp = (_mlp(d_model, block_exp), _mlp(d_model, block_exp),
+                                               _mlp(d_model, block_exp))
         self.LN1 = nn.LayerNorm(d_model)
         self.LN2 = nn.LayerNorm(d_model)
         for i in range(1, 9):
@@ -142,7 +144,8 @@ class _TransformerFusionBlock(nn.Module):
         self.crosstransformer = nn.Sequential(_CrossTransformerBlock(d_model, h, block_exp))
 
     def tokens(self, x: torch.Tensor, weights: _Weights, pos: torch.Tensor) -> torch.Tensor:
-        mixed = _adaptive_pool(x, self.anchors, "avg") * weights.w1 + _adaptive_pool(x, self.anchors, "max") * weights.w2
+        mixed = (_adaptive_pool(x, self.anchors, "avg") * weights.w1
+                 + _adaptive_pool(x, self.anchors, "max") * weights.w2)
         b, c = mixed.shape[:2]
         return mixed.contiguous().view(b, c, -1).permute(0, 2, 1) + pos
 

@@ -11,7 +11,8 @@ Three parts, exported as three graphs that share one set of weights:
    convolutions along the object sequence with residuals, multi-head self-attention per branch,
    then softmax(F3 F1^T) * softmax(F3 F5^T) as the attention weight on F3, added to its input
    (``mfam: residual``; upstream's ConvBlock also adds its input back, around a fusion of its
-   own: docs/models/des4pos.md) or not (``paper``). A bidirectional LSTM (eq. 6) over the objects, eq. 7's step-k downsampling
+   own: docs/models/des4pos.md) or not (``paper``). A bidirectional LSTM (eq. 6) over the objects,
+   eq. 7's step-k downsampling
    over the state's channels (``downsample: channels``, upstream: 512 -> 256) or over the
    objects, a max over the objects -> the L2-normalised descriptor.
 2. **Text encoder** (STE, III-B.2). A frozen sentence backbone (all-MiniLM-L6-v2 by default,
@@ -109,7 +110,8 @@ class SubmapConfig:
         levels = len(self.sa_npoint)
         if not levels or not len(self.sa_radius) == len(self.sa_nsample) == len(self.sa_mlp) == levels:
             raise ValueError(f"sa_npoint, sa_radius, sa_nsample and sa_mlp need one entry per set-abstraction level; "
-                             f"got {len(self.sa_npoint)}, {len(self.sa_radius)}, {len(self.sa_nsample)}, {len(self.sa_mlp)}")
+                             f"got {len(self.sa_npoint)}, {len(self.sa_radius)}, {len(self.sa_nsample)}, "
+                             f"{len(self.sa_mlp)}")
         if any(not isinstance(m, tuple) or not m for m in self.sa_mlp):
             raise ValueError("sa_mlp needs a list of layer widths per level, e.g. [[32, 64], [128, 128]]")
         if not self.global_mlp or len(self.head_mlp) != 2:
@@ -185,7 +187,8 @@ class BatchNormMLP(nn.Sequential):
     last axis of any [..., C] tensor; keys ``<i>.0`` (Linear) and ``<i>.1`` (BatchNorm) as upstream."""
 
     def __init__(self, dims):
-        super().__init__(*[nn.Sequential(nn.Linear(a, b), nn.BatchNorm1d(b), nn.ReLU()) for a, b in zip(dims[:-1], dims[1:])])
+        super().__init__(*[nn.Sequential(nn.Linear(a, b), nn.BatchNorm1d(b), nn.ReLU())
+                           for a, b in zip(dims[:-1], dims[1:])])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         shape = x.shape

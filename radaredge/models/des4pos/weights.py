@@ -41,7 +41,8 @@ class ObjectWeightsReport:
     unused: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
-        text = f"loaded {self.loaded} tensors of the object encoder ({', '.join(self.parts)}) from {self.path} ({self.source})"
+        text = (f"loaded {self.loaded} tensors of the object encoder ({', '.join(self.parts)}) "
+                f"from {self.path} ({self.source})")
         return text + (f"; left out {', '.join(self.unused)} (unused by the model)" if self.unused else "")
 
 

@@ -291,7 +291,8 @@ def generate_anchors(classes: list[AnchorClass], point_cloud_range, grid_xy: tup
     return torch.cat(per_class, 2).reshape(-1, 7)
 
 
-def decode_boxes(residuals: torch.Tensor, anchors: torch.Tensor, dir_logits: torch.Tensor, cfg: HeadConfig) -> torch.Tensor:
+def decode_boxes(residuals: torch.Tensor, anchors: torch.Tensor, dir_logits: torch.Tensor,
+                 cfg: HeadConfig) -> torch.Tensor:
     """OpenPCDet ResidualCoder.decode_torch plus the direction-bin heading fix: boxes [A, 7]."""
     xa, ya, za, dxa, dya, dza, ra = anchors.unbind(-1)
     xt, yt, zt, dxt, dyt, dzt, rt = residuals.unbind(-1)

@@ -85,7 +85,8 @@ class KeypointConfig:
         if self.num_sectors != 1:
             raise ConfigError("stage_two.keypoints.num_sectors: only 1 sector is supported (upstream's configs)")
         if self.padded_rois not in ("upstream", "valid"):
-            raise ConfigError(f"stage_two.keypoints.padded_rois must be 'upstream' or 'valid', got {self.padded_rois!r}")
+            raise ConfigError(f"stage_two.keypoints.padded_rois must be 'upstream' or 'valid', "
+                              f"got {self.padded_rois!r}")
 
 
 @card_ranges(radii=positive(100.0), nsample=(1, 1024), mlps=(1, 4096))

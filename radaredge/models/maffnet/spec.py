@@ -48,7 +48,8 @@ def _card_columns(cols: dict[str, np.ndarray], card: ModelCard) -> np.ndarray:
     """The card's feature columns of ``cols`` [N, F] float32, in card order."""
     missing = [f for f in card.features if f not in cols]
     if missing:
-        raise ConfigError(f"{card.where}: synthetic scans provide {sorted(cols)}; card features {missing} are not among them")
+        raise ConfigError(f"{card.where}: synthetic scans provide {sorted(cols)}; "
+                          f"card features {missing} are not among them")
     return np.ascontiguousarray(np.stack([cols[f] for f in card.features], 1), np.float32)
 
 

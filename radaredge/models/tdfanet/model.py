@@ -49,8 +49,9 @@ from ...ops.scan_batch import concat_scans
 AGGREGATIONS = ("deformable", "sum")
 
 
-@card_ranges(pyramid_stages=(1, 6), heads=(1, 64), points=(1, 64), ffn_ratio=(1, 16), dropout=Range(0.0, 1.0, high_open=True),
-             descriptor_dim=(1, 4096), mlp_hidden=(0, 4096), gem_p=positive(100.0), gem_eps=positive(1.0))
+@card_ranges(pyramid_stages=(1, 6), heads=(1, 64), points=(1, 64), ffn_ratio=(1, 16),
+             dropout=Range(0.0, 1.0, high_open=True), descriptor_dim=(1, 4096), mlp_hidden=(0, 4096),
+             gem_p=positive(100.0), gem_eps=positive(1.0))
 @dataclass(frozen=True)
 class TDFANetConfig:
     """Model-card section ``network``. Values the paper leaves open are justified in the card."""
@@ -262,7 +263,8 @@ class TDFANet(nn.Module):
         (descriptor [D], descriptor_normalized [D], ego_velocity [K, 3] m/s, ego_valid [K] bool,
         input_flags [K] int32, :mod:`radaredge.ops.input_flags`)."""
         out = self.run(list(inputs[: self.frames]), inputs[self.frames])
-        return out["descriptor"], out["descriptor_normalized"], out["ego_velocity"], out["ego_valid"], out["input_flags"]
+        return (out["descriptor"], out["descriptor_normalized"], out["ego_velocity"], out["ego_valid"],
+                out["input_flags"])
 
     def run(self, frames: list[torch.Tensor], timestamps: torch.Tensor, reference: bool = False,
             trace: dict | None = None) -> dict[str, torch.Tensor]:
