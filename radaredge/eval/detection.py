@@ -292,15 +292,15 @@ class DetectionEvalReport:
 
         def cell(backend: str, area: str, cls: str, metric: str, value: float) -> str:
             iv = self.intervals.get(backend, {}).get(area, {}).get(cls, {}).get(metric)
-            return f"{value:>24.2f}" if iv is None else f"{f'{value:6.2f} [{iv[0]:5.1f}, {iv[1]:5.1f}]':>24}"
+            return f"{value:>26.2f}" if iv is None else f"{f'{value:6.2f} [{iv[0]:6.2f}, {iv[1]:6.2f}]':>26}"
 
         def diff(backend: str, area: str, cls: str, metric: str, value: float) -> str:
             iv = self.delta_intervals.get(backend, {}).get(area, {}).get(cls, {}).get(metric)
-            return f"{value:>+22.2f}" if iv is None else f"{f'{value:+6.2f} [{iv[0]:+5.1f}, {iv[1]:+5.1f}]':>22}"
+            return f"{value:>+24.2f}" if iv is None else f"{f'{value:+6.2f} [{iv[0]:+6.2f}, {iv[1]:+6.2f}]':>24}"
 
         for metric, title in (("3d", "3D AP"), ("bev", "BEV AP")):
-            head = f"{title:<12}{'area':<13}{'objects':>8}" + f"{self.baseline:>24}"
-            head += "".join(f"{b:>24}{'diff':>22}" for b in others)
+            head = f"{title:<12}{'area':<13}{'objects':>8}" + f"{self.baseline:>26}"
+            head += "".join(f"{b:>26}{'diff':>24}" for b in others)
             lines += ["", head]
             for area in self.areas:
                 for cls in [*self.classes, MEAN]:
