@@ -155,7 +155,8 @@ def measure_card(name: str, real: Path, timed: int, runs: int, threads: int, wor
         out["grid_density"] = study = grid_density_study(card, model, frames, inputs)
         graph_converged = [bool(run_session(session, f)["cfa_converged"]) for f in chosen]
         chosen_rows = [study["per_frame"][i] for i in spread(len(frames), timed)]
-        assert graph_converged == [r["converged"] for r in chosen_rows], "the graph and the op disagree"
+        if graph_converged != [r["converged"] for r in chosen_rows]:
+            raise RuntimeError(f"{name}: the graph's cfa_converged and GridDensityBEV's disagree on the timed frames")
         if study["converged"] < study["frames"]:
             needed = min(study["steps_max"], MAX_STEPS)
             base = [detections(run_session(session, f)) for f in chosen]

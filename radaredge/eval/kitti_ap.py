@@ -353,8 +353,9 @@ class FrameTable:
 
 def bootstrap_rows(frames: int, samples: int = 1000, seed: int = 0) -> np.ndarray:
     """int64 [samples, frames]: frame indices drawn with replacement, one resample a row."""
-    return np.random.default_rng(seed).integers(0, frames, (samples, frames)) if frames else np.zeros((samples, 0),
-                                                                                                       np.int64)
+    if frames == 0:
+        return np.zeros((samples, 0), np.int64)
+    return np.random.default_rng(seed).integers(0, frames, (samples, frames))
 
 
 def resampled_ap(table: FrameTable, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
