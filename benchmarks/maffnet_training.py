@@ -2,8 +2,8 @@
 
 The same steps as the commands in docs/models/maffnet.md ("Training"), through the library verbs:
 
-1. the set: ``radaredge make-benchmark --task detection --out <work>/set --drives 20`` (train,
-   val and test drives apart);
+1. the set: ``radaredge make-benchmark --task detection --out <work>/set`` (version 2: 16 train,
+   4 val and 20 test drives, each in its own town);
 2. ``radaredge train --model <card> --data <work>/set`` with ``--set`` options (validation AP on
    the ``val`` split picks the best epoch); with ``--run DIR`` an existing run directory of that
    command is read instead of training again;
@@ -29,6 +29,7 @@ from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.eval.detection import ORT, ORT_INT8, REFERENCE
 
 import training_run
+from result_file import sha256_of
 
 
 def _ap(report) -> dict:
@@ -42,8 +43,9 @@ def _ap(report) -> dict:
 
 def main(argv=None) -> int:
     ap = training_run.parser("python benchmarks/maffnet_training.py", __doc__, "maffnet-vod")
-    ap.add_argument("--drives", type=int, default=20)
+    ap.add_argument("--drives", type=int, help="drives of the set (default: the set version's)")
     ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--set-version", type=int, default=2, choices=(1, 2), help="the detection set's version")
     ap.add_argument("--data", type=Path, help="an existing labelled set (default: <work>/set, written first)")
     ap.add_argument("--run", type=Path, help="an existing run directory of `radaredge train` to score")
     ap.add_argument("--command", help="the training command to record with --run")
@@ -52,7 +54,7 @@ def main(argv=None) -> int:
     card, work, options, stamp = training_run.start(args)
     data = args.data or work / "set"
     if not data.exists():
-        make_detection_benchmark(data, args.drives, args.frames, seed=0)
+        make_detection_benchmark(data, args.drives, args.frames, seed=0, version=args.set_version)
     run = args.run or work / "run"
     if args.run is None:
         t0 = time.perf_counter()
@@ -73,11 +75,12 @@ def main(argv=None) -> int:
             continue
         row = rep.ap[backend]["entire_area"]
         print(f"test split, {name}: 3D AP " + ", ".join(f"{c} {v['3d']:.2f}" for c, v in row.items()), flush=True)
-    command = args.command or (f"radaredge make-benchmark --task detection --out set --drives {args.drives} "
-                               f"--frames {args.frames}; radaredge train --model {card.name} --data set"
+    drives = f" --drives {args.drives}" if args.drives else ""
+    command = args.command or (f"radaredge make-benchmark --task detection --out set --version {args.set_version}"
+                               f"{drives} --frames {args.frames}; radaredge train --model {card.name} --data set"
                                + training_run.settings_text(options))
     out = {"date": stamp, "card": card.name, "machine": training_run.machine(), "command": command,
-           "data": str(data), "train": log, "train_seconds": log.get("seconds"),
+           "checkpoint_sha256": sha256_of(best), "data": str(data), "train": log, "train_seconds": log.get("seconds"),
            "test_trained": _ap(trained), "test_seeded": _ap(untrained)}
     training_run.save(card, stamp, out)
     return 0

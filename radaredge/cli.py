@@ -357,10 +357,17 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
 @click.option("--task", type=click.Choice(["places", "detection"]), default="places", show_default=True,
               help="places: drives with positions for place recognition; detection: labelled frames for AP.")
 @click.option("--drives", type=click.IntRange(2, 100),
-              help="Places: drive 0 is the database, the rest queries  [default: 3]. Detection: drives, split "
-                   "train / val / test by drive  [default: 10].")
+              help="Places: drive 0 is the database, the rest queries  [default: 3]. Detection: drives, each in "
+                   "its own town, split train / val / test by drive  [default: 40 (half of them test) for "
+                   "--version 2, 10 for --version 1].")
 @click.option("--frames", type=click.IntRange(1, 20_000),
-              help="Scans per drive (10 Hz)  [default: places 60, detection 40].")
+              help="Places: scans per drive (10 Hz)  [default: 60]. Detection: labelled frames per drive, 0.5 s "
+                   "apart (--version 1: 0.1 s)  [default: 40].")
+@click.option("--version", "set_version", type=click.Choice(["1", "2"]),
+              help="Detection: the set's version. 2: radar physics (occlusion, range- and aspect-dependent "
+                   "points, elevation noise, micro-Doppler, ghosts and false alarms, manoeuvring traffic, "
+                   "per-drive mounting errors) and 20 held-out test drives; 1: the earlier, easier set  "
+                   "[default: 2]")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the town and every drive.")
 @click.option("--towns", default=1, show_default=True, type=click.IntRange(1, 1000),
               help="Places: towns of seeds SEED, SEED+1, ... in OUT/town-<seed> (training data for `radaredge train`).")
@@ -375,13 +382,14 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
                    "[default: 2.2].")
 @click.option("--json", "as_json", is_flag=True)
 @_friendly_errors
-def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, route_km, as_json):
+def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, route_km, set_version, as_json):
     """Write a synthetic benchmark. places: one town (static world) driven on several days with
     other traffic, ego speed and heading offset, and some parked cars moved; the town is one
     street, or with --layout network a grid of streets driven along routes (both lanes, partly
     against the database's direction); prints chance Recall@1. detection: labelled
     View-of-Delft-layout frames (single and 5-frame scans, label_2, calib, ImageSets) of cars,
-    pedestrians and cyclists, moving and parked, occluding each other."""
+    pedestrians and cyclists, moving and parked, occluding each other; prints the labels and the
+    distinct objects per split."""
     if task == "detection":
         given = [name for name, used in (("--towns", towns != 1), ("--layout", layout != "street"),
                                          ("--route-km", route_km is not None)) if used]
@@ -389,19 +397,20 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, 
             raise ConfigError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for --task places")
         # lazy: the scene generator is loaded only by the command that runs it
         from .data.detection_benchmark import make_detection_benchmark
-        result = make_detection_benchmark(out_dir, drives or 10, frames or 40, seed, progress=_progress("drives"),
-                                          dataset=dataset or "vod")
+        result = make_detection_benchmark(out_dir, drives, frames or 40, seed, progress=_progress("drives"),
+                                          dataset=dataset or "vod", version=int(set_version or 2))
         if as_json:
             click.echo(atomic.dumps(result.to_dict()))
             return
         where = f"{out_dir}/radar and {out_dir}/radar_5frames" if result.dataset == "vod" else f"{out_dir} (TJ4DRadSet)"
-        click.echo(f"wrote {sum(len(v) for v in result.splits.values())} labelled frames to {where} (seed {seed}):")
+        click.echo(f"wrote {sum(len(v) for v in result.splits.values())} labelled frames to {where} "
+                   f"(version {result.version}, seed {seed}); labels (distinct objects):")
         for split, ids in result.splits.items():
-            counts = ", ".join(f"{n} {c}" for c, n in result.objects[split].items())
+            counts = ", ".join(f"{n} ({result.distinct[split][c]}) {c}" for c, n in result.objects[split].items())
             click.echo(f"  {split:<6}{len(ids):>5} frames   {counts}")
         return
-    if dataset is not None:
-        raise ConfigError("--dataset is for --task detection")
+    if dataset is not None or set_version is not None:
+        raise ConfigError(f"{'--dataset' if dataset is not None else '--version'} is for --task detection")
     drives = drives or 3
     if drives > 64:
         raise ConfigError(f"--drives {drives}: a places benchmark has at most 64 drives")

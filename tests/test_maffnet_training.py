@@ -22,9 +22,11 @@ CARD = load_card(MAFFNET_TINY_CARD)
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory):
-    """A labelled synthetic VoD-layout set: 2 training drives of 20 frames, 1 validation drive."""
+    """A labelled synthetic VoD-layout set (version 1: consecutive frames, dense near points for the tiny
+    card's 12.8 m): 2 training drives of 20 frames, 1 validation drive."""
     out = tmp_path_factory.mktemp("train-set") / "set"
-    res = invoke("make-benchmark", "--task", "detection", "--out", out, "--drives", 3, "--frames", 20, "--seed", 3)
+    res = invoke("make-benchmark", "--task", "detection", "--out", out, "--drives", 3, "--frames", 20, "--seed", 3,
+                 "--version", 1)
     assert res.exit_code == 0, res.output
     return out
 

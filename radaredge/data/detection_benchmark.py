@@ -1,30 +1,45 @@
 """A labelled synthetic 3D-detection set in View-of-Delft's layout (:mod:`radaredge.data.kitti_detection`).
 
-Each drive is one seeded scene of :mod:`radaredge.data.synthetic` (its own traffic, ego motion
-and town): moving cars, pedestrians and cyclists in their lanes and parked cars along the
-kerb; about 30 % of the pedestrians and cyclists move on the carriageway (1-4 m from the
-ego lane's centre), so the driving corridor has some. Frame ``DDKKK`` is scan KKK + 4 of
-drive DD, so that the 4 scans before it exist::
+Each drive is one seeded scene of :mod:`radaredge.data.synthetic` in its own town (static
+world), with its own traffic and ego motion: moving cars, pedestrians and cyclists and parked
+cars along the kerb; about 30 % of the pedestrians and cyclists move on the carriageway (1-4 m
+from the ego lane's centre), so the driving corridor has some. Labelled frame ``DDKKK`` of drive
+DD is scan 4 + KKK x stride, so that the 4 scans before it exist::
 
     OUT/radar/training/velodyne/DDKKK.bin          the scan alone (VoD's 7 columns, time 0)
     OUT/radar_5frames/training/velodyne/DDKKK.bin  it and the 4 scans before it, moved into its
-                                                   frame, time <= 0 s (VoD's radar_5frames)
+                                                   frame, time = scan index 0, -1, ..., -4 (VoD's)
     OUT/<both>/training/label_2/DDKKK.txt          KITTI labels in the camera frame
     OUT/<both>/training/calib/DDKKK.txt            P2, R0_rect, Tr_velo_to_cam (radar -> camera)
-    OUT/<both>/ImageSets/{train,val,test}.txt      split by drive (no drive in two splits)
-    OUT/benchmark.json                             the parameters and the objects per class and split
+    OUT/<both>/ImageSets/{train,val,test}.txt      split by drive (no drive or town in two splits)
+    OUT/benchmark.json                             the parameters, each drive's town and radar
+                                                   mounting, and the objects per class and split
+
+Two versions. **1**: drives of consecutive 10 Hz frames, 10 % of them test drives; points sit on
+box faces by a fixed budget, with isotropic noise; parked cars and traffic moving at constant
+speed along their lanes; one calibration. **2** (the default) is built to rank detectors: the
+scenes' radar physics (:data:`PHYSICS_V2`, :mod:`radaredge.data.radar_physics`) has occlusion by
+nearer objects, points per object from the radar equation (falling with range, by class and
+aspect), noise in range, azimuth and (larger) elevation, micro-Doppler of walkers and cyclists,
+multipath ghosts that keep a mover's Doppler, false alarms, traffic that speeds up, slows down,
+swerves and crosses the road; each drive's radar has its own mounting error (up to 1 deg in
+pitch, roll and yaw, 5 cm in height), written into its calibration; labelled frames are 0.5 s
+apart; half the drives (20 by default) are the test split.
 
 Labels follow VoD's annotation rules: every object within 50 m of the sensor and at least
 partly inside the camera's view is labelled, whether or not the radar saw it (VoD annotates
 on the LiDAR); classes Car, Pedestrian, Cyclist. The camera (1936 x 1216 px, focal 1495 px:
 VoD's +-32.9 deg) sits 0.6 m above and 0.2 m behind the radar, pitched 2 deg down, so rotation
 about the camera's axis and the radar's differ as on VoD's vehicle. Occlusion is measured:
-the share of an object's azimuth interval (seen from the radar) that nearer labelled objects
-cover, 0 below 10 %, 1 below 50 %, else 2. Truncation is 0 (VoD does not use it).
+the share of the object hidden from the radar by nearer objects, 0 below 10 %, 1 below 50 %,
+else 2 (version 1: of its azimuth interval; version 2: of its radar-facing surface, by ray
+casting in azimuth and elevation, the same test that removes its hidden points). Truncation is
+0 (VoD does not use it).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
@@ -36,21 +51,32 @@ import numpy as np
 from .. import atomic
 from ..errors import ConfigError
 from .kitti_detection import Calibration, camera_box_corners, radar_boxes_to_labels
-from .synthetic import CLASS_NAMES, generate_sequence, tj4d_table, vod_accumulated_table, vod_table
+from .radar_physics import occluded_share
+from .synthetic import CLASS_NAMES, SceneConfig, generate_sequence, tj4d_table, vod_accumulated_table, vod_table
 
 LABEL_NAMES = {"car": "Car", "pedestrian": "Pedestrian", "cyclist": "Cyclist"}
 ANNOTATED_RANGE = 50.0            # m, VoD annotates objects within 50 m of the LiDAR
 HISTORY = 4                       # scans before a labelled frame (radar_5frames)
 VRU_ON_ROAD = 0.3                 # share of pedestrians and cyclists on the carriageway (the corridor has some)
 SINGLE_DIR, ACCUMULATED_DIR = "radar", "radar_5frames"
+VERSIONS = (1, 2)
+DEFAULT_DRIVES = {1: 10, 2: 40}
+FRAME_STRIDE = {1: 1, 2: 5}       # scans between labelled frames (10 Hz): version 2's are 0.5 s apart
+PHYSICS_V2 = dict(                # SceneConfig fields of every version-2 drive
+    points_model="radar", occlusion=True, position_noise=0.03, range_noise=0.05, azimuth_noise_deg=0.3,
+    elevation_noise_deg=1.0, micro_doppler=1.0, clutter_points=15.0, moving_ghosts=True, ghost_fraction=0.04,
+    traffic_accel_max=1.5, lane_changes=0.3, vru_crossing=0.15, vru_on_road=VRU_ON_ROAD)
+MOUNT_JITTER_DEG, MOUNT_HEIGHT_JITTER = 1.0, 0.05    # version 2: |pitch|, |roll|, |yaw| (deg) and |height| (m)
+NOMINAL_MOUNT_HEIGHT = 0.8                           # m, SceneConfig's default
 
 
 CAMERAS = {"vod": ((1936, 1216), 1495.0), "tj4d": ((1280, 960), 1110.0)}   # image (w, h) px, focal px
 
 
-def synthetic_calibration(dataset: str = "vod") -> Calibration:
+def synthetic_calibration(dataset: str = "vod", mount: np.ndarray | None = None) -> Calibration:
     """The benchmark's camera: the dataset's image size and focal length (principal point at the
-    image centre), 0.6 m above and 0.2 m behind the radar, pitched 2 deg down."""
+    image centre), 0.6 m above and 0.2 m behind the radar as designed, pitched 2 deg down.
+    ``mount`` [4, 4] maps the actual radar frame into the designed one (a mounting error)."""
     pitch = math.radians(2.0)
     axes = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])    # radar x fwd, y left, z up -> cam
     c, s = math.cos(pitch), math.sin(pitch)
@@ -58,6 +84,8 @@ def synthetic_calibration(dataset: str = "vod") -> Calibration:
     rotation = tilt @ axes
     camera_in_radar = np.array([-0.2, 0.0, 0.6])
     v2c = np.column_stack([rotation, -rotation @ camera_in_radar])
+    if mount is not None:
+        v2c = v2c @ np.asarray(mount, np.float64)
     (width, height), f = CAMERAS[dataset]
     p2 = np.array([[f, 0.0, width / 2, 0.0], [0.0, f, height / 2, 0.0], [0.0, 0.0, 1.0, 0.0]])
     return Calibration(p2, np.eye(3), v2c)
@@ -101,9 +129,12 @@ def _occlusion(boxes: np.ndarray) -> np.ndarray:
     return levels
 
 
-def frame_labels(boxes: np.ndarray, labels: np.ndarray, calib: Calibration, image_size: tuple[int, int]) -> list[str]:
+def frame_labels(boxes: np.ndarray, labels: np.ndarray, calib: Calibration, image_size: tuple[int, int],
+                 version: int = 1) -> tuple[list[str], np.ndarray]:
     """KITTI label lines of the annotated objects among radar-frame boxes [M, 7] (class index
-    ``labels`` into synthetic.CLASS_NAMES): within 50 m and at least partly in the image."""
+    ``labels`` into synthetic.CLASS_NAMES): within 50 m and at least partly in the image; and
+    the rows of ``boxes`` they label. Occlusion by :func:`_occlusion` (version 1) or by ray
+    casting among all ``boxes`` (:func:`radaredge.data.radar_physics.occluded_share`, version 2)."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     names = np.array([LABEL_NAMES[CLASS_NAMES[int(c)]] for c in labels], dtype=object)
     kitti = radar_boxes_to_labels(boxes, np.zeros(len(boxes)), names, calib, image_size)
@@ -113,7 +144,11 @@ def frame_labels(boxes: np.ndarray, labels: np.ndarray, calib: Calibration, imag
     inside = ((depth > 0.1) & (uv[..., 0] >= 0) & (uv[..., 0] < image_size[0]) & (uv[..., 1] >= 0)
               & (uv[..., 1] < image_size[1])).any(1)
     keep = inside & (np.hypot(boxes[:, 0], boxes[:, 1]) <= ANNOTATED_RANGE)
-    occluded = _occlusion(boxes[keep])
+    if version == 1:
+        occluded = _occlusion(boxes[keep])
+    else:
+        share = occluded_share(boxes)[keep]
+        occluded = np.where(share < 0.1, 0, np.where(share < 0.5, 1, 2))
     lines = []
     for k, i in enumerate(np.flatnonzero(keep)):
         length, h, w = kitti.dimensions[i]
@@ -121,41 +156,88 @@ def frame_labels(boxes: np.ndarray, labels: np.ndarray, calib: Calibration, imag
         alpha = (kitti.alpha[i] + np.pi) % (2 * np.pi) - np.pi
         values = [0.0, occluded[k], alpha, *kitti.bbox[i], h, w, length, *kitti.location[i], ry]
         lines.append(f"{names[i]} {values[0]:.0f} {values[1]:d} " + " ".join(f"{v:.6f}" for v in values[2:]))
-    return lines
+    return lines, np.flatnonzero(keep)
 
 
 @dataclass(frozen=True)
 class DetectionBenchmark:
-    """What :func:`make_detection_benchmark` wrote: the root, frame ids per split and objects per
+    """What :func:`make_detection_benchmark` wrote: the root, frame ids per split, labels per
+    class per split and distinct objects (one per object however many frames label it) per
     class per split."""
 
     out: Path
     splits: dict[str, list[str]]
     objects: dict[str, dict[str, int]]
     dataset: str = "vod"
+    version: int = 2
+    distinct: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"out": str(self.out), "dataset": self.dataset, "frames": {k: len(v) for k, v in self.splits.items()},
-                "objects": self.objects,
+        return {"out": str(self.out), "dataset": self.dataset, "version": self.version,
+                "frames": {k: len(v) for k, v in self.splits.items()}, "objects": self.objects,
+                "distinct_objects": self.distinct,
                 "layouts": [SINGLE_DIR, ACCUMULATED_DIR] if self.dataset == "vod" else ["."]}
 
 
-def split_drives(drives: int) -> dict[str, list[int]]:
-    """Drive indices per split: about 20 % val and 10 % test (at least one val drive), the rest train."""
-    n_val = max(1, round(0.2 * drives))
-    n_test = round(0.1 * drives) if drives >= 4 else 0
+def split_drives(drives: int, version: int = 1) -> dict[str, list[int]]:
+    """Drive indices per split. Version 1: about 20 % val and 10 % test (at least one val drive),
+    the rest train. Version 2: half the drives test (none below 4 drives); of the others about
+    20 % val (at least one), the rest train."""
+    if version == 1:
+        n_val = max(1, round(0.2 * drives))
+        n_test = round(0.1 * drives) if drives >= 4 else 0
+    else:
+        n_test = drives // 2 if drives >= 4 else 0
+        n_val = max(1, round(0.2 * (drives - n_test)))
     n_train = drives - n_val - n_test
     return {"train": list(range(n_train)), "val": list(range(n_train, n_train + n_val)),
             "test": list(range(n_train + n_val, drives))}
 
 
-def make_detection_benchmark(out: str | os.PathLike, drives: int = 10, frames: int = 40, seed: int = 0,
-                             progress: Callable | None = None, dataset: str = "vod") -> DetectionBenchmark:
-    """Write the set (module docstring) to ``out``: ``drives`` drives of ``frames`` labelled
-    frames. ``dataset`` "tj4d" writes TJ4DRadSet's layout instead: OUT/training and
-    OUT/ImageSets directly, 8-column scans (one scan each), TJ4D's camera (1280 x 960 px)."""
+def _drive_mounts(drives: int, seed: int) -> list[dict]:
+    """Version 2: each drive's radar mounting error, SceneConfig fields (uniform within
+    +-MOUNT_JITTER_DEG and +-MOUNT_HEIGHT_JITTER of the design), from its own stream."""
+    rng = np.random.default_rng([seed, 2])
+    angles = rng.uniform(-MOUNT_JITTER_DEG, MOUNT_JITTER_DEG, (drives, 3))
+    heights = NOMINAL_MOUNT_HEIGHT + rng.uniform(-MOUNT_HEIGHT_JITTER, MOUNT_HEIGHT_JITTER, drives)
+    return [dict(mount_pitch_deg=round(float(p), 4), mount_roll_deg=round(float(r), 4),
+                 mount_yaw_deg=round(float(y), 4), mount_height=round(float(h), 4))
+            for (p, r, y), h in zip(angles, heights)]
+
+
+def _radar_in_vehicle(mount: dict) -> np.ndarray:
+    """[4, 4] map from a drive's actual radar frame into the designed one (the vehicle's)."""
+    rotation = SceneConfig(**mount).mount_rotation
+    out = np.eye(4)
+    out[:3, :3] = np.eye(3) if rotation is None else rotation
+    out[2, 3] = mount["mount_height"] - NOMINAL_MOUNT_HEIGHT
+    return out
+
+
+def _drive_traffic(rng: np.random.Generator, drives: int, version: int) -> list[dict]:
+    """Each drive's traffic (SceneConfig fields); version 2 has more road users, for the test
+    split's distinct-object counts."""
+    if version == 1:
+        return [dict(num_cars=int(rng.integers(4, 11)), num_pedestrians=int(rng.integers(3, 9)),
+                     num_cyclists=int(rng.integers(2, 7)), static_points=int(rng.integers(250, 500)),
+                     vru_on_road=VRU_ON_ROAD) for _ in range(drives)]
+    return [dict(num_cars=int(rng.integers(6, 13)), num_pedestrians=int(rng.integers(8, 16)),
+                 num_cyclists=int(rng.integers(6, 12)), static_points=int(rng.integers(250, 500)))
+            for _ in range(drives)]
+
+
+def make_detection_benchmark(out: str | os.PathLike, drives: int | None = None, frames: int = 40, seed: int = 0,
+                             progress: Callable | None = None, dataset: str = "vod",
+                             version: int = 2) -> DetectionBenchmark:
+    """Write the set (module docstring) of ``version`` to ``out``: ``drives`` drives (default 10
+    for version 1, 40 for version 2) of ``frames`` labelled frames. ``dataset`` "tj4d" writes
+    TJ4DRadSet's layout instead: OUT/training and OUT/ImageSets directly, 8-column scans (one
+    scan each), TJ4D's camera (1280 x 960 px)."""
     if dataset not in CAMERAS:
         raise ConfigError(f"dataset must be one of {sorted(CAMERAS)}, got {dataset!r}")
+    if version not in VERSIONS:
+        raise ConfigError(f"version must be one of {list(VERSIONS)}, got {version!r}")
+    drives = DEFAULT_DRIVES[version] if drives is None else drives
     if drives < 2 or drives > 100:
         raise ConfigError(f"drives must be 2..100 (at least one train and one val drive), got {drives}")
     if frames < 1 or frames > 996:
@@ -165,18 +247,16 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int = 10, frames: i
     taken = [str(out / sub) for sub in (*subs, "benchmark.json") if (out / sub).exists()]
     if taken:
         raise ConfigError(f"{', '.join(taken)} already exist(s); write the benchmark to a new --out directory")
-    calib = synthetic_calibration(dataset)
     image_size = CAMERAS[dataset][0]
-    calib_text = calibration_text(calib)
-    rng = np.random.default_rng(seed)
-    traffic = [dict(num_cars=int(rng.integers(4, 11)), num_pedestrians=int(rng.integers(3, 9)),
-                    num_cyclists=int(rng.integers(2, 7)), static_points=int(rng.integers(250, 500)),
-                    vru_on_road=VRU_ON_ROAD)
-               for _ in range(drives)]
-    parts = split_drives(drives)
+    stride = FRAME_STRIDE[version]
+    traffic = _drive_traffic(np.random.default_rng(seed), drives, version)
+    mounts = _drive_mounts(drives, seed) if version == 2 else [{} for _ in range(drives)]
+    physics = PHYSICS_V2 if version == 2 else {}
+    parts = split_drives(drives, version)
     split_of = {d: name for name, ds in parts.items() for d in ds}
     splits: dict[str, list[str]] = {name: [] for name in parts}
     objects = {name: {n: 0 for n in LABEL_NAMES.values()} for name in parts}
+    seen: dict[str, dict[str, set]] = {name: {n: set() for n in LABEL_NAMES.values()} for name in parts}
     with atomic.Staging(out) as stage:
         roots = ({sub: stage.path(out / sub) for sub in subs} if dataset == "vod"
                  else {"tj4d": stage.path(out / "training").parent})
@@ -186,16 +266,22 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int = 10, frames: i
             (root / "ImageSets").mkdir(parents=True, exist_ok=True)
         drive_iter = progress(range(drives)) if progress else range(drives)
         for d in drive_iter:
-            scans = generate_sequence(frames + HISTORY, seed=seed * 1000 + d, **traffic[d])
+            calib = synthetic_calibration(dataset, _radar_in_vehicle(mounts[d]) if mounts[d] else None)
+            calib_text = calibration_text(calib)
+            scans = generate_sequence((frames - 1) * stride + HISTORY + 1, seed=seed * 1000 + d,
+                                      **{**traffic[d], **physics, **mounts[d]})
             for k in range(frames):
                 fid = f"{d:02d}{k:03d}"
-                scan = scans[k + HISTORY]
-                lines = frame_labels(scan.boxes, scan.box_labels, calib, image_size)
-                for line in lines:
-                    objects[split_of[d]][line.split()[0]] += 1
+                last = HISTORY + k * stride
+                scan = scans[last]
+                lines, rows = frame_labels(scan.boxes, scan.box_labels, calib, image_size, version)
+                for line, row in zip(lines, rows):
+                    name = line.split()[0]
+                    objects[split_of[d]][name] += 1
+                    seen[split_of[d]][name].add((d, int(scan.box_ids[row])))
                 if dataset == "vod":
                     tables = {SINGLE_DIR: vod_table(scan),
-                              ACCUMULATED_DIR: vod_accumulated_table(scans[k:k + HISTORY + 1])}
+                              ACCUMULATED_DIR: vod_accumulated_table(scans[last - HISTORY:last + 1])}
                 else:
                     tables = {"tj4d": tj4d_table(scan)}
                 for sub, root in roots.items():
@@ -206,9 +292,12 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int = 10, frames: i
         for root in roots.values():
             for name, ids in splits.items():
                 (root / "ImageSets" / f"{name}.txt").write_text("".join(f + "\n" for f in ids))
-        result = DetectionBenchmark(out, splits, objects, dataset)
+        distinct = {split: {name: len(ids) for name, ids in per.items()} for split, per in seen.items()}
+        result = DetectionBenchmark(out, splits, objects, dataset, version, distinct)
+        towns = {name: [seed * 1000 + d for d in ds] for name, ds in parts.items()}   # each drive's own static world
         atomic.write_json(stage.path(out / "benchmark.json"),
                           {**result.to_dict(), "seed": seed, "drives": drives, "frames_per_drive": frames,
-                           "drives_per_split": parts, "traffic": traffic})
+                           "frame_stride_scans": stride, "drives_per_split": parts, "towns_per_split": towns,
+                           "physics": physics, "traffic": traffic, "mounts": mounts})
         stage.commit()
     return result

@@ -70,6 +70,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import ConfigError, InputError
+from . import radar_physics
 
 COLUMNS = ("x", "y", "z", "v_r", "rcs")
 CLASS_NAMES = ("car", "pedestrian", "cyclist")
@@ -107,7 +108,8 @@ _DIMS = {  # (low, high) of length, width, height in m
     "cyclist": ((1.6, 1.9), (0.5, 0.7), (1.6, 1.9)),
 }
 _FACE_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], dtype=float)
-_STREAM_EGO, _STREAM_WORLD, _STREAM_TRAFFIC, _STREAM_FRAME, _STREAM_PARKING = range(5)
+_STREAM_EGO, _STREAM_WORLD, _STREAM_TRAFFIC, _STREAM_FRAME, _STREAM_PARKING, _STREAM_MANOEUVRE = range(6)
+_CROSSING_SPAN = 11.0              # m, crossing pedestrians and cyclists walk |d| <= 11 m and wrap
 _PARKED_SHIFT = (0.3, 0.8)         # m, |shift| of a moved parked car along its axis (slot gaps are >= 1.6 m)
 
 _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself allowed)
@@ -133,7 +135,19 @@ _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself 
     "ghost_fraction": (0.0, 0.5, True),
     "parked_change": (0.0, 1.0, True),
     "vru_on_road": (0.0, 1.0, True),
+    "range_noise": (0.0, None, True),
+    "azimuth_noise_deg": (0.0, 10.0, True),
+    "elevation_noise_deg": (0.0, 10.0, True),
+    "micro_doppler": (0.0, 1.0, True),
+    "clutter_points": (0.0, 1000.0, True),
+    "traffic_accel_max": (0.0, 5.0, True),
+    "lane_changes": (0.0, 1.0, True),
+    "vru_crossing": (0.0, 1.0, True),
+    "mount_pitch_deg": (-5.0, 5.0, True),
+    "mount_roll_deg": (-5.0, 5.0, True),
+    "mount_yaw_deg": (-5.0, 5.0, True),
 }
+POINTS_MODELS = ("budget", "radar")
 
 
 @dataclass(frozen=True)
@@ -173,6 +187,24 @@ class SceneConfig:
                                       # (|d| 1-4 m, with the traffic) instead of its sidewalk or bike lane, [0, 1]
     rcs_dbsm: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(_DEFAULT_RCS_DBSM))
     # (mean, std) in dBsm of one reflector point per class of RCS_CLASSES
+    # --- radar physics (radaredge.data.radar_physics); the defaults give the plain scenes above
+    points_model: str = "budget"      # "budget": objects share dynamic_fraction of the points and parked
+                                      # cars compete with the static world; "radar": every car, pedestrian
+                                      # and cyclist gets Poisson(density x projected area / range x detection
+                                      # probability) points on its radar-facing faces (radar equation)
+    occlusion: bool = False           # drop points whose line of sight passes through a nearer object box
+    range_noise: float = 0.0          # m, std of the range noise (on top of position_noise)
+    azimuth_noise_deg: float = 0.0    # deg, std of the azimuth noise
+    elevation_noise_deg: float = 0.0  # deg, std of the elevation noise (4D radars: several x the azimuth's)
+    micro_doppler: float = 0.0        # [0, 1]: spread of walkers' legs and cyclists' wheels and pedals
+    clutter_points: float = 0.0       # mean CFAR false alarms a scan, uniform over the FOV, random Doppler
+    moving_ghosts: bool = False       # multipath ghosts of moving objects keep their source's Doppler
+    traffic_accel_max: float = 0.0    # m/s^2, peak acceleration of each mover's sinusoidal speed change
+    lane_changes: float = 0.0         # chance per car and cyclist of one swerve (0.5-1.5 m) in the first 20 s
+    vru_crossing: float = 0.0         # chance per pedestrian / cyclist to cross the road (heading across it)
+    mount_pitch_deg: float = 0.0      # deg, the radar's mounting error about its y axis (nose down > 0)
+    mount_roll_deg: float = 0.0       # deg, about its x axis
+    mount_yaw_deg: float = 0.0        # deg, about its z axis
 
     @property
     def static_seed(self) -> int:
@@ -199,6 +231,24 @@ class SceneConfig:
             raise ConfigError(f"SceneConfig.min_range ({self.min_range} m) must be < max_range "
                               f"({self.max_range} m)")
         object.__setattr__(self, "rcs_dbsm", _merge_rcs(self.rcs_dbsm))
+        if self.points_model not in POINTS_MODELS:
+            raise ConfigError(f"SceneConfig.points_model must be one of {POINTS_MODELS}, got {self.points_model!r}")
+        for name in ("occlusion", "moving_ghosts"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ConfigError(f"SceneConfig.{name}: expected true or false, got {getattr(self, name)!r}")
+
+    @property
+    def mount_rotation(self) -> np.ndarray | None:
+        """Rotation [3, 3] from the radar's frame into the frame it was meant to have (mounting
+        error: yaw, then pitch, then roll), or None when there is none."""
+        if not (self.mount_pitch_deg or self.mount_roll_deg or self.mount_yaw_deg):
+            return None
+        yaw, pitch, roll = (math.radians(v) for v in (self.mount_yaw_deg, self.mount_pitch_deg,
+                                                       self.mount_roll_deg))
+        cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
+        about_y = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+        about_x = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+        return _rot_z(yaw) @ about_y @ about_x
 
 
 def _check_number(name: str, value, integer: bool, low, high, low_allowed: bool):
@@ -240,7 +290,7 @@ class RadarScan:
     points          float32 [N, 5], columns ``COLUMNS``: x, y, z (m), v_r (m/s, positive =
                     moving away), rcs (dBsm)
     dynamic         bool [N], the point lies on a moving object
-    ghost           bool [N], the point is a multipath ghost (never dynamic)
+    ghost           bool [N], the point is a multipath ghost or a false alarm (never dynamic)
     object_index    int64 [N], row of ``boxes`` the point lies on, -1 for none (static world
                     other than parked cars, and ghosts)
     ego_velocity    float64 [3], m/s, velocity of the radar w.r.t. the world
@@ -254,6 +304,8 @@ class RadarScan:
     box_velocities  float32 [M, 3], m/s, object velocity w.r.t. the world
     box_dynamic     bool [M], the object moves (False for parked cars)
     box_num_points  int64 [M], points of this scan on the object
+    box_ids         int64 [M], the object's identity within its sequence (a parked car keeps its
+                    id in every frame; movers are 1,000,000 + their row in the traffic)
     """
 
     points: np.ndarray
@@ -269,6 +321,7 @@ class RadarScan:
     box_velocities: np.ndarray
     box_dynamic: np.ndarray
     box_num_points: np.ndarray
+    box_ids: np.ndarray
 
     def column(self, name: str) -> np.ndarray:
         """Column ``name`` (one of ``COLUMNS``) of ``points``, float32 [N]."""
@@ -376,6 +429,7 @@ class _Ego:
     speed: float
     lateral: float
     mount_height: float
+    mount: np.ndarray | None = None   # SceneConfig.mount_rotation
 
     @property
     def slip(self) -> float:
@@ -388,13 +442,16 @@ class _Ego:
 
     def velocity(self) -> np.ndarray:
         """Radar velocity w.r.t. the world in the radar frame, m/s [3] (constant)."""
-        return np.array([self.speed * math.cos(self.slip), self.lateral, self.road.grade * self.speed])
+        velocity = np.array([self.speed * math.cos(self.slip), self.lateral, self.road.grade * self.speed])
+        return velocity if self.mount is None else self.mount.T @ velocity
 
     def pose(self, t: float) -> np.ndarray:
         """Radar-to-world transform [4, 4] at time ``t`` (s)."""
         s = self.speed * t
         pose = np.eye(4)
         pose[:3, :3] = _rot_z(float(self.road.heading(s)) + self.slip)
+        if self.mount is not None:
+            pose[:3, :3] = pose[:3, :3] @ self.mount
         pose[:3, 3] = self.road.to_world(s, 0.0, self.mount_height)
         return pose
 
@@ -413,7 +470,7 @@ def _draw_ego(config: SceneConfig) -> _Ego:
     else:
         curvature = 0.0
     grade = vertical / speed if speed > 0 else 0.0
-    return _Ego(_Road(curvature, grade), float(speed), float(lateral), config.mount_height)
+    return _Ego(_Road(curvature, grade), float(speed), float(lateral), config.mount_height, config.mount_rotation)
 
 
 # ----------------------------------------------------------------------------- world
@@ -422,13 +479,15 @@ def _draw_ego(config: SceneConfig) -> _Ego:
 @dataclass(frozen=True)
 class _Boxes:
     """Objects in world coordinates: centre [M, 3] (m), dims [M, 3] (length, width, height, m),
-    yaw [M] (rad), label [M] (index into CLASS_NAMES), velocity [M, 3] (m/s)."""
+    yaw [M] (rad), label [M] (index into CLASS_NAMES), velocity [M, 3] (m/s), ident [M] (the
+    object's id in the scene, RadarScan.box_ids)."""
 
     centre: np.ndarray
     dims: np.ndarray
     yaw: np.ndarray
     label: np.ndarray
     velocity: np.ndarray
+    ident: np.ndarray
 
     def __len__(self) -> int:
         return len(self.label)
@@ -439,7 +498,9 @@ class _Boxes:
         return _Boxes(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(_Boxes)))
 
 
-_NO_BOXES = _Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+_NO_BOXES = _Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3)),
+                   np.zeros(0, dtype=np.int64))
+_MOVER_ID = 1_000_000              # RadarScan.box_ids of movers start here; parked cars: 16 (segment + 4096) + slot
 
 
 @dataclass(frozen=True)
@@ -541,7 +602,7 @@ def _parked_cars(rng: np.random.Generator, road: _Road, s0: float, side: float) 
     dims = _draw_dims(rng, label)
     centre = road.to_world(s, side * rng.uniform(*_PARKING, s.size), dims[:, 2] / 2)
     yaw = road.heading(s) + np.pi * rng.integers(0, 2, s.size)
-    return _Boxes(centre, dims, yaw, label, np.zeros((s.size, 3)))
+    return _Boxes(centre, dims, yaw, label, np.zeros((s.size, 3)), np.zeros(s.size, dtype=np.int64))
 
 
 def _surface_reflectors(rng: np.random.Generator, config: SceneConfig, road: _Road, surface: _Surface) -> _Reflectors:
@@ -593,7 +654,7 @@ def _change_parking(rng: np.random.Generator, cars: _Boxes, reflectors: _Reflect
     owner = reflectors.owner[on_kept]
     row = np.cumsum(kept) - 1
     return (_Boxes(cars.centre[kept] + offset[kept], cars.dims[kept], cars.yaw[kept], cars.label[kept],
-                   cars.velocity[kept]),
+                   cars.velocity[kept], cars.ident[kept]),
             _Reflectors(reflectors.xyz[on_kept] + offset[owner], reflectors.normal[on_kept], reflectors.rcs[on_kept],
                         row[owner]))
 
@@ -616,6 +677,7 @@ def _build_segment(config: SceneConfig, road: _Road, index: int, s0: float) -> t
             surfaces.append(_pole(rng, s0, side))
         surfaces.append(_vegetation(rng, s0, side, _VEGETATION[1] if facade is None else facade - 0.5))
     cars = _Boxes.concat(parked)
+    cars = dataclasses.replace(cars, ident=16 * (index + 4096) + np.arange(len(cars), dtype=np.int64))
     parts = [_surface_reflectors(rng, config, road, s) for s in surfaces]
     car_reflectors = _box_reflectors(rng, config, cars, density=3.0)
     if config.parked_change > 0:
@@ -650,24 +712,69 @@ class _StaticWorld:
 
 
 @dataclass(frozen=True)
+class _Manoeuvres:
+    """How movers depart from constant speed along their lane, per mover [M]: a sinusoidal speed
+    change of ``amplitude`` m/s at ``omega`` rad/s from ``phase``; one lateral move of ``shift`` m
+    (a lane change or swerve) starting at ``start`` s and lasting ``duration`` s (smoothstep); and
+    ``cross`` m/s across the road (pedestrians and cyclists crossing; they keep their arc length)."""
+
+    amplitude: np.ndarray
+    omega: np.ndarray
+    phase: np.ndarray
+    shift: np.ndarray
+    start: np.ndarray
+    duration: np.ndarray
+    cross: np.ndarray
+
+    def along(self, s_dot: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(distance travelled along the road since t = 0 [M] m, speed along it at ``t`` [M] m/s)."""
+        angle = self.omega * t + self.phase
+        travelled = s_dot * t - self.amplitude / self.omega * (np.cos(angle) - np.cos(self.phase))
+        return travelled, s_dot + self.amplitude * np.sin(angle)
+
+    def lateral(self, d0: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(offset d at ``t`` [M] m, its rate [M] m/s) from lane ``d0``."""
+        x = np.clip((t - self.start) / self.duration, 0.0, 1.0)
+        d = d0 + self.shift * x * x * (3 - 2 * x) + self.cross * t
+        d_dot = self.shift * 6 * x * (1 - x) / self.duration + self.cross
+        crossing = self.cross != 0
+        d = np.where(crossing, (d + _CROSSING_SPAN) % (2 * _CROSSING_SPAN) - _CROSSING_SPAN, d)
+        return d, d_dot
+
+
+@dataclass(frozen=True)
 class _Traffic:
     """Moving objects: label [M], lateral offset d [M] (m), ds/dt [M] (m/s, negative = against
-    the ego's direction), arc length ahead of the ego at t = 0 [M] (m), dims [M, 3] (m)."""
+    the ego's direction), arc length ahead of the ego at t = 0 [M] (m), dims [M, 3] (m), and
+    their manoeuvres (None: constant speed in their lane)."""
 
     label: np.ndarray
     d: np.ndarray
     s_dot: np.ndarray
     ahead0: np.ndarray
     dims: np.ndarray
+    manoeuvres: _Manoeuvres | None = None
 
     def at(self, road: _Road, ego_speed: float, t: float) -> _Boxes:
         """World boxes and velocities at time ``t`` (s), wrapped into the traffic window."""
         low, high = _TRAFFIC_WINDOW
-        ahead = (self.ahead0 + (self.s_dot - ego_speed) * t - low) % (high - low) + low
+        ident = _MOVER_ID + np.arange(len(self.label), dtype=np.int64)
+        if self.manoeuvres is None:
+            ahead = (self.ahead0 + (self.s_dot - ego_speed) * t - low) % (high - low) + low
+            s = ego_speed * t + ahead
+            centre = road.to_world(s, self.d, self.dims[:, 2] / 2)
+            yaw = road.heading(s) + np.where(self.s_dot < 0, np.pi, 0.0)
+            return _Boxes(centre, self.dims, yaw, self.label, road.velocity(s, self.d, self.s_dot), ident)
+        travelled, speed = self.manoeuvres.along(self.s_dot, t)
+        ahead = (self.ahead0 + travelled - ego_speed * t - low) % (high - low) + low
         s = ego_speed * t + ahead
-        centre = road.to_world(s, self.d, self.dims[:, 2] / 2)
-        yaw = road.heading(s) + np.where(self.s_dot < 0, np.pi, 0.0)
-        return _Boxes(centre, self.dims, yaw, self.label, road.velocity(s, self.d, self.s_dot))
+        d, d_dot = self.manoeuvres.lateral(self.d, t)
+        waiting = (self.manoeuvres.cross != 0) & (np.abs(ahead) < 6.0) & (np.abs(d) < 2.5)  # the ego passes
+        d = np.where(waiting, np.where(d < 0, -2.5, 2.5), d)
+        centre = road.to_world(s, d, self.dims[:, 2] / 2)
+        yaw = road.heading(s) + np.arctan2(d_dot, speed * (1.0 - road.curvature_at(s) * d))
+        velocity = road.velocity(s, d, speed) + road.to_world_direction(s, 0.0, d_dot)
+        return _Boxes(centre, self.dims, yaw, self.label, velocity, ident)
 
 
 def _draw_lane_and_speed(rng: np.random.Generator, kind: str, on_road: float = 0.0) -> tuple[float, float]:
@@ -689,7 +796,35 @@ def _draw_traffic(config: SceneConfig) -> _Traffic:
     rng = _rng(config.seed, _STREAM_TRAFFIC)
     label = np.repeat(np.arange(3), [config.num_cars, config.num_pedestrians, config.num_cyclists])
     lanes = np.array([_draw_lane_and_speed(rng, CLASS_NAMES[c], config.vru_on_road) for c in label]).reshape(-1, 2)
-    return _Traffic(label, lanes[:, 0], lanes[:, 1], rng.uniform(10, 60, label.size), _draw_dims(rng, label))
+    traffic = _Traffic(label, lanes[:, 0], lanes[:, 1], rng.uniform(10, 60, label.size), _draw_dims(rng, label))
+    if config.traffic_accel_max or config.lane_changes or config.vru_crossing:
+        traffic = _draw_manoeuvres(config, traffic)
+    return traffic
+
+
+def _draw_manoeuvres(config: SceneConfig, traffic: _Traffic) -> _Traffic:
+    """``traffic`` with manoeuvres drawn from their own stream (the lanes and speeds stay those
+    of the plain scene): crossers (``vru_crossing``) walk or ride across the road at 0.8-1.8 /
+    2.5-5 m/s from a random offset; the others vary their speed by up to 60 % with a peak
+    acceleration of at most ``traffic_accel_max``; with chance ``lane_changes`` a car or cyclist
+    swerves 0.5-1.5 m to either side over 2-4 s, starting in the first 20 s (never into the ego
+    lane's middle: the traffic window wraps round the ego)."""
+    rng = _rng(config.seed, _STREAM_MANOEUVRE)
+    m = len(traffic.label)
+    pedestrian, cyclist, car = (traffic.label == k for k in range(3))
+    crossing = (pedestrian | cyclist) & (rng.random(m) < config.vru_crossing)
+    cross = np.where(crossing, rng.choice([-1.0, 1.0], m) * np.where(pedestrian, rng.uniform(0.8, 1.8, m),
+                                                                     rng.uniform(2.5, 5.0, m)), 0.0)
+    omega = rng.uniform(0.15, 0.5, m)
+    amplitude = np.minimum(config.traffic_accel_max / omega, 0.6 * np.abs(traffic.s_dot)) * rng.uniform(0.3, 1.0, m)
+    changing = (car | cyclist) & ~crossing & (rng.random(m) < config.lane_changes)
+    swerve = rng.uniform(0.5, 1.5, m) * np.where(np.abs(traffic.d) < 2.5, np.sign(traffic.d),
+                                                 rng.choice([-1.0, 1.0], m))
+    shift = np.where(changing, swerve, 0.0)
+    manoeuvres = _Manoeuvres(np.where(crossing, 0.0, amplitude), omega, rng.uniform(0, 2 * np.pi, m), shift,
+                             rng.uniform(0.0, 20.0, m), rng.uniform(2.0, 4.0, m), cross)
+    d = np.where(crossing, rng.uniform(-_CROSSING_SPAN, _CROSSING_SPAN, m), traffic.d)
+    return dataclasses.replace(traffic, d=d, s_dot=np.where(crossing, 0.0, traffic.s_dot), manoeuvres=manoeuvres)
 
 
 # ----------------------------------------------------------------------------- one scan
@@ -743,14 +878,14 @@ def _sample_moving(rng: np.random.Generator, config: SceneConfig, movers: _Boxes
 
 
 def _ghosts(rng: np.random.Generator, config: SceneConfig, xyz: np.ndarray, rcs: np.ndarray,
-            v_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            v_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Multipath ghosts of the real radar-frame points ``xyz``: (xyz [G, 3] m, noise-free v_r [G]
-    m/s, rcs [G] dBsm). Half are mirrored across a vertical plane y = const 1-8 m beyond their
-    source, half are double bounces at twice the source's range."""
+    m/s, rcs [G] dBsm, source row [G]). Half are mirrored across a vertical plane y = const 1-8 m
+    beyond their source, half are double bounces at twice the source's range."""
     n_real = len(xyz)
     n = int(rng.poisson(config.ghost_fraction / (1 - config.ghost_fraction) * n_real)) if n_real else 0
     if n == 0:
-        return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64)
     source = rng.integers(0, n_real, 4 * n)
     ghost = xyz[source].copy()
     mirror = rng.random(source.size) < 0.5
@@ -760,7 +895,15 @@ def _ghosts(rng: np.random.Generator, config: SceneConfig, xyz: np.ndarray, rcs:
     keep = np.flatnonzero(_in_fov(ghost, config))[:n]
     ghost = ghost[keep]
     offset = rng.choice([-1.0, 1.0], keep.size) * rng.uniform(*_GHOST_DOPPLER, keep.size)
-    return ghost, -_unit(ghost) @ v_ego + offset, rcs[source[keep]] - rng.uniform(3, 10, keep.size)
+    return ghost, -_unit(ghost) @ v_ego + offset, rcs[source[keep]] - rng.uniform(3, 10, keep.size), source[keep]
+
+
+def _radar_frame_boxes(objects: _Boxes, pose: np.ndarray) -> np.ndarray:
+    """float64 [M, 7] boxes of ``objects`` in the radar frame of ``pose``: centre, dims, yaw
+    relative to the radar's heading (a mounting tilt moves the centre, not the box's axes)."""
+    radar_yaw = math.atan2(pose[1, 0], pose[0, 0])
+    return np.column_stack([_to_radar(pose, objects.centre), objects.dims,
+                            _wrap_angle(objects.yaw - radar_yaw)]).reshape(-1, 7)
 
 
 def _radar_boxes(config: SceneConfig, objects: _Boxes, pose: np.ndarray, object_index: np.ndarray,
@@ -768,17 +911,16 @@ def _radar_boxes(config: SceneConfig, objects: _Boxes, pose: np.ndarray, object_
     """RadarScan box fields of the objects in the FOV or with points, and ``object_index``
     renumbered to rows of those boxes."""
     counts = np.bincount(object_index[object_index >= 0], minlength=len(objects))
-    centre = _to_radar(pose, objects.centre)
-    keep = _in_fov(centre, config) | (counts > 0)
+    boxes = _radar_frame_boxes(objects, pose)
+    keep = _in_fov(boxes[:, :3], config) | (counts > 0)
     row = np.append(np.cumsum(keep) - 1, -1)  # object_index -1 picks the trailing -1
-    radar_yaw = math.atan2(pose[1, 0], pose[0, 0])
-    yaw = _wrap_angle(objects.yaw - radar_yaw)
     fields = dict(
-        boxes=np.column_stack([centre, objects.dims, yaw])[keep].astype(np.float32).reshape(-1, 7),
+        boxes=boxes[keep].astype(np.float32).reshape(-1, 7),
         box_labels=objects.label[keep].astype(np.int64),
         box_velocities=(objects.velocity @ pose[:3, :3])[keep].astype(np.float32).reshape(-1, 3),
         box_dynamic=(np.arange(len(objects)) >= n_parked)[keep],
         box_num_points=counts[keep].astype(np.int64),
+        box_ids=objects.ident[keep].astype(np.int64),
     )
     return fields, row[object_index]
 
@@ -794,14 +936,62 @@ def _detect(rng: np.random.Generator, config: SceneConfig, reflectors: _Reflecto
             np.concatenate([reflectors.owner[picked], mover + n_parked]))
 
 
+def _sample_objects(rng: np.random.Generator, config: SceneConfig, objects: _Boxes, boxes: np.ndarray,
+                    pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points on every object by the radar equation (``points_model`` "radar"): Poisson(
+    :func:`radar_physics.expected_object_points`) a scan, drawn on the radar-facing faces with
+    chance proportional to the cosine of incidence (projected area), their RCS the class's
+    draw plus :func:`radar_physics.incidence_gain_db`. ``boxes`` are the objects in the radar
+    frame. Returns (world xyz [n, 3] m, rcs [n] dBsm, object row [n])."""
+    names = [CLASS_NAMES[c] for c in objects.label]
+    rcs_mean = np.array([config.rcs_dbsm[n][0] for n in names]).reshape(-1)
+    near = np.linalg.norm(boxes[:, :3], axis=1) <= config.max_range + 5.0
+    counts = rng.poisson(np.where(near, radar_physics.expected_object_points(boxes, names, rcs_mean), 0.0))
+    xyz, rcs, owner = [np.zeros((0, 3))], [np.zeros(0)], [np.zeros(0, dtype=np.int64)]
+    for i in np.flatnonzero(counts):
+        local, normal = _box_surface(rng, objects.dims[i], 8 * counts[i] + 32)
+        points, normal = _box_points_world(objects, i, local, normal)
+        radar_xyz, radar_normal = _to_radar(pose, points), normal @ pose[:3, :3]
+        cos_in = np.clip(-np.einsum("ij,ij->i", radar_normal, _unit(radar_xyz)), 0.0, 1.0)
+        chosen = np.flatnonzero((rng.random(len(points)) < cos_in) & _in_fov(radar_xyz, config))[:counts[i]]
+        xyz.append(points[chosen])
+        rcs.append(_draw_rcs(rng, config, names[i], chosen.size)
+                   + radar_physics.incidence_gain_db(radar_normal[chosen], radar_xyz[chosen]))
+        owner.append(np.full(chosen.size, i, dtype=np.int64))
+    return np.concatenate(xyz), np.concatenate(rcs), np.concatenate(owner)
+
+
+def _detect_radar(rng: np.random.Generator, config: SceneConfig, reflectors: _Reflectors, objects: _Boxes,
+                  boxes: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_detect` for ``points_model`` "radar": the static world without parked cars' fixed
+    reflectors (weighted sample, as "budget"), then every object by :func:`_sample_objects`."""
+    background = reflectors.owner < 0
+    world = _Reflectors(reflectors.xyz[background], reflectors.normal[background], reflectors.rcs[background],
+                        reflectors.owner[background])
+    picked = _sample_static(rng, config, world, pose)
+    object_xyz, object_rcs, owner = _sample_objects(rng, config, objects, boxes, pose)
+    return (np.concatenate([world.xyz[picked], object_xyz]), np.concatenate([world.rcs[picked], object_rcs]),
+            np.concatenate([np.full(picked.size, -1, dtype=np.int64), owner]))
+
+
 def _measure(rng: np.random.Generator, config: SceneConfig, xyz_world: np.ndarray, object_index: np.ndarray,
              dynamic: np.ndarray, objects: _Boxes, pose: np.ndarray,
              v_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reported positions (radar frame, with position noise) [N, 3] m and their noise-free v_r
-    = r̂·(v_obj - v_ego) [N] m/s, with v_obj the object's velocity for dynamic points, else 0."""
+    = r̂·(v_obj - v_ego) [N] m/s, with v_obj the object's velocity for dynamic points, else 0.
+    With ``range_noise`` / ``*_noise_deg`` the positions also get spherical noise, and with
+    ``micro_doppler`` a walker's or cyclist's limb and wheel points their own speed."""
     xyz = _to_radar(pose, xyz_world) + rng.normal(0, config.position_noise, xyz_world.shape)
+    xyz = radar_physics.spherical_noise(rng, xyz, config.range_noise, math.radians(config.azimuth_noise_deg),
+                                        math.radians(config.elevation_noise_deg))
     velocity = np.vstack([objects.velocity @ pose[:3, :3], np.zeros((1, 3))])  # radar frame; row -1: none
     v_obj = np.where(dynamic[:, None], velocity[object_index], 0.0)
+    if config.micro_doppler and dynamic.any():
+        rows = object_index[dynamic]
+        bottom = objects.centre[rows, 2] - objects.dims[rows, 2] / 2
+        share = (xyz_world[dynamic, 2] - bottom) / objects.dims[rows, 2]
+        names = [CLASS_NAMES[c] for c in objects.label[rows]]
+        v_obj[dynamic] *= radar_physics.micro_doppler_factor(rng, names, share, config.micro_doppler)[:, None]
     return xyz, np.einsum("ij,ij->i", _unit(xyz), v_obj - v_ego)
 
 
@@ -815,10 +1005,26 @@ def _synthesize(scene: _Scene, k: int) -> RadarScan:
     movers = scene.traffic.at(ego.road, ego.speed, t)
     objects = _Boxes.concat([parked, movers])
 
-    xyz_world, rcs, object_index = _detect(rng, config, reflectors, movers, len(parked), pose)
+    if config.points_model == "radar":
+        boxes = _radar_frame_boxes(objects, pose)
+        xyz_world, rcs, object_index = _detect_radar(rng, config, reflectors, objects, boxes, pose)
+    else:
+        xyz_world, rcs, object_index = _detect(rng, config, reflectors, movers, len(parked), pose)
+    if config.occlusion:
+        seen = ~radar_physics.hidden_by_boxes(_to_radar(pose, xyz_world), _radar_frame_boxes(objects, pose),
+                                              object_index)
+        xyz_world, rcs, object_index = xyz_world[seen], rcs[seen], object_index[seen]
     dynamic = object_index >= len(parked)
     xyz, v_r = _measure(rng, config, xyz_world, object_index, dynamic, objects, pose, v_ego)
-    ghost_xyz, ghost_v_r, ghost_rcs = _ghosts(rng, config, xyz, rcs, v_ego)
+    ghost_xyz, ghost_v_r, ghost_rcs, source = _ghosts(rng, config, xyz, rcs, v_ego)
+    if config.moving_ghosts:
+        ghost_v_r = np.where(dynamic[source], v_r[source], ghost_v_r)
+    if config.clutter_points:
+        alarm_xyz, alarm_v_r, alarm_rcs = radar_physics.false_alarms(
+            rng, config.clutter_points, config.min_range, config.max_range, math.radians(config.max_azimuth_deg),
+            math.radians(config.max_elevation_deg), doppler_span=15.0)
+        ghost_xyz, ghost_v_r = np.concatenate([ghost_xyz, alarm_xyz]), np.concatenate([ghost_v_r, alarm_v_r])
+        ghost_rcs = np.concatenate([ghost_rcs, alarm_rcs])
     n_real, n_ghost = len(xyz), len(ghost_xyz)
     v_r = np.concatenate([v_r, ghost_v_r]) + rng.normal(0, config.doppler_noise, n_real + n_ghost)
     points = np.column_stack([np.concatenate([xyz, ghost_xyz]), v_r, np.concatenate([rcs, ghost_rcs])])
