@@ -29,11 +29,20 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart=0 tests
 
-# The main job on built-in defaults: export the model, prove parity, measure speed.
+# The main job on built-in defaults: export the model, prove parity, measure speed. A card with
+# trained weights in the zoo (zoo/<card>/) is exported with them, and a detector then scores a small
+# synthetic set, drawing its detections in BEV (export/<card>.onnx.eval/bev-*.png).
+ZOO_WEIGHTS = $(wildcard zoo/$(MODEL)/weights.pth)
+WEIGHTS_ARGS = $(if $(ZOO_WEIGHTS),--config zoo/$(MODEL)/card.yaml --checkpoint $(ZOO_WEIGHTS))
 demo: $(STAMP)
-	$(BIN)/radaredge export --model $(MODEL)
-	$(BIN)/radaredge parity-check --model $(MODEL) --onnx export/$(MODEL).onnx
-	$(BIN)/radaredge bench --model $(MODEL) --onnx export/$(MODEL).onnx --runs $(RUNS)
+	$(BIN)/radaredge export --model $(MODEL) $(WEIGHTS_ARGS)
+	$(BIN)/radaredge parity-check --model $(MODEL) --onnx export/$(MODEL).onnx $(WEIGHTS_ARGS)
+	$(BIN)/radaredge bench --model $(MODEL) --onnx export/$(MODEL).onnx --runs $(RUNS) $(WEIGHTS_ARGS)
+	@if [ -n "$(ZOO_WEIGHTS)" ] && grep -q '^model: maffnet' zoo/$(MODEL)/card.yaml; then \
+	  rm -rf export/demo-detection && \
+	  $(BIN)/radaredge make-benchmark --task detection --out export/demo-detection --drives 4 --frames 5 --seed 11 && \
+	  $(BIN)/radaredge eval --model $(MODEL) --onnx export/$(MODEL).onnx --data export/demo-detection --split test \
+	    $(WEIGHTS_ARGS) --report-dir export/$(MODEL).onnx.eval; fi
 
 # The speed suite: every card x {torch reference, torch export, onnxruntime fp32, int8} on 2 cores;
 # writes benchmarks/README.md, benchmarks/suite.png and benchmarks/results/suite-<date>.json.
@@ -46,7 +55,7 @@ bench: $(STAMP)
 	    $(BIN)/python benchmarks/maffnet_trained.py --model $$card --checkpoint $(MAFFNET_RUNS)/$$card/best.pth \
 	      --data $(DETECTION_SET) || exit 1; \
 	  else echo "$$card: no $(MAFFNET_RUNS)/$$card/best.pth or no $(DETECTION_SET)/: trained-weight rows skipped" \
-	    "(radaredge make-benchmark --task detection --out $(DETECTION_SET) --drives 20; radaredge train" \
+	    "(radaredge make-benchmark --task detection --out $(DETECTION_SET); radaredge train" \
 	    "--model $$card --data $(DETECTION_SET) --output $(MAFFNET_RUNS)/$$card)"; fi; \
 	done
 	$(BIN)/python benchmarks/render.py

@@ -32,6 +32,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS_DIR = HERE / "results"
+ZOO_DIR = HERE.parent / "zoo"
 README = HERE / "README.md"
 
 # What the int8 export quantises when a suite file does not record it (radaredge's quantiser).
@@ -776,12 +777,13 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
     with each card's test mAP from its training result (benchmarks/maffnet_training.py)."""
     if not results:
         return []
-    by_card = {t.data["card"]: t for t in trainings if "test_trained" in t.data}
+    by_weights = {t.data["checkpoint_sha256"]: t for t in trainings
+                  if "test_trained" in t.data and t.data.get("checkpoint_sha256")}
     overview = []
     for r in results:
         d = r.data
         row = {x["graph"]: x for x in d.get("rows", [])}
-        t = by_card.get(d.get("model"))
+        t = by_weights.get(d.get("checkpoint_sha256"))
         overview.append([d.get("model"), d.get("cpu", "-"), _num(row.get("fp32", {}).get("fps")),
                          _num(row.get("int8", {}).get("fps")), _num(row.get("worst case", {}).get("fps")),
                          _num(_test_map(t, "onnxruntime"), ".2f"), _num(_test_map(t, "onnxruntime int8"), ".2f")])
@@ -789,7 +791,8 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
            "Each card's trained weights on the CPU of its row (frames per second compare only between rows of one "
            "CPU): frames per second of the fp32 graph, its int8 copy and "
            "the worst case (onnxruntime, 2 threads, real frames), and mean 3D AP over Car, Pedestrian and Cyclist "
-           "(entire area) on the test split of the synthetic set (the card's training section below).", ""]
+           "(entire area) on the test split of the synthetic set, from the training result of the same checkpoint "
+           "(joined by its sha256; '-' where no training result names that checkpoint).", ""]
     out += _table(["card", "CPU", "fp32 FPS", "int8 FPS", "worst-case FPS", "test mAP fp32", "test mAP int8"], overview)
     out += ["", "`benchmarks/maffnet_trained.py`: a trained checkpoint on real frames of a labelled set, onnxruntime, "
            "fp32 / int8 / worst case timed in one alternating loop. The worst case is the same weights with every "
@@ -814,7 +817,61 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
     return out
 
 
-def render(results_dir: Path = RESULTS_DIR) -> str:
+def _ap_cell(v: dict | None) -> str:
+    if v is None:
+        return "-"
+    low, high = v["3d_interval"]
+    return f"{v['3d']:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def _recall_cells(v: dict) -> list[str]:
+    return [f"{v['recall'][n]:.1f} [{v['recall_interval'][n][0]:.1f}, {v['recall_interval'][n][1]:.1f}]"
+            for n in ("1", "5", "10")]
+
+
+def zoo_section(zoo_dir: Path) -> list[str]:
+    """The weights zoo (zoo/<card>/entry.json, benchmarks/zoo.py): each entry's task metric on
+    held-out data with its 95 % interval, torch reference / fp32 graph / int8 graph, its weights
+    and the command that made them."""
+    entries = [json.loads(p.read_text()) for p in sorted(Path(zoo_dir).glob("*/entry.json"))]
+    if not entries:
+        return []
+    out = ["## The weights zoo", "",
+           "Trained weights in the repository (`zoo/<card>/`, written by `benchmarks/zoo.py`; synthetic scenes only), "
+           "each metric with its 95 % bootstrap interval; `make test` re-scores each export on its regression set "
+           "(tests/test_zoo.py).", ""]
+    detectors = [e for e in entries if "mAP" in next(iter(e["test"]["scores"].values()))]
+    places = [e for e in entries if e not in detectors]
+    if detectors:
+        out += ["3D AP (entire area, VoD's protocol) on the test split of the synthetic detection set they trained "
+                "on (over frames):", ""]
+        rows = [[e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend]
+                + [_ap_cell(row.get(c)) for c in ("Car", "Pedestrian", "Cyclist", "mAP")]
+                for e in detectors for backend, row in e["test"]["scores"].items()]
+        out += _table(["card", "weights sha256", "epoch", "backend", "Car", "Pedestrian", "Cyclist", "mAP"], rows)
+        out += [""]
+    if places:
+        out += ["Recall@N (%, 5 m) on the held-out street town (`make-benchmark --seed 0`, over queries):", ""]
+        rows = [[e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend] + _recall_cells(row)
+                for e in places for backend, row in e["test"]["scores"].items()]
+        out += _table(["card", "weights sha256", "epoch", "backend", "R@1", "R@5", "R@10"], rows)
+        out += [""]
+    for e in entries:
+        reg, machine = e["regression"], e["machine"]
+        where = f"{machine.get('cpu')}, {machine.get('threads')} threads"
+        if e in detectors:
+            regression = (f"`make-benchmark --task detection --version {reg['version']} --drives {reg['drives']} "
+                          f"--frames {reg['frames']} --seed {reg['seed']}`, split {reg['split']}, fp32 mAP "
+                          f"{_ap_cell(reg['scores']['mAP'])}")
+        else:
+            regression = (f"`make-benchmark --drives {reg['drives']} --frames {reg['frames']} --seed {reg['seed']}`, "
+                          f"fp32 R@1 {_recall_cells(reg['scores'])[0]}")
+        out += [f"- {e['card']}: `{e['command']}` (training seed {e['training_seed']}; scored on {where}). "
+                f"Regression set: {regression}."]
+    return out + [""]
+
+
+def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     """The whole of benchmarks/README.md, built from the JSON files in ``results_dir``."""
     results_dir = Path(results_dir)
     results = load(results_dir)
@@ -844,6 +901,7 @@ def render(results_dir: Path = RESULTS_DIR) -> str:
     out += cfa_section(cfa, results_dir)
     out += real_data_section(real, results_dir)
     out += fleet_section(fleet, results_dir)
+    out += zoo_section(zoo_dir)
     out += trained_section(trained, trainings, results_dir)
     out += places_section(places, results_dir)
     out += variants_section(variants, results_dir)

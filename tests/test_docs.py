@@ -142,7 +142,7 @@ def test_render_handles_every_result_kind(tmp_path):
               "fps": {"onnxruntime": 20.0, "onnxruntime int8": 25.0}, "frames": 8}
     (res / "m-training-2030-01-01.json").write_text(json.dumps({
         "date": "2030-01-01 00:00", "card": "m", "command": "radaredge train --model m --data set",
-        "machine": {"cpu": "cpu", "threads": 2}, "train_seconds": 60.0, "test_trained": report, "test_seeded": report,
+        "checkpoint_sha256": "ab" * 32, "machine": {"cpu": "cpu", "threads": 2}, "train_seconds": 60.0, "test_trained": report, "test_seeded": report,
         "train": {"best_epoch": 1, "data": {"train_frames": 8}, "epochs": [
             {"epoch": 0, "loss": float("nan"), "AP3d_Car": 0.0, "mAP3d": 0.0, "seconds": 1.0},
             {"epoch": 1, "loss": 1.0, "AP3d_Car": 40.0, "mAP3d": 20.0, "seconds": 60.0}]}}))
@@ -210,7 +210,7 @@ def test_render_handles_every_result_kind(tmp_path):
     assert "| chance (random ranking) | 0.35 | - | - | 2.10 |" in current
     assert ("80 with, 10 against queries" in current
             and "| trained, int8 | 45.0 [35.0, 55.0] | 0.0 [0.0, 0.0] |" in current)
-    assert "| m | cpu | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current    # CPU, FPS beside the test mAP
+    assert "| m | cpu | 20.0 | 20.0 | 20.0 | 30.00 | 30.00 |" in current    # CPU, FPS beside the same weights' mAP
     assert "## MAFF-Net training: m" in current and "| trained, onnxruntime int8 | 50.00 (60.00) |" in current
     for heading in ("## Speed suite", "## Per-model benches", "## Graph comparisons", "## MAFF-Net capacity",
                     "## Clustering stage", "## MAFF-Net on trained weights"):
@@ -224,6 +224,9 @@ def test_render_handles_every_result_kind(tmp_path):
     assert "## MAFF-Net training step" in current and "| bf16 | after | 0.500 | 0.600 | 2.00x |" in current
     assert "2.0x" in current and "(1 cloud, each with and without the crop" in current
     assert render.render(res) == text                          # deterministic
+    other = json.loads((res / "maffnet-trained-m-2030-01-01.json").read_text())
+    (res / "maffnet-trained-m-2030-01-01.json").write_text(json.dumps({**other, "checkpoint_sha256": "cd" * 32}))
+    assert "| m | cpu | 20.0 | 20.0 | 20.0 | - | - |" in render.render(res)   # other weights: no mAP beside them
 
 
 def test_training_plot_draws_the_benchmark_run_and_every_variant(tmp_path):
@@ -283,9 +286,10 @@ MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|scratch|Users|pr
 
 
 def test_no_result_or_generated_page_holds_a_machine_path():
-    """Result JSONs and the generated benchmarks page name paths relative to the repository or
+    """Result JSONs, the zoo's entries and the generated benchmarks page name paths relative to the repository or
     shortened (benchmarks/result_file.py); never this machine's directories."""
-    files = [*sorted((ROOT / "benchmarks" / "results").glob("*.json")), ROOT / "benchmarks" / "README.md"]
+    files = [*sorted((ROOT / "benchmarks" / "results").glob("*.json")), *sorted((ROOT / "zoo").glob("*/*.json")),
+             ROOT / "benchmarks" / "README.md"]
     found = [f"{f.relative_to(ROOT)}: {m.group(0)}" for f in files for m in MACHINE_PATH.finditer(f.read_text())]
     assert not found, found[:10]
 

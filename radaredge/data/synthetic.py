@@ -50,6 +50,14 @@ One scan
    are never consistent with the static world, and an RCS 3-10 dB below their source.
 5. Points outside the FOV after noise are dropped and the order is shuffled.
 
+Radar physics (``SceneConfig``'s fields from ``points_model`` on, all off by default;
+:mod:`radaredge.data.radar_physics`): with ``points_model`` "radar" every car, pedestrian and
+cyclist, parked or moving, gets Poisson(radar-equation mean) points on its radar-facing faces
+instead of step 2's budget; ``occlusion`` drops points behind nearer objects; range, azimuth
+and elevation noise, micro-Doppler, false alarms and ghosts that keep a mover's Doppler join
+steps 3-4; movers may change speed, swerve or cross the road; the radar may sit with a
+mounting error. The detection benchmark's version 2 turns them all on.
+
 What an estimator can reach: with the defaults (300 static points, 0.05 m/s Doppler noise)
 least squares on the true static points has errors of about 0.005 m/s on v_x and v_y and
 0.035 m/s (1 sigma) on v_z, which the +-15 deg elevation FOV observes poorly because most

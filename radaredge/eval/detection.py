@@ -513,8 +513,8 @@ class Int8ApReport:
 def int8_ap_loss(card: ModelCard, onnx_path, checkpoint=None) -> Int8ApReport:
     """3D AP per class of the fp32 graph at ``onnx_path`` (or the graph of an int8 copy named
     there) and of its int8 copy, on every frame of a labelled synthetic set in the card's dataset
-    layout (:func:`radaredge.data.detection_benchmark.make_detection_benchmark`, seed 7: none of
-    its drives is one a model trained on the default set has seen). All three splits count: a
+    layout (:func:`radaredge.data.detection_benchmark.make_detection_benchmark`, version 1, seed 7:
+    none of its drives is one a model trained on the default set has seen). All three splits count: a
     1-point budget on a dozen frames is decided by one or two boxes."""
     fp32 = artifacts.graph_of_copy(onnx_path)
     for path, what in ((fp32, "fp32 graph"), (artifacts.copy_path(fp32, artifacts.INT8), "int8 copy")):
@@ -524,7 +524,7 @@ def int8_ap_loss(card: ModelCard, onnx_path, checkpoint=None) -> Int8ApReport:
     layout = layout_for_card(card)
     with tempfile.TemporaryDirectory(prefix="radaredge-int8-ap-") as tmp:
         root = Path(tmp) / "set"
-        make_detection_benchmark(root, INT8_AP_DRIVES, INT8_AP_FRAMES, seed=7, dataset=layout.name)
+        make_detection_benchmark(root, INT8_AP_DRIVES, INT8_AP_FRAMES, seed=7, dataset=layout.name, version=1)
         for image_sets in root.glob("**/ImageSets"):
             ids = "".join((image_sets / f"{split}.txt").read_text() for split in ("train", "val", "test"))
             (image_sets / f"{INT8_AP_SPLIT}.txt").write_text(ids)
