@@ -142,7 +142,8 @@ def test_render_handles_every_result_kind(tmp_path):
               "fps": {"onnxruntime": 20.0, "onnxruntime int8": 25.0}, "frames": 8}
     (res / "m-training-2030-01-01.json").write_text(json.dumps({
         "date": "2030-01-01 00:00", "card": "m", "command": "radaredge train --model m --data set",
-        "checkpoint_sha256": "ab" * 32, "machine": {"cpu": "cpu", "threads": 2}, "train_seconds": 60.0, "test_trained": report, "test_seeded": report,
+        "checkpoint_sha256": "ab" * 32, "machine": {"cpu": "cpu", "threads": 2}, "train_seconds": 60.0,
+        "test_trained": report, "test_seeded": report,
         "train": {"best_epoch": 1, "data": {"train_frames": 8}, "epochs": [
             {"epoch": 0, "loss": float("nan"), "AP3d_Car": 0.0, "mAP3d": 0.0, "seconds": 1.0},
             {"epoch": 1, "loss": 1.0, "AP3d_Car": 40.0, "mAP3d": 20.0, "seconds": 60.0}]}}))
