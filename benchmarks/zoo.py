@@ -5,7 +5,8 @@ Given the run directory of ``radaredge train`` and the data it trained on, this 
 - zoo/<card>/weights.pth: the run's best.pth (weights, card, epoch and validation metrics);
 - zoo/<card>/card.yaml: the card it was trained with (the export and the regression test read it);
 - zoo/<card>/entry.json: sha256 of both, the commands that made them, the training seed, the
-  task metric of the torch reference, the fp32 graph and the int8 graph with 95 % intervals on
+  task metric of the torch reference, the fp32 graph, the int8 graph and the seeded (untrained)
+  network's graph, with 95 % intervals, on
   held-out data (MAFF-Net: 3D / BEV AP per class on the test split of the labelled set;
   TDFANet: Recall@1/5/10 on the held-out street town, seed 0), and the regression set (a small
   fixed synthetic set no training drive is in) with the fp32 graph's metric and interval there,
@@ -69,8 +70,11 @@ def score_detector(card, weights: Path, data: Path, work: Path) -> tuple[dict, d
     onnx = work / f"{card.name}.onnx"
     radaredge.export(card, onnx, checkpoint=weights, quantize="int8")
     report = evaluate_detection(card, onnx, data, "test", checkpoint=weights, reference=True, openvino=False)
+    seeded = work / f"{card.name}-seeded.onnx"
+    radaredge.export(card, seeded)
+    untrained = evaluate_detection(card, seeded, data, "test", reference=False, openvino=False)
     test = {"frames": len(report.frames), "scores": detection_scores(report, [REFERENCE, ORT, ORT_INT8]),
-            "fps": report.fps}
+            "seeded": detection_scores(untrained, [ORT])[ORT]}      # speed: the benchmarks, measured alone
     spec = DETECTION_REGRESSION
     make_detection_benchmark(work / "regression", spec["drives"], spec["frames"], spec["seed"], version=spec["version"])
     fp32 = work / f"{card.name}-fp32.onnx"
@@ -90,7 +94,11 @@ def score_places(card, weights: Path, work: Path) -> tuple[dict, dict]:
     int8 = radaredge.evaluate(card, next(iter(exported.int8.values())), town / "database", town / "queries",
                               checkpoint=weights, reference=False)
     scores = {**place_scores(fp32, fp32.results), **{ORT_INT8: place_scores(int8, [ORT])[ORT]}}
-    test = {**PLACES_TEST, "queries": fp32.evaluated, "scores": scores}
+    seeded = work / f"{card.name}-seeded.onnx"
+    radaredge.export(card, seeded)
+    untrained = radaredge.evaluate(card, seeded, town / "database", town / "queries", reference=False)
+    test = {**PLACES_TEST, "queries": fp32.evaluated, "scores": scores,
+            "seeded": place_scores(untrained, [ORT])[ORT]}
     reg = radaredge.evaluate(card, onnx, reg_town / "database", reg_town / "queries", reference=False)
     return test, {**PLACES_REGRESSION, "queries": reg.evaluated, "scores": place_scores(reg, [ORT])[ORT]}
 
