@@ -65,7 +65,7 @@ FRAME_STRIDE = {1: 1, 2: 5}       # scans between labelled frames (10 Hz): versi
 PHYSICS_V2 = dict(                # SceneConfig fields of every version-2 drive
     points_model="radar", occlusion=True, position_noise=0.03, range_noise=0.05, azimuth_noise_deg=0.3,
     elevation_noise_deg=1.0, micro_doppler=1.0, clutter_points=15.0, moving_ghosts=True, ghost_fraction=0.04,
-    traffic_accel_max=1.5, lane_changes=0.3, vru_crossing=0.15, vru_on_road=VRU_ON_ROAD)
+    traffic_accel_max=1.5, swerves=0.3, vru_crossing=0.15, vru_on_road=VRU_ON_ROAD)
 MOUNT_JITTER_DEG, MOUNT_HEIGHT_JITTER = 1.0, 0.05    # version 2: |pitch|, |roll|, |yaw| (deg) and |height| (m)
 NOMINAL_MOUNT_HEIGHT = 0.8                           # m, SceneConfig's default
 

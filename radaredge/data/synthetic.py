@@ -149,7 +149,7 @@ _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself 
     "micro_doppler": (0.0, 1.0, True),
     "clutter_points": (0.0, 1000.0, True),
     "traffic_accel_max": (0.0, 5.0, True),
-    "lane_changes": (0.0, 1.0, True),
+    "swerves": (0.0, 1.0, True),
     "vru_crossing": (0.0, 1.0, True),
     "mount_pitch_deg": (-5.0, 5.0, True),
     "mount_roll_deg": (-5.0, 5.0, True),
@@ -208,7 +208,7 @@ class SceneConfig:
     clutter_points: float = 0.0       # mean CFAR false alarms a scan, uniform over the FOV, random Doppler
     moving_ghosts: bool = False       # multipath ghosts of moving objects keep their source's Doppler
     traffic_accel_max: float = 0.0    # m/s^2, peak acceleration of each mover's sinusoidal speed change
-    lane_changes: float = 0.0         # chance per car and cyclist of one swerve (0.5-1.5 m) in the first 20 s
+    swerves: float = 0.0              # chance per car and cyclist of one swerve (0.5-1.5 m) in the first 20 s
     vru_crossing: float = 0.0         # chance per pedestrian / cyclist to cross the road (heading across it)
     mount_pitch_deg: float = 0.0      # deg, the radar's mounting error about its y axis (nose down > 0)
     mount_roll_deg: float = 0.0       # deg, about its x axis
@@ -723,7 +723,7 @@ class _StaticWorld:
 class _Manoeuvres:
     """How movers depart from constant speed along their lane, per mover [M]: a sinusoidal speed
     change of ``amplitude`` m/s at ``omega`` rad/s from ``phase``; one lateral move of ``shift`` m
-    (a lane change or swerve) starting at ``start`` s and lasting ``duration`` s (smoothstep); and
+    (a swerve) starting at ``start`` s and lasting ``duration`` s (smoothstep); and
     ``cross`` m/s across the road (pedestrians and cyclists crossing; they keep their arc length)."""
 
     amplitude: np.ndarray
@@ -805,7 +805,7 @@ def _draw_traffic(config: SceneConfig) -> _Traffic:
     label = np.repeat(np.arange(3), [config.num_cars, config.num_pedestrians, config.num_cyclists])
     lanes = np.array([_draw_lane_and_speed(rng, CLASS_NAMES[c], config.vru_on_road) for c in label]).reshape(-1, 2)
     traffic = _Traffic(label, lanes[:, 0], lanes[:, 1], rng.uniform(10, 60, label.size), _draw_dims(rng, label))
-    if config.traffic_accel_max or config.lane_changes or config.vru_crossing:
+    if config.traffic_accel_max or config.swerves or config.vru_crossing:
         traffic = _draw_manoeuvres(config, traffic)
     return traffic
 
@@ -814,7 +814,7 @@ def _draw_manoeuvres(config: SceneConfig, traffic: _Traffic) -> _Traffic:
     """``traffic`` with manoeuvres drawn from their own stream (the lanes and speeds stay those
     of the plain scene): crossers (``vru_crossing``) walk or ride across the road at 0.8-1.8 /
     2.5-5 m/s from a random offset; the others vary their speed by up to 60 % with a peak
-    acceleration of at most ``traffic_accel_max``; with chance ``lane_changes`` a car or cyclist
+    acceleration of at most ``traffic_accel_max``; with chance ``swerves`` a car or cyclist
     swerves 0.5-1.5 m to either side over 2-4 s, starting in the first 20 s (never into the ego
     lane's middle: the traffic window wraps round the ego)."""
     rng = _rng(config.seed, _STREAM_MANOEUVRE)
@@ -825,7 +825,7 @@ def _draw_manoeuvres(config: SceneConfig, traffic: _Traffic) -> _Traffic:
                                                                      rng.uniform(2.5, 5.0, m)), 0.0)
     omega = rng.uniform(0.15, 0.5, m)
     amplitude = np.minimum(config.traffic_accel_max / omega, 0.6 * np.abs(traffic.s_dot)) * rng.uniform(0.3, 1.0, m)
-    changing = (car | cyclist) & ~crossing & (rng.random(m) < config.lane_changes)
+    changing = (car | cyclist) & ~crossing & (rng.random(m) < config.swerves)
     swerve = rng.uniform(0.5, 1.5, m) * np.where(np.abs(traffic.d) < 2.5, np.sign(traffic.d),
                                                  rng.choice([-1.0, 1.0], m))
     shift = np.where(changing, swerve, 0.0)
