@@ -18,7 +18,6 @@ the metric's edge, not a worse detector. Writes
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +25,8 @@ import numpy as np
 from radaredge.bench.timing import cpu_name
 from radaredge.cards import load_card
 from radaredge.eval.detection import ap_table, as_labels, evaluate_detection, evaluate_frames, layout_for_card
-from result_file import sha256_of, write_result
+from result_file import RESULTS, save_result, sha256_of
 
-ROOT = Path(__file__).resolve().parent.parent
 SHIFTS = (-0.2, -0.1, -0.05, -0.01, -0.004, 0.0, 0.004, 0.01, 0.05)     # m, along z
 
 
@@ -62,7 +60,7 @@ def main(argv=None) -> int:
                     help="A labelled set (radaredge make-benchmark --task detection).")
     ap.add_argument("--split", default="test")
     ap.add_argument("--shifts", default=",".join(str(s) for s in SHIFTS), help="Comma-separated z shifts in metres.")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     shifts = tuple(float(s) for s in args.shifts.split(","))
     result = shifted_ap(args.model, args.onnx, args.data, args.split, shifts)
@@ -70,13 +68,9 @@ def main(argv=None) -> int:
         for dz, per in r["ap"].items():
             print(f"{backend:18s} dz {dz} m: "
                   + ", ".join(f"{c} {v['3d']:.2f} (BEV {v['bev']:.2f})" for c, v in per.items()))
-    now = dt.datetime.now(dt.timezone.utc)
     doc = {"model": args.model, "onnx": str(args.onnx), "onnx_sha256": sha256_of(args.onnx), "data": str(args.data),
-           "split": args.split,
-           "shifts_m": list(shifts), "backends": result, "date": now.strftime("%Y-%m-%d %H:%M UTC"), "cpu": cpu_name()}
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"ap-height-shift-{args.model}-{now:%Y-%m-%d}.json"
-    write_result(path, doc)
+           "split": args.split, "shifts_m": list(shifts), "backends": result, "cpu": cpu_name()}
+    save_result(f"ap-height-shift-{args.model}", doc, args.out)
     return 0
 
 

@@ -19,7 +19,6 @@ It imports radaredge as installed (``pip install -e .``, ``make setup``) and nee
 from __future__ import annotations
 
 import argparse
-import datetime
 import sys
 import tempfile
 from pathlib import Path
@@ -36,9 +35,8 @@ from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.runtime.session import make_session
 from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
-from result_file import write_result
+from result_file import RESULTS, save_result, utc_stamp
 
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 class _MapOnly(torch.nn.Module):
@@ -128,8 +126,7 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
     base = {(r["scans"], r["part"]): r["p50_ms"] for r in rows if r["backend"].endswith("(upstream)")}
     for r in rows:
         r["speedup_vs_upstream"] = base[(r["scans"], r["part"])] / r["p50_ms"]
-    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": stamp,
+    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": utc_stamp(),
             "rows": rows}
 
 
@@ -157,9 +154,7 @@ def main(argv=None) -> int:
     print(f"{args.card}: clustering-feature stage on {args.threads} thread(s), cores {result['cores']}, "
           f"{result['cpu']}, {args.runs} runs, {result['date']}")
     print(table(result))
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"cfa-speedup-{datetime.date.today().isoformat()}.json"
-    write_result(path, result)
+    save_result("cfa-speedup", result, args.out)
     return 0
 
 

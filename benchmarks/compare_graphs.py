@@ -15,7 +15,6 @@ one profiled pass per graph moves stages of identical code by tens of percent. W
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import statistics
 import sys
 from pathlib import Path
@@ -27,9 +26,8 @@ from radaredge.bench.profiling import profile_runs, stage_times_from_profile
 from radaredge.models import model_spec
 from radaredge.runtime.session import make_session, run_session
 from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
-from result_file import write_result
+from result_file import save_result
 
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int = 4,
@@ -87,10 +85,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cores = pin_threads(args.threads)
     result = compare(args.model, args.a, args.b, args.runs, args.threads, args.cases, args.case, args.rounds)
-    result.update(date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), cpu=cpu_name(), cores=cores)
-    path = ROOT / "benchmarks" / "results" / f"compare-{args.label}-{result['date'][:10]}.json"
+    result.update(cpu=cpu_name(), cores=cores)
     print(table(result))
-    write_result(path, result)
+    save_result(f"compare-{args.label}", result)
     return 0
 
 

@@ -28,7 +28,6 @@ Writes benchmarks/results/des4pos-fine-inputs-<date>.json.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import re
 import sys
 import time
@@ -46,6 +45,7 @@ from radaredge.models.des4pos.model import FineStage
 from radaredge.train.des4pos import backbone_features, cell_inputs, geometry_features, hint_table
 
 import training_run
+from result_file import save_result
 
 HINT = re.compile(r"The pose is (?P<direction>\S+) of an? (?P<colour>\S+) (?P<label>.+)\.$")
 DIRECTIONS = ("north", "south", "east", "west", "on-top")
@@ -200,14 +200,13 @@ def main(argv=None) -> int:
                      "seconds": round(time.perf_counter() - t0, 1)})
         print(f"objects {obj:8s} hints {hint:8s}: best epoch {best['epoch']}, {best['error_m']:.2f} m, "
               f"{best['within_5m']:.1f} % within 5 m", flush=True)
-    out = {"date": dt.datetime.now().strftime("%Y-%m-%d %H:%M"), "card": card.name, "machine": training_run.machine(),
+    out = {"card": card.name, "machine": training_run.machine(),
            "command": f"python benchmarks/des4pos_fine_inputs.py --checkpoint {args.checkpoint} --cities {args.cities}"
                       f" --epochs {args.epochs} --lr {args.lr:g} --batch {args.batch}",
            "training_poses": int((~maps.validation).sum()), "validation_poses": len(val_q), "cells": len(cells.ids),
            "centre": {"error_m": float(centre.mean()), "within_5m": 100 * float((centre <= 5).mean())},
            "runs": runs}
-    training_run.write(training_run.ROOT / "benchmarks" / "results" / f"des4pos-fine-inputs-{out['date'][:10]}.json",
-                       out)
+    save_result("des4pos-fine-inputs", out)
     return 0
 
 

@@ -40,6 +40,7 @@ import radaredge
 from radaredge.data.text_city import write_cities
 
 import training_run
+from result_file import save_result
 
 
 def _percent(value):
@@ -135,11 +136,7 @@ def main(argv=None) -> int:
         "heldout": {"seed": 100, "maps": first.maps, "cells": first.cells, "queries": first.queries,
                     **{name: _tables(r) for name, r in evals.items()}},
     }
-    if args.tag:
-        training_run.write(training_run.ROOT / "benchmarks" / "results"
-                           / f"{card.name}-{args.tag}-training-{stamp[:10]}.json", out)
-    else:
-        training_run.save(card, stamp, out)
+    save_result(f"{card.name}{'-' + args.tag if args.tag else ''}-training", out, keep_same_day=not args.tag)
     return 0
 
 

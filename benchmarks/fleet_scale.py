@@ -18,7 +18,6 @@ Writes benchmarks/results/fleet-scale-<date>.json (then `python benchmarks/rende
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import os
 import shutil
 import sys
@@ -35,7 +34,7 @@ from radaredge.data.pr_benchmark import make_pr_benchmark  # noqa: E402
 from radaredge.fleet import maps  # noqa: E402
 from radaredge.fleet.pipeline import run_graph, run_sequential  # noqa: E402
 from radaredge.runtime.backends import cpu_model  # noqa: E402
-from result_file import write_result  # noqa: E402
+from result_file import save_result  # noqa: E402
 
 
 def throughput(frames: int, work: Path) -> dict:
@@ -103,13 +102,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="fleet-scale-"))
     try:
-        result = {"date": dt.datetime.now().isoformat(timespec="seconds"),
-                  "cpu": f"{cpu_model()}, {os.cpu_count()} cores",
+        result = {"cpu": f"{cpu_model()}, {os.cpu_count()} cores",
                   "throughput": throughput(args.frames, work), "index": index_scale(args.vectors)}
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    out = HERE / "results" / f"fleet-scale-{dt.date.today().isoformat()}.json"
-    write_result(out, result)
+    save_result("fleet-scale", result)
     return 0
 
 

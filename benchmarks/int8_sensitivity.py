@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import datetime as dt
 import json
 import re
 import statistics
@@ -37,6 +36,7 @@ import onnx
 import torch
 
 import radaredge
+from radaredge.artifacts import INT8, copy_path
 from radaredge.bench.timing import cpu_name, pin_threads
 from radaredge.cards import load_card, parse_card
 from radaredge.data.kitti_detection import DetectionSet
@@ -47,7 +47,7 @@ from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import STAGE_TWO_MODULES
 from radaredge.runtime.session import make_session, run_session
 from radaredge import runtime
-from result_file import portable, sha256_of, write_result
+from result_file import RESULTS, portable, save_result, sha256_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -164,7 +164,7 @@ def main(argv=None) -> int:
                                      "earlier run's rows only); on a large card each probe exports an int8 copy and "
                                      "scores the whole choose split.")
     ap.add_argument("--work", type=Path, default=ROOT / "export" / "int8-sensitivity")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     cores = pin_threads(args.threads)
     card = load_card(args.model)
@@ -206,19 +206,16 @@ def main(argv=None) -> int:
     the_set = DetectionSet(args.data, args.split, layout_for_card(card), int(card.get("input.scans_accumulated", 1)))
     step = max(1, len(the_set) // 12)
     points = [card_points(the_set.frame(i, card.features), card) for i in range(0, len(the_set), step)]
-    result["card_speed_ms"] = speed(args.work / f"{card.name}.onnx", args.work / f"{card.name}.int8.onnx", points,
-                                    args.threads)
+    fp32_graph = args.work / f"{card.name}.onnx"
+    result["card_speed_ms"] = speed(fp32_graph, copy_path(fp32_graph, INT8), points, args.threads)
     if keep != result["card_keep_fp32"]:
         out = args.work / f"{card.name}-kept.onnx"
         _, int8 = score(with_keep(card, keep), args.checkpoint, out, args.data, args.split)
         result["kept"] = {"keep_fp32": keep, "int8_ap": int8, "loss": {c: fp32_ap[c] - int8[c] for c in fp32_ap},
-                          "speed_ms": speed(out, out.with_suffix(".int8.onnx"), points, args.threads)}
+                          "speed_ms": speed(out, copy_path(out, INT8), points, args.threads)}
         print(f"{args.split}: keeping {keep} in fp32: int8 {int8}", flush=True)
-    date = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    result.update(date=date, cpu=cpu_name(), threads=args.threads, cores=cores)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"int8-sensitivity-{card.name}-{date[:10]}.json"
-    write_result(path, result)
+    result.update(cpu=cpu_name(), threads=args.threads, cores=cores)
+    save_result(f"int8-sensitivity-{card.name}", result, args.out)
     return 0
 
 

@@ -15,9 +15,7 @@ capacities. Run: ``python benchmarks/maffnet_capacity.py``.
 
 from __future__ import annotations
 
-import datetime as dt
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -27,9 +25,8 @@ from radaredge.data.synthetic import generate_sequence, vod_accumulated_table
 from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import scan_points
 from radaredge.models.maffnet.spec import DENSE_TRAFFIC, VOD_CAMERA_FOV_DEG
-from result_file import write_result
+from result_file import save_result
 
-ROOT = Path(__file__).resolve().parent.parent
 SEEDS = range(12)
 
 
@@ -58,9 +55,7 @@ def measure(card_name: str = "maffnet-vod-full-dbscan") -> dict:
 
 def main() -> int:
     result = measure()
-    result["date"] = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    path = ROOT / "benchmarks" / "results" / f"maffnet-capacity-{result['date'][:10]}.json"
-    write_result(path, result)
+    save_result("maffnet-capacity", result)
     for key in ("camera_fov", "no_crop"):
         m = result[key]
         print(f"{key}: at most {m['pillars']} pillars (spa.capacity {result['spa_capacity']}, "
@@ -68,7 +63,6 @@ def main() -> int:
               f"(cfa.dbscan.capacity {result['dbscan_capacity']}, "
               f"{result['dbscan_capacity'] / m['scan_points']:.1f}x), "
               f"{m['points']} points")
-    print(f"wrote {path}")
     return 0
 
 

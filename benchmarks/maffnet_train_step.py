@@ -18,7 +18,6 @@ no NMS in training), the first training scans of ``--data``, augmented as in tra
 from __future__ import annotations
 
 import argparse
-import datetime
 import statistics
 import sys
 import time
@@ -31,9 +30,8 @@ from radaredge.bench.timing import cpu_name, pin_threads
 from radaredge.cards import load_card
 from radaredge.models import create_model
 from radaredge.train import maffnet as tm
-from result_file import write_result
+from result_file import RESULTS, save_result, utc_stamp
 
-RESULTS = Path(__file__).resolve().parent / "results"
 FORMULATIONS = {        # name -> (export pillars, memory format)
     "export pillars, NCHW": (True, torch.contiguous_format),
     "training pillars, NCHW": (False, torch.contiguous_format),
@@ -98,8 +96,7 @@ def run(card_name: str, data: Path, steps: int, warmup: int, batch_size: int, th
     base = {r["precision"]: r["median_s"] for r in rows if r["formulation"] == next(iter(FORMULATIONS))}
     for r in rows:
         r["speedup"] = base[r["precision"]] / r["median_s"]
-    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "date": stamp,
+    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "date": utc_stamp(),
             "batch_size": batch_size, "steps": steps, "warmup": warmup,
             "weights": f"seeded (card seed {card.get('seed', 0)})", "rows": rows}
 
@@ -129,8 +126,7 @@ def main(argv=None) -> int:
           f"{args.steps} steps of {args.batch_size} scans, {result['date']}")
     print(table(result))
     args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"maffnet-train-step-{datetime.date.today().isoformat()}.json"
-    write_result(path, result)
+    save_result("maffnet-train-step", result, args.out)
     return 0
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import datetime as dt
 import hashlib
 import statistics
 import sys
@@ -36,6 +35,7 @@ import onnx
 import torch
 
 import radaredge
+from radaredge.artifacts import INT8, copy_path
 from radaredge import runtime
 from radaredge.bench.profiling import profile_runs, stage_times_from_profile
 from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
@@ -44,7 +44,7 @@ from radaredge.data.kitti_detection import DetectionSet
 from radaredge.eval.detection import card_points, layout_for_card
 from radaredge.models import create_model, model_spec
 from radaredge.runtime.session import make_session, run_session
-from result_file import write_result
+from result_file import RESULTS, save_result
 
 ROOT = Path(__file__).resolve().parent.parent
 WORST_LOGIT_SHIFT = 30.0          # added to every class bias: sigmoid(logit + 30) > 0.999 for any logit > -23
@@ -69,7 +69,7 @@ def export_graphs(card, checkpoint: Path, export_dir: Path) -> dict[str, Path]:
         worst_net.dense_head.conv_cls.bias += WORST_LOGIT_SHIFT
     worst = export_dir / f"{card.name}-worst-case.onnx"
     radaredge.export(card, worst, model=worst_net)
-    return {"fp32": fp32, "int8": export_dir / f"{card.name}-trained.int8.onnx", "worst case": worst}
+    return {"fp32": fp32, "int8": copy_path(fp32, INT8), "worst case": worst}
 
 
 def candidates(out: dict, threshold: float) -> int:
@@ -132,22 +132,18 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--export-dir", type=Path, default=ROOT / "export")
     ap.add_argument("--note", default="", help="Which weights these are, for the table (e.g. the training command).")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     cores = pin_threads(args.threads)
     result = bench_trained(args.model, args.checkpoint, args.data, args.split, args.frames, args.passes, args.threads,
                            args.export_dir)
-    date = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    result.update(date=date, cpu=cpu_name(), cores=cores, note=args.note)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"maffnet-trained-{result['model']}-{date[:10]}.json"
-    write_result(path, result)
+    result.update(cpu=cpu_name(), cores=cores, note=args.note)
+    save_result(f"maffnet-trained-{result['model']}", result, args.out)
     for row in result["rows"]:
         split = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
         share = "-" if row["nms_share"] is None else f"{100 * row['nms_share']:.1f} %"
         print(f"{row['graph']:<11} p50 {row['p50_ms']:7.1f} ms  {row['fps']:5.1f} FPS  NMS {share}"
               f"  candidates {row['candidates_median']:.0f} (max {row['candidates_max']})  [{split}]")
-    print(f"wrote {path}")
     return 0
 
 

@@ -29,6 +29,7 @@ from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.eval.detection import ORT, ORT_INT8, REFERENCE
 
 import training_run
+from result_file import save_result
 from result_file import sha256_of
 
 
@@ -82,7 +83,7 @@ def main(argv=None) -> int:
     out = {"date": stamp, "card": card.name, "machine": training_run.machine(), "command": command,
            "checkpoint_sha256": sha256_of(best), "data": str(data), "train": log, "train_seconds": log.get("seconds"),
            "test_trained": _ap(trained), "test_seeded": _ap(untrained)}
-    training_run.save(card, stamp, out)
+    save_result(f"{card.name}-training", out, keep_same_day=True)
     return 0
 
 

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import radaredge
+from radaredge.artifacts import INT8, copy_path
 from radaredge.data.pr_benchmark import make_pr_towns, make_route_benchmark
 from radaredge.data.run_shards import read_run
 from radaredge.eval.places import WindowSet, baseline_backend, describe_windows, load_windows, recall_at_n
@@ -47,6 +48,7 @@ from radaredge.eval.travel import AGAINST, WITH, against_database, window_headin
 from radaredge.fleet.pipeline import run_graph
 
 import training_run
+from result_file import save_result
 
 RADII = (5.0, 25.0)
 NS = (1, 5, 10)
@@ -153,7 +155,7 @@ def main(argv=None) -> int:
     best = run / "best.pth"
     graphs = work / "graphs"
     fp32, seeded = graphs / f"{card.name}.onnx", graphs / f"{card.name}-seeded.onnx"
-    int8, described = fp32.with_suffix(".int8.onnx"), work / "descriptors"
+    int8, described = copy_path(fp32, INT8), work / "descriptors"
     if not (int8.is_file() and fp32.is_file() and fp32.stat().st_mtime > best.stat().st_mtime):
         for row in ("trained_fp32", "trained_int8"):          # another checkpoint's
             shutil.rmtree(described / row, ignore_errors=True)
@@ -180,8 +182,7 @@ def main(argv=None) -> int:
         "train_seconds": None if t_train is None else round(t_train, 1), "checkpoint": str(best), "train": train,
         "rows": rows,
     }
-    path = training_run.ROOT / "benchmarks" / "results" / f"place-recognition-{card.name}-{stamp[:10]}.json"
-    training_run.write(path, out)
+    save_result(f"place-recognition-{card.name}", out)
     return 0
 
 

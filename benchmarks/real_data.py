@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import datetime as dt
 import sys
 import tempfile
 from pathlib import Path
@@ -54,9 +53,8 @@ from radaredge.ops.pillars import PillarConfig
 from radaredge.parity.capacity import point_counts
 from radaredge.parity.recording import recorded_cases, spread
 from radaredge.runtime.session import make_session, run_session
-from result_file import write_result
+from result_file import save_result, utc_stamp
 
-RESULTS = Path(__file__).resolve().parent / "results"
 VOD, TJ4D = Path("view-of-delft-dataset/example_set"), Path("TJ4DRadSet/Sample")
 # card -> its recording, relative to --real
 CARDS = {"maffnet-vod": VOD / "radar", "maffnet-vod-edge": VOD / "radar", "maffnet-vod-full": VOD / "radar",
@@ -198,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--real {args.real}: {rel} is missing (docs/data.md: the published samples)")
     cores = pin_threads(args.threads)
     torch.set_num_threads(args.threads)
-    result = {"date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "cpu": cpu_name(),
+    result = {"date": utc_stamp(), "cpu": cpu_name(),
               "threads": args.threads, "cores": cores, "runs": args.runs,
               "command": f"python benchmarks/real_data.py --real DIR --cards {' '.join(args.cards)} "
                          f"--frames {args.frames} --runs {args.runs} --threads {args.threads}",
@@ -206,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.cards:
             result["cards"].append(measure_card(name, args.real, args.frames, args.runs, args.threads, Path(tmp)))
-    write_result(RESULTS / f"real-data-{result['date'][:10]}.json", result)
+    save_result("real-data", result)
     return 0
 
 

@@ -1,4 +1,5 @@
-"""How every benchmark writes its result JSON: strict JSON, written atomically, with no path of
+"""How every benchmark writes its result JSON (:func:`save_result`: ``results/<kind>-<date>.json``,
+dated): strict JSON, written atomically, with no path of
 the machine that ran it. A path inside the repository is written relative to it; any other
 absolute path (a work directory, a data set, a checkpoint elsewhere) keeps only its last two
 parts below the machine's root folder, after ``…/``, since the machine's directories mean nothing to
@@ -8,6 +9,7 @@ checkpoint or a graph is its sha256 (:func:`sha256_of`), which the scripts recor
 
 from __future__ import annotations
 
+import datetime as dt
 import hashlib
 import re
 from pathlib import Path
@@ -15,6 +17,7 @@ from pathlib import Path
 from radaredge import atomic
 
 ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
 # An absolute path under one of the roots a machine keeps work in (not "m/s", not a URL).
 MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/"
                           r"[^\s\"'`,;()\[\]{}<>|]*")
@@ -65,3 +68,26 @@ def write_result(path: str | Path, doc: dict) -> Path:
     atomic.write_text(path, atomic.dumps(portable(doc)) + "\n")
     print(f"wrote {path}")
     return path
+
+
+def utc_stamp() -> str:
+    """Now, as the results' ``date`` field writes it: ``YYYY-MM-DD HH:MM UTC``."""
+    return dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def result_path(kind: str, date: str, folder: str | Path = RESULTS, keep_same_day: bool = False) -> Path:
+    """``<folder>/<kind>-<YYYY-MM-DD>.json`` for a result dated ``date`` (``YYYY-MM-DD ...``); with
+    ``keep_same_day``, ``-HHMM`` is added when a result of that kind and day is there already, so
+    each run keeps its file (benchmarks/render.py shows the newest)."""
+    path = Path(folder) / f"{kind}-{date[:10]}.json"
+    if keep_same_day and path.exists():
+        path = path.with_name(f"{kind}-{date[:10]}-{date[11:16].replace(':', '')}.json")
+    return path
+
+
+def save_result(kind: str, doc: dict, folder: str | Path = RESULTS, keep_same_day: bool = False) -> Path:
+    """Writes ``doc`` (dated now in UTC unless it has a ``date``) as the result of ``kind`` at
+    :func:`result_path`: how every benchmark ends."""
+    doc = {"date": utc_stamp(), **doc} if "date" not in doc else doc
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    return write_result(result_path(kind, doc["date"], folder, keep_same_day), doc)

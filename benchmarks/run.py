@@ -17,13 +17,13 @@ speed-up int8 can bring.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import sys
 from pathlib import Path
 
 import torch
 
 import radaredge
+from radaredge.artifacts import INT8, copy_path
 from radaredge.bench.harness import BenchOptions, pipeline_backends
 from radaredge.cards import load_card
 from radaredge.models import create_model
@@ -34,7 +34,7 @@ from radaredge.models import model_spec
 from radaredge.runtime.openvino import openvino_installed
 from radaredge.bench.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
 sys.path.insert(0, str(Path(__file__).resolve().parent))    # the sibling modules, also when loaded by path (tests)
-from result_file import write_result  # noqa: E402
+from result_file import result_path, utc_stamp, write_result  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
@@ -52,7 +52,7 @@ def export_both(card, model, export_dir: Path) -> tuple[Path, Path]:
     a graph left there by an earlier export may come from an older export formulation or
     quantisation setting with the same weights, so the suite never reuses one."""
     fp32 = export_dir / f"{card.name}.onnx"
-    int8 = export_dir / f"{card.name}.int8.onnx"
+    int8 = copy_path(fp32, INT8)
     print(f"  exporting {fp32} and quantising {int8}", flush=True)
     radaredge.export(card, fp32, model=model, quantize="int8")
     return fp32, int8
@@ -139,10 +139,10 @@ def main(argv=None) -> int:
         print("note: fewer than 20 timed runs; medians will be noisy", file=sys.stderr)
     cores = pin_threads(args.threads)
     peak = gemm_peak_gflops(args.threads)
-    date = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    date = utc_stamp()
     results_dir = args.out / "results"
     results_dir.mkdir(parents=True, exist_ok=True)
-    json_path = results_dir / f"suite-{date[:10]}.json"
+    json_path = result_path("suite", date, results_dir)
     openvino = openvino_installed()
     backends = BACKENDS + (OPENVINO_BACKENDS if openvino else ())
     suite = {"date": date, "cpu": cpu_name(), "threads": args.threads, "cores": cores, "runs": args.runs,

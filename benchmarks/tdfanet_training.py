@@ -28,6 +28,7 @@ import radaredge
 from radaredge.data.pr_benchmark import make_pr_benchmark, make_pr_towns
 
 import training_run
+from result_file import save_result
 
 
 def _recall(report) -> dict:
@@ -81,7 +82,7 @@ def main(argv=None) -> int:
         "heldout_town": {"seed": 0, **{k: _recall(v) for k, v in evals.items()},
                          "int8_top1_agreement_with_fp32": _agreement(evals["trained_fp32"], evals["trained_int8"])},
     }
-    training_run.save(card, stamp, out)
+    save_result(f"{card.name}-training", out, keep_same_day=True)
     return 0
 
 

@@ -45,6 +45,7 @@ from radaredge.eval.recall_stats import bootstrap_interval
 
 import place_recognition
 import training_run
+from result_file import result_path, write_result
 
 SHORT_RECIPE = {"epochs": 3, "tuples_per_epoch": 200}
 
@@ -131,7 +132,7 @@ def measure_variant(card, name: str, work: Path, options: dict, test: list[Path]
         shutil.rmtree(described, ignore_errors=True)          # an earlier training's
         row["test"] = place_recognition.score(place_recognition.graph_descriptors(graph, described), test, k)
         print(f"{vcard.name}: test R@1 at 5 m {row['test']['5']['recall']['1']:.1f} %", flush=True)
-    training_run.write(kept, row)
+    write_result(kept, row)
     return row
 
 
@@ -175,11 +176,11 @@ def main(argv=None) -> int:
     # another recipe is another study: its own results file, rendered beside the short recipe's
     recipe = "" if all(options[k] == v for k, v in SHORT_RECIPE.items()) else \
         f"-{options['epochs']}x{options['tuples_per_epoch']}"
-    path = training_run.ROOT / "benchmarks" / "results" / f"tdfanet-variants-{card.name}{recipe}-{stamp[:10]}.json"
+    path = result_path(f"tdfanet-variants-{card.name}{recipe}", stamp)
     for name in args.variants:
         measure_variant(card, name, work, options, test, k)
         out["variants"] = measured(work, options)
-        training_run.write(path, out)          # after every variant, so a stopped run keeps what it measured
+        write_result(path, out)          # after every variant, so a stopped run keeps what it measured
     return 0
 
 

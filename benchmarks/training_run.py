@@ -1,5 +1,5 @@
-"""What the training benchmarks (tdfanet_training.py, des4pos_training.py) share: their common
-options, the work directory, the machine description and the result file."""
+"""What the training benchmarks (tdfanet_training.py, des4pos_training.py, ...) share: their
+common options, the work directory and the machine description (results: result_file.save_result)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ import torch
 from radaredge.cards import ModelCard, load_card
 from radaredge.config import parse_settings
 from radaredge.bench.timing import cpu_name
-from result_file import write_result
 
 ROOT = Path(__file__).resolve().parent.parent
 THREADS = 2
@@ -46,18 +45,3 @@ def machine() -> dict:
 def settings_text(options: dict) -> str:
     """The ``--set`` options of the recorded command."""
     return "".join(f" --set {k}={v}" for k, v in options.items())
-
-
-def write(path: Path, result: dict) -> Path:
-    """Writes ``result`` as portable JSON to ``path`` (:func:`result_file.write_result`)."""
-    return write_result(path, result)
-
-
-def save(card: ModelCard, stamp: str, result: dict) -> Path:
-    """Writes benchmarks/results/<card>-training-<date>.json, or <card>-training-<date>-<HHMM>.json
-    when a run of the same day is there already (each run keeps its file; the renderer shows the
-    newest)."""
-    path = ROOT / "benchmarks" / "results" / f"{card.name}-training-{stamp[:10]}.json"
-    if path.exists():
-        path = path.with_name(f"{card.name}-training-{stamp[:10]}-{stamp[11:16].replace(':', '')}.json")
-    return write(path, result)

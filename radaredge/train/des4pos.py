@@ -69,8 +69,8 @@ from ..cards import ModelCard
 from ..config import Range, card_ranges, positive
 from ..errors import ConfigError, InputError
 from ..models.des4pos.model import masked_max, object_summaries
-from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
-                  restore_random_states, load_weights_outside)
+from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, no_progress, pick_device,
+                  recipe_from_options)
 from ..data.text_maps import TextMaps, load_text_maps
 from ..models.des4pos.spec import tokenizer_path
 from ..runtime.text_tokens import encode_hints, load_tokenizer
@@ -364,14 +364,11 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
     done: dict[str, int] = {}
     clock = Stopwatch()
     saved: dict = {"keepers": {}, "optimizers": {}}
+    training = TrainingState(run, signature, model, rng, report)     # each stage's optimiser is in `saved`
     if resume:
-        state = run.load_last(signature)
-        model.load_state_dict(state["model_state"])
-        restore_random_states(rng, state["random"])
-        report.epochs, done = state["history"], dict(state["done"])
-        report.stage_best = dict(state["stage_best"])
+        state, clock = training.resume()
+        done, report.stage_best = dict(state["done"]), dict(state["stage_best"])
         saved = {"keepers": dict(state.get("keepers", {})), "optimizers": dict(state.get("optimizers", {}))}
-        clock = Stopwatch(state["seconds"])
         log(f"resuming after {', '.join(f'{s} epoch {e}' for s, e in done.items())} from {run.last}")
     current: dict = {}                                # the running stage's _Stage and _Keeper
 
@@ -387,9 +384,7 @@ def train_text(card: ModelCard, model, data_root: str | Path, output: str | Path
         if current:
             saved["keepers"][stage] = current["keeper"].to_dict()
             saved["optimizers"][stage] = current["stage"].opt.state_dict()
-        run.save_last({"signature": signature, "model_state": model.state_dict(), "random": random_states(rng),
-                       "history": report.epochs, "done": {**done, stage: epoch}, "seconds": report.seconds,
-                       "stage_best": report.stage_best, **saved})
+        training.save(None, clock, done={**done, stage: epoch}, stage_best=report.stage_best, **saved)
         run.write_log(report.to_dict())
 
     def epoch_row(stage: str, epoch: int, loss: float, metrics: dict):

@@ -90,8 +90,8 @@ from ..ops.nms import class_agnostic_nms_eager
 from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
 from .roi_targets import (RoiSampling, box_corners, point_head_loss, point_labels, roi_head_loss, sample_rois,
                           training_proposals)
-from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
-                  restore_random_states, load_weights_outside)
+from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, no_progress, pick_device,
+                  recipe_from_options)
 
 TRAIN_SPLIT, VALIDATION_SPLIT = "train", "val"
 TERMS = ("loss", "cls", "loc", "dir")                                   # logged per epoch as loss_<term>
@@ -530,21 +530,11 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
     report = TrainReport(card.name, run.path, "mAP3d", data=summary,
                          options={**dataclasses.asdict(recipe), "device": device})
     start, best = 1, None
+    saved = TrainingState(run, signature, model, rng, report, opt, sched)
     if resume:
-        state = run.load_last(signature)
-        if state["epochs"] != recipe.epochs:
-            raise ConfigError(f"--resume: {run.last} was written for a {state['epochs']}-epoch schedule (the one-cycle "
-                              f"learning rate spans all epochs); resume with --epochs {state['epochs']}")
-        model.load_state_dict(state["model_state"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        restore_random_states(rng, state["random"])
-        report.epochs, report.best_epoch = state["history"], state["best_epoch"]
+        state, clock = saved.resume(recipe.epochs, schedule=True)
         best = report.best["mAP3d"] if report.best is not None else None
         start = state["epoch"] + 1
-        clock = Stopwatch(state["seconds"])
-        if start > recipe.epochs:
-            raise ConfigError(f"--resume: {run.last} already holds all {recipe.epochs} epochs")
         log(f"resuming after epoch {state['epoch']} from {run.last}")
     else:
         clock = Stopwatch()
@@ -603,10 +593,7 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         row["seconds"] = round(clock(), 1)
         report.epochs.append(row)
         report.seconds = clock()
-        run.save_last({"signature": signature, "epoch": epoch, "epochs": recipe.epochs,
-                       "model_state": model.state_dict(), "optimizer": opt.state_dict(),
-                       "scheduler": sched.state_dict(), "random": random_states(rng), "history": report.epochs,
-                       "best_epoch": report.best_epoch, "seconds": report.seconds})
+        saved.save(epoch, clock, epochs=recipe.epochs)
         run.write_log(report.to_dict())
         log(_epoch_line(row, card.get("classes")) + ("  (best)" if report.best_epoch == epoch else ""))
     report.seconds = clock()

@@ -268,6 +268,58 @@ class TrainReport:
         return out
 
 
+@dataclass
+class TrainingState:
+    """What every recipe's ``last.pth`` holds and ``--resume`` restores: the model's weights, the
+    optimiser and learning-rate scheduler (when the recipe has one for the whole run), the random
+    generators (``rng``, Python's, torch's), the epoch rows and best epoch of ``report``, the
+    seconds trained and the epoch reached; a recipe adds its own keys (``extra``) and reads them
+    back from the state :meth:`resume` returns. ``signature`` is what a resumed run must share
+    with the one that wrote the file (card, data, recipe)."""
+
+    run: RunDir
+    signature: dict
+    model: torch.nn.Module
+    rng: np.random.Generator
+    report: TrainReport
+    optimizer: torch.optim.Optimizer | None = None
+    scheduler: Any = None
+
+    def save(self, epoch: int | None, clock: Stopwatch, **extra) -> Path:
+        """Writes ``last.pth`` after ``epoch`` (None: the recipe counts epochs in ``extra``)."""
+        state = {"signature": self.signature, "epoch": epoch, "model_state": self.model.state_dict(),
+                 "random": random_states(self.rng), "history": self.report.epochs,
+                 "best_epoch": self.report.best_epoch, "seconds": clock(), **extra}
+        if self.optimizer is not None:
+            state["optimizer"] = self.optimizer.state_dict()
+        if self.scheduler is not None:
+            state["scheduler"] = self.scheduler.state_dict()
+        return self.run.save_last(state)
+
+    def resume(self, epochs: int | None = None, schedule: bool = False) -> tuple[dict, Stopwatch]:
+        """Restores everything :meth:`save` wrote from ``last.pth`` and returns (the state, for the
+        recipe's own keys; a stopwatch that carries the seconds already trained). ConfigError when
+        the file is missing or from another run, when it already holds all ``epochs`` (with no
+        epoch left half done), or, with ``schedule`` (a learning rate that spans the whole run),
+        when it was written for another number of epochs."""
+        state = self.run.load_last(self.signature)
+        last = self.run.last
+        if schedule and epochs is not None and state.get("epochs", epochs) != epochs:
+            raise ConfigError(f"--resume: {last} was written for a {state['epochs']}-epoch schedule (the learning "
+                              f"rate spans all epochs); resume with --epochs {state['epochs']}")
+        if epochs is not None and state["epoch"] is not None and state["epoch"] >= epochs and not state.get("partial"):
+            raise ConfigError(f"--resume: {last} already holds epoch {state['epoch']} of {epochs}; raise --epochs "
+                              f"to train on")
+        self.model.load_state_dict(state["model_state"])
+        if self.optimizer is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
+        if self.scheduler is not None:
+            self.scheduler.load_state_dict(state["scheduler"])
+        restore_random_states(self.rng, state["random"])
+        self.report.epochs, self.report.best_epoch = state["history"], state["best_epoch"]
+        return state, Stopwatch(state["seconds"])
+
+
 def _fmt(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 

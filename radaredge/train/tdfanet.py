@@ -63,8 +63,8 @@ from ..data.bag_drives import BagSource
 from ..eval.places import RECALL_NS, recall_at_n
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
 from .places import OTHER_NEGATIVES, PlaceWindows, TupleMiner, load_place_windows
-from .run import (RunDir, Stopwatch, TrainReport, no_progress, pick_device, random_states, recipe_from_options,
-                  restore_random_states, set_torch_rng_state, torch_rng_state)
+from .run import (RunDir, Stopwatch, TrainingState, TrainReport, no_progress, pick_device, recipe_from_options,
+                  set_torch_rng_state, torch_rng_state)
 
 
 BATCH_NORMS = ("frozen", "reestimate", "window")
@@ -337,20 +337,12 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
     norm_rows = np.sort(np.random.default_rng(recipe.seed).choice(train_rows, min(recipe.norm_windows, len(train_rows)),
                                                                   replace=False))
     partial = None                         # the epoch a mid-epoch last.pth stopped in: its queries, tuples done, losses
+    saved_state = TrainingState(run, signature, model, rng, report, opt, sched)
     if resume:
-        state = run.load_last(signature)
-        model.load_state_dict(state["model_state"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        restore_random_states(rng, state["random"])
-        report.epochs, report.best_epoch = state["history"], state["best_epoch"]
+        state, clock = saved_state.resume(recipe.epochs)
         start, partial = state["epoch"] + 1, state.get("partial")
         best_rank = _rank(report.best) if report.best is not None else None
-        clock = Stopwatch(state["seconds"])
         descriptors = state["descriptors"].numpy()
-        if start > recipe.epochs:
-            raise ConfigError(f"--resume: {run.last} already holds epoch {state['epoch']} of {recipe.epochs}; "
-                              f"raise --epochs to train on")
         where = f"{partial['done']} of epoch {start}'s tuples" if partial else f"epoch {state['epoch']}"
         log(f"resuming after {where} from {run.last}")
     else:
@@ -366,11 +358,8 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
 
     def save_last(epoch: int, partial: dict | None = None) -> None:
         """last.pth after ``epoch``, or within the next epoch (``partial``)."""
-        run.save_last({"signature": signature, "epoch": epoch, "model_state": model.state_dict(),
-                       "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                       "random": random_states(rng), "history": report.epochs, "best_epoch": report.best_epoch,
-                       "seconds": clock(), "descriptors": torch.from_numpy(descriptors),
-                       **({"partial": partial} if partial else {})})
+        saved_state.save(epoch, clock, descriptors=torch.from_numpy(descriptors),
+                         **({"partial": partial} if partial else {}))
 
     if not resume:
         save_last(0)
