@@ -11,13 +11,16 @@ The verbs (:mod:`radaredge.api`)::
     radaredge.card_from_openpcdet("MAFF-Net_vod.yaml", "models/my.yaml")   # `radaredge card from-openpcdet`
 
 Importing the package imports neither torch nor onnxruntime (the verbs load them when called);
-``radaredge.runtime`` needs only numpy and onnxruntime.
+it registers the model families (:mod:`radaredge.models`, torch-free declarations), so every
+card is parsed against its family's sections. ``radaredge.runtime`` needs only numpy and
+onnxruntime.
 """
 
 import importlib
 import sys
 import types
 
+from . import models  # noqa: F401  (registers the model families; imports no torch)
 from .version import __version__
 
 __all__ = ["__version__", "export", "parity", "bench", "evaluate", "train", "card_from_openpcdet"]

@@ -7,8 +7,8 @@
 
 A model is 1..n graphs (:mod:`radaredge.models.spec`), exported as a bundle
 (:mod:`radaredge.artifacts`); each verb resolves the card's spec once, builds the model once
-and loops over the graphs. What a verb does for a particular model (comparators, int8 policy,
-bench tasks, evaluation, training recipe) is in the verb's package, keyed by the model's name.
+and loops over the graphs. What a verb needs of a particular model (comparators, int8 plan,
+bench tasks, evaluation, training recipe) is declared in that model's spec.
 ``card`` is a :class:`ModelCard`, a shipped card's name or a card YAML path.
 """
 
@@ -33,11 +33,12 @@ from .eval.tasks import EVALUATIONS, QUANTIZED_TASKS, EvalInputs
 from .export.calibration import DEFAULT_WINDOWS, recorded_feeds
 from .export.graphs import default_output, export_graph, graph_paths, require_same_weights, resolve_output, write_export
 from .export.onnx_call import DEFAULT_OPSET
-from .export.quantize import Int8Options, int8_policy
-from .models import create_model, model_spec
+from .export.quantize import Int8Options, make_int8_copies
+from .models.factory import create_model
 from .parity.check import ParityReport, check_graph
 from .parity.recording import DEFAULT_FRAMES, recorded_cases
 from .runtime.model import FrameFeeds
+from .registry import model_spec
 from .train.recipes import RECIPES, TrainInputs
 from .train.run import prepare_run_output
 
@@ -50,8 +51,8 @@ MIN_OPSET = 7               # the oldest opset onnx's version converter writes
 
 
 def _calibrated(card: ModelCard) -> bool:
-    """The model's int8 policy takes calibration data."""
-    return int8_policy(card).calibrated
+    """The model's int8 plan takes calibration data."""
+    return model_spec(card).int8.calibrated
 
 
 # Every export option that depends on another option or on the model, checked by one generic
@@ -170,11 +171,10 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     say(f"exporting {card.name}" + (f" ({names}) to {output}/" if spec.multi_graph else "") + " ...")
     int8 = None
     if quantize:
-        policy = int8_policy(card)
-
         def int8(paths):
             say(f"quantising {card.name} to int8 ...")
-            return policy.make(card, spec, paths, Int8Options(calibration_windows, calibration, calibration_format))
+            return make_int8_copies(card, spec, paths, Int8Options(calibration_windows, calibration,
+                                                                   calibration_format))
     graphs, int8_paths = write_export(card, spec, model, output, DEFAULT_OPSET if opset is None else opset,
                                       debug=debug, int8=int8, progress=progress)
     result = ExportResult(card.name, output, graphs, checkpoint=report, int8=int8_paths)
@@ -249,7 +249,7 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
                                                 0 if seed is None else seed, int8, runtime,
                                                 debug_onnx=None if int8 else debug_graph, progress=wrap,
                                                 recorded=recorded)
-    task = QUANTIZED_TASKS.get(card.model) if quantized and runtime == "onnxruntime" else None
+    task = QUANTIZED_TASKS.get(spec.evaluation) if quantized and runtime == "onnxruntime" else None
     if task is not None:
         report.task = task(card, onnx, checkpoint)
     return report
@@ -293,7 +293,7 @@ def checked_graphs(card: ModelCard, spec, onnx: Path, quantized: bool) -> dict[s
     paths = graph_paths(spec, onnx)
     if not quantized:
         return {name: (p, False) for name, p in paths.items()}
-    policy = int8_policy(card)
+    policy = spec.int8
     out = {}
     for name, p in paths.items():
         if artifacts.copy_kind(p) == artifacts.INT8 or not policy.quantises(name):
@@ -321,9 +321,9 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
     MAFF-Net's 3D / BEV AP per class and area of the torch reference, the export, its int8 copy
     and OpenVINO over the ``split`` of the labelled set at ``data`` (VoD or TJ4D layout, or
     ``dataset``; :func:`radaredge.eval.detection.evaluate_detection`); the task is the model's
-    entry in :data:`radaredge.eval.tasks.EVALUATIONS`."""
+    spec's ``evaluation``, a name in :data:`radaredge.eval.tasks.EVALUATIONS`."""
     card = resolve_card(card)
-    task = EVALUATIONS.get(card.model)
+    task = EVALUATIONS.get(model_spec(card).evaluation)
     if task is None:
         raise ConfigError(f"{card.name} ({card.model}) has no evaluation on recorded data in radaredge; "
                           f"`radaredge parity-check` checks its export against the reference")
@@ -350,10 +350,10 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     lr, batch_size, ...); ``bag`` says where ROS bag drives keep their radar scans and GNSS fixes
     (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
     :class:`radaredge.train.run.TrainReport`. The recipe is the model's entry in
-    :data:`radaredge.train.recipes.RECIPES`."""
+    :data:`radaredge.train.recipes.RECIPES` its spec names."""
     card = resolve_card(card)
     spec = model_spec(card)
-    recipe = RECIPES.get(card.model)
+    recipe = RECIPES.get(spec.recipe)
     if recipe is None:
         raise ConfigError(f"{card.name} ({card.model}): radaredge has no training recipe for this model; "
                           f"train it upstream and pass the weights to `radaredge export --checkpoint`")

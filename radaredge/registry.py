@@ -1,42 +1,69 @@
-"""Model family name -> its spec, filled by the model packages themselves.
+"""Model family name -> its declaration, filled by the model packages themselves.
 
-Each package under :mod:`radaredge.models` decorates its spec function with
-:func:`register_model`; importing :mod:`radaredge.models` imports them all. This module imports
-nothing from the models, so the registry sits below them (the card's ``model`` field is the key;
-its top-level sections are :data:`radaredge.cards.CARD_SECTIONS`).
+Each package under :mod:`radaredge.models` calls :func:`register_family` when it is imported
+(importing :mod:`radaredge.models`, which ``import radaredge`` does, discovers and imports them
+all). A declaration is torch-free: the card sections the family reads, checked whenever a card
+is parsed (:func:`radaredge.cards.parse_card`, also in the torch-free commands), and where its
+spec lives, loaded when a verb first asks for it (:func:`model_spec`). The spec
+(:class:`radaredge.models.spec.ModelSpec`) says everything else a verb needs: graphs,
+comparators, int8 plan, bench tasks, evaluation and training recipe. This module imports no
+model and no card, so it sits below both.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+import importlib
+from dataclasses import dataclass
 
-from .cards import ModelCard
 from .errors import ConfigError
 
-_SPECS: dict[str, Callable] = {}
+
+@dataclass(frozen=True)
+class ModelFamily:
+    """A model family's declaration: ``name`` is the cards' ``model`` field; ``sections`` the
+    top-level card sections its models read (besides the fields every card takes); ``spec`` where
+    its spec function ``spec_for(card) -> ModelSpec`` lives, as ``"package.module:function"``
+    (imported on first use: the spec's module imports torch)."""
+
+    name: str
+    sections: tuple[str, ...]
+    spec: str
+
+    def spec_for(self, card):
+        """The :class:`radaredge.models.spec.ModelSpec` of ``card`` (a card may pick a variant,
+        e.g. MAFF-Net's two-stage graph)."""
+        module, _, function = self.spec.partition(":")
+        return getattr(importlib.import_module(module), function)(card)
 
 
-def register_model(name: str) -> Callable[[Callable], Callable]:
-    """Decorator: ``spec_for(card) -> ModelSpec`` is the spec of family ``name`` (a card may pick
-    a variant, e.g. MAFF-Net's two-stage graph). A name registers once."""
-    def add(spec_for: Callable) -> Callable:
-        if name in _SPECS and _SPECS[name] is not spec_for:
-            raise ValueError(f"model {name!r} is registered twice")
-        _SPECS[name] = spec_for
-        return spec_for
-    return add
+_FAMILIES: dict[str, ModelFamily] = {}
+
+
+def register_family(family: ModelFamily) -> ModelFamily:
+    """Registers ``family`` under its name; a name registers once (the same declaration again is
+    a no-op, so a re-imported package is harmless)."""
+    if family.name in _FAMILIES and _FAMILIES[family.name] != family:
+        raise ValueError(f"model family {family.name!r} is registered twice")
+    _FAMILIES[family.name] = family
+    return family
 
 
 def registered() -> list[str]:
     """The registered family names, sorted."""
-    return sorted(_SPECS)
+    return sorted(_FAMILIES)
 
 
-def model_spec(card: ModelCard):
-    """The :class:`radaredge.models.spec.ModelSpec` of ``card``'s model (its graphs);
-    the models register on ``import radaredge.models``, which every verb does."""
+def card_sections(model: str) -> tuple[str, ...] | None:
+    """The top-level sections a card of model family ``model`` may hold; None for a family that
+    is not registered (the card is refused when a verb asks for its spec)."""
+    family = _FAMILIES.get(model)
+    return None if family is None else family.sections
+
+
+def model_spec(card):
+    """The :class:`radaredge.models.spec.ModelSpec` of ``card``'s model family."""
     try:
-        spec_for = _SPECS[card.model]
+        family = _FAMILIES[card.model]
     except KeyError:
         raise ConfigError(f"{card.where}: unknown model {card.model!r}; known: {registered()}") from None
-    return spec_for(card)
+    return family.spec_for(card)

@@ -1,8 +1,8 @@
-"""Parity comparators (radaredge/parity/comparators.py) on hand-made outputs."""
+"""Parity comparators (radaredge/models/comparators.py) on hand-made outputs."""
 
 import numpy as np
 
-from radaredge.parity.comparators import retrieval_top1_agreement
+from radaredge.models.comparators import retrieval_top1_agreement
 
 
 def test_retrieval_agreement_counts_own_case_and_exact_ties():

@@ -319,6 +319,6 @@ def test_card_rejects_other_point_columns(card):
 def test_parity_descriptions_are_distinct():
     """The text encoder's parity cases hold no description twice (two equal texts made the
     retrieval agreement of the seeded full card 90 %)."""
-    from radaredge.models.des4pos.spec import descriptions
+    from radaredge.models.des4pos.descriptions import descriptions
     texts = descriptions(load_card("des4pos"), 40, 0)
     assert len(set(texts)) == 40 and min(len(t) for t in texts) < 10

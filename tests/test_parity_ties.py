@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from radaredge.parity.comparators import Proposals
+from radaredge.models.comparators import Proposals
 from radaredge.ops.nms import NmsConfig, class_agnostic_nms_reference, describe_tie, near_ties
 
 

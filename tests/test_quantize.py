@@ -174,7 +174,7 @@ def _dets(boxes, scores):
 def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
     """The int8 budget for detections: >= 95 % of the reference boxes matched (IoU >= 0.5, same
     label) over all cases together; a moved box (IoU < 0.5) and a missing box both count as missed."""
-    from radaredge.parity.comparators import Boxes
+    from radaredge.models.comparators import Boxes
     spec = Boxes("boxes").quantized()
     assert spec.min_recall == 0.95 and spec.min_iou == 0.5
     ref = _boxes(10)
@@ -191,7 +191,7 @@ def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
 def test_int8_box_recall_is_also_reported_by_reference_score_but_judged_overall():
     """Recall per reference-score floor (0.3, 0.5) is reported beside the verdict: here int8 loses
     the six boxes scored 0.12 and keeps every confident one, and the case set still fails."""
-    from radaredge.parity.comparators import Boxes
+    from radaredge.models.comparators import Boxes
     spec = Boxes("boxes").quantized()
     ref = _boxes(10)
     ref_scores = np.array([0.12] * 6 + [0.4, 0.4, 0.9, 0.9])

@@ -27,14 +27,15 @@ from ..cards import ModelCard, resolve_card
 from ..config import check_count
 from ..errors import ConfigError, InputError
 from ..export.graphs import default_output, graph_paths, write_export
-from ..export.quantize import Int8Options, int8_policy
-from ..models import create_model, model_spec
+from ..export.quantize import Int8Options, make_int8_copies
+from ..models.factory import create_model
+from ..models.spec import BenchTask
+from ..registry import model_spec
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import lazy_runner
 from ..runtime.session import checked_threads
 from .profiling import onnxruntime_peak_rss_mb, profile_runs, stage_times_from_profile, top_ops
-from .tasks import BENCH_TASKS
-from .timing import BackendResult, BenchTask, benchmark, cpu_name, format_differences, output_differences, \
+from .timing import BackendResult, benchmark, cpu_name, format_differences, output_differences, \
     pinned, results_table
 
 
@@ -288,8 +289,8 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
                               f"--model/--config it was exported with")
     int8_paths = int8_copies(card, spec, paths, int8, say)
     options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths, say)
-    make_tasks = BENCH_TASKS.get(card.model, lambda c, m, p, o: default_tasks(c, spec, m, p, o))
-    tasks = make_tasks(card, model, paths, options)
+    tasks = (spec.bench_tasks(card, model, paths, options) if spec.bench_tasks is not None
+             else default_tasks(card, spec, model, paths, options))
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     report = BenchReport(card.name, threads, cores, cpu_name(), runs, stamp)
     for t in tasks:
@@ -328,7 +329,7 @@ def int8_copies(card: ModelCard, spec, paths: dict[str, Path], int8, say) -> dic
                               f"{q.info.part!r}; the graphs: {', '.join(paths)})")
         require_int8_copy(Path(int8), fp32[name])
         return {name: Path(int8)}
-    policy = int8_policy(card)
+    policy = spec.int8
     wanted = {name: artifacts.copy_path(p, artifacts.INT8) for name, p in paths.items() if policy.quantises(name)}
     if int8 is True and not all(c.exists() for c in wanted.values()):
         say(f"int8 copies missing: quantising {card.name} to int8 ...")
@@ -348,7 +349,7 @@ def write_int8_copies(card: ModelCard, spec, paths: dict[str, Path]) -> None:
         staged = {name: stage.path(p) for name, p in paths.items()}
         for name, p in paths.items():
             shutil.copyfile(p, staged[name])
-        int8_policy(card).make(card, spec, staged, Int8Options())
+        make_int8_copies(card, spec, staged, Int8Options())
         for p in staged.values():
             p.unlink()
         stage.commit()

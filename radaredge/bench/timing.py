@@ -14,8 +14,7 @@ import contextlib
 import os
 import platform
 import time
-from dataclasses import dataclass, field
-from typing import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -37,24 +36,6 @@ class BackendResult:
 
     def __bool__(self) -> bool:
         return self.status == "ok"
-
-
-@dataclass
-class BenchTask:
-    """What one benchmark table times: ``backends`` (name -> fn(case)) on ``cases``, ``runs``
-    timed runs after ``warmup``; the speed-up column is relative to ``baseline``; with
-    ``items_per_case`` (e.g. 8 cells a batch) a throughput column ``items/s`` in ``item_unit``."""
-
-    name: str
-    title: str
-    backends: dict[str, Callable]
-    cases: list
-    runs: int
-    warmup: int = 3
-    baseline: str = "torch reference"
-    items_per_case: int | None = None
-    item_unit: str = ""
-    facts: dict = field(default_factory=dict)     # what the title states, for JSON
 
 
 def pin_threads(threads: int) -> list[int] | None:

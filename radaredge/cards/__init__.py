@@ -22,6 +22,7 @@ import yaml
 
 from ..config import Range, check_numbers, config_from_dict, positive
 from ..errors import ConfigError
+from ..registry import card_sections
 
 T = TypeVar("T")
 REQUIRED = ("name", "description", "model", "features")
@@ -66,17 +67,11 @@ MAX_WINDOW_POINTS = 2**24 - 64
 MAX_WINDOW_BEV_BYTES = 128 * 2**20
 
 
-# Top-level card fields every model takes, and each model's own sections: any other field of a
-# card of that model is refused, so a misspelt section is an error rather than a section left
-# silently at its defaults.
+# Top-level card fields every model takes; each family declares its own sections
+# (radaredge.registry.ModelFamily): any other field of a card of that model is refused, so a
+# misspelt section is an error rather than a section left silently at its defaults.
 COMMON_FIELDS = ("name", "description", "model", "features", "seed", "frames", "frame_rate", "max_points_per_frame",
                  "classes", "plausible", "implausible", "quantization", "source")
-CARD_SECTIONS = {
-    "tdfanet": ("preprocess", "pillars", "network"),
-    "maffnet": ("pillars", "spa", "cfa", "caf", "backbone_2d", "dense_head", "post_processing", "stage_two", "input",
-                "init", "vfe_features"),
-    "des4pos": ("cell", "submap", "text", "fine"),
-}
 
 
 SHIPPED_CARDS = "model_cards"   # the wheel's package of the shipped cards: radaredge/model_cards/*.yaml
@@ -200,9 +195,10 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
     if not isinstance(classes, list) or not all(isinstance(c, str) and CARD_NAME.fullmatch(c) for c in classes):
         raise ConfigError(f"{where}: classes must be a list of class names (letters, digits and . _ + -, as the "
                           f"labels spell them: they name report files too), got {classes!r}")
-    known = COMMON_FIELDS + CARD_SECTIONS.get(data["model"], ())
+    sections = card_sections(data["model"])
+    known = COMMON_FIELDS + (sections or ())
     unknown = [k for k in data if k not in known]
-    if unknown and data["model"] in CARD_SECTIONS:
+    if unknown and sections is not None:
         hints = [f"{k!r} (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(str(k), known, 1))
                  else repr(k) for k in unknown]
         raise ConfigError(f"{where}: unknown top-level field(s) {', '.join(hints)}; a {data['model']} card takes "

@@ -40,7 +40,7 @@ from ..data.kitti_detection import LAYOUTS, DetectionFrame, DetectionLayout, Det
 from ..data.readers import scan_features
 from ..errors import CapacityError, ConfigError, InputError
 from ..export.graphs import require_same_weights
-from ..models import create_model
+from ..models.factory import create_model
 from ..ops.box_iou import bev_iou_paired
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import graph_runner

@@ -37,7 +37,7 @@ import torch
 from .. import atomic
 from ..data.text_maps import TextMaps, load_text_maps
 from ..errors import ConfigError, InputError
-from ..models import create_model, weights_hash
+from ..models.factory import create_model, weights_hash
 from .places import LOCALIZATION_KS, LOCALIZATION_THRESHOLDS, localization_levels, localization_recall
 from .recall_stats import bootstrap_interval
 from ..runtime.des4pos import Des4PosBundle, MapIndex, object_summaries

@@ -42,7 +42,8 @@ from ..data.sequences import (RadarSequence, drive_directories, load_sequence, n
 from ..data.run_shards import read_run
 from ..errors import ConfigError, InputError
 from ..export.graphs import DEBUG_PREFIX, require_same_weights
-from ..models import create_model, model_spec
+from ..models.factory import create_model
+from ..registry import model_spec
 from .. import runtime
 from .baselines import polar_occupancy
 from .recall_stats import bootstrap_interval

@@ -1,4 +1,5 @@
-"""Which task evaluates each model, keyed by model family name, and what ``eval`` was given."""
+"""The evaluations ``eval`` runs, by the name a model's spec gives in ``evaluation``, and what
+``eval`` was given."""
 
 from __future__ import annotations
 
@@ -73,15 +74,16 @@ def evaluate_detections(card: ModelCard, onnx, inputs: EvalInputs):
                               inputs.dataset, progress=inputs.progress)
 
 
+# evaluation name (ModelSpec.evaluation) -> fn(card, onnx, EvalInputs) -> a report
 EVALUATIONS: dict[str, Callable] = {
-    "tdfanet": evaluate_places,
-    "des4pos": evaluate_localisation,
-    "maffnet": evaluate_detections,
+    "place recognition": evaluate_places,
+    "localisation": evaluate_localisation,
+    "detection": evaluate_detections,
 }
 
 
-# With ``parity-check --quantized``: the int8 graph judged by the model's task metric as well,
-# fn(card, onnx path, checkpoint) -> a report with lines(), to_dict() and a truth value.
+# With ``parity-check --quantized``: the int8 graph judged by the model's task metric as well, by
+# evaluation name, fn(card, onnx path, checkpoint) -> a report with lines(), to_dict() and a truth value.
 QUANTIZED_TASKS: dict[str, Callable] = {
-    "maffnet": int8_ap_loss,
+    "detection": int8_ap_loss,
 }

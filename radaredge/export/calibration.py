@@ -28,7 +28,7 @@ from ..cards import ModelCard
 from ..data.readers import FILE_SUFFIX, read_scan, scan_format
 from ..data.sequences import frame_order
 from ..errors import ConfigError, InputError
-from ..models import model_spec
+from ..registry import model_spec
 from ..runtime import FrameFeeds
 
 DEFAULT_WINDOWS = 16        # calibration windows when none are asked for

@@ -29,7 +29,7 @@ from ..version import __version__
 from ..atomic import Staging
 from ..cards import ModelCard
 from ..errors import ConfigError, ExportError
-from ..models import weights_hash
+from ..models.factory import weights_hash
 from ..models.spec import GraphSpec, ModelSpec
 from ..runtime import RadarModel
 from ..runtime.flags import BITS as FLAG_BITS, OUTPUT as FLAGS_OUTPUT, input_error_bits

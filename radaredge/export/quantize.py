@@ -40,7 +40,7 @@ from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_fe
 from ..artifacts import INT8, copy_path
 from ..cards import ModelCard
 from ..errors import ConfigError, ExportError
-from ..models import model_spec
+from ..registry import model_spec
 from ..models.spec import GraphSpec, ModelSpec
 from ..node_scopes import fused_from, module_names
 from ..runtime import FrameFeeds
@@ -223,40 +223,30 @@ class Int8Options:
 
 
 def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
-    """The default int8 policy: a static QDQ int8 copy of every graph, beside it."""
+    """Static QDQ int8 copies, beside them, of the graphs the spec's int8 plan names (calibrated
+    on ``options``' recording or on synthetic scenes)."""
     return {g.name: quantize_int8(card, paths[g.name], copy_path(paths[g.name], INT8), options.windows,
                                   calibration_dir=options.calibration_dir,
                                   calibration_format=options.calibration_format, graph=g)
-            for g in spec.graphs}
+            for g in spec.graphs if spec.int8.quantises(g.name)}
 
 
-def text_encoder_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
-    """Des4Pos's int8 policy: a dynamically quantised copy of the text encoder (int8 MatMul/Gemm
-    weights, no calibration); the point and fine graphs stay fp32."""
-    path = paths["text_encoder"]
-    return {"text_encoder": quantize_dynamic_int8(path, copy_path(path, INT8), reduce_range(card))}
+def dynamic_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
+    """Dynamically quantised copies, beside them, of the graphs the spec's int8 plan names (int8
+    MatMul/Gemm weights at the card's reduce_range, no calibration)."""
+    return {g.name: quantize_dynamic_int8(paths[g.name], copy_path(paths[g.name], INT8), reduce_range(card))
+            for g in spec.graphs if spec.int8.quantises(g.name)}
 
 
-@dataclass(frozen=True)
-class Int8Policy:
-    """How ``export --quantize int8`` makes a model's int8 copies: ``make(card, spec, paths,
-    options)`` -> {graph: int8 path}; ``calibrated``: it takes calibration data; ``graphs``:
-    the graphs it makes copies of (None: every graph)."""
-
-    make: Callable
-    calibrated: bool = True
-    graphs: tuple[str, ...] | None = None
-
-    def quantises(self, graph: str) -> bool:
-        return self.graphs is None or graph in self.graphs
+# Int8Plan.method -> how its copies are made
+INT8_METHODS: dict[str, Callable] = {"static": static_int8, "dynamic": dynamic_int8}
 
 
-STATIC = Int8Policy(static_int8)
-INT8_POLICIES: dict[str, Int8Policy] = {
-    "des4pos": Int8Policy(text_encoder_int8, calibrated=False, graphs=("text_encoder",)),
-}
-
-
-def int8_policy(card: ModelCard) -> Int8Policy:
-    """The int8 policy of ``card``'s model family (static QDQ of every graph unless it has its own)."""
-    return INT8_POLICIES.get(card.model, STATIC)
+def make_int8_copies(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
+    """The int8 copies of the graphs at ``paths`` that ``spec.int8`` asks for: graph name -> path."""
+    try:
+        make = INT8_METHODS[spec.int8.method]
+    except KeyError:
+        raise ConfigError(f"{card.name}: its spec asks for int8 method {spec.int8.method!r}; known: "
+                          f"{sorted(INT8_METHODS)}") from None
+    return make(card, spec, paths, options)

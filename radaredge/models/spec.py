@@ -1,16 +1,18 @@
-"""What the verbs need to know about a model: its graphs, their formulations and cases.
+"""What every verb needs to know about a model, declared once by its family's package.
 
 A model is one or more graphs that share one set of weights (:class:`ModelSpec`). Each graph
-(:class:`GraphSpec`) names its inputs and outputs, its synthetic cases and its two formulations
-(export and reference). The spec holds what the model *is*; what a verb does with a model (which
-comparator judges an output, how int8 copies are made, what ``bench`` times, how it is evaluated
-and trained) lives in that verb's package, keyed by the model's name, so the verbs know the
-models and the models know no verb.
+(:class:`GraphSpec`) names its inputs and outputs, its synthetic cases, its two formulations
+(export and reference) and the comparator that judges each output in ``parity-check``. The
+model spec adds what the other verbs read: how ``export --quantize int8`` makes its copies
+(:class:`Int8Plan`), what ``bench`` times beyond the default (:class:`BenchTask`), and the names
+of the evaluation and training recipe that ``eval`` and ``train`` implement. The verbs look the
+spec up (:func:`radaredge.registry.model_spec`) and keep no table of models; the models import
+no verb.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -18,6 +20,7 @@ import torch
 
 from ..cards import ModelCard
 from ..errors import ConfigError
+from .comparators import Comparator
 
 
 def _whole(model: torch.nn.Module) -> torch.nn.Module:
@@ -41,8 +44,9 @@ class GraphSpec:
     - ``input_names(card)`` / ``dynamic_axes(card)``: the input signature; ``frame_inputs(card)``
       the inputs that take one point cloud [N, F] each (oldest first) and ``timestamps_input`` the
       one taking per-frame times (s), for :mod:`radaredge.runtime`;
-    - ``output_names(card)``: graph outputs in order (:mod:`radaredge.parity.judges` says how
-      parity judges each);
+    - ``output_names(card)``: graph outputs in order;
+    - ``judges(card)``: the comparator that judges each judged output in ``parity-check``
+      (:mod:`radaredge.models.comparators`), graph output order;
     - ``make_cases(card, n, seed)`` -> [(case name, {input name: numpy array})];
     - ``run_reference(module, feeds, trace=None)`` -> {output: tensor}, the reference formulation;
     - ``run_export(module, feeds, trace=None)`` -> the export formulation's outputs, filling ``trace``;
@@ -65,6 +69,7 @@ class GraphSpec:
     make_cases: Callable[[ModelCard, int, int], list[tuple[str, dict[str, np.ndarray]]]]
     run_reference: Callable
     run_export: Callable
+    judges: Callable[[ModelCard], tuple[Comparator, ...]]
     trace_order: Callable[[ModelCard], tuple[str, ...]] = lambda card: ()
     frame_inputs: Callable[[ModelCard], list[str]] = lambda card: []
     timestamps_input: str | None = None
@@ -76,16 +81,63 @@ class GraphSpec:
 
 
 @dataclass(frozen=True)
+class Int8Plan:
+    """How ``export --quantize int8`` makes a model's int8 copies: ``method`` ``static`` (QDQ with
+    calibrated activations, :func:`radaredge.export.quantize.static_int8`) or ``dynamic``
+    (int8 MatMul/Gemm weights, activations quantised at run time, no calibration); ``graphs``
+    the graphs that get a copy (None: every graph); the others stay fp32."""
+
+    method: str = "static"
+    graphs: tuple[str, ...] | None = None
+
+    @property
+    def calibrated(self) -> bool:
+        """The method takes calibration data."""
+        return self.method == "static"
+
+    def quantises(self, graph: str) -> bool:
+        """``graph`` gets an int8 copy."""
+        return self.graphs is None or graph in self.graphs
+
+
+@dataclass(frozen=True)
+class BenchTask:
+    """What one ``bench`` table times: ``backends`` (name -> fn(case)) on ``cases``, ``runs``
+    timed runs after ``warmup``; the speed-up column is relative to ``baseline``; with
+    ``items_per_case`` (e.g. 8 cells a batch) a throughput column ``items/s`` in ``item_unit``."""
+
+    name: str
+    title: str
+    backends: dict[str, Callable]
+    cases: list
+    runs: int
+    warmup: int = 3
+    baseline: str = "torch reference"
+    items_per_case: int | None = None
+    item_unit: str = ""
+    facts: dict = field(default_factory=dict)     # what the title states, for JSON
+
+
+@dataclass(frozen=True)
 class ModelSpec:
-    """A model family: ``build(card)`` -> the whole nn.Module (seeded, eval mode) and its graphs;
+    """A model: ``build(card)`` -> the whole nn.Module (seeded, eval mode) and its graphs;
     ``files(card)`` -> {file name: source path} copied beside the graphs (a tokenizer);
     ``runtime_checks(card)`` -> [:class:`radaredge.runtime.metadata.OutputCheck`] written into
-    every graph's metadata and applied by the runtime after each run (capacity flags)."""
+    every graph's metadata and applied by the runtime after each run (capacity flags);
+    ``int8``: how its int8 copies are made; ``bench_tasks(card, model, graph paths, options)``
+    -> [:class:`BenchTask`] what ``bench`` times instead of every graph's pipeline (None: that
+    default); ``evaluation``: the task ``eval`` scores it by (a name in
+    :data:`radaredge.eval.tasks.EVALUATIONS`; None: none) and ``recipe`` the training recipe
+    (a name in :data:`radaredge.train.recipes.RECIPES`; None: not trained here)."""
 
     build: Callable[[ModelCard], torch.nn.Module]
     graphs: tuple[GraphSpec, ...]
     files: Callable[[ModelCard], dict] = _no_files
     runtime_checks: Callable[[ModelCard], list] = _no_checks
+    int8: Int8Plan = Int8Plan()
+    bench_tasks: Callable | None = None
+    evaluation: str | None = None
+    recipe: str | None = None
 
     @property
     def multi_graph(self) -> bool:

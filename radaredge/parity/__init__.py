@@ -1,3 +1,4 @@
-"""The parity verb's machinery: typed comparators, one class per output kind
-(:mod:`.comparators`), which comparator judges each output of each model (:mod:`.judges`), and
-the check itself (:mod:`.check`). The verb is :func:`radaredge.api.parity`."""
+"""The parity verb's machinery: the check itself (:mod:`.check`), on synthetic cases or on a
+recording (:mod:`.recording`), with the capacity tally (:mod:`.capacity`). Each output is judged
+by the comparator its graph's spec names (:mod:`radaredge.models.comparators`). The verb is
+:func:`radaredge.api.parity`."""

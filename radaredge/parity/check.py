@@ -1,14 +1,14 @@
 """Parity between exported graphs (onnxruntime or OpenVINO) and the reference formulation (torch).
 
 Per graph, three phases on the same cases (synthetic, or the scans of a recording:
-:mod:`radaredge.parity.recording`): **run** the graph and the reference,
-**condition** (each stage that follows a discrete decision -- NMS, proposals, keypoint
-sampling -- run by the reference on the graph's own inputs to that stage, where the graph has
-such stages), **compare** every output with its comparator (:mod:`radaredge.parity.comparators`): a
-decision that flips on float noise is judged where it is taken, and the end-to-end difference
-it causes is reported with the near-tie that explains it. A FAILED verdict
-names the numbers that decided it and, when a debug export is available, the first intermediate
-tensor where the two formulations diverge.
+:mod:`radaredge.parity.recording`): **run** the graph and the reference, **condition** (each
+stage that follows a discrete decision -- NMS, proposals, keypoint sampling -- run by the
+reference on the graph's own inputs to that stage, where the graph has such stages),
+**compare** every output with the comparator its graph spec names (``judges``,
+:mod:`radaredge.models.comparators`): a decision that flips on float noise is judged where it
+is taken, and the end-to-end difference it causes is reported with the near-tie that explains
+it. A FAILED verdict names the numbers that decided it and, when a debug export is available,
+the first intermediate tensor where the two formulations diverge.
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ import torch
 from ..cards import ModelCard
 from ..errors import CapacityError
 from .capacity import CapacityTally
-from .comparators import CaseResult, Comparator, OutputSummary
-from .judges import comparators
+from ..models.comparators import CaseResult, Comparator, OutputSummary
 from ..export.graphs import DEBUG_PREFIX
 from ..models.spec import GraphSpec
 from ..runtime.runners import graph_runner
@@ -161,7 +160,7 @@ def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx
     ``debug_onnx`` (a path, or a callable returning one, called only on failure) names the debug
     export used to locate the first diverging intermediate.
     """
-    judged = comparators(card, graph.name)
+    judged = graph.judges(card)
     judged = tuple(c.quantized() for c in judged) if quantized else tuple(judged)
     run_graph = graph_runner(onnx_path, runtime)
     cases = graph.make_cases(card, cases_n, seed) if recorded is None else list(recorded)

@@ -1,4 +1,5 @@
-"""Which recipe trains each model, keyed by model family name, and what ``train`` was given."""
+"""The training recipes ``train`` runs, by the name a model's spec gives in ``recipe``, and what
+``train`` was given."""
 
 from __future__ import annotations
 
@@ -75,8 +76,9 @@ def train_maffnet(card: ModelCard, model, data, inputs: TrainInputs):
                           inputs.checkpoint, inputs.progress or no_progress, inputs.log or (lambda line: None))
 
 
+# recipe name (ModelSpec.recipe) -> fn(card, model, data, TrainInputs) -> TrainReport
 RECIPES: dict[str, Callable] = {
-    "tdfanet": train_places,
-    "des4pos": train_text,
-    "maffnet": train_maffnet,
+    "places": train_places,                      # TDFANet: windows of drives, triplets by position
+    "text-to-cells": train_text,                 # Des4Pos: cell maps with described poses
+    "openpcdet-detection": train_maffnet,        # MAFF-Net: a labelled KITTI-layout set
 }

@@ -27,9 +27,11 @@ from ...data.text_city import make_city
 from ...runtime.text_tokens import encode_hints, load_tokenizer, split_hints
 from .model import FineConfig, build_des4pos
 from ...cards.des4pos import CellConfig, TextConfig
+from .bench import des4pos_tasks
+from .descriptions import descriptions
 from .minilm import backbone_dir
-from ...registry import register_model
-from ..spec import GraphSpec, ModelSpec
+from ..comparators import Dense, Descriptor
+from ..spec import GraphSpec, Int8Plan, ModelSpec
 
 
 def _cell(card) -> CellConfig:
@@ -105,30 +107,12 @@ SUBMAP_GRAPH = GraphSpec(
     dynamic_axes=lambda card: {k: {0: "cells"} for k in ("points", "num_points", "object_mask")},
     output_names=lambda card: list(SUBMAP_OUTPUTS),
     make_cases=submap_cases, run_reference=submap_reference, run_export=submap_export,
+    judges=lambda card: (Descriptor("descriptor", min_cosine=0.9999),
+                         Dense("object_features", atol=1e-4, rtol=1e-3)),
 )
 
 
 # ----------------------------------------------------------------------------- text encoder
-
-
-EXTRA_DESCRIPTIONS = (
-    "The pose is north of a red car.",
-    "The pose is on-top of a gray road. The pose is west of a tall white building with a flat roof.",
-    "A lamp.",
-    "The pose is east of a small yellow vending machine standing next to the entrance of a large garage.",
-)
-
-
-def descriptions(card: ModelCard, n: int, seed: int) -> list[str]:
-    """``n`` distinct descriptions of 1 .. max_hints hints: synthetic-city poses, every fifth one
-    of other wordings and lengths (short, long, beyond the city's templates). Distinct, so that a
-    case set's retrieval agreement compares different texts."""
-    t = _text(card)
-    city = make_city(max(16, t.max_hints), 8, seed=seed, poses=2 * max(n, 4), min_hints=1, max_hints=t.max_hints,
-                     objects=60)
-    poses = iter(dict.fromkeys(str(text) for text in city.pose_text))
-    extra = iter(EXTRA_DESCRIPTIONS)
-    return [(next(extra, None) if i % 5 == 4 else None) or next(poses) for i in range(n)]
 
 
 def text_cases(card: ModelCard, n: int, seed: int):
@@ -162,6 +146,10 @@ TEXT_GRAPH = GraphSpec(
     dynamic_axes=lambda card: {k: {0: "hints", 1: "tokens"} for k in ("input_ids", "attention_mask")},
     output_names=lambda card: list(TEXT_OUTPUTS),
     make_cases=text_cases, run_reference=text_reference, run_export=text_export,
+    # int8 (the dynamically quantised copy): the sentence descriptor holds the descriptor budget;
+    # the per-hint features the fine stage reads are reported, not judged
+    judges=lambda card: (Descriptor("descriptor", min_cosine=0.9999),
+                         Dense("hint_features", atol=1e-4, rtol=1e-3, quantized_info=True)),
 )
 
 
@@ -243,6 +231,7 @@ FINE_GRAPH = GraphSpec(
                                for name in fine_inputs(card)},
     output_names=lambda card: list(FINE_OUTPUTS),
     make_cases=fine_cases, run_reference=fine_reference, run_export=fine_export,
+    judges=lambda card: (Dense("offset", atol=1e-5, rtol=1e-4), Dense("position", unit="m", atol=1e-3, rtol=0.0)),
 )
 
 
@@ -250,10 +239,15 @@ DES4POS_SPEC = ModelSpec(
     build=build_des4pos,
     graphs=(SUBMAP_GRAPH, TEXT_GRAPH, FINE_GRAPH),
     files=lambda card: {"tokenizer.json": tokenizer_path(card)},
+    # a dynamically quantised copy of the text encoder (int8 MatMul/Gemm weights, no
+    # calibration); the point and fine graphs stay fp32
+    int8=Int8Plan("dynamic", graphs=("text_encoder",)),
+    bench_tasks=des4pos_tasks,
+    evaluation="localisation",
+    recipe="text-to-cells",
 )
 
 
-@register_model("des4pos")
-def des4pos_spec(card: ModelCard | None = None) -> ModelSpec:
+def spec_for(card: ModelCard | None = None) -> ModelSpec:
     """The one spec of every Des4Pos card: three graphs sharing one set of weights."""
     return DES4POS_SPEC

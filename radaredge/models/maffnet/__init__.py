@@ -2,4 +2,10 @@
 fuser of :mod:`.fuser`), stage two (:mod:`.rcnn`) and the spec (:mod:`.spec`), registered as
 ``maffnet``."""
 
-from . import spec  # noqa: F401  (registers the spec)
+from ...registry import ModelFamily, register_family
+
+register_family(ModelFamily(
+    "maffnet",
+    sections=("pillars", "spa", "cfa", "caf", "backbone_2d", "dense_head", "post_processing", "stage_two", "input",
+              "init", "vfe_features"),
+    spec=f"{__name__}.spec:spec_for"))

@@ -3,6 +3,7 @@ radaredge.models.spec)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -14,7 +15,7 @@ from ...errors import ConfigError
 from . import rcnn as two
 from .model import MAFFNet, build_maffnet, output_names, stage_times
 from ...runtime.metadata import OutputCheck
-from ...registry import register_model
+from ..comparators import Boxes, Comparator, Dense, Exact, Proposals
 from ..spec import GraphSpec, ModelSpec
 
 
@@ -177,6 +178,40 @@ def runtime_checks(card: ModelCard) -> list[OutputCheck]:
     return [spa, OutputCheck("cfa_converged", False, policy, msg)]
 
 
+def judges(card: ModelCard) -> tuple[Comparator, ...]:
+    """How parity judges each output of MAFF-Net's one- or two-stage graph (graph order). Stage
+    two's outputs follow the proposal NMS and the keypoint sampling, so they are judged on the
+    graph's own rois and keypoints (``conditioned``; see the spec's ``postprocess_reference``)."""
+    stage_two = card.get("stage_two") is not None
+    angle = dict(angle_column=6, angle_period=math.pi)
+    proposals = (two.read_stage_two(card).proposals if stage_two
+                 else two.ProposalConfig())
+    judges = {
+        "boxes": Boxes("boxes", unit="m, rad"),               # with its scores and labels outputs
+        "anchor_scores": Dense("anchor_scores", atol=1e-4, rtol=1e-3, quantized_info=True),
+        # heading compared modulo pi: a direction-bin logit pair within float noise may pick the other bin
+        "anchor_boxes": Dense("anchor_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, **angle),
+        "num_pillars": Exact("num_pillars"),
+        "spa_overflow": Exact("spa_overflow"),
+        "cfa_converged": Exact("cfa_converged"),
+        "input_flags": Exact("input_flags"),
+        # stage two (cards with ``stage_two``): the logits the proposal layer ranks, then the
+        # proposals with their labels and slots (one comparator) and what follows them
+        "anchor_logits": Dense("anchor_logits", atol=1e-4, rtol=1e-3, quantized_info=True),
+        "rois": Proposals("rois", unit="m, rad", iou_thresh=proposals.iou_thresh, pre_max=proposals.pre_max,
+                          post_max=proposals.post_max, score_tol=(1e-4, 1e-3)),
+        "keypoints": Dense("keypoints", unit="m", atol=1e-6, rtol=0.0, conditioned=True),
+        "keypoint_valid": Exact("keypoint_valid", conditioned=True),
+        # a probability after the ROI head's 27,648-wide FC stack: its logit carries float32 noise
+        # of a few 1e-4 relative, which moves the probability by up to a quarter of that times
+        # |logit| (9e-4 seen with trained-scale weights); judged absolutely, as a probability
+        "rcnn_scores": Dense("rcnn_scores", atol=2e-3, rtol=0.0, quantized_info=True, conditioned=True),
+        "rcnn_boxes": Dense("rcnn_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, conditioned=True,
+                            **angle),
+    }
+    return tuple(judges[n] for n in output_names(stage_two) if n in judges)
+
+
 STAGE_ONE_GRAPH = GraphSpec(
     name="maffnet",
     input_names=input_names,
@@ -187,6 +222,7 @@ STAGE_ONE_GRAPH = GraphSpec(
     run_reference=run_reference,
     run_export=run_export,
     trace_order=trace_order,
+    judges=judges,
     postprocess_reference=postprocess_reference,
     stage_times=lambda model, feeds, reference: stage_times(model, torch.as_tensor(feeds["points"]), reference),
     onnx_stages=(("VFE+SPA", ("vfe", "map_to_bev_module")), ("CFA", ("image_backbone",)), ("CAF", ("fuser",)),
@@ -205,11 +241,11 @@ TWO_STAGE_GRAPH = replace(
     onnx_post_outputs=("rcnn_scores", "rcnn_boxes"),
 )
 
-MAFFNET_SPEC = ModelSpec(build=build_maffnet, graphs=(STAGE_ONE_GRAPH,), runtime_checks=runtime_checks)
+MAFFNET_SPEC = ModelSpec(build=build_maffnet, graphs=(STAGE_ONE_GRAPH,), runtime_checks=runtime_checks,
+                         evaluation="detection", recipe="openpcdet-detection")
 MAFFNET_FULL_SPEC = replace(MAFFNET_SPEC, graphs=(TWO_STAGE_GRAPH,))
 
 
-@register_model("maffnet")
 def spec_for(card: ModelCard | None = None) -> ModelSpec:
     """MAFFNET_FULL_SPEC for a card with ``stage_two``, else MAFFNET_SPEC."""
     return MAFFNET_FULL_SPEC if card is not None and card.get("stage_two") is not None else MAFFNET_SPEC

@@ -1,4 +1,6 @@
 """TDFANet (sequential 4D-radar place recognition): the network (:mod:`.model`) and its spec
 (:mod:`.spec`), registered as ``tdfanet``."""
 
-from . import spec  # noqa: F401  (registers the spec)
+from ...registry import ModelFamily, register_family
+
+register_family(ModelFamily("tdfanet", sections=("preprocess", "pillars", "network"), spec=f"{__name__}.spec:spec_for"))

@@ -8,7 +8,7 @@ import torch
 from ...cards import ModelCard
 from ...data.synthetic import generate_sequence
 from ...errors import ConfigError
-from ...registry import register_model
+from ..comparators import Dense, Descriptor, Exact
 from ..spec import GraphSpec, ModelSpec
 from .model import TDFANet, build_tdfanet
 
@@ -99,6 +99,15 @@ def run_export(model: TDFANet, feeds, trace=None):
 
 OUTPUT_NAMES = ["descriptor", "descriptor_normalized", "ego_velocity", "ego_valid", "input_flags"]
 
+# how parity-check judges each output (graph order)
+JUDGES = (
+    Dense("descriptor", atol=1e-4, rtol=1e-3, quantized_info=True),
+    Descriptor("descriptor_normalized", min_cosine=0.9999),
+    Dense("ego_velocity", unit="m/s", atol=1e-4, rtol=0.0),
+    Exact("ego_valid"),
+    Exact("input_flags"),
+)
+
 TDFANET_SPEC = ModelSpec(
     build=build_tdfanet,
     graphs=(GraphSpec(
@@ -112,11 +121,13 @@ TDFANET_SPEC = ModelSpec(
         run_reference=run_reference,
         run_export=run_export,
         trace_order=trace_order,
+        judges=lambda card: JUDGES,
     ),),
+    evaluation="place recognition",
+    recipe="places",
 )
 
 
-@register_model("tdfanet")
-def tdfanet_spec(card: ModelCard | None = None) -> ModelSpec:
+def spec_for(card: ModelCard | None = None) -> ModelSpec:
     """The one spec of every TDFANet card."""
     return TDFANET_SPEC

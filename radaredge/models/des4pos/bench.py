@@ -1,20 +1,17 @@
-"""What ``bench`` times for each model, keyed by model family name: every graph's pipeline in
-every backend by default (:func:`radaredge.bench.harness.default_tasks`); Des4Pos's queries
-through its three graphs and its cell-encoding throughput (:func:`des4pos_tasks`)."""
+"""What ``bench`` times for Des4Pos instead of each graph on its own: queries through its three
+graphs and the submap encoder's cell-encoding throughput (the spec's ``bench_tasks``)."""
 
 from __future__ import annotations
 
-from typing import Callable
-
 import torch
 
-from ..cards import ModelCard
-from ..cards.des4pos import CellConfig
-from ..data.text_city import make_city
-from ..errors import ConfigError
-from ..models.des4pos.spec import descriptions
-from ..runtime.des4pos import Des4PosBundle, MapIndex, object_summaries
-from .timing import BenchTask
+from ...cards import ModelCard
+from ...cards.des4pos import CellConfig
+from ...data.text_city import make_city
+from ...errors import ConfigError
+from ...runtime.des4pos import Des4PosBundle, MapIndex, object_summaries
+from ..spec import BenchTask
+from .descriptions import descriptions
 
 
 def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTask]:
@@ -105,7 +102,3 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
                   items_per_case=batch, item_unit="cells", facts={"cell_batch": batch}),
     ]
 
-
-BENCH_TASKS: dict[str, Callable] = {
-    "des4pos": des4pos_tasks,
-}
