@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radaredge.bench.timing import cpu_name
+from radaredge.benchmarking.timing import cpu_name
 from radaredge.cards import load_card
 from radaredge.eval.detection import ap_table, as_labels, evaluate_detection, evaluate_frames, layout_for_card
 from result_file import RESULTS, save_result, sha256_of

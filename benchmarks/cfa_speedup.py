@@ -1,6 +1,6 @@
 """MAFF-Net's clustering-feature stage (upstream IMAGE_BACKBONE): GridDensityBEV vs the DBSCAN path.
 
-Times, on 2 pinned cores and interleaved per run (radaredge.bench.timing.benchmark), the map that feeds
+Times, on 2 pinned cores and interleaved per run (radaredge.benchmarking.timing.benchmark), the map that feeds
 the 3 -> 16 -> 32 -> 64 CNN and the whole stage (map + CNN), for:
 - CQCA_cfa as upstream runs it: sklearn DBSCAN on (x, y, v_r_comp), a per-point cluster-size
   loop, a last-write-wins map (radaredge.ops.dbscan.cqca_cfa_map_sklearn), then the CNN in torch;
@@ -30,11 +30,11 @@ from radaredge.cards import load_card
 from radaredge.data.synthetic import generate_scan
 from radaredge.models import create_model
 from radaredge.models.maffnet.spec import synthetic_columns
-from radaredge.export.onnx_call import export_onnx
+from radaredge.exporting.onnx_call import export_onnx
 from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.runtime.session import make_session
-from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
+from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from result_file import RESULTS, save_result, utc_stamp
 
 

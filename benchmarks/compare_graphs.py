@@ -2,8 +2,8 @@
 
 For the question "did this change make the graph slower?": both ``.onnx`` files run in
 onnxruntime on the same synthetic cases, timed in one loop that alternates them every run
-(:func:`radaredge.bench.timing.benchmark`), then each is profiled once more and its kernel time split by
-stage (:func:`radaredge.bench.profiling.stage_times_from_profile`, the stages of the card given with
+(:func:`radaredge.benchmarking.timing.benchmark`), then each is profiled once more and its kernel time split by
+stage (:func:`radaredge.benchmarking.profiling.stage_times_from_profile`, the stages of the card given with
 ``--model``): the median over several profiled passes, which alternate between the graphs, since
 one profiled pass per graph moves stages of identical code by tens of percent. Writes
 ``benchmarks/results/compare-<label>-<date>.json`` and prints a table.
@@ -22,10 +22,10 @@ from pathlib import Path
 import onnx
 
 from radaredge.cards import load_card
-from radaredge.bench.profiling import profile_runs, stage_times_from_profile
+from radaredge.benchmarking.profiling import profile_runs, stage_times_from_profile
 from radaredge.models import model_spec
 from radaredge.runtime.session import make_session, run_session
-from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
+from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from result_file import save_result
 
 

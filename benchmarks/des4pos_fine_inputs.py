@@ -42,7 +42,7 @@ from radaredge.data.text_city import CLASSES, COLOURS, colour_name
 from radaredge.data.text_maps import load_text_maps
 from radaredge.models import create_model
 from radaredge.models.des4pos.model import FineStage
-from radaredge.train.des4pos import backbone_features, cell_inputs, geometry_features, hint_table
+from radaredge.training.des4pos import backbone_features, cell_inputs, geometry_features, hint_table
 
 import training_run
 from result_file import save_result

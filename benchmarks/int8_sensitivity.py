@@ -37,12 +37,12 @@ import torch
 
 import radaredge
 from radaredge.artifacts import INT8, copy_path
-from radaredge.bench.timing import cpu_name, pin_threads
+from radaredge.benchmarking.timing import cpu_name, pin_threads
 from radaredge.cards import load_card, parse_card
 from radaredge.data.kitti_detection import DetectionSet
 from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, card_points, evaluate_detection, layout_for_card
 from radaredge.errors import ConfigError
-from radaredge.export.quantize import fp32_node_names
+from radaredge.exporting.quantize import fp32_node_names
 from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import STAGE_TWO_MODULES
 from radaredge.runtime.session import make_session, run_session

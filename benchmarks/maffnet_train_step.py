@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radaredge.bench.timing import cpu_name, pin_threads
+from radaredge.benchmarking.timing import cpu_name, pin_threads
 from radaredge.cards import load_card
 from radaredge.models import create_model
-from radaredge.train import maffnet as tm
+from radaredge.training import maffnet as tm
 from result_file import RESULTS, save_result, utc_stamp
 
 FORMULATIONS = {        # name -> (export pillars, memory format)

@@ -10,7 +10,7 @@ default, cropped as the graph takes them), in onnxruntime on 2 cores:
   scores above the threshold and the NMS gets ``post_processing.pre_max`` candidates on every
   frame: the bound a real-time user plans with.
 
-All three run in one alternating loop (:func:`radaredge.bench.timing.benchmark`), medians over
+All three run in one alternating loop (:func:`radaredge.benchmarking.timing.benchmark`), medians over
 ``--passes`` passes over the frames. Each graph is then profiled (median over 3 passes) and its
 kernel time split by the card's stages (VFE+SPA, CFA, CAF, backbone+head, NMS); not the int8
 copy, whose quantised nodes lose the module scopes the split reads. Also counted per
@@ -37,8 +37,8 @@ import torch
 import radaredge
 from radaredge.artifacts import INT8, copy_path
 from radaredge import runtime
-from radaredge.bench.profiling import profile_runs, stage_times_from_profile
-from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
+from radaredge.benchmarking.profiling import profile_runs, stage_times_from_profile
+from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from radaredge.cards import load_card
 from radaredge.data.kitti_detection import DetectionSet
 from radaredge.eval.detection import card_points, layout_for_card

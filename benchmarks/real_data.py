@@ -4,13 +4,13 @@ TJ4DRadSet's ``Sample`` (41 consecutive frames), as published (docs/data.md says
 For each card, on its dataset's recording (MAFF-Net VoD cards: ``example_set/radar``, one scan a
 frame; TJ4D cards: ``Sample``; TDFANet cards: windows of consecutive scans of ``Sample``'s
 ``training/velodyne``), fed as ``radaredge parity-check --data`` feeds them
-(:func:`radaredge.parity.recording.recorded_cases`: the camera-view crop where the card asks):
+(:func:`radaredge.checking.recording.recorded_cases`: the camera-view crop where the card asks):
 
 - **points the card keeps**, on every frame: the share inside ``pillars.point_cloud_range`` and
-  the share dropped by a full pillar (:func:`radaredge.parity.capacity.point_counts`);
+  the share dropped by a full pillar (:func:`radaredge.checking.capacity.point_counts`);
 - **time per frame and peak memory** of the fp32 graph in onnxruntime (2 threads, pinned),
   recorded frames against the synthetic cases ``radaredge bench`` times (4 cases, seed 1),
-  interleaved in one run (:func:`radaredge.bench.timing.benchmark`), so the ratio is like for
+  interleaved in one run (:func:`radaredge.benchmarking.timing.benchmark`), so the ratio is like for
   like; peak memory is a fresh numpy + onnxruntime process running all the timed frames;
 - **GridDensityBEV** (cards with ``cfa.grid``), on every frame: whether the card's
   ``cc_iterations`` max-pool steps reach the exact connected components, the steps each frame
@@ -42,16 +42,16 @@ import numpy as np
 import torch
 
 from radaredge import api
-from radaredge.bench.harness import BENCH_CASES, BENCH_SEED
-from radaredge.bench.profiling import onnxruntime_peak_rss_mb
-from radaredge.bench.timing import benchmark, cpu_name, pin_threads, require_ok
+from radaredge.benchmarking.harness import BENCH_CASES, BENCH_SEED
+from radaredge.benchmarking.profiling import onnxruntime_peak_rss_mb
+from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from radaredge.cards import ModelCard, load_card, parse_card
 from radaredge.eval.detection import PICTURE_BOXES, unmatched_boxes
 from radaredge.models import create_model, model_spec
 from radaredge.ops.components import connected_components, propagate_labels
 from radaredge.ops.pillars import PillarConfig
-from radaredge.parity.capacity import point_counts
-from radaredge.parity.recording import recorded_cases, spread
+from radaredge.checking.capacity import point_counts
+from radaredge.checking.recording import recorded_cases, spread
 from radaredge.runtime.session import make_session, run_session
 from result_file import save_result, utc_stamp
 

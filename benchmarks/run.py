@@ -7,7 +7,7 @@ code. Writes benchmarks/results/suite-<date>.json, the Markdown table in benchma
 a bar chart benchmarks/suite.png (log scale). Run it with ``make bench`` (or
 ``python benchmarks/run.py --help``).
 
-Per row: median latency, FPS (1000 / median), GMACs per inference (radaredge.bench.macs: matrix,
+Per row: median latency, FPS (1000 / median), GMACs per inference (radaredge.benchmarking.macs: matrix,
 convolution, bilinear sampling and scatter work) and the achieved share of the machine's fp32
 GEMM peak on the same threads, measured by this script. The int8 speed-up over fp32 is reported
 with the share of onnxruntime fp32 time spent in the quantised op types, which bounds the
@@ -24,15 +24,15 @@ import torch
 
 import radaredge
 from radaredge.artifacts import INT8, copy_path
-from radaredge.bench.harness import BenchOptions, pipeline_backends
+from radaredge.benchmarking.harness import BenchOptions, pipeline_backends
 from radaredge.cards import load_card
 from radaredge.models import create_model
-from radaredge.bench.macs import count_macs, gemm_peak_gflops
-from radaredge.bench.profiling import profile_runs, top_ops
-from radaredge.export.quantize import QUANTIZED_OPS
+from radaredge.benchmarking.macs import count_macs, gemm_peak_gflops
+from radaredge.benchmarking.profiling import profile_runs, top_ops
+from radaredge.exporting.quantize import QUANTIZED_OPS
 from radaredge.models import model_spec
 from radaredge.runtime.openvino import openvino_installed
-from radaredge.bench.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
+from radaredge.benchmarking.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
 sys.path.insert(0, str(Path(__file__).resolve().parent))    # the sibling modules, also when loaded by path (tests)
 from result_file import result_path, utc_stamp, write_result  # noqa: E402
 

@@ -13,7 +13,7 @@ import torch
 
 from radaredge.cards import ModelCard, load_card
 from radaredge.config import parse_settings
-from radaredge.bench.timing import cpu_name
+from radaredge.benchmarking.timing import cpu_name
 
 ROOT = Path(__file__).resolve().parent.parent
 THREADS = 2

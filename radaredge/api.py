@@ -23,24 +23,25 @@ import onnx as onnx_lib
 from . import artifacts, atomic
 from . import runtime as rt
 from .atomic import Staging
-from .bench.harness import BenchReport
-from .bench.harness import bench as _bench
+from .benchmarking.harness import BenchReport
+from .benchmarking.harness import bench as _bench
 from .cards import ModelCard, parse_card, resolve_card
 from .cards.openpcdet import Conversion, load_openpcdet_config, maffnet_card, render_card
 from .config import check_count, check_writable_dir, checked_arguments, refuse_overwriting_inputs
 from .errors import ConfigError, InputError, RadarEdgeError
 from .eval.tasks import EVALUATIONS, QUANTIZED_TASKS, EvalInputs
-from .export.calibration import DEFAULT_WINDOWS, recorded_feeds
-from .export.graphs import default_output, export_graph, graph_paths, require_same_weights, resolve_output, write_export
-from .export.onnx_call import DEFAULT_OPSET
-from .export.quantize import Int8Options, make_int8_copies
+from .exporting.calibration import DEFAULT_WINDOWS, recorded_feeds
+from .exporting.graphs import (default_output, export_graph, graph_paths, require_same_weights, resolve_output,
+                               write_export)
+from .exporting.onnx_call import DEFAULT_OPSET
+from .exporting.quantize import Int8Options, make_int8_copies
 from .models.factory import create_model
-from .parity.check import ParityReport, check_graph
-from .parity.recording import DEFAULT_FRAMES, recorded_cases
+from .checking.check import ParityReport, check_graph
+from .checking.recording import DEFAULT_FRAMES, recorded_cases
 from .runtime.model import FrameFeeds
 from .registry import model_spec
-from .train.recipes import RECIPES, TrainInputs
-from .train.run import prepare_run_output
+from .training.recipes import RECIPES, TrainInputs
+from .training.run import prepare_run_output
 
 __all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build", "map_query",
            "ExportResult", "BenchReport", "resolve_card", "EXPORT_OPTIONS"]
@@ -197,10 +198,10 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
     K scans: windows of K consecutive scans; default 20) spread evenly over the drive(s), KITTI
     layout (``split``: its ImageSets/<split>.txt, else every frame) or folder of scan files at
     ``data`` (scan format ``data_format``, default inferred), judged by the same comparators, with
-    the graph's capacity outputs summarised over it (:mod:`radaredge.parity.recording`).
+    the graph's capacity outputs summarised over it (:mod:`radaredge.checking.recording`).
     ``quantized``: each graph's int8 copy (beside it; a one-graph model's may be named as
     ``onnx`` itself) is held to each output's int8 budget, and a graph the model's int8 policy
-    keeps fp32 is checked as fp32. Returns a :class:`radaredge.parity.check.ParityReport`,
+    keeps fp32 is checked as fp32. Returns a :class:`radaredge.checking.check.ParityReport`,
     whose truth value is the verdict."""
     if cases is not None:
         check_count("cases", cases, 1, MAX_CASES)
@@ -345,12 +346,12 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     run directory ``output`` (default ``runs/<card>/``): ``best.pth`` (for ``export
     --checkpoint``), ``last.pth`` (for ``resume``) and ``train-log.json``; a directory that holds
     a run already is continued with ``resume`` or replaced with ``overwrite``, never silently
-    (:func:`radaredge.train.run.prepare_run_output`). ``checkpoint``
+    (:func:`radaredge.training.run.prepare_run_output`). ``checkpoint``
     initialises the weights (fine-tuning); ``options`` overrides recipe values by name (epochs,
     lr, batch_size, ...); ``bag`` says where ROS bag drives keep their radar scans and GNSS fixes
     (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
-    :class:`radaredge.train.run.TrainReport`. The recipe is the model's entry in
-    :data:`radaredge.train.recipes.RECIPES` its spec names."""
+    :class:`radaredge.training.run.TrainReport`. The recipe is the model's entry in
+    :data:`radaredge.training.recipes.RECIPES` its spec names."""
     card = resolve_card(card)
     spec = model_spec(card)
     recipe = RECIPES.get(spec.recipe)

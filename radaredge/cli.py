@@ -88,7 +88,7 @@ def _bar(desc: str, total: int):
         from tqdm import tqdm
     except ImportError:
         # lazy: imports torch, which the light commands (list, inspect, locate) must not load
-        from .train.run import no_progress
+        from .training.run import no_progress
         return no_progress(desc, total)
     return tqdm(total=total, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
 

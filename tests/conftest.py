@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from radaredge.export.onnx_call import export_onnx
+from radaredge.exporting.onnx_call import export_onnx
 from radaredge.runtime.session import make_session, run_session
 
 if os.environ.get("PYTEST_XDIST_WORKER"):

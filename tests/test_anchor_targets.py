@@ -1,4 +1,4 @@
-"""radaredge.train.anchor_targets: OpenPCDet's target assignment, residual coding and head loss
+"""radaredge.training.anchor_targets: OpenPCDet's target assignment, residual coding and head loss
 on the tiny MAFF-Net card (MAFF-Net training is only as good as these)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
 from radaredge.models import create_model
-from radaredge.train import anchor_targets as fh
+from radaredge.training import anchor_targets as fh
 from radaredge.models.maffnet.model import decode_boxes
 
 CARD = load_card(Path(__file__).parent / "cards" / "maffnet-tiny.yaml")

@@ -18,7 +18,7 @@ import torch
 import yaml
 
 from radaredge import atomic, runtime
-from radaredge.export.onnx_call import export_onnx
+from radaredge.exporting.onnx_call import export_onnx
 
 from conftest import TINY_CARD, invoke
 

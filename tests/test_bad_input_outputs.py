@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from radaredge.config import refuse_overwriting_inputs, same_path
-from radaredge.train.run import prepare_run_output
+from radaredge.training.run import prepare_run_output
 from radaredge.errors import ConfigError
 
 from conftest import TINY_CARD, invoke

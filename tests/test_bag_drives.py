@@ -10,7 +10,7 @@ from pyproj import Transformer
 from radaredge.data.bag_drives import BagSource, load_bag_sequence
 from radaredge.data.geodesy import transverse_mercator, utm_from_latlon
 from radaredge.errors import InputError
-from radaredge.train.places import load_place_windows
+from radaredge.training.places import load_place_windows
 
 from test_readers import ROS1, header, pointcloud, write_bag
 

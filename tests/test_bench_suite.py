@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from radaredge.bench import timing as bench
-from radaredge.bench.macs import count_macs
+from radaredge.benchmarking import timing as bench
+from radaredge.benchmarking.macs import count_macs
 
 ROOT = Path(__file__).resolve().parent.parent
 

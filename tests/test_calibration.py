@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from radaredge import runtime
-from radaredge.export.calibration import recorded_feeds, recorded_scan_paths, recording_format, window_starts
+from radaredge.exporting.calibration import recorded_feeds, recorded_scan_paths, recording_format, window_starts
 from radaredge.data.synthetic import generate_sequence
 from radaredge.errors import ConfigError, InputError
 import radaredge
-from radaredge.export.quantize import quantize_int8
+from radaredge.exporting.quantize import quantize_int8
 from conftest import invoke
 
 

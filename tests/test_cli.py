@@ -74,7 +74,7 @@ def test_bench_json_reports_every_backend(tmp_path, tiny_export):
 
 def test_a_failing_backend_is_a_row_not_an_abort():
     """Ultralytics-style: the backend that raises gets status error and its reason; the rest are timed."""
-    from radaredge.bench.timing import benchmark, results_table
+    from radaredge.benchmarking.timing import benchmark, results_table
 
     def broken(case):
         raise RuntimeError("no kernel for this op\nsecond line")
@@ -99,8 +99,8 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
         return real(path, threads=threads, profile=profile, **kw)
 
     monkeypatch.setattr(ort_helpers, "make_session", spy)
-    import radaredge.bench.profiling
-    monkeypatch.setattr(radaredge.bench.profiling, "make_session", spy)
+    import radaredge.benchmarking.profiling
+    monkeypatch.setattr(radaredge.benchmarking.profiling, "make_session", spy)
     (tmp_path / "tmp").mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),

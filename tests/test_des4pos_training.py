@@ -1,4 +1,4 @@
-"""Des4Pos training (radaredge/train/des4pos.py) on a tiny card and a small synthetic city."""
+"""Des4Pos training (radaredge/training/des4pos.py) on a tiny card and a small synthetic city."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from radaredge.data.text_city import write_cities
 from radaredge.data.text_maps import load_text_maps
 from radaredge.errors import ConfigError
 from radaredge.models import create_model
-from radaredge.train.des4pos import (TextRecipe, _padded_hints, backbone_features, cell_descriptors, coarse_metrics,
+from radaredge.training.des4pos import (TextRecipe, _padded_hints, backbone_features, cell_descriptors, coarse_metrics,
                                         geometry_features, hint_fine_features, hint_table, info_nce, text_descriptors)
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"

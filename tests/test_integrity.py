@@ -68,7 +68,7 @@ def _edit_card(src: Path, dst: Path, old: str, new: str, restamp: bool = False, 
         for k, v in kept:
             proto.metadata_props.add(key=k, value=v)
     if restamp:
-        from radaredge.export.graphs import stamp_content_hash
+        from radaredge.exporting.graphs import stamp_content_hash
         stamp_content_hash(proto)
     onnx.save(proto, str(dst))
     return dst
@@ -292,7 +292,7 @@ def test_int8_copies_record_their_own_content_hash(tmp_path):
 def test_a_bundle_manifest_records_each_parts_content_hash(tiny_export, tmp_path):
     """A bundle of two graphs (the tiny graph and its debug copy as parts; a real multi-graph
     export writes its manifest with the same :func:`write_manifest`)."""
-    from radaredge.export.graphs import GraphExport, write_manifest
+    from radaredge.exporting.graphs import GraphExport, write_manifest
     from radaredge.models import model_spec
     from radaredge.runtime.bundle import read_manifest
     card, _, path, debug = tiny_export

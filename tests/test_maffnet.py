@@ -221,7 +221,7 @@ def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path):
 def test_onnx_nodes_attributed_to_stages(tiny_onnx):
     """Every graph node lands in one MAFF-Net stage, by module scope or by graph position."""
     import onnx
-    from radaredge.bench.profiling import node_stages
+    from radaredge.benchmarking.profiling import node_stages
     model = onnx.load(str(tiny_onnx), load_external_data=False)
     stage = node_stages(model, list(STAGE_ONE_GRAPH.onnx_stages), STAGE_ONE_GRAPH.onnx_post_outputs)
     nodes = {n.name: n for n in model.graph.node}

@@ -267,7 +267,7 @@ def test_tiny_full_onnx_parity(tiny_full_onnx):
 
 def test_tiny_full_onnx_nodes_attributed_to_stages(tiny_full_onnx):
     import onnx
-    from radaredge.bench.profiling import node_stages
+    from radaredge.benchmarking.profiling import node_stages
     spec = model_spec(load_card(TINY_FULL)).graph()
     stages = [s for s, _ in spec.onnx_stages]
     assert stages == ["VFE+SPA", "CFA", "CAF", "backbone+head", "proposals+CDA", "VSA+point head", "ROI head",

@@ -1,4 +1,4 @@
-"""MAFF-Net's second stage trains as upstream's two-stage detector does (radaredge.train.roi_targets):
+"""MAFF-Net's second stage trains as upstream's two-stage detector does (radaredge.training.roi_targets):
 3-D IoU, the proposal target layer's sampling and soft labels, the canonical frame and its
 residuals, the corner loss, the point head's labels, and a tiny two-stage card that learns."""
 
@@ -13,8 +13,8 @@ import torch
 
 from radaredge.models.maffnet.rcnn import decode_roi_residuals
 from radaredge.ops.box_iou import bev_iou_reference, boxes_iou3d
-from radaredge.train.anchor_targets import encode_boxes
-from radaredge.train import roi_targets as rt
+from radaredge.training.anchor_targets import encode_boxes
+from radaredge.training import roi_targets as rt
 from conftest import MAFFNET_TINY_FULL_CARD, invoke
 
 

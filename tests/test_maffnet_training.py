@@ -1,4 +1,4 @@
-"""radaredge train for MAFF-Net: upstream's recipe (radaredge.train.maffnet) learns, fine-tunes an
+"""radaredge train for MAFF-Net: upstream's recipe (radaredge.training.maffnet) learns, fine-tunes an
 upstream-format checkpoint key for key, freezes, resumes, and refuses what it cannot do."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 from radaredge.cards import load_card
 from radaredge.models import create_model
 from radaredge.models.factory import save_checkpoint
-from radaredge.train import maffnet as tm
+from radaredge.training import maffnet as tm
 from references.maffnet_upstream_keys import openpcdet_checkpoint, trained_like_state_dict
 from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD, invoke, one_error_line
 

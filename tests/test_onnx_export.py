@@ -68,7 +68,7 @@ def test_the_graph_has_the_opset_asked_for_or_none_is_written(tmp_path):
 
     from conftest import TINY_CARD
     from radaredge.cli import main
-    from radaredge.export.onnx_call import export_onnx
+    from radaredge.exporting.onnx_call import export_onnx
 
     class Double(nn.Module):
         def forward(self, x):

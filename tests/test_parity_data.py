@@ -23,8 +23,8 @@ from radaredge.errors import ConfigError, InputError
 from radaredge.models import model_spec
 from radaredge.models.maffnet import rcnn
 from radaredge.ops.pillars import PillarConfig, point_drops_reference
-from radaredge.parity.capacity import point_counts
-from radaredge.parity.recording import recorded_cases, spread
+from radaredge.checking.capacity import point_counts
+from radaredge.checking.recording import recorded_cases, spread
 from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD, TINY_CARD, invoke, one_error_line
 
 DES4POS_TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -114,7 +114,7 @@ def test_tdfanet_on_a_plain_folder_of_bin_scans_and_a_directory_of_drives(tiny_e
 
 def test_a_recorded_case_fails_through_the_same_comparators(tiny_export, drives, monkeypatch):
     """A graph whose descriptor is off is FAILED on the recording, naming the recording's window."""
-    from radaredge.parity import check
+    from radaredge.checking import check
     _, _, onnx_path, _ = tiny_export
     real = check.graph_runner
 

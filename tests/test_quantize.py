@@ -11,7 +11,7 @@ from radaredge.cards import parse_card
 from radaredge.errors import ConfigError
 from radaredge.node_scopes import module_names
 import radaredge
-from radaredge.export.quantize import fp32_node_names, quantize_int8
+from radaredge.exporting.quantize import fp32_node_names, quantize_int8
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from radaredge.cards import load_card
 from radaredge.errors import ConfigError
 from radaredge.models import create_model, load_checkpoint
 import radaredge
-from radaredge.parity.check import check_graph
+from radaredge.checking.check import check_graph
 from radaredge.models import model_spec
 
 from conftest import TINY_CARD as TINY

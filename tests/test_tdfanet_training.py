@@ -22,9 +22,9 @@ from radaredge.models import create_model
 from radaredge.models.tdfanet.spec import make_cases
 from radaredge.ops.ego_velocity import estimate_ego_velocity
 from radaredge.ops.pillars import pillar_features_reference, scatter_pillars_reference
-from radaredge.train import tdfanet as T
-from radaredge.train.losses import lazy_quadruplet_loss
-from radaredge.train.places import TupleMiner, load_place_windows
+from radaredge.training import tdfanet as T
+from radaredge.training.losses import lazy_quadruplet_loss
+from radaredge.training.places import TupleMiner, load_place_windows
 
 from conftest import TINY_CARD, invoke
 

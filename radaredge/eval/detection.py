@@ -39,7 +39,7 @@ from ..data.kitti_detection import LAYOUTS, DetectionFrame, DetectionLayout, Det
     camera_fov_mask, labels_to_radar_boxes, radar_boxes_to_labels
 from ..data.readers import scan_features
 from ..errors import CapacityError, ConfigError, InputError
-from ..export.graphs import require_same_weights
+from ..exporting.graphs import require_same_weights
 from ..models.factory import create_model
 from ..ops.box_iou import bev_iou_paired
 from ..runtime.openvino import openvino_installed

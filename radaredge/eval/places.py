@@ -41,7 +41,7 @@ from ..data.sequences import (RadarSequence, drive_directories, load_sequence, n
                               windows)
 from ..data.run_shards import read_run
 from ..errors import ConfigError, InputError
-from ..export.graphs import DEBUG_PREFIX, require_same_weights
+from ..exporting.graphs import DEBUG_PREFIX, require_same_weights
 from ..models.factory import create_model
 from ..registry import model_spec
 from .. import runtime

@@ -59,7 +59,7 @@ class GraphSpec:
     against: a decision within float noise of a tie cannot then flip the verdict;
     ``stage_times(module, feeds, reference)`` ->
     {stage: s} for one torch run; ``onnx_stages`` (stage, module prefixes) and
-    ``onnx_post_outputs``, the same stages inside onnxruntime (:mod:`radaredge.bench.profiling`).
+    ``onnx_post_outputs``, the same stages inside onnxruntime (:mod:`radaredge.benchmarking.profiling`).
     """
 
     name: str
@@ -83,7 +83,7 @@ class GraphSpec:
 @dataclass(frozen=True)
 class Int8Plan:
     """How ``export --quantize int8`` makes a model's int8 copies: ``method`` ``static`` (QDQ with
-    calibrated activations, :func:`radaredge.export.quantize.static_int8`) or ``dynamic``
+    calibrated activations, :func:`radaredge.exporting.quantize.static_int8`) or ``dynamic``
     (int8 MatMul/Gemm weights, activations quantised at run time, no calibration); ``graphs``
     the graphs that get a copy (None: every graph); the others stay fp32."""
 
@@ -128,7 +128,7 @@ class ModelSpec:
     -> [:class:`BenchTask`] what ``bench`` times instead of every graph's pipeline (None: that
     default); ``evaluation``: the task ``eval`` scores it by (a name in
     :data:`radaredge.eval.tasks.EVALUATIONS`; None: none) and ``recipe`` the training recipe
-    (a name in :data:`radaredge.train.recipes.RECIPES`; None: not trained here)."""
+    (a name in :data:`radaredge.training.recipes.RECIPES`; None: not trained here)."""
 
     build: Callable[[ModelCard], torch.nn.Module]
     graphs: tuple[GraphSpec, ...]

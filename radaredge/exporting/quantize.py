@@ -3,7 +3,7 @@ every graph of a model) and dynamic int8 (weights only, for a model that asks fo
 
 Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
 weights and uint8 activations calibrated on synthetic radar windows or on a recording of the
-user's sensor (:mod:`radaredge.export.calibration`). Everything else stays
+user's sensor (:mod:`radaredge.exporting.calibration`). Everything else stays
 fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
 (float64 in the graph, never touched), alignment and deformable-attention sampling
 (GridSample) and the index math. A card can keep more in fp32: the Conv/MatMul/Gemm layers of
@@ -53,7 +53,7 @@ QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
 def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: dict) -> None:
     """Give the quantised graph at ``out_path`` the fp32 graph's ``metadata_props`` (card, weights
     hash, ...) plus ``radaredge.quantization`` = ``quantization`` (JSON), and record the int8
-    graph's own content hash (not the fp32 graph's: :func:`radaredge.export.graphs.save_stamped`)."""
+    graph's own content hash (not the fp32 graph's: :func:`radaredge.exporting.graphs.save_stamped`)."""
     src = onnx.load(str(fp32_path), load_external_data=False)
     q = onnx.load(str(out_path))
     del q.metadata_props[:]
@@ -147,7 +147,7 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
 
     Calibration uses ``calibration_cases`` windows (default ``DEFAULT_WINDOWS``): synthetic ones
     drawn with ``seed``, or with ``calibration_dir`` windows of that recording
-    (:mod:`radaredge.export.calibration`; its scan format ``calibration_format`` or inferred). The seed
+    (:mod:`radaredge.exporting.calibration`; its scan format ``calibration_format`` or inferred). The seed
     differs from the parity and bench seeds, so parity is checked on data the calibration did
     not see. Activation ranges are min/max calibrated: percentile and entropy ranges (collected
     one window at a time, since the point-count dependent tensors differ in shape between
@@ -176,7 +176,8 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
                             quant_format=QuantFormat.QDQ, per_channel=True,
                             op_types_to_quantize=list(QUANTIZED_OPS),
                             weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
-                            reduce_range=seven_bit, calibrate_method=CalibrationMethod.MinMax, nodes_to_exclude=excluded)
+                            reduce_range=seven_bit, calibrate_method=CalibrationMethod.MinMax,
+                            nodes_to_exclude=excluded)
         except Exception as exc:
             raise ExportError(f"int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
     carry_metadata(fp32_path, out_path, {

@@ -1,7 +1,7 @@
 """Parity between exported graphs (onnxruntime or OpenVINO) and the reference formulation (torch).
 
 Per graph, three phases on the same cases (synthetic, or the scans of a recording:
-:mod:`radaredge.parity.recording`): **run** the graph and the reference, **condition** (each
+:mod:`radaredge.checking.recording`): **run** the graph and the reference, **condition** (each
 stage that follows a discrete decision -- NMS, proposals, keypoint sampling -- run by the
 reference on the graph's own inputs to that stage, where the graph has such stages),
 **compare** every output with the comparator its graph spec names (``judges``,
@@ -23,7 +23,7 @@ from ..cards import ModelCard
 from ..errors import CapacityError
 from .capacity import CapacityTally
 from ..models.comparators import CaseResult, Comparator, OutputSummary
-from ..export.graphs import DEBUG_PREFIX
+from ..exporting.graphs import DEBUG_PREFIX
 from ..models.spec import GraphSpec
 from ..runtime.runners import graph_runner
 
@@ -97,7 +97,7 @@ class ParityReport:
     quantized: bool = False
     graphs: dict[str, GraphParity] = field(default_factory=dict)
     task: object | None = None      # with --quantized, the int8 graph's task metric (lines, to_dict, bool)
-    data: object | None = None      # with --data, the recording (radaredge.parity.recording.Recording)
+    data: object | None = None      # with --data, the recording (radaredge.checking.recording.Recording)
 
     @property
     def passed(self) -> bool:
@@ -151,8 +151,8 @@ def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx
     """Parity of one graph: ``onnx_path`` run in ``runtime`` (onnxruntime, or OpenVINO's CPU plugin)
     against ``graph``'s reference formulation of ``module`` on ``cases_n`` cases drawn with ``seed``,
     or on ``recorded`` cases ([(name, feeds)] of a recording,
-    :func:`radaredge.parity.recording.recorded_cases`): then the report also summarises the
-    graph's capacity outputs over them (:class:`radaredge.parity.capacity.CapacityTally`), and a
+    :func:`radaredge.checking.recording.recorded_cases`): then the report also summarises the
+    graph's capacity outputs over them (:class:`radaredge.checking.capacity.CapacityTally`), and a
     case the reference refuses for a capacity (more non-empty pillars than MAFF-Net's sparse
     attention holds) is listed as not compared instead of ending the check.
 

@@ -38,7 +38,7 @@ class TrainInputs:
 
 
 def train_places(card: ModelCard, model, data, inputs: TrainInputs):
-    """TDFANet's training recipe (:mod:`radaredge.train.tdfanet`) on the drives under ``data``."""
+    """TDFANet's training recipe (:mod:`radaredge.training.tdfanet`) on the drives under ``data``."""
     recipe = PlaceRecipe.from_options(inputs.options or {})
     bag = BagSource(**{k: v for k, v in (inputs.bag or {}).items() if v is not None})
     return run_places(card, model, data, inputs.output, recipe, inputs.device, inputs.resume, inputs.validation,
@@ -46,7 +46,7 @@ def train_places(card: ModelCard, model, data, inputs: TrainInputs):
 
 
 def train_text(card: ModelCard, model, data, inputs: TrainInputs):
-    """Des4Pos's training stages (:mod:`radaredge.train.des4pos`) on the cell maps under ``data``."""
+    """Des4Pos's training stages (:mod:`radaredge.training.des4pos`) on the cell maps under ``data``."""
     drive_only = [f"--{k.replace('_', '-')}" for k, v in (inputs.bag or {}).items() if v is not None]
     if inputs.data_format:
         drive_only.append("--format")
@@ -59,7 +59,7 @@ def train_text(card: ModelCard, model, data, inputs: TrainInputs):
 
 
 def train_maffnet(card: ModelCard, model, data, inputs: TrainInputs):
-    """MAFF-Net (one stage or two) with upstream's recipe (:mod:`radaredge.train.maffnet`) on the labelled
+    """MAFF-Net (one stage or two) with upstream's recipe (:mod:`radaredge.training.maffnet`) on the labelled
     KITTI-layout set under ``data`` (VoD or TJ4DRadSet; ``--validation`` names the split)."""
     drive_only = [f"--{k.replace('_', '-')}" for k, v in (inputs.bag or {}).items() if v is not None]
     if drive_only:

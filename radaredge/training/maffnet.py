@@ -22,11 +22,11 @@ is disabled in its MAFF-Net configs, and so it is here. Then, as upstream's
 mask_points_and_boxes_outside_range does, boxes with no corner inside the point-cloud range
 are removed; a scan left without boxes is skipped (upstream draws another scan at random).
 
-Targets and losses: :mod:`radaredge.train.anchor_targets` (the axis-aligned target assigner with
+Targets and losses: :mod:`radaredge.training.anchor_targets` (the axis-aligned target assigner with
 each class's matched / unmatched thresholds, focal loss, smooth-L1 on the residual coder with
 the sine-difference heading, the direction classifier); a card with a ``stage_two`` adds, as
 upstream's two-stage detector does, the training proposals, the proposal target layer, the point
-head's and the ROI head's losses of :mod:`radaredge.train.roi_targets` (the CDA keypoints are
+head's and the ROI head's losses of :mod:`radaredge.training.roi_targets` (the CDA keypoints are
 sampled around the sampled rois; no gradient flows through the proposals).
 
 Optimiser (OpenPCDet's ``adam_onecycle``): Adam with betas (0.95 cycled to 0.85 and back, 0.99),
@@ -151,7 +151,7 @@ class DetectionRecipe:
 
     @classmethod
     def from_options(cls, options: dict) -> "DetectionRecipe":
-        """The recipe with ``options`` over the defaults (:func:`radaredge.train.run.recipe_from_options`)."""
+        """The recipe with ``options`` over the defaults (:func:`radaredge.training.run.recipe_from_options`)."""
         return recipe_from_options(cls, options, "MAFF-Net")
 
 
@@ -273,7 +273,7 @@ class LossSetup:
 
 
 def stage_two_terms(model, scan: dict, cls, box, direction, gt, gt_labels, setup: LossSetup) -> dict:
-    """Stage two's loss terms of one scan (radaredge.train.roi_targets, in upstream's order): the
+    """Stage two's loss terms of one scan (radaredge.training.roi_targets, in upstream's order): the
     training proposals from the detached anchor outputs, the sampled rois, CDA keypoints around
     them, VSA, the point head and the ROI head; ``gt_labels`` 1-based."""
     with torch.no_grad():

@@ -1,7 +1,7 @@
 """Trace a torch module to ONNX with named, optionally dynamic, axes.
 
 This is the one place radaredge calls ``torch.onnx.export``; ops tests and the full-model
-exporter (:mod:`radaredge.export.graphs`) both go through it, so every graph is built the same way.
+exporter (:mod:`radaredge.exporting.graphs`) both go through it, so every graph is built the same way.
 """
 
 from __future__ import annotations

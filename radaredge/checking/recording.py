@@ -2,7 +2,7 @@
 
 ``radaredge parity-check --model M --onnx G --data DIR`` feeds graph and reference the scans of
 a recording, chosen as below, and judges them with the same comparators as the synthetic cases
-(:func:`radaredge.parity.check.check_graph`). What ``DIR`` may be, tried in this order:
+(:func:`radaredge.checking.check.check_graph`). What ``DIR`` may be, tried in this order:
 
 - **a drive**: ``DIR/scans/`` + ``DIR/gps.csv`` (or TransLoc4D's ``pointclouds/`` + gps.csv),
   as :func:`radaredge.data.sequences.load_sequence` reads it; **a directory of drives** (at any

@@ -141,7 +141,7 @@ class TextRecipe:
 
     @classmethod
     def from_options(cls, options: dict) -> "TextRecipe":
-        """The recipe with ``options`` over the defaults (:func:`radaredge.train.run.recipe_from_options`)."""
+        """The recipe with ``options`` over the defaults (:func:`radaredge.training.run.recipe_from_options`)."""
         return recipe_from_options(cls, options, "Des4Pos", ALIASES)
 
 

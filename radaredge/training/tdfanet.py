@@ -119,7 +119,7 @@ class PlaceRecipe:
 
     @classmethod
     def from_options(cls, options: dict) -> "PlaceRecipe":
-        """The recipe with ``options`` over the defaults (:func:`radaredge.train.run.recipe_from_options`)."""
+        """The recipe with ``options`` over the defaults (:func:`radaredge.training.run.recipe_from_options`)."""
         return recipe_from_options(cls, options, "TDFANet")
 
 

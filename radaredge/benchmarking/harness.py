@@ -3,7 +3,7 @@
 By default each graph's whole pipeline is timed in the torch reference, the torch export
 formulation, onnxruntime fp32, onnxruntime int8 (when an int8 copy exists) and OpenVINO (when
 installed); a model may time something else through its entry in
-:data:`radaredge.bench.tasks.BENCH_TASKS` (Des4Pos: queries and cell encoding). A backend that
+:data:`radaredge.benchmarking.tasks.BENCH_TASKS` (Des4Pos: queries and cell encoding). A backend that
 fails is a row with status ``error``, not an abort. Beside the tables: the onnxruntime per-stage split and top ops
 from a separately profiled session, the peak memory of a numpy + onnxruntime process per graph,
 and OpenVINO's largest output difference from onnxruntime.
@@ -26,8 +26,8 @@ from .. import runtime as rt
 from ..cards import ModelCard, resolve_card
 from ..config import check_count
 from ..errors import ConfigError, InputError
-from ..export.graphs import default_output, graph_paths, write_export
-from ..export.quantize import Int8Options, make_int8_copies
+from ..exporting.graphs import default_output, graph_paths, write_export
+from ..exporting.quantize import Int8Options, make_int8_copies
 from ..models.factory import create_model
 from ..models.spec import BenchTask
 from ..registry import model_spec
@@ -41,7 +41,7 @@ from .timing import BackendResult, benchmark, cpu_name, format_differences, outp
 
 @dataclass(frozen=True)
 class BenchOptions:
-    """What a model's bench tasks (:mod:`radaredge.bench.tasks`) are told: threads, timed runs,
+    """What a model's bench tasks (:mod:`radaredge.benchmarking.tasks`) are told: threads, timed runs,
     warm-up runs, whether to time the torch reference, whether to add OpenVINO (None: when
     installed), each graph's int8 copy, and where progress lines go."""
 
