@@ -10,6 +10,13 @@ A model is 1..n graphs (:mod:`radaredge.models.spec`), exported as a bundle
 and loops over the graphs. What a verb needs of a particular model (comparators, int8 plan,
 bench tasks, evaluation, training recipe) is declared in that model's spec.
 ``card`` is a :class:`ModelCard`, a shipped card's name or a card YAML path.
+
+Importing this module loads neither torch nor an optional extra: each verb imports the machinery
+it needs when it is called (torch for export, parity, bench, evaluate, train and
+card_from_openpcdet; onnx for inspect's targets; faiss and tokenizers for locate; Ray for run
+and the maps). That is radaredge's one lazy boundary: the command line imports this module and
+calls its verbs, and a runtime-only install (numpy and onnxruntime) runs ``list``, ``inspect``
+and ``locate``.
 """
 
 from __future__ import annotations
@@ -18,42 +25,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import onnx as onnx_lib
-
 from . import artifacts, atomic
 from . import runtime as rt
 from .atomic import Staging
-from .benchmarking.harness import BenchReport
-from .benchmarking.harness import bench as _bench
 from .cards import ModelCard, parse_card, resolve_card
-from .cards.openpcdet import Conversion, load_openpcdet_config, maffnet_card, render_card
+from .cards.openpcdet import Conversion, describe_source, load_openpcdet_config, maffnet_card, render_card
 from .config import check_count, check_writable_dir, checked_arguments, refuse_overwriting_inputs
 from .errors import ConfigError, InputError, RadarEdgeError
-from .eval.tasks import EVALUATIONS, QUANTIZED_TASKS, EvalInputs
-from .exporting.calibration import DEFAULT_WINDOWS, recorded_feeds
-from .exporting.graphs import (default_output, export_graph, graph_paths, require_same_weights, resolve_output,
-                               write_export)
-from .exporting.onnx_call import DEFAULT_OPSET
-from .exporting.quantize import Int8Options, make_int8_copies
-from .models.factory import create_model
-from .checking.check import ParityReport, check_graph
-from .checking.recording import DEFAULT_FRAMES, recorded_cases
-from .runtime.model import FrameFeeds
 from .registry import model_spec
-from .training.recipes import RECIPES, TrainInputs
-from .training.run import prepare_run_output
 
 __all__ = ["export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build", "map_query",
-           "ExportResult", "BenchReport", "resolve_card", "EXPORT_OPTIONS"]
+           "make_benchmark", "make_city", "locate", "inspect", "ExportResult", "resolve_card", "EXPORT_OPTIONS"]
 
 
 MAX_CASES = 10_000          # parity cases are built before the first run: bound them
 MIN_OPSET = 7               # the oldest opset onnx's version converter writes
 
 
-def _calibrated(card: ModelCard) -> bool:
+def _calibrated(spec) -> bool:
     """The model's int8 plan takes calibration data."""
-    return model_spec(card).int8.calibrated
+    return spec.int8.calibrated
 
 
 # Every export option that depends on another option or on the model, checked by one generic
@@ -69,7 +60,7 @@ EXPORT_OPTIONS = (
 )
 
 
-def check_export_options(card: ModelCard, given: dict) -> None:
+def check_export_options(card: ModelCard, spec, given: dict) -> None:
     """ConfigError for an option of :data:`EXPORT_OPTIONS` given without the option it needs, or
     to a model that does not take it; ``given`` maps option names to values (None: not given)."""
     if given.get("--quantize") not in (None, "int8"):
@@ -79,7 +70,7 @@ def check_export_options(card: ModelCard, given: dict) -> None:
             continue
         if given.get(needs) is None:
             raise ConfigError(f"{option}: {missing}")
-        if not allowed(card):
+        if not allowed(spec):
             raise ConfigError(f"{card.name}: {refused}; drop {option}")
 
 
@@ -146,12 +137,19 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
     model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
     synthetic scenes; ``calibration_windows`` windows). ``model`` reuses a built model (its
     weights must be the checkpoint's). ``log`` receives progress lines."""
+    import onnx
+    from .exporting.calibration import DEFAULT_WINDOWS, recorded_feeds
+    from .exporting.graphs import write_export
+    from .exporting.onnx_call import DEFAULT_OPSET
+    from .exporting.quantize import Int8Options, make_int8_copies
+    from .models.factory import create_model
+    from .runtime.model import FrameFeeds
     card = resolve_card(card)
     spec = model_spec(card)
     say = log or (lambda line: None)
     if opset is not None:
-        check_count("--opset", opset, MIN_OPSET, onnx_lib.defs.onnx_opset_version())
-    check_export_options(card, {"--quantize": quantize, "--calibration": calibration,
+        check_count("--opset", opset, MIN_OPSET, onnx.defs.onnx_opset_version())
+    check_export_options(card, spec, {"--quantize": quantize, "--calibration": calibration,
                                 "--calibration-format": calibration_format,
                                 "--calibration-windows": calibration_windows})
     if calibration is not None:                 # a wrong recording fails before the export, not after it
@@ -160,10 +158,11 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
                        calibration_windows or DEFAULT_WINDOWS, calibration_format)
     if model is None:
         model = create_model(card, checkpoint, spec)      # card and checkpoint errors first, then the output's
-    named, output = output, resolve_output(card, spec, output)
+    named, bundle = output, artifacts.Bundle.for_output(card.name, _graph_names(spec), output)
+    output = bundle.path
     # before a long export
-    check_writable_dir(artifacts.bundle_root([g.name for g in spec.graphs], output), "--output")
-    refuse_overwriting_inputs({"--output": [named, *artifacts.bundle_files([g.name for g in spec.graphs], output)]},
+    check_writable_dir(bundle.root, "--output")
+    refuse_overwriting_inputs({"--output": [named, *bundle.files()]},
                               {"--config": card.path, "--checkpoint": checkpoint, "--calibration": calibration})
     report = getattr(model, "checkpoint_report", None)
     if report is not None:
@@ -176,13 +175,15 @@ def export(card: ModelCard | str | Path, output: str | Path | None = None, *, ch
             say(f"quantising {card.name} to int8 ...")
             return make_int8_copies(card, spec, paths, Int8Options(calibration_windows, calibration,
                                                                    calibration_format))
-    graphs, int8_paths = write_export(card, spec, model, output, DEFAULT_OPSET if opset is None else opset,
+    graphs, int8_paths = write_export(card, spec, model, bundle, DEFAULT_OPSET if opset is None else opset,
                                       debug=debug, int8=int8, progress=progress)
-    result = ExportResult(card.name, output, graphs, checkpoint=report, int8=int8_paths)
+    result = ExportResult(card.name, output, graphs, checkpoint=report, int8=int8_paths, manifest=bundle.manifest)
     result.debug = {n: artifacts.copy_path(g.path, artifacts.DEBUG) for n, g in graphs.items()} if debug else {}
-    if spec.multi_graph:
-        result.manifest = artifacts.manifest_path(output)
     return result
+
+
+def _graph_names(spec) -> tuple[str, ...]:
+    return tuple(g.name for g in spec.graphs)
 
 
 @checked_arguments
@@ -203,6 +204,11 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
     ``onnx`` itself) is held to each output's int8 budget, and a graph the model's int8 policy
     keeps fp32 is checked as fp32. Returns a :class:`radaredge.checking.check.ParityReport`,
     whose truth value is the verdict."""
+    from .checking.check import ParityReport, check_graph
+    from .checking.recording import DEFAULT_FRAMES, recorded_cases
+    from .eval.tasks import QUANTIZED_TASKS
+    from .exporting.graphs import export_graph, require_same_weights
+    from .models.factory import create_model
     if cases is not None:
         check_count("cases", cases, 1, MAX_CASES)
     if frames is not None:
@@ -215,7 +221,7 @@ def parity(card: ModelCard | str | Path, onnx: str | Path | None = None, *, chec
             raise ConfigError(f"{', '.join(given)}: choose(s) the frames of a recording; add --data DIR")
     else:
         _check_recording_options(card, spec, cases, seed)
-    onnx = Path(onnx) if onnx is not None else default_output(card, spec)
+    onnx = Path(onnx) if onnx is not None else artifacts.Bundle.default(card.name, _graph_names(spec)).path
     targets = checked_graphs(card, spec, onnx, quantized)
     recordings = {}
     if data is not None:             # a wrong recording fails before the model is built
@@ -270,7 +276,28 @@ def _check_recording_options(card: ModelCard, spec, cases, seed) -> None:
                           f"cases (drop --data)")
 
 
-bench = checked_arguments(_bench)
+@checked_arguments
+def bench(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None,
+          model=None, threads: int = 2, runs: int = 20, warmup: int = 3, reference: bool = True,
+          int8: str | Path | bool | None = None, profile: bool = False, openvino: bool | None = None,
+          save: str | Path | None = None, progress: Callable[[str], Callable] | None = None,
+          log: Callable[[str], None] | None = None):
+    """Time every backend of the card's model on ``threads`` pinned cores, ``runs`` timed runs
+    after ``warmup``, backends alternating every run; returns a
+    :class:`radaredge.benchmarking.harness.BenchReport`, a row per backend
+    (:func:`radaredge.benchmarking.harness.bench` says what each option does). ``save``: the
+    report is also written there as JSON (checked before the runs, never over an input)."""
+    from .benchmarking.harness import bench as time_backends
+    card = resolve_card(card)
+    if save is not None:
+        check_writable_dir(Path(save).parent, "--save")     # before the runs, not after them
+        refuse_overwriting_inputs({"--save": save}, {"--onnx": onnx, "--config": card.path, "--checkpoint": checkpoint})
+    report = time_backends(card, onnx, checkpoint=checkpoint, model=model, threads=threads, runs=runs, warmup=warmup,
+                           reference=reference, int8=int8, profile=profile, openvino=openvino, progress=progress,
+                           log=log)
+    if save is not None:
+        (log or (lambda line: None))(f"wrote {report.save(save)}")
+    return report
 
 
 def _holds_weights(path: Path, weights_sha256: str) -> bool:
@@ -291,7 +318,7 @@ def checked_graphs(card: ModelCard, spec, onnx: Path, quantized: bool) -> dict[s
         raise InputError(f"{onnx} is not a {card.name} export directory (no {artifacts.manifest_path(onnx).name}); "
                          f"{card.name} exports as {len(spec.graphs)} graphs: pass the directory `radaredge export "
                          f"--model {card.name}` wrote")
-    paths = graph_paths(spec, onnx)
+    paths = artifacts.Bundle(onnx, _graph_names(spec)).graph_files()
     if not quantized:
         return {name: (p, False) for name, p in paths.items()}
     policy = spec.int8
@@ -313,7 +340,7 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
              queries: str | Path | None = None, *, map_path: str | Path | None = None,
              data: str | Path | None = None, split: str = "val", dataset: str | None = None,
              checkpoint: str | Path | None = None, radius: float = 5.0, reference: bool = True,
-             progress: Callable[[str], Callable] | None = None):
+             write: EvalFiles | None = None, progress: Callable[[str], Callable] | None = None):
     """The model's task metric on the export at ``onnx``, by the model's ``evaluate`` hook:
     TDFANet's place-recognition Recall@N (and the torch reference's) over the K-frame windows of
     ``queries`` drives against ``database`` drives, true positives within ``radius`` m
@@ -322,7 +349,10 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
     MAFF-Net's 3D / BEV AP per class and area of the torch reference, the export, its int8 copy
     and OpenVINO over the ``split`` of the labelled set at ``data`` (VoD or TJ4D layout, or
     ``dataset``; :func:`radaredge.eval.detection.evaluate_detection`); the task is the model's
-    spec's ``evaluation``, a name in :data:`radaredge.eval.tasks.EVALUATIONS`."""
+    spec's ``evaluation``, a name in :data:`radaredge.eval.tasks.EVALUATIONS`. With ``write``
+    (:class:`EvalFiles`), the report's files are written too (their directories checked before
+    the evaluation, the inputs never overwritten) and listed in the report's ``written``."""
+    from .eval.tasks import EVALUATIONS, EvalInputs
     card = resolve_card(card)
     task = EVALUATIONS.get(model_spec(card).evaluation)
     if task is None:
@@ -332,7 +362,52 @@ def evaluate(card: ModelCard | str | Path, onnx: str | Path, database: str | Pat
                         map=str(map_path) if map_path else None, data=str(data) if data else None, split=split,
                         dataset=dataset, checkpoint=str(checkpoint) if checkpoint else None, radius=radius,
                         reference=reference, progress=progress)
-    return task(card, onnx, inputs)
+    if write is None:
+        return task(card, onnx, inputs)
+    files = write.resolved(onnx)
+    graph = Path(onnx)
+    refuse_overwriting_inputs(
+        dict(zip(("--report", "--plot", "--report-dir"), files)),
+        {"--onnx": [graph, *(artifacts.copy_path(graph, k) for k in artifacts.COPY_KINDS)]
+         if graph.suffix == artifacts.ARTIFACTS[artifacts.GRAPH].suffix else graph, "--database": database,
+         "--queries": queries, "--map": map_path, "--data": data, "--config": card.path, "--checkpoint": checkpoint})
+    report = task(card, onnx, inputs)
+    report.written = write.write(report, files)
+    return report
+
+
+@dataclass(frozen=True)
+class EvalFiles:
+    """Where :func:`evaluate` writes its report: the JSON ``report``, a place-recognition
+    ``plot`` (PNG) and a detection ``directory`` (report.json, precision-recall plots, BEV
+    pictures); each None: beside the graph, ``<onnx>.eval.json``, ``<onnx>.eval.png`` and
+    ``<onnx>.eval/``."""
+
+    report: str | Path | None = None
+    plot: str | Path | None = None
+    directory: str | Path | None = None
+
+    def resolved(self, onnx: str | Path) -> tuple[Path, Path, Path]:
+        """The three paths for the export at ``onnx``, their directories checked writable."""
+        base = Path(onnx)
+        graph_suffix = artifacts.ARTIFACTS[artifacts.GRAPH].suffix
+        base = (base.with_name(base.name + ".eval.json") if base.suffix != graph_suffix
+                else base.with_suffix(".eval.json"))
+        paths = (Path(self.report or base), Path(self.plot or base.with_suffix(".png")),
+                 Path(self.directory or base.with_suffix("")))
+        for path, option in zip(paths, ("--report", "--plot", "--report-dir")):
+            check_writable_dir(path.parent, option)
+        return paths
+
+    @staticmethod
+    def write(report, paths: tuple[Path, Path, Path]) -> list[str]:
+        """Writes what ``report`` has of the three files; what was written, as text."""
+        written = [str(report.write_json(paths[0]))]
+        if hasattr(report, "plot"):
+            written.append(str(report.plot(paths[1])))
+        if hasattr(report, "write_directory"):
+            written.append(f"{paths[2]}/ ({len(report.write_directory(paths[2]))} files)")
+        return written
 
 
 @checked_arguments
@@ -352,6 +427,9 @@ def train(card: ModelCard | str | Path, data: str | Path, output: str | Path | N
     (:class:`radaredge.data.bag_drives.BagSource` fields). Returns a
     :class:`radaredge.training.run.TrainReport`. The recipe is the model's entry in
     :data:`radaredge.training.recipes.RECIPES` its spec names."""
+    from .models.factory import create_model
+    from .training.recipes import RECIPES, TrainInputs
+    from .training.run import prepare_run_output
     card = resolve_card(card)
     spec = model_spec(card)
     recipe = RECIPES.get(spec.recipe)
@@ -384,6 +462,7 @@ def card_from_openpcdet(config: str | Path, out: str | Path | None = None, *, da
     (:mod:`radaredge.cards.openpcdet`); the card is validated as ``export`` reads it (the model is
     built from it) before anything is written. ``stage_two`` False makes a stage-one card;
     ``cfa`` (``dbscan`` / ``grid_density``) overrides the clustering map the config names."""
+    from .models.factory import create_model
     if cfa is not None and cfa not in CFA_CHOICES:
         raise ConfigError(f"cfa must be one of {list(CFA_CHOICES)}, got {cfa!r}")
     if out is not None:
@@ -407,7 +486,6 @@ def run(onnx: str | Path, data: str | Path, out: str | Path, *, workers: int | N
     (MAFF-Net) of every drive under ``data`` as a Ray Data pipeline, writing Parquet shards of its
     outputs with drive, frame, timestamp and pose to ``out``; resumable
     (:func:`radaredge.fleet.pipeline.run_graph`). Returns a ``RunReport``."""
-    # lazy: ray and pyarrow are the scale extra, loaded by the fleet commands only
     from .fleet.pipeline import run_graph
     check_writable_dir(Path(out), "--out")
     refuse_overwriting_inputs({"--out": out}, {"--onnx": onnx, "--data": data})
@@ -421,7 +499,6 @@ def map_build(card: ModelCard | str | Path, onnx: str | Path, drives: str | Path
               ray_address: str | None = None, fmt: str | None = None, progress: Callable | None = None):
     """A persistent place-recognition map of the drives under ``drives``: their windows described
     by ``onnx`` (an export of ``card``) on Ray, in a FAISS index (:mod:`radaredge.fleet.maps`)."""
-    # lazy: as run
     from .eval.places import check_export
     from .fleet.maps import build_map
     card = resolve_card(card)
@@ -437,6 +514,203 @@ def map_query(map_dir: str | Path, drive: str | Path, *, onnx: str | Path | None
               radius: float = 5.0, threads: int = 2, backend: str = "onnxruntime"):
     """Localise the windows of ``drive`` against a map made by :func:`map_build`: top-k map
     windows with poses and Recall@N (:func:`radaredge.fleet.maps.query_map`)."""
-    # lazy: as run
     from .fleet.maps import query_map
     return query_map(map_dir, drive, onnx=onnx, top_k=top_k, radius=radius, threads=threads, backend=backend)
+
+
+@dataclass
+class PlacesBenchmark:
+    """What :func:`make_benchmark` wrote for place recognition: per drive its path, role, scans,
+    top ego speed (m/s) and share of parked cars changed (a route drive: lane offset in m and
+    share driven against the database's direction), and per town the chance Recall@1 at each
+    radius (:func:`radaredge.eval.recall_stats.chance_of_benchmark`)."""
+
+    out: Path
+    seed: int
+    towns: int
+    layout: str
+    drives: list[dict]
+    chance: dict
+
+    def to_dict(self) -> dict:
+        return {"out": str(self.out), "seed": self.seed, "towns": self.towns, "layout": self.layout,
+                "drives": self.drives, "chance_recall": self.chance}
+
+    def lines(self) -> list[str]:
+        out = [f"wrote {len(self.drives)} drives ({self.towns} town(s), {self.layout} layout, seed {self.seed}) to "
+               f"{self.out}:"]
+        for r in self.drives:
+            route = (f", lane {r['lane_m']:+.2f} m, {r['against_database'] * 100:.0f} % against the database's "
+                     f"direction" if "lane_m" in r else "")
+            out.append(f"  {r['drive']:<40}{r['role']:<10}{r['frames']:>6} scans {r['speed_m_s']:5.1f} m/s, parked "
+                       f"cars changed {r['parked_change'] * 100:.0f} %{route}")
+        for town, by_radius in self.chance.items():
+            out.append(f"  chance Recall@1 ({town}): " + ", ".join(
+                f"{v['recall_at_1']:.2f} % at {r} m ({v['database_within']:.1f} database scans within it per query)"
+                for r, v in by_radius.items()))
+        return out
+
+
+MAX_PLACES_DRIVES = 64
+
+
+@checked_arguments
+def make_benchmark(out: str | Path, task: str = "places", *, drives: int | None = None, frames: int | None = None,
+                   seed: int = 0, towns: int = 1, dataset: str | None = None, layout: str = "street",
+                   route_km: float | None = None, version: int | None = None, progress: Callable | None = None):
+    """Write a synthetic benchmark to ``out``. ``task="places"``: one town (or ``towns`` towns of
+    seeds ``seed``, ``seed + 1``, ...) driven on ``drives`` days (default 3; the first is the
+    database) with other traffic, ego speed and heading offsets and some parked cars moved; the
+    town is one street (``frames`` scans a drive, default 60) or with ``layout="network"`` a
+    grid of streets driven along routes of ``route_km`` km (default 2.2); returns a
+    :class:`PlacesBenchmark` with the chance Recall@1. ``task="detection"``: labelled frames in
+    View-of-Delft's (or ``dataset="tj4d"``: TJ4DRadSet's) layout, ``drives`` drives of ``frames``
+    frames (default 40) split train / val / test by drive, set ``version`` 2 (radar physics,
+    default) or 1 (:func:`radaredge.data.detection_benchmark.make_detection_benchmark`)."""
+    from .data.detection_benchmark import make_detection_benchmark
+    from .data.pr_benchmark import make_pr_benchmark, make_pr_towns, make_route_benchmark
+    from .eval.recall_stats import chance_of_benchmark
+    if task not in ("places", "detection"):
+        raise ConfigError(f"--task must be places or detection, got {task!r}")
+    if task == "detection":
+        given = [name for name, used in (("--towns", towns != 1), ("--layout", layout != "street"),
+                                         ("--route-km", route_km is not None)) if used]
+        if given:
+            raise ConfigError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for --task places")
+        return make_detection_benchmark(out, drives, frames or 40, seed, progress=progress, dataset=dataset or "vod",
+                                        version=version or 2)
+    if dataset is not None or version is not None:
+        raise ConfigError(f"{'--dataset' if dataset is not None else '--version'} is for --task detection")
+    if layout not in ("street", "network"):
+        raise ConfigError(f"--layout must be street or network, got {layout!r}")
+    drives = drives or 3
+    if drives > MAX_PLACES_DRIVES:
+        raise ConfigError(f"--drives {drives}: a places benchmark has at most {MAX_PLACES_DRIVES} drives")
+    if layout == "network":
+        route_km = route_km or 2.2
+        if frames is not None:
+            raise ConfigError("--frames is for --layout street; a network drive's scans follow from --route-km")
+
+        def make(path, town_seed):
+            return make_route_benchmark(path, drives, route_km * 1000.0, town_seed, progress=progress)
+    else:
+        if route_km is not None:
+            raise ConfigError("--route-km is for --layout network")
+        frames = frames or 60
+
+        def make(path, town_seed):
+            return make_pr_benchmark(path, drives, frames, town_seed, progress=progress)
+    plans = {"": make(Path(out), seed)} if towns == 1 else make_pr_towns(out, towns, seed, make)
+    rows = [{"drive": str(Path(out) / town / d.subdir), "role": d.role, "frames": d.frames,
+             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change,
+             **({"lane_m": d.drive.lane, "against_database": d.against} if layout == "network" else {})}
+            for town, ds in plans.items() for d in ds]
+    chance = {town or ".": chance_of_benchmark(Path(out) / town) for town in plans}
+    return PlacesBenchmark(Path(out), seed, towns, layout, rows, chance)
+
+
+@dataclass
+class CityReport:
+    """What :func:`make_city` wrote: per map its path, cells, objects, described poses and its
+    first description (with that pose's position, m)."""
+
+    out: Path
+    seed: int
+    maps: list[dict]
+
+    def to_dict(self) -> dict:
+        rows = [{k: v for k, v in m.items() if k != "example_pose"} for m in self.maps]
+        return rows[0] if len(rows) == 1 else {"out": str(self.out), "seed": self.seed, "maps": rows}
+
+    def lines(self) -> list[str]:
+        out = [f"wrote {m['map']}: {m['cells']} cells, {m['objects']} objects, {m['poses']} described poses"
+               for m in self.maps]
+        first = self.maps[0]
+        if first["example"] is not None:
+            out.append(f"e.g. pose 0 at {first['example_pose']} m: {first['example']}")
+        return out
+
+
+@checked_arguments
+def make_city(out: str | Path, card: ModelCard | str | Path = "des4pos", *, seed: int = 0, cities: int = 1,
+              world: float = 90.0, objects: int = 70, poses: int = 40) -> CityReport:
+    """Write a synthetic city for text-to-point-cloud localisation in the layout of a Des4Pos
+    ``card``: cells of coloured objects and ``poses`` query poses with template descriptions ("The
+    pose is north of a red box."), in a ``world`` m square; ``out`` a ``.npz`` map, or with
+    ``cities`` > 1 a directory of ``city-<seed>.npz`` of seeds ``seed``, ``seed + 1``, ...
+    (:mod:`radaredge.data.text_city`)."""
+    from .data.text_city import check_city_output, check_city_work, make_city_for_card, write_cities
+    card = resolve_card(card)
+    check_city_output(out, cities)
+    check_city_work(cities, poses)
+    refuse_overwriting_inputs({"--out": out}, {"--config": card.path})
+    if cities == 1:
+        m = make_city_for_card(card, seed=seed, world=world, objects=objects, poses=poses)
+        m.save(out)
+        written = [(str(out), m)]
+    else:
+        written = write_cities(out, card, cities, seed=seed, world=world, objects=objects, poses=poses)
+    return CityReport(Path(out), seed, [
+        {"map": p, "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
+         "example": str(m.pose_text[0]) if len(m.pose_text) else None,
+         "example_pose": m.pose_w[0].round(1).tolist() if len(m.pose_text) else None} for p, m in written])
+
+
+@checked_arguments
+def locate(onnx_dir: str | Path, map_path: str | Path, text: str, *, model: str | None = None, top_k: int = 3,
+           threads: int = 2, int8_text: bool = False, cache: bool = True, progress: Callable | None = None):
+    """Locate a described pose with a Des4Pos export: the map's cells encoded once (cached beside
+    it with ``cache``), the top-k cells retrieved for ``text`` (FAISS), the fine stage's position
+    in each with its score (:func:`radaredge.runtime.des4pos.locate_description`); numpy,
+    onnxruntime, faiss and tokenizers only."""
+    from .runtime.des4pos import locate_description
+    return locate_description(onnx_dir, map_path, text, top_k, threads, int8_text, cache=cache, progress=progress,
+                              model=model)
+
+
+@dataclass
+class InspectReport:
+    """What :func:`inspect` found: per graph its fields (:func:`radaredge.runtime.inspect_export`),
+    whether every graph is what was exported (``ok``) and whether a deployment target refuses an op."""
+
+    info: dict
+
+    @property
+    def refused(self) -> bool:
+        """A deployment target asked about does not support an op of a graph."""
+        return any(f["level"] == "unsupported" for g in self.info["graphs"] for fs in g.get("targets", {}).values()
+                   for f in fs)
+
+    def __bool__(self) -> bool:
+        return bool(self.info.get("ok", True)) and not self.refused
+
+    def to_dict(self) -> dict:
+        return self.info
+
+    def lines(self) -> list[str]:
+        out = []
+        for i, graph in enumerate(self.info["graphs"]):
+            if i:
+                out.append("")
+            out += [f"{k:>15}: {describe_source(v) if k == 'source' else v}" for k, v in graph.items()
+                    if k != "targets"]
+            for target, found in graph.get("targets", {}).items():
+                bad = [f for f in found if f["level"] == "unsupported"]
+                out.append(f"{'target ' + target:>15}: " + ("unsupported: " + "; ".join(
+                    f"{f['op']} x{f['count']} ({f['message']})" for f in bad) if bad else "parses") +
+                    "".join(f"\n{'':>17}note: {f['op']} x{f['count']}: {f['message']}" for f in found
+                            if f["level"] == "note"))
+        return out
+
+
+@checked_arguments
+def inspect(onnx: str | Path, targets: str | None = None) -> InspectReport:
+    """An exported graph's (or a multi-graph export directory's) inputs, outputs, card, versions
+    and whether its contents and embedded card check out; with ``targets`` (comma-separated from
+    onnxruntime, tensorrt, openvino, ort-mobile, or all; needs the onnx package), the ops each
+    deployment target does not support (:func:`radaredge.runtime.inspect_export`)."""
+    chosen = ()
+    if targets is not None:
+        from .targets import parse_targets
+        chosen = parse_targets(targets)
+    return InspectReport(rt.inspect_export(onnx, chosen))

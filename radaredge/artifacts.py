@@ -2,16 +2,20 @@
 ``export_formats()``): its name beside the graph, the verb that writes it and the verbs and
 runtimes that read it. Nothing else in radaredge spells these names.
 
-An export is a *bundle*: one graph per part of the model. A one-graph model's bundle is the
-``.onnx`` itself (the file users see); a multi-graph model's is a directory holding
-``<graph>.onnx`` per part and the manifest. :func:`graph_files` resolves both alike, and every
-copy of a graph (int8, debug) and its sidecar sit beside it under :func:`copy_path`.
+An export is a *bundle* of named graphs (:class:`Bundle`), one per part of the model, and every
+verb handles one graph or many through it alike. A bundle of one keeps the layout users see: the
+``.onnx`` itself; a bundle of several is a directory holding ``<graph>.onnx`` per part and the
+manifest. Every copy of a graph (int8, debug) and its sidecar sit beside it under
+:func:`copy_path`.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
+
+from .errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -80,26 +84,81 @@ def manifest_path(bundle: str | Path) -> Path:
     return Path(bundle) / ARTIFACTS[MANIFEST].suffix
 
 
-def graph_files(graphs: list[str] | tuple[str, ...], bundle: str | Path) -> dict[str, Path]:
-    """Where each graph (by name) of a bundle lives: a one-graph bundle is the ``.onnx``
-    ``bundle`` itself; a multi-graph bundle's graphs are ``bundle/<graph>.onnx``."""
-    bundle = Path(bundle)
-    if len(graphs) == 1:
-        return {graphs[0]: bundle}
-    return {g: bundle / f"{g}{ARTIFACTS[GRAPH].suffix}" for g in graphs}
+@dataclass(frozen=True)
+class Bundle:
+    """The export of a model's named ``graphs`` at ``path``: the ``.onnx`` for one graph, the
+    directory for several (module docstring). The one place that knows the two layouts."""
 
+    path: Path
+    graphs: tuple[str, ...]
 
-def bundle_files(graphs: list[str] | tuple[str, ...], bundle: str | Path) -> list[Path]:
-    """Every path an export of ``graphs`` into ``bundle`` may write: each graph with its sidecar,
-    int8 and debug copies, and a multi-graph bundle's directory and manifest."""
-    files = [copy for g in graph_files(graphs, bundle).values()
-             for copy in (g, *(copy_path(g, k) for k in (SIDECAR, *COPY_KINDS)))]
-    return files if len(graphs) == 1 else [Path(bundle), manifest_path(bundle), *files]
+    @classmethod
+    def default(cls, card_name: str, graphs) -> "Bundle":
+        """``export/<card>.onnx``, or the directory ``export/<card>/`` for several graphs."""
+        graphs = tuple(graphs)
+        suffix = "" if len(graphs) > 1 else ARTIFACTS[GRAPH].suffix
+        return cls(Path("export") / f"{card_name}{suffix}", graphs)
 
+    @classmethod
+    def for_output(cls, card_name: str, graphs, output: str | Path | None) -> "Bundle":
+        """Where ``export --output`` writes, checked before any work: one graph's ``.onnx`` (an
+        existing directory, or a path ending in a slash, receives ``<card>.onnx``; another suffix,
+        or a name ending like the int8 or debug copies, is refused); several graphs' directory (an
+        existing file, or a name ending in .onnx, is refused). None: :meth:`default`."""
+        graphs = tuple(graphs)
+        if output is None:
+            return cls.default(card_name, graphs)
+        text, path, onnx = str(output), Path(output), ARTIFACTS[GRAPH].suffix
+        as_dir = text.endswith(("/", os.sep)) or path.is_dir()
+        if len(graphs) > 1:
+            if path.exists() and not path.is_dir():
+                raise ConfigError(f"--output {text}: a file; {card_name} exports {len(graphs)} graphs into a "
+                                  f"directory (e.g. export/{card_name}/)")
+            if not as_dir and path.suffix.lower() == onnx:
+                raise ConfigError(f"--output {text}: {card_name} exports {len(graphs)} graphs into a directory, "
+                                  f"not one {onnx} (e.g. export/{card_name}/)")
+            return cls(path, graphs)
+        if as_dir:
+            return cls(path / f"{card_name}{onnx}", graphs)
+        if path.suffix.lower() != onnx:
+            raise ConfigError(f"--output {text}: a graph is written to a file ending in {onnx} (its "
+                              f"{ARTIFACTS[SIDECAR].suffix} sidecar goes beside it), e.g. export/{card_name}{onnx}")
+        if is_copy(path):
+            copies = " or ".join(ARTIFACTS[k].suffix for k in COPY_KINDS)
+            raise ConfigError(f"--output {text}: names ending in {copies} are the int8 and debug copies export "
+                              f"writes beside a graph; name the fp32 graph, e.g. export/{card_name}{onnx}")
+        return cls(path, graphs)
 
-def bundle_root(graphs: list[str] | tuple[str, ...], bundle: str | Path) -> Path:
-    """The directory the files of a bundle are written into (a one-graph bundle's parent)."""
-    return Path(bundle) if len(graphs) > 1 else Path(bundle).parent
+    @property
+    def multi(self) -> bool:
+        return len(self.graphs) > 1
+
+    @property
+    def root(self) -> Path:
+        """The directory the bundle's files are written into (a one-graph bundle's parent)."""
+        return self.path if self.multi else self.path.parent
+
+    @property
+    def manifest(self) -> Path | None:
+        """The manifest of a bundle of several graphs; None for one."""
+        return manifest_path(self.path) if self.multi else None
+
+    def moved(self, root: str | Path) -> "Bundle":
+        """The same bundle with its files under ``root`` instead of :attr:`root` (a staging directory)."""
+        return Bundle(Path(root) if self.multi else Path(root) / self.path.name, self.graphs)
+
+    def graph_files(self) -> dict[str, Path]:
+        """graph name -> its ``.onnx``."""
+        if not self.multi:
+            return {self.graphs[0]: self.path}
+        return {g: self.path / f"{g}{ARTIFACTS[GRAPH].suffix}" for g in self.graphs}
+
+    def files(self) -> list[Path]:
+        """Every path an export of this bundle may write: each graph with its sidecar, int8 and
+        debug copies, and a multi-graph bundle's directory and manifest."""
+        files = [copy for g in self.graph_files().values()
+                 for copy in (g, *(copy_path(g, k) for k in (SIDECAR, *COPY_KINDS)))]
+        return [self.path, self.manifest, *files] if self.multi else files
 
 
 def describe(kind: str) -> str:

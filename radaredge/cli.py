@@ -1,7 +1,8 @@
 """The ``radaredge`` command line: a thin layer over :mod:`radaredge.api`.
 
 Each command parses its options, calls one library verb and renders the result as text, or as
-one JSON document on stdout with ``--json``. Errors of radaredge's own kinds are one ``error:``
+one JSON document on stdout with ``--json``. It imports no torch: the verbs load what they need
+when called (:mod:`radaredge.api` says so in one place). Errors of radaredge's own kinds are one ``error:``
 line on stderr and exit code 2 (a missing optional package: the extra that adds it); a FAILED
 parity check, or a bench whose backend failed, exits 1.
 """
@@ -13,15 +14,15 @@ import functools
 import signal
 import sys
 import warnings
-from pathlib import Path
 
 import click
 
-from . import artifacts, atomic
+from . import api, artifacts, atomic
 from .cards import available_cards, load_card
-from .cards.openpcdet import describe_source
-from .config import check_writable_dir, parse_settings, refuse_overwriting_inputs
-from .errors import ConfigError, RadarEdgeError
+from .config import parse_settings
+from .errors import RadarEdgeError
+from .progress import bar as _bar
+from .progress import iterate as _progress
 from .runtime.runners import RUNTIMES
 
 
@@ -69,28 +70,6 @@ def _friendly_errors(fn):
             click.echo(f"warning: {message}", err=True)
         return result
     return wrapper
-
-
-def _progress(desc):
-    """A progress-bar wrapper on stderr when it is a terminal (tqdm, when installed)."""
-    try:
-        # lazy: tqdm comes with the export extra; a runtime-only install draws no bars
-        from tqdm import tqdm
-    except ImportError:
-        return lambda it: it
-    return lambda it: tqdm(it, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
-
-
-def _bar(desc: str, total: int):
-    """A progress bar on stderr when it is a terminal (tqdm, when installed): update, set_postfix, close."""
-    try:
-        # lazy: tqdm comes with the export extra; a runtime-only install draws no bars
-        from tqdm import tqdm
-    except ImportError:
-        # lazy: imports torch, which the light commands (list, inspect, locate) must not load
-        from .training.run import no_progress
-        return no_progress(desc, total)
-    return tqdm(total=total, desc=desc, leave=False, file=sys.stderr, disable=not sys.stderr.isatty())
 
 
 def _log(line: str) -> None:
@@ -170,31 +149,13 @@ def inspect(onnx_path, targets, as_json):
     """Show an exported graph's (or a multi-graph export directory's) inputs, outputs, card, versions and
     whether its contents and embedded card check out (exit 1 when they do not); with --targets, the ops a
     deployment target does not support (exit 1 when one does not)."""
-    # lazy: loads onnxruntime, which `list` and `--help` must not
-    from .runtime import inspect_export
-    chosen = ()
-    if targets is not None:
-        from .targets import parse_targets      # needs onnx (the export extra)
-        chosen = parse_targets(targets)
-    info = inspect_export(onnx_path, chosen)
+    report = api.inspect(onnx_path, targets)
     if as_json:
-        click.echo(atomic.dumps(info))
+        click.echo(atomic.dumps(report.to_dict()))
     else:
-        for i, graph in enumerate(info["graphs"]):
-            if i:
-                click.echo("")
-            for k, v in graph.items():
-                if k != "targets":
-                    click.echo(f"{k:>15}: {describe_source(v) if k == 'source' else v}")
-            for target, found in graph.get("targets", {}).items():
-                bad = [f for f in found if f["level"] == "unsupported"]
-                click.echo(f"{'target ' + target:>15}: " + ("unsupported: " + "; ".join(
-                    f"{f['op']} x{f['count']} ({f['message']})" for f in bad) if bad else "parses") +
-                    "".join(f"\n{'':>17}note: {f['op']} x{f['count']}: {f['message']}" for f in found
-                            if f["level"] == "note"))
-    refused = any(f["level"] == "unsupported" for g in info["graphs"] for fs in g.get("targets", {}).values()
-                  for f in fs)
-    sys.exit(1 if refused or not info.get("ok", True) else 0)
+        for line in report.lines():
+            click.echo(line)
+    sys.exit(0 if report else 1)
 
 
 @main.group("card")
@@ -217,9 +178,8 @@ def card_group():
 def card_from_openpcdet(config, dataset_config, out, name, stage_one, cfa, as_json):
     """Write a MAFF-Net card from an OpenPCDet config (TRV-Lab/MAFF-Net tools/cfgs) and its
     _BASE_CONFIG_: every key mapped to a card field, checked, training-only or ignored, or refused."""
-    # lazy: the API imports torch (the card is validated by building the model)
-    from .api import card_from_openpcdet as convert
-    conv = convert(config, out, dataset_config=dataset_config, name=name, stage_two=not stage_one, cfa=cfa)
+    conv = api.card_from_openpcdet(config, out, dataset_config=dataset_config, name=name, stage_two=not stage_one,
+                                   cfa=cfa)
     if as_json:
         click.echo(atomic.dumps({"card": str(out), "name": conv.card["name"], "source": conv.card["source"],
                                  "counts": conv.counts(), "notes": conv.notes,
@@ -257,9 +217,7 @@ def card_from_openpcdet(config, dataset_config, out, name, stage_one, cfa, as_js
 def export(model, config, checkpoint, output, opset, debug, quantize, calibration_dir, calibration_format,
            calibration_windows, as_json):
     """Export the whole pipeline (raw points in, result out) to one .onnx per graph with a JSON sidecar."""
-    # lazy: the API imports torch; a runtime-only install runs list, inspect and locate without it
-    from .api import export as export_verb
-    result = export_verb(_card(model, config), output, checkpoint=checkpoint, opset=opset, debug=debug,
+    result = api.export(_card(model, config), output, checkpoint=checkpoint, opset=opset, debug=debug,
                          quantize=quantize, calibration=calibration_dir, calibration_format=calibration_format,
                          calibration_windows=calibration_windows, progress=_progress("export"), log=_log)
     _emit(as_json, result)
@@ -301,9 +259,7 @@ def parity_check(model, onnx_path, config, checkpoint, cases, seed, data_dir, sp
     """Run the ONNX in onnxruntime (or OpenVINO) and the reference formulation in torch on the
     same synthetic cases, or on your recording (--data); PASSED/FAILED against per-output
     tolerances (exit 0/1)."""
-    # lazy: the API imports torch (see export)
-    from .api import parity
-    report = parity(_card(model, config), onnx_path, checkpoint=checkpoint, cases=cases, seed=seed,
+    report = api.parity(_card(model, config), onnx_path, checkpoint=checkpoint, cases=cases, seed=seed,
                     quantized=quantized, runtime=runtime_name, data=data_dir, split=split, frames=frames,
                     data_format=data_format, progress=_progress)
     _emit(as_json, report)
@@ -334,19 +290,10 @@ def bench(model, onnx_path, config, checkpoint, threads, runs, warmup, no_refere
           save_path, as_json):
     """Frames per second and latency percentiles on THREADS cores, every backend in one run, a row each
     (exit 1 when a backend failed: its row says why)."""
-    # lazy: the API imports torch (see export)
-    from .api import bench as bench_verb
-    if save_path:
-        check_writable_dir(Path(save_path).parent, "--save")     # before the runs, not after them
-        refuse_overwriting_inputs({"--save": save_path}, {"--onnx": onnx_path, "--config": config,
-                                                           "--checkpoint": checkpoint})
-    report = bench_verb(_card(model, config), onnx_path, checkpoint=checkpoint, threads=threads, runs=runs,
-                        warmup=warmup, reference=not no_reference, int8=True if int8_path == "" else int8_path,
-                        profile=profile,
-                        openvino=openvino, progress=_progress, log=_log)
+    report = api.bench(_card(model, config), onnx_path, checkpoint=checkpoint, threads=threads, runs=runs,
+                       warmup=warmup, reference=not no_reference, int8=True if int8_path == "" else int8_path,
+                       profile=profile, openvino=openvino, save=save_path, progress=_progress, log=_log)
     _emit(as_json, report)
-    if save_path:
-        _log(f"wrote {report.save(save_path)}")
     sys.exit(0 if report else 1)
 
 
@@ -390,65 +337,10 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, 
     View-of-Delft-layout frames (single and 5-frame scans, label_2, calib, ImageSets) of cars,
     pedestrians and cyclists, moving and parked, occluding each other; prints the labels and the
     distinct objects per split."""
-    if task == "detection":
-        given = [name for name, used in (("--towns", towns != 1), ("--layout", layout != "street"),
-                                         ("--route-km", route_km is not None)) if used]
-        if given:
-            raise ConfigError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for --task places")
-        # lazy: the scene generator is loaded only by the command that runs it
-        from .data.detection_benchmark import make_detection_benchmark
-        result = make_detection_benchmark(out_dir, drives, frames or 40, seed, progress=_progress("drives"),
-                                          dataset=dataset or "vod", version=int(set_version or 2))
-        if as_json:
-            click.echo(atomic.dumps(result.to_dict()))
-            return
-        where = f"{out_dir}/radar and {out_dir}/radar_5frames" if result.dataset == "vod" else f"{out_dir} (TJ4DRadSet)"
-        click.echo(f"wrote {sum(len(v) for v in result.splits.values())} labelled frames to {where} "
-                   f"(version {result.version}, seed {seed}); labels (distinct objects):")
-        for split, ids in result.splits.items():
-            counts = ", ".join(f"{n} ({result.distinct[split][c]}) {c}" for c, n in result.objects[split].items())
-            click.echo(f"  {split:<6}{len(ids):>5} frames   {counts}")
-        return
-    if dataset is not None or set_version is not None:
-        raise ConfigError(f"{'--dataset' if dataset is not None else '--version'} is for --task detection")
-    drives = drives or 3
-    if drives > 64:
-        raise ConfigError(f"--drives {drives}: a places benchmark has at most 64 drives")
-    # lazy: the scene generator is loaded only by the command that runs it
-    from .data.pr_benchmark import make_pr_benchmark, make_pr_towns, make_route_benchmark
-    from .eval.recall_stats import chance_of_benchmark
-    if layout == "network":
-        route_km = route_km or 2.2
-        if frames is not None:
-            raise ConfigError("--frames is for --layout street; a network drive's scans follow from --route-km")
-        def make(path, town_seed):
-            return make_route_benchmark(path, drives, route_km * 1000.0, town_seed, progress=_progress("drives"))
-    else:
-        if route_km is not None:
-            raise ConfigError("--route-km is for --layout network")
-        frames = frames or 60
-        def make(path, town_seed):
-            return make_pr_benchmark(path, drives, frames, town_seed, progress=_progress("drives"))
-    plans = {"": make(Path(out_dir), seed)} if towns == 1 else make_pr_towns(out_dir, towns, seed, make)
-    rows = [{"drive": str(Path(out_dir) / town / d.subdir), "role": d.role, "frames": d.frames,
-             "speed_m_s": d.config.ego_speed_max, "parked_change": d.config.parked_change,
-             **({"lane_m": d.drive.lane, "against_database": d.against} if layout == "network" else {})}
-            for town, ds in plans.items() for d in ds]
-    chance = {town or ".": chance_of_benchmark(Path(out_dir) / town) for town in plans}
-    if as_json:
-        click.echo(atomic.dumps({"out": str(out_dir), "seed": seed, "towns": towns, "layout": layout, "drives": rows,
-                                 "chance_recall": chance}))
-        return
-    click.echo(f"wrote {len(rows)} drives ({towns} town(s), {layout} layout, seed {seed}) to {out_dir}:")
-    for r in rows:
-        route = (f", lane {r['lane_m']:+.2f} m, {r['against_database'] * 100:.0f} % against the database's direction"
-                 if "lane_m" in r else "")
-        click.echo(f"  {r['drive']:<40}{r['role']:<10}{r['frames']:>6} scans {r['speed_m_s']:5.1f} m/s, parked cars "
-                   f"changed {r['parked_change'] * 100:.0f} %{route}")
-    for town, by_radius in chance.items():
-        click.echo(f"  chance Recall@1 ({town}): " + ", ".join(
-            f"{v['recall_at_1']:.2f} % at {r} m ({v['database_within']:.1f} database scans within it per query)"
-            for r, v in by_radius.items()))
+    result = api.make_benchmark(out_dir, task, drives=drives, frames=frames, seed=seed, towns=towns, dataset=dataset,
+                                layout=layout, route_km=route_km, version=int(set_version) if set_version else None,
+                                progress=_progress("drives"))
+    _emit(as_json, result)
 
 
 @main.command("eval")
@@ -491,35 +383,13 @@ def eval_cmd(model, onnx_path, database, queries, map_path, data_root, split, da
     and 5/10/15 m and cell-retrieval recall@1/3/5 over maps' described poses (Des4Pos); 3D / BEV AP
     and AOS per class, entire area and driving corridor, of the torch reference, the ONNX, its int8
     copy and OpenVINO over a labelled split (MAFF-Net)."""
-    # lazy: the API imports torch (see export)
-    from .api import evaluate
-    base = Path(onnx_path)
-    base = base.with_name(base.name + ".eval.json") if base.suffix != ".onnx" else base.with_suffix(".eval.json")
-    report_path, plot_path = Path(report_path or base), Path(plot_path or base.with_suffix(".png"))
-    report_dir = Path(report_dir or base.with_suffix(""))
-    check_writable_dir(report_path.parent, "--report")          # before the evaluation, not after it
-    check_writable_dir(plot_path.parent, "--plot")
-    check_writable_dir(report_dir.parent, "--report-dir")
-    graph = Path(onnx_path)
-    refuse_overwriting_inputs(
-        {"--report": report_path, "--plot": plot_path, "--report-dir": report_dir},
-        {"--onnx": [graph, *(artifacts.copy_path(graph, k) for k in artifacts.COPY_KINDS)] if graph.suffix == ".onnx"
-         else graph, "--database": database, "--queries": queries, "--map": map_path, "--data": data_root,
-         "--config": config, "--checkpoint": checkpoint})
-    report = evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, data=data_root,
-                      split=split, dataset=dataset, checkpoint=checkpoint, radius=radius, reference=not no_reference,
-                      progress=_progress)
-    written = [str(report.write_json(report_path))]
-    if hasattr(report, "plot"):
-        written.append(str(report.plot(plot_path)))
-    if hasattr(report, "write_directory"):
-        written.append(f"{report_dir}/ ({len(report.write_directory(report_dir))} files)")
-    if as_json:
-        click.echo(atomic.dumps(report.to_dict()))
-        return
-    for line in report.lines():
-        click.echo(line)
-    _log(f"wrote {', '.join(written)}")
+    report = api.evaluate(_card(model, config), onnx_path, database, queries, map_path=map_path, data=data_root,
+                          split=split, dataset=dataset, checkpoint=checkpoint, radius=radius,
+                          reference=not no_reference, write=api.EvalFiles(report_path, plot_path, report_dir),
+                          progress=_progress)
+    _emit(as_json, report)
+    if not as_json:
+        _log(f"wrote {', '.join(report.written)}")
 
 
 @main.command()
@@ -568,8 +438,6 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
     """Train a model with its paper's recipe (TDFANet: the lazy quadruplet loss, Adam 8e-4 decayed 0.9
     per epoch; Des4Pos: object, prior, coarse InfoNCE and fine stages), validate every epoch and keep
     the best checkpoint for `radaredge export --checkpoint`."""
-    # lazy: the API imports torch (see export)
-    from .api import train as train_verb
     options = {k.replace("-", "_"): v for k, v in parse_settings(settings).items()}
     options.update({k: v for k, v in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("seed", seed),
                                       ("freeze", ",".join(freeze) or None)) if v is not None})
@@ -577,9 +445,9 @@ def train(model, data_dir, config, output, checkpoint, epochs, batch_size, lr, s
            "field_map": {k: (v if isinstance(v, int) else str(v))
                          for k, v in parse_settings(field_map, "--field-map", "v_r=0").items()} or None,
            "doppler_sign": float(doppler_sign) if doppler_sign else None}
-    report = train_verb(_card(model, config), data_dir, output, checkpoint=checkpoint, device=device, resume=resume,
-                        overwrite=overwrite, validation=validation or None, data_format=data_format, bag=bag,
-                        options=options, progress=_bar, log=_log)
+    report = api.train(_card(model, config), data_dir, output, checkpoint=checkpoint, device=device, resume=resume,
+                       overwrite=overwrite, validation=validation or None, data_format=data_format, bag=bag,
+                       options=options, progress=_bar, log=_log)
     _emit(as_json, report)
 
 
@@ -610,11 +478,9 @@ _BACKEND = click.Choice(["onnxruntime", "openvino", "auto"])
 def run_cmd(onnx_path, data_root, out_dir, workers, threads, backend, ray_address, data_format, shard_windows, as_json):
     """Run an exported graph over every window (TDFANet) or frame (MAFF-Net) of every drive on Ray Data:
     Parquet shards of its outputs with drive, frame, timestamp and pose."""
-    # lazy: the API imports torch; ray and pyarrow are the scale extra
-    from .api import run as run_verb
     bar = _bar("run (windows)", None)
     try:
-        report = run_verb(onnx_path, data_root, out_dir, workers=workers, threads=threads, backend=backend,
+        report = api.run(onnx_path, data_root, out_dir, workers=workers, threads=threads, backend=backend,
                           ray_address=ray_address, shard_windows=shard_windows, fmt=data_format,
                           progress=bar.update)
     finally:
@@ -649,11 +515,9 @@ def map_group():
 def map_build_cmd(model, config, onnx_path, drives, out_dir, index, workers, threads, backend, ray_address, data_format,
                   as_json):
     """Describe every window of the drives with the graph (on Ray) and index them (FAISS) in a map directory."""
-    # lazy: as run
-    from .api import map_build
     bar = _bar("map build (windows)", None)
     try:
-        report = map_build(_card(model, config), onnx_path, drives, out_dir, index=index, workers=workers,
+        report = api.map_build(_card(model, config), onnx_path, drives, out_dir, index=index, workers=workers,
                            threads=threads, backend=backend, ray_address=ray_address, fmt=data_format,
                            progress=bar.update)
     finally:
@@ -674,9 +538,7 @@ def map_build_cmd(model, config, onnx_path, drives, out_dir, index, workers, thr
 @_friendly_errors
 def map_query_cmd(map_dir, drive, onnx_path, top_k, radius, threads, backend, as_json):
     """Localise a drive against a map: each window's top-k map windows with their poses, and Recall@N."""
-    # lazy: as run
-    from .api import map_query
-    _emit(as_json, map_query(map_dir, drive, onnx=onnx_path, top_k=top_k, radius=radius, threads=threads,
+    _emit(as_json, api.map_query(map_dir, drive, onnx=onnx_path, top_k=top_k, radius=radius, threads=threads,
                              backend=backend))
 
 
@@ -698,28 +560,8 @@ def map_query_cmd(map_dir, drive, onnx_path, top_k, radius, threads, backend, as
 def make_city_cmd(out_path, model, config, seed, cities, world, objects, poses, as_json):
     """Write a synthetic city for text-to-point-cloud localisation: cells of coloured objects and
     query poses with template descriptions ("The pose is north of a red box.")."""
-    # lazy: the city generator is loaded only by the command that runs it
-    from .data.text_city import check_city_output, check_city_work, make_city_for_card, write_cities
-    card = _card(model, config)
-    check_city_output(out_path, cities)
-    check_city_work(cities, poses)
-    refuse_overwriting_inputs({"--out": out_path}, {"--config": config})
-    if cities == 1:
-        m = make_city_for_card(card, seed=seed, world=world, objects=objects, poses=poses)
-        m.save(out_path)
-        written = [(str(out_path), m)]
-    else:
-        written = write_cities(out_path, card, cities, seed=seed, world=world, objects=objects, poses=poses)
-    rows = [{"map": p, "cells": len(m), "objects": int(m.object_mask.sum()), "poses": len(m.pose_w),
-             "example": str(m.pose_text[0]) if len(m.pose_text) else None} for p, m in written]
-    if as_json:
-        click.echo(atomic.dumps(rows[0] if cities == 1 else {"out": str(out_path), "seed": seed, "maps": rows}))
-        return
-    for r in rows:
-        click.echo(f"wrote {r['map']}: {r['cells']} cells, {r['objects']} objects, {r['poses']} described poses")
-    m = written[0][1]
-    if len(m.pose_text):
-        click.echo(f"e.g. pose 0 at {m.pose_w[0].round(1).tolist()} m: {m.pose_text[0]}")
+    _emit(as_json, api.make_city(out_path, config or model, seed=seed, cities=cities, world=world, objects=objects,
+                                 poses=poses))
 
 
 @main.command()
@@ -739,10 +581,8 @@ def locate(model, onnx_dir, map_path, text, top_k, threads, int8_text, no_cache,
     """Locate a described pose: encode the map's cells once (cached), retrieve the top-k cells for the
     text (FAISS), run the fine stage in each and print the position estimates with their scores.
     Needs numpy, onnxruntime, faiss and tokenizers only (no torch, no network)."""
-    # lazy: loads onnxruntime, tokenizers and faiss, which the other commands do not need
-    from .runtime.des4pos import locate_description
-    _emit(as_json, locate_description(onnx_dir, map_path, text, top_k, threads, int8_text, cache=not no_cache,
-                                      progress=_progress("cells"), model=model))
+    _emit(as_json, api.locate(onnx_dir, map_path, text, model=model, top_k=top_k, threads=threads, int8_text=int8_text,
+                              cache=not no_cache, progress=_progress("cells")))
 
 
 if __name__ == "__main__":

@@ -285,3 +285,20 @@ def test_unwritable_outputs_and_impossible_cities_are_one_error_before_any_work(
     assert res.exit_code == 2 and res.output.strip() == f"error: {blocker}: not a directory"
     res = invoke("make-city", "--out", tmp_path / "city.npz", "--objects", 0)
     assert res.exit_code == 2 and "Invalid value for '--objects'" in res.output
+
+
+def test_the_command_line_only_parses_and_renders():
+    """cli.py imports everything at its top (the verbs load their machinery lazily, in
+    radaredge.api): no import inside a function, and every command calls a verb of radaredge.api."""
+    import ast
+    import inspect as pyinspect
+
+    import radaredge.cli as cli
+    from radaredge import api
+    tree = ast.parse(pyinspect.getsource(cli))
+    nested = [f"{fn.name}: line {node.lineno}" for fn in ast.walk(tree)
+              if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+              for node in ast.walk(fn) if isinstance(node, (ast.Import, ast.ImportFrom))]
+    assert not nested, f"imports inside cli functions: {nested}"
+    for verb in ("make_benchmark", "make_city", "locate", "inspect"):
+        assert callable(getattr(api, verb)) and f"api.{verb}(" in pyinspect.getsource(cli)

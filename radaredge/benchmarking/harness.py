@@ -26,7 +26,7 @@ from .. import runtime as rt
 from ..cards import ModelCard, resolve_card
 from ..config import check_count
 from ..errors import ConfigError, InputError
-from ..exporting.graphs import default_output, graph_paths, write_export
+from ..exporting.graphs import write_export
 from ..exporting.quantize import Int8Options, make_int8_copies
 from ..models.factory import create_model
 from ..models.spec import BenchTask
@@ -277,11 +277,12 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
     say = log or (lambda line: None)
     if model is None:
         model = create_model(card, checkpoint, spec)
-    onnx = Path(onnx) if onnx is not None else default_output(card, spec)
-    paths = graph_paths(spec, onnx)
+    names = tuple(g.name for g in spec.graphs)
+    bundle = artifacts.Bundle(Path(onnx), names) if onnx is not None else artifacts.Bundle.default(card.name, names)
+    paths = bundle.graph_files()
     if not all(p.exists() for p in paths.values()):
-        say(f"{onnx} missing: exporting it first")
-        write_export(card, spec, model, onnx)
+        say(f"{bundle.path} missing: exporting it first")
+        write_export(card, spec, model, bundle)
     for p in paths.values():                 # a file that is no export of this card is bad input, not a failed backend
         exported = rt.load(p, threads=1)
         if exported.card.name != card.name:

@@ -178,6 +178,17 @@ class DetectionBenchmark:
                 "distinct_objects": self.distinct,
                 "layouts": [SINGLE_DIR, ACCUMULATED_DIR] if self.dataset == "vod" else ["."]}
 
+    def lines(self) -> list[str]:
+        """What was written: frames per split with their labels and distinct objects per class."""
+        where = (f"{self.out}/{SINGLE_DIR} and {self.out}/{ACCUMULATED_DIR}" if self.dataset == "vod"
+                 else f"{self.out} (TJ4DRadSet)")
+        out = [f"wrote {sum(len(v) for v in self.splits.values())} labelled frames to {where} (version {self.version}"
+               f"); labels (distinct objects):"]
+        for split, ids in self.splits.items():
+            counts = ", ".join(f"{n} ({self.distinct[split][c]}) {c}" for c, n in self.objects[split].items())
+            out.append(f"  {split:<6}{len(ids):>5} frames   {counts}")
+        return out
+
 
 def split_drives(drives: int, version: int = 1) -> dict[str, list[int]]:
     """Drive indices per split. Version 1: about 20 % val and 10 % test (at least one val drive),

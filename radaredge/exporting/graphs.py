@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import collections
 import json
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -203,66 +202,24 @@ def _shape(value_info) -> list:
     return [d.dim_param or d.dim_value for d in dims]
 
 
-def graph_paths(spec: ModelSpec, output: str | Path) -> dict[str, Path]:
-    """Where each graph of the model lives in the bundle ``output``
-    (:func:`radaredge.artifacts.graph_files`)."""
-    return artifacts.graph_files([g.name for g in spec.graphs], output)
-
-
-def default_output(card: ModelCard, spec: ModelSpec) -> Path:
-    """export/<card>.onnx, or the directory export/<card>/ for a multi-graph model."""
-    return Path(f"export/{card.name}") if spec.multi_graph else Path(f"export/{card.name}.onnx")
-
-
-def resolve_output(card: ModelCard, spec: ModelSpec, output: str | Path | None) -> Path:
-    """Where ``export --output`` writes, checked before any work: a one-graph model's ``.onnx``
-    (an existing directory, or a path ending in a slash, receives ``<card>.onnx``; any suffix
-    other than .onnx, or a name ending like the int8 or debug copies, is refused); a multi-graph
-    model's directory (an existing file, or a name ending in .onnx, is refused)."""
-    if output is None:
-        return default_output(card, spec)
-    text = str(output)
-    path = Path(output)
-    as_dir = text.endswith(("/", os.sep)) or path.is_dir()
-    if spec.multi_graph:
-        if path.exists() and not path.is_dir():
-            raise ConfigError(f"--output {text}: a file; {card.name} exports {len(spec.graphs)} graphs into a "
-                              f"directory (e.g. export/{card.name}/)")
-        if not as_dir and path.suffix.lower() == ".onnx":
-            raise ConfigError(f"--output {text}: {card.name} exports {len(spec.graphs)} graphs into a directory, "
-                              f"not one .onnx (e.g. export/{card.name}/)")
-        return path
-    if as_dir:
-        return path / f"{card.name}.onnx"
-    if path.suffix.lower() != ".onnx":
-        raise ConfigError(f"--output {text}: a graph is written to a file ending in .onnx (its .json sidecar "
-                          f"goes beside it), e.g. export/{card.name}.onnx")
-    if artifacts.is_copy(path):
-        copies = " or ".join(artifacts.ARTIFACTS[k].suffix for k in artifacts.COPY_KINDS)
-        raise ConfigError(f"--output {text}: names ending in {copies} are the int8 and debug copies export writes "
-                          f"beside a graph; name the fp32 graph, e.g. export/{card.name}.onnx")
-    return path
-
-
-def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, output: str | Path,
+def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, bundle: artifacts.Bundle,
                   opset: int = DEFAULT_OPSET, debug: bool = False, progress=None) -> dict[str, GraphExport]:
-    """Export every graph of the card's model to :func:`graph_paths` (``debug``: each graph's
-    debug copy beside it); a multi-graph model also gets its shared files (``spec.files``) and
-    the manifest in ``output``. Writes in place: :func:`write_export` is the atomic form."""
-    paths = graph_paths(spec, output)
-    multi = spec.multi_graph
-    bundle_hash = weights_hash(model) if multi else None
+    """Export every graph of the card's model to its file in ``bundle`` (``debug``: each graph's
+    debug copy beside it); a bundle of several graphs also gets the model's shared files
+    (``spec.files``) and the manifest. Writes in place: :func:`write_export` is the atomic form."""
+    paths = bundle.graph_files()
+    bundle_hash = weights_hash(model) if bundle.multi else None
     graphs = list(spec.graphs)
     done = {}
     for g in (progress(graphs) if progress else graphs):
         module = g.module(model)
-        part = g.name if multi else None
+        part = g.name if bundle.multi else None
         done[g.name] = export_graph(card, spec, g, module, paths[g.name], opset, part=part, bundle_hash=bundle_hash)
         if debug:
             export_graph(card, spec, g, module, artifacts.copy_path(paths[g.name], artifacts.DEBUG), opset, debug=True,
                          part=part, bundle_hash=bundle_hash)
-    if multi:
-        write_manifest(card, spec, Path(output), done, opset, bundle_hash)
+    if bundle.multi:
+        write_manifest(card, spec, bundle, done, opset, bundle_hash)
     return done
 
 
@@ -270,36 +227,35 @@ def _moved(path: Path, stage: Staging, dest: Path) -> Path:
     return dest / path.relative_to(stage.dir) if path.is_relative_to(stage.dir) else path
 
 
-def write_export(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, output: str | Path,
+def write_export(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, bundle: artifacts.Bundle,
                  opset: int = DEFAULT_OPSET, debug: bool = False, int8=None,
                  progress=None) -> tuple[dict[str, GraphExport], dict[str, Path]]:
     """:func:`export_graphs` (and ``int8(paths)`` -> {graph: int8 path}, the model's int8 hook
     applied to the fp32 graphs) into a staging directory, then every file moved into place at
     once (:class:`radaredge.atomic.Staging`): a failed or interrupted export leaves the previous
-    files at ``output`` as they were and no partial file. Returns the graphs and int8 copies at
+    files of ``bundle`` as they were and no partial file. Returns the graphs and int8 copies at
     their final paths."""
-    output = Path(output)
     check_finite_outputs(card, spec, model)
-    dest = artifacts.bundle_root([g.name for g in spec.graphs], output)
-    with Staging(dest) as stage:
-        staged = stage.dir if spec.multi_graph else stage.path(output)
+    with Staging(bundle.root) as stage:
+        staged = bundle.moved(stage.dir)
         graphs = export_graphs(card, spec, model, staged, opset, debug, progress)
-        int8_paths = int8(graph_paths(spec, staged)) if int8 is not None else {}
+        int8_paths = int8(staged.graph_files()) if int8 is not None else {}
         stage.commit()
     for g in graphs.values():
-        g.path, g.sidecar = _moved(g.path, stage, dest), _moved(g.sidecar, stage, dest)
-    return graphs, {n: _moved(p, stage, dest) for n, p in int8_paths.items()}
+        g.path, g.sidecar = _moved(g.path, stage, bundle.root), _moved(g.sidecar, stage, bundle.root)
+    return graphs, {n: _moved(p, stage, bundle.root) for n, p in int8_paths.items()}
 
 
-def write_manifest(card: ModelCard, spec: ModelSpec, out_dir: Path, graphs: dict[str, GraphExport], opset: int,
-                   bundle_hash: str) -> Path:
-    """Copy the model's shared files into ``out_dir`` and write its manifest: the graphs with
-    their hashes (weights, and contents as recorded in each graph), the files and the card."""
+def write_manifest(card: ModelCard, spec: ModelSpec, bundle: artifacts.Bundle, graphs: dict[str, GraphExport],
+                   opset: int, bundle_hash: str) -> Path:
+    """Copy the model's shared files into the bundle's directory and write its manifest: the
+    graphs with their hashes (weights, and contents as recorded in each graph), the files and the
+    card."""
     files = {}
     for fname, src in spec.files(card).items():
-        shutil.copyfile(src, out_dir / fname)
+        shutil.copyfile(src, bundle.root / fname)
         files[fname] = str(fname)
-    manifest = artifacts.manifest_path(out_dir)
+    manifest = bundle.manifest
     manifest.write_text(json.dumps({
         "model": card.name, "family": card.model, "opset": opset, "weights_sha256": bundle_hash,
         "parts": {n: {"onnx": r.path.name, "sidecar": r.sidecar.name, "size_bytes": r.size_bytes,

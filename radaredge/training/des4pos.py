@@ -69,8 +69,8 @@ from ..cards import ModelCard
 from ..config import Range, card_ranges, positive
 from ..errors import ConfigError, InputError
 from ..models.des4pos.model import masked_max, object_summaries
-from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, no_progress, pick_device,
-                  recipe_from_options)
+from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, pick_device, recipe_from_options)
+from ..progress import no_progress
 from ..data.text_maps import TextMaps, load_text_maps
 from ..models.des4pos.spec import tokenizer_path
 from ..runtime.text_tokens import encode_hints, load_tokenizer

@@ -90,8 +90,8 @@ from ..ops.nms import class_agnostic_nms_eager
 from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
 from .roi_targets import (RoiSampling, box_corners, point_head_loss, point_labels, roi_head_loss, sample_rois,
                           training_proposals)
-from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, no_progress, pick_device,
-                  recipe_from_options)
+from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, pick_device, recipe_from_options)
+from ..progress import no_progress
 
 TRAIN_SPLIT, VALIDATION_SPLIT = "train", "val"
 TERMS = ("loss", "cls", "loc", "dir")                                   # logged per epoch as loss_<term>

@@ -11,7 +11,7 @@ from ..data.bag_drives import BagSource
 from ..errors import ConfigError
 from .des4pos import TextRecipe, train_text as run_text
 from .maffnet import DetectionRecipe, VALIDATION_SPLIT, train_detector
-from .run import no_progress
+from ..progress import no_progress
 from .tdfanet import PlaceRecipe, train_places as run_places
 
 

@@ -21,7 +21,7 @@ import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -334,19 +334,3 @@ class Stopwatch:
         return self.carried + time.perf_counter() - self.start
 
 
-Progress = Callable[[str, int], Any]      # (description, total) -> a tqdm-like bar (update, set_postfix, close)
-
-
-class _NoBar:
-    def update(self, n: int = 1) -> None:
-        pass
-
-    def set_postfix(self, **kwargs) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def no_progress(desc: str, total: int) -> _NoBar:
-    return _NoBar()

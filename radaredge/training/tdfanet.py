@@ -63,8 +63,9 @@ from ..data.bag_drives import BagSource
 from ..eval.places import RECALL_NS, recall_at_n
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
 from .places import OTHER_NEGATIVES, PlaceWindows, TupleMiner, load_place_windows
-from .run import (RunDir, Stopwatch, TrainingState, TrainReport, no_progress, pick_device, recipe_from_options,
+from .run import (RunDir, Stopwatch, TrainingState, TrainReport, pick_device, recipe_from_options,
                   set_torch_rng_state, torch_rng_state)
+from ..progress import no_progress
 
 
 BATCH_NORMS = ("frozen", "reestimate", "window")
