@@ -27,6 +27,7 @@ setup: $(STAMP)
 test: $(STAMP)
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart=0 tests
 
 # The main job on built-in defaults: export the model, prove parity, measure speed. A card with

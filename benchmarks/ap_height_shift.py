@@ -21,13 +21,13 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from result_file import RESULTS, save_result, sha256_of
 
 from radaredge.benchmarking.timing import cpu_name
 from radaredge.cards import load_card
 from radaredge.eval.detection import ap_table, as_labels, evaluate_detection, evaluate_frames, layout_for_card
-from result_file import RESULTS, save_result, sha256_of
 
-SHIFTS = (-0.2, -0.1, -0.05, -0.01, -0.004, 0.0, 0.004, 0.01, 0.05)     # m, along z
+SHIFTS = (-0.2, -0.1, -0.05, -0.01, -0.004, 0.0, 0.004, 0.01, 0.05)  # m, along z
 
 
 def shifted_ap(model: str, onnx: Path, data: Path, split: str, shifts=SHIFTS) -> dict:
@@ -43,12 +43,16 @@ def shifted_ap(model: str, onnx: Path, data: Path, split: str, shifts=SHIFTS) ->
         per_shift = {}
         for dz in shifts:
             step = np.array([0.0, 0.0, dz, 0.0, 0.0, 0.0, 0.0])
-            moved = [as_labels((boxes + step, scores, classes), frame, card.get("classes"))
-                     for (boxes, scores, classes), frame in zip(found, report.frames)]
+            moved = [
+                as_labels((boxes + step, scores, classes), frame, card.get("classes"))
+                for (boxes, scores, classes), frame in zip(found, report.frames)
+            ]
             table = ap_table(evaluate_frames(labels, moved, eval_classes, ("entire_area",)))["entire_area"]
             per_shift[f"{dz:+.3f}"] = {c: {"3d": table[c]["3d"], "bev": table[c]["bev"]} for c in report.classes}
-        out[backend] = {"dz_bias": {c: e.to_dict()["dz"] for c, e in report.box_errors[backend].items()},
-                        "ap": per_shift}
+        out[backend] = {
+            "dz_bias": {c: e.to_dict()["dz"] for c, e in report.box_errors[backend].items()},
+            "ap": per_shift,
+        }
     return out
 
 
@@ -56,8 +60,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True)
     ap.add_argument("--onnx", type=Path, required=True, help="The fp32 graph; its .int8.onnx beside it is scored too.")
-    ap.add_argument("--data", type=Path, required=True,
-                    help="A labelled set (radaredge make-benchmark --task detection).")
+    ap.add_argument(
+        "--data", type=Path, required=True, help="A labelled set (radaredge make-benchmark --task detection)."
+    )
     ap.add_argument("--split", default="test")
     ap.add_argument("--shifts", default=",".join(str(s) for s in SHIFTS), help="Comma-separated z shifts in metres.")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -66,10 +71,20 @@ def main(argv=None) -> int:
     result = shifted_ap(args.model, args.onnx, args.data, args.split, shifts)
     for backend, r in result.items():
         for dz, per in r["ap"].items():
-            print(f"{backend:18s} dz {dz} m: "
-                  + ", ".join(f"{c} {v['3d']:.2f} (BEV {v['bev']:.2f})" for c, v in per.items()))
-    doc = {"model": args.model, "onnx": str(args.onnx), "onnx_sha256": sha256_of(args.onnx), "data": str(args.data),
-           "split": args.split, "shifts_m": list(shifts), "backends": result, "cpu": cpu_name()}
+            print(
+                f"{backend:18s} dz {dz} m: "
+                + ", ".join(f"{c} {v['3d']:.2f} (BEV {v['bev']:.2f})" for c, v in per.items())
+            )
+    doc = {
+        "model": args.model,
+        "onnx": str(args.onnx),
+        "onnx_sha256": sha256_of(args.onnx),
+        "data": str(args.data),
+        "split": args.split,
+        "shifts_m": list(shifts),
+        "backends": result,
+        "cpu": cpu_name(),
+    }
     save_result(f"ap-height-shift-{args.model}", doc, args.out)
     return 0
 

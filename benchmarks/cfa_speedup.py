@@ -25,18 +25,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from result_file import RESULTS, save_result, utc_stamp
 
+from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from radaredge.cards import load_card
 from radaredge.data.synthetic import generate_scan
+from radaredge.exporting.onnx_call import export_onnx
 from radaredge.models import create_model
 from radaredge.models.maffnet.spec import synthetic_columns
-from radaredge.exporting.onnx_call import export_onnx
 from radaredge.ops.dbscan import DbscanConfig, cqca_cfa_map_sklearn
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.runtime.session import make_session
-from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
-from result_file import RESULTS, save_result, utc_stamp
-
 
 
 class _MapOnly(torch.nn.Module):
@@ -64,18 +63,22 @@ def scans(g: GridDensityConfig, merged: int, count: int, seed: int) -> list[np.n
     for i in range(count):
         parts = []
         for j in range(merged):
-            cols = synthetic_columns(generate_scan(seed=seed + 100 * i + j, num_cars=6, num_pedestrians=4,
-                                                   num_cyclists=3))
+            cols = synthetic_columns(
+                generate_scan(seed=seed + 100 * i + j, num_cars=6, num_pedestrians=4, num_cyclists=3)
+            )
             parts.append(np.stack([cols["x"], cols["y"], cols["v_r_comp"]], 1))
         xyv = np.concatenate(parts).astype(np.float32)
-        inside = ((xyv[:, 0] >= g.x_min + 2 * g.resolution) & (xyv[:, 0] < g.x_min + g.map_w * g.resolution)
-                  & (xyv[:, 1] >= g.y_min + 2 * g.resolution) & (xyv[:, 1] < g.y_min + g.map_h * g.resolution))
+        inside = (
+            (xyv[:, 0] >= g.x_min + 2 * g.resolution)
+            & (xyv[:, 0] < g.x_min + g.map_w * g.resolution)
+            & (xyv[:, 1] >= g.y_min + 2 * g.resolution)
+            & (xyv[:, 1] < g.y_min + g.map_h * g.resolution)
+        )
         out.append(np.ascontiguousarray(xyv[inside]))
     return out
 
 
-def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", count: int = 4,
-        merges=(1, 5)) -> dict:
+def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", count: int = 4, merges=(1, 5)) -> dict:
     """Time every backend on ``count`` synthetic clouds per entry of ``merges`` (scans merged into
     one cloud), ``runs`` interleaved runs after ``warmup``, on ``threads`` pinned threads. Returns
     the JSON document: the host, and one row per (cloud size, part, backend) with p50 / p90 in ms
@@ -85,8 +88,15 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
     model = create_model(card)
     cfa = model.image_backbone
     g = cfa.grid_density.config
-    upstream = DbscanConfig(eps=g.eps, min_samples=g.min_density, max_cluster_size=g.max_density,
-                            map_rows=g.map_h, map_cols=g.map_w, resolution=g.resolution, y_offset=-g.y_min)
+    upstream = DbscanConfig(
+        eps=g.eps,
+        min_samples=g.min_density,
+        max_cluster_size=g.max_density,
+        map_rows=g.map_h,
+        map_cols=g.map_w,
+        resolution=g.resolution,
+        y_offset=-g.y_min,
+    )
     example = torch.zeros(50, 3)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -109,8 +119,9 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
     }
     stage_backends = {
         "CQCA_cfa: DBSCAN + per-point loop (upstream)": lambda f: cnn(cqca_cfa_map_sklearn(f["xyv"], upstream)[0]),
-        "CQCA_cfa: DBSCAN + np.unique counts":
-            lambda f: cnn(cqca_cfa_map_sklearn(f["xyv"], upstream, vectorised=True)[0]),
+        "CQCA_cfa: DBSCAN + np.unique counts": lambda f: cnn(
+            cqca_cfa_map_sklearn(f["xyv"], upstream, vectorised=True)[0]
+        ),
         "GridDensityBEV, torch": lambda f: cnn(gd(f["xyv"])),
         "GridDensityBEV, onnxruntime": lambda f: stage_session.run(None, {"xyv": f["xyv"]}),
     }
@@ -121,13 +132,28 @@ def run(runs: int, warmup: int, threads: int, card_name: str = "maffnet-vod", co
             points = int(np.median([len(c["xyv"]) for c in clouds]))
             for part, backends in (("map", map_backends), ("map + CNN", stage_backends)):
                 for r in require_ok(benchmark(backends, clouds, runs, warmup)):
-                    rows.append({"scans": merged, "points": points, "part": part, "backend": r.backend,
-                                 "p50_ms": r.p50_ms, "p90_ms": r.p90_ms})
+                    rows.append(
+                        {
+                            "scans": merged,
+                            "points": points,
+                            "part": part,
+                            "backend": r.backend,
+                            "p50_ms": r.p50_ms,
+                            "p90_ms": r.p90_ms,
+                        }
+                    )
     base = {(r["scans"], r["part"]): r["p50_ms"] for r in rows if r["backend"].endswith("(upstream)")}
     for r in rows:
         r["speedup_vs_upstream"] = base[(r["scans"], r["part"])] / r["p50_ms"]
-    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "runs": runs, "date": utc_stamp(),
-            "rows": rows}
+    return {
+        "card": card_name,
+        "threads": threads,
+        "cores": cores,
+        "cpu": cpu_name(),
+        "runs": runs,
+        "date": utc_stamp(),
+        "rows": rows,
+    }
 
 
 def table(result: dict) -> str:
@@ -146,13 +172,19 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--card", default="maffnet-vod")
     ap.add_argument("--clouds", type=int, default=4, help="synthetic clouds per cloud size")
-    ap.add_argument("--scans", type=lambda s: tuple(int(x) for x in s.split(",")), default=(1, 5),
-                    help="scans merged into one cloud, one cloud size per comma-separated count")
+    ap.add_argument(
+        "--scans",
+        type=lambda s: tuple(int(x) for x in s.split(",")),
+        default=(1, 5),
+        help="scans merged into one cloud, one cloud size per comma-separated count",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the JSON result")
     args = ap.parse_args(argv)
     result = run(args.runs, args.warmup, args.threads, args.card, args.clouds, args.scans)
-    print(f"{args.card}: clustering-feature stage on {args.threads} thread(s), cores {result['cores']}, "
-          f"{result['cpu']}, {args.runs} runs, {result['date']}")
+    print(
+        f"{args.card}: clustering-feature stage on {args.threads} thread(s), cores {result['cores']}, "
+        f"{result['cpu']}, {args.runs} runs, {result['date']}"
+    )
     print(table(result))
     save_result("cfa-speedup", result, args.out)
     return 0

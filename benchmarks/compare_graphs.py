@@ -20,18 +20,25 @@ import sys
 from pathlib import Path
 
 import onnx
-
-from radaredge.cards import load_card
-from radaredge.benchmarking.profiling import profile_runs, stage_times_from_profile
-from radaredge.models import model_spec
-from radaredge.runtime.session import make_session, run_session
-from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from result_file import save_result
 
+from radaredge.benchmarking.profiling import profile_runs, stage_times_from_profile
+from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
+from radaredge.cards import load_card
+from radaredge.models import model_spec
+from radaredge.runtime.session import make_session, run_session
 
 
-def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int = 4,
-            keep: list[int] | None = None, rounds: int = 5) -> dict:
+def compare(
+    model: str,
+    a: Path,
+    b: Path,
+    runs: int,
+    threads: int,
+    cases_n: int = 4,
+    keep: list[int] | None = None,
+    rounds: int = 5,
+) -> dict:
     """Alternating p50/p90 of graphs ``a`` and ``b`` over the card's first ``cases_n`` synthetic
     cases (only the indices in ``keep`` when given), and per stage the median over ``rounds``
     profiled passes (alternating a and b) of the mean kernel ms per case."""
@@ -45,14 +52,23 @@ def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int 
     results = {r.backend: r for r in require_ok(benchmark(backends, cases, runs))}
     graphs = {str(p): onnx.load(str(p), load_external_data=False) for p in (a, b)}
     passes: dict[str, list[dict]] = {str(p): [] for p in (a, b)}
-    for _ in range(rounds if spec.onnx_stages else 0):       # a card without stages: whole-graph times only
+    for _ in range(rounds if spec.onnx_stages else 0):  # a card without stages: whole-graph times only
         for path in (a, b):
             events = profile_runs(path, cases, threads, len(cases))
-            passes[str(path)].append(stage_times_from_profile(events, graphs[str(path)], list(spec.onnx_stages),
-                                                              spec.onnx_post_outputs, len(cases)))
-    out = {"model": model, "cases": [name for name, _ in named],
-           "points": [int(len(next(iter(f.values())))) for f in cases], "runs": runs, "threads": threads,
-           "profile_rounds": rounds, "graphs": []}
+            passes[str(path)].append(
+                stage_times_from_profile(
+                    events, graphs[str(path)], list(spec.onnx_stages), spec.onnx_post_outputs, len(cases)
+                )
+            )
+    out = {
+        "model": model,
+        "cases": [name for name, _ in named],
+        "points": [int(len(next(iter(f.values())))) for f in cases],
+        "runs": runs,
+        "threads": threads,
+        "profile_rounds": rounds,
+        "graphs": [],
+    }
     for path in (a, b):
         rows = passes[str(path)]
         stages = {k: statistics.median(r.get(k, 0.0) for r in rows) for k in dict.fromkeys(k for r in rows for k in r)}
@@ -63,8 +79,10 @@ def compare(model: str, a: Path, b: Path, runs: int, threads: int, cases_n: int 
 
 def table(result: dict) -> str:
     names = list(dict.fromkeys(k for g in result["graphs"] for k in g["stage_ms"]))
-    lines = ["| graph | p50 ms | p90 ms |" + "".join(f" {n} |" for n in names),
-             "|---|---:|---:|" + "---:|" * len(names)]
+    lines = [
+        "| graph | p50 ms | p90 ms |" + "".join(f" {n} |" for n in names),
+        "|---|---:|---:|" + "---:|" * len(names),
+    ]
     for g in result["graphs"]:
         stages = "".join(f" {g['stage_ms'].get(k, 0.0):.1f} |" for k in names)
         lines.append(f"| {Path(g['onnx']).name} | {g['p50_ms']:.1f} | {g['p90_ms']:.1f} |{stages}")

@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn as nn
+import training_run
+from result_file import save_result
 
 from radaredge.cards import load_card
 from radaredge.data.text_city import CLASSES, COLOURS, colour_name
@@ -44,15 +46,18 @@ from radaredge.models import create_model
 from radaredge.models.des4pos.model import FineStage
 from radaredge.training.des4pos import backbone_features, cell_inputs, geometry_features, hint_table
 
-import training_run
-from result_file import save_result
-
 HINT = re.compile(r"The pose is (?P<direction>\S+) of an? (?P<colour>\S+) (?P<label>.+)\.$")
 DIRECTIONS = ("north", "south", "east", "west", "on-top")
 OBJECT_STREAMS = ("clean", "objects", "mfam", "lstm")
 HINT_STREAMS = ("clean", "learned")
-PAIRS = (("clean", "clean"), ("lstm", "learned"), ("lstm", "clean"), ("clean", "learned"), ("objects", "learned"),
-         ("mfam", "learned"))
+PAIRS = (
+    ("clean", "clean"),
+    ("lstm", "learned"),
+    ("lstm", "clean"),
+    ("clean", "learned"),
+    ("objects", "learned"),
+    ("mfam", "learned"),
+)
 
 
 def _one_hot(index: int, n: int) -> np.ndarray:
@@ -68,10 +73,14 @@ def clean_objects(maps) -> np.ndarray:
     classes, colours = sorted(CLASSES), sorted(COLOURS)
     out = np.zeros((*cells.object_mask.shape, len(classes) + len(colours) + 2), np.float32)
     for c, t in zip(*np.nonzero(cells.object_mask)):
-        pts = cells.points[c, t, :int(cells.num_points[c, t])]
-        out[c, t] = np.concatenate([_one_hot(classes.index(str(cells.labels[c, t])), len(classes)),
-                                    _one_hot(colours.index(colour_name(pts[:, 3:].mean(0))), len(colours)),
-                                    pts[:, :2].mean(0) - 0.5])
+        pts = cells.points[c, t, : int(cells.num_points[c, t])]
+        out[c, t] = np.concatenate(
+            [
+                _one_hot(classes.index(str(cells.labels[c, t])), len(classes)),
+                _one_hot(colours.index(colour_name(pts[:, 3:].mean(0))), len(colours)),
+                pts[:, :2].mean(0) - 0.5,
+            ]
+        )
     return out
 
 
@@ -82,9 +91,9 @@ def coarse_objects(model, maps, stream: str) -> np.ndarray:
     ids, out = np.arange(len(maps.cells.ids)), []
     with torch.no_grad():
         for i in range(0, len(ids), 16):
-            pts, cnt, mask = cell_inputs(maps, ids[i:i + 16], "cpu")
+            pts, cnt, mask = cell_inputs(maps, ids[i : i + 16], "cpu")
             trace: dict = {}
-            model.submap(pts, cnt, mask, trace=trace, geometry=geometry[torch.from_numpy(ids[i:i + 16])])
+            model.submap(pts, cnt, mask, trace=trace, geometry=geometry[torch.from_numpy(ids[i : i + 16])])
             t = mask.shape[1]
             ar = torch.arange(t).unsqueeze(0)
             # the encoder's sort, undone
@@ -110,9 +119,13 @@ def hint_streams(card, model, maps) -> tuple[dict[str, np.ndarray], np.ndarray]:
             m = HINT.match(sentence)
             if m is None:
                 raise SystemExit(f"hint {sentence!r}: not make-city's 'The pose is <direction> of a <colour> <label>.'")
-            clean[q, j] = np.concatenate([_one_hot(DIRECTIONS.index(m["direction"]), len(DIRECTIONS)),
-                                          _one_hot(colours.index(m["colour"]), len(colours)),
-                                          _one_hot(classes.index(m["label"]), len(classes))])
+            clean[q, j] = np.concatenate(
+                [
+                    _one_hot(DIRECTIONS.index(m["direction"]), len(DIRECTIONS)),
+                    _one_hot(colours.index(m["colour"]), len(colours)),
+                    _one_hot(classes.index(m["label"]), len(classes)),
+                ]
+            )
             learned[q, j] = fine[table.index[sentence]].numpy()
             mask[q, j] = True
     return {"clean": clean, "learned": learned}, mask
@@ -135,8 +148,9 @@ def train_read_out(fine_config, width, maps, objects, hints, hint_mask, epochs, 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     cells = maps.cells
-    target = torch.from_numpy(((maps.pose_w - cells.origins[maps.pose_cell]) / cells.sizes[maps.pose_cell, None]
-                               - 0.5).astype(np.float32))
+    target = torch.from_numpy(
+        ((maps.pose_w - cells.origins[maps.pose_cell]) / cells.sizes[maps.pose_cell, None] - 0.5).astype(np.float32)
+    )
     size = cells.sizes[maps.pose_cell]
     objects, object_mask = torch.from_numpy(objects), torch.from_numpy(cells.object_mask)
     hints, hint_mask = torch.from_numpy(hints), torch.from_numpy(hint_mask)
@@ -161,16 +175,23 @@ def train_read_out(fine_config, width, maps, objects, hints, hint_mask, epochs, 
         model.eval()
         with torch.no_grad():
             err = (predict(val_q) - target[val_q]).norm(dim=1).numpy() * size[val_q]
-        rows.append({"epoch": epoch, "loss": float(np.mean(losses)), "error_m": float(err.mean()),
-                     "within_5m": 100 * float((err <= 5).mean())})
+        rows.append(
+            {
+                "epoch": epoch,
+                "loss": float(np.mean(losses)),
+                "error_m": float(err.mean()),
+                "within_5m": 100 * float((err <= 5).mean()),
+            }
+        )
     return rows
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python benchmarks/des4pos_fine_inputs.py", description=__doc__.splitlines()[0])
     ap.add_argument("--card", default="des4pos")
-    ap.add_argument("--checkpoint", type=Path, required=True,
-                    help="a trained run's best.pth (its coarse stage is used)")
+    ap.add_argument(
+        "--checkpoint", type=Path, required=True, help="a trained run's best.pth (its coarse stage is used)"
+    )
     ap.add_argument("--cities", type=Path, required=True, help="make-city maps; the last by name validates")
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--lr", type=float, default=3e-4)
@@ -179,33 +200,48 @@ def main(argv=None) -> int:
     torch.set_num_threads(training_run.THREADS)
     card = load_card(args.card)
     model = create_model(card, args.checkpoint).eval()
-    maps = load_text_maps(args.cities, model.cell_config.max_objects, model.cell_config.points_per_object,
-                          model.text_config.max_hints)
+    maps = load_text_maps(
+        args.cities, model.cell_config.max_objects, model.cell_config.points_per_object, model.text_config.max_hints
+    )
     hints, hint_mask = hint_streams(card, model, maps)
     objects = {s: clean_objects(maps) if s == "clean" else coarse_objects(model, maps, s) for s in OBJECT_STREAMS}
     cells = maps.cells
     val_q = np.flatnonzero(maps.validation)
-    centre = np.linalg.norm(maps.pose_w[val_q] - cells.origins[maps.pose_cell[val_q]]
-                            - cells.sizes[maps.pose_cell[val_q], None] / 2, axis=1)
+    centre = np.linalg.norm(
+        maps.pose_w[val_q] - cells.origins[maps.pose_cell[val_q]] - cells.sizes[maps.pose_cell[val_q], None] / 2, axis=1
+    )
     fine_config, width = model.fine.cfg, model.submap.cfg.embed_dim
-    print(f"{len(val_q)} validation poses; the cell centre misses by {centre.mean():.2f} m, "
-          f"{100 * (centre <= 5).mean():.1f} % within 5 m", flush=True)
+    print(
+        f"{len(val_q)} validation poses; the cell centre misses by {centre.mean():.2f} m, "
+        f"{100 * (centre <= 5).mean():.1f} % within 5 m",
+        flush=True,
+    )
     runs = []
     for obj, hint in PAIRS:
         t0 = time.perf_counter()
-        rows = train_read_out(fine_config, width, maps, objects[obj], hints[hint], hint_mask, args.epochs, args.lr,
-                              args.batch)
+        rows = train_read_out(
+            fine_config, width, maps, objects[obj], hints[hint], hint_mask, args.epochs, args.lr, args.batch
+        )
         best = min(rows, key=lambda r: r["error_m"])
-        runs.append({"objects": obj, "hints": hint, "epochs": rows, "best": best,
-                     "seconds": round(time.perf_counter() - t0, 1)})
-        print(f"objects {obj:8s} hints {hint:8s}: best epoch {best['epoch']}, {best['error_m']:.2f} m, "
-              f"{best['within_5m']:.1f} % within 5 m", flush=True)
-    out = {"card": card.name, "machine": training_run.machine(),
-           "command": f"python benchmarks/des4pos_fine_inputs.py --checkpoint {args.checkpoint} --cities {args.cities}"
-                      f" --epochs {args.epochs} --lr {args.lr:g} --batch {args.batch}",
-           "training_poses": int((~maps.validation).sum()), "validation_poses": len(val_q), "cells": len(cells.ids),
-           "centre": {"error_m": float(centre.mean()), "within_5m": 100 * float((centre <= 5).mean())},
-           "runs": runs}
+        runs.append(
+            {"objects": obj, "hints": hint, "epochs": rows, "best": best, "seconds": round(time.perf_counter() - t0, 1)}
+        )
+        print(
+            f"objects {obj:8s} hints {hint:8s}: best epoch {best['epoch']}, {best['error_m']:.2f} m, "
+            f"{best['within_5m']:.1f} % within 5 m",
+            flush=True,
+        )
+    out = {
+        "card": card.name,
+        "machine": training_run.machine(),
+        "command": f"python benchmarks/des4pos_fine_inputs.py --checkpoint {args.checkpoint} --cities {args.cities}"
+        f" --epochs {args.epochs} --lr {args.lr:g} --batch {args.batch}",
+        "training_poses": int((~maps.validation).sum()),
+        "validation_poses": len(val_q),
+        "cells": len(cells.ids),
+        "centre": {"error_m": float(centre.mean()), "within_5m": 100 * float((centre <= 5).mean())},
+        "runs": runs,
+    }
     save_result("des4pos-fine-inputs", out)
     return 0
 

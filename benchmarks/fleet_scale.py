@@ -30,15 +30,17 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
+from result_file import save_result  # noqa: E402
+
 from radaredge.data.pr_benchmark import make_pr_benchmark  # noqa: E402
 from radaredge.fleet import maps  # noqa: E402
 from radaredge.fleet.pipeline import run_graph, run_sequential  # noqa: E402
 from radaredge.runtime.backends import cpu_model  # noqa: E402
-from result_file import save_result  # noqa: E402
 
 
 def throughput(frames: int, work: Path) -> dict:
     import radaredge
+
     make_pr_benchmark(work / "town", drives=4, frames_per_drive=frames, seed=11)
     graph = work / "tdfanet-edge.onnx"
     radaredge.export("tdfanet-edge", graph)
@@ -50,8 +52,14 @@ def throughput(frames: int, work: Path) -> dict:
         r = run_graph(graph, data, work / f"ray-{workers}", workers=workers, threads=1, shard_windows=64)
         rows[f"ray {workers} worker{'s' if workers > 1 else ''}"] = r.to_dict()
     plain, one, two = (rows[k]["windows_per_second"] for k in ("plain loop", "ray 1 worker", "ray 2 workers"))
-    return {"graph": "tdfanet-edge (seeded weights)", "drives": 4, "windows": seq.windows, "rows": rows,
-            "ratio_2_to_1_workers": two / one, "ray_overhead": plain / one - 1.0}
+    return {
+        "graph": "tdfanet-edge (seeded weights)",
+        "drives": 4,
+        "windows": seq.windows,
+        "rows": rows,
+        "ratio_2_to_1_workers": two / one,
+        "ray_overhead": plain / one - 1.0,
+    }
 
 
 def fleet_like(n: int, dim: int, places: int, rng) -> tuple[np.ndarray, np.ndarray]:
@@ -63,13 +71,17 @@ def fleet_like(n: int, dim: int, places: int, rng) -> tuple[np.ndarray, np.ndarr
     def around(ids):
         x = centres[ids] + rng.normal(0, 0.35 / np.sqrt(dim), (len(ids), dim)).astype(np.float32)
         return x / np.linalg.norm(x, axis=1, keepdims=True)
-    db = np.concatenate([around(rng.integers(0, places, 100_000)) for _ in range(n // 100_000)] +
-                        ([around(rng.integers(0, places, n % 100_000))] if n % 100_000 else []))
+
+    db = np.concatenate(
+        [around(rng.integers(0, places, 100_000)) for _ in range(n // 100_000)]
+        + ([around(rng.integers(0, places, n % 100_000))] if n % 100_000 else [])
+    )
     return db, around(rng.integers(0, places, 1000))
 
 
 def index_scale(n: int, dim: int = 256) -> dict:
     import faiss
+
     faiss.omp_set_num_threads(2)
     rng = np.random.default_rng(0)
     db, queries = fleet_like(n, dim, 20_000, rng)
@@ -89,10 +101,19 @@ def index_scale(n: int, dim: int = 256) -> dict:
         index.search(q[None], 10)
         lat.append(time.perf_counter() - t)
     size = faiss.serialize_index(index).nbytes
-    return {"vectors": n, "dim": dim, "places": 20_000, "queries": len(queries), "index": params,
-            "recall_at_1_vs_exact": float((got == truth).mean()), "build_s": build_s,
-            "query_p50_ms": 1000 * float(np.median(lat)), "exact_query_ms": 1000 * exact_s,
-            "index_bytes": int(size), "vectors_bytes": int(db.nbytes)}
+    return {
+        "vectors": n,
+        "dim": dim,
+        "places": 20_000,
+        "queries": len(queries),
+        "index": params,
+        "recall_at_1_vs_exact": float((got == truth).mean()),
+        "build_s": build_s,
+        "query_p50_ms": 1000 * float(np.median(lat)),
+        "exact_query_ms": 1000 * exact_s,
+        "index_bytes": int(size),
+        "vectors_bytes": int(db.nbytes),
+    }
 
 
 def main(argv=None) -> int:
@@ -102,8 +123,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="fleet-scale-"))
     try:
-        result = {"cpu": f"{cpu_model()}, {os.cpu_count()} cores",
-                  "throughput": throughput(args.frames, work), "index": index_scale(args.vectors)}
+        result = {
+            "cpu": f"{cpu_model()}, {os.cpu_count()} cores",
+            "throughput": throughput(args.frames, work),
+            "index": index_scale(args.vectors),
+        }
     finally:
         shutil.rmtree(work, ignore_errors=True)
     save_result("fleet-scale", result)

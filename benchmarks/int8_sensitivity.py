@@ -34,20 +34,20 @@ from pathlib import Path
 
 import onnx
 import torch
+from result_file import RESULTS, portable, save_result, sha256_of
 
 import radaredge
+from radaredge import runtime
 from radaredge.artifacts import INT8, copy_path
 from radaredge.benchmarking.timing import cpu_name, pin_threads
 from radaredge.cards import load_card, parse_card
 from radaredge.data.kitti_detection import DetectionSet
-from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, card_points, evaluate_detection, layout_for_card
 from radaredge.errors import ConfigError
+from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, card_points, evaluate_detection, layout_for_card
 from radaredge.exporting.quantize import fp32_node_names
 from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import STAGE_TWO_MODULES
 from radaredge.runtime.session import make_session, run_session
-from radaredge import runtime
-from result_file import RESULTS, portable, save_result, sha256_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -58,9 +58,10 @@ def layer_groups(model) -> list[str]:
     groups = ["vfe", "map_to_bev_module", "image_backbone", "fuser"]
     groups += [f"backbone_2d.blocks.{i}" for i in range(len(model.backbone_2d.blocks))]
     groups.append("dense_head")
-    groups += [m for m in STAGE_TWO_MODULES if hasattr(model, m)]      # a two-stage card's stage two
-    quantised = [n for n, m in model.named_modules()
-                 if isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Linear))]
+    groups += [m for m in STAGE_TWO_MODULES if hasattr(model, m)]  # a two-stage card's stage two
+    quantised = [
+        n for n, m in model.named_modules() if isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Linear))
+    ]
     return [g for g in groups if any(n.startswith(g + ".") for n in quantised)]
 
 
@@ -128,8 +129,11 @@ def earlier_probes(path: Path | None, result: dict, probed: list[str]) -> list[d
         same.append(False)
     if not all(same) or fp32[0] != fp32[1]:
         return []
-    return [{**r, "earlier_run": r.get("earlier_run", earlier.get("date"))}
-            for r in earlier.get("groups", [])[1:] if r["group"] not in probed]
+    return [
+        {**r, "earlier_run": r.get("earlier_run", earlier.get("date"))}
+        for r in earlier.get("groups", [])[1:]
+        if r["group"] not in probed
+    ]
 
 
 def choose_keep(card, args, rows: list[dict], fp32: dict, card_int8: dict) -> list[dict]:
@@ -147,8 +151,11 @@ def choose_keep(card, args, rows: list[dict], fp32: dict, card_int8: dict) -> li
         _, int8 = score(with_keep(card, keep), args.checkpoint, args.work / "choice.onnx", args.data, args.choose_split)
         loss = {c: fp32[c] - int8[c] for c in fp32}
         steps.append({"keep_fp32": list(keep), "int8_ap": int8, "loss": loss})
-        print(f"{args.choose_split}: keeping {keep} in fp32: int8 loses "
-              f"{', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
+        print(
+            f"{args.choose_split}: keeping {keep} in fp32: int8 loses "
+            f"{', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}",
+            flush=True,
+        )
     return steps
 
 
@@ -160,9 +167,12 @@ def main(argv=None) -> int:
     ap.add_argument("--split", default="test", help="The split the results are reported on.")
     ap.add_argument("--choose-split", default="val", help="The split the sensitive groups are chosen on.")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--groups", help="Comma-separated groups to probe (default: every group; none: no group, the "
-                                     "earlier run's rows only); on a large card each probe exports an int8 copy and "
-                                     "scores the whole choose split.")
+    ap.add_argument(
+        "--groups",
+        help="Comma-separated groups to probe (default: every group; none: no group, the "
+        "earlier run's rows only); on a large card each probe exports an int8 copy and "
+        "scores the whole choose split.",
+    )
     ap.add_argument("--work", type=Path, default=ROOT / "export" / "int8-sensitivity")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
@@ -170,8 +180,9 @@ def main(argv=None) -> int:
     card = load_card(args.model)
     groups = layer_groups(create_model(card))
     args.work.mkdir(parents=True, exist_ok=True)
-    choose_fp32, choose_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data,
-                                     args.choose_split)
+    choose_fp32, choose_int8 = score(
+        card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.choose_split
+    )
     graph = onnx.load(str(args.work / f"{card.name}.onnx"), load_external_data=False)
     groups = [g for g in groups if _quantises(graph, g)]
     probed = groups
@@ -193,12 +204,21 @@ def main(argv=None) -> int:
         print(f"only {g:<24} int8 loses {', '.join(f'{c} {v:+.2f}' for c, v in loss.items())}", flush=True)
     fp32_ap, card_int8 = score(card, args.checkpoint, args.work / f"{card.name}.onnx", args.data, args.split)
     print(f"{args.split}: fp32 {fp32_ap}\ncard's int8 {card_int8}", flush=True)
-    result = {"model": card.name, "checkpoint": str(args.checkpoint), "checkpoint_sha256": sha256_of(args.checkpoint),
-              "data": str(args.data), "split": args.split,
-              "choose_split": args.choose_split, "choose_fp32_ap": choose_fp32,
-              "budget_ap_points": INT8_AP_BUDGET, "fp32_ap": fp32_ap,
-              "card_int8_ap": card_int8, "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
-              "groups": rows, "unprobed_groups": [g for g in groups if g not in probed]}
+    result = {
+        "model": card.name,
+        "checkpoint": str(args.checkpoint),
+        "checkpoint_sha256": sha256_of(args.checkpoint),
+        "data": str(args.data),
+        "split": args.split,
+        "choose_split": args.choose_split,
+        "choose_fp32_ap": choose_fp32,
+        "budget_ap_points": INT8_AP_BUDGET,
+        "fp32_ap": fp32_ap,
+        "card_int8_ap": card_int8,
+        "card_keep_fp32": card.get("quantization.keep_fp32", []) or [],
+        "groups": rows,
+        "unprobed_groups": [g for g in groups if g not in probed],
+    }
     rows += earlier_probes(latest_result(args.out, card.name), result, probed)
     result["unprobed_groups"] = [g for g in groups if g not in {r["group"] for r in rows}]
     result["choice"] = choose_keep(card, args, rows[1:], choose_fp32, choose_int8)
@@ -211,8 +231,12 @@ def main(argv=None) -> int:
     if keep != result["card_keep_fp32"]:
         out = args.work / f"{card.name}-kept.onnx"
         _, int8 = score(with_keep(card, keep), args.checkpoint, out, args.data, args.split)
-        result["kept"] = {"keep_fp32": keep, "int8_ap": int8, "loss": {c: fp32_ap[c] - int8[c] for c in fp32_ap},
-                          "speed_ms": speed(out, copy_path(out, INT8), points, args.threads)}
+        result["kept"] = {
+            "keep_fp32": keep,
+            "int8_ap": int8,
+            "loss": {c: fp32_ap[c] - int8[c] for c in fp32_ap},
+            "speed_ms": speed(out, copy_path(out, INT8), points, args.threads),
+        }
         print(f"{args.split}: keeping {keep} in fp32: int8 {int8}", flush=True)
     result.update(cpu=cpu_name(), threads=args.threads, cores=cores)
     save_result(f"int8-sensitivity-{card.name}", result, args.out)

@@ -19,13 +19,13 @@ import sys
 
 import numpy as np
 import torch
+from result_file import save_result
 
 from radaredge.cards import load_card
 from radaredge.data.synthetic import generate_sequence, vod_accumulated_table
 from radaredge.models import create_model
 from radaredge.models.maffnet.rcnn import scan_points
 from radaredge.models.maffnet.spec import DENSE_TRAFFIC, VOD_CAMERA_FOV_DEG
-from result_file import save_result
 
 SEEDS = range(12)
 
@@ -42,10 +42,22 @@ def measure(card_name: str = "maffnet-vod-full-dbscan") -> dict:
             pts = torch.from_numpy(vod_accumulated_table(seq, crop))
             with torch.no_grad():
                 _, pillars, _ = model.pillar_stage(pts, reference=False)
-            rows.append({"seed": seed, "dense_traffic": dense, "fov_crop_deg": crop, "points": len(pts),
-                         "scan_points": int(scan_points(pts, r)[2].sum()), "pillars": int(pillars)})
-    out = {"card": card_name, "spa_capacity": card.get("spa.capacity"),
-           "dbscan_capacity": card.get("cfa.dbscan.capacity"), "clouds": rows}
+            rows.append(
+                {
+                    "seed": seed,
+                    "dense_traffic": dense,
+                    "fov_crop_deg": crop,
+                    "points": len(pts),
+                    "scan_points": int(scan_points(pts, r)[2].sum()),
+                    "pillars": int(pillars),
+                }
+            )
+    out = {
+        "card": card_name,
+        "spa_capacity": card.get("spa.capacity"),
+        "dbscan_capacity": card.get("cfa.dbscan.capacity"),
+        "clouds": rows,
+    }
     for crop in (VOD_CAMERA_FOV_DEG, None):
         sub = [x for x in rows if x["fov_crop_deg"] == crop]
         key = "camera_fov" if crop else "no_crop"
@@ -58,11 +70,13 @@ def main() -> int:
     save_result("maffnet-capacity", result)
     for key in ("camera_fov", "no_crop"):
         m = result[key]
-        print(f"{key}: at most {m['pillars']} pillars (spa.capacity {result['spa_capacity']}, "
-              f"{result['spa_capacity'] / m['pillars']:.1f}x), {m['scan_points']} scan points "
-              f"(cfa.dbscan.capacity {result['dbscan_capacity']}, "
-              f"{result['dbscan_capacity'] / m['scan_points']:.1f}x), "
-              f"{m['points']} points")
+        print(
+            f"{key}: at most {m['pillars']} pillars (spa.capacity {result['spa_capacity']}, "
+            f"{result['spa_capacity'] / m['pillars']:.1f}x), {m['scan_points']} scan points "
+            f"(cfa.dbscan.capacity {result['dbscan_capacity']}, "
+            f"{result['dbscan_capacity'] / m['scan_points']:.1f}x), "
+            f"{m['points']} points"
+        )
     return 0
 
 

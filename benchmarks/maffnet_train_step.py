@@ -25,14 +25,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from result_file import RESULTS, save_result, utc_stamp
 
 from radaredge.benchmarking.timing import cpu_name, pin_threads
 from radaredge.cards import load_card
 from radaredge.models import create_model
 from radaredge.training import maffnet as tm
-from result_file import RESULTS, save_result, utc_stamp
 
-FORMULATIONS = {        # name -> (export pillars, memory format)
+FORMULATIONS = {  # name -> (export pillars, memory format)
     "export pillars, NCHW": (True, torch.contiguous_format),
     "training pillars, NCHW": (False, torch.contiguous_format),
     "training pillars, channels last": (False, torch.channels_last),
@@ -43,8 +43,13 @@ def _variant(card, precision: str, export_pillars: bool, memory_format, lr: floa
     """(model, optimiser, loss setup) of one variant: the card's seeded network in train mode."""
     model = create_model(card).to(memory_format=memory_format)
     tm.set_train_mode(model, set())
-    setup = tm.LossSetup(tm.anchor_classes(card, len(model.anchors)), tm.class_thresholds(card), None,
-                         tm.PRECISIONS[precision], export_pillars)
+    setup = tm.LossSetup(
+        tm.anchor_classes(card, len(model.anchors)),
+        tm.class_thresholds(card),
+        None,
+        tm.PRECISIONS[precision],
+        export_pillars,
+    )
     return model, torch.optim.AdamW(model.parameters(), lr=lr, betas=(0.95, 0.99), weight_decay=0.01), setup
 
 
@@ -75,14 +80,18 @@ def run(card_name: str, data: Path, steps: int, warmup: int, batch_size: int, th
     batches = []
     for first in range(0, len(scans), batch_size):
         batch = []
-        for scan in scans[first:first + batch_size]:
+        for scan in scans[first : first + batch_size]:
             points, boxes = tm.augment(scan.points, scan.boxes, xyz, recipe, rng)
             keep = tm.boxes_in_range(boxes, pc_range)
-            batch.append((torch.from_numpy(points), torch.from_numpy(boxes[keep]),
-                          torch.from_numpy(scan.classes[keep])))
+            batch.append(
+                (torch.from_numpy(points), torch.from_numpy(boxes[keep]), torch.from_numpy(scan.classes[keep]))
+            )
         batches.append(batch)
-    variants = {(p, name): _variant(card, p, *spec, recipe.lr / recipe.div_factor)
-                for p in tm.PRECISIONS for name, spec in FORMULATIONS.items()}
+    variants = {
+        (p, name): _variant(card, p, *spec, recipe.lr / recipe.div_factor)
+        for p in tm.PRECISIONS
+        for name, spec in FORMULATIONS.items()
+    }
     seconds: dict[tuple, list[float]] = {key: [] for key in variants}
     for k, batch in enumerate(batches):
         for key, (model, opt, setup) in variants.items():
@@ -91,29 +100,47 @@ def run(card_name: str, data: Path, steps: int, warmup: int, batch_size: int, th
                 seconds[key].append(t / len(batch))
     rows = []
     for (precision, name), times in seconds.items():
-        rows.append({"precision": precision, "formulation": name, "median_s": statistics.median(times),
-                     "p90_s": float(np.percentile(times, 90)), "steps": len(times)})
+        rows.append(
+            {
+                "precision": precision,
+                "formulation": name,
+                "median_s": statistics.median(times),
+                "p90_s": float(np.percentile(times, 90)),
+                "steps": len(times),
+            }
+        )
     base = {r["precision"]: r["median_s"] for r in rows if r["formulation"] == next(iter(FORMULATIONS))}
     for r in rows:
         r["speedup"] = base[r["precision"]] / r["median_s"]
-    return {"card": card_name, "threads": threads, "cores": cores, "cpu": cpu_name(), "date": utc_stamp(),
-            "batch_size": batch_size, "steps": steps, "warmup": warmup,
-            "weights": f"seeded (card seed {card.get('seed', 0)})", "rows": rows}
+    return {
+        "card": card_name,
+        "threads": threads,
+        "cores": cores,
+        "cpu": cpu_name(),
+        "date": utc_stamp(),
+        "batch_size": batch_size,
+        "steps": steps,
+        "warmup": warmup,
+        "weights": f"seeded (card seed {card.get('seed', 0)})",
+        "rows": rows,
+    }
 
 
 def table(result: dict) -> str:
     """The rows of :func:`run`'s result as a Markdown table."""
     lines = ["| precision | formulation | s per scan (median) | p90 | x |", "|---|---|---:|---:|---:|"]
     for r in result["rows"]:
-        lines.append(f"| {r['precision']} | {r['formulation']} | {r['median_s']:.3f} | {r['p90_s']:.3f} | "
-                     f"{r['speedup']:.2f} |")
+        lines.append(
+            f"| {r['precision']} | {r['formulation']} | {r['median_s']:.3f} | {r['p90_s']:.3f} | {r['speedup']:.2f} |"
+        )
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True,
-                    help="a labelled set (radaredge make-benchmark --task detection)")
+    ap.add_argument(
+        "--data", type=Path, required=True, help="a labelled set (radaredge make-benchmark --task detection)"
+    )
     ap.add_argument("--card", default="maffnet-vod")
     ap.add_argument("--steps", type=int, default=5, help="timed optimiser steps per variant")
     ap.add_argument("--warmup", type=int, default=1)
@@ -122,8 +149,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the JSON result")
     args = ap.parse_args(argv)
     result = run(args.card, args.data, args.steps, args.warmup, args.batch_size, args.threads)
-    print(f"{args.card}: training step on {args.threads} thread(s), cores {result['cores']}, {result['cpu']}, "
-          f"{args.steps} steps of {args.batch_size} scans, {result['date']}")
+    print(
+        f"{args.card}: training step on {args.threads} thread(s), cores {result['cores']}, {result['cpu']}, "
+        f"{args.steps} steps of {args.batch_size} scans, {result['date']}"
+    )
     print(table(result))
     args.out.mkdir(parents=True, exist_ok=True)
     save_result("maffnet-train-step", result, args.out)

@@ -33,10 +33,11 @@ from pathlib import Path
 import numpy as np
 import onnx
 import torch
+from result_file import RESULTS, save_result
 
 import radaredge
-from radaredge.artifacts import INT8, copy_path
 from radaredge import runtime
+from radaredge.artifacts import INT8, copy_path
 from radaredge.benchmarking.profiling import profile_runs, stage_times_from_profile
 from radaredge.benchmarking.timing import benchmark, cpu_name, pin_threads, require_ok
 from radaredge.cards import load_card
@@ -44,10 +45,9 @@ from radaredge.data.kitti_detection import DetectionSet
 from radaredge.eval.detection import card_points, layout_for_card
 from radaredge.models import create_model, model_spec
 from radaredge.runtime.session import make_session, run_session
-from result_file import RESULTS, save_result
 
 ROOT = Path(__file__).resolve().parent.parent
-WORST_LOGIT_SHIFT = 30.0          # added to every class bias: sigmoid(logit + 30) > 0.999 for any logit > -23
+WORST_LOGIT_SHIFT = 30.0  # added to every class bias: sigmoid(logit + 30) > 0.999 for any logit > -23
 
 
 def frame_points(card, data: Path, split: str, frames: int) -> tuple[list[np.ndarray], list[str]]:
@@ -77,8 +77,17 @@ def candidates(out: dict, threshold: float) -> int:
     return int((np.asarray(out["anchor_scores"]).max(-1) >= threshold).sum())
 
 
-def bench_trained(model: str, checkpoint: Path, data: Path, split: str, frames: int, passes: int, threads: int,
-                  export_dir: Path, rounds: int = 3) -> dict:
+def bench_trained(
+    model: str,
+    checkpoint: Path,
+    data: Path,
+    split: str,
+    frames: int,
+    passes: int,
+    threads: int,
+    export_dir: Path,
+    rounds: int = 3,
+) -> dict:
     card = load_card(model)
     spec = model_spec(card).graph()
     points, ids = frame_points(card, data, split, frames)
@@ -92,40 +101,70 @@ def bench_trained(model: str, checkpoint: Path, data: Path, split: str, frames: 
     stages, counts = {}, {}
     for name, path in graphs.items():
         outs = [run_session(sessions[name], c) for c in cases]
-        counts[name] = {"candidates": [candidates(o, threshold) for o in outs],
-                        "detections": [int(len(o["scores"])) for o in outs]}
-        if name == "int8":                 # quantised nodes lose their module scopes: no stage split
+        counts[name] = {
+            "candidates": [candidates(o, threshold) for o in outs],
+            "detections": [int(len(o["scores"])) for o in outs],
+        }
+        if name == "int8":  # quantised nodes lose their module scopes: no stage split
             continue
         model_proto = onnx.load(str(path), load_external_data=False)
-        profiled = [stage_times_from_profile(profile_runs(path, cases, threads, len(cases)), model_proto,
-                                             list(spec.onnx_stages), spec.onnx_post_outputs, len(cases))
-                    for _ in range(rounds)]
-        stages[name] = {k: statistics.median(p.get(k, 0.0) for p in profiled)
-                        for k in dict.fromkeys(k for p in profiled for k in p)}
+        profiled = [
+            stage_times_from_profile(
+                profile_runs(path, cases, threads, len(cases)),
+                model_proto,
+                list(spec.onnx_stages),
+                spec.onnx_post_outputs,
+                len(cases),
+            )
+            for _ in range(rounds)
+        ]
+        stages[name] = {
+            k: statistics.median(p.get(k, 0.0) for p in profiled) for k in dict.fromkeys(k for p in profiled for k in p)
+        }
     rows = []
     for name in graphs:
         r = results[name]
         per_stage = stages.get(name, {})
         total = sum(per_stage.values())
-        rows.append({"graph": name, "p50_ms": r.p50_ms, "p90_ms": r.p90_ms, "fps": r.fps, "stage_ms": per_stage,
-                     "nms_share": per_stage.get("NMS", 0.0) / total if total else None,
-                     "candidates_median": float(np.median(counts[name]["candidates"])),
-                     "candidates_max": int(max(counts[name]["candidates"])),
-                     "detections_median": float(np.median(counts[name]["detections"]))})
+        rows.append(
+            {
+                "graph": name,
+                "p50_ms": r.p50_ms,
+                "p90_ms": r.p90_ms,
+                "fps": r.fps,
+                "stage_ms": per_stage,
+                "nms_share": per_stage.get("NMS", 0.0) / total if total else None,
+                "candidates_median": float(np.median(counts[name]["candidates"])),
+                "candidates_max": int(max(counts[name]["candidates"])),
+                "detections_median": float(np.median(counts[name]["detections"])),
+            }
+        )
     digest = hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest()
-    return {"model": card.name, "checkpoint": str(checkpoint), "checkpoint_sha256": digest,
-            "weights_sha256": loaded.weights_sha256, "data": str(data), "split": split, "frames": ids,
-            "points_median": float(np.median([len(p) for p in points])), "passes": passes, "threads": threads,
-            "score_thresh": threshold, "pre_max": int(card.get("post_processing.pre_max")),
-            "worst_logit_shift": WORST_LOGIT_SHIFT, "rows": rows}
+    return {
+        "model": card.name,
+        "checkpoint": str(checkpoint),
+        "checkpoint_sha256": digest,
+        "weights_sha256": loaded.weights_sha256,
+        "data": str(data),
+        "split": split,
+        "frames": ids,
+        "points_median": float(np.median([len(p) for p in points])),
+        "passes": passes,
+        "threads": threads,
+        "score_thresh": threshold,
+        "pre_max": int(card.get("post_processing.pre_max")),
+        "worst_logit_shift": WORST_LOGIT_SHIFT,
+        "rows": rows,
+    }
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="maffnet-vod")
     ap.add_argument("--checkpoint", type=Path, required=True, help="A trained checkpoint (radaredge train's best.pth).")
-    ap.add_argument("--data", type=Path, required=True,
-                    help="A labelled set (radaredge make-benchmark --task detection).")
+    ap.add_argument(
+        "--data", type=Path, required=True, help="A labelled set (radaredge make-benchmark --task detection)."
+    )
     ap.add_argument("--split", default="test")
     ap.add_argument("--frames", type=int, default=16)
     ap.add_argument("--passes", type=int, default=3, help="Timed passes over the frames (medians over all).")
@@ -135,15 +174,18 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     cores = pin_threads(args.threads)
-    result = bench_trained(args.model, args.checkpoint, args.data, args.split, args.frames, args.passes, args.threads,
-                           args.export_dir)
+    result = bench_trained(
+        args.model, args.checkpoint, args.data, args.split, args.frames, args.passes, args.threads, args.export_dir
+    )
     result.update(cpu=cpu_name(), cores=cores, note=args.note)
     save_result(f"maffnet-trained-{result['model']}", result, args.out)
     for row in result["rows"]:
         split = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
         share = "-" if row["nms_share"] is None else f"{100 * row['nms_share']:.1f} %"
-        print(f"{row['graph']:<11} p50 {row['p50_ms']:7.1f} ms  {row['fps']:5.1f} FPS  NMS {share}"
-              f"  candidates {row['candidates_median']:.0f} (max {row['candidates_max']})  [{split}]")
+        print(
+            f"{row['graph']:<11} p50 {row['p50_ms']:7.1f} ms  {row['fps']:5.1f} FPS  NMS {share}"
+            f"  candidates {row['candidates_median']:.0f} (max {row['candidates_max']})  [{split}]"
+        )
     return 0
 
 

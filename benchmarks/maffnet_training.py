@@ -24,22 +24,29 @@ import sys
 import time
 from pathlib import Path
 
+import training_run
+from result_file import save_result, sha256_of
+
 import radaredge
 from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.eval.detection import ORT, ORT_INT8, REFERENCE
-
-import training_run
-from result_file import save_result
-from result_file import sha256_of
 
 
 def _ap(report) -> dict:
     """backend -> area -> class -> {3d, bev} AP (%), frames per second, and backend -> class ->
     the matched boxes' errors (radaredge.eval.box_errors)."""
-    return {"ap": {b: {area: {c: {"3d": v["3d"], "bev": v["bev"], "num_gt": v["num_gt"]} for c, v in per.items()}
-                       for area, per in areas.items()} for b, areas in report.ap.items()},
-            "fps": report.fps, "frames": len(report.frames),
-            "box_errors": {b: {c: e.to_dict() for c, e in per.items()} for b, per in report.box_errors.items()}}
+    return {
+        "ap": {
+            b: {
+                area: {c: {"3d": v["3d"], "bev": v["bev"], "num_gt": v["num_gt"]} for c, v in per.items()}
+                for area, per in areas.items()
+            }
+            for b, areas in report.ap.items()
+        },
+        "fps": report.fps,
+        "frames": len(report.frames),
+        "box_errors": {b: {c: e.to_dict() for c, e in per.items()} for b, per in report.box_errors.items()},
+    }
 
 
 def main(argv=None) -> int:
@@ -70,19 +77,34 @@ def main(argv=None) -> int:
     radaredge.export(card, seeded)
     trained = radaredge.evaluate(card, fp32, data=data, split="test", checkpoint=best, reference=not args.no_reference)
     untrained = radaredge.evaluate(card, seeded, data=data, split="test", reference=False)
-    for name, rep, backend in (("seeded", untrained, ORT), ("trained reference", trained, REFERENCE),
-                               ("trained fp32", trained, ORT), ("trained int8", trained, ORT_INT8)):
+    for name, rep, backend in (
+        ("seeded", untrained, ORT),
+        ("trained reference", trained, REFERENCE),
+        ("trained fp32", trained, ORT),
+        ("trained int8", trained, ORT_INT8),
+    ):
         if backend not in rep.ap:
             continue
         row = rep.ap[backend]["entire_area"]
         print(f"test split, {name}: 3D AP " + ", ".join(f"{c} {v['3d']:.2f}" for c, v in row.items()), flush=True)
     drives = f" --drives {args.drives}" if args.drives else ""
-    command = args.command or (f"radaredge make-benchmark --task detection --out set --version {args.set_version}"
-                               f"{drives} --frames {args.frames}; radaredge train --model {card.name} --data set"
-                               + training_run.settings_text(options))
-    out = {"date": stamp, "card": card.name, "machine": training_run.machine(), "command": command,
-           "checkpoint_sha256": sha256_of(best), "data": str(data), "train": log, "train_seconds": log.get("seconds"),
-           "test_trained": _ap(trained), "test_seeded": _ap(untrained)}
+    command = args.command or (
+        f"radaredge make-benchmark --task detection --out set --version {args.set_version}"
+        f"{drives} --frames {args.frames}; radaredge train --model {card.name} --data set"
+        + training_run.settings_text(options)
+    )
+    out = {
+        "date": stamp,
+        "card": card.name,
+        "machine": training_run.machine(),
+        "command": command,
+        "checkpoint_sha256": sha256_of(best),
+        "data": str(data),
+        "train": log,
+        "train_seconds": log.get("seconds"),
+        "test_trained": _ap(trained),
+        "test_seeded": _ap(untrained),
+    }
     save_result(f"{card.name}-training", out, keep_same_day=True)
     return 0
 

@@ -37,6 +37,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+import training_run
+from result_file import save_result
 
 import radaredge
 from radaredge.artifacts import INT8, copy_path
@@ -46,9 +48,6 @@ from radaredge.eval.places import WindowSet, baseline_backend, describe_windows,
 from radaredge.eval.recall_stats import bootstrap_interval, chance_of_benchmark
 from radaredge.eval.travel import AGAINST, WITH, against_database, window_headings
 from radaredge.fleet.pipeline import run_graph
-
-import training_run
-from result_file import save_result
 
 RADII = (5.0, 25.0)
 NS = (1, 5, 10)
@@ -68,6 +67,7 @@ def graph_descriptors(graph: Path, out: Path):
     a town part, by ``radaredge run`` (onnxruntime, one Ray worker of THREADS threads) into
     ``out/<town>/<part>``, resumed where an earlier call stopped; checked against the window
     set's positions (the same windows in the same order)."""
+
     def describe(windows: WindowSet, town: str, part: str) -> tuple[np.ndarray, int, float]:
         report = run_graph(graph, windows.path, out / town / part, workers=1, threads=training_run.THREADS)
         _, poses, outputs = read_run(out / town / part)
@@ -75,15 +75,18 @@ def graph_descriptors(graph: Path, out: Path):
         if found.shape != windows.positions.shape or not np.allclose(found, windows.positions):
             raise SystemExit(f"{out / town / part}: its windows are not those of {windows.path}")
         return outputs["descriptor_normalized"], report.computed_windows, report.seconds
+
     return describe
 
 
 def baseline_descriptors(features):
     """A describer for :func:`score`: the no-learning polar occupancy descriptor of every window."""
+
     def describe(windows: WindowSet, town: str, part: str) -> tuple[np.ndarray, int, float]:
         t0 = time.perf_counter()
         desc = describe_windows(windows, features, baseline_backend(features))
         return desc, len(windows), time.perf_counter() - t0
+
     return describe
 
 
@@ -108,18 +111,26 @@ def score(describe, town_dirs: list[Path], k: int) -> dict:
             evaluated[r] += res["evaluated"]
             way = against_database(queries.positions, window_headings(queries), db.positions, window_headings(db), r)
             direction[r].append(way[res["evaluated_mask"]])
-    out = {"windows_described": described,
-           "windows_per_second": round(described / seconds, 1) if described and seconds > 0 else None}
+    out = {
+        "windows_described": described,
+        "windows_per_second": round(described / seconds, 1) if described and seconds > 0 else None,
+    }
     for r in RADII:
         found, way = np.concatenate(hits[r]), np.concatenate(direction[r])
-        out[f"{r:g}"] = {"evaluated": evaluated[r],
-                         "recall": {str(n): 100.0 * float(found[:, n - 1].mean()) for n in NS},
-                         "interval_95": {str(n): list(bootstrap_interval(found[:, n - 1])) for n in NS},
-                         "by_direction": {name: {"evaluated": int((way == code).sum()),
-                                                 "recall_at_1": 100.0 * float(found[way == code, 0].mean()),
-                                                 "interval_95": list(bootstrap_interval(found[way == code, 0]))}
-                                          for name, code in (("with", WITH), ("against", AGAINST))
-                                          if (way == code).any()}}
+        out[f"{r:g}"] = {
+            "evaluated": evaluated[r],
+            "recall": {str(n): 100.0 * float(found[:, n - 1].mean()) for n in NS},
+            "interval_95": {str(n): list(bootstrap_interval(found[:, n - 1])) for n in NS},
+            "by_direction": {
+                name: {
+                    "evaluated": int((way == code).sum()),
+                    "recall_at_1": 100.0 * float(found[way == code, 0].mean()),
+                    "interval_95": list(bootstrap_interval(found[way == code, 0])),
+                }
+                for name, code in (("with", WITH), ("against", AGAINST))
+                if (way == code).any()
+            },
+        }
     return out
 
 
@@ -146,8 +157,9 @@ def main(argv=None) -> int:
     if run is None:
         run = work / "run"
         t0 = time.perf_counter()
-        report = radaredge.train(card, work / "design-towns", run, options=options, overwrite=True,
-                                 log=lambda line: print(line, flush=True))
+        report = radaredge.train(
+            card, work / "design-towns", run, options=options, overwrite=True, log=lambda line: print(line, flush=True)
+        )
         t_train, train = time.perf_counter() - t0, report.to_dict()
     else:
         train = json.loads((run / "train-log.json").read_text())
@@ -157,7 +169,7 @@ def main(argv=None) -> int:
     fp32, seeded = graphs / f"{card.name}.onnx", graphs / f"{card.name}-seeded.onnx"
     int8, described = copy_path(fp32, INT8), work / "descriptors"
     if not (int8.is_file() and fp32.is_file() and fp32.stat().st_mtime > best.stat().st_mtime):
-        for row in ("trained_fp32", "trained_int8"):          # another checkpoint's
+        for row in ("trained_fp32", "trained_int8"):  # another checkpoint's
             shutil.rmtree(described / row, ignore_errors=True)
         int8 = radaredge.export(card, fp32, checkpoint=best, quantize="int8").int8["tdfanet"]
     if not seeded.is_file():
@@ -170,16 +182,31 @@ def main(argv=None) -> int:
         print(f"{name}: R@1 at 5 m {rows[name]['5']['recall']['1']:.1f} %", flush=True)
     rows["no_learning"] = score(baseline_descriptors(card.features), test, k)
     out = {
-        "date": stamp, "card": card.name, "machine": training_run.machine(),
+        "date": stamp,
+        "card": card.name,
+        "machine": training_run.machine(),
         "command": f"python benchmarks/place_recognition.py --card {card.name} --design-towns {args.design_towns} "
-                   f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
-                   + training_run.settings_text(options) + (f" --run {args.run}" if args.run else ""),
-        "towns": {"design": {"seeds": [int(t.name.split("-")[1]) for t in design], "route_km": args.design_km,
-                             "used_for": "training and the validation that picks the best epoch"},
-                  "test": {"seeds": [int(t.name.split("-")[1]) for t in test], "route_km": args.test_km,
-                           "used_for": "this table only"}},
-        "frames_per_window": k, "chance": _chance(test), "data_seconds": round(t_data, 1),
-        "train_seconds": None if t_train is None else round(t_train, 1), "checkpoint": str(best), "train": train,
+        f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
+        + training_run.settings_text(options)
+        + (f" --run {args.run}" if args.run else ""),
+        "towns": {
+            "design": {
+                "seeds": [int(t.name.split("-")[1]) for t in design],
+                "route_km": args.design_km,
+                "used_for": "training and the validation that picks the best epoch",
+            },
+            "test": {
+                "seeds": [int(t.name.split("-")[1]) for t in test],
+                "route_km": args.test_km,
+                "used_for": "this table only",
+            },
+        },
+        "frames_per_window": k,
+        "chance": _chance(test),
+        "data_seconds": round(t_data, 1),
+        "train_seconds": None if t_train is None else round(t_train, 1),
+        "checkpoint": str(best),
+        "train": train,
         "rows": rows,
     }
     save_result(f"place-recognition-{card.name}", out)

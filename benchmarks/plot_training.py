@@ -27,7 +27,7 @@ def newest(results: Path, prefix: str) -> dict[str, dict]:
     """The newest file (by its date in the name) of every card among ``<prefix><card>-<date>.json``."""
     found: dict[str, tuple[str, dict]] = {}
     for path in sorted(results.glob(f"{prefix}*.json")):
-        card, day = path.stem[len(prefix):-11], path.stem[-10:]
+        card, day = path.stem[len(prefix) : -11], path.stem[-10:]
         if card not in found or day >= found[card][0]:
             found[card] = (day, json.loads(path.read_text()))
     return {card: data for card, (_, data) in sorted(found.items())}
@@ -49,6 +49,7 @@ def curves(results: Path) -> list[tuple[str, list[dict], bool]]:
 def draw(results: Path, figure: Path) -> Path:
     """Writes the two-panel chart of ``results``'s runs to ``figure``."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
@@ -63,8 +64,9 @@ def draw(results: Path, figure: Path) -> Path:
         loss_ax.plot([e["epoch"] for e in trained], [e["loss"] for e in trained], label=label, **style)
         recall_ax.plot([e["epoch"] for e in epochs], [e["val_R@1"] for e in epochs], label=label, **style)
     loss_ax.set(xlabel="epoch", ylabel="mean lazy quadruplet loss", title="training loss")
-    recall_ax.set(xlabel="epoch (0: initialisation)", ylabel="Recall@1 at 5 m (%)",
-                  title="validation recall (design town)")
+    recall_ax.set(
+        xlabel="epoch (0: initialisation)", ylabel="Recall@1 at 5 m (%)", title="validation recall (design town)"
+    )
     for ax in (loss_ax, recall_ax):
         ax.grid(alpha=0.3)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))

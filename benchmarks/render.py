@@ -37,10 +37,11 @@ README = HERE / "README.md"
 
 # What the int8 export quantises when a suite file does not record it (radaredge's quantiser).
 DEFAULT_QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
-_NAME = re.compile(r"^(?P<kind>.+)-(?P<date>\d{4}-\d{2}-\d{2})(?:-\d{4})?\.json$")   # -HHMM: a second run that day
+_NAME = re.compile(r"^(?P<kind>.+)-(?P<date>\d{4}-\d{2}-\d{2})(?:-\d{4})?\.json$")  # -HHMM: a second run that day
 
 
 # --- reading -----------------------------------------------------------------------------------
+
 
 class Result:
     """One results file: its kind, the key it is newest-of within that kind, and its content."""
@@ -105,13 +106,14 @@ def load(results_dir: Path) -> list[Result]:
 def newest_by_key(results: list[Result], kind: str) -> list[Result]:
     """The newest file of every key of ``kind``, ordered by key."""
     newest: dict[str, Result] = {}
-    for r in results:                          # sorted oldest first, so the last one wins
+    for r in results:  # sorted oldest first, so the last one wins
         if r.kind == kind:
             newest[r.key] = r
     return [newest[k] for k in sorted(newest)]
 
 
 # --- formatting helpers --------------------------------------------------------------------------
+
 
 def _num(v, fmt: str = ".1f", missing: str = "-") -> str:
     return missing if v is None else format(v, fmt)
@@ -124,8 +126,7 @@ def _diffs(diffs: dict) -> str:
 
 def _table(header: list[str], rows: list[list[str]], align: list[str] | None = None) -> list[str]:
     align = align or ["---"] + ["---:"] * (len(header) - 1)
-    return ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"] + \
-           ["| " + " | ".join(r) + " |" for r in rows]
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"] + ["| " + " | ".join(r) + " |" for r in rows]
 
 
 def _link(r: Result, results_dir: Path) -> str:
@@ -153,50 +154,81 @@ def _stamp(r: Result, d: dict) -> str:
 
 # --- sections --------------------------------------------------------------------------------
 
+
 def suite_section(r: Result, results_dir: Path) -> list[str]:
     s = r.data
     models = s.get("models", [])
     out = ["## Speed suite", ""]
     warm = f" after {s.get('warmup', 3)} warm-ups" if s.get("runs") else ""
-    intro = (f"`make bench` (`benchmarks/run.py`) on {_stamp(r, s)}{warm}, backends alternating every run; "
-             f"every card exported and quantised afresh by the run.")
+    intro = (
+        f"`make bench` (`benchmarks/run.py`) on {_stamp(r, s)}{warm}, backends alternating every run; "
+        f"every card exported and quantised afresh by the run."
+    )
     if s.get("gemm_peak_gflops") is not None:
-        intro += (f" Measured fp32 GEMM peak on these threads (best of 20 1024 x 1024 products): "
-                  f"{s['gemm_peak_gflops']:.1f} GFLOP/s.")
+        intro += (
+            f" Measured fp32 GEMM peak on these threads (best of 20 1024 x 1024 products): "
+            f"{s['gemm_peak_gflops']:.1f} GFLOP/s."
+        )
     out += [intro + f" JSON: {_link(r, results_dir)}; chart: [suite.png](suite.png).", ""]
     rows = []
     for m in models:
         for row in m.get("rows", []):
             frac = row.get("peak_fraction")
-            rows.append([m["model"], row["backend"], _num(row.get("p50_ms")), _num(row.get("p90_ms")),
-                         _num(row.get("fps"), ".2f"), _num(row.get("gmacs"), ".2f"),
-                         _num(None if frac is None else 100 * frac)])
-    out += _table(["model", "backend", "p50 ms", "p90 ms", "FPS", "GMACs", "% of fp32 GEMM peak"], rows,
-                  ["---", "---"] + ["---:"] * 5)
+            rows.append(
+                [
+                    m["model"],
+                    row["backend"],
+                    _num(row.get("p50_ms")),
+                    _num(row.get("p90_ms")),
+                    _num(row.get("fps"), ".2f"),
+                    _num(row.get("gmacs"), ".2f"),
+                    _num(None if frac is None else 100 * frac),
+                ]
+            )
+    out += _table(
+        ["model", "backend", "p50 ms", "p90 ms", "FPS", "GMACs", "% of fp32 GEMM peak"],
+        rows,
+        ["---", "---"] + ["---:"] * 5,
+    )
     rows = []
     for m in models:
         share = m.get("quantised_op_time_share")
-        rows.append([m["model"], _num(m.get("ort_vs_reference"), ".2f") + "x",
-                     _num(m.get("int8_vs_fp32"), ".2f") + "x",
-                     _num(None if share is None else 100 * share, ".0f") + " %"])
-    out += [""] + _table(["model", "onnxruntime fp32 vs torch reference", "int8 vs fp32",
-                          "fp32 time in quantised ops"], rows)
+        rows.append(
+            [
+                m["model"],
+                _num(m.get("ort_vs_reference"), ".2f") + "x",
+                _num(m.get("int8_vs_fp32"), ".2f") + "x",
+                _num(None if share is None else 100 * share, ".0f") + " %",
+            ]
+        )
+    out += [""] + _table(
+        ["model", "onnxruntime fp32 vs torch reference", "int8 vs fp32", "fp32 time in quantised ops"], rows
+    )
     with_ov = [m for m in models if "openvino_vs_onnxruntime" in m]
     if with_ov:
-        rows = [[m["model"], f"{m['openvino_vs_onnxruntime']:.2f}x", _diffs(m.get("openvino_max_abs_diff") or {})]
-                for m in with_ov]
-        out += [""] + _table(["model", "OpenVINO fp32 vs onnxruntime fp32",
-                              "largest output difference from onnxruntime"], rows, ["---", "---:", "---"])
+        rows = [
+            [m["model"], f"{m['openvino_vs_onnxruntime']:.2f}x", _diffs(m.get("openvino_max_abs_diff") or {})]
+            for m in with_ov
+        ]
+        out += [""] + _table(
+            ["model", "OpenVINO fp32 vs onnxruntime fp32", "largest output difference from onnxruntime"],
+            rows,
+            ["---", "---:", "---"],
+        )
     ops = ", ".join(s.get("quantized_ops") or DEFAULT_QUANTIZED_OPS)
-    out += ["", "GMACs count matrix products and convolutions, plus bilinear sampling (4 MACs per sample and "
-            "channel) and scatter updates (1 per element), which common counters report as zero; pointwise "
-            "ops are not counted. The int8 row's share of the fp32 peak can exceed 100 %: int8 arithmetic is "
-            f"not bound by it. int8 quantises only {ops} (static QDQ, uint8 activations, per-channel int8 "
-            "weights on 7 bits unless a card sets quantization.reduce_range: false). By Amdahl's law its "
-            "speed-up cannot exceed 1 / (1 - share + share / s) for a kernel speed-up s, so a low share of fp32 "
-            "time in those ops explains a small int8 gain. OpenVINO's largest difference on `boxes` can be an "
-            "ordering effect: two near-tied boxes swap output slots (`radaredge parity-check --runtime "
-            "openvino` matches boxes by IoU).", ""]
+    out += [
+        "",
+        "GMACs count matrix products and convolutions, plus bilinear sampling (4 MACs per sample and "
+        "channel) and scatter updates (1 per element), which common counters report as zero; pointwise "
+        "ops are not counted. The int8 row's share of the fp32 peak can exceed 100 %: int8 arithmetic is "
+        f"not bound by it. int8 quantises only {ops} (static QDQ, uint8 activations, per-channel int8 "
+        "weights on 7 bits unless a card sets quantization.reduce_range: false). By Amdahl's law its "
+        "speed-up cannot exceed 1 / (1 - share + share / s) for a kernel speed-up s, so a low share of fp32 "
+        "time in those ops explains a small int8 gain. OpenVINO's largest difference on `boxes` can be an "
+        "ordering effect: two near-tied boxes swap output slots (`radaredge parity-check --runtime "
+        "openvino` matches boxes by IoU).",
+        "",
+    ]
     return out
 
 
@@ -209,14 +241,21 @@ def _bench_rows(rows: list[dict], items_per_case: int | None = None, item_unit: 
     """One row per backend; a failed backend keeps its row, with its status and no times."""
     has_status = any("status" in row for row in rows)
     per_item = bool(items_per_case)
-    header = ["backend"] + (["status"] if has_status else []) + ["p50 ms", "p90 ms", "p99 ms", "FPS"] + \
-        ([f"{item_unit or 'items'}/s"] if per_item else [])
+    header = (
+        ["backend"]
+        + (["status"] if has_status else [])
+        + ["p50 ms", "p90 ms", "p99 ms", "FPS"]
+        + ([f"{item_unit or 'items'}/s"] if per_item else [])
+    )
     body = []
     for row in rows:
         p50 = row.get("p50_ms")
-        body.append([str(row.get("backend", "?"))] + ([_status(row)] if has_status else []) +
-                    [_num(p50), _num(row.get("p90_ms")), _num(row.get("p99_ms")), _num(row.get("fps"), ".2f")] +
-                    ([_num(items_per_case * 1e3 / p50 if p50 else None)] if per_item else []))
+        body.append(
+            [str(row.get("backend", "?"))]
+            + ([_status(row)] if has_status else [])
+            + [_num(p50), _num(row.get("p90_ms")), _num(row.get("p99_ms")), _num(row.get("fps"), ".2f")]
+            + ([_num(items_per_case * 1e3 / p50 if p50 else None)] if per_item else [])
+        )
     return _table(header, body, ["---"] * (2 if has_status else 1) + ["---:"] * (5 if per_item else 4))
 
 
@@ -235,8 +274,11 @@ def _graph_extras(g: dict, label: str = "") -> list[str]:
     out = []
     rss = g.get("onnxruntime_peak_rss_mib")
     if rss is not None:
-        out += [f"{label}onnxruntime peak resident set: {rss:.0f} MiB (a fresh numpy + onnxruntime process "
-                "running the bench inputs).", ""]
+        out += [
+            f"{label}onnxruntime peak resident set: {rss:.0f} MiB (a fresh numpy + onnxruntime process "
+            "running the bench inputs).",
+            "",
+        ]
     ov = g.get("openvino_vs_onnxruntime_max_abs")
     if ov:
         out += [f"{label}largest OpenVINO output difference from onnxruntime: {_diffs(ov)}.", ""]
@@ -261,15 +303,19 @@ def _stage_table(stage_ms: dict) -> list[str]:
 def bench_section(results: list[Result], results_dir: Path) -> list[str]:
     if not results:
         return []
-    out = ["## Per-model benches", "",
-           "`radaredge bench --model <card> --save benchmarks/results/<card>-<date>.json`: the newest saved run "
-           "of each card. Times of different runs are comparable only on the same machine on the same day; read "
-           "the ratios within one run.", ""]
+    out = [
+        "## Per-model benches",
+        "",
+        "`radaredge bench --model <card> --save benchmarks/results/<card>-<date>.json`: the newest saved run "
+        "of each card. Times of different runs are comparable only on the same machine on the same day; read "
+        "the ratios within one run.",
+        "",
+    ]
     for r in results:
         d = r.data
         name = d.get("model", r.stem)
         out += [f"### {name}", "", f"{_stamp(r, d)}. JSON: {_link(r, results_dir)}.", ""]
-        for task in (d.get("tasks") or {}).values():          # radaredge bench --save
+        for task in (d.get("tasks") or {}).values():  # radaredge bench --save
             if task.get("title"):
                 out += [f"{task['title']}:", ""]
             out += _bench_rows(task.get("rows", []), task.get("items_per_case"), task.get("item_unit", "")) + [""]
@@ -277,48 +323,75 @@ def bench_section(results: list[Result], results_dir: Path) -> list[str]:
         graphs = d.get("graphs") or {}
         for gname, g in graphs.items():
             out += _graph_extras(g or {}, f"{gname}: " if len(graphs) > 1 else "")
-        rows = d.get("results") or d.get("rows")                # earlier `bench --json` files
+        rows = d.get("results") or d.get("rows")  # earlier `bench --json` files
         if rows:
             out += _bench_rows(rows) + [""]
         if d.get("query"):
-            out += [f"Query (tokenise, text encode, search over {d.get('map_cells', '?')} cells, fine stage on the "
-                    f"top {d.get('top_k', '?')}):", ""] + _bench_rows(d["query"]) + [""]
+            out += (
+                [
+                    f"Query (tokenise, text encode, search over {d.get('map_cells', '?')} cells, fine stage on the "
+                    f"top {d.get('top_k', '?')}):",
+                    "",
+                ]
+                + _bench_rows(d["query"])
+                + [""]
+            )
         if d.get("cell_batches"):
             batch = d.get("cell_batch")
             cps = d.get("cells_per_s") or {}
-            body = [[str(row.get("backend")), _num(row.get("p50_ms")), _num(cps.get(row.get("backend")))]
-                    for row in d["cell_batches"]]
-            out += [f"Cell encoding, batches of {batch} cells:", ""] + \
-                _table(["backend", "p50 ms per batch", "cells/s"], body) + [""]
+            body = [
+                [str(row.get("backend")), _num(row.get("p50_ms")), _num(cps.get(row.get("backend")))]
+                for row in d["cell_batches"]
+            ]
+            out += (
+                [f"Cell encoding, batches of {batch} cells:", ""]
+                + _table(["backend", "p50 ms per batch", "cells/s"], body)
+                + [""]
+            )
         out += _ratios(d)
-        out += _graph_extras({"onnxruntime_peak_rss_mib": d.get("onnxruntime_peak_rss_mib"),
-                              "openvino_vs_onnxruntime_max_abs": d.get("openvino_vs_onnxruntime_max_abs"),
-                              "stage_ms": d.get("stage_ms"), "top_ops": d.get("top_ops")})
+        out += _graph_extras(
+            {
+                "onnxruntime_peak_rss_mib": d.get("onnxruntime_peak_rss_mib"),
+                "openvino_vs_onnxruntime_max_abs": d.get("openvino_vs_onnxruntime_max_abs"),
+                "stage_ms": d.get("stage_ms"),
+                "top_ops": d.get("top_ops"),
+            }
+        )
     return out
 
 
 def compare_section(results: list[Result], results_dir: Path) -> list[str]:
     if not results:
         return []
-    out = ["## Graph comparisons", "",
-           "`benchmarks/compare_graphs.py` times two graphs of one card alternately in one run, then splits each "
-           "graph's onnxruntime kernel time by stage (median over several profiled passes, mean ms per case).", ""]
+    out = [
+        "## Graph comparisons",
+        "",
+        "`benchmarks/compare_graphs.py` times two graphs of one card alternately in one run, then splits each "
+        "graph's onnxruntime kernel time by stage (median over several profiled passes, mean ms per case).",
+        "",
+    ]
     for r in results:
         d = r.data
         graphs = d.get("graphs", [])
-        label = r.stem[len("compare-"):]
+        label = r.stem[len("compare-") :]
         cases = ", ".join(f"{c} ({p} points)" for c, p in zip(d.get("cases", []), d.get("points", [])))
-        out += [f"### {label}", "",
-                f"{d.get('model', '?')}, {_stamp(r, d)}, {d.get('profile_rounds', '?')} profiled passes. "
-                f"Cases: {cases or '-'}. JSON: {_link(r, results_dir)}.", ""]
+        out += [
+            f"### {label}",
+            "",
+            f"{d.get('model', '?')}, {_stamp(r, d)}, {d.get('profile_rounds', '?')} profiled passes. "
+            f"Cases: {cases or '-'}. JSON: {_link(r, results_dir)}.",
+            "",
+        ]
         names = [f"`{g.get('onnx', '?')}`" for g in graphs]
         stages: list[str] = []
         for g in graphs:
             for k in g.get("stage_ms", {}):
                 if k not in stages:
                     stages.append(k)
-        rows = [["p50 ms (whole graph)"] + [_num(g.get("p50_ms")) for g in graphs],
-                ["p90 ms (whole graph)"] + [_num(g.get("p90_ms")) for g in graphs]]
+        rows = [
+            ["p50 ms (whole graph)"] + [_num(g.get("p50_ms")) for g in graphs],
+            ["p90 ms (whole graph)"] + [_num(g.get("p90_ms")) for g in graphs],
+        ]
         rows += [[k] + [_num(g.get("stage_ms", {}).get(k)) for g in graphs] for k in stages]
         out += _table([""] + names, rows) + [""]
     return out
@@ -331,12 +404,16 @@ def capacity_section(r: Result | None, results_dir: Path) -> list[str]:
     spa, db = d.get("spa_capacity"), d.get("dbscan_capacity")
     clouds = d.get("clouds", [])
     n = len({c.get("seed") for c in clouds})
-    out = ["## MAFF-Net capacity", "",
-           f"`benchmarks/maffnet_capacity.py`, {r.when}: how full synthetic VoD 5-frame clouds make the "
-           f"fixed-size stages of `{d.get('card', '?')}` ({n} cloud{'s' if n != 1 else ''}, each with "
-           f"and without the crop; `spa.capacity` {spa}, "
-           f"`cfa.dbscan.capacity` {db}). Scan points are the points inside the x-y range, the ones DBSCAN "
-           f"clusters. JSON: {_link(r, results_dir)}.", ""]
+    out = [
+        "## MAFF-Net capacity",
+        "",
+        f"`benchmarks/maffnet_capacity.py`, {r.when}: how full synthetic VoD 5-frame clouds make the "
+        f"fixed-size stages of `{d.get('card', '?')}` ({n} cloud{'s' if n != 1 else ''}, each with "
+        f"and without the crop; `spa.capacity` {spa}, "
+        f"`cfa.dbscan.capacity` {db}). Scan points are the points inside the x-y range, the ones DBSCAN "
+        f"clusters. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
 
     def margin(cap, n):
         return "-" if not cap or not n else f"{cap / n:.1f}x"
@@ -345,10 +422,28 @@ def capacity_section(r: Result | None, results_dir: Path) -> list[str]:
     for label, key in (("camera field of view crop", "camera_fov"), ("no crop", "no_crop")):
         m = d.get(key)
         if m:
-            rows.append([label, f"{m['points']:,}", f"{m['scan_points']:,}", margin(db, m["scan_points"]),
-                         f"{m['pillars']:,}", margin(spa, m["pillars"])])
-    out += _table(["largest cloud", "points", "scan points", "DBSCAN capacity margin", "non-empty pillars",
-                   "SPA capacity margin"], rows, ["---"] + ["---:"] * 5) + [""]
+            rows.append(
+                [
+                    label,
+                    f"{m['points']:,}",
+                    f"{m['scan_points']:,}",
+                    margin(db, m["scan_points"]),
+                    f"{m['pillars']:,}",
+                    margin(spa, m["pillars"]),
+                ]
+            )
+    out += _table(
+        [
+            "largest cloud",
+            "points",
+            "scan points",
+            "DBSCAN capacity margin",
+            "non-empty pillars",
+            "SPA capacity margin",
+        ],
+        rows,
+        ["---"] + ["---:"] * 5,
+    ) + [""]
     return out
 
 
@@ -371,10 +466,14 @@ def cfa_section(r: Result | None, results_dir: Path) -> list[str]:
             row = by.get(b)
             cells.append("-" if row is None else f"{row['p50_ms']:.1f} ms ({row['speedup_vs_upstream']:.2f}x)")
         body.append([f"{scans} scan{'s' if scans != 1 else ''}, {points:,} points", part] + cells)
-    out = ["## Clustering stage: GridDensityBEV against DBSCAN", "",
-           f"`benchmarks/cfa_speedup.py` on `{d.get('card', '?')}`, {_stamp(r, d)}. MAFF-Net's "
-           "clustering-feature map alone and with the 3 -> 16 -> 32 -> 64 CNN; p50 and the speed-up over "
-           f"upstream's CQCA_cfa. JSON: {_link(r, results_dir)}.", ""]
+    out = [
+        "## Clustering stage: GridDensityBEV against DBSCAN",
+        "",
+        f"`benchmarks/cfa_speedup.py` on `{d.get('card', '?')}`, {_stamp(r, d)}. MAFF-Net's "
+        "clustering-feature map alone and with the 3 -> 16 -> 32 -> 64 CNN; p50 and the speed-up over "
+        f"upstream's CQCA_cfa. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
     out += _table(["cloud", "part"] + backends, body, ["---", "---"] + ["---:"] * len(backends)) + [""]
     return out
 
@@ -384,51 +483,112 @@ def real_data_section(r: Result | None, results_dir: Path) -> list[str]:
         return []
     d = r.data
     cards = d.get("cards", [])
-    out = ["## Recorded radar: the published View-of-Delft and TJ4DRadSet frames", "",
-           f"`benchmarks/real_data.py`, {_stamp(r, d)}; {d.get('weights', '?')}. Every card that takes scans on "
-           "its dataset's published sample (View-of-Delft `example_set`: 3 frames; TJ4DRadSet `Sample`: 41 "
-           "consecutive frames; docs/data.md), fed as `parity-check --data` feeds it. Time: p50 of the fp32 graph "
-           "in onnxruntime, recorded frames and the speed suite's synthetic cases interleaved in one run; peak "
-           "memory: a fresh numpy + onnxruntime process. Command: "
-           f"`{d.get('command', '?')}`. JSON: {_link(r, results_dir)}.", ""]
+    out = [
+        "## Recorded radar: the published View-of-Delft and TJ4DRadSet frames",
+        "",
+        f"`benchmarks/real_data.py`, {_stamp(r, d)}; {d.get('weights', '?')}. Every card that takes scans on "
+        "its dataset's published sample (View-of-Delft `example_set`: 3 frames; TJ4DRadSet `Sample`: 41 "
+        "consecutive frames; docs/data.md), fed as `parity-check --data` feeds it. Time: p50 of the fp32 graph "
+        "in onnxruntime, recorded frames and the speed suite's synthetic cases interleaved in one run; peak "
+        "memory: a fresh numpy + onnxruntime process. Command: "
+        f"`{d.get('command', '?')}`. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
     rows = []
     for c in cards:
         p, t, m = c["points"], c["p50_ms"], c["peak_rss_mib"]
-        rows.append([f"`{c['card']}`", f"{c['timed']} of {c['available']} {c['unit']}s", f"{p['points_per_scan']:,.0f}",
-                     f"{100 * p['in_range_share']:.0f} %", f"{100 * p['over_pillar_cap_share']:.1f} %",
-                     f"{t['recording']:,.0f}", f"{t['synthetic']:,.0f}", f"{t['recording'] / t['synthetic']:.2f}x",
-                     f"{m['recording']:,.0f} / {m['synthetic']:,.0f}"])
-    out += _table(["card", "timed", "points a scan", "in range", "over a pillar's cap", "recorded ms", "synthetic ms",
-                   "ratio", "peak MiB (recorded / synthetic)"], rows, ["---"] + ["---:"] * 8) + [""]
+        rows.append(
+            [
+                f"`{c['card']}`",
+                f"{c['timed']} of {c['available']} {c['unit']}s",
+                f"{p['points_per_scan']:,.0f}",
+                f"{100 * p['in_range_share']:.0f} %",
+                f"{100 * p['over_pillar_cap_share']:.1f} %",
+                f"{t['recording']:,.0f}",
+                f"{t['synthetic']:,.0f}",
+                f"{t['recording'] / t['synthetic']:.2f}x",
+                f"{m['recording']:,.0f} / {m['synthetic']:,.0f}",
+            ]
+        )
+    out += _table(
+        [
+            "card",
+            "timed",
+            "points a scan",
+            "in range",
+            "over a pillar's cap",
+            "recorded ms",
+            "synthetic ms",
+            "ratio",
+            "peak MiB (recorded / synthetic)",
+        ],
+        rows,
+        ["---"] + ["---:"] * 8,
+    ) + [""]
     grids = [c for c in cards if "grid_density" in c]
     if grids:
-        out += ["GridDensityBEV's max-pool labelling on every frame of the recording: the frames whose components "
-                "converge in the card's `cc_iterations`, the max-pool steps the frames need, the share of non-noise "
-                "cells whose label is partial, and the labels against the true (exact) components:", ""]
+        out += [
+            "GridDensityBEV's max-pool labelling on every frame of the recording: the frames whose components "
+            "converge in the card's `cc_iterations`, the max-pool steps the frames need, the share of non-noise "
+            "cells whose label is partial, and the labels against the true (exact) components:",
+            "",
+        ]
         rows = []
         for c in grids:
             g = c["grid_density"]
-            rows.append([f"`{c['card']}`", f"{g['cc_mode']}, {g['cc_iterations']}",
-                         f"{g['converged']} of {g['frames']}",
-                         f"{g['steps_median']:.0f} / {g['steps_max']}", f"{100 * g['partial_cell_share']:.0f} %",
-                         f"{g['labels']:,} / {g['components']:,}"])
-        out += _table(["card", "cc (mode, iterations)", "converged", "steps needed (median / max)",
-                       "cells with a partial label", "labels / components"], rows, ["---"] + ["---:"] * 5) + [""]
+            rows.append(
+                [
+                    f"`{c['card']}`",
+                    f"{g['cc_mode']}, {g['cc_iterations']}",
+                    f"{g['converged']} of {g['frames']}",
+                    f"{g['steps_median']:.0f} / {g['steps_max']}",
+                    f"{100 * g['partial_cell_share']:.0f} %",
+                    f"{g['labels']:,} / {g['components']:,}",
+                ]
+            )
+        out += _table(
+            [
+                "card",
+                "cc (mode, iterations)",
+                "converged",
+                "steps needed (median / max)",
+                "cells with a partial label",
+                "labels / components",
+            ],
+            rows,
+            ["---"] + ["---:"] * 5,
+        ) + [""]
     varied = [c for c in cards if c.get("variants")]
     if varied:
-        out += ["Where frames do not converge, the same graph with the components made exact, on the timed frames "
-                "(boxes: top 20 by score per frame, same class, BEV IoU >= 0.5 against the card's own graph):", ""]
+        out += [
+            "Where frames do not converge, the same graph with the components made exact, on the timed frames "
+            "(boxes: top 20 by score per frame, same class, BEV IoU >= 0.5 against the card's own graph):",
+            "",
+        ]
         rows = []
         for c in varied:
             base = c["p50_ms"]["recording"]
             for v in c["variants"]:
                 ms = c["p50_ms"][v["name"]]
-                compared = (f"of {v['boxes_compared']:,}" if "boxes_compared" in v
-                            else f"(top 20 a frame; {v['boxes']:,} boxes in all)")
-                rows.append([f"`{c['card']}`", v["name"], f"{v['converged']} of {c['timed']}",
-                             f"{ms:,.0f} ({ms / base:.2f}x)", f"{v['boxes_changed']} {compared}"])
-        out += _table(["card", "setting", "converged", "recorded ms (vs the card's)", "boxes changed"], rows,
-                      ["---", "---"] + ["---:"] * 3) + [""]
+                compared = (
+                    f"of {v['boxes_compared']:,}"
+                    if "boxes_compared" in v
+                    else f"(top 20 a frame; {v['boxes']:,} boxes in all)"
+                )
+                rows.append(
+                    [
+                        f"`{c['card']}`",
+                        v["name"],
+                        f"{v['converged']} of {c['timed']}",
+                        f"{ms:,.0f} ({ms / base:.2f}x)",
+                        f"{v['boxes_changed']} {compared}",
+                    ]
+                )
+        out += _table(
+            ["card", "setting", "converged", "recorded ms (vs the card's)", "boxes changed"],
+            rows,
+            ["---", "---"] + ["---:"] * 3,
+        ) + [""]
     return out
 
 
@@ -436,15 +596,28 @@ def train_step_section(r: Result | None, results_dir: Path) -> list[str]:
     if r is None:
         return []
     d = r.data
-    body = [[row["precision"], row["formulation"], f"{row['median_s']:.3f}", f"{row['p90_s']:.3f}",
-             f"{row['speedup']:.2f}x"] for row in d.get("rows", [])]
-    out = ["## MAFF-Net training step", "",
-           f"`benchmarks/maffnet_train_step.py` on `{d.get('card', '?')}`, {_stamp(r, d)}. Seconds per training "
-           f"scan (median and 90th percentile over {d.get('steps', '?')} optimiser steps of {d.get('batch_size', '?')} "
-           f"scans, the variants taking turns; {d.get('weights', 'seeded weights')}), and the speed-up over the "
-           f"export formulation on NCHW tensors in the same precision. JSON: {_link(r, results_dir)}.", ""]
-    out += _table(["precision", "formulation", "s per scan", "p90", "speed-up"], body,
-                  ["---", "---", "---:", "---:", "---:"]) + [""]
+    body = [
+        [
+            row["precision"],
+            row["formulation"],
+            f"{row['median_s']:.3f}",
+            f"{row['p90_s']:.3f}",
+            f"{row['speedup']:.2f}x",
+        ]
+        for row in d.get("rows", [])
+    ]
+    out = [
+        "## MAFF-Net training step",
+        "",
+        f"`benchmarks/maffnet_train_step.py` on `{d.get('card', '?')}`, {_stamp(r, d)}. Seconds per training "
+        f"scan (median and 90th percentile over {d.get('steps', '?')} optimiser steps of {d.get('batch_size', '?')} "
+        f"scans, the variants taking turns; {d.get('weights', 'seeded weights')}), and the speed-up over the "
+        f"export formulation on NCHW tensors in the same precision. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
+    out += _table(
+        ["precision", "formulation", "s per scan", "p90", "speed-up"], body, ["---", "---", "---:", "---:", "---:"]
+    ) + [""]
     return out
 
 
@@ -461,32 +634,56 @@ def training_section(results: list[Result], results_dir: Path) -> list[str]:
         train, held = d["train"], d["heldout_town"]
         m = d.get("machine", {})
         data = train.get("data", {})
-        out += ["## TDFANet training", "",
-                f"`benchmarks/tdfanet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
-                f"`{d['command']}`: {data.get('drives', '?')} drives, {data.get('training_windows', '?')} training and "
-                f"{data.get('validation_windows', '?')} validation windows, "
-                f"{data.get('queries_per_epoch', '?')} tuples "
-                f"per epoch. Training took {d['train_seconds'] / 60:.1f} min. JSON: {_link(r, results_dir)}.", ""]
-        rows = [[str(e["epoch"]), "-" if e["loss"] != e["loss"] else f"{e['loss']:.4f}",
-                 *(_num(e[f"val_R@{n}"]) for n in (1, 5, 10)), _num(e["seconds"] / 60),
-                 "best" if e["epoch"] == train.get("best_epoch") else ""] for e in train["epochs"]]
-        out += _table(["epoch", "loss", "val R@1 %", "val R@5 %", "val R@10 %", "min", ""], rows,
-                      ["---:"] * 6 + ["---"]) + [""]
-        out += [f"On the one-street town of seed {held['seed']} (`radaredge make-benchmark`'s default; never trained "
-                f"on, but the town the edge card's pillar size and int8 `keep_fp32` layers were chosen on, so a design "
-                f"town, not a test; about 11 database windows lie within 5 m of a query, so chance alone scores about "
-                f"19 % R@1), `radaredge eval`, onnxruntime, true positive within 5 m:", ""]
-        labels = (("seeded_fp32", "seeded weights, fp32"), ("trained_fp32", "trained, fp32"),
-                  ("trained_int8", "trained, int8"))
-        rows = [[label, *(_num(held[k]["recall"][str(n)]) for n in (1, 5, 10)), str(held[k]["evaluated"])]
-                for k, label in labels if k in held]
+        out += [
+            "## TDFANet training",
+            "",
+            f"`benchmarks/tdfanet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+            f"`{d['command']}`: {data.get('drives', '?')} drives, {data.get('training_windows', '?')} training and "
+            f"{data.get('validation_windows', '?')} validation windows, "
+            f"{data.get('queries_per_epoch', '?')} tuples "
+            f"per epoch. Training took {d['train_seconds'] / 60:.1f} min. JSON: {_link(r, results_dir)}.",
+            "",
+        ]
+        rows = [
+            [
+                str(e["epoch"]),
+                "-" if e["loss"] != e["loss"] else f"{e['loss']:.4f}",
+                *(_num(e[f"val_R@{n}"]) for n in (1, 5, 10)),
+                _num(e["seconds"] / 60),
+                "best" if e["epoch"] == train.get("best_epoch") else "",
+            ]
+            for e in train["epochs"]
+        ]
+        out += _table(
+            ["epoch", "loss", "val R@1 %", "val R@5 %", "val R@10 %", "min", ""], rows, ["---:"] * 6 + ["---"]
+        ) + [""]
+        out += [
+            f"On the one-street town of seed {held['seed']} (`radaredge make-benchmark`'s default; never trained "
+            f"on, but the town the edge card's pillar size and int8 `keep_fp32` layers were chosen on, so a design "
+            f"town, not a test; about 11 database windows lie within 5 m of a query, so chance alone scores about "
+            f"19 % R@1), `radaredge eval`, onnxruntime, true positive within 5 m:",
+            "",
+        ]
+        labels = (
+            ("seeded_fp32", "seeded weights, fp32"),
+            ("trained_fp32", "trained, fp32"),
+            ("trained_int8", "trained, int8"),
+        )
+        rows = [
+            [label, *(_num(held[k]["recall"][str(n)]) for n in (1, 5, 10)), str(held[k]["evaluated"])]
+            for k, label in labels
+            if k in held
+        ]
         out += _table(["graph", "R@1 %", "R@5 %", "R@10 %", "queries"], rows, ["---"] + ["---:"] * 4) + [""]
         agree = held.get("int8_top1_agreement_with_fp32", {})
         p8 = d.get("parity_int8", {})
-        out += [f"Parity on the trained weights: fp32 {'PASSED' if d['parity_fp32']['passed'] else 'FAILED'}, "
-                f"int8 budget {'PASSED' if p8.get('passed') else 'FAILED'}. int8 retrieves the same top-1 window "
-                f"as fp32 for {100 * agree.get('same_window', float('nan')):.1f} % of the queries and a window "
-                f"within 5 m of it for {100 * agree.get('within_radius', float('nan')):.1f} %.", ""]
+        out += [
+            f"Parity on the trained weights: fp32 {'PASSED' if d['parity_fp32']['passed'] else 'FAILED'}, "
+            f"int8 budget {'PASSED' if p8.get('passed') else 'FAILED'}. int8 retrieves the same top-1 window "
+            f"as fp32 for {100 * agree.get('same_window', float('nan')):.1f} % of the queries and a window "
+            f"within 5 m of it for {100 * agree.get('within_radius', float('nan')):.1f} %.",
+            "",
+        ]
     return out
 
 
@@ -495,41 +692,76 @@ def maffnet_training_section(r: Result, results_dir: Path) -> list[str]:
     d = r.data
     train, m = d["train"], d.get("machine", {})
     data = train.get("data", {})
-    out = [f"## MAFF-Net training: {d['card']}", "",
-           f"`benchmarks/maffnet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
-           f"`{d['command']}`: {data.get('train_frames', '?')} training frames, validation on "
-           f"{data.get('validation_frames', '?')} frames of `{data.get('validation_split', '?')}`. Training took "
-           f"{_num((d.get('train_seconds') or 0) / 60)} min. JSON: {_link(r, results_dir)}.", ""]
-    classes = [k[len("AP3d_"):] for k in train["epochs"][0] if k.startswith("AP3d_")]
-    rows = [[str(e["epoch"]), "-" if e["loss"] is None or e["loss"] != e["loss"] else f"{e['loss']:.3f}",
-             *(_num(e.get(f"AP3d_{c}")) for c in classes), _num(e.get("mAP3d")), _num(e["seconds"] / 60),
-             "best" if e["epoch"] == train.get("best_epoch") else ""] for e in train["epochs"]]
-    out += _table(["epoch", "loss", *(f"val 3D AP {c}" for c in classes), "val mAP", "min", ""], rows,
-                  ["---:"] * (len(classes) + 4) + ["---"]) + [""]
+    out = [
+        f"## MAFF-Net training: {d['card']}",
+        "",
+        f"`benchmarks/maffnet_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+        f"`{d['command']}`: {data.get('train_frames', '?')} training frames, validation on "
+        f"{data.get('validation_frames', '?')} frames of `{data.get('validation_split', '?')}`. Training took "
+        f"{_num((d.get('train_seconds') or 0) / 60)} min. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
+    classes = [k[len("AP3d_") :] for k in train["epochs"][0] if k.startswith("AP3d_")]
+    rows = [
+        [
+            str(e["epoch"]),
+            "-" if e["loss"] is None or e["loss"] != e["loss"] else f"{e['loss']:.3f}",
+            *(_num(e.get(f"AP3d_{c}")) for c in classes),
+            _num(e.get("mAP3d")),
+            _num(e["seconds"] / 60),
+            "best" if e["epoch"] == train.get("best_epoch") else "",
+        ]
+        for e in train["epochs"]
+    ]
+    out += _table(
+        ["epoch", "loss", *(f"val 3D AP {c}" for c in classes), "val mAP", "min", ""],
+        rows,
+        ["---:"] * (len(classes) + 4) + ["---"],
+    ) + [""]
     t, s0 = d["test_trained"], d["test_seeded"]
-    out += [f"The `test` split ({t['frames']} frames, drives never trained or validated on), `radaredge eval`: 3D AP "
-            "(BEV AP) per class, entire area, 11 recall positions, VoD's IoU thresholds; frames per second of "
-            "each backend's frame loop.", ""]
-    backends = [("seeded, onnxruntime fp32", s0, "onnxruntime")] + [
-        (f"trained, {b}", t, b) for b in t["ap"]]
+    out += [
+        f"The `test` split ({t['frames']} frames, drives never trained or validated on), `radaredge eval`: 3D AP "
+        "(BEV AP) per class, entire area, 11 recall positions, VoD's IoU thresholds; frames per second of "
+        "each backend's frame loop.",
+        "",
+    ]
+    backends = [("seeded, onnxruntime fp32", s0, "onnxruntime")] + [(f"trained, {b}", t, b) for b in t["ap"]]
     rows = []
     for label, rep, b in backends:
         per = rep["ap"][b]["entire_area"]
         mean3d = sum(v["3d"] for v in per.values()) / len(per)
-        rows.append([label, *(f"{_num(per[c]['3d'], '.2f')} ({_num(per[c]['bev'], '.2f')})" for c in per),
-                     _num(mean3d, ".2f"), _num(rep["fps"].get(b))])
+        rows.append(
+            [
+                label,
+                *(f"{_num(per[c]['3d'], '.2f')} ({_num(per[c]['bev'], '.2f')})" for c in per),
+                _num(mean3d, ".2f"),
+                _num(rep["fps"].get(b)),
+            ]
+        )
     names = list(t["ap"][next(iter(t["ap"]))]["entire_area"])
     out += _table(["graph", *names, "mAP 3D", "FPS"], rows, ["---"] + ["---:"] * (len(names) + 2)) + [""]
     errors = t.get("box_errors", {}).get("onnxruntime")
     if errors:
-        out += ["Box errors of the trained fp32 graph's detections on the same frames (`radaredge eval`: each "
-                "detection, in descending score, takes the nearest unmatched labelled box of its class within "
-                "2 m in bird's-eye view; radar frame, metres; dz is detection minus ground truth):", ""]
-        rows = [[c, f"{e['matched']} / {e['ground_truth']}", *(_num(e[k], ".2f") for k in
-                                                                ("xy", "dz", "abs_dz", "abs_dl", "abs_dw", "abs_dh")),
-                 _num(e["heading_deg"], ".1f")] for c, e in errors.items()]
-        out += _table(["class", "matched", "centre xy", "dz (bias)", "abs dz", "abs dl", "abs dw", "abs dh",
-                       "heading deg"], rows, ["---"] + ["---:"] * 8) + [""]
+        out += [
+            "Box errors of the trained fp32 graph's detections on the same frames (`radaredge eval`: each "
+            "detection, in descending score, takes the nearest unmatched labelled box of its class within "
+            "2 m in bird's-eye view; radar frame, metres; dz is detection minus ground truth):",
+            "",
+        ]
+        rows = [
+            [
+                c,
+                f"{e['matched']} / {e['ground_truth']}",
+                *(_num(e[k], ".2f") for k in ("xy", "dz", "abs_dz", "abs_dl", "abs_dw", "abs_dh")),
+                _num(e["heading_deg"], ".1f"),
+            ]
+            for c, e in errors.items()
+        ]
+        out += _table(
+            ["class", "matched", "centre xy", "dz (bias)", "abs dz", "abs dl", "abs dw", "abs dh", "heading deg"],
+            rows,
+            ["---"] + ["---:"] * 8,
+        ) + [""]
     return out
 
 
@@ -552,46 +784,76 @@ def des4pos_training_section(r: Result, results_dir: Path) -> list[str]:
     train, held = d["train"], d["heldout"]
     m, data = d.get("machine", {}), train.get("data", {})
     variant = r.stem.removesuffix("-training")
-    out = ["## Des4Pos training" + ("" if variant == "des4pos" else f" (`{variant}`)"), "",
-           f"`benchmarks/des4pos_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
-           f"`{d['command']}`: {data.get('maps', '?')} cities, {data.get('cells', '?')} cells, "
-           f"{data.get('training_poses', '?')} training and {data.get('validation_poses', '?')} validation described "
-           f"poses. Training took {d['train_seconds'] / 60:.1f} min. JSON: {_link(r, results_dir)}.", ""]
+    out = [
+        "## Des4Pos training" + ("" if variant == "des4pos" else f" (`{variant}`)"),
+        "",
+        f"`benchmarks/des4pos_training.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+        f"`{d['command']}`: {data.get('maps', '?')} cities, {data.get('cells', '?')} cells, "
+        f"{data.get('training_poses', '?')} training and {data.get('validation_poses', '?')} validation described "
+        f"poses. Training took {d['train_seconds'] / 60:.1f} min. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
     best = train.get("stage_best", {})
     for stage in dict.fromkeys(e["stage"] for e in train["epochs"]):
         rows = [e for e in train["epochs"] if e["stage"] == stage]
         keys = _stage_metrics(rows)
-        body = [[str(e["epoch"]), f"{e['loss']:.4f}", *(_num(e[k], ".2f") for k in keys), _num(e["seconds"] / 60),
-                 "kept" if e["epoch"] == best.get(stage) else ""] for e in rows]
+        body = [
+            [
+                str(e["epoch"]),
+                f"{e['loss']:.4f}",
+                *(_num(e[k], ".2f") for k in keys),
+                _num(e["seconds"] / 60),
+                "kept" if e["epoch"] == best.get(stage) else "",
+            ]
+            for e in rows
+        ]
         out += [f"Stage `{stage}`:", ""]
         out += _table(["epoch", "loss", *keys, "min", ""], body, ["---:"] * (len(keys) + 3) + ["---"]) + [""]
     verdict = lambda p: "PASSED" if p.get("passed") else "FAILED"  # noqa: E731
     par = d.get("parity", {})
     runs = [(w, b) for w in ("seeded", "trained") for b in held.get(w, {})]
     centres = any("localization_centre" in held[w][b] for w, b in runs)
-    unit = ("% with the fine stage's positions and with the retrieved cells' centres alone (no fine stage), "
-            "in brackets the 95 % percentile-bootstrap interval over the queries"
-            + ("; the gain is the fine stage's, in points, over the same queries (a paired difference)"
-               if any("localization_gain" in held[w][b] for w, b in runs) else "") + ":" if centres else "%:")
-    out += [f"Parity of the exported bundle (three graphs) against the torch reference: trained weights "
-            f"{verdict(par.get('trained', {}))}, seeded weights {verdict(par.get('seeded', {}))}.", "",
-            f"Held-out cities (`{d.get('eval_command', '?')}`): {held['cells']} cells of {len(held['maps'])} "
-            f"cities in one database, {held['queries']} described poses as queries. Table I, localisation "
-            f"accuracy (a position within t m among the top-k cells), {unit}", ""]
+    unit = (
+        "% with the fine stage's positions and with the retrieved cells' centres alone (no fine stage), "
+        "in brackets the 95 % percentile-bootstrap interval over the queries"
+        + (
+            "; the gain is the fine stage's, in points, over the same queries (a paired difference)"
+            if any("localization_gain" in held[w][b] for w, b in runs)
+            else ""
+        )
+        + ":"
+        if centres
+        else "%:"
+    )
+    out += [
+        f"Parity of the exported bundle (three graphs) against the torch reference: trained weights "
+        f"{verdict(par.get('trained', {}))}, seeded weights {verdict(par.get('seeded', {}))}.",
+        "",
+        f"Held-out cities (`{d.get('eval_command', '?')}`): {held['cells']} cells of {len(held['maps'])} "
+        f"cities in one database, {held['queries']} described poses as queries. Table I, localisation "
+        f"accuracy (a position within t m among the top-k cells), {unit}",
+        "",
+    ]
     ks = sorted({int(k) for w, b in runs for k in held[w][b]["localization"]})
     ts = sorted({float(t) for w, b in runs for k in held[w][b]["localization"].values() for t in k}, key=float)
     if centres:
-        out += _table(["weights", "backend", "position"] + [f"top-{k} {t:g} m" for k in ks for t in ts],
-                      [[w, b, label, *(_with_interval(held[w][b], key, k, t) for k in ks for t in ts)]
-                       for w, b in runs for key, label in (("localization", "fine stage"),
-                                                           ("localization_centre", "cell centre"),
-                                                           ("localization_gain", "gain"))
-                       if key in held[w][b]],
-                      ["---", "---", "---"] + ["---:"] * (len(ks) * len(ts))) + [""]
-    else:                                       # files from before the cell-centre rows
+        out += _table(
+            ["weights", "backend", "position"] + [f"top-{k} {t:g} m" for k in ks for t in ts],
+            [
+                [w, b, label, *(_with_interval(held[w][b], key, k, t) for k in ks for t in ts)]
+                for w, b in runs
+                for key, label in (
+                    ("localization", "fine stage"),
+                    ("localization_centre", "cell centre"),
+                    ("localization_gain", "gain"),
+                )
+                if key in held[w][b]
+            ],
+            ["---", "---", "---"] + ["---:"] * (len(ks) * len(ts)),
+        ) + [""]
+    else:  # files from before the cell-centre rows
         head = ["weights", "backend"] + [f"top-{k} {t:g} m" for k in ks for t in ts]
-        body = [[w, b, *(_num(held[w][b]["localization"][str(k)][f"{t:g}"]) for k in ks for t in ts)]
-                for w, b in runs]
+        body = [[w, b, *(_num(held[w][b]["localization"][str(k)][f"{t:g}"]) for k in ks for t in ts)] for w, b in runs]
         out += _table(head, body, ["---", "---"] + ["---:"] * (len(head) - 2)) + [""]
     out += ["Table II, cell-retrieval recall (the pose's best cell among the top k), %:", ""]
     rk = sorted({int(k) for w, b in runs for k in held[w][b]["retrieval"]})
@@ -618,10 +880,17 @@ def history_section(results: list[Result], rendered: set[Path], results_dir: Pat
     older = [r for r in reversed(results) if r.path not in rendered and r.kind != "other"]
     if not older:
         return []
-    return ["## History", "",
+    return (
+        [
+            "## History",
+            "",
             "Earlier result files, newest first. They were measured on the code of their day; `git log` on a "
-            "file tells what changed since.", ""] + \
-        [f"- {_link(r, results_dir)}: {_summary(r)}" for r in older] + [""]
+            "file tells what changed since.",
+            "",
+        ]
+        + [f"- {_link(r, results_dir)}: {_summary(r)}" for r in older]
+        + [""]
+    )
 
 
 def fleet_section(r: Result | None, results_dir: Path) -> list[str]:
@@ -629,30 +898,72 @@ def fleet_section(r: Result | None, results_dir: Path) -> list[str]:
         return []
     d = r.data
     t, ix = d.get("throughput", {}), d.get("index", {})
-    out = ["## Fleet scale", "",
-           f"`benchmarks/fleet_scale.py`, {r.when}, {_machine(d)}: `radaredge run` with {t.get('graph', '?')} over "
-           f"{t.get('drives', '?')} synthetic drives ({t.get('windows', '?')} windows), each engine into a fresh "
-           f"directory in one run; then a place map's large index. JSON: {_link(r, results_dir)}.", ""]
-    rows = [[name, str(row.get("workers")), f"{row.get('computed_windows'):,}", _num(row.get("seconds")),
-             _num(row.get("windows_per_second"))] for name, row in t.get("rows", {}).items()]
+    out = [
+        "## Fleet scale",
+        "",
+        f"`benchmarks/fleet_scale.py`, {r.when}, {_machine(d)}: `radaredge run` with {t.get('graph', '?')} over "
+        f"{t.get('drives', '?')} synthetic drives ({t.get('windows', '?')} windows), each engine into a fresh "
+        f"directory in one run; then a place map's large index. JSON: {_link(r, results_dir)}.",
+        "",
+    ]
+    rows = [
+        [
+            name,
+            str(row.get("workers")),
+            f"{row.get('computed_windows'):,}",
+            _num(row.get("seconds")),
+            _num(row.get("windows_per_second")),
+        ]
+        for name, row in t.get("rows", {}).items()
+    ]
     out += _table(["engine", "workers", "windows", "s", "windows/s"], rows, ["---", "---:", "---:", "---:", "---:"])
-    out += ["", f"Throughput 2 workers / 1 worker: {_num(t.get('ratio_2_to_1_workers'), '.2f')}x. Ray's overhead "
-            f"against the plain loop (1 worker): "
-            f"{_num(100 * t['ray_overhead'] if 'ray_overhead' in t else None)} %.", ""]
+    out += [
+        "",
+        f"Throughput 2 workers / 1 worker: {_num(t.get('ratio_2_to_1_workers'), '.2f')}x. Ray's overhead "
+        f"against the plain loop (1 worker): "
+        f"{_num(100 * t['ray_overhead'] if 'ray_overhead' in t else None)} %.",
+        "",
+    ]
     if ix:
         p = ix.get("index", {})
-        kind = (f"IVF-PQ {p.get('nlist')} lists, {p.get('m')} x {p.get('nbits')}-bit codes, {p.get('nprobe')} probed, "
-                f"shortlist {p.get('k_factor')} x k re-ranked exactly" if p.get("kind") == "ivfpq" else p.get("kind"))
-        out += _table(["vectors", "index", "recall@1 vs exact", "build s", "query p50 ms (2 threads)",
-                       "exact search ms a query (1,000 batched)", "index MiB", "vectors MiB"],
-                      [[f"{ix.get('vectors'):,} x {ix.get('dim')}", kind, _num(ix.get("recall_at_1_vs_exact"), ".3f"),
-                        _num(ix.get("build_s")), _num(ix.get("query_p50_ms"), ".2f"),
-                        _num(ix.get("exact_query_ms"), ".1f"), _num(ix.get("index_bytes", 0) / 2**20, ".0f"),
-                        _num(ix.get("vectors_bytes", 0) / 2**20, ".0f")]],
-                      ["---:", "---", "---:", "---:", "---:", "---:", "---:", "---:"])
-        out += ["", f"Descriptors: unit vectors around {ix.get('places', '?'):,} places, {ix.get('queries', '?')} "
-                "queries that are other windows of those places; recall@1 counts a query whose first result is the "
-                "exact search's. The arithmetic for 10^8 windows is in [docs/fleet.md](../docs/fleet.md).", ""]
+        kind = (
+            f"IVF-PQ {p.get('nlist')} lists, {p.get('m')} x {p.get('nbits')}-bit codes, {p.get('nprobe')} probed, "
+            f"shortlist {p.get('k_factor')} x k re-ranked exactly"
+            if p.get("kind") == "ivfpq"
+            else p.get("kind")
+        )
+        out += _table(
+            [
+                "vectors",
+                "index",
+                "recall@1 vs exact",
+                "build s",
+                "query p50 ms (2 threads)",
+                "exact search ms a query (1,000 batched)",
+                "index MiB",
+                "vectors MiB",
+            ],
+            [
+                [
+                    f"{ix.get('vectors'):,} x {ix.get('dim')}",
+                    kind,
+                    _num(ix.get("recall_at_1_vs_exact"), ".3f"),
+                    _num(ix.get("build_s")),
+                    _num(ix.get("query_p50_ms"), ".2f"),
+                    _num(ix.get("exact_query_ms"), ".1f"),
+                    _num(ix.get("index_bytes", 0) / 2**20, ".0f"),
+                    _num(ix.get("vectors_bytes", 0) / 2**20, ".0f"),
+                ]
+            ],
+            ["---:", "---", "---:", "---:", "---:", "---:", "---:", "---:"],
+        )
+        out += [
+            "",
+            f"Descriptors: unit vectors around {ix.get('places', '?'):,} places, {ix.get('queries', '?')} "
+            "queries that are other windows of those places; recall@1 counts a query whose first result is the "
+            "exact search's. The arithmetic for 10^8 windows is in [docs/fleet.md](../docs/fleet.md).",
+            "",
+        ]
     return out
 
 
@@ -678,38 +989,63 @@ def places_section(results: list[Result], results_dir: Path) -> list[str]:
         towns, m = d["towns"], d.get("machine", {})
         chance = d["chance"]
         first = next(iter(chance.values()))
-        out += [f"## Place recognition on street-network towns: {d['card']}", "",
-                f"`benchmarks/place_recognition.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
-                f"`{d['command']}`. Design towns (seeds {towns['design']['seeds']}, database circuits of at least "
-                f"{towns['design']['route_km']} km) were used for {towns['design']['used_for']}; test towns (seeds "
-                f"{towns['test']['seeds']}, circuits of at least {towns['test']['route_km']} km) for "
-                f"{towns['test']['used_for']}. "
-                f"{first['5']['database_scans']} database and {first['5']['query_scans']} query scans per test town; "
-                f"K = {d['frames_per_window']} frames a window. Weights: `{d['checkpoint']}`"
-                + (f" (trained here in {d['train_seconds'] / 60:.1f} min)" if d.get("train_seconds") else "")
-                + f". JSON: {_link(r, results_dir)}.", "",
-                "Recall@N in % of the evaluated queries with its 95 % bootstrap interval over queries; onnxruntime "
-                "for the graphs. A true positive lies within 5 m (radaredge's default) or 25 m (TransLoc4D's "
-                "evaluation sets) of the query.", ""]
-        rows = [["chance (random ranking)",
-                 " / ".join(f"{c['5']['recall_at_1']:.2f}" for c in chance.values()), "-", "-",
-                 " / ".join(f"{c['25']['recall_at_1']:.2f}" for c in chance.values())]]
-        labels = (("no_learning", "no learning (polar occupancy)"), ("seeded", "seeded network, fp32"),
-                  ("trained_fp32", "trained, fp32"), ("trained_int8", "trained, int8"))
-        rows += [[label, *(_recall_cell(d["rows"][k], "5", n) for n in (1, 5, 10)), _recall_cell(d["rows"][k], "25", 1)]
-                 for k, label in labels if k in d["rows"]]
+        out += [
+            f"## Place recognition on street-network towns: {d['card']}",
+            "",
+            f"`benchmarks/place_recognition.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+            f"`{d['command']}`. Design towns (seeds {towns['design']['seeds']}, database circuits of at least "
+            f"{towns['design']['route_km']} km) were used for {towns['design']['used_for']}; test towns (seeds "
+            f"{towns['test']['seeds']}, circuits of at least {towns['test']['route_km']} km) for "
+            f"{towns['test']['used_for']}. "
+            f"{first['5']['database_scans']} database and {first['5']['query_scans']} query scans per test town; "
+            f"K = {d['frames_per_window']} frames a window. Weights: `{d['checkpoint']}`"
+            + (f" (trained here in {d['train_seconds'] / 60:.1f} min)" if d.get("train_seconds") else "")
+            + f". JSON: {_link(r, results_dir)}.",
+            "",
+            "Recall@N in % of the evaluated queries with its 95 % bootstrap interval over queries; onnxruntime "
+            "for the graphs. A true positive lies within 5 m (radaredge's default) or 25 m (TransLoc4D's "
+            "evaluation sets) of the query.",
+            "",
+        ]
+        rows = [
+            [
+                "chance (random ranking)",
+                " / ".join(f"{c['5']['recall_at_1']:.2f}" for c in chance.values()),
+                "-",
+                "-",
+                " / ".join(f"{c['25']['recall_at_1']:.2f}" for c in chance.values()),
+            ]
+        ]
+        labels = (
+            ("no_learning", "no learning (polar occupancy)"),
+            ("seeded", "seeded network, fp32"),
+            ("trained_fp32", "trained, fp32"),
+            ("trained_int8", "trained, int8"),
+        )
+        rows += [
+            [label, *(_recall_cell(d["rows"][k], "5", n) for n in (1, 5, 10)), _recall_cell(d["rows"][k], "25", 1)]
+            for k, label in labels
+            if k in d["rows"]
+        ]
         out += _table(["descriptor", "R@1 at 5 m", "R@5 at 5 m", "R@10 at 5 m", "R@1 at 25 m"], rows) + [""]
-        split = [(label, d["rows"][k]["5"]["by_direction"]) for k, label in labels
-                 if "by_direction" in d["rows"].get(k, {}).get("5", {})]
+        split = [
+            (label, d["rows"][k]["5"]["by_direction"])
+            for k, label in labels
+            if "by_direction" in d["rows"].get(k, {}).get("5", {})
+        ]
         if split:
             counts = split[0][1]
-            out += ["Recall@1 at 5 m of the queries that drive with the database at their place and of those that "
-                    "drive against it (heading more than 90 degrees from the nearest database window's; "
-                    + ", ".join(f"{counts[w]['evaluated']} {w}" for w in ("with", "against") if w in counts)
-                    + " queries):", ""]
-            out += _table(["descriptor", "with", "against"],
-                          [[label, *(_direction_cell(by.get(w)) for w in ("with", "against"))]
-                           for label, by in split]) + [""]
+            out += [
+                "Recall@1 at 5 m of the queries that drive with the database at their place and of those that "
+                "drive against it (heading more than 90 degrees from the nearest database window's; "
+                + ", ".join(f"{counts[w]['evaluated']} {w}" for w in ("with", "against") if w in counts)
+                + " queries):",
+                "",
+            ]
+            out += _table(
+                ["descriptor", "with", "against"],
+                [[label, *(_direction_cell(by.get(w)) for w in ("with", "against"))] for label, by in split],
+            ) + [""]
     return out
 
 
@@ -726,8 +1062,12 @@ _VARIANT_TEXT = {
     "window": "each window's own batch statistics while training",
     "hardest": "neg* the hardest (nearest in descriptor space) true negative",
 }
-_ABLATION_PARTS = {"full": ("yes", "yes", "yes"), "no-dpr": ("no", "yes", "yes"), "no-fa": ("yes", "no", "yes"),
-                   "sum": ("yes", "yes", "no (sum)")}
+_ABLATION_PARTS = {
+    "full": ("yes", "yes", "yes"),
+    "no-dpr": ("no", "yes", "yes"),
+    "no-fa": ("yes", "no", "yes"),
+    "sum": ("yes", "yes", "no (sum)"),
+}
 
 
 def _validation_cell(best: dict) -> str:
@@ -741,34 +1081,76 @@ def variants_section(results: list[Result], results_dir: Path) -> list[str]:
     for r in results:
         d = r.data
         towns, m, variants = d["towns"], d.get("machine", {}), d["variants"]
-        out += [f"## TDFANet training choices and ablations: {d['card']}, {d['recipe']['epochs']} epochs of "
-                f"{d['recipe']['tuples_per_epoch']} tuples", "",
-                f"`benchmarks/tdfanet_variants.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
-                f"`{d['command']}`. Every variant is trained the same way ({d['recipe']['epochs']} epochs of "
-                f"{d['recipe']['tuples_per_epoch']} tuples) on the design towns (seeds {towns['design']['seeds']}), "
-                f"used for {towns['design']['used_for']}; the test towns (seeds {towns['test']['seeds']}) for "
-                f"{towns['test']['used_for']}. Validation Recall@1 at 5 m is the best epoch's, with its 95 % "
-                f"bootstrap interval over validation queries. JSON: {_link(r, results_dir)}.", ""]
-        rows = [[name, _VARIANT_TEXT.get(name, name), str(v["best"]["epoch"]), _validation_cell(v["best"]),
-                 f"{v['best']['val_R@5']:.1f}", f"{v['train_seconds'] / 60:.1f}"]
-                for name in d["choices"] if (v := variants.get(name))]
+        out += [
+            f"## TDFANet training choices and ablations: {d['card']}, {d['recipe']['epochs']} epochs of "
+            f"{d['recipe']['tuples_per_epoch']} tuples",
+            "",
+            f"`benchmarks/tdfanet_variants.py`, {r.when}: {m.get('cpu', '?')}, {m.get('threads', '?')} threads. "
+            f"`{d['command']}`. Every variant is trained the same way ({d['recipe']['epochs']} epochs of "
+            f"{d['recipe']['tuples_per_epoch']} tuples) on the design towns (seeds {towns['design']['seeds']}), "
+            f"used for {towns['design']['used_for']}; the test towns (seeds {towns['test']['seeds']}) for "
+            f"{towns['test']['used_for']}. Validation Recall@1 at 5 m is the best epoch's, with its 95 % "
+            f"bootstrap interval over validation queries. JSON: {_link(r, results_dir)}.",
+            "",
+        ]
+        rows = [
+            [
+                name,
+                _VARIANT_TEXT.get(name, name),
+                str(v["best"]["epoch"]),
+                _validation_cell(v["best"]),
+                f"{v['best']['val_R@5']:.1f}",
+                f"{v['train_seconds'] / 60:.1f}",
+            ]
+            for name in d["choices"]
+            if (v := variants.get(name))
+        ]
         if rows:
             out += ["### Training choices (validation, design towns)", ""]
-            out += _table(["variant", "what", "best epoch", "val R@1", "val R@5", "train min"], rows,
-                          ["---", "---", "---:", "---:", "---:", "---:"]) + [""]
-        rows = [[label, *_ABLATION_PARTS[label], _validation_cell(v["best"]),
-                 *(_recall_cell(v["test"], "5", n) for n in (1, 5, 10)), _recall_cell(v["test"], "25", 1),
-                 *(_direction_cell(v["test"]["5"].get("by_direction", {}).get(w)) for w in ("with", "against")),
-                 f"{v['train_seconds'] / 60:.1f}"]
-                for label, name in d["ablations"].items() if (v := variants.get(name)) and "test" in v]
+            out += _table(
+                ["variant", "what", "best epoch", "val R@1", "val R@5", "train min"],
+                rows,
+                ["---", "---", "---:", "---:", "---:", "---:"],
+            ) + [""]
+        rows = [
+            [
+                label,
+                *_ABLATION_PARTS[label],
+                _validation_cell(v["best"]),
+                *(_recall_cell(v["test"], "5", n) for n in (1, 5, 10)),
+                _recall_cell(v["test"], "25", 1),
+                *(_direction_cell(v["test"]["5"].get("by_direction", {}).get(w)) for w in ("with", "against")),
+                f"{v['train_seconds'] / 60:.1f}",
+            ]
+            for label, name in d["ablations"].items()
+            if (v := variants.get(name)) and "test" in v
+        ]
         if rows:
             out += ["### Ablations (test towns, fp32 graph)", ""]
-            out += ["Recall@1 at 5 m is also split by the query's direction: with the database at its place, "
-                    "and against it (heading more than 90 degrees from the nearest database window's; "
-                    "- where the run predates the split).", ""]
-            out += _table(["variant", "DPR", "FA", "pyramid + DA", "val R@1", "R@1 at 5 m", "R@5 at 5 m",
-                           "R@10 at 5 m", "R@1 at 25 m", "R@1 with", "R@1 against", "train min"], rows,
-                          ["---", "---", "---", "---"] + ["---:"] * 8) + [""]
+            out += [
+                "Recall@1 at 5 m is also split by the query's direction: with the database at its place, "
+                "and against it (heading more than 90 degrees from the nearest database window's; "
+                "- where the run predates the split).",
+                "",
+            ]
+            out += _table(
+                [
+                    "variant",
+                    "DPR",
+                    "FA",
+                    "pyramid + DA",
+                    "val R@1",
+                    "R@1 at 5 m",
+                    "R@5 at 5 m",
+                    "R@10 at 5 m",
+                    "R@1 at 25 m",
+                    "R@1 with",
+                    "R@1 against",
+                    "train min",
+                ],
+                rows,
+                ["---", "---", "---", "---"] + ["---:"] * 8,
+            ) + [""]
     return out
 
 
@@ -777,41 +1159,74 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
     with each card's test mAP from its training result (benchmarks/maffnet_training.py)."""
     if not results:
         return []
-    by_weights = {t.data["checkpoint_sha256"]: t for t in trainings
-                  if "test_trained" in t.data and t.data.get("checkpoint_sha256")}
+    by_weights = {
+        t.data["checkpoint_sha256"]: t
+        for t in trainings
+        if "test_trained" in t.data and t.data.get("checkpoint_sha256")
+    }
     overview = []
     for r in results:
         d = r.data
         row = {x["graph"]: x for x in d.get("rows", [])}
         t = by_weights.get(d.get("checkpoint_sha256"))
-        overview.append([d.get("model"), d.get("cpu", "-"), _num(row.get("fp32", {}).get("fps")),
-                         _num(row.get("int8", {}).get("fps")), _num(row.get("worst case", {}).get("fps")),
-                         _num(_test_map(t, "onnxruntime"), ".2f"), _num(_test_map(t, "onnxruntime int8"), ".2f")])
-    out = ["## MAFF-Net on trained weights", "",
-           "Each card's trained weights on the CPU of its row (frames per second compare only between rows of one "
-           "CPU): frames per second of the fp32 graph, its int8 copy and "
-           "the worst case (onnxruntime, 2 threads, real frames), and mean 3D AP over Car, Pedestrian and Cyclist "
-           "(entire area) on the test split of the synthetic set, from the training result of the same checkpoint "
-           "(joined by its sha256; '-' where no training result names that checkpoint).", ""]
+        overview.append(
+            [
+                d.get("model"),
+                d.get("cpu", "-"),
+                _num(row.get("fp32", {}).get("fps")),
+                _num(row.get("int8", {}).get("fps")),
+                _num(row.get("worst case", {}).get("fps")),
+                _num(_test_map(t, "onnxruntime"), ".2f"),
+                _num(_test_map(t, "onnxruntime int8"), ".2f"),
+            ]
+        )
+    out = [
+        "## MAFF-Net on trained weights",
+        "",
+        "Each card's trained weights on the CPU of its row (frames per second compare only between rows of one "
+        "CPU): frames per second of the fp32 graph, its int8 copy and "
+        "the worst case (onnxruntime, 2 threads, real frames), and mean 3D AP over Car, Pedestrian and Cyclist "
+        "(entire area) on the test split of the synthetic set, from the training result of the same checkpoint "
+        "(joined by its sha256; '-' where no training result names that checkpoint).",
+        "",
+    ]
     out += _table(["card", "CPU", "fp32 FPS", "int8 FPS", "worst-case FPS", "test mAP fp32", "test mAP int8"], overview)
-    out += ["", "`benchmarks/maffnet_trained.py`: a trained checkpoint on real frames of a labelled set, onnxruntime, "
-           "fp32 / int8 / worst case timed in one alternating loop. The worst case is the same weights with every "
-           "class logit raised by 30, so every anchor passes the score threshold and the NMS gets "
-           "`post_processing.pre_max` candidates on every frame. Candidates: anchors above the threshold per frame "
-           "(what the NMS is given, before the pre_max cap).", ""]
+    out += [
+        "",
+        "`benchmarks/maffnet_trained.py`: a trained checkpoint on real frames of a labelled set, onnxruntime, "
+        "fp32 / int8 / worst case timed in one alternating loop. The worst case is the same weights with every "
+        "class logit raised by 30, so every anchor passes the score threshold and the NMS gets "
+        "`post_processing.pre_max` candidates on every frame. Candidates: anchors above the threshold per frame "
+        "(what the NMS is given, before the pre_max cap).",
+        "",
+    ]
     for r in results:
         d = r.data
-        out += [f"### {d.get('model')}", "",
-                f"{_stamp(r, d)}. Weights: `{d.get('checkpoint')}` (sha256 {str(d.get('checkpoint_sha256'))[:12]}...)"
-                + (f", {d['note']}" if d.get("note") else "") + f". Frames: {len(d.get('frames', []))} of the "
-                f"`{d.get('split')}` split of `{d.get('data')}` (median {_num(d.get('points_median'), '.0f')} points), "
-                f"{d.get('passes')} passes. JSON: {_link(r, results_dir)}.", ""]
-        rows = [[row["graph"], _num(row.get("p50_ms")), _num(row.get("p90_ms")), _num(row.get("fps")),
-                 _num(100 * row["nms_share"] if row.get("nms_share") is not None else None),
-                 f"{_num(row.get('candidates_median'), '.0f')} / {row.get('candidates_max')}",
-                 _num(row.get("detections_median"), ".0f")] for row in d.get("rows", [])]
-        out += _table(["graph", "p50 ms", "p90 ms", "FPS", "NMS share %", "candidates median / max",
-                       "detections median"], rows)
+        out += [
+            f"### {d.get('model')}",
+            "",
+            f"{_stamp(r, d)}. Weights: `{d.get('checkpoint')}` (sha256 {str(d.get('checkpoint_sha256'))[:12]}...)"
+            + (f", {d['note']}" if d.get("note") else "")
+            + f". Frames: {len(d.get('frames', []))} of the "
+            f"`{d.get('split')}` split of `{d.get('data')}` (median {_num(d.get('points_median'), '.0f')} points), "
+            f"{d.get('passes')} passes. JSON: {_link(r, results_dir)}.",
+            "",
+        ]
+        rows = [
+            [
+                row["graph"],
+                _num(row.get("p50_ms")),
+                _num(row.get("p90_ms")),
+                _num(row.get("fps")),
+                _num(100 * row["nms_share"] if row.get("nms_share") is not None else None),
+                f"{_num(row.get('candidates_median'), '.0f')} / {row.get('candidates_max')}",
+                _num(row.get("detections_median"), ".0f"),
+            ]
+            for row in d.get("rows", [])
+        ]
+        out += _table(
+            ["graph", "p50 ms", "p90 ms", "FPS", "NMS share %", "candidates median / max", "detections median"], rows
+        )
         out += [""] + _stage_table({row["graph"]: row["stage_ms"] for row in d.get("rows", []) if row.get("stage_ms")})
         out += [""]
     return out
@@ -825,8 +1240,10 @@ def _ap_cell(v: dict | None) -> str:
 
 
 def _recall_cells(v: dict) -> list[str]:
-    return [f"{v['recall'][n]:.1f} [{v['recall_interval'][n][0]:.1f}, {v['recall_interval'][n][1]:.1f}]"
-            for n in ("1", "5", "10")]
+    return [
+        f"{v['recall'][n]:.1f} [{v['recall_interval'][n][0]:.1f}, {v['recall_interval'][n][1]:.1f}]"
+        for n in ("1", "5", "10")
+    ]
 
 
 def _with_seeded(entry: dict) -> dict:
@@ -842,39 +1259,61 @@ def zoo_section(zoo_dir: Path) -> list[str]:
     entries = [json.loads(p.read_text()) for p in sorted(Path(zoo_dir).glob("*/entry.json"))]
     if not entries:
         return []
-    out = ["## The weights zoo", "",
-           "Trained weights in the repository (`zoo/<card>/`, written by `benchmarks/zoo.py`; synthetic scenes only), "
-           "each metric with its 95 % bootstrap interval; `make test` re-scores each export on its regression set "
-           "(tests/test_zoo.py).", ""]
+    out = [
+        "## The weights zoo",
+        "",
+        "Trained weights in the repository (`zoo/<card>/`, written by `benchmarks/zoo.py`; synthetic scenes only), "
+        "each metric with its 95 % bootstrap interval; `make test` re-scores each export on its regression set "
+        "(tests/test_zoo.py).",
+        "",
+    ]
     detectors = [e for e in entries if "mAP" in next(iter(e["test"]["scores"].values()))]
     places = [e for e in entries if e not in detectors]
     if detectors:
-        out += ["3D AP (entire area, VoD's protocol) on the test split of the synthetic detection set they trained "
-                "on (over frames):", ""]
-        rows = [[e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend]
-                + [_ap_cell(row.get(c)) for c in ("Car", "Pedestrian", "Cyclist", "mAP")]
-                for e in detectors for backend, row in _with_seeded(e).items()]
+        out += [
+            "3D AP (entire area, VoD's protocol) on the test split of the synthetic detection set they trained "
+            "on (over frames):",
+            "",
+        ]
+        rows = [
+            [e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend]
+            + [_ap_cell(row.get(c)) for c in ("Car", "Pedestrian", "Cyclist", "mAP")]
+            for e in detectors
+            for backend, row in _with_seeded(e).items()
+        ]
         out += _table(["card", "weights sha256", "epoch", "backend", "Car", "Pedestrian", "Cyclist", "mAP"], rows)
         out += [""]
     if places:
-        out += ["Recall@N (%, 5 m) on the held-out street town (`make-benchmark --seed 0`, over queries). The town "
-                "is easy (the no-learning polar_occupancy row): a regression net, not a benchmark figure.", ""]
-        rows = [[e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend] + _recall_cells(row)
-                for e in places for backend, row in _with_seeded(e).items()]
+        out += [
+            "Recall@N (%, 5 m) on the held-out street town (`make-benchmark --seed 0`, over queries). The town "
+            "is easy (the no-learning polar_occupancy row): a regression net, not a benchmark figure.",
+            "",
+        ]
+        rows = [
+            [e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend] + _recall_cells(row)
+            for e in places
+            for backend, row in _with_seeded(e).items()
+        ]
         out += _table(["card", "weights sha256", "epoch", "backend", "R@1", "R@5", "R@10"], rows)
         out += [""]
     for e in entries:
         reg, machine = e["regression"], e["machine"]
         where = f"{machine.get('cpu')}, {machine.get('threads')} threads"
         if e in detectors:
-            regression = (f"`make-benchmark --task detection --version {reg['version']} --drives {reg['drives']} "
-                          f"--frames {reg['frames']} --seed {reg['seed']}`, split {reg['split']}, fp32 mAP "
-                          f"{_ap_cell(reg['scores']['mAP'])}")
+            regression = (
+                f"`make-benchmark --task detection --version {reg['version']} --drives {reg['drives']} "
+                f"--frames {reg['frames']} --seed {reg['seed']}`, split {reg['split']}, fp32 mAP "
+                f"{_ap_cell(reg['scores']['mAP'])}"
+            )
         else:
-            regression = (f"`make-benchmark --drives {reg['drives']} --frames {reg['frames']} --seed {reg['seed']}`, "
-                          f"fp32 R@1 {_recall_cells(reg['scores'])[0]}")
-        out += [f"- {e['card']}: `{e['command']}` (training seed {e['training_seed']}; scored on {where}). "
-                f"Regression set: {regression}."]
+            regression = (
+                f"`make-benchmark --drives {reg['drives']} --frames {reg['frames']} --seed {reg['seed']}`, "
+                f"fp32 R@1 {_recall_cells(reg['scores'])[0]}"
+            )
+        out += [
+            f"- {e['card']}: `{e['command']}` (training seed {e['training_seed']}; scored on {where}). "
+            f"Regression set: {regression}."
+        ]
     return out + [""]
 
 
@@ -894,12 +1333,16 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     places = newest_by_key(results, "places")
     variants = newest_by_key(results, "variants")
     real = (newest_by_key(results, "real") or [None])[-1]
-    out = ["# Benchmarks", "",
-           "Generated by `python benchmarks/render.py` from the JSON files in [results/](results/); do not edit "
-           "it by hand. `make bench` writes a new `suite-<date>.json` and regenerates this page; the other "
-           "studies write their own files (see each section), after which `python benchmarks/render.py` "
-           "rewrites the page. The speed runs use the cards' seeded, untrained weights: the figures measure what "
-           "the deployed pipeline costs, not a trained model's accuracy; the training section measures that.", ""]
+    out = [
+        "# Benchmarks",
+        "",
+        "Generated by `python benchmarks/render.py` from the JSON files in [results/](results/); do not edit "
+        "it by hand. `make bench` writes a new `suite-<date>.json` and regenerates this page; the other "
+        "studies write their own files (see each section), after which `python benchmarks/render.py` "
+        "rewrites the page. The speed runs use the cards' seeded, untrained weights: the figures measure what "
+        "the deployed pipeline costs, not a trained model's accuracy; the training section measures that.",
+        "",
+    ]
     if suites:
         out += suite_section(suites[-1], results_dir)
     out += bench_section(benches, results_dir)
@@ -915,7 +1358,8 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     out += training_section(trainings, results_dir)
     out += train_step_section(train_step, results_dir)
     rendered = {r.path for r in suites + benches + compares + trainings + trained + places + variants} | {
-        r.path for r in (capacity, cfa, real, fleet, train_step) if r is not None}
+        r.path for r in (capacity, cfa, real, fleet, train_step) if r is not None
+    }
     out += history_section(results, rendered, results_dir)
     others = [r for r in results if r.kind == "other"]
     if others:

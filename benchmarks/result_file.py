@@ -19,8 +19,10 @@ from radaredge import atomic
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 # An absolute path under one of the roots a machine keeps work in (not "m/s", not a URL).
-MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/"
-                          r"[^\s\"'`,;()\[\]{}<>|]*")
+MACHINE_PATH = re.compile(
+    r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/"
+    r"[^\s\"'`,;()\[\]{}<>|]*"
+)
 
 
 def portable_path(text: str) -> str:
@@ -28,13 +30,15 @@ def portable_path(text: str) -> str:
     inside the repository is recognised wherever the checkout lives, not only under the roots of
     :data:`MACHINE_PATH`."""
     text = re.sub(rf"(?<![\w.~/-]){re.escape(str(ROOT))}/", "", text)
+
     def shown(match: re.Match) -> str:
         path = Path(match.group(0).rstrip("."))
-        tail = match.group(0)[len(str(path)):]
+        tail = match.group(0)[len(str(path)) :]
         try:
             return str(path.relative_to(ROOT)) + tail
         except ValueError:
-            return "…/" + "/".join(path.parts[2:][-2:]) + tail       # never the machine's root folder
+            return "…/" + "/".join(path.parts[2:][-2:]) + tail  # never the machine's root folder
+
     return MACHINE_PATH.sub(shown, text)
 
 

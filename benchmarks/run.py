@@ -25,15 +25,15 @@ import torch
 import radaredge
 from radaredge.artifacts import INT8, copy_path
 from radaredge.benchmarking.harness import BenchOptions, pipeline_backends
-from radaredge.cards import load_card
-from radaredge.models import create_model
 from radaredge.benchmarking.macs import count_macs, gemm_peak_gflops
 from radaredge.benchmarking.profiling import profile_runs, top_ops
-from radaredge.exporting.quantize import QUANTIZED_OPS
-from radaredge.models import model_spec
-from radaredge.runtime.openvino import openvino_installed
 from radaredge.benchmarking.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
-sys.path.insert(0, str(Path(__file__).resolve().parent))    # the sibling modules, also when loaded by path (tests)
+from radaredge.cards import load_card
+from radaredge.exporting.quantize import QUANTIZED_OPS
+from radaredge.models import create_model, model_spec
+from radaredge.runtime.openvino import openvino_installed
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling modules, also when loaded by path (tests)
 from result_file import result_path, utc_stamp, write_result  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,8 +43,15 @@ OPENVINO_BACKENDS = ("openvino", "openvino int8")
 # both stages on VoD with each clustering branch (the TJ4D two-stage cards differ from these only in
 # grid size).
 # des4pos exports three graphs and has its own query/cell benchmark (`radaredge bench --model des4pos`).
-SUITE_MODELS = ("tdfanet", "tdfanet-edge", "maffnet-vod", "maffnet-vod-edge", "maffnet-tj4d", "maffnet-vod-full",
-                "maffnet-vod-full-dbscan")
+SUITE_MODELS = (
+    "tdfanet",
+    "tdfanet-edge",
+    "maffnet-vod",
+    "maffnet-vod-edge",
+    "maffnet-tj4d",
+    "maffnet-vod-full",
+    "maffnet-vod-full-dbscan",
+)
 
 
 def export_both(card, model, export_dir: Path) -> tuple[Path, Path]:
@@ -77,11 +84,14 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
     rows = []
     for r in results:
         achieved = 2 * macs["total"] / (r.p50_ms / 1e3) / 1e9
-        rows.append({**r.__dict__, "gmacs": macs["total"] / 1e9, "achieved_gflops": achieved,
-                     "peak_fraction": achieved / peak})
+        rows.append(
+            {**r.__dict__, "gmacs": macs["total"] / 1e9, "achieved_gflops": achieved, "peak_fraction": achieved / peak}
+        )
     by = {r["backend"]: r for r in rows}
     out = {
-        "model": name, "rows": rows, "macs_by_op": {k: v / 1e9 for k, v in macs.items()},
+        "model": name,
+        "rows": rows,
+        "macs_by_op": {k: v / 1e9 for k, v in macs.items()},
         "ort_vs_reference": by["torch reference"]["p50_ms"] / by["onnxruntime"]["p50_ms"],
         "int8_vs_fp32": by["onnxruntime"]["p50_ms"] / by["onnxruntime int8"]["p50_ms"],
         "quantised_op_time_share": quantised_time_share(fp32, cases, threads),
@@ -94,23 +104,30 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
 
 def chart(suite: dict, path: Path) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     models = [m["model"] for m in suite["models"]]
     fig, ax = plt.subplots(figsize=(8, 4))
-    backends = [b for b in BACKENDS + OPENVINO_BACKENDS if all(any(r["backend"] == b for r in m["rows"])
-                                                               for m in suite["models"])]
+    backends = [
+        b
+        for b in BACKENDS + OPENVINO_BACKENDS
+        if all(any(r["backend"] == b for r in m["rows"]) for m in suite["models"])
+    ]
     width = 0.8 / len(backends)
     for i, backend in enumerate(backends):
         fps = [next(r["fps"] for r in m["rows"] if r["backend"] == backend) for m in suite["models"]]
         bars = ax.bar([j + i * width for j in range(len(models))], fps, width, label=backend)
         ax.bar_label(bars, fmt="%.2g", fontsize=7)
     ax.set_xticks([j + width * (len(backends) - 1) / 2 for j in range(len(models))], models)
-    ax.set_yscale("log")                     # the cards span two orders of magnitude
+    ax.set_yscale("log")  # the cards span two orders of magnitude
     ax.set_ylabel("inferences per second (log)")
-    ax.set_title(f"radaredge on {suite['threads']} cores, {suite['date']}\n"
-                 "TDFANet: one K-frame window per inference; MAFF-Net: one scan", fontsize=10)
+    ax.set_title(
+        f"radaredge on {suite['threads']} cores, {suite['date']}\n"
+        "TDFANet: one K-frame window per inference; MAFF-Net: one scan",
+        fontsize=10,
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -121,6 +138,7 @@ def _render_readme(results_dir: Path) -> str:
     """benchmarks/render.py's ``render(results_dir)``, loaded by path: this script also runs as an
     imported module (tests), where benchmarks/ is not on sys.path."""
     import importlib.util
+
     spec = importlib.util.spec_from_file_location("benchmarks_render", Path(__file__).with_name("render.py"))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -145,8 +163,16 @@ def main(argv=None) -> int:
     json_path = result_path("suite", date, results_dir)
     openvino = openvino_installed()
     backends = BACKENDS + (OPENVINO_BACKENDS if openvino else ())
-    suite = {"date": date, "cpu": cpu_name(), "threads": args.threads, "cores": cores, "runs": args.runs,
-             "gemm_peak_gflops": peak, "json": str(json_path.relative_to(args.out)), "models": []}
+    suite = {
+        "date": date,
+        "cpu": cpu_name(),
+        "threads": args.threads,
+        "cores": cores,
+        "runs": args.runs,
+        "gemm_peak_gflops": peak,
+        "json": str(json_path.relative_to(args.out)),
+        "models": [],
+    }
     for name in args.models:
         print(f"{name}: benchmarking {', '.join(backends)}", flush=True)
         suite["models"].append(bench_card(name, args.runs, args.threads, peak, args.export_dir, openvino))

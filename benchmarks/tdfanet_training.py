@@ -24,17 +24,20 @@ from __future__ import annotations
 import sys
 import time
 
-import radaredge
-from radaredge.data.pr_benchmark import make_pr_benchmark, make_pr_towns
-
 import training_run
 from result_file import save_result
 
+import radaredge
+from radaredge.data.pr_benchmark import make_pr_benchmark, make_pr_towns
+
 
 def _recall(report) -> dict:
-    return {"recall": {str(n): r for n, r in report.recall("onnxruntime").items()},
-            "evaluated": report.evaluated, "skipped": report.skipped,
-            "top1_agreement_with_reference": report.agreement}
+    return {
+        "recall": {str(n): r for n, r in report.recall("onnxruntime").items()},
+        "evaluated": report.evaluated,
+        "skipped": report.skipped,
+        "top1_agreement_with_reference": report.agreement,
+    }
 
 
 def main(argv=None) -> int:
@@ -53,8 +56,9 @@ def main(argv=None) -> int:
     t_data = time.perf_counter() - t0
     print(f"data: {args.towns} towns x {args.drives} drives x {args.frames} scans ({t_data:.0f} s)", flush=True)
     t0 = time.perf_counter()
-    report = radaredge.train(card, towns, run, options=options, overwrite=True,
-                             log=lambda line: print(line, flush=True))
+    report = radaredge.train(
+        card, towns, run, options=options, overwrite=True, log=lambda line: print(line, flush=True)
+    )
     t_train = time.perf_counter() - t0
     best = run / "best.pth"
     fp32 = graphs / f"{card.name}.onnx"
@@ -65,22 +69,30 @@ def main(argv=None) -> int:
     seeded_onnx = graphs / f"{card.name}-seeded.onnx"
     radaredge.export(card, seeded_onnx)
     db, q = held / "database", held / "queries"
-    evals = {"seeded_fp32": radaredge.evaluate(card, seeded_onnx, db, q),
-             "trained_fp32": radaredge.evaluate(card, fp32, db, q, checkpoint=best),
-             "trained_int8": radaredge.evaluate(card, int8, db, q, checkpoint=best, reference=False)}
+    evals = {
+        "seeded_fp32": radaredge.evaluate(card, seeded_onnx, db, q),
+        "trained_fp32": radaredge.evaluate(card, fp32, db, q, checkpoint=best),
+        "trained_int8": radaredge.evaluate(card, int8, db, q, checkpoint=best, reference=False),
+    }
     for name, r in evals.items():
         print(f"held-out town, {name}: R@1/5/10 " + " / ".join(f"{v:.1f}" for v in r.recall("onnxruntime").values()))
     out = {
-        "date": stamp, "card": card.name, "machine": training_run.machine(),
+        "date": stamp,
+        "card": card.name,
+        "machine": training_run.machine(),
         "command": f"radaredge make-benchmark --out towns --seed 1 --towns {args.towns} --drives {args.drives} "
-                   f"--frames {args.frames}; radaredge train --model {card.name} --data towns"
-                   + training_run.settings_text(options),
-        "data_seconds": round(t_data, 1), "train_seconds": round(t_train, 1),
+        f"--frames {args.frames}; radaredge train --model {card.name} --data towns"
+        + training_run.settings_text(options),
+        "data_seconds": round(t_data, 1),
+        "train_seconds": round(t_train, 1),
         "train": report.to_dict(),
         "parity_fp32": {"passed": bool(parity), "summary": parity.to_dict()["graphs"]["tdfanet"]["summary"]},
         "parity_int8": {"passed": bool(parity_int8), "summary": parity_int8.to_dict()["graphs"]["tdfanet"]["summary"]},
-        "heldout_town": {"seed": 0, **{k: _recall(v) for k, v in evals.items()},
-                         "int8_top1_agreement_with_fp32": _agreement(evals["trained_fp32"], evals["trained_int8"])},
+        "heldout_town": {
+            "seed": 0,
+            **{k: _recall(v) for k, v in evals.items()},
+            "int8_top1_agreement_with_fp32": _agreement(evals["trained_fp32"], evals["trained_int8"]),
+        },
     }
     save_result(f"{card.name}-training", out, keep_same_day=True)
     return 0
@@ -89,9 +101,12 @@ def main(argv=None) -> int:
 def _agreement(a, b) -> dict:
     """Top-1 agreement of two eval reports' onnxruntime retrievals: same window, and within the radius."""
     from radaredge.eval.places import top1_agreement, top1_place_agreement
+
     ta, tb = a.results["onnxruntime"]["top1"], b.results["onnxruntime"]["top1"]
-    return {"same_window": top1_agreement(ta, tb),
-            "within_radius": top1_place_agreement(ta, tb, a.database.positions, a.radius)}
+    return {
+        "same_window": top1_agreement(ta, tb),
+        "within_radius": top1_place_agreement(ta, tb, a.database.positions, a.radius),
+    }
 
 
 if __name__ == "__main__":

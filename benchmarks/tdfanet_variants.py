@@ -38,14 +38,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import place_recognition
+import training_run
+from result_file import result_path, write_result
 
 import radaredge
 from radaredge.cards import parse_card
 from radaredge.eval.recall_stats import bootstrap_interval
-
-import place_recognition
-import training_run
-from result_file import result_path, write_result
 
 SHORT_RECIPE = {"epochs": 3, "tuples_per_epoch": 200}
 
@@ -61,7 +60,7 @@ VARIANTS = {
 }
 CHOICES = ("frozen", "reestimate", "window", "hardest")
 ABLATIONS = {"full": "frozen", "no-dpr": "no-dpr", "no-fa": "no-fa", "sum": "sum"}
-ROW = "variant.json"           # a variant's measured row, in its run directory
+ROW = "variant.json"  # a variant's measured row, in its run directory
 
 
 def variant_card(card, network: dict, name: str):
@@ -96,17 +95,23 @@ def train_variant(card, design: Path, run: Path, options: dict) -> dict:
         print(f"{card.name}: reusing the finished run in {run}", flush=True)
         return report
     t0 = time.perf_counter()
-    report = radaredge.train(card, design, run, options=options, overwrite=True,
-                             log=lambda line: print(f"{card.name}: {line}", flush=True)).to_dict()
+    report = radaredge.train(
+        card, design, run, options=options, overwrite=True, log=lambda line: print(f"{card.name}: {line}", flush=True)
+    ).to_dict()
     report["wall_seconds"] = round(time.perf_counter() - t0, 1)
     return report
 
 
 def _best(report: dict) -> dict:
     best = next(e for e in report["epochs"] if e["epoch"] == report["best_epoch"])
-    return {"epoch": best["epoch"], "val_R@1": best["val_R@1"], "val_R@5": best["val_R@5"],
-            "val_R@10": best["val_R@10"], "val_queries": best["val_queries"],
-            "val_R@1_interval_95": validation_interval(best)}
+    return {
+        "epoch": best["epoch"],
+        "val_R@1": best["val_R@1"],
+        "val_R@5": best["val_R@5"],
+        "val_R@10": best["val_R@10"],
+        "val_queries": best["val_queries"],
+        "val_R@1_interval_95": validation_interval(best),
+    }
 
 
 def measure_variant(card, name: str, work: Path, options: dict, test: list[Path], k: int) -> dict:
@@ -121,15 +126,22 @@ def measure_variant(card, name: str, work: Path, options: dict, test: list[Path]
         return json.loads(kept.read_text())
     vcard = variant_card(card, network, name)
     report = train_variant(vcard, work / "design-towns", run, {**options, **recipe})
-    row = {"network": network, "recipe": recipe, "options": {**options, **recipe}, "best": _best(report),
-           "train_seconds": report["seconds"],
-           "history": [{key: e[key] for key in ("epoch", "loss", "val_R@1", "val_R@5", "val_R@10", "seconds")}
-                       for e in report["epochs"]]}
+    row = {
+        "network": network,
+        "recipe": recipe,
+        "options": {**options, **recipe},
+        "best": _best(report),
+        "train_seconds": report["seconds"],
+        "history": [
+            {key: e[key] for key in ("epoch", "loss", "val_R@1", "val_R@5", "val_R@10", "seconds")}
+            for e in report["epochs"]
+        ],
+    }
     if name in ABLATIONS.values():
         graph = work / "graphs" / f"{vcard.name}.onnx"
         radaredge.export(vcard, graph, checkpoint=run / "best.pth")
         described = run / "descriptors"
-        shutil.rmtree(described, ignore_errors=True)          # an earlier training's
+        shutil.rmtree(described, ignore_errors=True)  # an earlier training's
         row["test"] = place_recognition.score(place_recognition.graph_descriptors(graph, described), test, k)
         print(f"{vcard.name}: test R@1 at 5 m {row['test']['5']['recall']['1']:.1f} %", flush=True)
     write_result(kept, row)
@@ -162,25 +174,41 @@ def main(argv=None) -> int:
     test = place_recognition.towns(work / "test-towns", args.test_towns, place_recognition.TEST_SEED, args.test_km)
     k = int(card.get("frames", 1))
     out = {
-        "date": stamp, "card": card.name, "machine": training_run.machine(),
+        "date": stamp,
+        "card": card.name,
+        "machine": training_run.machine(),
         "command": f"python benchmarks/tdfanet_variants.py --card {card.name} --design-towns {args.design_towns} "
-                   f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
-                   + training_run.settings_text({k_: v for k_, v in options.items() if SHORT_RECIPE.get(k_) != v}),
+        f"--design-km {args.design_km} --test-towns {args.test_towns} --test-km {args.test_km}"
+        + training_run.settings_text({k_: v for k_, v in options.items() if SHORT_RECIPE.get(k_) != v}),
         "recipe": options,
-        "towns": {"design": {"seeds": [int(t.name.split("-")[1]) for t in design], "route_km": args.design_km,
-                             "used_for": "training, and the validation recall that judges the choices"},
-                  "test": {"seeds": [int(t.name.split("-")[1]) for t in test], "route_km": args.test_km,
-                           "used_for": "the ablation table only"}},
-        "frames_per_window": k, "choices": list(CHOICES), "ablations": ABLATIONS, "variants": {},
+        "towns": {
+            "design": {
+                "seeds": [int(t.name.split("-")[1]) for t in design],
+                "route_km": args.design_km,
+                "used_for": "training, and the validation recall that judges the choices",
+            },
+            "test": {
+                "seeds": [int(t.name.split("-")[1]) for t in test],
+                "route_km": args.test_km,
+                "used_for": "the ablation table only",
+            },
+        },
+        "frames_per_window": k,
+        "choices": list(CHOICES),
+        "ablations": ABLATIONS,
+        "variants": {},
     }
     # another recipe is another study: its own results file, rendered beside the short recipe's
-    recipe = "" if all(options[k] == v for k, v in SHORT_RECIPE.items()) else \
-        f"-{options['epochs']}x{options['tuples_per_epoch']}"
+    recipe = (
+        ""
+        if all(options[k] == v for k, v in SHORT_RECIPE.items())
+        else f"-{options['epochs']}x{options['tuples_per_epoch']}"
+    )
     path = result_path(f"tdfanet-variants-{card.name}{recipe}", stamp)
     for name in args.variants:
         measure_variant(card, name, work, options, test, k)
         out["variants"] = measured(work, options)
-        write_result(path, out)          # after every variant, so a stopped run keeps what it measured
+        write_result(path, out)  # after every variant, so a stopped run keeps what it measured
     return 0
 
 

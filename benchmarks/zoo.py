@@ -25,7 +25,9 @@ import tempfile
 from pathlib import Path
 
 import torch
+import training_run
 import yaml
+from result_file import sha256_of, write_result
 
 import radaredge
 from radaredge.cards import load_card
@@ -33,12 +35,9 @@ from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.data.pr_benchmark import make_pr_benchmark
 from radaredge.eval.detection import ORT, ORT_INT8, REFERENCE, evaluate_detection
 
-import training_run
-from result_file import sha256_of, write_result
-
 ZOO = training_run.ROOT / "zoo"
-DETECTION_REGRESSION = {"version": 2, "drives": 8, "frames": 10, "seed": 11, "split": "test"}   # 40 frames
-PLACES_TEST = {"drives": 3, "frames": 60, "seed": 0}          # make-benchmark's default town, never trained on
+DETECTION_REGRESSION = {"version": 2, "drives": 8, "frames": 10, "seed": 11, "split": "test"}  # 40 frames
+PLACES_TEST = {"drives": 3, "frames": 60, "seed": 0}  # make-benchmark's default town, never trained on
 PLACES_REGRESSION = {"drives": 2, "frames": 40, "seed": 5}
 AREA = "entire_area"
 
@@ -60,9 +59,14 @@ def detection_scores(report, backends) -> dict:
 
 def place_scores(report, backends) -> dict:
     """backend -> {recall: {N: %}, recall_interval: {N: [low, high]}} over the queries."""
-    return {b: {"recall": {str(n): r for n, r in report.recall(b).items()},
-                "recall_interval": {str(n): list(ci) for n, ci in report.interval(b).items()}}
-            for b in backends if b in report.results}
+    return {
+        b: {
+            "recall": {str(n): r for n, r in report.recall(b).items()},
+            "recall_interval": {str(n): list(ci) for n, ci in report.interval(b).items()},
+        }
+        for b in backends
+        if b in report.results
+    }
 
 
 def score_detector(card, weights: Path, data: Path, work: Path) -> tuple[dict, dict]:
@@ -73,8 +77,11 @@ def score_detector(card, weights: Path, data: Path, work: Path) -> tuple[dict, d
     seeded = work / f"{card.name}-seeded.onnx"
     radaredge.export(card, seeded)
     untrained = evaluate_detection(card, seeded, data, "test", reference=False, openvino=False)
-    test = {"frames": len(report.frames), "scores": detection_scores(report, [REFERENCE, ORT, ORT_INT8]),
-            "seeded": detection_scores(untrained, [ORT])[ORT]}      # speed: the benchmarks, measured alone
+    test = {
+        "frames": len(report.frames),
+        "scores": detection_scores(report, [REFERENCE, ORT, ORT_INT8]),
+        "seeded": detection_scores(untrained, [ORT])[ORT],
+    }  # speed: the benchmarks, measured alone
     spec = DETECTION_REGRESSION
     make_detection_benchmark(work / "regression", spec["drives"], spec["frames"], spec["seed"], version=spec["version"])
     fp32 = work / f"{card.name}-fp32.onnx"
@@ -91,14 +98,19 @@ def score_places(card, weights: Path, work: Path) -> tuple[dict, dict]:
     make_pr_benchmark(town, PLACES_TEST["drives"], PLACES_TEST["frames"], PLACES_TEST["seed"])
     make_pr_benchmark(reg_town, PLACES_REGRESSION["drives"], PLACES_REGRESSION["frames"], PLACES_REGRESSION["seed"])
     fp32 = radaredge.evaluate(card, onnx, town / "database", town / "queries", checkpoint=weights)
-    int8 = radaredge.evaluate(card, next(iter(exported.int8.values())), town / "database", town / "queries",
-                              checkpoint=weights, reference=False)
+    int8 = radaredge.evaluate(
+        card,
+        next(iter(exported.int8.values())),
+        town / "database",
+        town / "queries",
+        checkpoint=weights,
+        reference=False,
+    )
     scores = {**place_scores(fp32, fp32.results), **{ORT_INT8: place_scores(int8, [ORT])[ORT]}}
     seeded = work / f"{card.name}-seeded.onnx"
     radaredge.export(card, seeded)
     untrained = radaredge.evaluate(card, seeded, town / "database", town / "queries", reference=False)
-    test = {**PLACES_TEST, "queries": fp32.evaluated, "scores": scores,
-            "seeded": place_scores(untrained, [ORT])[ORT]}
+    test = {**PLACES_TEST, "queries": fp32.evaluated, "scores": scores, "seeded": place_scores(untrained, [ORT])[ORT]}
     reg = radaredge.evaluate(card, onnx, reg_town / "database", reg_town / "queries", reference=False)
     return test, {**PLACES_REGRESSION, "queries": reg.evaluated, "scores": place_scores(reg, [ORT])[ORT]}
 
@@ -125,13 +137,23 @@ def main(argv=None) -> int:
             test, regression = score_detector(trained, weights, args.data, Path(tmp))
         else:
             test, regression = score_places(trained, weights, Path(tmp))
-    entry = {"card": card.name, "weights": "weights.pth", "weights_sha256": sha256_of(weights),
-             "card_file": "card.yaml", "card_sha256": sha256_of(card_path), "epoch": log["epoch"],
-             "validation": log["metrics"], "training_seed": args.seed, "command": args.command,
-             "score_command": f"python benchmarks/zoo.py --card {card.name} --run RUN --data set --seed {args.seed} "
-                              "--command ...",
-             "machine": training_run.machine(), "test": test, "regression": regression,
-             "knows": "synthetic scenes only (radaredge make-benchmark)"}
+    entry = {
+        "card": card.name,
+        "weights": "weights.pth",
+        "weights_sha256": sha256_of(weights),
+        "card_file": "card.yaml",
+        "card_sha256": sha256_of(card_path),
+        "epoch": log["epoch"],
+        "validation": log["metrics"],
+        "training_seed": args.seed,
+        "command": args.command,
+        "score_command": f"python benchmarks/zoo.py --card {card.name} --run RUN --data set --seed {args.seed} "
+        "--command ...",
+        "machine": training_run.machine(),
+        "test": test,
+        "regression": regression,
+        "knows": "synthetic scenes only (radaredge make-benchmark)",
+    }
     write_result(home / "entry.json", entry)
     print(json.dumps({"test": test["scores"], "regression": regression["scores"]}, indent=1))
     return 0

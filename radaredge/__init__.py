@@ -28,6 +28,7 @@ def __getattr__(name):
     if name in _VERBS:
         # lazy: the API imports torch, which importing radaredge must not
         from . import api
+
         return getattr(api, name)
     raise AttributeError(f"module 'radaredge' has no attribute {name!r}")
 

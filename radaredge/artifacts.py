@@ -32,25 +32,48 @@ class Artifact:
 
 GRAPH, INT8, DEBUG, SIDECAR, MANIFEST = "graph", "int8", "debug", "sidecar", "manifest"
 
-ARTIFACTS: dict[str, Artifact] = {a.kind: a for a in (
-    Artifact(GRAPH, ".onnx", "export",
-             ("parity-check", "bench", "eval", "locate", "inspect", "radaredge.runtime", "examples/c"),
-             "the fp32 graph: raw points in, result out, the card in its metadata"),
-    Artifact(INT8, ".int8.onnx", "export --quantize int8",
-             ("parity-check --quantized", "bench --int8", "locate --int8-text", "radaredge.runtime"),
-             "the int8 copy of a graph (static QDQ, or dynamic where the model's int8 policy says)"),
-    Artifact(DEBUG, ".debug.onnx", "export --debug, parity-check",
-             ("parity-check (where a failing output first diverges)",),
-             "the graph with its traced intermediates as extra outputs named debug.<intermediate>"),
-    Artifact(SIDECAR, ".json", "export",
-             ("people and scripts (inputs, outputs, op histogram, versions)",),
-             "a JSON summary beside each graph"),
-    Artifact(MANIFEST, "bundle.json", "export (a multi-graph model)",
-             ("parity-check", "bench", "eval", "locate", "radaredge.runtime"),
-             "the parts of a multi-graph bundle with their weight hashes, its shared files and the card"),
-)}
+ARTIFACTS: dict[str, Artifact] = {
+    a.kind: a
+    for a in (
+        Artifact(
+            GRAPH,
+            ".onnx",
+            "export",
+            ("parity-check", "bench", "eval", "locate", "inspect", "radaredge.runtime", "examples/c"),
+            "the fp32 graph: raw points in, result out, the card in its metadata",
+        ),
+        Artifact(
+            INT8,
+            ".int8.onnx",
+            "export --quantize int8",
+            ("parity-check --quantized", "bench --int8", "locate --int8-text", "radaredge.runtime"),
+            "the int8 copy of a graph (static QDQ, or dynamic where the model's int8 policy says)",
+        ),
+        Artifact(
+            DEBUG,
+            ".debug.onnx",
+            "export --debug, parity-check",
+            ("parity-check (where a failing output first diverges)",),
+            "the graph with its traced intermediates as extra outputs named debug.<intermediate>",
+        ),
+        Artifact(
+            SIDECAR,
+            ".json",
+            "export",
+            ("people and scripts (inputs, outputs, op histogram, versions)",),
+            "a JSON summary beside each graph",
+        ),
+        Artifact(
+            MANIFEST,
+            "bundle.json",
+            "export (a multi-graph model)",
+            ("parity-check", "bench", "eval", "locate", "radaredge.runtime"),
+            "the parts of a multi-graph bundle with their weight hashes, its shared files and the card",
+        ),
+    )
+}
 
-COPY_KINDS = (INT8, DEBUG)       # graphs written beside a graph; never a graph's own name
+COPY_KINDS = (INT8, DEBUG)  # graphs written beside a graph; never a graph's own name
 
 
 def copy_path(graph: str | Path, kind: str) -> Path:
@@ -112,21 +135,29 @@ class Bundle:
         as_dir = text.endswith(("/", os.sep)) or path.is_dir()
         if len(graphs) > 1:
             if path.exists() and not path.is_dir():
-                raise ConfigError(f"--output {text}: a file; {card_name} exports {len(graphs)} graphs into a "
-                                  f"directory (e.g. export/{card_name}/)")
+                raise ConfigError(
+                    f"--output {text}: a file; {card_name} exports {len(graphs)} graphs into a "
+                    f"directory (e.g. export/{card_name}/)"
+                )
             if not as_dir and path.suffix.lower() == onnx:
-                raise ConfigError(f"--output {text}: {card_name} exports {len(graphs)} graphs into a directory, "
-                                  f"not one {onnx} (e.g. export/{card_name}/)")
+                raise ConfigError(
+                    f"--output {text}: {card_name} exports {len(graphs)} graphs into a directory, "
+                    f"not one {onnx} (e.g. export/{card_name}/)"
+                )
             return cls(path, graphs)
         if as_dir:
             return cls(path / f"{card_name}{onnx}", graphs)
         if path.suffix.lower() != onnx:
-            raise ConfigError(f"--output {text}: a graph is written to a file ending in {onnx} (its "
-                              f"{ARTIFACTS[SIDECAR].suffix} sidecar goes beside it), e.g. export/{card_name}{onnx}")
+            raise ConfigError(
+                f"--output {text}: a graph is written to a file ending in {onnx} (its "
+                f"{ARTIFACTS[SIDECAR].suffix} sidecar goes beside it), e.g. export/{card_name}{onnx}"
+            )
         if is_copy(path):
             copies = " or ".join(ARTIFACTS[k].suffix for k in COPY_KINDS)
-            raise ConfigError(f"--output {text}: names ending in {copies} are the int8 and debug copies export "
-                              f"writes beside a graph; name the fp32 graph, e.g. export/{card_name}{onnx}")
+            raise ConfigError(
+                f"--output {text}: names ending in {copies} are the int8 and debug copies export "
+                f"writes beside a graph; name the fp32 graph, e.g. export/{card_name}{onnx}"
+            )
         return cls(path, graphs)
 
     @property
@@ -156,8 +187,11 @@ class Bundle:
     def files(self) -> list[Path]:
         """Every path an export of this bundle may write: each graph with its sidecar, int8 and
         debug copies, and a multi-graph bundle's directory and manifest."""
-        files = [copy for g in self.graph_files().values()
-                 for copy in (g, *(copy_path(g, k) for k in (SIDECAR, *COPY_KINDS)))]
+        files = [
+            copy
+            for g in self.graph_files().values()
+            for copy in (g, *(copy_path(g, k) for k in (SIDECAR, *COPY_KINDS)))
+        ]
         return [self.path, self.manifest, *files] if self.multi else files
 
 

@@ -67,7 +67,7 @@ def signals_held(notice: str | None = None) -> Iterator[None]:
     old = {}
     try:
         for sig in _HELD:
-            if signal.getsignal(sig) is not None:      # None: a handler set outside Python, left alone
+            if signal.getsignal(sig) is not None:  # None: a handler set outside Python, left alone
                 old[sig] = signal.signal(sig, record)
         yield
     finally:

@@ -40,7 +40,7 @@ class Range:
         return bool(above and below)
 
     def __str__(self) -> str:
-        return (f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}")
+        return f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}"
 
 
 def positive(high: float) -> Range:
@@ -52,6 +52,7 @@ def card_ranges(**ranges: Range | tuple) -> Callable[[Type[T]], Type[T]]:
     """Class decorator: the allowed range of each numeric field of a card-section dataclass,
     checked by :func:`config_from_dict` (a pair ``(low, high)`` is the closed range).
     ``tests/test_config.py`` asserts that every numeric field of every card section has one."""
+
     def attach(cls: Type[T]) -> Type[T]:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(ranges) - names
@@ -59,6 +60,7 @@ def card_ranges(**ranges: Range | tuple) -> Callable[[Type[T]], Type[T]]:
             raise TypeError(f"card_ranges on {cls.__name__}: no field(s) {sorted(unknown)}")
         cls.__card_ranges__ = {k: v if isinstance(v, Range) else Range(*v) for k, v in ranges.items()}
         return cls
+
     return attach
 
 
@@ -136,12 +138,19 @@ def config_from_dict(cls: Type[T], data: Mapping[str, Any] | None, where: str) -
                 raise ConfigError(f"{where}.{name}: expected {kind}{f' in {rng}' if rng else ''}, got {value!r}")
             check_numbers(value, rng, isinstance(default, int), f"{where}.{name}")
             value = float(value) if isinstance(default, float) else int(value)
-        elif rng is not None or (isinstance(default, tuple) and default and _numbers(default)
-                                 and all(isinstance(x, (int, float)) for x in _numbers(default))):
+        elif rng is not None or (
+            isinstance(default, tuple)
+            and default
+            and _numbers(default)
+            and all(isinstance(x, (int, float)) for x in _numbers(default))
+        ):
             check_numbers(value, rng, _integral_default(default), f"{where}.{name}")
         kwargs[name] = value
-    missing = [f.name for f in fields.values() if f.name not in kwargs
-               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    missing = [
+        f.name
+        for f in fields.values()
+        if f.name not in kwargs and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
     if missing:
         raise ConfigError(f"{where}: missing field(s) {missing}")
     try:
@@ -190,10 +199,10 @@ def _accepts(hint, value) -> bool:
         return callable(value)
     cls = origin or hint
     if not isinstance(cls, type):
-        return True                                   # a TypeVar, a Literal: left to the function
+        return True  # a TypeVar, a Literal: left to the function
     if issubclass(cls, os.PathLike) or cls is Path:
         return isinstance(value, (str, os.PathLike))
-    if cls in (int, float):             # numpy's scalars too (np.int64, np.float32); a bool is no count
+    if cls in (int, float):  # numpy's scalars too (np.int64, np.float32); a bool is no count
         wanted = numbers.Integral if cls is int else numbers.Real
         return isinstance(value, wanted) and not isinstance(value, (bool, np.bool_))
     return isinstance(value, cls)
@@ -229,12 +238,18 @@ def checked_arguments(fn: Callable) -> Callable:
             raise ConfigError(f"{fn.__name__}: {exc}") from None
         for name, value in bound.arguments.items():
             hint = hints.get(name)
-            if hint is not None and signature.parameters[name].kind not in (
-                    inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD) and not _accepts(hint, value):
+            if (
+                hint is not None
+                and signature.parameters[name].kind
+                not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+                and not _accepts(hint, value)
+            ):
                 shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
-                raise ConfigError(f"{fn.__name__}: {name}: expected {_type_name(hint)}, got "
-                                  f"{type(value).__name__} {shown}")
+                raise ConfigError(
+                    f"{fn.__name__}: {name}: expected {_type_name(hint)}, got {type(value).__name__} {shown}"
+                )
         return fn(*args, **kwargs)
+
     return wrapper
 
 
@@ -247,7 +262,7 @@ def same_path(a, b) -> bool:
         if a.exists() and b.exists():
             return os.path.samefile(a, b)
         return a.resolve() == b.resolve()
-    except (OSError, RuntimeError):              # a symlink loop, a path too long: not the same file
+    except (OSError, RuntimeError):  # a symlink loop, a path too long: not the same file
         return False
 
 
@@ -272,12 +287,15 @@ def refuse_overwriting_inputs(outputs: Mapping[str, Any], inputs: Mapping[str, A
         for path in _paths(value):
             for in_option, source in given:
                 if same_path(path, source):
-                    raise ConfigError(f"{option} {path}: that is the {in_option} input {source}; writing it "
-                                      f"would destroy the input: choose another {option}")
+                    raise ConfigError(
+                        f"{option} {path}: that is the {in_option} input {source}; writing it "
+                        f"would destroy the input: choose another {option}"
+                    )
             for other_option, other in seen:
                 if other_option != option and same_path(path, other):
-                    raise ConfigError(f"{option} {path}: {other_option} writes the same file; give them "
-                                      f"different paths")
+                    raise ConfigError(
+                        f"{option} {path}: {other_option} writes the same file; give them different paths"
+                    )
             seen.append((option, path))
 
 
@@ -294,7 +312,8 @@ def parse_settings(pairs: tuple[str, ...], option: str = "--set", example: str =
         except yaml.YAMLError:
             parsed = value
         if isinstance(parsed, (dict, list)):
-            raise ConfigError(f"{option} {pair!r}: expected a number, true/false or a word, got a "
-                              f"{type(parsed).__name__}")
+            raise ConfigError(
+                f"{option} {pair!r}: expected a number, true/false or a word, got a {type(parsed).__name__}"
+            )
         out[key.strip()] = parsed
     return out

@@ -7,7 +7,7 @@ from __future__ import annotations
 import sys
 from typing import Any, Callable
 
-Progress = Callable[[str, int], Any]      # (description, total) -> a tqdm-like bar (update, set_postfix, close)
+Progress = Callable[[str, int], Any]  # (description, total) -> a tqdm-like bar (update, set_postfix, close)
 
 
 class _NoBar:

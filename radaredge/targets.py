@@ -38,34 +38,96 @@ from typing import Callable, Iterator
 
 import onnx
 from onnx import TensorProto
+
 from .errors import ConfigError
 
 TARGETS = ("onnxruntime", "tensorrt", "openvino", "ort-mobile")
-TOPK_MAX_TENSORRT = 3840          # TensorRT: "K input must be less than 3840"
+TOPK_MAX_TENSORRT = 3840  # TensorRT: "K input must be less than 3840"
 
 SOURCES = {
     "onnxruntime": "microsoft/onnxruntime docs/OperatorKernels.md @ 001d12d2 (CPU execution provider)",
     "tensorrt": "onnx/onnx-tensorrt docs/operators.md + onnxOpImporters.cpp @ 6bde659 (TensorRT 10.16); "
-                "NVIDIA/TensorRT NvInfer.h, plugin/scatterElementsPlugin @ 52399f55",
+    "NVIDIA/TensorRT NvInfer.h, plugin/scatterElementsPlugin @ 52399f55",
     "openvino": "openvinotoolkit/openvino src/frontends/onnx/docs/supported_ops.md, op/scatter_nd.cpp; PR #36072; "
-                "intel_cpu transformation_pipeline.cpp (precision conversion)",
+    "intel_cpu transformation_pipeline.cpp (precision conversion)",
     "ort-mobile": "microsoft/onnxruntime docs/reference/operators/mobile_package_op_type_support_1.17.md "
-                  "(last published list; deprecated package)",
+    "(last published list; deprecated package)",
 }
 
 MOBILE_OPSETS = (12, 15)
-MOBILE_MISSING = {"ScatterElements", "GridSample", "GatherElements", "Mod", "Einsum", "LSTM", "Trilu", "BitwiseAnd",
-                  "BitwiseOr", "BitwiseXor", "BitwiseNot", "BitShift", "IsNaN", "IsInf"}
+MOBILE_MISSING = {
+    "ScatterElements",
+    "GridSample",
+    "GatherElements",
+    "Mod",
+    "Einsum",
+    "LSTM",
+    "Trilu",
+    "BitwiseAnd",
+    "BitwiseOr",
+    "BitwiseXor",
+    "BitwiseNot",
+    "BitShift",
+    "IsNaN",
+    "IsInf",
+}
 MOBILE_TYPES = {TensorProto.FLOAT, TensorProto.INT8, TensorProto.UINT8}
-MOBILE_INDEX_OPS = {"Shape", "Gather", "GatherND", "Reshape", "Unsqueeze", "Squeeze", "Slice", "Concat", "Expand",
-                    "ConstantOfShape", "Range", "Cast", "TopK", "ArgMax", "ArgMin", "NonZero", "ScatterND", "Where",
-                    "Equal", "Less", "Greater", "LessOrEqual", "GreaterOrEqual", "Add", "Sub", "Mul", "Div",
-                    "CumSum", "ReduceMin", "ReduceMax", "ReduceSum", "Tile", "Transpose", "Identity", "Not", "And",
-                    "Or", "Max", "Min", "Constant", "Split"}
+MOBILE_INDEX_OPS = {
+    "Shape",
+    "Gather",
+    "GatherND",
+    "Reshape",
+    "Unsqueeze",
+    "Squeeze",
+    "Slice",
+    "Concat",
+    "Expand",
+    "ConstantOfShape",
+    "Range",
+    "Cast",
+    "TopK",
+    "ArgMax",
+    "ArgMin",
+    "NonZero",
+    "ScatterND",
+    "Where",
+    "Equal",
+    "Less",
+    "Greater",
+    "LessOrEqual",
+    "GreaterOrEqual",
+    "Add",
+    "Sub",
+    "Mul",
+    "Div",
+    "CumSum",
+    "ReduceMin",
+    "ReduceMax",
+    "ReduceSum",
+    "Tile",
+    "Transpose",
+    "Identity",
+    "Not",
+    "And",
+    "Or",
+    "Max",
+    "Min",
+    "Constant",
+    "Split",
+}
 TENSORRT_MISSING = {"Unique", "BitShift", "BitwiseAnd", "BitwiseOr", "BitwiseXor", "BitwiseNot"}
 TENSORRT_FLOAT_ONLY = {"Einsum", "CumSum", "IsNaN", "Round", "Floor"}
-INTEGER_TYPES = {TensorProto.INT8, TensorProto.INT16, TensorProto.INT32, TensorProto.INT64, TensorProto.UINT8,
-                 TensorProto.UINT16, TensorProto.UINT32, TensorProto.UINT64, TensorProto.BOOL}
+INTEGER_TYPES = {
+    TensorProto.INT8,
+    TensorProto.INT16,
+    TensorProto.INT32,
+    TensorProto.INT64,
+    TensorProto.UINT8,
+    TensorProto.UINT16,
+    TensorProto.UINT32,
+    TensorProto.UINT64,
+    TensorProto.BOOL,
+}
 
 
 @dataclass(frozen=True)
@@ -79,8 +141,7 @@ class Finding:
     message: str
 
     def to_dict(self) -> dict:
-        return {"target": self.target, "level": self.level, "op": self.op, "count": self.count,
-                "message": self.message}
+        return {"target": self.target, "level": self.level, "op": self.op, "count": self.count, "message": self.message}
 
 
 class _Graph:
@@ -106,8 +167,11 @@ class _Graph:
                 self.ranks[init.name] = len(init.dims)
                 self.constants[init.name] = init
             for node in graph.node:
-                if (node.op_type == "Constant" and node.attribute
-                        and node.attribute[0].type == onnx.AttributeProto.TENSOR):
+                if (
+                    node.op_type == "Constant"
+                    and node.attribute
+                    and node.attribute[0].type == onnx.AttributeProto.TENSOR
+                ):
                     self.constants[node.output[0]] = node.attribute[0].t
                     self.types[node.output[0]] = node.attribute[0].t.data_type
         self.nodes = [n for g in _graphs(model.graph) for n in g.node]
@@ -137,7 +201,7 @@ def _graphs(graph: onnx.GraphProto) -> Iterator[onnx.GraphProto]:
                 yield from _graphs(sub)
 
 
-Rule = Callable[[_Graph], Iterator[tuple[str, str, str, onnx.NodeProto | None]]]   # (level, op, message, node)
+Rule = Callable[[_Graph], Iterator[tuple[str, str, str, onnx.NodeProto | None]]]  # (level, op, message, node)
 
 
 def _name(t: int) -> str:
@@ -166,16 +230,25 @@ def _tensorrt(g: _Graph):
                 yield "note", op, "an explicit reduction attribute, even 'none', is refused by TensorRT 10.0-10.8", n
         elif op == "ScatterElements" and g.text(n, "reduction", "none") != "none":
             red = g.text(n, "reduction")
-            yield ("note", op, f"reduction '{red}' runs as TensorRT's ScatterElements plugin: initialise the plugin "
-                               f"library (trt.init_libnvinfer_plugins; trtexec does) before parsing; "
-                               f"int64 indices only", n)
+            yield (
+                "note",
+                op,
+                f"reduction '{red}' runs as TensorRT's ScatterElements plugin: initialise the plugin "
+                f"library (trt.init_libnvinfer_plugins; trtexec does) before parsing; "
+                f"int64 indices only",
+                n,
+            )
             if g.types.get(n.input[1]) not in (None, TensorProto.INT64):
                 yield "unsupported", op, "the ScatterElements plugin takes int64 indices only", n
         elif op == "TopK":
             k = g.const(n.input[1]) if len(n.input) > 1 else None
             if k is None:
-                yield ("note", op, f"K is computed at run time; TensorRT fails a run whose K reaches "
-                                   f"{TOPK_MAX_TENSORRT}", n)
+                yield (
+                    "note",
+                    op,
+                    f"K is computed at run time; TensorRT fails a run whose K reaches {TOPK_MAX_TENSORRT}",
+                    n,
+                )
             elif int(k.reshape(-1)[0]) >= TOPK_MAX_TENSORRT:
                 yield "unsupported", op, f"K = {int(k.reshape(-1)[0])}; TensorRT needs K < {TOPK_MAX_TENSORRT}", n
         elif op == "GridSample" and g.ranks.get(n.input[0], 4) != 4:
@@ -189,39 +262,61 @@ def _tensorrt(g: _Graph):
         if any(g.types.get(o) == TensorProto.DOUBLE for o in n.output):
             doubles += 1
     if doubles:
-        yield ("note", "float64", f"{doubles} node(s) compute in float64; TensorRT casts float64 to float32 (clamped "
-                                  f"to +-FLT_MAX), so those parts run in float32", None)
+        yield (
+            "note",
+            "float64",
+            f"{doubles} node(s) compute in float64; TensorRT casts float64 to float32 (clamped "
+            f"to +-FLT_MAX), so those parts run in float32",
+            None,
+        )
 
 
 def _openvino(g: _Graph):
     doubles = 0
     for n in g.nodes:
         if n.op_type == "ScatterND" and g.text(n, "reduction", "none") != "none":
-            yield ("note", "ScatterND", "reductions other than 'none' need an OpenVINO whose ONNX frontend has "
-                                        "PR #36072 (2026-05); older ones refuse the node", n)
+            yield (
+                "note",
+                "ScatterND",
+                "reductions other than 'none' need an OpenVINO whose ONNX frontend has "
+                "PR #36072 (2026-05); older ones refuse the node",
+                n,
+            )
         if any(g.types.get(o) == TensorProto.DOUBLE for o in n.output):
             doubles += 1
     if doubles:
-        yield ("note", "float64", f"{doubles} node(s) compute in float64; OpenVINO's CPU plugin runs them in float32",
-               None)
+        yield (
+            "note",
+            "float64",
+            f"{doubles} node(s) compute in float64; OpenVINO's CPU plugin runs them in float32",
+            None,
+        )
 
 
 def _ort_mobile(g: _Graph):
     lo, hi = MOBILE_OPSETS
     if not lo <= g.opset <= hi:
-        yield ("unsupported", "opset", f"opset {g.opset}; the mobile package's kernels cover opsets {lo}-{hi} "
-                                       f"(onnxruntime-android / onnxruntime-c run every operator)", None)
+        yield (
+            "unsupported",
+            "opset",
+            f"opset {g.opset}; the mobile package's kernels cover opsets {lo}-{hi} "
+            f"(onnxruntime-android / onnxruntime-c run every operator)",
+            None,
+        )
     for n in g.nodes:
         if n.op_type in MOBILE_MISSING:
             yield "unsupported", n.op_type, "not in the mobile package", n
-        elif n.op_type not in MOBILE_INDEX_OPS and any(
-                g.types.get(o) not in MOBILE_TYPES | {None} for o in n.output):
+        elif n.op_type not in MOBILE_INDEX_OPS and any(g.types.get(o) not in MOBILE_TYPES | {None} for o in n.output):
             bad = next(g.types[o] for o in n.output if g.types.get(o) not in MOBILE_TYPES | {None})
             yield "unsupported", n.op_type, f"{_name(bad)} data; the mobile package takes float, int8, uint8", n
 
 
-RULES: dict[str, Rule] = {"onnxruntime": _onnxruntime, "tensorrt": _tensorrt, "openvino": _openvino,
-                          "ort-mobile": _ort_mobile}
+RULES: dict[str, Rule] = {
+    "onnxruntime": _onnxruntime,
+    "tensorrt": _tensorrt,
+    "openvino": _openvino,
+    "ort-mobile": _ort_mobile,
+}
 
 
 def parse_targets(text: str | None) -> tuple[str, ...]:

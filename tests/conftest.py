@@ -22,19 +22,31 @@ from radaredge.exporting.onnx_call import export_onnx
 from radaredge.runtime.session import make_session, run_session
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
-    torch.set_num_threads(1)      # `make test` runs two workers on two cores: one torch thread each
+    torch.set_num_threads(1)  # `make test` runs two workers on two cores: one torch thread each
 
 
 class OnnxRoundTrip:
     """Export ``module`` once, then run any number of input sets through torch and onnxruntime."""
 
-    def __init__(self, tmp_path: Path, module: torch.nn.Module, example: Mapping[str, torch.Tensor],
-                 output_names: Sequence[str], dynamic_axes: Mapping[str, Mapping[int, str]] | None = None):
+    def __init__(
+        self,
+        tmp_path: Path,
+        module: torch.nn.Module,
+        example: Mapping[str, torch.Tensor],
+        output_names: Sequence[str],
+        dynamic_axes: Mapping[str, Mapping[int, str]] | None = None,
+    ):
         self.module = module.eval()
         self.input_names = list(example)
         self.output_names = list(output_names)
-        path = export_onnx(module, tuple(example.values()), tmp_path / f"{type(module).__name__}.onnx",
-                           self.input_names, self.output_names, dynamic_axes)
+        path = export_onnx(
+            module,
+            tuple(example.values()),
+            tmp_path / f"{type(module).__name__}.onnx",
+            self.input_names,
+            self.output_names,
+            dynamic_axes,
+        )
         self.session = make_session(path, threads=1)
 
     def __call__(self, inputs: Mapping[str, torch.Tensor]):
@@ -52,6 +64,7 @@ class OnnxRoundTrip:
 def onnx_roundtrip(tmp_path):
     def make(module, example, output_names, dynamic_axes=None):
         return OnnxRoundTrip(tmp_path, module, example, output_names, dynamic_axes)
+
     return make
 
 
@@ -72,8 +85,8 @@ TINY_CARD = Path(__file__).parent / "cards" / "tdfanet-tiny.yaml"
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory):
     """The tiny TDFANet card exported once per session: (card, model, onnx path, debug onnx path)."""
-    from radaredge.cards import load_card
     import radaredge
+    from radaredge.cards import load_card
     from radaredge.models import create_model
 
     card = load_card(TINY_CARD)
@@ -103,6 +116,7 @@ def invoke(*args):
     from click.testing import CliRunner
 
     from radaredge.cli import main
+
     return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
 
 
@@ -151,6 +165,7 @@ def assert_parses_in_tensorrt(path: Path) -> None:
     """``radaredge inspect --targets tensorrt`` finds nothing TensorRT 10 refuses in the export."""
     res = invoke("inspect", str(path), "--targets", "tensorrt", "--json")
     import json
+
     info = json.loads(res.stdout)
     refused = [f for g in info["graphs"] for f in g["targets"]["tensorrt"] if f["level"] == "unsupported"]
     assert res.exit_code == 0 and not refused, refused

@@ -4,13 +4,13 @@ reference, exact integer shifts, the sign convention on a moving blob, ONNX roun
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 from torch import nn
 
-from conftest import assert_close
 from radaredge.errors import ConfigError, InputError
 from radaredge.ops.alignment import BevGrid, align_bev, align_bev_reference, grid_displacement
 
-SMALL = BevGrid(x_min=0.0, y_min=-8.0, voxel_x=0.5, voxel_y=0.25, nx=24, ny=40)   # non-square cells
+SMALL = BevGrid(x_min=0.0, y_min=-8.0, voxel_x=0.5, voxel_y=0.25, nx=24, ny=40)  # non-square cells
 PAPER = BevGrid.from_range((0.0, -39.68, -3.0, 69.12, 39.68, 10.0), (0.32, 0.32, 13.0))
 
 
@@ -26,12 +26,12 @@ def render_blob(grid, centre, sigma=1.0):
     """[1, 1, H, W] Gaussian of peak 1 at ``centre`` (x, y) m, evaluated at the cell centres."""
     x = grid.x_min + (np.arange(grid.nx) + 0.5) * grid.voxel_x
     y = grid.y_min + (np.arange(grid.ny) + 0.5) * grid.voxel_y
-    r2 = (x[None, :] - centre[0]) ** 2 + (y[:, None] - centre[1]) ** 2      # [ny, nx]
+    r2 = (x[None, :] - centre[0]) ** 2 + (y[:, None] - centre[1]) ** 2  # [ny, nx]
     return torch.from_numpy(np.exp(-0.5 * r2 / sigma**2)).float()[None, None]
 
 
 def test_paper_grid_is_216_by_248():
-    assert (PAPER.nx, PAPER.ny) == (216, 248) and PAPER.shape == (248, 216)   # maps are [C, ny, nx]
+    assert (PAPER.nx, PAPER.ny) == (216, 248) and PAPER.shape == (248, 216)  # maps are [C, ny, nx]
     assert PAPER.origin_cells() == pytest.approx((-0.5, 123.5))
 
 
@@ -55,7 +55,7 @@ def test_export_matches_reference_on_paper_grid():
 @pytest.mark.parametrize("shift", [(3, -2), (-5, 7), (0, 0), (30, 0)])
 def test_integer_shift_is_a_roll_with_zero_fill(shift):
     past, _, _ = random_case(SMALL, 1, 3)
-    di, dj = shift                       # cells along x (columns) and y (rows)
+    di, dj = shift  # cells along x (columns) and y (rows)
     expected = torch.zeros_like(past)
     h, w = SMALL.shape
     for row in range(h):
@@ -87,11 +87,11 @@ def test_grid_displacement_needs_one_time_base():
 
 def test_static_blob_from_ego_velocity_lands_where_current_map_has_it():
     grid = BevGrid(0.0, -8.0, 0.25, 0.25, 96, 64)
-    v_ego = torch.tensor([[9.0, 2.0, 0.0], [11.0, 1.0, 0.0], [0.0, 0.0, 0.0]])   # m/s; last unused
+    v_ego = torch.tensor([[9.0, 2.0, 0.0], [11.0, 1.0, 0.0], [0.0, 0.0, 0.0]])  # m/s; last unused
     cells = grid_displacement(v_ego, (grid.voxel_x, grid.voxel_y), frame_interval=0.1)
-    d = (cells[0] * 0.25).numpy()                                               # (2.0, 0.3) m
-    current_blob = np.array([9.125, 1.375])                                     # a current cell centre
-    past = render_blob(grid, current_blob + d)                                  # the radar drove forward
+    d = (cells[0] * 0.25).numpy()  # (2.0, 0.3) m
+    current_blob = np.array([9.125, 1.375])  # a current cell centre
+    past = render_blob(grid, current_blob + d)  # the radar drove forward
     current = render_blob(grid, current_blob)
     for align in (align_bev, align_bev_reference):
         aligned = align(past, cells[:1], grid=grid)
@@ -102,11 +102,11 @@ def test_static_blob_from_ego_velocity_lands_where_current_map_has_it():
 
 
 def test_static_blob_with_yaw_rotates_about_the_radar_origin():
-    grid = BevGrid(0.0, -10.0, 0.25, 0.5, 96, 40)                              # anisotropic cells
-    d, psi = np.array([1.2, -0.5]), 0.15                                        # m, rad (turned left)
-    world = np.array([14.1, 3.3])                                               # blob in the past frame
+    grid = BevGrid(0.0, -10.0, 0.25, 0.5, 96, 40)  # anisotropic cells
+    d, psi = np.array([1.2, -0.5]), 0.15  # m, rad (turned left)
+    world = np.array([14.1, 3.3])  # blob in the past frame
     rot = np.array([[np.cos(psi), -np.sin(psi)], [np.sin(psi), np.cos(psi)]])
-    current_blob = rot.T @ (world - d)                                          # p = R^T (p_past - d)
+    current_blob = rot.T @ (world - d)  # p = R^T (p_past - d)
     past, current = render_blob(grid, world), render_blob(grid, current_blob)
     cells = torch.tensor([[d[0] / grid.voxel_x, d[1] / grid.voxel_y]], dtype=torch.float32)
     yaw = torch.tensor([psi], dtype=torch.float32)
@@ -136,8 +136,9 @@ def test_onnx_export_with_displacement_and_yaw_as_inputs(onnx_roundtrip):
     past, cells, yaw = random_case(SMALL, 2, 0)
     example = {"past_map": past, "displacement_cells": cells, "yaw": yaw}
     batch = {0: "B"}
-    rt = onnx_roundtrip(Align(SMALL), example, ["aligned"],
-                        {"past_map": batch, "displacement_cells": batch, "yaw": batch})
+    rt = onnx_roundtrip(
+        Align(SMALL), example, ["aligned"], {"past_map": batch, "displacement_cells": batch, "yaw": batch}
+    )
     for b, seed in [(2, 1), (4, 2), (1, 3)]:
         past, cells, yaw = random_case(SMALL, b, seed)
         ref, got = rt({"past_map": past, "displacement_cells": cells, "yaw": yaw})

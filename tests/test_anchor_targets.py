@@ -13,8 +13,8 @@ import torch
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
 from radaredge.models import create_model
-from radaredge.training import anchor_targets as fh
 from radaredge.models.maffnet.model import decode_boxes
+from radaredge.training import anchor_targets as fh
 
 CARD = load_card(Path(__file__).parent / "cards" / "maffnet-tiny.yaml")
 
@@ -53,26 +53,27 @@ def test_encode_inverts_decode_with_the_direction_bin():
 def test_assignment_per_class_thresholds_and_forced_best_anchor():
     model, classes = _setup()
     anchors = model.anchors
-    car = anchors[(classes == 0).nonzero()[40, 0]].clone()               # a car exactly on an anchor
+    car = anchors[(classes == 0).nonzero()[40, 0]].clone()  # a car exactly on an anchor
     ped = anchors[(classes == 1).nonzero()[300, 0]].clone()
-    ped[:2] += 0.45                                                      # a pedestrian between anchors
+    ped[:2] += 0.45  # a pedestrian between anchors
     gt = torch.stack([car, ped])
     t = fh.assign_targets(anchors, classes, gt, torch.tensor([0, 1]), fh.class_thresholds(CARD))
     labels = t["labels"]
     exact = (classes == 0).nonzero()[40, 0]
     assert labels[exact] == 1 and torch.allclose(t["box_targets"][exact], torch.zeros(7), atol=1e-6)
-    assert (labels == 2).sum() >= 1                                      # forced: the pedestrian's best anchor
-    assert torch.all(labels[classes == 2] == 0)                          # no cyclist: cyclist anchors are background
+    assert (labels == 2).sum() >= 1  # forced: the pedestrian's best anchor
+    assert torch.all(labels[classes == 2] == 0)  # no cyclist: cyclist anchors are background
     far = (anchors[:, 0] - car[0]).abs() + (anchors[:, 1] - car[1]).abs() > 8
     assert torch.all(labels[far & (classes == 0)] == 0)
-    assert (labels == -1).any()                                          # between the thresholds: ignored
+    assert (labels == -1).any()  # between the thresholds: ignored
     pos = labels > 0
     assert torch.all(t["matched"][pos].abs().sum(1) > 0)
 
 
 def test_nearest_bev_swaps_length_and_width_near_the_y_axis():
-    boxes = torch.tensor([[0, 0, 0, 4.0, 2.0, 1, 0.0], [0, 0, 0, 4.0, 2.0, 1, math.pi / 2 - 0.1],
-                          [0, 0, 0, 4.0, 2.0, 1, math.pi]])
+    boxes = torch.tensor(
+        [[0, 0, 0, 4.0, 2.0, 1, 0.0], [0, 0, 0, 4.0, 2.0, 1, math.pi / 2 - 0.1], [0, 0, 0, 4.0, 2.0, 1, math.pi]]
+    )
     rect = fh.nearest_bev(boxes)
     np.testing.assert_allclose(rect[:, 2] - rect[:, 0], [4.0, 2.0, 4.0], atol=1e-6)
 
@@ -101,6 +102,7 @@ def test_thresholds_come_from_the_card_or_upstream():
     anchors[1]["class_name"] = "Tram"
     data["dense_head"] = dict(data["dense_head"], anchors=anchors[:1])
     from radaredge.cards import parse_card
+
     assert fh.class_thresholds(parse_card(data, Path("x.yaml"))) == [(0.7, 0.5)]
     data["dense_head"] = dict(data["dense_head"], anchors=anchors[1:2])
     with pytest.raises(ConfigError, match=r"anchors\[0\] \(Tram\) needs matched_threshold"):

@@ -16,11 +16,10 @@ import onnx
 import pytest
 import torch
 import yaml
+from conftest import TINY_CARD, invoke
 
 from radaredge import atomic, runtime
 from radaredge.exporting.onnx_call import export_onnx
-
-from conftest import TINY_CARD, invoke
 
 
 def _sha(path: Path) -> str:
@@ -36,7 +35,7 @@ def test_atomic_path_renames_on_success_and_keeps_the_old_file_on_failure(tmp_pa
             tmp.write_text("half")
             raise RuntimeError("interrupted")
     assert '"a": 1' in target.read_text()
-    assert sorted(p.name for p in target.parent.iterdir()) == ["report.json"]     # no temporary left
+    assert sorted(p.name for p in target.parent.iterdir()) == ["report.json"]  # no temporary left
 
 
 def test_staging_commits_every_file_or_none(tmp_path):
@@ -44,11 +43,11 @@ def test_staging_commits_every_file_or_none(tmp_path):
     with atomic.Staging(dest) as stage:
         stage.path(dest / "a.onnx").write_text("a")
         stage.path(dest / "a.json").write_text("b")
-    assert not dest.exists()                                  # closed without commit: nothing left
+    assert not dest.exists()  # closed without commit: nothing left
     with atomic.Staging(dest) as stage:
         stage.path(dest / "a.onnx").write_text("a")
         stage.commit()
-    assert [p.name for p in dest.iterdir()] == ["a.onnx"]     # the staging directory is gone
+    assert [p.name for p in dest.iterdir()] == ["a.onnx"]  # the staging directory is gone
 
 
 @pytest.fixture
@@ -68,7 +67,7 @@ def test_held_signals_arrive_when_the_block_ends(ctrl_c, capfd):
         with atomic.signals_held("held: finishing first"):
             os.kill(os.getpid(), signal.SIGINT)
             os.kill(os.getpid(), signal.SIGINT)
-            sum(range(100_000))                    # bytecodes where an unheld interrupt would land
+            sum(range(100_000))  # bytecodes where an unheld interrupt would land
             ran.append("rest of the block")
     assert ran == ["rest of the block"]
     assert capfd.readouterr().err.count("held: finishing first") == 1
@@ -101,7 +100,7 @@ def test_an_interrupt_during_tracing_waits_for_the_tracer(ctrl_c, tmp_path):
     path = tmp_path / "g.onnx"
     with pytest.raises(KeyboardInterrupt):
         export_onnx(InterruptedDuringTrace(), (torch.ones(3),), path, ["x"], ["y"])
-    assert onnx.load(str(path)).graph.node                          # the tracer finished first
+    assert onnx.load(str(path)).graph.node  # the tracer finished first
 
 
 @pytest.fixture(scope="module")
@@ -120,11 +119,14 @@ def test_a_failed_export_leaves_the_previous_one(good, tmp_path):
     assert {p.name: _sha(p) for p in out.parent.iterdir()} == hashes
 
 
-@pytest.mark.parametrize("output, expect", [
-    ("model.json", "a graph is written to a file ending in .onnx"),
-    ("model.int8.onnx", "are the int8 and debug copies"),
-    ("model.debug.onnx", "are the int8 and debug copies"),
-])
+@pytest.mark.parametrize(
+    "output, expect",
+    [
+        ("model.json", "a graph is written to a file ending in .onnx"),
+        ("model.int8.onnx", "are the int8 and debug copies"),
+        ("model.debug.onnx", "are the int8 and debug copies"),
+    ],
+)
 def test_output_paths_are_checked_first(tmp_path, output, expect):
     res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(tmp_path / output))
     assert res.exit_code == 2 and expect in res.output, res.output
@@ -136,8 +138,9 @@ def test_a_directory_output_receives_the_card_name(tmp_path):
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["tdfanet-tiny.json", "tdfanet-tiny.onnx"]
     (tmp_path / "existing").mkdir()
-    res = invoke("export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                 "--output", str(tmp_path / "existing"))
+    res = invoke(
+        "export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(tmp_path / "existing")
+    )
     assert res.exit_code == 0 and (tmp_path / "existing" / "tdfanet-tiny.onnx").is_file(), res.output
 
 
@@ -152,8 +155,9 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(good, t
     run = [sys.executable, "-m", "radaredge.cli", "export", "--model", "tdfanet-tiny"]
     work, previous = tmp_path / "work", tmp_path / "previous"
     start = time.perf_counter()
-    subprocess.run(run + ["--config", str(reseeded), "--output", str(previous / "model.onnx")], check=True,
-                   capture_output=True)
+    subprocess.run(
+        run + ["--config", str(reseeded), "--output", str(previous / "model.onnx")], check=True, capture_output=True
+    )
     full = time.perf_counter() - start
     new = good[1]
     old = {p.name: _sha(p) for p in previous.iterdir()}
@@ -164,9 +168,12 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(good, t
         shutil.copytree(previous, work)
         # SIGINT back to its default in the child: a suite started in the background by a
         # non-interactive shell inherits SIGINT ignored, and the interrupt would never arrive
-        proc = subprocess.Popen(run + ["--config", str(TINY_CARD), "--output", str(work / "model.onnx")],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        proc = subprocess.Popen(
+            run + ["--config", str(TINY_CARD), "--output", str(work / "model.onnx")],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         time.sleep(full * fraction)
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=120)
@@ -176,7 +183,7 @@ def test_sigint_never_leaves_a_partial_graph_or_changes_the_previous_one(good, t
         assert "radaredge.card" in {p.key for p in graph.metadata_props}
         runtime.load(work / "model.onnx")
         outcomes.append("kept" if now == old else "replaced")
-    assert "kept" in outcomes                                # most moments fall before the commit
+    assert "kept" in outcomes  # most moments fall before the commit
 
 
 def test_a_ctrl_c_while_exiting_prints_no_traceback(tmp_path):
@@ -184,8 +191,10 @@ def test_a_ctrl_c_while_exiting_prints_no_traceback(tmp_path):
     after the CLI's) is ignored once the command has finished: no 'Exception ignored in atexit
     callback' traceback, and the command's own exit code."""
     script = tmp_path / "late.py"
-    script.write_text("import atexit, os, signal, sys, time\nimport radaredge.cli\n"
-                      "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(0.3)))\n"
-                      "sys.argv = ['radaredge', 'list']\nradaredge.cli.main()\n")
+    script.write_text(
+        "import atexit, os, signal, sys, time\nimport radaredge.cli\n"
+        "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(0.3)))\n"
+        "sys.argv = ['radaredge', 'list']\nradaredge.cli.main()\n"
+    )
     res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and "Traceback" not in res.stderr and "KeyboardInterrupt" not in res.stderr, res.stderr

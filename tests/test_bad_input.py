@@ -26,26 +26,25 @@ import onnx
 import pytest
 import torch
 import yaml
+from conftest import TINY_CARD, invoke
 
 from radaredge import runtime
+from radaredge.cards.des4pos import CellConfig, TextConfig
 from radaredge.config import field_range
 from radaredge.data.readers import read_rosbag, read_scan
 from radaredge.data.sequences import load_sequence
-from radaredge.runtime.kitti360pose import TEXT2LOC_MODULE, read_cells, read_poses
 from radaredge.errors import InputError, RadarEdgeError
 from radaredge.models.des4pos.model import FineConfig, SubmapConfig
-from radaredge.cards.des4pos import CellConfig, TextConfig
+from radaredge.models.maffnet.fuser import CafConfig
 from radaredge.models.maffnet.model import BackboneConfig, SpaConfig
 from radaredge.models.maffnet.rcnn import KeypointConfig, ProposalConfig, RoiHeadConfig, SAConfig, VsaConfig
-from radaredge.models.maffnet.fuser import CafConfig
 from radaredge.models.tdfanet.model import TDFANetConfig
-from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.dbscan import DbscanConfig
+from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.grid_density import GridDensityConfig
 from radaredge.ops.nms import NmsConfig
 from radaredge.ops.pillars import PillarConfig
-
-from conftest import TINY_CARD, invoke
+from radaredge.runtime.kitti360pose import TEXT2LOC_MODULE, read_cells, read_poses
 
 MAFF_TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
 MAFF_DBSCAN = Path(__file__).parent / "cards" / "maffnet-tiny-full-dbscan.yaml"
@@ -110,8 +109,12 @@ def files(tmp_path_factory, tiny_export):
     proto = onnx.load(str(onnx_path))
     del proto.metadata_props[:]
     onnx.save(proto, str(d / "no-metadata.onnx"))
-    for name, card_text in (("bad-yaml", "name: [unclosed"), ("python-tag", "!!python/object/apply:os.system ['true']"),
-                            ("alias-bomb", "a: &a [x, x]\nb: &b [*a, *a]\nc: [*b, *b]"), ("not-a-card", "just text")):
+    for name, card_text in (
+        ("bad-yaml", "name: [unclosed"),
+        ("python-tag", "!!python/object/apply:os.system ['true']"),
+        ("alias-bomb", "a: &a [x, x]\nb: &b [*a, *a]\nc: [*b, *b]"),
+        ("not-a-card", "just text"),
+    ):
         proto = onnx.load(str(onnx_path))
         for prop in proto.metadata_props:
             if prop.key == "radaredge.card":
@@ -125,8 +128,10 @@ def files(tmp_path_factory, tiny_export):
     torch.save({k: v for k, v in state.items() if not k.startswith("mlp.")}, d / "missing-keys.pth")
     torch.save({**state, "extra.weight": torch.zeros(2)}, d / "unexpected-key.pth")
     torch.save({**state, "gem.p": "three"}, d / "non-tensor.pth")
-    torch.save({k: torch.full_like(v, float("nan")) if v.is_floating_point() else v for k, v in state.items()},
-               d / "nan-weights.pth")
+    torch.save(
+        {k: torch.full_like(v, float("nan")) if v.is_floating_point() else v for k, v in state.items()},
+        d / "nan-weights.pth",
+    )
     torch.save({k: v + 1 if v.is_floating_point() else v for k, v in state.items()}, d / "other-weights.pth")
     with open(d / "malicious.pth", "wb") as f:
         pickle.dump(_Exploit(), f)
@@ -138,9 +143,10 @@ def files(tmp_path_factory, tiny_export):
     (d / "huge.yaml").write_text("# " + "x" * 300_000)
     town = d / "town"
     from radaredge.data.pr_benchmark import make_pr_benchmark
+
     make_pr_benchmark(town, drives=2, frames_per_drive=6, seed=0)
     far = d / "far-town"
-    make_pr_benchmark(far, drives=2, frames_per_drive=6, seed=3)   # 30 km east of town
+    make_pr_benchmark(far, drives=2, frames_per_drive=6, seed=3)  # 30 km east of town
     nogps = d / "no-gps"
     shutil.copytree(town / "database" / "drive-00", nogps / "drive-00")
     (nogps / "drive-00" / "gps.csv").unlink()
@@ -203,90 +209,397 @@ CLI = [
     ("export-opset-99", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--opset", "99"], "opset"),
     ("export-quantize-int4", ["export", "--model", "tdfanet", "--quantize", "int4"], "--quantize"),
     ("export-calibration-alone", ["export", "--model", "tdfanet", "--calibration", "{f}/town"], "--quantize"),
-    ("export-calibration-windows-0", ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration-windows",
-                                      "0"], "--calibration-windows"),
-    ("export-calibration-format", ["export", "--model", "tdfanet", "--calibration-format", "x"],
-     "--calibration-format"),
-    ("export-calibration-missing", ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration",
-                                    "{f}/nowhere"], "nowhere"),
-    ("export-calibration-truncated-scan", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                                           "--quantize", "int8", "--calibration", "{f}/recording",
-                                           "--calibration-format", "vod", "--calibration-windows", "4",
-                                           "--output", "out/t.onnx"],
-     "recording/000003.bin: 50 bytes"),
-    ("export-output-under-file", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output",
-                                  "{f}/a-file/x.onnx"], "a-file"),
+    (
+        "export-calibration-windows-0",
+        ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration-windows", "0"],
+        "--calibration-windows",
+    ),
+    (
+        "export-calibration-format",
+        ["export", "--model", "tdfanet", "--calibration-format", "x"],
+        "--calibration-format",
+    ),
+    (
+        "export-calibration-missing",
+        ["export", "--model", "tdfanet", "--quantize", "int8", "--calibration", "{f}/nowhere"],
+        "nowhere",
+    ),
+    (
+        "export-calibration-truncated-scan",
+        [
+            "export",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--quantize",
+            "int8",
+            "--calibration",
+            "{f}/recording",
+            "--calibration-format",
+            "vod",
+            "--calibration-windows",
+            "4",
+            "--output",
+            "out/t.onnx",
+        ],
+        "recording/000003.bin: 50 bytes",
+    ),
+    (
+        "export-output-under-file",
+        ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", "{f}/a-file/x.onnx"],
+        "a-file",
+    ),
     ("export-config-missing", ["export", "--model", "x", "--config", "{f}/nowhere.yaml"], "nowhere.yaml"),
     ("export-config-binary", ["export", "--model", "x", "--config", "{f}/binary.yaml"], "not a text file"),
     ("export-config-huge", ["export", "--model", "x", "--config", "{f}/huge.yaml"], "at most"),
     ("parity-no-onnx", ["parity-check", "--model", "tdfanet"], "Missing option '--onnx'"),
-    ("parity-cases-0", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                        "{f}/tiny.onnx", "--cases", "0"], "cases"),
-    ("parity-cases-negative", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                               "{f}/tiny.onnx", "--cases", "-3"], "cases"),
-    ("parity-cases-huge", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                           "{f}/tiny.onnx", "--cases", "100000000"], "cases"),
+    (
+        "parity-cases-0",
+        [
+            "parity-check",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--cases",
+            "0",
+        ],
+        "cases",
+    ),
+    (
+        "parity-cases-negative",
+        [
+            "parity-check",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--cases",
+            "-3",
+        ],
+        "cases",
+    ),
+    (
+        "parity-cases-huge",
+        [
+            "parity-check",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--cases",
+            "100000000",
+        ],
+        "cases",
+    ),
     ("parity-runtime", ["parity-check", "--model", "tdfanet", "--onnx", "x", "--runtime", "tensorrt"], "--runtime"),
-    ("bench-runs-0", ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                      "--runs", "0"], "runs"),
-    ("bench-warmup-negative", ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                               "{f}/tiny.onnx", "--warmup", "-1"], "warm"),
-    ("bench-threads-0", ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--threads", "0"], "threads"),
-    ("bench-threads-huge", ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                            "--threads", "1000000"], "threads"),
-    ("bench-save-under-file", ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                               "{f}/tiny.onnx", "--save", "{f}/a-file/b.json"], "a-file"),
+    (
+        "bench-runs-0",
+        ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx", "--runs", "0"],
+        "runs",
+    ),
+    (
+        "bench-warmup-negative",
+        ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx", "--warmup", "-1"],
+        "warm",
+    ),
+    (
+        "bench-threads-0",
+        ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx", "--threads", "0"],
+        "threads",
+    ),
+    (
+        "bench-threads-huge",
+        [
+            "bench",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--threads",
+            "1000000",
+        ],
+        "threads",
+    ),
+    (
+        "bench-save-under-file",
+        [
+            "bench",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--save",
+            "{f}/a-file/b.json",
+        ],
+        "a-file",
+    ),
     ("eval-no-onnx", ["eval", "--model", "tdfanet"], "Missing option '--onnx'"),
-    ("eval-missing-database", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                               "{f}/tiny.onnx", "--database", "{f}/nowhere", "--queries", "{f}/town/queries"],
-     "nowhere"),
-    ("eval-empty-database", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                             "--database", "{f}/empty-dir", "--queries", "{f}/town/queries"], "no drives"),
-    ("eval-no-gps", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                     "--database", "{f}/no-gps", "--queries", "{f}/town/queries"], "gps.csv"),
-    ("eval-binary-gps", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--database", "{f}/binary-gps", "--queries", "{f}/town/queries"], "not a text CSV"),
-    ("eval-other-town", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--database", "{f}/town/database", "--queries", "{f}/far-town/queries"], "within 5 m"),
-    ("eval-nan-in-a-scan", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                            "--database", "{f}/nan-town/database", "--queries", "{f}/nan-town/queries"],
-     "queries/drive-01/scans/000003.npy: non-finite value nan at point 2, column 'v_r'"),
-    ("eval-radius-0", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                       "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "0"], "radius"),
-    ("eval-radius-nan", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "nan"],
-     "radius"),
-    ("eval-radius-inf", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", "{f}/tiny.onnx",
-                         "--database", "{f}/town/database", "--queries", "{f}/town/queries", "--radius", "inf"],
-     "radius"),
-    ("eval-report-under-file", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                                "{f}/tiny.onnx", "--database", "{f}/town/database", "--queries", "{f}/town/queries",
-                                "--report", "{f}/a-file/r.json"], "a-file"),
-    ("eval-plot-under-file", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                              "{f}/tiny.onnx", "--database", "{f}/town/database", "--queries", "{f}/town/queries",
-                              "--plot", "{f}/a-file/p.png"], "a-file"),
-    ("eval-map-for-tdfanet", ["eval", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                              "{f}/tiny.onnx", "--map", "{f}/random.npz"], "--database"),
-    ("eval-maffnet", ["eval", "--model", "maffnet-tiny", "--config", str(MAFF_TINY), "--onnx", "{f}/tiny.onnx",
-                      "--database", "{f}/town/database", "--queries", "{f}/town/queries"],
-     "is evaluated by 3D-detection AP on --data; missing --data"),
+    (
+        "eval-missing-database",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/nowhere",
+            "--queries",
+            "{f}/town/queries",
+        ],
+        "nowhere",
+    ),
+    (
+        "eval-empty-database",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/empty-dir",
+            "--queries",
+            "{f}/town/queries",
+        ],
+        "no drives",
+    ),
+    (
+        "eval-no-gps",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/no-gps",
+            "--queries",
+            "{f}/town/queries",
+        ],
+        "gps.csv",
+    ),
+    (
+        "eval-binary-gps",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/binary-gps",
+            "--queries",
+            "{f}/town/queries",
+        ],
+        "not a text CSV",
+    ),
+    (
+        "eval-other-town",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/far-town/queries",
+        ],
+        "within 5 m",
+    ),
+    (
+        "eval-nan-in-a-scan",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/nan-town/database",
+            "--queries",
+            "{f}/nan-town/queries",
+        ],
+        "queries/drive-01/scans/000003.npy: non-finite value nan at point 2, column 'v_r'",
+    ),
+    (
+        "eval-radius-0",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/town/queries",
+            "--radius",
+            "0",
+        ],
+        "radius",
+    ),
+    (
+        "eval-radius-nan",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/town/queries",
+            "--radius",
+            "nan",
+        ],
+        "radius",
+    ),
+    (
+        "eval-radius-inf",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/town/queries",
+            "--radius",
+            "inf",
+        ],
+        "radius",
+    ),
+    (
+        "eval-report-under-file",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/town/queries",
+            "--report",
+            "{f}/a-file/r.json",
+        ],
+        "a-file",
+    ),
+    (
+        "eval-plot-under-file",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/town/queries",
+            "--plot",
+            "{f}/a-file/p.png",
+        ],
+        "a-file",
+    ),
+    (
+        "eval-map-for-tdfanet",
+        [
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--map",
+            "{f}/random.npz",
+        ],
+        "--database",
+    ),
+    (
+        "eval-maffnet",
+        [
+            "eval",
+            "--model",
+            "maffnet-tiny",
+            "--config",
+            str(MAFF_TINY),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--database",
+            "{f}/town/database",
+            "--queries",
+            "{f}/town/queries",
+        ],
+        "is evaluated by 3D-detection AP on --data; missing --data",
+    ),
     ("make-benchmark-drives-0", ["make-benchmark", "--out", "b", "--drives", "0"], "drives"),
     ("make-benchmark-drives-1", ["make-benchmark", "--out", "b", "--drives", "1"], "drives"),
     ("make-benchmark-frames-0", ["make-benchmark", "--out", "b", "--frames", "0"], "frames"),
     ("make-benchmark-seed-negative", ["make-benchmark", "--out", "b", "--seed", "-1"], "seed"),
     ("make-benchmark-towns-0", ["make-benchmark", "--out", "b", "--towns", "0"], "towns"),
     ("make-benchmark-towns-huge", ["make-benchmark", "--out", "b", "--towns", "100000"], "--towns"),
-    ("make-benchmark-seed-beyond-gps", ["make-benchmark", "--out", "b", "--seed", "2001", "--frames", "2"],
-     "use seeds up to 1990"),
-    ("make-benchmark-towns-beyond-gps", ["make-benchmark", "--out", "b", "--seed", "1985", "--towns", "10",
-                                         "--frames", "2"], "use seeds up to 1990"),
+    (
+        "make-benchmark-seed-beyond-gps",
+        ["make-benchmark", "--out", "b", "--seed", "2001", "--frames", "2"],
+        "use seeds up to 1990",
+    ),
+    (
+        "make-benchmark-towns-beyond-gps",
+        ["make-benchmark", "--out", "b", "--seed", "1985", "--towns", "10", "--frames", "2"],
+        "use seeds up to 1990",
+    ),
     ("make-city-cities-0", ["make-city", "--out", "c", "--cities", "0"], "--cities"),
     ("make-city-cities-huge", ["make-city", "--out", "c", "--cities", "100000"], "--cities"),
     ("make-benchmark-out-under-file", ["make-benchmark", "--out", "{f}/a-file/b", "--frames", "2"], "a-file"),
     ("make-city-objects-0", ["make-city", "--out", "c.npz", "--objects", "0"], "objects"),
-    ("make-city-poses-unbounded", ["make-city", "--out", "c", "--cities", "1000", "--poses", "100000"],
-     "described poses; at most"),
+    (
+        "make-city-poses-unbounded",
+        ["make-city", "--out", "c", "--cities", "1000", "--poses", "100000"],
+        "described poses; at most",
+    ),
     ("make-city-poses-negative", ["make-city", "--out", "c.npz", "--poses", "-1"], "poses"),
     ("make-city-world-0", ["make-city", "--out", "c.npz", "--world", "0"], "world"),
     ("make-city-world-nan", ["make-city", "--out", "c.npz", "--world", "nan"], "world"),
@@ -294,12 +607,21 @@ CLI = [
     ("make-city-for-tdfanet", ["make-city", "--out", "c.npz", "--model", "tdfanet"], "tdfanet"),
     ("make-city-out-under-file", ["make-city", "--out", "{f}/a-file/c.npz"], "a-file"),
     ("locate-no-dir", ["locate", "--onnx-dir", "{f}/nowhere", "--map", "{f}/random.npz", "--text", "x"], "nowhere"),
-    ("locate-top-k-0", ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x",
-                        "--top-k", "0"], "top"),
-    ("locate-threads-0", ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x",
-                          "--threads", "0"], "threads"),
-    ("locate-threads-huge", ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x",
-                             "--threads", "100000"], "threads"),
+    (
+        "locate-top-k-0",
+        ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x", "--top-k", "0"],
+        "top",
+    ),
+    (
+        "locate-threads-0",
+        ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x", "--threads", "0"],
+        "threads",
+    ),
+    (
+        "locate-threads-huge",
+        ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x", "--threads", "100000"],
+        "threads",
+    ),
     ("locate-empty-text", ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", ""], "text"),
     ("inspect-missing", ["inspect", "{f}/nowhere.onnx"], "nowhere.onnx"),
     ("inspect-random", ["inspect", "{f}/random.onnx"], "random.onnx"),
@@ -312,73 +634,300 @@ CLI = [
     ("inspect-card-alias-bomb", ["inspect", "{f}/card-alias-bomb.onnx"], "aliases"),
     ("inspect-card-not-a-mapping", ["inspect", "{f}/card-not-a-card.onnx"], "mapping"),
     ("train-no-data", ["train", "--model", "tdfanet"], "Missing option '--data'"),
-    ("train-missing-data", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/nowhere"],
-     "nowhere"),
-    ("train-data-is-file", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/a-file"],
-     "a-file"),
-    ("train-empty-data", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/empty-dir"],
-     "no drives"),
-    ("train-one-drive", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/no-gps"],
-     "gps.csv"),
-    ("train-epochs-0", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                        "--epochs", "0"], "--epochs"),
-    ("train-lr-negative", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                           "--lr", "-1"], "--lr"),
-    ("train-lr-nan", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                      "--lr", "nan"], "--lr"),
-    ("train-batch-0", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                       "--batch-size", "0"], "--batch-size"),
-    ("train-set-unknown", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                           "--set", "foo=1"], "foo"),
-    ("train-set-text", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                        "--set", "negatives=many"], "--negatives"),
-    ("train-set-no-value", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                            "--set", "negatives"], "KEY=VALUE"),
-    ("train-set-list", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                        "--set", "negatives=[1, 2]"], "list"),
-    ("train-hard-above-negatives", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
-                                    "{f}/town", "--set", "hard_negatives=30"], "hard_negatives"),
-    ("train-radii-swapped", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                             "--set", "negative_radius=2"], "negative_radius"),
-    ("train-second-term", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                           "--set", "second_term=other"], "second_term"),
-    ("train-unknown-validation", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
-                                  "{f}/town", "--validation", "nope"], "nope"),
+    (
+        "train-missing-data",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/nowhere"],
+        "nowhere",
+    ),
+    (
+        "train-data-is-file",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/a-file"],
+        "a-file",
+    ),
+    (
+        "train-empty-data",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/empty-dir"],
+        "no drives",
+    ),
+    (
+        "train-one-drive",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/no-gps"],
+        "gps.csv",
+    ),
+    (
+        "train-epochs-0",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--epochs", "0"],
+        "--epochs",
+    ),
+    (
+        "train-lr-negative",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--lr", "-1"],
+        "--lr",
+    ),
+    (
+        "train-lr-nan",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--lr", "nan"],
+        "--lr",
+    ),
+    (
+        "train-batch-0",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--batch-size", "0"],
+        "--batch-size",
+    ),
+    (
+        "train-set-unknown",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--set", "foo=1"],
+        "foo",
+    ),
+    (
+        "train-set-text",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--set",
+            "negatives=many",
+        ],
+        "--negatives",
+    ),
+    (
+        "train-set-no-value",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--set", "negatives"],
+        "KEY=VALUE",
+    ),
+    (
+        "train-set-list",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--set",
+            "negatives=[1, 2]",
+        ],
+        "list",
+    ),
+    (
+        "train-hard-above-negatives",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--set",
+            "hard_negatives=30",
+        ],
+        "hard_negatives",
+    ),
+    (
+        "train-radii-swapped",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--set",
+            "negative_radius=2",
+        ],
+        "negative_radius",
+    ),
+    (
+        "train-second-term",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--set",
+            "second_term=other",
+        ],
+        "second_term",
+    ),
+    (
+        "train-unknown-validation",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--validation", "nope"],
+        "nope",
+    ),
     ("train-device", ["train", "--model", "tdfanet", "--data", "x", "--device", "tpu"], "--device"),
-    ("train-resume-without-state", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
-                                    "{f}/town", "--output", "run", "--resume"], "last.pth"),
-    ("train-resume-garbage-state", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
-                                    "{f}/town", "--output", "{f}/garbage-run", "--resume"],
-     "not a readable torch checkpoint"),
-    ("train-resume-and-checkpoint", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data",
-                                     "{f}/town", "--resume", "--checkpoint", "{f}/good.pth"], "--checkpoint"),
-    ("train-field-map", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                         "--field-map", "v_r"], "--field-map"),
-    ("train-maffnet", ["train", "--model", "maffnet-tiny", "--config", str(MAFF_TINY), "--data", "{f}/town"],
-     "no training/ folder"),
-    ("train-output-under-file", ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town",
-                                 "--output", "{f}/a-file/run"], "a-file"),
+    (
+        "train-resume-without-state",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--output",
+            "run",
+            "--resume",
+        ],
+        "last.pth",
+    ),
+    (
+        "train-resume-garbage-state",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--output",
+            "{f}/garbage-run",
+            "--resume",
+        ],
+        "not a readable torch checkpoint",
+    ),
+    (
+        "train-resume-and-checkpoint",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--resume",
+            "--checkpoint",
+            "{f}/good.pth",
+        ],
+        "--checkpoint",
+    ),
+    (
+        "train-field-map",
+        ["train", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--data", "{f}/town", "--field-map", "v_r"],
+        "--field-map",
+    ),
+    (
+        "train-maffnet",
+        ["train", "--model", "maffnet-tiny", "--config", str(MAFF_TINY), "--data", "{f}/town"],
+        "no training/ folder",
+    ),
+    (
+        "train-output-under-file",
+        [
+            "train",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--data",
+            "{f}/town",
+            "--output",
+            "{f}/a-file/run",
+        ],
+        "a-file",
+    ),
 ]
-CHECKPOINTS = ["truncated", "list", "wrong-shape", "missing-keys", "unexpected-key", "non-tensor", "nan-weights",
-               "malicious", "random", "nowhere"]
-CLI += [(f"export-checkpoint-{name}", ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                                       "--checkpoint", f"{{f}}/{name}.{'bin' if name == 'random' else 'pth'}"],
-         {"nan-weights": "not finite", "malicious": "runs no pickled code"}.get(name, "checkpoint"))
-        for name in CHECKPOINTS]
-CLI += [(f"parity-onnx-{name}", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                                 f"{{f}}/{name}.onnx"], name)
-        for name in ("random", "empty", "truncated", "no-metadata", "nowhere")]
-CLI += [(f"parity-checkpoint-{name}", ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                                       "--onnx", "{f}/tiny.onnx", "--checkpoint", f"{{f}}/{name}.pth"], expect)
-        for name, expect in (("truncated", "checkpoint"), ("malicious", "runs no pickled code"),
-                             ("other-weights", "exported with other weights"))]
-CLI += [(f"bench-onnx-{name}", ["bench", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx",
-                                f"{{f}}/{name}.onnx", "--runs", "1", "--no-reference"], name)
-        for name in ("random", "no-metadata", "card-bad-yaml")]
-CLI += [("locate-map-missing", ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/nowhere.npz", "--text", "x"],
-         "nowhere.npz"),
-        ("locate-not-a-bundle", ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x"],
-         "not a Des4Pos bundle")]
+CHECKPOINTS = [
+    "truncated",
+    "list",
+    "wrong-shape",
+    "missing-keys",
+    "unexpected-key",
+    "non-tensor",
+    "nan-weights",
+    "malicious",
+    "random",
+    "nowhere",
+]
+CLI += [
+    (
+        f"export-checkpoint-{name}",
+        [
+            "export",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--checkpoint",
+            f"{{f}}/{name}.{'bin' if name == 'random' else 'pth'}",
+        ],
+        {"nan-weights": "not finite", "malicious": "runs no pickled code"}.get(name, "checkpoint"),
+    )
+    for name in CHECKPOINTS
+]
+CLI += [
+    (
+        f"parity-onnx-{name}",
+        ["parity-check", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--onnx", f"{{f}}/{name}.onnx"],
+        name,
+    )
+    for name in ("random", "empty", "truncated", "no-metadata", "nowhere")
+]
+CLI += [
+    (
+        f"parity-checkpoint-{name}",
+        [
+            "parity-check",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--checkpoint",
+            f"{{f}}/{name}.pth",
+        ],
+        expect,
+    )
+    for name, expect in (
+        ("truncated", "checkpoint"),
+        ("malicious", "runs no pickled code"),
+        ("other-weights", "exported with other weights"),
+    )
+]
+CLI += [
+    (
+        f"bench-onnx-{name}",
+        [
+            "bench",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--onnx",
+            f"{{f}}/{name}.onnx",
+            "--runs",
+            "1",
+            "--no-reference",
+        ],
+        name,
+    )
+    for name in ("random", "no-metadata", "card-bad-yaml")
+]
+CLI += [
+    (
+        "locate-map-missing",
+        ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/nowhere.npz", "--text", "x"],
+        "nowhere.npz",
+    ),
+    (
+        "locate-not-a-bundle",
+        ["locate", "--onnx-dir", "{f}/empty-dir", "--map", "{f}/random.npz", "--text", "x"],
+        "not a Des4Pos bundle",
+    ),
+]
 
 
 @pytest.mark.parametrize("case, args, expect", CLI, ids=[c[0] for c in CLI])
@@ -398,12 +947,19 @@ def _bad_values(cls, name: str):
     default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
     below = rng.low - 1 if rng.low - 1 < rng.low else -1e30
     above = rng.high * 2 + 1
-    values = [("nan", float("nan")), ("inf", float("inf")), ("-inf", float("-inf")), ("below", below),
-              ("above", above), ("word", "many"), ("bool", True)]
+    values = [
+        ("nan", float("nan")),
+        ("inf", float("inf")),
+        ("-inf", float("-inf")),
+        ("below", below),
+        ("above", above),
+        ("word", "many"),
+        ("bool", True),
+    ]
     if isinstance(default, tuple):
         values = [(k, [v] * len(default)) for k, v in values] + [("scalar", 1.0), ("short", [])]
     else:
-        values += [("list", [])]               # an empty list passed the per-number checks (fuzzing found it)
+        values += [("list", [])]  # an empty list passed the per-number checks (fuzzing found it)
     return values
 
 
@@ -417,18 +973,42 @@ def _set(data: dict, dotted: str, value):
 
 SECTION_FIELDS = []
 for base, model, sections in (
-        (TINY_CARD, "tdfanet-tiny", (("preprocess.ransac", RansacConfig), ("pillars", PillarConfig),
-                                     ("network", TDFANetConfig))),
-        (MAFF_TINY, "maffnet-tiny", (("spa", SpaConfig), ("cfa.grid", GridDensityConfig), ("caf", CafConfig),
-                                     ("backbone_2d", BackboneConfig), ("post_processing", NmsConfig))),
-        (MAFF_DBSCAN, "maffnet-tiny-full-dbscan",
-         (("cfa.dbscan", DbscanConfig), ("stage_two.proposals", ProposalConfig),
-          ("stage_two.keypoints", KeypointConfig),
-          ("stage_two.vsa", VsaConfig), ("stage_two.vsa.sa_clusterpoints", SAConfig),
-          ("stage_two.roi_head", RoiHeadConfig), ("stage_two.roi_head.roi_grid_pool", SAConfig),
-          ("stage_two.post_processing", NmsConfig))),
-        (DES4POS_TINY, "des4pos-tiny", (("cell", CellConfig), ("submap", SubmapConfig), ("text", TextConfig),
-                                        ("fine", FineConfig)))):
+    (
+        TINY_CARD,
+        "tdfanet-tiny",
+        (("preprocess.ransac", RansacConfig), ("pillars", PillarConfig), ("network", TDFANetConfig)),
+    ),
+    (
+        MAFF_TINY,
+        "maffnet-tiny",
+        (
+            ("spa", SpaConfig),
+            ("cfa.grid", GridDensityConfig),
+            ("caf", CafConfig),
+            ("backbone_2d", BackboneConfig),
+            ("post_processing", NmsConfig),
+        ),
+    ),
+    (
+        MAFF_DBSCAN,
+        "maffnet-tiny-full-dbscan",
+        (
+            ("cfa.dbscan", DbscanConfig),
+            ("stage_two.proposals", ProposalConfig),
+            ("stage_two.keypoints", KeypointConfig),
+            ("stage_two.vsa", VsaConfig),
+            ("stage_two.vsa.sa_clusterpoints", SAConfig),
+            ("stage_two.roi_head", RoiHeadConfig),
+            ("stage_two.roi_head.roi_grid_pool", SAConfig),
+            ("stage_two.post_processing", NmsConfig),
+        ),
+    ),
+    (
+        DES4POS_TINY,
+        "des4pos-tiny",
+        (("cell", CellConfig), ("submap", SubmapConfig), ("text", TextConfig), ("fine", FineConfig)),
+    ),
+):
     for path, cls in sections:
         for f in dataclasses.fields(cls):
             if field_range(cls, f.name) is None:
@@ -436,17 +1016,27 @@ for base, model, sections in (
             for label, value in _bad_values(cls, f.name):
                 SECTION_FIELDS.append((f"{model}-{path}.{f.name}-{label}", base, model, f"{path}.{f.name}", value))
 
-TOP_LEVEL = [(f"tdfanet-tiny-{key}-{label}", TINY_CARD, "tdfanet-tiny", key, value)
-             for key, values in (("frames", (0, 1, 65, "three", 2.5, None)), ("frame_rate", (0, -10, "fast")),
-                                 ("seed", (-1, 2**40, "x")), ("max_points_per_frame", (0, -5, 2**30, 2**24)),
-                                 ("features", ([], "xyz", ["y", "x", "z"], ["x", "y", "z", "x"], [1, 2, 3])),
-                                 ("name", ("", 5)), ("model", ("", "nope", 3)), ("network", ("deep", [1])),
-                                 ("pillars", (3,)), ("classes", ("car",)))
-             for label, value in ((str(v), v) for v in values)]
+TOP_LEVEL = [
+    (f"tdfanet-tiny-{key}-{label}", TINY_CARD, "tdfanet-tiny", key, value)
+    for key, values in (
+        ("frames", (0, 1, 65, "three", 2.5, None)),
+        ("frame_rate", (0, -10, "fast")),
+        ("seed", (-1, 2**40, "x")),
+        ("max_points_per_frame", (0, -5, 2**30, 2**24)),
+        ("features", ([], "xyz", ["y", "x", "z"], ["x", "y", "z", "x"], [1, 2, 3])),
+        ("name", ("", 5)),
+        ("model", ("", "nope", 3)),
+        ("network", ("deep", [1])),
+        ("pillars", (3,)),
+        ("classes", ("car",)),
+    )
+    for label, value in ((str(v), v) for v in values)
+]
 
 
-@pytest.mark.parametrize("case, base, model, field, value", SECTION_FIELDS + TOP_LEVEL,
-                         ids=[c[0] for c in SECTION_FIELDS + TOP_LEVEL])
+@pytest.mark.parametrize(
+    "case, base, model, field, value", SECTION_FIELDS + TOP_LEVEL, ids=[c[0] for c in SECTION_FIELDS + TOP_LEVEL]
+)
 def test_card_field(files, workdir, case, base, model, field, value):
     """Each numeric card field refuses non-finite, out-of-range and non-numeric values, naming the field."""
     card = _card_with(base, workdir / "card.yaml", lambda d: _set(d, field, value))
@@ -494,9 +1084,26 @@ def _mutate(good, how):
     return f
 
 
-FRAMES = ["count:0", "count:2", "count:4", *[f"nan:{c}" for c in range(5)], *[f"inf:{c}" for c in range(5)],
-          "columns:4", "columns:6", "columns:0", "ndim:1", "ndim:3", "dtype:complex64", "dtype:U3", "dtype:bool",
-          "object", "text", "none", "ragged", "huge"]
+FRAMES = [
+    "count:0",
+    "count:2",
+    "count:4",
+    *[f"nan:{c}" for c in range(5)],
+    *[f"inf:{c}" for c in range(5)],
+    "columns:4",
+    "columns:6",
+    "columns:0",
+    "ndim:1",
+    "ndim:3",
+    "dtype:complex64",
+    "dtype:U3",
+    "dtype:bool",
+    "object",
+    "text",
+    "none",
+    "ragged",
+    "huge",
+]
 
 
 @pytest.mark.parametrize("how", FRAMES)
@@ -507,8 +1114,18 @@ def test_runtime_frames(exported, how):
     assert "\n" not in str(err.value) and str(err.value)
 
 
-TIMESTAMPS = [[0.0, 0.1], [0.0, 0.1, 0.2, 0.3], [0.0, 0.0, 0.1], [0.2, 0.1, 0.0], [0.0, np.nan, 0.2],
-              [0.0, 0.1, np.inf], ["a", "b", "c"], [[0.0], [0.1], [0.2]], [1e300, -1e300, 0.0], [1e9, 1e9, 1e9]]
+TIMESTAMPS = [
+    [0.0, 0.1],
+    [0.0, 0.1, 0.2, 0.3],
+    [0.0, 0.0, 0.1],
+    [0.2, 0.1, 0.0],
+    [0.0, np.nan, 0.2],
+    [0.0, 0.1, np.inf],
+    ["a", "b", "c"],
+    [[0.0], [0.1], [0.2]],
+    [1e300, -1e300, 0.0],
+    [1e9, 1e9, 1e9],
+]
 
 
 @pytest.mark.parametrize("stamps", TIMESTAMPS, ids=[str(t) for t in TIMESTAMPS])
@@ -551,8 +1168,11 @@ def _scan(tmp: Path, kind: str) -> tuple[Path, dict]:
     elif kind == "huge-header-npy":
         p = p.with_suffix(".npy")
         header = "{'descr': '<f4', 'fortran_order': False, 'shape': (500000000000, 5), }"
-        p.write_bytes(b"\x93NUMPY\x01\x00" + len(header.ljust(118) + "\n").to_bytes(2, "little")
-                      + (header.ljust(118) + "\n").encode())
+        p.write_bytes(
+            b"\x93NUMPY\x01\x00"
+            + len(header.ljust(118) + "\n").to_bytes(2, "little")
+            + (header.ljust(118) + "\n").encode()
+        )
     elif kind == "suffix":
         p = p.with_suffix(".pcd")
         p.write_text("x")
@@ -574,8 +1194,21 @@ def _scan(tmp: Path, kind: str) -> tuple[Path, dict]:
     return p, {}
 
 
-SCANS = ["truncated-bin", "random-npy", "object-npy", "3d-npy", "columns-npy", "text-npy", "huge-header-npy",
-         "suffix", "missing", "directory", "fmt", "feature", "ambiguous-size"]
+SCANS = [
+    "truncated-bin",
+    "random-npy",
+    "object-npy",
+    "3d-npy",
+    "columns-npy",
+    "text-npy",
+    "huge-header-npy",
+    "suffix",
+    "missing",
+    "directory",
+    "fmt",
+    "feature",
+    "ambiguous-size",
+]
 
 
 @pytest.mark.parametrize("kind", SCANS)
@@ -586,11 +1219,17 @@ def test_scan_files(tmp_path, kind):
     assert "\n" not in str(err.value)
 
 
-GPS = [("missing", None), ("empty", ""), ("header-only-wrong", "time,n,e\n0,0,0\n"),
-       ("text-value", "timestamp,northing,easting\n0,a,0\n"), ("nan", "timestamp,northing,easting\n0,nan,0\n"),
-       ("decreasing", "timestamp,northing,easting\n1,0,0\n0,0,0\n"), ("short-row", "timestamp,northing,easting\n0,0\n"),
-       ("rows-vs-scans", "timestamp,northing,easting\n0,0,0\n1,0,0\n2,0,0\n"),
-       ("binary", b"\x00\xff\xfe" * 30)]
+GPS = [
+    ("missing", None),
+    ("empty", ""),
+    ("header-only-wrong", "time,n,e\n0,0,0\n"),
+    ("text-value", "timestamp,northing,easting\n0,a,0\n"),
+    ("nan", "timestamp,northing,easting\n0,nan,0\n"),
+    ("decreasing", "timestamp,northing,easting\n1,0,0\n0,0,0\n"),
+    ("short-row", "timestamp,northing,easting\n0,0\n"),
+    ("rows-vs-scans", "timestamp,northing,easting\n0,0,0\n1,0,0\n2,0,0\n"),
+    ("binary", b"\x00\xff\xfe" * 30),
+]
 
 
 @pytest.mark.parametrize("kind, content", GPS, ids=[g[0] for g in GPS])
@@ -635,6 +1274,7 @@ def text2loc():
     """Classes named and placed like Text2Loc's, so pickle writes the dataset's global names."""
     import sys
     import types
+
     mod = types.ModuleType(TEXT2LOC_MODULE)
     for name in ("Cell", "Object3d", "Pose", "DescriptionPoseCell"):
         setattr(mod, name, type(name, (), {"__module__": TEXT2LOC_MODULE}))
@@ -652,6 +1292,7 @@ def text2loc():
 
 def _pickle_file(tmp: Path, mod, what: str, over) -> Path:
     """A cells/poses pickle of Text2Loc-named records, with the attributes in ``over`` replaced."""
+
     def make(name, attrs):
         obj = getattr(mod, name)()
         obj.__dict__.update(attrs)
@@ -667,13 +1308,23 @@ def _pickle_file(tmp: Path, mod, what: str, over) -> Path:
     else:
         over = dict(over) if isinstance(over, dict) else {}
         if what == "cells":
-            obj = make("Object3d", {**dict(xyz=np.zeros((4, 3)), rgb=np.zeros((4, 3)), label="car"),
-                                    **over.pop("object", {})})
-            items = [make("Cell", {**dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0),
-                                          objects=[obj]), **over})]
+            obj = make(
+                "Object3d", {**dict(xyz=np.zeros((4, 3)), rgb=np.zeros((4, 3)), label="car"), **over.pop("object", {})}
+            )
+            items = [
+                make(
+                    "Cell",
+                    {
+                        **dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0), objects=[obj]),
+                        **over,
+                    },
+                )
+            ]
         else:
-            desc = make("DescriptionPoseCell", {**dict(direction="north", object_color_text="red",
-                                                       object_label="car"), **over.pop("description", {})})
+            desc = make(
+                "DescriptionPoseCell",
+                {**dict(direction="north", object_color_text="red", object_label="car"), **over.pop("description", {})},
+            )
             items = [make("Pose", {**dict(pose_w=np.zeros(3), cell_id="s_00001", descriptions=[desc]), **over})]
         path.write_bytes(pickle.dumps(items))
     return path
@@ -710,8 +1361,17 @@ def test_ros_bags(tmp_path, kind):
         (path / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9}\n")
     elif kind == "missing-topic":
         from test_readers import ROS1, pointcloud, write_bag
-        path = write_bag(tmp_path / "t.bag", True, {"/other": ("sensor_msgs/msg/PointCloud", [
-            pointcloud(ROS1, (1, 0), np.zeros((1, 3)), {"Doppler": [0.0]})])})
+
+        path = write_bag(
+            tmp_path / "t.bag",
+            True,
+            {
+                "/other": (
+                    "sensor_msgs/msg/PointCloud",
+                    [pointcloud(ROS1, (1, 0), np.zeros((1, 3)), {"Doppler": [0.0]})],
+                )
+            },
+        )
     else:
         path = tmp_path / "nowhere.bag"
     with pytest.raises(RadarEdgeError) as err:
@@ -726,16 +1386,24 @@ def test_a_good_pickle_reads(tmp_path, text2loc):
 
 
 def test_the_catalogue_holds_at_least_250_cases():
-    n = len(CLI) + len(SECTION_FIELDS) + len(TOP_LEVEL) + len(FRAMES) + len(TIMESTAMPS) + 6 + len(SCANS) + len(GPS) \
-        + len(PICKLES) + len(BAGS)
+    n = (
+        len(CLI)
+        + len(SECTION_FIELDS)
+        + len(TOP_LEVEL)
+        + len(FRAMES)
+        + len(TIMESTAMPS)
+        + 6
+        + len(SCANS)
+        + len(GPS)
+        + len(PICKLES)
+        + len(BAGS)
+    )
     assert n >= 250, n
 
 
 # ----------------------------------------------------------------------------- classes, by generator
 # Each class of bad input below is generated: many variants of one mistake, rather than the one
 # case somebody first tried (#35). The promise is the same as above.
-
-
 
 
 def _cli(workdir, args, expect=""):
@@ -746,11 +1414,19 @@ def _cli(workdir, args, expect=""):
 
 
 # -- output paths an export would have written wrongly (or over a good export)
-OUTPUT_PATHS = [(f"single-{suffix or 'none'}", "tdfanet", suffix, "ending in .onnx" if suffix not in
-                 (".int8.onnx", ".debug.onnx") else "int8 and debug copies")
-                for suffix in (".json", ".txt", "", ".onnx.json", ".pth", ".int8.onnx", ".debug.onnx", ".yaml")]
-OUTPUT_PATHS += [("bundle-over-a-file", "des4pos", "file", "exports 3 graphs into a directory"),
-                 ("bundle-as-onnx", "des4pos", ".onnx", "not one .onnx")]
+OUTPUT_PATHS = [
+    (
+        f"single-{suffix or 'none'}",
+        "tdfanet",
+        suffix,
+        "ending in .onnx" if suffix not in (".int8.onnx", ".debug.onnx") else "int8 and debug copies",
+    )
+    for suffix in (".json", ".txt", "", ".onnx.json", ".pth", ".int8.onnx", ".debug.onnx", ".yaml")
+]
+OUTPUT_PATHS += [
+    ("bundle-over-a-file", "des4pos", "file", "exports 3 graphs into a directory"),
+    ("bundle-as-onnx", "des4pos", ".onnx", "not one .onnx"),
+]
 
 
 @pytest.mark.parametrize("case, model, suffix, expect", OUTPUT_PATHS, ids=[c[0] for c in OUTPUT_PATHS])
@@ -764,9 +1440,11 @@ def test_export_output_paths(files, workdir, case, model, suffix, expect):
 
 
 # -- timestamps in another unit than seconds, at several epochs and frame rates
-UNIT_STAMPS = [(unit, scale, epoch) for unit, scale in (("milliseconds", 1e3), ("microseconds", 1e6),
-                                                          ("nanoseconds", 1e9))
-               for epoch in (0.0, 1.7e9, 3.2e4)] + [("too-close", 1e-3, 0.0), ("too-far", 50.0, 0.0)]
+UNIT_STAMPS = [
+    (unit, scale, epoch)
+    for unit, scale in (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
+    for epoch in (0.0, 1.7e9, 3.2e4)
+] + [("too-close", 1e-3, 0.0), ("too-far", 50.0, 0.0)]
 
 
 @pytest.mark.parametrize("unit, scale, epoch", UNIT_STAMPS, ids=[f"{u}-{e:g}" for u, _, e in UNIT_STAMPS])
@@ -783,9 +1461,15 @@ def test_runtime_timestamps_in_other_units(exported, unit, scale, epoch):
 
 # -- gps.csv whose timestamps or positions are not seconds and metres
 GPS_UNITS = [(f"stamps-{unit}", ("t", scale)) for unit, scale in (("ms", 1e3), ("us", 1e6), ("ns", 1e9))]
-GPS_UNITS += [(f"latlon-{city}", ("latlon", lat, lon)) for city, lat, lon in
-              (("delft", 52.0116, 4.3571), ("beijing", 39.9042, 116.4074), ("sydney", -33.8688, 151.2093),
-               ("quito", -0.1807, -78.4678))]
+GPS_UNITS += [
+    (f"latlon-{city}", ("latlon", lat, lon))
+    for city, lat, lon in (
+        ("delft", 52.0116, 4.3571),
+        ("beijing", 39.9042, 116.4074),
+        ("sydney", -33.8688, 151.2093),
+        ("quito", -0.1807, -78.4678),
+    )
+]
 GPS_UNITS += [("positions-beyond-the-earth", ("offset", 3e7)), ("positions-1e30", ("offset", 1e30))]
 
 
@@ -801,8 +1485,7 @@ def test_gps_units(files, tmp_path, case, how):
         rows[:, 2] = how[2] + (rows[:, 2] - rows[0, 2]) / 111_000
     else:
         rows[:, 1:] += how[1]
-    (drive / "gps.csv").write_text("timestamp,northing,easting\n" +
-                                   "".join(f"{t!r},{n!r},{e!r}\n" for t, n, e in rows))
+    (drive / "gps.csv").write_text("timestamp,northing,easting\n" + "".join(f"{t!r},{n!r},{e!r}\n" for t, n, e in rows))
     with pytest.raises(InputError) as err:
         load_sequence(drive)
     assert "\n" not in str(err.value) and "gps.csv" in str(err.value)
@@ -812,6 +1495,7 @@ def test_gps_units(files, tmp_path, case, how):
 def _state_edits():
     from radaredge.cards import load_card
     from radaredge.models import create_model
+
     state = create_model(load_card(TINY_CARD)).state_dict()
     bn = [k for k in state if k.endswith("running_var")]
     weights = [k for k, v in state.items() if k.endswith("weight") and v.dim() >= 2]
@@ -840,8 +1524,21 @@ def test_checkpoint_values(files, workdir, case, key, how):
         v = torch.full_like(v, how)
     torch.save({**state, key: v}, workdir / "bad.pth")
     expect = "complex" if how == "complex" else key
-    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--checkpoint",
-                   str(workdir / "bad.pth"), "--output", str(workdir / "out" / "x.onnx")], expect)
+    _cli(
+        workdir,
+        [
+            "export",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(TINY_CARD),
+            "--checkpoint",
+            str(workdir / "bad.pth"),
+            "--output",
+            str(workdir / "out" / "x.onnx"),
+        ],
+        expect,
+    )
 
 
 # -- graphs whose radaredge metadata does not describe them
@@ -861,6 +1558,7 @@ def _inputs(change):
         d = json.loads(text)
         change(d)
         return json.dumps(d)
+
     return edit
 
 
@@ -892,6 +1590,7 @@ def test_graph_metadata_that_does_not_describe_the_graph(files, workdir, case, k
 def test_metadata_copied_onto_a_foreign_graph(files, workdir, tmp_path):
     """A MAFF-Net graph carrying the TDFANet graph's radaredge metadata."""
     import radaredge
+
     maff = radaredge.export(str(MAFF_TINY), tmp_path / "maff.onnx").path
     proto, donor = onnx.load(str(maff)), onnx.load(str(files / "tiny.onnx"))
     del proto.metadata_props[:]
@@ -906,8 +1605,9 @@ def test_metadata_copied_onto_a_foreign_graph(files, workdir, tmp_path):
 @pytest.fixture(scope="module")
 def des4pos_bundle(tmp_path_factory):
     import radaredge
-    from radaredge.data.text_city import make_city_for_card
     from radaredge.cards import load_card
+    from radaredge.data.text_city import make_city_for_card
+
     d = tmp_path_factory.mktemp("des4pos")
     radaredge.export(str(DES4POS_TINY), d / "bundle")
     make_city_for_card(load_card(DES4POS_TINY), seed=0, world=60.0, objects=30, poses=3).save(d / "city.npz")
@@ -935,7 +1635,7 @@ def _map_edit(path: Path, dst: Path, how: str) -> Path:
         data["pose_text"] = data["pose_text"][:1]
     elif how == "zero-size":
         data["sizes"][0] = 0.0
-    elif how.startswith(("nan-", "huge-")):        # every numeric array of the map, by class
+    elif how.startswith(("nan-", "huge-")):  # every numeric array of the map, by class
         value = np.nan if how.startswith("nan-") else 1e30
         name, index = MAP_NUMBERS[how.split("-", 1)[1].removesuffix("-no-poses")]
         data[name] = data[name].astype(np.float64 if data[name].dtype == np.float64 else np.float32)
@@ -948,20 +1648,50 @@ def _map_edit(path: Path, dst: Path, how: str) -> Path:
 
 # A numeric array of a cell map -> the element a NaN or a huge value is written to (cell 0's first
 # real object). A map without described poses (a locate database) is checked as fully as one with.
-MAP_NUMBERS = {"origins": ("origins", (0, 0)), "sizes": ("sizes", 0), "xyz": ("points", (0, 0, 0, 1)),
-               "rgb": ("points", (0, 0, 0, 4)), "num-points": ("num_points", (0, 0)), "pose": ("pose_w", (0, 1))}
-MAPS = ["no-cells", "nan-origin", "inf-origin", "float-mask", "string-points", "int-ids", "nan-pose",
-        "short-pose-text", "zero-size",
-        *[f"{v}-{n}{tail}" for v in ("nan", "huge") for n in MAP_NUMBERS for tail in ("", "-no-poses")
-          if not (n == "pose" and tail)]]
+MAP_NUMBERS = {
+    "origins": ("origins", (0, 0)),
+    "sizes": ("sizes", 0),
+    "xyz": ("points", (0, 0, 0, 1)),
+    "rgb": ("points", (0, 0, 0, 4)),
+    "num-points": ("num_points", (0, 0)),
+    "pose": ("pose_w", (0, 1)),
+}
+MAPS = [
+    "no-cells",
+    "nan-origin",
+    "inf-origin",
+    "float-mask",
+    "string-points",
+    "int-ids",
+    "nan-pose",
+    "short-pose-text",
+    "zero-size",
+    *[
+        f"{v}-{n}{tail}"
+        for v in ("nan", "huge")
+        for n in MAP_NUMBERS
+        for tail in ("", "-no-poses")
+        if not (n == "pose" and tail)
+    ],
+]
 
 
 @pytest.mark.parametrize("how", MAPS)
 def test_des4pos_maps(des4pos_bundle, workdir, how):
     bad = _map_edit(des4pos_bundle / "city.npz", workdir / "bad.npz", how)
     before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
-    res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", str(des4pos_bundle / "bundle"), "--map",
-                 str(bad), "--text", "The pose is north of a red box.", "--no-cache")
+    res = invoke(
+        "locate",
+        "--model",
+        "des4pos-tiny",
+        "--onnx-dir",
+        str(des4pos_bundle / "bundle"),
+        "--map",
+        str(bad),
+        "--text",
+        "The pose is north of a red box.",
+        "--no-cache",
+    )
     assert_one_error_line(res, workdir, before)
 
 
@@ -970,20 +1700,38 @@ def test_des4pos_maps_evaluated(des4pos_bundle, workdir, how):
     """``eval --map`` refuses what locate refuses: never null positions and exit 0."""
     bad = _map_edit(des4pos_bundle / "city.npz", workdir / "bad.npz", how)
     before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
-    res = invoke("eval", "--model", "des4pos-tiny", "--config", str(DES4POS_TINY), "--onnx",
-                 str(des4pos_bundle / "bundle"), "--map", str(bad), "--no-reference", "--report", "r.json")
+    res = invoke(
+        "eval",
+        "--model",
+        "des4pos-tiny",
+        "--config",
+        str(DES4POS_TINY),
+        "--onnx",
+        str(des4pos_bundle / "bundle"),
+        "--map",
+        str(bad),
+        "--no-reference",
+        "--report",
+        "r.json",
+    )
     assert_one_error_line(res, workdir, before)
 
 
-BUNDLES = [("manifest-not-json", "bundle.json", b"{parts: nope"), ("manifest-list", "bundle.json", b"[1, 2]"),
-           ("manifest-no-parts", "bundle.json", b'{"weights_sha256": "x"}'),
-           ("manifest-parts-text", "bundle.json", b'{"weights_sha256": "x", "parts": "all"}'),
-           ("manifest-onnx-escapes", "bundle.json",
-            b'{"weights_sha256": "x", "parts": {"submap_encoder": {"onnx": "../x.onnx"}}}'),
-           ("manifest-binary", "bundle.json", b"\xff\xfe\x00" * 20),
-           ("tokenizer-garbage", "tokenizer.json", b"{not a tokenizer"),
-           ("tokenizer-empty", "tokenizer.json", b""),
-           ("tokenizer-binary", "tokenizer.json", b"\x00\x01" * 50)]
+BUNDLES = [
+    ("manifest-not-json", "bundle.json", b"{parts: nope"),
+    ("manifest-list", "bundle.json", b"[1, 2]"),
+    ("manifest-no-parts", "bundle.json", b'{"weights_sha256": "x"}'),
+    ("manifest-parts-text", "bundle.json", b'{"weights_sha256": "x", "parts": "all"}'),
+    (
+        "manifest-onnx-escapes",
+        "bundle.json",
+        b'{"weights_sha256": "x", "parts": {"submap_encoder": {"onnx": "../x.onnx"}}}',
+    ),
+    ("manifest-binary", "bundle.json", b"\xff\xfe\x00" * 20),
+    ("tokenizer-garbage", "tokenizer.json", b"{not a tokenizer"),
+    ("tokenizer-empty", "tokenizer.json", b""),
+    ("tokenizer-binary", "tokenizer.json", b"\x00\x01" * 50),
+]
 
 
 @pytest.mark.parametrize("case, name, content", BUNDLES, ids=[b[0] for b in BUNDLES])
@@ -992,25 +1740,51 @@ def test_des4pos_bundles(des4pos_bundle, workdir, case, name, content):
     shutil.copytree(des4pos_bundle / "bundle", bundle)
     (bundle / name).write_bytes(content)
     before = set(p.relative_to(workdir) for p in workdir.rglob("*"))
-    res = invoke("locate", "--model", "des4pos-tiny", "--onnx-dir", str(bundle), "--map",
-                 str(des4pos_bundle / "city.npz"), "--text", "The pose is north of a red box.", "--no-cache")
+    res = invoke(
+        "locate",
+        "--model",
+        "des4pos-tiny",
+        "--onnx-dir",
+        str(bundle),
+        "--map",
+        str(des4pos_bundle / "city.npz"),
+        "--text",
+        "The pose is north of a red box.",
+        "--no-cache",
+    )
     assert_one_error_line(res, workdir, before, name)
 
 
 # -- generators asked for more than a machine holds
-GENERATORS = [(f"make-benchmark-{opt}-{v}", ["make-benchmark", "--out", "b", opt, str(v)], opt)
-              for opt, values in (("--drives", (0, 1, 65, 10**9)), ("--frames", (0, -5, 20_001, 10**12)),
-                                  ("--towns", (0, 1001, 10**9)))
-              for v in values]
-GENERATORS += [(f"make-city-{opt}-{v}", ["make-city", "--out", "c.npz", opt, str(v)], opt.lstrip("-"))
-               for opt, values in (("--world", (0, 0.5, 5001, 1e12, "nan", "inf")), ("--objects", (0, 100_001, 10**12)),
-                                   ("--poses", (-1, 100_001, 10**12)), ("--cities", (0, 1001)))
-               for v in values]
-GENERATORS += [("make-city-world-objects-budget", ["make-city", "--out", "c.npz", "--world", "5000", "--objects",
-                                                    "100000"], "--world"),
-               ("make-city-out-no-npz", ["make-city", "--out", "city"], "name it city.npz"),
-               ("make-city-out-directory", ["make-city", "--out", "d/"], "a directory"),
-               ("make-city-cities-out-file", ["make-city", "--out", "taken.npz", "--cities", "2"], "an existing file")]
+GENERATORS = [
+    (f"make-benchmark-{opt}-{v}", ["make-benchmark", "--out", "b", opt, str(v)], opt)
+    for opt, values in (
+        ("--drives", (0, 1, 65, 10**9)),
+        ("--frames", (0, -5, 20_001, 10**12)),
+        ("--towns", (0, 1001, 10**9)),
+    )
+    for v in values
+]
+GENERATORS += [
+    (f"make-city-{opt}-{v}", ["make-city", "--out", "c.npz", opt, str(v)], opt.lstrip("-"))
+    for opt, values in (
+        ("--world", (0, 0.5, 5001, 1e12, "nan", "inf")),
+        ("--objects", (0, 100_001, 10**12)),
+        ("--poses", (-1, 100_001, 10**12)),
+        ("--cities", (0, 1001)),
+    )
+    for v in values
+]
+GENERATORS += [
+    (
+        "make-city-world-objects-budget",
+        ["make-city", "--out", "c.npz", "--world", "5000", "--objects", "100000"],
+        "--world",
+    ),
+    ("make-city-out-no-npz", ["make-city", "--out", "city"], "name it city.npz"),
+    ("make-city-out-directory", ["make-city", "--out", "d/"], "a directory"),
+    ("make-city-cities-out-file", ["make-city", "--out", "taken.npz", "--cities", "2"], "an existing file"),
+]
 
 
 @pytest.mark.parametrize("case, args, expect", GENERATORS, ids=[g[0] for g in GENERATORS])
@@ -1029,8 +1803,9 @@ def test_ambiguous_scan_names(tmp_path, names):
     (tmp_path / "scans").mkdir()
     for i, name in enumerate(names):
         np.save(tmp_path / "scans" / name, np.zeros((3, 5), np.float32))
-    (tmp_path / "gps.csv").write_text("timestamp,northing,easting\n" +
-                                      "".join(f"{i * 0.1},{i},0\n" for i in range(len(names))))
+    (tmp_path / "gps.csv").write_text(
+        "timestamp,northing,easting\n" + "".join(f"{i * 0.1},{i},0\n" for i in range(len(names)))
+    )
     with pytest.raises(InputError, match="name the same frame number"):
         load_sequence(tmp_path)
 
@@ -1050,8 +1825,9 @@ def test_pickle_bombs(tmp_path, text2loc, depth, width):
     for _ in range(depth):
         nested = [nested] * width
     obj = make("Object3d", dict(xyz=nested, rgb=nested, label="car"))
-    cell = make("Cell", dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0),
-                             objects=[obj] * width))
+    cell = make(
+        "Cell", dict(id="s_00001", scene_name="s", cell_size=30.0, bbox_w=np.arange(6.0), objects=[obj] * width)
+    )
     path = tmp_path / "cells.pkl"
     path.write_bytes(pickle.dumps([cell] * width))
     assert path.stat().st_size < 200_000
@@ -1068,8 +1844,11 @@ def _card_text(edit: str) -> str:
     if edit == "repeated-section":
         return text + "\npillars:\n  out_channels: 8\n"
     if edit == "duplicate-nested":
-        return text.replace("pillars:\n", "pillars:\n  out_channels: 4\n", 1) if "out_channels" in text else \
-            text.replace("pillars:\n", "pillars:\n  bn_eps: 0.001\n  bn_eps: 0.01\n", 1)
+        return (
+            text.replace("pillars:\n", "pillars:\n  out_channels: 4\n", 1)
+            if "out_channels" in text
+            else text.replace("pillars:\n", "pillars:\n  bn_eps: 0.001\n  bn_eps: 0.01\n", 1)
+        )
     if edit.startswith("misspelt-"):
         return text + f"\n{edit.split('-', 1)[1]}:\n  out_channels: 8\n"
     if edit.startswith("nested-"):
@@ -1080,41 +1859,64 @@ def _card_text(edit: str) -> str:
     raise AssertionError(edit)
 
 
-CARD_TEXTS = [("duplicate-top", "given twice"), ("repeated-section", "given twice"),
-              ("duplicate-nested", "given twice"),
-              *[(f"misspelt-{name}", name) for name in ("pillarz", "netwrok", "preproces", "pilars", "quantisation")],
-              *[(f"nested-{d}", "nested deeper") for d in (20, 200, 5000)],
-              *[(f"digits-{n}", "digits") for n in (20, 400, 5000)]]
+CARD_TEXTS = [
+    ("duplicate-top", "given twice"),
+    ("repeated-section", "given twice"),
+    ("duplicate-nested", "given twice"),
+    *[(f"misspelt-{name}", name) for name in ("pillarz", "netwrok", "preproces", "pilars", "quantisation")],
+    *[(f"nested-{d}", "nested deeper") for d in (20, 200, 5000)],
+    *[(f"digits-{n}", "digits") for n in (20, 400, 5000)],
+]
 
 
 @pytest.mark.parametrize("edit, expect", CARD_TEXTS, ids=[c[0] for c in CARD_TEXTS])
 def test_cards_parsed_strictly(files, workdir, edit, expect):
     card = workdir / "card.yaml"
     card.write_text(_card_text(edit))
-    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(card),
-                   "--output", str(workdir / "o" / "x.onnx")], expect)
+    _cli(
+        workdir,
+        ["export", "--model", "tdfanet-tiny", "--config", str(card), "--output", str(workdir / "o" / "x.onnx")],
+        expect,
+    )
     bad = _edit_metadata(files / "tiny.onnx", workdir / "carded.onnx", "radaredge.card", lambda t: _card_text(edit))
-    _cli(workdir, ["inspect", str(bad)], expect)                   # the card inside a graph, parsed the same way
+    _cli(workdir, ["inspect", str(bad)], expect)  # the card inside a graph, parsed the same way
 
 
-GRIDS = [("tdfanet-voxel-0.05", TINY_CARD, lambda d: d["pillars"].update(voxel_size=[0.05, 0.05, 5.0],
-                                                                         point_cloud_range=[0, -40, -3, 70, 40, 2],
-                                                                         out_channels=64), "MiB BEV map"),
-         ("tdfanet-channels", TINY_CARD, lambda d: d["pillars"].update(point_cloud_range=[0, -40, -3, 70, 40, 2],
-                                                                       voxel_size=[0.1, 0.1, 5.0], out_channels=512),
-          "MiB BEV map"),
-         ("tdfanet-voxel-0.016", TINY_CARD, lambda d: d["pillars"].update(voxel_size=[0.016, 0.016, 13.0]),
-          "BEV maps per window"),        # 4 M cells of 8 channels in 3 frames: the export needed 8 GB
-         ("maffnet-cfa-map", MAFF_TINY, lambda d: d["cfa"]["grid"].update(map_h=4096, map_w=4096), "cells"),
-         ("dbscan-map", MAFF_DBSCAN, lambda d: d["cfa"]["dbscan"].update(map_rows=2048, map_cols=2048), "cells")]
+GRIDS = [
+    (
+        "tdfanet-voxel-0.05",
+        TINY_CARD,
+        lambda d: d["pillars"].update(
+            voxel_size=[0.05, 0.05, 5.0], point_cloud_range=[0, -40, -3, 70, 40, 2], out_channels=64
+        ),
+        "MiB BEV map",
+    ),
+    (
+        "tdfanet-channels",
+        TINY_CARD,
+        lambda d: d["pillars"].update(
+            point_cloud_range=[0, -40, -3, 70, 40, 2], voxel_size=[0.1, 0.1, 5.0], out_channels=512
+        ),
+        "MiB BEV map",
+    ),
+    (
+        "tdfanet-voxel-0.016",
+        TINY_CARD,
+        lambda d: d["pillars"].update(voxel_size=[0.016, 0.016, 13.0]),
+        "BEV maps per window",
+    ),  # 4 M cells of 8 channels in 3 frames: the export needed 8 GB
+    ("maffnet-cfa-map", MAFF_TINY, lambda d: d["cfa"]["grid"].update(map_h=4096, map_w=4096), "cells"),
+    ("dbscan-map", MAFF_DBSCAN, lambda d: d["cfa"]["dbscan"].update(map_rows=2048, map_cols=2048), "cells"),
+]
 
 
 @pytest.mark.parametrize("case, base, edit, expect", GRIDS, ids=[g[0] for g in GRIDS])
 def test_grids_the_runtime_cannot_allocate(workdir, case, base, edit, expect):
     card = _card_with(base, workdir / "card.yaml", edit)
     model = yaml.safe_load(card.read_text())["name"]
-    _cli(workdir, ["export", "--model", model, "--config", str(card), "--output", str(workdir / "o" / "x.onnx")],
-         expect)
+    _cli(
+        workdir, ["export", "--model", model, "--config", str(card), "--output", str(workdir / "o" / "x.onnx")], expect
+    )
 
 
 def test_features_reordered_against_a_trained_checkpoint(files, workdir):
@@ -1123,16 +1925,31 @@ def test_features_reordered_against_a_trained_checkpoint(files, workdir):
     state = torch.load(files / "good.pth")
     data = yaml.safe_load(TINY_CARD.read_text())
     torch.save({"model_state": state, "card": data, "epoch": 1}, workdir / "trained.pth")
-    card = _card_with(TINY_CARD, workdir / "card.yaml",
-                      lambda d: d.__setitem__("features", ["x", "y", "z", "rcs", "v_r"]))
-    _cli(workdir, ["export", "--model", "tdfanet-tiny", "--config", str(card), "--checkpoint",
-                   str(workdir / "trained.pth"), "--output", str(workdir / "o" / "x.onnx")], "in that order")
+    card = _card_with(
+        TINY_CARD, workdir / "card.yaml", lambda d: d.__setitem__("features", ["x", "y", "z", "rcs", "v_r"])
+    )
+    _cli(
+        workdir,
+        [
+            "export",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            str(card),
+            "--checkpoint",
+            str(workdir / "trained.pth"),
+            "--output",
+            str(workdir / "o" / "x.onnx"),
+        ],
+        "in that order",
+    )
 
 
 # -- one implausible value, column by column, on a card that refuses them
 @pytest.fixture(scope="module")
 def refusing(tmp_path_factory):
     import radaredge
+
     d = tmp_path_factory.mktemp("refusing")
     card = _card_with(MAFF_TINY, d / "maffnet-tiny.yaml", lambda c: c.__setitem__("implausible", "refuse"))
     return runtime.load(radaredge.export(str(card), d / "m.onnx").path, threads=1)
@@ -1147,19 +1964,25 @@ def test_implausible_values_refused(refusing, column, value):
     points[:, 0] = np.linspace(1, 10, 20)
     points[7, column] = value
     if column == 6 and abs(value) == 101.0:
-        points[7, column] = 11.0                                   # time: plausible within +-10 s
+        points[7, column] = 11.0  # time: plausible within +-10 s
     with pytest.raises(InputError, match=f"point 7, column '{refusing.features[column]}'"):
         refusing.run(points)
 
 
 # -- --json: one JSON document on stdout, also for a failure
-JSON_FAILURES = [c for c in CLI if c[1] and c[1][0] in ("export", "parity-check", "bench", "eval", "inspect", "locate",
-                                                         "make-city", "make-benchmark", "train")][:40]
+JSON_FAILURES = [
+    c
+    for c in CLI
+    if c[1]
+    and c[1][0]
+    in ("export", "parity-check", "bench", "eval", "inspect", "locate", "make-city", "make-benchmark", "train")
+][:40]
 
 
 @pytest.mark.parametrize("case, args, expect", JSON_FAILURES, ids=[c[0] for c in JSON_FAILURES])
 def test_json_failures_print_a_json_document(files, workdir, case, args, expect):
     import json
+
     res = invoke(*[a.format(f=files) for a in args], "--json")
     assert res.exit_code == 2, res.output
     doc = json.loads(res.stdout)
@@ -1173,15 +1996,25 @@ def _api_cases():
 
     from radaredge import api
     from radaredge.config import _accepts
+
     cases = []
-    for verb in ("export", "parity", "bench", "evaluate", "train", "card_from_openpcdet", "run", "map_build",
-                 "map_query"):
+    for verb in (
+        "export",
+        "parity",
+        "bench",
+        "evaluate",
+        "train",
+        "card_from_openpcdet",
+        "run",
+        "map_build",
+        "map_query",
+    ):
         fn = getattr(api, verb)
         hints = typing.get_type_hints(fn.__wrapped__)
         for name, param in inspect.signature(fn).parameters.items():
             hint = hints.get(name)
             if hint is None or not _accepts(hint, "x"):
-                continue                                   # counts, flags, callables: checked elsewhere
+                continue  # counts, flags, callables: checked elsewhere
             for label, value in (("int", 5), ("generator", "gen"), ("none", None)):
                 if value is None and _accepts(hint, None):
                     continue
@@ -1199,9 +2032,13 @@ def test_api_arguments_of_the_wrong_type(verb, name, label):
     import inspect
 
     from radaredge import api
+
     fn = getattr(api, verb)
-    required = {n: "x" for n, p in inspect.signature(fn).parameters.items()
-                if p.default is inspect.Parameter.empty and p.kind is not inspect.Parameter.VAR_KEYWORD}
+    required = {
+        n: "x"
+        for n, p in inspect.signature(fn).parameters.items()
+        if p.default is inspect.Parameter.empty and p.kind is not inspect.Parameter.VAR_KEYWORD
+    }
     value = {"int": 5, "generator": (c for c in "ab"), "none": None}[label]
     with pytest.raises(RadarEdgeError, match=f"{verb}: {name}: expected"):
         fn(**{**required, name: value})

@@ -15,12 +15,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import TINY_CARD, invoke
 
 from radaredge.config import refuse_overwriting_inputs, same_path
-from radaredge.training.run import prepare_run_output
 from radaredge.errors import ConfigError
-
-from conftest import TINY_CARD, invoke
+from radaredge.training.run import prepare_run_output
 
 HERE = Path(__file__).parent
 DES4POS_TINY = HERE / "cards" / "des4pos-tiny.yaml"
@@ -31,6 +30,7 @@ OPENPCDET = HERE / "fixtures" / "openpcdet"
 def inputs(tmp_path_factory, tiny_export):
     """One directory of valid inputs every command below accepts."""
     from radaredge.data.pr_benchmark import make_pr_benchmark
+
     d = tmp_path_factory.mktemp("outputs")
     _, model, onnx_path, _ = tiny_export
     shutil.copy(onnx_path, d / "tiny.onnx")
@@ -44,47 +44,109 @@ def inputs(tmp_path_factory, tiny_export):
 
 def _fingerprint(root: Path) -> dict:
     """Every file under ``root`` by relative path, with its bytes' sha256."""
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 # command id -> (the arguments with {OUT} for the output and {f} for the inputs' directory,
 #                the output option, {input option: its path relative to {f}})
 TINY = ["--model", "tdfanet-tiny", "--config", "{f}/card.yaml"]
-EVAL = ["eval", *TINY, "--onnx", "{f}/tiny.onnx", "--database", "{f}/town/database", "--queries",
-        "{f}/town/queries", "--checkpoint", "{f}/good.pth"]
-EVAL_INPUTS = {"--onnx": "tiny.onnx", "--database": "town/database", "--queries": "town/queries",
-               "--config": "card.yaml", "--checkpoint": "good.pth"}
+EVAL = [
+    "eval",
+    *TINY,
+    "--onnx",
+    "{f}/tiny.onnx",
+    "--database",
+    "{f}/town/database",
+    "--queries",
+    "{f}/town/queries",
+    "--checkpoint",
+    "{f}/good.pth",
+]
+EVAL_INPUTS = {
+    "--onnx": "tiny.onnx",
+    "--database": "town/database",
+    "--queries": "town/queries",
+    "--config": "card.yaml",
+    "--checkpoint": "good.pth",
+}
 COMMANDS = {
-    "export": (["export", *TINY, "--checkpoint", "{f}/good.pth", "--output", "{OUT}"], "--output",
-               {"--config": "card.yaml", "--checkpoint": "good.pth"}),
-    "export-calibrated": (["export", *TINY, "--quantize", "int8", "--calibration", "{f}/town/database/drive-00",
-                           "--output", "{OUT}"], "--output", {"--calibration": "town/database/drive-00"}),
-    "bench": (["bench", *TINY, "--onnx", "{f}/tiny.onnx", "--checkpoint", "{f}/good.pth", "--runs", "1",
-               "--no-reference", "--save", "{OUT}"], "--save",
-              {"--onnx": "tiny.onnx", "--config": "card.yaml", "--checkpoint": "good.pth"}),
+    "export": (
+        ["export", *TINY, "--checkpoint", "{f}/good.pth", "--output", "{OUT}"],
+        "--output",
+        {"--config": "card.yaml", "--checkpoint": "good.pth"},
+    ),
+    "export-calibrated": (
+        ["export", *TINY, "--quantize", "int8", "--calibration", "{f}/town/database/drive-00", "--output", "{OUT}"],
+        "--output",
+        {"--calibration": "town/database/drive-00"},
+    ),
+    "bench": (
+        [
+            "bench",
+            *TINY,
+            "--onnx",
+            "{f}/tiny.onnx",
+            "--checkpoint",
+            "{f}/good.pth",
+            "--runs",
+            "1",
+            "--no-reference",
+            "--save",
+            "{OUT}",
+        ],
+        "--save",
+        {"--onnx": "tiny.onnx", "--config": "card.yaml", "--checkpoint": "good.pth"},
+    ),
     "eval-report": ([*EVAL, "--report", "{OUT}"], "--report", EVAL_INPUTS),
     "eval-plot": ([*EVAL, "--plot", "{OUT}"], "--plot", EVAL_INPUTS),
     "eval-report-dir": ([*EVAL, "--report-dir", "{OUT}"], "--report-dir", EVAL_INPUTS),
-    "train": (["train", *TINY, "--data", "{f}/town", "--checkpoint", "{f}/good.pth", "--output", "{OUT}"],
-              "--output", {"--data": "town", "--checkpoint": "good.pth", "--config": "card.yaml"}),
-    "card-from-openpcdet": (["card", "from-openpcdet", "{f}/openpcdet/maffnet_vod.yaml", "--out", "{OUT}"], "--out",
-                            {"CONFIG": "openpcdet/maffnet_vod.yaml",
-                             "_BASE_CONFIG_": "openpcdet/vod_dataset_radar.yaml"}),
-    "card-from-openpcdet-dataset": (["card", "from-openpcdet", "{f}/openpcdet/maffnet_vod.yaml", "--dataset-config",
-                                     "{f}/openpcdet/tj4d_dataset_radar.yaml", "--out", "{OUT}"], "--out",
-                                    {"--dataset-config": "openpcdet/tj4d_dataset_radar.yaml"}),
-    "make-city": (["make-city", "--model", "des4pos-tiny", "--config", "{f}/des4pos.yaml", "--out", "{OUT}"], "--out",
-                  {"--config": "des4pos.yaml"}),
-    "run": (["run", "--onnx", "{f}/tiny.onnx", "--data", "{f}/town/database", "--out", "{OUT}"], "--out",
-            {"--onnx": "tiny.onnx", "--data": "town/database"}),
-    "map-build": (["map", "build", *TINY, "--onnx", "{f}/tiny.onnx", "--drives", "{f}/town/database",
-                   "--out", "{OUT}"], "--out", {"--onnx": "tiny.onnx", "--drives": "town/database",
-                                                "--config": "card.yaml"}),
+    "train": (
+        ["train", *TINY, "--data", "{f}/town", "--checkpoint", "{f}/good.pth", "--output", "{OUT}"],
+        "--output",
+        {"--data": "town", "--checkpoint": "good.pth", "--config": "card.yaml"},
+    ),
+    "card-from-openpcdet": (
+        ["card", "from-openpcdet", "{f}/openpcdet/maffnet_vod.yaml", "--out", "{OUT}"],
+        "--out",
+        {"CONFIG": "openpcdet/maffnet_vod.yaml", "_BASE_CONFIG_": "openpcdet/vod_dataset_radar.yaml"},
+    ),
+    "card-from-openpcdet-dataset": (
+        [
+            "card",
+            "from-openpcdet",
+            "{f}/openpcdet/maffnet_vod.yaml",
+            "--dataset-config",
+            "{f}/openpcdet/tj4d_dataset_radar.yaml",
+            "--out",
+            "{OUT}",
+        ],
+        "--out",
+        {"--dataset-config": "openpcdet/tj4d_dataset_radar.yaml"},
+    ),
+    "make-city": (
+        ["make-city", "--model", "des4pos-tiny", "--config", "{f}/des4pos.yaml", "--out", "{OUT}"],
+        "--out",
+        {"--config": "des4pos.yaml"},
+    ),
+    "run": (
+        ["run", "--onnx", "{f}/tiny.onnx", "--data", "{f}/town/database", "--out", "{OUT}"],
+        "--out",
+        {"--onnx": "tiny.onnx", "--data": "town/database"},
+    ),
+    "map-build": (
+        ["map", "build", *TINY, "--onnx", "{f}/tiny.onnx", "--drives", "{f}/town/database", "--out", "{OUT}"],
+        "--out",
+        {"--onnx": "tiny.onnx", "--drives": "town/database", "--config": "card.yaml"},
+    ),
 }
 SPELLINGS = ("same", "symlink", "hardlink", "dotdot")
-CASES = [(cmd, source, how) for cmd, (_, _, sources) in COMMANDS.items() for source in sources.values()
-         for how in SPELLINGS]
+CASES = [
+    (cmd, source, how) for cmd, (_, _, sources) in COMMANDS.items() for source in sources.values() for how in SPELLINGS
+]
 
 
 def _spell(inputs: Path, workdir: Path, source: str, how: str) -> str:
@@ -98,7 +160,7 @@ def _spell(inputs: Path, workdir: Path, source: str, how: str) -> str:
         link.symlink_to(target)
         return str(link)
     if how == "hardlink":
-        if target.is_dir():                  # directories have no hard links: the path through '.'
+        if target.is_dir():  # directories have no hard links: the path through '.'
             return str(target.parent / "." / target.name)
         link = workdir / f"hard-{target.name}"
         os.link(target, link)
@@ -161,7 +223,7 @@ def test_same_path_follows_links_and_spellings(tmp_path):
     for other in (a, tmp_path / "s", tmp_path / "h", tmp_path / "." / "a.txt", tmp_path / "d" / ".." / "a.txt"):
         assert same_path(a, other), other
     assert not same_path(a, tmp_path / "b.txt")
-    assert same_path(tmp_path / "new.txt", tmp_path / "." / "new.txt")          # neither exists yet
+    assert same_path(tmp_path / "new.txt", tmp_path / "." / "new.txt")  # neither exists yet
     with pytest.raises(ConfigError, match="--out .*is the --in input"):
         refuse_overwriting_inputs({"--out": [tmp_path / "x", tmp_path / "s"]}, {"--in": a, "--none": None})
     refuse_overwriting_inputs({"--out": tmp_path / "b.txt"}, {"--in": [a, None]})
@@ -173,4 +235,4 @@ def test_overwrite_removes_the_previous_run_before_the_new_one_starts(tmp_path):
     for name in ("best.pth", "last.pth", "train-log.json", "notes.txt"):
         (run / name).write_text("old")
     prepare_run_output(run, resume=False, overwrite=True, inputs={"--data": tmp_path / "data"})
-    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]          # the run's files only
+    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]  # the run's files only

@@ -34,6 +34,7 @@ from typing import Callable
 import numpy as np
 import pytest
 import torch
+from conftest import MAFFNET_TINY_CARD, assert_one_error_line, files_under, invoke
 
 from radaredge.cards import load_card
 from radaredge.data.detection_benchmark import make_detection_benchmark
@@ -42,22 +43,26 @@ from radaredge.data.sequences import load_sequence, write_sequence
 from radaredge.errors import RadarEdgeError
 from radaredge.models.checkpoints import read_checkpoint
 
-from conftest import MAFFNET_TINY_CARD, assert_one_error_line, files_under, invoke
-
 FEATURES_VOD = ["x", "y", "z", "rcs", "v_r", "v_r_comp", "time"]
 FEATURES_DRIVE = ["x", "y", "z", "v_r", "rcs"]
-HUGE = 5 * 2**30              # bytes of every "huge" file: sparse, so it costs no disk
-GARBAGE = 146 * 28            # bytes of random garbage: whole View-of-Delft rows, so the size alone passes
+HUGE = 5 * 2**30  # bytes of every "huge" file: sparse, so it costs no disk
+GARBAGE = 146 * 28  # bytes of random garbage: whole View-of-Delft rows, so the size alone passes
 MAX_SECONDS = 10.0
-MEMORY_HEADROOM = 2**30       # bytes of data a case may allocate beyond what the process held at its start
+MEMORY_HEADROOM = 2**30  # bytes of data a case may allocate beyond what the process held at its start
 
-JPEG = (b"\xff\xd8" + b"\xff\xe0\x00\x04ab" + b"\xff\xc0\x00\x11\x08" + (960).to_bytes(2, "big")
-        + (1280).to_bytes(2, "big") + b"\x03" + b"\x00" * 9)
+JPEG = (
+    b"\xff\xd8"
+    + b"\xff\xe0\x00\x04ab"
+    + b"\xff\xc0\x00\x11\x08"
+    + (960).to_bytes(2, "big")
+    + (1280).to_bytes(2, "big")
+    + b"\x03"
+    + b"\x00" * 9
+)
 
 
 def png(width: int, height: int) -> bytes:
-    return (b"\x89PNG\r\n\x1a\n" + b"\x00\x00\x00\rIHDR" + struct.pack(">II", width, height)
-            + b"\x08\x02\x00\x00\x00")
+    return b"\x89PNG\r\n\x1a\n" + b"\x00\x00\x00\rIHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
 
 
 # ----------------------------------------------------------------------------- resource guard
@@ -204,23 +209,43 @@ def _split_twice(path: Path) -> None:
 
 READERS = {
     "image-header": Reader(_image, lambda b: b[:14], lambda p: p.write_bytes(png(0, 0))),
-    "scan-bin-in-a-set": Reader(_labelled_scan, lambda b: b[:-5], lambda p: _edit_bin(p, 3, 4, np.nan),
-                                extra={"far-coordinate": lambda p: _edit_bin(p, 3, 0, 1e30),
-                                       "float32-overflow": lambda p: _edit_bin(p, 2, 1, 3e38),
-                                       "infinite": lambda p: _edit_bin(p, 1, 2, -np.inf)}),
-    "scan-npy-in-a-drive": Reader(_drive_scan, lambda b: b[:-7], lambda p: _edit_npy(p, 2, 3, np.nan),
-                                  extra={"far-coordinate": lambda p: _edit_npy(p, 4, 1, -1e30)}),
-    "label-txt": Reader(_labels, lambda b: b[:b.index(b"\n") // 2], lambda p: _replace_field(p, 0, 11, "nan"),
-                        accepts=frozenset({"empty"})),
+    "scan-bin-in-a-set": Reader(
+        _labelled_scan,
+        lambda b: b[:-5],
+        lambda p: _edit_bin(p, 3, 4, np.nan),
+        extra={
+            "far-coordinate": lambda p: _edit_bin(p, 3, 0, 1e30),
+            "float32-overflow": lambda p: _edit_bin(p, 2, 1, 3e38),
+            "infinite": lambda p: _edit_bin(p, 1, 2, -np.inf),
+        },
+    ),
+    "scan-npy-in-a-drive": Reader(
+        _drive_scan,
+        lambda b: b[:-7],
+        lambda p: _edit_npy(p, 2, 3, np.nan),
+        extra={"far-coordinate": lambda p: _edit_npy(p, 4, 1, -1e30)},
+    ),
+    "label-txt": Reader(
+        _labels,
+        lambda b: b[: b.index(b"\n") // 2],
+        lambda p: _replace_field(p, 0, 11, "nan"),
+        accepts=frozenset({"empty"}),
+    ),
     "calib-txt": Reader(_calibration, lambda b: b[:30], lambda p: _replace_field(p, 5, 1, "nan")),
-    "imagesets-split": Reader(_split, lambda b: b[:3], lambda p: p.write_text("nan\n"),
-                              extra={"frame-twice": _split_twice}),
-    "card-yaml": Reader(_card, lambda b: b[:150], lambda p: p.write_text(p.read_text() + "frame_rate: .nan\n"),
-                        named=lambda p: p.name),
-    "checkpoint-pth": Reader(_checkpoint, lambda b: b[:200],
-                             lambda p: torch.save({"w": torch.full((4,), float("nan")), "b": torch.zeros(2)}, p)),
-    "gps-csv": Reader(_gps, lambda b: b[:-9],
-                      lambda p: p.write_text(p.read_text().replace("\n0.1,1.0,", "\n0.1,nan,"))),
+    "imagesets-split": Reader(
+        _split, lambda b: b[:3], lambda p: p.write_text("nan\n"), extra={"frame-twice": _split_twice}
+    ),
+    "card-yaml": Reader(
+        _card, lambda b: b[:150], lambda p: p.write_text(p.read_text() + "frame_rate: .nan\n"), named=lambda p: p.name
+    ),
+    "checkpoint-pth": Reader(
+        _checkpoint,
+        lambda b: b[:200],
+        lambda p: torch.save({"w": torch.full((4,), float("nan")), "b": torch.zeros(2)}, p),
+    ),
+    "gps-csv": Reader(
+        _gps, lambda b: b[:-9], lambda p: p.write_text(p.read_text().replace("\n0.1,1.0,", "\n0.1,nan,"))
+    ),
 }
 
 
@@ -233,7 +258,7 @@ def _truncated(path: Path, reader: Reader) -> None:
 
 
 def _huge(path: Path, reader: Reader) -> None:
-    with open(path, "r+b") as f:         # the good file's head, then a hole: 5 GiB that occupy no disk
+    with open(path, "r+b") as f:  # the good file's head, then a hole: 5 GiB that occupy no disk
         f.truncate(HUGE)
 
 
@@ -250,8 +275,14 @@ def _nan(path: Path, reader: Reader) -> None:
     reader.nan(path)
 
 
-CORRUPTIONS = {"empty": _empty, "truncated": _truncated, "huge": _huge, "garbage": _garbage, "directory": _directory,
-               "nan": _nan}
+CORRUPTIONS = {
+    "empty": _empty,
+    "truncated": _truncated,
+    "huge": _huge,
+    "garbage": _garbage,
+    "directory": _directory,
+    "nan": _nan,
+}
 CASES = [(r, c) for r in READERS for c in CORRUPTIONS] + [(r, c) for r, reader in READERS.items() for c in reader.extra]
 
 
@@ -259,14 +290,14 @@ CASES = [(r, c) for r in READERS for c in CORRUPTIONS] + [(r, c) for r, reader i
 def test_every_reader_refuses_every_corruption_naming_the_file(kitti, tmp_path, reader_name, corruption):
     reader = READERS[reader_name]
     path, read = reader.setup(kitti, tmp_path)
-    read()                                          # the good file reads
+    read()  # the good file reads
     if corruption in CORRUPTIONS:
         CORRUPTIONS[corruption](path, reader)
     else:
         reader.extra[corruption](path)
     with bounded():
         if corruption in reader.accepts:
-            assert len(read()) == 0                 # an empty label file: a frame without objects
+            assert len(read()) == 0  # an empty label file: a frame without objects
             return
         with pytest.raises(RadarEdgeError) as err:
             read()
@@ -283,12 +314,15 @@ def test_a_split_that_lists_a_frame_twice_names_both_lines(kitti, tmp_path):
     split = root / "ImageSets" / "val.txt"
     ids = split.read_text().split()
     split.write_text("\n".join(ids + [ids[0]]) + "\n")
-    with pytest.raises(RadarEdgeError, match=rf"val.txt:{len(ids) + 1}: frame {fid} is listed again \(first on "
-                                             rf"line 1\)"):
+    with pytest.raises(
+        RadarEdgeError,
+        match=rf"val.txt:{len(ids) + 1}: frame {fid} is listed again \(first on "
+        rf"line 1\)",
+    ):
         DetectionSet(root, "val", VOD)
 
 
-@pytest.mark.parametrize("cut", range(JPEG.index(b"\xff\xc0") + 9))     # every cut before the frame header's width ends
+@pytest.mark.parametrize("cut", range(JPEG.index(b"\xff\xc0") + 9))  # every cut before the frame header's width ends
 def test_a_jpeg_cut_anywhere_before_its_size_is_one_error(kitti, tmp_path, cut):
     path, read = _image(kitti, tmp_path)
     path.write_bytes(JPEG[:cut])
@@ -316,12 +350,14 @@ def test_an_image_header_with_an_impossible_size_is_refused(kitti, tmp_path, wid
 
 def test_the_bounds_are_named_in_the_messages(kitti, tmp_path):
     """Each huge file's message says the bound and why it is one."""
-    expect = {"label-txt": "a frame holds at most a few thousand objects",
-              "checkpoint-pth": "2,147,483,648 bytes at most",
-              "imagesets-split": "one frame id a line",
-              "scan-bin-in-a-set": "the most a card's max_points_per_frame can take",
-              "gps-csv": "one row of about 50 bytes a scan",
-              "card-yaml": "a model card is at most 262144 bytes"}
+    expect = {
+        "label-txt": "a frame holds at most a few thousand objects",
+        "checkpoint-pth": "2,147,483,648 bytes at most",
+        "imagesets-split": "one frame id a line",
+        "scan-bin-in-a-set": "the most a card's max_points_per_frame can take",
+        "gps-csv": "one row of about 50 bytes a scan",
+        "card-yaml": "a model card is at most 262144 bytes",
+    }
     for name, says in expect.items():
         (tmp_path / name).mkdir()
         path, read = READERS[name].setup(kitti, tmp_path / name)
@@ -411,12 +447,22 @@ def _cli_case(case: str, root: Path, fid: str, tmp: Path) -> tuple[list[str], st
         return [], f"train.txt:{len(split.read_text().split())}: frame {fid} is listed again (first on line 1)"
     if case == "no-labelled-object":
         _all_labels_empty(root)
-        return [], "train.txt: none of the 4 training frames read has a labelled object of the card's classes " \
-                   "['Car', 'Pedestrian', 'Cyclist']"
+        return (
+            [],
+            "train.txt: none of the 4 training frames read has a labelled object of the card's classes "
+            "['Car', 'Pedestrian', 'Cyclist']",
+        )
     if case == "other-classes-only":
         for path in (root / "training" / "label_2").iterdir():
-            path.write_text("".join(line.replace("Car ", "truck ", 1).replace("Pedestrian ", "truck ", 1)
-                                    .replace("Cyclist ", "truck ", 1) + "\n" for line in path.read_text().splitlines()))
+            path.write_text(
+                "".join(
+                    line.replace("Car ", "truck ", 1)
+                    .replace("Pedestrian ", "truck ", 1)
+                    .replace("Cyclist ", "truck ", 1)
+                    + "\n"
+                    for line in path.read_text().splitlines()
+                )
+            )
         return [], "their labels name only ['truck']"
     if case == "huge-checkpoint":
         ckpt = tmp / "huge.pth"
@@ -437,9 +483,21 @@ def _cli_case(case: str, root: Path, fid: str, tmp: Path) -> tuple[list[str], st
     raise AssertionError(case)
 
 
-CLI_CASES = ["truncated-jpeg", "zero-png", "empty-scan", "far-scan", "overflowing-scan", "nan-scan", "huge-label",
-             "frame-twice", "no-labelled-object", "other-classes-only", "huge-checkpoint", "garbage-checkpoint",
-             "huge-card"]
+CLI_CASES = [
+    "truncated-jpeg",
+    "zero-png",
+    "empty-scan",
+    "far-scan",
+    "overflowing-scan",
+    "nan-scan",
+    "huge-label",
+    "frame-twice",
+    "no-labelled-object",
+    "other-classes-only",
+    "huge-checkpoint",
+    "garbage-checkpoint",
+    "huge-card",
+]
 
 
 @pytest.mark.parametrize("case", CLI_CASES)

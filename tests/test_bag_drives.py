@@ -6,16 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pyproj import Transformer
+from test_readers import ROS1, header, pointcloud, write_bag
 
 from radaredge.data.bag_drives import BagSource, load_bag_sequence
 from radaredge.data.geodesy import transverse_mercator, utm_from_latlon
 from radaredge.errors import InputError
 from radaredge.training.places import load_place_windows
 
-from test_readers import ROS1, header, pointcloud, write_bag
-
 FIX = "sensor_msgs/msg/NavSatFix"
-LAT0, LON0 = 1.3483, 103.6831           # NTU, Singapore: UTM zone 48 N
+LAT0, LON0 = 1.3483, 103.6831  # NTU, Singapore: UTM zone 48 N
 
 
 @pytest.mark.parametrize("lat, lon", [(LAT0, LON0), (52.0116, 4.3571), (-33.9, 18.4), (60.0, 11.9), (40.5, -73.5)])
@@ -34,23 +33,31 @@ def test_snyders_worked_example():
 
 def _fix(stamp, lat, lon, status=0):
     t = ROS1.types
-    return t[FIX](header(ROS1, stamp), t["sensor_msgs/msg/NavSatStatus"](status, 1), lat, lon, 10.0,
-                  np.zeros(9), 0)
+    return t[FIX](header(ROS1, stamp), t["sensor_msgs/msg/NavSatStatus"](status, 1), lat, lon, 10.0, np.zeros(9), 0)
 
 
 def _drive_bag(path, north_m: float, scans: int = 8, doppler: float = -8.0):
     """A drive heading north from NTU at 10 Hz: fixes at 5 Hz from 0.05 s, one with no fix;
     NTU4DRadLM-style PointCloud scans whose channel 0 is the Doppler and channel 2 the power."""
-    fixes = [_fix((1700000000, int(5e7 + 2e8 * i)), LAT0 + (north_m + 2.0 * i) / 110574.0, LON0)
-             for i in range(scans // 2 + 1)]
+    fixes = [
+        _fix((1700000000, int(5e7 + 2e8 * i)), LAT0 + (north_m + 2.0 * i) / 110574.0, LON0)
+        for i in range(scans // 2 + 1)
+    ]
     fixes.insert(2, _fix((1700000000, int(2.6e8)), 0.0, 0.0, status=-1))
     clouds = []
     for i in range(scans):
         xyz = np.array([[10.0 + i, 1.0, 0.5], [20.0, -2.0, 0.0]])
-        clouds.append(pointcloud(ROS1, (1700000000, int(1e8 * i)), xyz,
-                                 {"Doppler": [doppler, doppler], "Range": [10.0, 20.0], "Power": [30.0 + i, 20.0]}))
-    return write_bag(path, True, {"/radar_enhanced_pcl": ("sensor_msgs/msg/PointCloud", clouds),
-                                  "/ublox/fix": (FIX, fixes)})
+        clouds.append(
+            pointcloud(
+                ROS1,
+                (1700000000, int(1e8 * i)),
+                xyz,
+                {"Doppler": [doppler, doppler], "Range": [10.0, 20.0], "Power": [30.0 + i, 20.0]},
+            )
+        )
+    return write_bag(
+        path, True, {"/radar_enhanced_pcl": ("sensor_msgs/msg/PointCloud", clouds), "/ublox/fix": (FIX, fixes)}
+    )
 
 
 def test_bag_drive_positions_are_interpolated_utm(tmp_path):
@@ -65,16 +72,18 @@ def test_bag_drive_positions_are_interpolated_utm(tmp_path):
     np.testing.assert_allclose(seq.positions[:, 1], e0[0], atol=0.02)
     scan = seq.scan(2, ["x", "v_r", "rcs"])
     np.testing.assert_allclose(scan, [[13.0, -8.0, 33.0], [20.0, -8.0, 20.0]])
-    flipped = load_bag_sequence(bag, ["x", "y", "z", "v_r", "rcs"],
-                                BagSource(field_map={"v_r": 0, "rcs": 2}, doppler_sign=-1.0))
+    flipped = load_bag_sequence(
+        bag, ["x", "y", "z", "v_r", "rcs"], BagSource(field_map={"v_r": 0, "rcs": 2}, doppler_sign=-1.0)
+    )
     assert flipped.scan(2, ["v_r"]).ravel().tolist() == [8.0, 8.0]
 
 
 def test_a_directory_of_bags_is_a_training_set(tmp_path):
     for i, north in enumerate((0.0, 0.5, 1.0)):
         _drive_bag(tmp_path / f"drive-{i}.bag", north)
-    data = load_place_windows(tmp_path, 3, features=["x", "y", "z", "v_r", "rcs"],
-                              bag=BagSource(field_map={"v_r": "Doppler", "rcs": "Power"}))
+    data = load_place_windows(
+        tmp_path, 3, features=["x", "y", "z", "v_r", "rcs"], bag=BagSource(field_map={"v_r": "Doppler", "rcs": "Power"})
+    )
     assert data.names == ["drive-0.bag", "drive-1.bag", "drive-2.bag"]
     assert data.validation.sum() == 5 and set(data.drive[data.validation]) == {2}
     scans, t = data.inputs(0, ["x", "y", "z", "v_r", "rcs"])
@@ -82,11 +91,25 @@ def test_a_directory_of_bags_is_a_training_set(tmp_path):
 
 
 def test_bag_without_fixes_names_the_bag_and_topic(tmp_path):
-    bag = write_bag(tmp_path / "nofix.bag", True, {"/radar_enhanced_pcl": (
-        "sensor_msgs/msg/PointCloud", [pointcloud(ROS1, (1700000000, 0), np.zeros((1, 3)), {"Doppler": [0.0]})])})
+    bag = write_bag(
+        tmp_path / "nofix.bag",
+        True,
+        {
+            "/radar_enhanced_pcl": (
+                "sensor_msgs/msg/PointCloud",
+                [pointcloud(ROS1, (1700000000, 0), np.zeros((1, 3)), {"Doppler": [0.0]})],
+            )
+        },
+    )
     with pytest.raises(InputError, match=r"nofix\.bag: no GNSS topic '/ublox/fix'; the bag has: /radar_enhanced_pcl"):
         load_bag_sequence(bag, ["x", "y", "z", "v_r"])
-    no_fix = write_bag(tmp_path / "bad.bag", True, {"/ublox/fix": (FIX, [_fix((1700000000, 0), 0.0, 0.0, -1)]),
-                                                    "/radar_enhanced_pcl": ("sensor_msgs/msg/PointCloud", [])})
+    no_fix = write_bag(
+        tmp_path / "bad.bag",
+        True,
+        {
+            "/ublox/fix": (FIX, [_fix((1700000000, 0), 0.0, 0.0, -1)]),
+            "/radar_enhanced_pcl": ("sensor_msgs/msg/PointCloud", []),
+        },
+    )
     with pytest.raises(InputError, match=r"bad\.bag: 0 valid GNSS fix"):
         load_bag_sequence(no_fix, ["x", "y", "z", "v_r"])

@@ -33,13 +33,27 @@ def test_suite_writes_table_json_and_chart(tmp_path, monkeypatch, tiny_export):
     spec = importlib.util.spec_from_file_location("bench_suite", ROOT / "benchmarks" / "run.py")
     suite = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(suite)
-    export_dir = tmp_path / "export"          # a copy: the suite adds an int8 graph beside it
+    export_dir = tmp_path / "export"  # a copy: the suite adds an int8 graph beside it
     export_dir.mkdir()
     shutil.copy(tiny_export[2], export_dir / "tdfanet-tiny.onnx")
-    assert suite.main(["--models", "tdfanet-tiny", "maffnet-tiny", "--runs", "2", "--export-dir", str(export_dir),
-                       "--out", str(tmp_path / "bench")]) == 0
+    assert (
+        suite.main(
+            [
+                "--models",
+                "tdfanet-tiny",
+                "maffnet-tiny",
+                "--runs",
+                "2",
+                "--export-dir",
+                str(export_dir),
+                "--out",
+                str(tmp_path / "bench"),
+            ]
+        )
+        == 0
+    )
     table = (tmp_path / "bench" / "README.md").read_text()
-    for model in ("tdfanet-tiny", "maffnet-tiny"):             # maffnet-tiny is exported and quantised by the suite
+    for model in ("tdfanet-tiny", "maffnet-tiny"):  # maffnet-tiny is exported and quantised by the suite
         for backend in ("torch reference", "torch export", "onnxruntime", "onnxruntime int8"):
             assert f"| {model} | {backend} |" in table
     assert (tmp_path / "bench" / "suite.png").stat().st_size > 1000

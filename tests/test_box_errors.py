@@ -29,13 +29,15 @@ def test_errors_are_signed_for_height_and_absolute_for_the_rest():
     assert e.xy == pytest.approx((0.5 + 0.0) / 2)
     assert e.dz == pytest.approx((0.4 + 0.6) / 2) and e.abs_dz == pytest.approx(0.5)
     assert e.abs_dh == pytest.approx(0.2) and e.abs_dl == pytest.approx(0.5) and e.abs_dw == pytest.approx(0.0)
-    assert e.heading_deg == pytest.approx(math.degrees(2 * math.pi - 6.0) / 2)       # wrapped across +-pi
-    assert e.dz > 0                                                                   # boxes sit too high
+    assert e.heading_deg == pytest.approx(math.degrees(2 * math.pi - 6.0) / 2)  # wrapped across +-pi
+    assert e.dz > 0  # boxes sit too high
 
 
 def test_frames_are_matched_apart_and_an_empty_class_gives_nan():
-    frames = [(np.array([box(10, 0)]), np.array([0.5]), np.zeros((0, 7))),
-              (np.zeros((0, 7)), np.zeros(0), np.array([box(10, 0)]))]
+    frames = [
+        (np.array([box(10, 0)]), np.array([0.5]), np.zeros((0, 7))),
+        (np.zeros((0, 7)), np.zeros(0), np.array([box(10, 0)])),
+    ]
     e = class_box_errors(frames)
     assert (e.ground_truth, e.matched) == (1, 0) and math.isnan(e.xy) and e.to_dict()["xy"] is None
     assert "0/1" in box_error_lines({"onnxruntime": {"Car": e}})[1]

@@ -9,8 +9,13 @@ import pytest
 import torch
 
 from radaredge.ops.box_iou import bev_iou_matrix_reference, bev_iou_paired, bev_iou_reference, bev_iou_upper_bound
-from radaredge.ops.nms import (NmsConfig, class_agnostic_nms, class_agnostic_nms_eager, class_agnostic_nms_reference,
-                               greedy_nms_reference)
+from radaredge.ops.nms import (
+    NmsConfig,
+    class_agnostic_nms,
+    class_agnostic_nms_eager,
+    class_agnostic_nms_reference,
+    greedy_nms_reference,
+)
 
 
 def random_boxes(rng, n, spread=4.0):
@@ -29,7 +34,7 @@ def special_pairs(rng):
     b[10:20, 6] += math.pi / 2
     b[20:30, 3:5] *= 0.5
     b[30:40, 6] += math.pi
-    b[40:50, 0] += np.cos(a[40:50, 6]) * a[40:50, 3]          # shifted by its length along its heading
+    b[40:50, 0] += np.cos(a[40:50, 6]) * a[40:50, 3]  # shifted by its length along its heading
     b[40:50, 1] += np.sin(a[40:50, 6]) * a[40:50, 3]
     b[50:60, :2] += 50.0
     return a, b
@@ -46,7 +51,7 @@ def test_iou_known_values():
     octagon = 2 * (math.sqrt(2) - 1)
     assert bev_iou_reference(unit, diamond) == pytest.approx(octagon / (2 - octagon))
     got = bev_iou_paired(torch.from_numpy(np.stack([unit, unit])), torch.from_numpy(np.stack([half, diamond]))).numpy()
-    np.testing.assert_allclose(got, [1 / 3, octagon / (2 - octagon)], atol=1e-4)    # float32: tol x perimeter
+    np.testing.assert_allclose(got, [1 / 3, octagon / (2 - octagon)], atol=1e-4)  # float32: tol x perimeter
 
 
 @pytest.mark.parametrize("dtype,atol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
@@ -59,9 +64,9 @@ def test_iou_matches_reference(dtype, atol):
     ref = np.array([bev_iou_reference(x, y) for x, y in zip(a.astype(np.float64), b.astype(np.float64))])
     assert np.abs(got - ref).max() <= atol
     # the special pairs are built in float32, so "identical" and "touching" hold to ~1e-6
-    np.testing.assert_allclose(got[:10], 1.0, atol=1e-5)               # identical boxes
-    np.testing.assert_allclose(got[30:40], 1.0, atol=1e-5)             # same footprint, flipped
-    np.testing.assert_allclose(got[40:60], 0.0, atol=1e-5)             # touching or far apart
+    np.testing.assert_allclose(got[:10], 1.0, atol=1e-5)  # identical boxes
+    np.testing.assert_allclose(got[30:40], 1.0, atol=1e-5)  # same footprint, flipped
+    np.testing.assert_allclose(got[40:60], 0.0, atol=1e-5)  # touching or far apart
 
 
 def test_iou_upper_bound_never_falls_below_the_iou():
@@ -79,9 +84,9 @@ def test_iou_upper_bound_never_falls_below_the_iou():
     bound = bev_iou_upper_bound(torch.from_numpy(a), torch.from_numpy(b)).numpy()
     ref = np.array([bev_iou_reference(x, y) for x, y in zip(a, b)])
     assert (bound >= ref - 1e-12).all() and (bound <= 1 + 1e-12).all()
-    assert (bound > ref + 0.05).sum() > 100                              # a bound, not the IoU itself
-    np.testing.assert_allclose(bound[-500:], ref[-500:], atol=1e-6)      # axis-aligned (to float32 headings)
-    assert (bound[50:60] == 0).all()                                     # far apart
+    assert (bound > ref + 0.05).sum() > 100  # a bound, not the IoU itself
+    np.testing.assert_allclose(bound[-500:], ref[-500:], atol=1e-6)  # axis-aligned (to float32 headings)
+    assert (bound[50:60] == 0).all()  # far apart
 
 
 def test_iou_matrix_reference_is_symmetric():
@@ -93,11 +98,15 @@ def test_iou_matrix_reference_is_symmetric():
 
 
 def test_greedy_reference_by_hand():
-    boxes = np.array([[0, 0, 0, 2, 2, 1, 0],       # kept
-                      [0.2, 0, 0, 2, 2, 1, 0],     # IoU 0.82 with 0: suppressed
-                      [5, 0, 0, 2, 2, 1, 0],       # far: kept
-                      [1.9, 0, 0, 2, 2, 1, 0]],    # IoU 0.026 with 0: kept at 0.1
-                     np.float64)
+    boxes = np.array(
+        [
+            [0, 0, 0, 2, 2, 1, 0],  # kept
+            [0.2, 0, 0, 2, 2, 1, 0],  # IoU 0.82 with 0: suppressed
+            [5, 0, 0, 2, 2, 1, 0],  # far: kept
+            [1.9, 0, 0, 2, 2, 1, 0],
+        ],  # IoU 0.026 with 0: kept at 0.1
+        np.float64,
+    )
     assert greedy_nms_reference(boxes, 0.1) == [0, 2, 3]
     assert greedy_nms_reference(boxes, 0.9) == [0, 1, 2, 3]
 
@@ -107,7 +116,7 @@ def _nms_cases(rng):
         boxes = random_boxes(rng, 1500, spread=15.0)
         scores = rng.random(1500).astype(np.float32)
         if i % 2:
-            scores[:400] = 0.5                       # a block of equal scores: lower index first
+            scores[:400] = 0.5  # a block of equal scores: lower index first
         yield boxes, scores
 
 
@@ -119,7 +128,7 @@ def test_nms_matches_reference_in_torch(config):
         ref = class_agnostic_nms_reference(boxes, scores, config)
         assert got.tolist() == ref.tolist()
         eager = class_agnostic_nms_eager(torch.tensor(boxes), torch.tensor(scores), config).numpy()
-        assert eager.tolist() == ref.tolist()                # training's validation NMS: the same indices
+        assert eager.tolist() == ref.tolist()  # training's validation NMS: the same indices
 
 
 class _Nms(torch.nn.Module):
@@ -135,14 +144,18 @@ def test_nms_onnx_matches_reference(onnx_roundtrip):
     config = NmsConfig(0.1, 0.1, 500, 120)
     rng = np.random.default_rng(3)
     boxes, scores = next(_nms_cases(rng))
-    rt = onnx_roundtrip(_Nms(config), {"boxes": torch.tensor(boxes), "scores": torch.tensor(scores)}, ["selected"],
-                        {"boxes": {0: "anchors"}, "scores": {0: "anchors"}})
-    few = []                                        # 0, 1 and 2 boxes above the threshold: the data-dependent
-    for n_above in (0, 1, 2):                       # candidate count may not break the graph's shapes
+    rt = onnx_roundtrip(
+        _Nms(config),
+        {"boxes": torch.tensor(boxes), "scores": torch.tensor(scores)},
+        ["selected"],
+        {"boxes": {0: "anchors"}, "scores": {0: "anchors"}},
+    )
+    few = []  # 0, 1 and 2 boxes above the threshold: the data-dependent
+    for n_above in (0, 1, 2):  # candidate count may not break the graph's shapes
         sc = np.full(60, 0.05, np.float32)
         sc[rng.choice(60, n_above, replace=False)] = 0.9
         few.append((random_boxes(rng, 60), sc))
-    cluster = random_boxes(rng, 300, spread=1.0)    # a dense head: hundreds of overlapping boxes
+    cluster = random_boxes(rng, 300, spread=1.0)  # a dense head: hundreds of overlapping boxes
     few.append((cluster, rng.random(300).astype(np.float32)))
     for boxes, scores in list(_nms_cases(rng)) + few:
         _, got = rt({"boxes": torch.tensor(boxes), "scores": torch.tensor(scores)})

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import TINY_CARD
 
 import radaredge
 from radaredge import runtime
@@ -23,17 +24,20 @@ from radaredge.models import create_model
 from radaredge.runtime.flags import CAPACITY, IMPLAUSIBLE, NON_FINITE, OUT_OF_RANGE, TIME_ORDER
 from radaredge.runtime.session import run_session
 
-from conftest import TINY_CARD
-
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "c"
 MAFF_TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
 
 
 def _make(target: str, build: Path) -> Path:
-    done = subprocess.run(["make", "-C", str(EXAMPLE), f"BUILD={build}", f"PYTHON={sys.executable}", target],
-                          capture_output=True, text=True)
-    assert done.returncode == 0, f"building examples/c failed (onnxruntime's C headers come from Debian's " \
-                                 f"libonnxruntime-dev via examples/c/fetch_headers.sh):\n{done.stdout}\n{done.stderr}"
+    done = subprocess.run(
+        ["make", "-C", str(EXAMPLE), f"BUILD={build}", f"PYTHON={sys.executable}", target],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, (
+        f"building examples/c failed (onnxruntime's C headers come from Debian's "
+        f"libonnxruntime-dev via examples/c/fetch_headers.sh):\n{done.stdout}\n{done.stderr}"
+    )
     return build / ("radaredge_run" if target == "all" else "radaredge_run_asan")
 
 
@@ -62,14 +66,17 @@ def _scans(tmp: Path, arrays: list[np.ndarray]) -> list[Path]:
 
 def _run(client: Path, onnx: Path, scans: list[Path], out: Path, *extra) -> subprocess.CompletedProcess:
     out.mkdir(parents=True, exist_ok=True)
-    return subprocess.run([str(client), *map(str, extra), "--out", str(out), str(onnx), *map(str, scans)],
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [str(client), *map(str, extra), "--out", str(out), str(onnx), *map(str, scans)], capture_output=True, text=True
+    )
 
 
 def _outputs(out: Path) -> dict[str, np.ndarray]:
     summary = json.loads((out / "summary.json").read_text())
-    return {o["name"]: np.fromfile(out / f"{o['name']}.bin", np.dtype(o["dtype"])).reshape(o["shape"])
-            for o in summary["outputs"]}
+    return {
+        o["name"]: np.fromfile(out / f"{o['name']}.bin", np.dtype(o["dtype"])).reshape(o["shape"])
+        for o in summary["outputs"]
+    }
 
 
 def _tdfanet_frames():
@@ -88,12 +95,20 @@ def _maffnet_frames():
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_c_client_is_bitwise_the_python_runtime(client, graphs, tmp_path, model, threads):
     frames = _tdfanet_frames() if model == "tdfanet" else _maffnet_frames()
-    stamps = [1732500000.1, 1732500000.2, 1732500000.3][:len(frames)]
-    res = _run(client, graphs[model], _scans(tmp_path, frames), tmp_path / "out", "--threads", threads,
-               "--timestamps", ",".join(repr(t) for t in stamps))
+    stamps = [1732500000.1, 1732500000.2, 1732500000.3][: len(frames)]
+    res = _run(
+        client,
+        graphs[model],
+        _scans(tmp_path, frames),
+        tmp_path / "out",
+        "--threads",
+        threads,
+        "--timestamps",
+        ",".join(repr(t) for t in stamps),
+    )
     assert res.returncode == 0, res.stderr
     assert "card:" in res.stdout and "x, y, z" in res.stdout
-    assert all(line.startswith("input_flags: frame") for line in res.stderr.splitlines())   # information only
+    assert all(line.startswith("input_flags: frame") for line in res.stderr.splitlines())  # information only
     got = _outputs(tmp_path / "out")
     m = runtime.load(graphs[model], threads=threads)
     want = m.run(frames, stamps if m.inputs.timestamps_input else None)
@@ -109,8 +124,10 @@ def test_the_c_client_refuses_bad_input_like_the_runtime(client, graphs, tmp_pat
     frames[2][3, 4] = np.nan
     scans = _scans(tmp_path, frames)
     res = _run(client, graphs["tdfanet"], scans, tmp_path / "a")
-    assert res.returncode == 2 and res.stderr.strip() == \
-        f"error: frame 2 ({scans[2]}): non-finite value nan at point 3, column 'rcs'"
+    assert (
+        res.returncode == 2
+        and res.stderr.strip() == f"error: frame 2 ({scans[2]}): non-finite value nan at point 3, column 'rcs'"
+    )
     (tmp_path / "short.bin").write_bytes(b"\0" * 13)
     res = _run(client, graphs["tdfanet"], [scans[0], scans[1], tmp_path / "short.bin"], tmp_path / "b")
     assert res.returncode == 2 and "13 bytes is not a whole number of rows of 5 float32 columns" in res.stderr
@@ -118,16 +135,28 @@ def test_the_c_client_refuses_bad_input_like_the_runtime(client, graphs, tmp_pat
     assert res.returncode == 2 and "takes 3 frame(s)" in res.stderr
     res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / "d", "--timestamps", "1,1,2")
     assert res.returncode == 2 and "timestamps must increase strictly" in res.stderr
-    close = [0.0, 0.1, 0.100000001]                  # increasing in float64, equal in the graph's float32
-    res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / "e", "--timestamps",
-               ",".join(map(repr, close)))
+    close = [0.0, 0.1, 0.100000001]  # increasing in float64, equal in the graph's float32
+    res = _run(
+        client,
+        graphs["tdfanet"],
+        _scans(tmp_path, _tdfanet_frames()),
+        tmp_path / "e",
+        "--timestamps",
+        ",".join(map(repr, close)),
+    )
     assert res.returncode == 2 and "frames 1 and 2 are 1e-09 s apart" in res.stderr
     with pytest.raises(InputError, match="frames 1 and 2 are 1e-09 s apart"):
         runtime.load(graphs["tdfanet"]).run(_tdfanet_frames(), close)
-    for unit, scale in (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9)):   # not seconds
+    for unit, scale in (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9)):  # not seconds
         stamps = [1732500000.0 * scale + k * 0.1 * scale for k in range(3)]
-        res = _run(client, graphs["tdfanet"], _scans(tmp_path, _tdfanet_frames()), tmp_path / unit, "--timestamps",
-                   ",".join(map(repr, stamps)))
+        res = _run(
+            client,
+            graphs["tdfanet"],
+            _scans(tmp_path, _tdfanet_frames()),
+            tmp_path / unit,
+            "--timestamps",
+            ",".join(map(repr, stamps)),
+        )
         assert res.returncode == 2 and "off its period are refused" in res.stderr, res.stderr
         with pytest.raises(InputError, match=f"they look like {unit}: pass seconds"):
             runtime.load(graphs["tdfanet"]).run(_tdfanet_frames(), stamps)
@@ -159,7 +188,7 @@ def _flag_cases():
     into frame 2."""
     rng = np.random.default_rng(1)
 
-    def static_scan(xyz):                       # a static world seen from a radar driving at 8 m/s
+    def static_scan(xyz):  # a static world seen from a radar driving at 8 m/s
         v_r = -(xyz / np.linalg.norm(xyz, axis=1, keepdims=True)) @ np.array([8.0, 0.0, 0.0])
         return np.column_stack([xyz, v_r, np.full(len(xyz), 5.0)]).astype(np.float32)
 
@@ -173,8 +202,15 @@ def _flag_cases():
 
 def test_input_flags_from_c_and_from_python(client, graphs, tmp_path):
     frames, stamps = _flag_cases()
-    res = _run(client, graphs["tdfanet"], _scans(tmp_path, frames), tmp_path / "out", "--no-checks",
-               "--timestamps", ",".join(map(str, stamps)))
+    res = _run(
+        client,
+        graphs["tdfanet"],
+        _scans(tmp_path, frames),
+        tmp_path / "out",
+        "--no-checks",
+        "--timestamps",
+        ",".join(map(str, stamps)),
+    )
     assert res.returncode == 1, res.stderr
     flags = _outputs(tmp_path / "out")["input_flags"]
     assert flags.tolist() == [OUT_OF_RANGE | IMPLAUSIBLE, NON_FINITE, TIME_ORDER | CAPACITY]
@@ -182,14 +218,14 @@ def test_input_flags_from_c_and_from_python(client, graphs, tmp_path):
     assert "frame 0: bit 5 (32): implausible" in res.stderr
     meta = json.loads(runtime.load(graphs["tdfanet"]).metadata["radaredge.input_flags"])
     assert set(meta) == {"1", "2", "4", "8", "16", "32"}
-    m = runtime.load(graphs["tdfanet"], threads=1)     # the graph itself, fed directly as a C app does
+    m = runtime.load(graphs["tdfanet"], threads=1)  # the graph itself, fed directly as a C app does
     raw = {f"points_{k}": f for k, f in enumerate(frames)}
     raw["timestamps"] = np.float32(stamps)
     assert run_session(m.session, raw)["input_flags"].tolist() == flags.tolist()
-    raw["timestamps"] = np.float32([0.0, np.nan, 0.2])   # a NaN compares False: flagged, not taken as ordered
+    raw["timestamps"] = np.float32([0.0, np.nan, 0.2])  # a NaN compares False: flagged, not taken as ordered
     assert [f & TIME_ORDER for f in run_session(m.session, raw)["input_flags"].tolist()] == [0, TIME_ORDER, TIME_ORDER]
     with pytest.raises(InputError, match="frame 1: non-finite value nan at point 7, column 'z'"):
-        m.run(frames, stamps)                          # the runtime refuses what the graph would mask
+        m.run(frames, stamps)  # the runtime refuses what the graph would mask
     frames[1][7, 2] = 0.0
     with pytest.raises(InputError, match="timestamps must increase strictly"):
         m.run(frames, stamps)
@@ -199,18 +235,30 @@ def test_input_flags_from_c_and_from_python(client, graphs, tmp_path):
 def test_sanitizers(graphs, tmp_path_factory, tmp_path):
     """AddressSanitizer and UndefinedBehaviorSanitizer: no error on a good run or a refused one."""
     asan = _make("asan", tmp_path_factory.mktemp("c-asan"))
-    env = {**os.environ, "ASAN_OPTIONS": "detect_leaks=1:abort_on_error=0:exitcode=99",
-           "LSAN_OPTIONS": f"suppressions={EXAMPLE / 'lsan.supp'}", "UBSAN_OPTIONS": "halt_on_error=1:exitcode=98"}
+    env = {
+        **os.environ,
+        "ASAN_OPTIONS": "detect_leaks=1:abort_on_error=0:exitcode=99",
+        "LSAN_OPTIONS": f"suppressions={EXAMPLE / 'lsan.supp'}",
+        "UBSAN_OPTIONS": "halt_on_error=1:exitcode=98",
+    }
     scans = _scans(tmp_path, _tdfanet_frames())
     for extra, code in (((), 0), (("--timestamps", "3,2,1"), 2)):
         out = tmp_path / f"out{code}"
         out.mkdir()
-        res = subprocess.run([str(asan), *extra, "--out", str(out), str(graphs["tdfanet"]), *map(str, scans)],
-                             capture_output=True, text=True, env=env)
+        res = subprocess.run(
+            [str(asan), *extra, "--out", str(out), str(graphs["tdfanet"]), *map(str, scans)],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
         assert res.returncode == code, res.stderr[-3000:]
         assert "Sanitizer" not in res.stderr, res.stderr[-3000:]
-    out = tmp_path / "maffnet"                   # the declared checks' metadata read and applied
+    out = tmp_path / "maffnet"  # the declared checks' metadata read and applied
     out.mkdir()
-    res = subprocess.run([str(asan), "--out", str(out), str(graphs["maffnet"]),
-                          *map(str, _scans(out, _maffnet_frames()))], capture_output=True, text=True, env=env)
+    res = subprocess.run(
+        [str(asan), "--out", str(out), str(graphs["maffnet"]), *map(str, _scans(out, _maffnet_frames()))],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     assert res.returncode == 0 and "Sanitizer" not in res.stderr, res.stderr[-3000:]

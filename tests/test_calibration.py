@@ -5,14 +5,14 @@ import json
 
 import numpy as np
 import pytest
+from conftest import invoke
 
+import radaredge
 from radaredge import runtime
-from radaredge.exporting.calibration import recorded_feeds, recorded_scan_paths, recording_format, window_starts
 from radaredge.data.synthetic import generate_sequence
 from radaredge.errors import ConfigError, InputError
-import radaredge
+from radaredge.exporting.calibration import recorded_feeds, recorded_scan_paths, recording_format, window_starts
 from radaredge.exporting.quantize import quantize_int8
-from conftest import invoke
 
 
 def write_scans(directory, n=7, seed=3):
@@ -23,13 +23,16 @@ def write_scans(directory, n=7, seed=3):
     return directory
 
 
-@pytest.mark.parametrize("num, k, n, expected", [
-    (10, 3, 4, [0, 2, 5, 7]),          # evenly spread, first and last window included
-    (10, 3, 8, [0, 1, 2, 3, 4, 5, 6, 7]),   # no more windows than there are
-    (10, 3, 50, [0, 1, 2, 3, 4, 5, 6, 7]),
-    (3, 3, 4, [0]),
-    (9, 1, 3, [0, 4, 8]),
-])
+@pytest.mark.parametrize(
+    "num, k, n, expected",
+    [
+        (10, 3, 4, [0, 2, 5, 7]),  # evenly spread, first and last window included
+        (10, 3, 8, [0, 1, 2, 3, 4, 5, 6, 7]),  # no more windows than there are
+        (10, 3, 50, [0, 1, 2, 3, 4, 5, 6, 7]),
+        (3, 3, 4, [0]),
+        (9, 1, 3, [0, 4, 8]),
+    ],
+)
 def test_window_starts(num, k, n, expected):
     assert window_starts(num, k, n).tolist() == expected
 
@@ -62,19 +65,19 @@ def test_recording_format(tmp_path):
         recorded_scan_paths(tmp_path / "a", "pcd")
     bins = tmp_path / "b"
     bins.mkdir()
-    np.zeros((5, 8), "<f4").tofile(bins / "000000.bin")     # 160 bytes: tj4d rows only
+    np.zeros((5, 8), "<f4").tofile(bins / "000000.bin")  # 160 bytes: tj4d rows only
     np.zeros((3, 8), "<f4").tofile(bins / "000001.bin")
     assert recording_format(recorded_scan_paths(bins)) == "tj4d"
-    np.zeros((7, 8), "<f4").tofile(bins / "000002.bin")     # 224 bytes fit vod and tj4d, the others only tj4d
+    np.zeros((7, 8), "<f4").tofile(bins / "000002.bin")  # 224 bytes fit vod and tj4d, the others only tj4d
     assert recording_format(recorded_scan_paths(bins)) == "tj4d"
-    np.zeros((4, 7), "<f4").tofile(bins / "000003.bin")     # 112 bytes: vod only -> no layout fits all
+    np.zeros((4, 7), "<f4").tofile(bins / "000003.bin")  # 112 bytes: vod only -> no layout fits all
     with pytest.raises(InputError, match="fit neither .*--calibration-format"):
         recording_format(recorded_scan_paths(bins))
-    assert recording_format(recorded_scan_paths(bins, "tj4d"), "tj4d") == "tj4d"   # named: not inferred
+    assert recording_format(recorded_scan_paths(bins, "tj4d"), "tj4d") == "tj4d"  # named: not inferred
     np.save(bins / "000004.npy", np.zeros((2, 5), np.float32))
     with pytest.raises(InputError, match="mixes .bin and .npy scan files"):
         recording_format(recorded_scan_paths(bins))
-    assert [p.name for p in recorded_scan_paths(bins, "transloc")] == ["000004.npy"]   # a named format reads its own
+    assert [p.name for p in recorded_scan_paths(bins, "transloc")] == ["000004.npy"]  # a named format reads its own
 
 
 def test_recorded_feeds_are_runtime_feeds(tiny_export, tmp_path):
@@ -87,7 +90,7 @@ def test_recorded_feeds_are_runtime_feeds(tiny_export, tmp_path):
     # the last window is the last K scans, oldest first, in the card's feature columns
     for k in range(model.frames):
         scan = np.load(rec / f"{7 - model.frames + k:06d}.npy")
-        np.testing.assert_array_equal(feeds[-1][f"points_{k}"], scan[:, :len(model.features)])
+        np.testing.assert_array_equal(feeds[-1][f"points_{k}"], scan[:, : len(model.features)])
     np.testing.assert_allclose(feeds[-1]["timestamps"], np.arange(model.frames) / model.frame_rate)
 
 
@@ -97,8 +100,11 @@ def test_recorded_feeds_name_the_window_with_bad_data(tiny_export, tmp_path):
     scan = np.load(rec / "000003.npy")
     scan[2, 3] = np.nan
     np.save(rec / "000003.npy", scan)
-    with pytest.raises(InputError, match="calibration window 000001.npy, 000002.npy, 000003.npy: frame 2: "
-                                         "non-finite value nan at point 2, column 'v_r'"):
+    with pytest.raises(
+        InputError,
+        match="calibration window 000001.npy, 000002.npy, 000003.npy: frame 2: "
+        "non-finite value nan at point 2, column 'v_r'",
+    ):
         recorded_feeds(runtime.load(fp32), rec, 2)
 
 
@@ -108,20 +114,29 @@ def test_quantise_on_a_recording(tiny_export, tmp_path):
     rec = write_scans(tmp_path / "rec", n=8, seed=11)
     path = quantize_int8(card, fp32, tmp_path / "rec.int8.onnx", calibration_cases=4, calibration_dir=rec)
     calib = json.loads(runtime.load(path).metadata["radaredge.quantization"])["calibration"]
-    assert calib == {"data": "recorded", "directory": str(rec), "format": "transloc", "scans": 8, "windows": 4,
-                     "method": "minmax"}
+    assert calib == {
+        "data": "recorded",
+        "directory": str(rec),
+        "format": "transloc",
+        "scans": 8,
+        "windows": 4,
+        "method": "minmax",
+    }
     report = radaredge.parity(card, path, model=model, cases=6, seed=4, quantized=True)
     assert report, report.to_dict()
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--calibration", "REC"], "--calibration: int8 calibration options need --quantize int8"),
-    (["--calibration-windows", "4"], "--calibration-windows: int8 calibration options need --quantize int8"),
-    (["--quantize", "int8", "--calibration-format", "vod"], "add --calibration DIR"),
-    (["--quantize", "int8", "--calibration", "MISSING"], "MISSING is not a directory"),
-    (["--quantize", "int8", "--calibration", "REC", "--calibration-format", "vod"], "no .bin scan files"),
-    (["--quantize", "int8", "--calibration", "SHORT"], "holds 2 scan(s) but one window of this model takes 3"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--calibration", "REC"], "--calibration: int8 calibration options need --quantize int8"),
+        (["--calibration-windows", "4"], "--calibration-windows: int8 calibration options need --quantize int8"),
+        (["--quantize", "int8", "--calibration-format", "vod"], "add --calibration DIR"),
+        (["--quantize", "int8", "--calibration", "MISSING"], "MISSING is not a directory"),
+        (["--quantize", "int8", "--calibration", "REC", "--calibration-format", "vod"], "no .bin scan files"),
+        (["--quantize", "int8", "--calibration", "SHORT"], "holds 2 scan(s) but one window of this model takes 3"),
+    ],
+)
 def test_cli_calibration_options_fail_before_the_export(tmp_path, args, message):
     rec, short = write_scans(tmp_path / "rec", n=3), write_scans(tmp_path / "short", n=2)
     paths = {"REC": str(rec), "SHORT": str(short), "MISSING": str(tmp_path / "MISSING")}
@@ -131,14 +146,16 @@ def test_cli_calibration_options_fail_before_the_export(tmp_path, args, message)
 
 
 def test_cli_calibration_does_not_apply_to_the_dynamic_text_encoder(tmp_path):
-    res = invoke("export", "--model", "des4pos", "--quantize", "int8", "--calibration-windows", "4",
-                 "--output", tmp_path / "d")
+    res = invoke(
+        "export", "--model", "des4pos", "--quantize", "int8", "--calibration-windows", "4", "--output", tmp_path / "d"
+    )
     assert res.exit_code == 2 and "quantised dynamically" in res.output and "drop --calibration-windows" in res.output
 
 
 def test_recorded_feeds_need_the_cards_columns(tmp_path):
     """A card whose columns the recording's format cannot serve (VoD's compensated Doppler from
     TransLoc4D-style scans) fails on the first window, naming it and the missing column."""
+
     class VodCardModel:
         frames, features = 1, ["x", "y", "z", "rcs", "v_r", "v_r_comp", "time"]
 
@@ -146,6 +163,7 @@ def test_recorded_feeds_need_the_cards_columns(tmp_path):
             raise AssertionError("not reached")
 
     rec = write_scans(tmp_path / "rec", n=2)
-    with pytest.raises(InputError, match="calibration window 000000.npy: .*cannot provide feature\\(s\\) "
-                                         "\\['v_r_comp', 'time'\\]"):
+    with pytest.raises(
+        InputError, match="calibration window 000000.npy: .*cannot provide feature\\(s\\) \\['v_r_comp', 'time'\\]"
+    ):
         recorded_feeds(VodCardModel(), rec, 2)

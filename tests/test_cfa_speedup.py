@@ -24,9 +24,9 @@ def _blob(rng, centre, n, v):
 
 def test_cqca_cfa_map_follows_upstream_rules():
     rng = np.random.default_rng(0)
-    first = _blob(rng, (10.0, 0.0), 12, 1.0)          # DBSCAN cluster 0: upstream's labels > 0 leaves it out
-    second = _blob(rng, (20.0, 5.0), 15, -2.0)        # cluster 1: written with density 15
-    big = _blob(rng, (30.0, -5.0), 120, 0.5)          # cluster 2, above 100 points: noise
+    first = _blob(rng, (10.0, 0.0), 12, 1.0)  # DBSCAN cluster 0: upstream's labels > 0 leaves it out
+    second = _blob(rng, (20.0, 5.0), 15, -2.0)  # cluster 1: written with density 15
+    big = _blob(rng, (30.0, -5.0), 120, 0.5)  # cluster 2, above 100 points: noise
     lone = np.array([[40.0, 10.0, 3.0]], np.float32)  # noise
     pts = np.concatenate([first, second, big, lone])
     bev, labels = cqca_cfa_map_sklearn(pts)
@@ -45,15 +45,40 @@ def test_cqca_cfa_map_follows_upstream_rules():
 
 
 def test_speedup_script_measures_every_backend(tmp_path):
-    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cfa_speedup.py"), "--runs", "1", "--warmup", "0",
-                          "--threads", "1", "--clouds", "1", "--scans", "1", "--out", str(tmp_path)],
-                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    res = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "cfa_speedup.py"),
+            "--runs",
+            "1",
+            "--warmup",
+            "0",
+            "--threads",
+            "1",
+            "--clouds",
+            "1",
+            "--scans",
+            "1",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert res.returncode == 0, res.stderr
     [path] = tmp_path.glob("cfa-speedup-*.json")
     rows = json.loads(path.read_text())["rows"]
     assert {(r["part"], r["backend"]) for r in rows} == {
-        (part, b) for part in ("map", "map + CNN") for b in (
-            "CQCA_cfa: DBSCAN + per-point loop (upstream)", "CQCA_cfa: DBSCAN + np.unique counts",
-            "GridDensityBEV, torch", "GridDensityBEV, onnxruntime")}
+        (part, b)
+        for part in ("map", "map + CNN")
+        for b in (
+            "CQCA_cfa: DBSCAN + per-point loop (upstream)",
+            "CQCA_cfa: DBSCAN + np.unique counts",
+            "GridDensityBEV, torch",
+            "GridDensityBEV, onnxruntime",
+        )
+    }
     assert all(r["scans"] == 1 and r["p50_ms"] > 0 and r["points"] > 100 for r in rows)
     assert "| 1 scan," in res.stdout

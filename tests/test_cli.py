@@ -5,10 +5,9 @@ import shutil
 
 import pytest
 from click.testing import CliRunner
+from conftest import TINY_CARD, assert_parses_in_tensorrt, summary_of
 
 from radaredge.cli import main
-
-from conftest import TINY_CARD, assert_parses_in_tensorrt, summary_of
 
 TINY = str(TINY_CARD)
 
@@ -61,8 +60,22 @@ def test_parity_refuses_an_onnx_with_other_weights(tmp_path):
 
 def test_bench_json_reports_every_backend(tmp_path, tiny_export):
     saved = tmp_path / "results" / "tiny.json"
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
-                 "--runs", "3", "--warmup", "1", "--json", "--save", saved)
+    res = invoke(
+        "bench",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY,
+        "--onnx",
+        str(tiny_export[2]),
+        "--runs",
+        "3",
+        "--warmup",
+        "1",
+        "--json",
+        "--save",
+        saved,
+    )
     assert res.exit_code == 0, res.output
     out = json.loads(res.stdout)
     assert json.loads(saved.read_text()) == out
@@ -78,6 +91,7 @@ def test_a_failing_backend_is_a_row_not_an_abort():
 
     def broken(case):
         raise RuntimeError("no kernel for this op\nsecond line")
+
     rows = benchmark({"good": lambda case: None, "bad": broken}, [{}], runs=2, warmup=1)
     assert [(r.backend, r.status) for r in rows] == [("good", "ok"), ("bad", "error")]
     assert rows[0] and not rows[1] and rows[1].error == "RuntimeError: no kernel for this op"
@@ -91,6 +105,7 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
     import tempfile
 
     import radaredge.runtime.session as ort_helpers
+
     opened = []
     real = ort_helpers.make_session
 
@@ -100,16 +115,44 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
 
     monkeypatch.setattr(ort_helpers, "make_session", spy)
     import radaredge.benchmarking.profiling
+
     monkeypatch.setattr(radaredge.benchmarking.profiling, "make_session", spy)
     (tmp_path / "tmp").mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
-                 "--runs", "3", "--warmup", "1", "--no-reference", "--profile")
+    res = invoke(
+        "bench",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY,
+        "--onnx",
+        str(tiny_export[2]),
+        "--runs",
+        "3",
+        "--warmup",
+        "1",
+        "--no-reference",
+        "--profile",
+    )
     assert res.exit_code == 0, res.output
     assert opened[0] is False and True in opened, opened
     assert "kernel ms per run" in res.output
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(tiny_export[2]),
-                 "--runs", "3", "--warmup", "1", "--no-reference", "--profile", "--json")
+    res = invoke(
+        "bench",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY,
+        "--onnx",
+        str(tiny_export[2]),
+        "--runs",
+        "3",
+        "--warmup",
+        "1",
+        "--no-reference",
+        "--profile",
+        "--json",
+    )
     top = json.loads(res.stdout)["graphs"]["tdfanet"]["top_ops"]
     assert top and all(ms > 0 for _, ms in top)
     assert list((tmp_path / "tmp").iterdir()) == []
@@ -121,24 +164,64 @@ def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
     res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY, "--output", str(onnx), "--quantize", "int8")
     assert res.exit_code == 0 and "int8 graph" in res.output
     int8 = tmp_path / "tiny.int8.onnx"
-    res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(int8),
-                 "--cases", "4", "--quantized")
+    res = invoke(
+        "parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(int8), "--cases", "4", "--quantized"
+    )
     assert res.exit_code == 0 and "[int8 budget]" in res.output and "PASSED" in res.output
     # the fp32 graph with --quantized: its int8 copy beside it is checked, as for a multi-graph bundle
-    res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx),
-                 "--cases", "1", "--quantized")
+    res = invoke(
+        "parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx), "--cases", "1", "--quantized"
+    )
     assert res.exit_code == 0 and "tiny.int8.onnx" in res.output and "[int8 budget]" in res.output
     lone = tmp_path / "lone.onnx"
     shutil.copyfile(onnx, lone)
-    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(lone),
-                                    "--cases", "1", "--quantized"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "parity-check",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            TINY,
+            "--onnx",
+            str(lone),
+            "--cases",
+            "1",
+            "--quantized",
+        ],
+    )
     assert res.exit_code == 2 and "lone.int8.onnx does not exist" in res.output
-    shutil.copyfile(onnx, tmp_path / "lone.int8.onnx")       # an fp32 graph named like an int8 copy
-    res = CliRunner().invoke(main, ["parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(lone),
-                                    "--cases", "1", "--quantized"])
+    shutil.copyfile(onnx, tmp_path / "lone.int8.onnx")  # an fp32 graph named like an int8 copy
+    res = CliRunner().invoke(
+        main,
+        [
+            "parity-check",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            TINY,
+            "--onnx",
+            str(lone),
+            "--cases",
+            "1",
+            "--quantized",
+        ],
+    )
     assert res.exit_code == 2 and "not an int8 export" in res.output
-    res = invoke("bench", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(onnx), "--runs", "2",
-                 "--warmup", "1", "--no-reference")
+    res = invoke(
+        "bench",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY,
+        "--onnx",
+        str(onnx),
+        "--runs",
+        "2",
+        "--warmup",
+        "1",
+        "--no-reference",
+    )
     assert res.exit_code == 0 and "| onnxruntime int8 |" in res.output and "int8 vs fp32" in res.output
 
 
@@ -165,6 +248,7 @@ def test_warnings_wait_for_success_and_never_precede_an_error(monkeypatch):
 def test_json_documents_are_strict_json():
     """Non-finite numbers (a training metric before the first validation) become null."""
     from radaredge.atomic import dumps as _dumps
+
     text = _dumps({"loss": float("nan"), "recall": [float("inf"), 1.0], "n": 3})
     assert json.loads(text) == {"loss": None, "recall": [None, 1.0], "n": 3}
     assert "NaN" not in text and "Infinity" not in text

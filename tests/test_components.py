@@ -41,7 +41,7 @@ def serpentine(h: int, w: int) -> np.ndarray:
 def diagonal_chain(n: int) -> np.ndarray:
     """A staircase connected only through corners, plus a checkerboard patch (one component)."""
     mask = np.eye(n, dtype=bool) | np.eye(n, k=2, dtype=bool)
-    mask[n // 2:, : n // 2] = (np.add.outer(np.arange(n - n // 2), np.arange(n // 2)) % 2) == 0
+    mask[n // 2 :, : n // 2] = (np.add.outer(np.arange(n - n // 2), np.arange(n // 2)) % 2) == 0
     return mask
 
 
@@ -84,9 +84,9 @@ def test_union_find_reference_matches_scipy(name):
 def test_same_partition_detects_differences():
     a = np.array([[1, 1, 0, 2]])
     assert same_partition(a, np.array([[7, 7, 0, 3]]))
-    assert not same_partition(a, np.array([[7, 7, 0, 7]]))       # merged
-    assert not same_partition(a, np.array([[7, 8, 0, 3]]))       # split
-    assert not same_partition(a, np.array([[7, 7, 5, 3]]))       # background differs
+    assert not same_partition(a, np.array([[7, 7, 0, 7]]))  # merged
+    assert not same_partition(a, np.array([[7, 8, 0, 3]]))  # split
+    assert not same_partition(a, np.array([[7, 7, 5, 3]]))  # background differs
 
 
 # ----------------------------------------------------------------------------- exact mode
@@ -99,7 +99,7 @@ def test_exact_matches_scipy_and_is_canonical(name):
     expected, _ = ndimage.label(mask, EIGHT)
     assert converged
     assert same_partition(labels, expected)
-    np.testing.assert_array_equal(labels, union_find_labels(mask))   # largest linear index + 1
+    np.testing.assert_array_equal(labels, union_find_labels(mask))  # largest linear index + 1
 
 
 def test_exact_batch_of_different_masks():
@@ -110,9 +110,11 @@ def test_exact_batch_of_different_masks():
         np.testing.assert_array_equal(lab, union_find_labels(m))
 
 
-@pytest.mark.parametrize("mask", [spiral(512), serpentine(512, 512), np.rot90(spiral(511)).copy(),
-                                  random_mask((512, 512), 0.6, 3)],
-                         ids=["spiral", "serpentine", "spiral_511_rot", "percolating_0.6"])
+@pytest.mark.parametrize(
+    "mask",
+    [spiral(512), serpentine(512, 512), np.rot90(spiral(511)).copy(), random_mask((512, 512), 0.6, 3)],
+    ids=["spiral", "serpentine", "spiral_511_rot", "percolating_0.6"],
+)
 def test_exact_worst_cases_512(mask):
     labels, converged = label(mask)
     expected, count = ndimage.label(mask, EIGHT)
@@ -125,7 +127,7 @@ def test_round_formula():
     assert exact_rounds(512, 512) == 18 and sum(exact_schedule(512, 512)) == 171
     assert exact_rounds(320, 320) == 16 and sum(exact_schedule(320, 320)) == 152
     assert exact_schedule(1, 1) == [1]
-    assert exact_schedule(4, 4) == [4, 3, 2, 1]     # ceil(log2(16 >> k)), at least 1
+    assert exact_schedule(4, 4) == [4, 3, 2, 1]  # ceil(log2(16 >> k)), at least 1
 
 
 def test_exact_converged_is_honest():
@@ -151,7 +153,7 @@ def test_maxpool_equals_exact_on_small_blobs():
     mask[20:23, 30:36] = True
     mask[30, 5] = True
     mask[10:14, 20] = True
-    mask[14, 21] = True                              # diagonal attachment
+    mask[14, 21] = True  # diagonal attachment
     labels, converged = label(mask, "maxpool")
     assert converged
     np.testing.assert_array_equal(labels, label(mask)[0])
@@ -160,9 +162,9 @@ def test_maxpool_equals_exact_on_small_blobs():
 def test_maxpool_does_not_converge_on_a_60_cell_wall():
     mask = np.zeros((8, 70), bool)
     mask[4, 5:65] = True
-    labels, converged = label(mask, "maxpool")           # the fork's 20 iterations
+    labels, converged = label(mask, "maxpool")  # the fork's 20 iterations
     assert not converged
-    assert len(np.unique(labels[mask])) > 1              # the wall is split into several ids
+    assert len(np.unique(labels[mask])) > 1  # the wall is split into several ids
     labels, converged = label(mask, "maxpool", iterations=59)
     assert converged
     np.testing.assert_array_equal(labels, union_find_labels(mask))

@@ -15,14 +15,21 @@ import torch
 
 from radaredge.config import config_from_dict
 from radaredge.errors import ConfigError, InputError
-from radaredge.ops.dbscan import (TJ4D, VOD, DbscanConfig, cqca_cfa_map, cqca_cfa_map_reference,
-                                  dbscan_labels, dbscan_labels_reference, dbscan_rounds)
+from radaredge.ops.dbscan import (
+    TJ4D,
+    VOD,
+    DbscanConfig,
+    cqca_cfa_map,
+    cqca_cfa_map_reference,
+    dbscan_labels,
+    dbscan_labels_reference,
+    dbscan_rounds,
+)
 from tests.references.sklearn_cqca_cfa import upstream_dbscan, upstream_map
 
 # 64 x 64 cells of 0.16 m: x in [0.16, 10.4) and y in [-4.96, 5.28) land in the map, the first
 # 0.16 m (index -1) wraps to the last column / row.
-SMALL = DbscanConfig(eps=0.4, min_samples=5, capacity=512, map_rows=64, map_cols=64,
-                     resolution=0.16, y_offset=5.12)
+SMALL = DbscanConfig(eps=0.4, min_samples=5, capacity=512, map_rows=64, map_cols=64, resolution=0.16, y_offset=5.12)
 TIE_MARGIN = 1e-7
 
 
@@ -51,8 +58,17 @@ def run_export(points, valid, cfg):
 
 def run_upstream(points, valid, cfg):
     labels, core = upstream_dbscan(points, valid, cfg.eps, cfg.min_samples)
-    bev, final = upstream_map(points, valid, cfg.eps, cfg.min_samples, cfg.map_rows, cfg.map_cols,
-                              cfg.resolution, cfg.y_offset, cfg.max_cluster_size)
+    bev, final = upstream_map(
+        points,
+        valid,
+        cfg.eps,
+        cfg.min_samples,
+        cfg.map_rows,
+        cfg.map_cols,
+        cfg.resolution,
+        cfg.y_offset,
+        cfg.max_cluster_size,
+    )
     return labels, core, bev, final != -1
 
 
@@ -73,7 +89,7 @@ def check_against_upstream(points, valid, cfg):
     ref_labels, ref_core, ref_converged = dbscan_labels_reference(points, valid, cfg)
     ref_bev, ref_points, _ = cqca_cfa_map_reference(points, valid, cfg)
     assert converged and ref_converged
-    np.testing.assert_array_equal(labels, up_labels)          # same numbering, hence same partition
+    np.testing.assert_array_equal(labels, up_labels)  # same numbering, hence same partition
     np.testing.assert_array_equal(ref_labels, up_labels)
     np.testing.assert_array_equal(core, up_core)
     np.testing.assert_array_equal(ref_core, up_core)
@@ -147,8 +163,10 @@ def cloud_touching(rng):
 def cloud_duplicates(rng):
     """Stacks of identical points around min_samples (some core, some not) plus a blob with copies."""
     k = int(rng.choice([3, 5, 10]))
-    parts = [np.repeat(np.r_[c, rng.uniform(-2, 2)][None], int(rng.integers(k - 2, k + 3)), 0)
-             for c in inside(rng, int(rng.integers(1, 6)))]
+    parts = [
+        np.repeat(np.r_[c, rng.uniform(-2, 2)][None], int(rng.integers(k - 2, k + 3)), 0)
+        for c in inside(rng, int(rng.integers(1, 6)))
+    ]
     b = blob(rng, 20, inside(rng, 1)[0], 0.2)
     parts.append(np.concatenate([b, b[rng.integers(0, 20, 15)]]))
     return np.concatenate(parts), dict(min_samples=k)
@@ -166,8 +184,10 @@ def cloud_single(rng):
 
 def cloud_big(rng):
     """A cluster above 100 points (noise, density kept), one of exactly 100 (kept), small ones."""
-    parts = [blob(rng, int(rng.integers(101, 180)), inside(rng, 1, 2)[0], 0.25, v=1.0),
-             blob(rng, 100, inside(rng, 1, 2)[0], 0.03, v=-1.0, v_sigma=0.02)]
+    parts = [
+        blob(rng, int(rng.integers(101, 180)), inside(rng, 1, 2)[0], 0.25, v=1.0),
+        blob(rng, 100, inside(rng, 1, 2)[0], 0.03, v=-1.0, v_sigma=0.02),
+    ]
     parts += [blob(rng, int(rng.integers(5, 30)), c, 0.15) for c in inside(rng, 3)]
     return np.concatenate(parts)[rng.permutation(sum(len(p) for p in parts))], dict(min_samples=5)
 
@@ -176,12 +196,12 @@ def cloud_edges(rng):
     """Clusters in the first 0.16 m column / row (index -1 wraps), beyond the map (skipped), corners."""
     parts = [
         np.c_[rng.uniform(0.0, 0.16, 8), rng.uniform(-2, 2, 8) * 0.05 + rng.uniform(-4, 4), np.zeros(8)],  # col -1
-        np.c_[rng.uniform(2, 2.3, 8), rng.uniform(-5.12, -4.96, 8), np.ones(8)],                           # row -1
-        np.c_[rng.uniform(0.0, 0.16, 8), rng.uniform(-5.12, -4.96, 8), np.full(8, 2.0)],                   # corner
-        np.c_[rng.uniform(-0.15, 0.0, 8), rng.uniform(3, 3.2, 8), np.full(8, 3.0)],                        # x < 0: -1
-        np.c_[rng.uniform(-0.6, -0.17, 8), rng.uniform(0, 0.3, 8), np.full(8, 4.0)],                       # col -2
-        np.c_[rng.uniform(10.41, 10.7, 8), rng.uniform(0, 0.3, 8), np.full(8, 5.0)],                       # col 64
-        np.c_[rng.uniform(5, 5.3, 8), rng.uniform(5.29, 5.6, 8), np.full(8, 6.0)],                         # row 64
+        np.c_[rng.uniform(2, 2.3, 8), rng.uniform(-5.12, -4.96, 8), np.ones(8)],  # row -1
+        np.c_[rng.uniform(0.0, 0.16, 8), rng.uniform(-5.12, -4.96, 8), np.full(8, 2.0)],  # corner
+        np.c_[rng.uniform(-0.15, 0.0, 8), rng.uniform(3, 3.2, 8), np.full(8, 3.0)],  # x < 0: -1
+        np.c_[rng.uniform(-0.6, -0.17, 8), rng.uniform(0, 0.3, 8), np.full(8, 4.0)],  # col -2
+        np.c_[rng.uniform(10.41, 10.7, 8), rng.uniform(0, 0.3, 8), np.full(8, 5.0)],  # col 64
+        np.c_[rng.uniform(5, 5.3, 8), rng.uniform(5.29, 5.6, 8), np.full(8, 6.0)],  # row 64
         blob(rng, 10, inside(rng, 1)[0], 0.1),
     ]
     order = rng.permutation(len(parts))
@@ -212,11 +232,20 @@ def cloud_tj4d(rng):
 
 
 KINDS = {
-    "blobs": cloud_blobs, "chains": cloud_chains, "rings": cloud_rings, "touching": cloud_touching,
-    "duplicates": cloud_duplicates, "noise": cloud_noise, "single": cloud_single, "big": cloud_big,
-    "edges": cloud_edges, "hostile": cloud_hostile, "tiny": cloud_tiny, "tj4d": cloud_tj4d,
+    "blobs": cloud_blobs,
+    "chains": cloud_chains,
+    "rings": cloud_rings,
+    "touching": cloud_touching,
+    "duplicates": cloud_duplicates,
+    "noise": cloud_noise,
+    "single": cloud_single,
+    "big": cloud_big,
+    "edges": cloud_edges,
+    "hostile": cloud_hostile,
+    "tiny": cloud_tiny,
+    "tj4d": cloud_tj4d,
 }
-SEEDS = 18                                      # 12 kinds x 18 seeds = 216 clouds
+SEEDS = 18  # 12 kinds x 18 seeds = 216 clouds
 
 
 def make_cloud(kind, seed):
@@ -260,10 +289,11 @@ def test_generated_clouds_exercise_the_quirks():
 def test_vod_size_scan():
     """A radar-like scan on the VoD map (320 x 320, eps 0.4, min_samples 10, capacity 2048)."""
     rng = np.random.default_rng(11)
-    parts = [blob(rng, int(rng.integers(30, 90)), c, 0.35, v_sigma=0.2)
-             for c in rng.uniform([2, -22], [48, 22], (8, 2))]
-    parts.append(blob(rng, 130, np.array([20.0, 5.0]), 0.3, v=0.5))                  # > 100 points
-    parts.append(blob(rng, 25, np.array([0.08, 0.0]), 0.05, v=2.0))                   # first column
+    parts = [
+        blob(rng, int(rng.integers(30, 90)), c, 0.35, v_sigma=0.2) for c in rng.uniform([2, -22], [48, 22], (8, 2))
+    ]
+    parts.append(blob(rng, 130, np.array([20.0, 5.0]), 0.3, v=0.5))  # > 100 points
+    parts.append(blob(rng, 25, np.array([0.08, 0.0]), 0.05, v=2.0))  # first column
     parts.append(np.c_[rng.uniform([0, -25.6], [51.2, 25.6], (250, 2)), rng.normal(0, 3, 250)])
     points = np.concatenate(parts).astype(np.float32)[rng.permutation(sum(len(p) for p in parts))]
     valid = np.ones(len(points), bool)
@@ -273,8 +303,7 @@ def test_vod_size_scan():
 
 def test_tj4d_size_scan():
     rng = np.random.default_rng(12)
-    parts = [blob(rng, int(rng.integers(5, 40)), c, 0.8, v_sigma=1.0)
-             for c in rng.uniform([2, -35], [65, 35], (10, 2))]
+    parts = [blob(rng, int(rng.integers(5, 40)), c, 0.8, v_sigma=1.0) for c in rng.uniform([2, -35], [65, 35], (10, 2))]
     points = np.concatenate(parts).astype(np.float32)
     labels, bev = check_against_upstream(points, np.ones(len(points), bool), TJ4D)
     assert bev.shape == (3, 496, 432) and labels.max() >= 5
@@ -283,7 +312,7 @@ def test_tj4d_size_scan():
 def test_upstream_quirks_on_a_hand_built_scan():
     """Cluster 0 is not drawn, cell = int(q) - 1 with -1 wrapping, the last point wins a cell."""
     cfg = dataclasses.replace(SMALL, min_samples=3)
-    c0 = [[5.0, 0.0, 0.0]] * 3                                   # cluster 0
+    c0 = [[5.0, 0.0, 0.0]] * 3  # cluster 0
     c1 = [[0.05, 0.5, 1.0], [0.06, 0.5, 1.1], [0.07, 0.5, 1.2]]  # cluster 1, x in [0, 0.16): col -1
     c2 = [[3.3, 1.0, 2.0], [3.31, 1.01, 2.1], [3.32, 1.02, 2.2], [3.33, 1.03, 2.3]]
     points = np.array(c0 + c1 + c2, np.float32)
@@ -292,11 +321,11 @@ def test_upstream_quirks_on_a_hand_built_scan():
     np.testing.assert_array_equal(labels, [0, 0, 0, 1, 1, 1, 2, 2, 2, 2])
     assert converged and cluster_points.all()
     row1 = int((np.float32(0.5) + np.float32(5.12)) / np.float32(0.16)) - 1
-    np.testing.assert_array_equal(bev[:, row1, 63], np.float32([1.2, 3, 1]))     # wrapped, last point
+    np.testing.assert_array_equal(bev[:, row1, 63], np.float32([1.2, 3, 1]))  # wrapped, last point
     row2 = int((np.float32(1.03) + np.float32(5.12)) / np.float32(0.16)) - 1
     col2 = int(np.float32(3.33) / np.float32(0.16)) - 1
     np.testing.assert_array_equal(bev[:, row2, col2], np.float32([2.3, 4, 2]))
-    assert np.count_nonzero(bev.any(0)) == 2                                          # cluster 0 absent
+    assert np.count_nonzero(bev.any(0)) == 2  # cluster 0 absent
     check_against_upstream(points, valid, cfg)
 
 
@@ -307,13 +336,14 @@ def test_shared_border_point_takes_the_first_cluster():
     right = np.c_[np.linspace(3.35, 3.7, 5), np.zeros(5), np.zeros(5)]
     border = np.array([[3.0, 0.0, 0.0]])
     far = np.c_[np.full(5, 8.0), np.linspace(0, 0.2, 5), np.zeros(5)]
-    for order in ((right, border, left), (border, left, right), (far, left, border, right),
-                  (right, far, border, left)):
+    for order in ((right, border, left), (border, left, right), (far, left, border, right), (right, far, border, left)):
         points = np.concatenate(order).astype(np.float32)
         valid = np.ones(len(points), bool)
         labels, core, *_ = run_export(points, valid, cfg)
-        at = {name: int(np.flatnonzero(points[:, 0] == np.float32(part[0, 0]))[0])
-              for name, part in (("left", left), ("right", right), ("border", border))}
+        at = {
+            name: int(np.flatnonzero(points[:, 0] == np.float32(part[0, 0]))[0])
+            for name, part in (("left", left), ("right", right), ("border", border))
+        }
         first = "left" if at["left"] < at["right"] else "right"
         assert not core[at["border"]] and labels[at["border"]] == labels[at[first]]
         assert labels[at["border"]] == min(labels[at["left"]], labels[at["right"]])
@@ -351,7 +381,7 @@ def test_float64_distances_decide_pairs_near_eps():
         d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
         if not 1e-12 < abs(d2 - e2) < 2e-8 or any(np.abs(a[:2] - p[0][:2]).max() < 1.0 for p in pairs):
             continue
-        f = a - b                                                    # the same sum in float32
+        f = a - b  # the same sum in float32
         flips += (f[0] * f[0] + f[1] * f[1] + f[2] * f[2] <= np.float32(e2)) != (d2 <= e2)
         pairs.append((a, b))
     points = np.array([p for pair in pairs for p in pair], np.float32)
@@ -399,9 +429,13 @@ def test_round_formula():
 def test_longest_chains_converge_in_the_proven_rounds(order):
     cfg = DbscanConfig(eps=0.4, min_samples=2, capacity=512)
     n = cfg.capacity
-    perm = {"index": np.arange(n), "reversed": np.arange(n)[::-1],
-            "random": np.random.default_rng(0).permutation(n), "bit_reversal": bit_reversal(n),
-            "even_odd": np.r_[np.arange(0, n, 2), np.arange(1, n, 2)]}[order]
+    perm = {
+        "index": np.arange(n),
+        "reversed": np.arange(n)[::-1],
+        "random": np.random.default_rng(0).permutation(n),
+        "bit_reversal": bit_reversal(n),
+        "even_odd": np.r_[np.arange(0, n, 2), np.arange(1, n, 2)],
+    }[order]
     points = serpentine_chain(n)[perm]
     labels, core, converged = dbscan_labels(torch.from_numpy(points), torch.ones(n, dtype=torch.bool), cfg)
     assert bool(converged) and core.all() and (labels == 0).all()
@@ -430,8 +464,9 @@ def test_capacity_contract():
     valid = np.ones(100, bool)
     labels, core, bev, cluster_points, converged = run_export(points, valid, cfg)
     head_labels, head_core = upstream_dbscan(points[:64], None, cfg.eps, cfg.min_samples)
-    head_bev, head_final = upstream_map(points[:64], None, cfg.eps, cfg.min_samples, cfg.map_rows, cfg.map_cols,
-                                        cfg.resolution, cfg.y_offset)
+    head_bev, head_final = upstream_map(
+        points[:64], None, cfg.eps, cfg.min_samples, cfg.map_rows, cfg.map_cols, cfg.resolution, cfg.y_offset
+    )
     assert not converged
     np.testing.assert_array_equal(labels, np.r_[head_labels, np.full(36, -1)])
     np.testing.assert_array_equal(core, np.r_[head_core, np.zeros(36, bool)])
@@ -456,12 +491,20 @@ def test_capacity_contract():
 
 def test_config():
     where = "maffnet-vod.yaml: image_backbone.dbscan"
-    cfg = config_from_dict(DbscanConfig, {"eps": 2, "min_samples": 4, "map_rows": 496, "map_cols": 432,
-                                          "y_offset": 39.68}, where)
+    cfg = config_from_dict(
+        DbscanConfig, {"eps": 2, "min_samples": 4, "map_rows": 496, "map_cols": 432, "y_offset": 39.68}, where
+    )
     assert cfg == TJ4D and isinstance(cfg.eps, float)
     assert (VOD.eps, VOD.min_samples, VOD.map_rows, VOD.map_cols, VOD.capacity) == (0.4, 10, 320, 320, 2048)
-    for bad in ({"eps": 0}, {"min_samples": 0}, {"capacity": 0}, {"map_rows": 0}, {"resolution": -1.0},
-                {"max_cluster_size": -1}, {"radius": 1.0}):
+    for bad in (
+        {"eps": 0},
+        {"min_samples": 0},
+        {"capacity": 0},
+        {"map_rows": 0},
+        {"resolution": -1.0},
+        {"max_cluster_size": -1},
+        {"radius": 1.0},
+    ):
         with pytest.raises(ConfigError, match="image_backbone"):
             config_from_dict(DbscanConfig, bad, where)
 
@@ -494,20 +537,32 @@ def test_onnx_export_dynamic_n(onnx_roundtrip):
     cfg = dataclasses.replace(SMALL, capacity=256, min_samples=4)
     points, valid, _ = make_cloud("blobs", 100)
     example = {"points_xyv": torch.from_numpy(points), "valid": torch.from_numpy(valid)}
-    rt = onnx_roundtrip(CqcaCfaMap(cfg), example, ["map", "cluster_points", "converged"],
-                        {"points_xyv": {0: "num_points"}, "valid": {0: "num_points"}})
+    rt = onnx_roundtrip(
+        CqcaCfaMap(cfg),
+        example,
+        ["map", "cluster_points", "converged"],
+        {"points_xyv": {0: "num_points"}, "valid": {0: "num_points"}},
+    )
     rng = np.random.default_rng(3)
-    big = np.concatenate([blob(rng, 40, c, 0.2) for c in inside(rng, 8)]).astype(np.float32)   # 320 > capacity
-    clouds = [make_cloud(kind, seed)[:2] for kind, seed in
-              (("hostile", 1), ("edges", 2), ("chains", 3), ("big", 4), ("touching", 5), ("duplicates", 6))]
-    clouds += [(np.zeros((0, 3), np.float32), np.zeros(0, bool)), (points[:1], valid[:1]), (points[:2], valid[:2]),
-               (big[:256], np.ones(256, bool)), (big, np.ones(len(big), bool))]
+    big = np.concatenate([blob(rng, 40, c, 0.2) for c in inside(rng, 8)]).astype(np.float32)  # 320 > capacity
+    clouds = [
+        make_cloud(kind, seed)[:2]
+        for kind, seed in (("hostile", 1), ("edges", 2), ("chains", 3), ("big", 4), ("touching", 5), ("duplicates", 6))
+    ]
+    clouds += [
+        (np.zeros((0, 3), np.float32), np.zeros(0, bool)),
+        (points[:1], valid[:1]),
+        (points[:2], valid[:2]),
+        (big[:256], np.ones(256, bool)),
+        (big, np.ones(len(big), bool)),
+    ]
     for pts, ok in clouds:
         ref, got = rt({"points_xyv": torch.from_numpy(pts), "valid": torch.from_numpy(ok)})
         for name in ("map", "cluster_points", "converged"):
             np.testing.assert_array_equal(got[name], ref[name], err_msg=f"{name} (N={len(pts)})")
         assert bool(got["converged"]) == (len(pts) <= cfg.capacity)
         if len(pts) <= cfg.capacity:
-            bev, _ = upstream_map(pts, ok, cfg.eps, cfg.min_samples, cfg.map_rows, cfg.map_cols,
-                                  cfg.resolution, cfg.y_offset)
+            bev, _ = upstream_map(
+                pts, ok, cfg.eps, cfg.min_samples, cfg.map_rows, cfg.map_cols, cfg.resolution, cfg.y_offset
+            )
             np.testing.assert_array_equal(got["map"], bev, err_msg=f"map vs sklearn (N={len(pts)})")

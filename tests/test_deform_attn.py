@@ -3,9 +3,9 @@ exactness, Deformable DETR init, padding mask, ONNX round trips of the op and th
 
 import pytest
 import torch
+from conftest import assert_close
 from torch import nn
 
-from conftest import assert_close
 from radaredge.errors import ConfigError, InputError
 from radaredge.ops.deform_attn import MSDeformAttn, ms_deform_attn, ms_deform_attn_reference
 
@@ -16,7 +16,7 @@ def random_inputs(shapes, n=2, lq=17, heads=3, dim=4, points=4, seed=0):
     g = torch.Generator().manual_seed(seed)
     levels = len(shapes)
     value = torch.randn(n, sum(h * w for h, w in shapes), heads, dim, generator=g)
-    loc = torch.rand(n, lq, heads, levels, points, 2, generator=g) * 1.4 - 0.2     # [-0.2, 1.2]
+    loc = torch.rand(n, lq, heads, levels, points, 2, generator=g) * 1.4 - 0.2  # [-0.2, 1.2]
     weights = torch.rand(n, lq, heads, levels * points, generator=g).softmax(-1)
     return value, loc, weights.reshape(n, lq, heads, levels, points)
 
@@ -83,9 +83,9 @@ def test_module_reference_path_matches_export_path():
 def test_deformable_detr_init():
     attn = MSDeformAttn(32, n_levels=2, n_heads=8, n_points=3)
     bias = attn.sampling_offsets.bias.detach().reshape(8, 2, 3, 2)
-    assert torch.equal(bias[0, 1, 2], torch.tensor([3.0, 0.0]))                  # head 0: +x, point k at k+1
-    assert torch.allclose(bias[1, 0, 0], torch.tensor([1.0, 1.0]))               # head 1: 45 deg on the ring
-    assert torch.allclose(bias[6, 0, 1], torch.tensor([0.0, -2.0]), atol=1e-6)   # head 6: 270 deg
+    assert torch.equal(bias[0, 1, 2], torch.tensor([3.0, 0.0]))  # head 0: +x, point k at k+1
+    assert torch.allclose(bias[1, 0, 0], torch.tensor([1.0, 1.0]))  # head 1: 45 deg on the ring
+    assert torch.allclose(bias[6, 0, 1], torch.tensor([0.0, -2.0]), atol=1e-6)  # head 6: 270 deg
     assert not attn.sampling_offsets.weight.any() and not attn.attention_weights.weight.any()
     with pytest.raises(ConfigError):
         MSDeformAttn(30, n_heads=8)
@@ -99,12 +99,12 @@ def test_offsets_are_in_pixels_of_each_level():
         attn.value_proj.weight.copy_(torch.eye(2))
         attn.output_proj.weight.copy_(torch.eye(2))
     h, w = 3, 8
-    cols = torch.arange(w, dtype=torch.float32).repeat(h)                        # value = column index
+    cols = torch.arange(w, dtype=torch.float32).repeat(h)  # value = column index
     value = torch.stack([cols, -cols], -1)[None]
-    ref = torch.tensor([[[[2.5 / w, 1.5 / h]]]])                                  # centre of (row 1, col 2)
+    ref = torch.tensor([[[[2.5 / w, 1.5 / h]]]])  # centre of (row 1, col 2)
     with torch.no_grad():
         out = attn(torch.zeros(1, 1, 2), ref, value, [(h, w)])
-    assert_close(out, torch.tensor([[[3.5, -3.5]]]), 1e-5, "offset units")      # cols 3 and 4
+    assert_close(out, torch.tensor([[[3.5, -3.5]]]), 1e-5, "offset units")  # cols 3 and 4
 
 
 def test_padding_mask_zeroes_masked_values():
@@ -135,8 +135,9 @@ class DeformOp(nn.Module):
 def test_onnx_export_of_the_op(onnx_roundtrip):
     value, loc, weights = random_inputs(SHAPES)
     example = {"value": value, "sampling_locations": loc, "attention_weights": weights}
-    rt = onnx_roundtrip(DeformOp(SHAPES), example, ["out"],
-                        {"sampling_locations": {1: "Lq"}, "attention_weights": {1: "Lq"}})
+    rt = onnx_roundtrip(
+        DeformOp(SHAPES), example, ["out"], {"sampling_locations": {1: "Lq"}, "attention_weights": {1: "Lq"}}
+    )
     for lq, seed in [(17, 1), (40, 2), (1, 3)]:
         value, loc, weights = random_inputs(SHAPES, lq=lq, seed=seed)
         ref, got = rt({"value": value, "sampling_locations": loc, "attention_weights": weights})
@@ -160,9 +161,11 @@ def test_onnx_export_of_the_module(onnx_roundtrip, shapes):
 
     def inputs(n, lq, seed):
         g = torch.Generator().manual_seed(seed)
-        return {"query": torch.randn(n, lq, 16, generator=g),
-                "reference_points": torch.rand(n, lq, len(shapes), 2, generator=g) * 1.2 - 0.1,
-                "value_flat": value_flat(shapes, n=n, seed=seed)}
+        return {
+            "query": torch.randn(n, lq, 16, generator=g),
+            "reference_points": torch.rand(n, lq, len(shapes), 2, generator=g) * 1.2 - 0.1,
+            "value_flat": value_flat(shapes, n=n, seed=seed),
+        }
 
     rt = onnx_roundtrip(module, inputs(2, 9, 0), ["out"], {"query": {1: "Lq"}, "reference_points": {1: "Lq"}})
     for lq, seed in [(9, 1), (33, 2)]:
@@ -172,4 +175,3 @@ def test_onnx_export_of_the_module(onnx_roundtrip, shapes):
         with torch.no_grad():
             reference = attn(*feeds.values(), shapes, reference=True)
         assert_close(got["out"], reference, 1e-5, "onnxruntime vs reference sampler")
-

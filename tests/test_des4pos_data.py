@@ -9,10 +9,10 @@ import types
 import numpy as np
 import pytest
 
-from radaredge.runtime.cellmap import load_map
-from radaredge.runtime.kitti360pose import read_cells, read_pickle, read_poses
 from radaredge.errors import InputError
 from radaredge.eval.places import localization_recall
+from radaredge.runtime.cellmap import load_map
+from radaredge.runtime.kitti360pose import read_cells, read_pickle, read_poses
 
 MODULE = "datapreparation.kitti360pose.imports"
 
@@ -42,8 +42,11 @@ def test_reads_text2loc_cells_and_poses(tmp_path, text2loc_classes):
     cells = []
     for k in range(2):
         c = mod.Cell()
-        c.id, c.scene_name, c.cell_size = (f"2013_05_28_drive_0003_sync_{k:05d}"[-10:], "2013_05_28_drive_0003_sync",
-                                           30.0)
+        c.id, c.scene_name, c.cell_size = (
+            f"2013_05_28_drive_0003_sync_{k:05d}"[-10:],
+            "2013_05_28_drive_0003_sync",
+            30.0,
+        )
         c.bbox_w = np.array([100.0 + 10 * k, 200.0, 0.0, 130.0 + 10 * k, 230.0, 30.0])
         c.objects = [_obj(mod, j, lab, n, rng) for j, (lab, n) in enumerate([("pole", 40), ("building", 900)])]
         cells.append(c)
@@ -63,13 +66,14 @@ def test_reads_text2loc_cells_and_poses(tmp_path, text2loc_classes):
     assert m.pose_w.tolist() == [[112.0, 215.0]] and m.pose_cell.tolist() == [cells[0].id]
     assert m.pose_text[0] == "The pose is north of a gray pole. The pose is north of a gray pole."
     src = cells[0].objects[0]
-    assert np.isin(m.points[0, 0, :, :3], src.xyz.astype(np.float32)).all()   # sampled from the object's points
+    assert np.isin(m.points[0, 0, :, :3], src.xyz.astype(np.float32)).all()  # sampled from the object's points
 
 
 def test_refuses_code_in_a_pickle(tmp_path):
     class Evil:
         def __reduce__(self):
             return os.system, ("echo pwned",)
+
     path = tmp_path / "evil.pkl"
     path.write_bytes(pickle.dumps([Evil()]))
     with pytest.raises(InputError, match=r"refusing to unpickle (posix|os|nt)\.system"):
@@ -102,11 +106,13 @@ def test_the_reader_does_not_import_the_map_module():
 
 def test_localization_recall_hand_made():
     pose = np.array([[0.0, 0.0], [100.0, 100.0], [0.0, 0.0]])
-    pred = np.array([
-        [[4.0, 3.0], [50.0, 0.0], [0.0, 0.0]],          # top-1 exactly 5 m away: boundary counts
-        [[100.0, 112.0], [108.0, 100.0], [103.0, 100.0]],  # 12 m, then 8 m, then 3 m
-        [[0.0, 20.0], [16.0, 0.0], [0.0, 1.0]],          # 1 m only at rank 3, but in another scene
-    ])
+    pred = np.array(
+        [
+            [[4.0, 3.0], [50.0, 0.0], [0.0, 0.0]],  # top-1 exactly 5 m away: boundary counts
+            [[100.0, 112.0], [108.0, 100.0], [103.0, 100.0]],  # 12 m, then 8 m, then 3 m
+            [[0.0, 20.0], [16.0, 0.0], [0.0, 1.0]],  # 1 m only at rank 3, but in another scene
+        ]
+    )
     same = np.array([[True, True, True], [True, True, True], [True, True, False]])
     r = localization_recall(pred, pose, ks=(1, 2, 3), thresholds=(5, 10, 15), same_scene=same)
     assert r[1] == {5.0: 1 / 3, 10.0: 1 / 3, 15.0: 2 / 3}

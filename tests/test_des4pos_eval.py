@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from conftest import invoke
+
 from radaredge.cards import load_card
-from radaredge.runtime.cellmap import load_map
 from radaredge.data.text_city import make_city
-from radaredge.eval.localisation import evaluate_localization
 from radaredge.errors import ConfigError, InputError
+from radaredge.eval.localisation import evaluate_localization
 from radaredge.models import create_model
+from radaredge.runtime.cellmap import load_map
 from radaredge.runtime.des4pos import Des4PosBundle, MapIndex
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
@@ -60,14 +60,15 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
     assert again.from_cache and list(again.recall) == [1, 3] and list(again.retrieval) == [2]
     assert again.recall[3][30.0] == pytest.approx((dist[:, :3] <= 30.0).any(1).mean())
     # without the fine stage: each retrieved cell's centre is the position
-    centres = np.array([[m.origins[list(m.ids).index(c)] + m.sizes[list(m.ids).index(c)] / 2 for c in row]
-                        for row in retrieved])
+    centres = np.array(
+        [[m.origins[list(m.ids).index(c)] + m.sizes[list(m.ids).index(c)] / 2 for c in row] for row in retrieved]
+    )
     dist_c = np.linalg.norm(centres - m.pose_w[:, None], axis=2)
     res = report.results["onnxruntime"]
     for k in report.ks:
         for t in report.thresholds:
             assert report.centre_recall[k][t] == pytest.approx((dist_c[:, :k] <= t).any(1).mean())
-            for key in ("localization", "localization_centre"):       # a 95 % bootstrap interval over queries
+            for key in ("localization", "localization_centre"):  # a 95 % bootstrap interval over queries
                 low, high = res[key + "_interval"][k][t]
                 assert 0.0 <= low <= res[key][k][t] <= high <= 1.0
             # the fine stage's gain: the same queries' difference, with its own (paired) interval
@@ -79,8 +80,9 @@ def test_recall_is_that_of_the_located_positions(bundle, city):
     res = out["results"]["onnxruntime"]
     assert out["queries"] == 6 and set(res["localization"]) == {"1", "5", "10"}
     assert set(res["localization"]["5"]) == {"5", "10", "15"} and set(res["retrieval"]) == {"1", "3", "5"}
-    assert (set(res["localization_centre"]["10"]) == {"5", "10", "15"}
-            and len(res["localization_interval"]["1"]["5"]) == 2)
+    assert (
+        set(res["localization_centre"]["10"]) == {"5", "10", "15"} and len(res["localization_interval"]["1"]["5"]) == 2
+    )
     lines = report.lines()
     assert lines[1].startswith("Table I") and lines[3].split()[0] == "top-1" and "[" in lines[3]
     assert lines[6].startswith("Table I without the fine stage") and lines[11].startswith("The fine stage's gain")
@@ -93,6 +95,7 @@ def test_bootstrap_intervals_are_those_of_the_per_query_hits():
     from radaredge.eval.localisation import _intervals, localization_hits
     from radaredge.eval.places import localization_recall
     from radaredge.eval.recall_stats import bootstrap_interval
+
     rng = np.random.default_rng(0)
     pred, pose = rng.uniform(0, 40, (200, 10, 2)), rng.uniform(0, 40, (200, 2))
     same = rng.random((200, 10)) > 0.2
@@ -120,7 +123,7 @@ def test_the_torch_reference_agrees_and_the_database_spans_maps(bundle, city, tm
     assert onnx["retrieval"] == ref["retrieval"] and onnx["localization"] == ref["localization"]
     assert onnx["localization_centre"] == ref["localization_centre"]
     assert "recall (torch reference)" in report.retrieval_table()
-    again = evaluate_localization(bundle, d)                      # the caches beside the maps are not maps
+    again = evaluate_localization(bundle, d)  # the caches beside the maps are not maps
     assert again.from_cache and again.cells == report.cells
     model = create_model(load_card(TINY))
     with torch.no_grad():
@@ -135,7 +138,7 @@ def test_errors_name_the_map_and_pose(bundle, city, tmp_path):
         evaluate_localization(bundle, city, thresholds=(0.0,))
     small = make_city(6, 32, seed=3, world=40.0, objects=10, poses=3, max_hints=5).save(tmp_path / "small.npz")
     with pytest.raises(ConfigError, match="top-10 recall needs at least 10 database cells; .*small.npz has 4"):
-        evaluate_localization(bundle, small)            # not silently recall over the 4 cells there are
+        evaluate_localization(bundle, small)  # not silently recall over the 4 cells there are
     bare = make_city(6, 32, seed=3, objects=30, poses=0).save(tmp_path / "bare.npz")
     with pytest.raises(InputError, match="bare.npz: no described pose; make maps with poses"):
         evaluate_localization(bundle, bare)
@@ -153,8 +156,9 @@ def test_eval_command_runs_the_models_own_metric(bundle, tmp_path):
     """`radaredge eval` on des4pos is localisation recall over a map made by `radaredge make-city`
     with the card's hint limit; place-recognition inputs are refused by name."""
     city = tmp_path / "city.npz"
-    res = invoke("make-city", "--model", "des4pos-tiny", "--config", TINY, "--out", city, "--poses", 5,
-                 "--objects", 30, "--json")
+    res = invoke(
+        "make-city", "--model", "des4pos-tiny", "--config", TINY, "--out", city, "--poses", 5, "--objects", 30, "--json"
+    )
     assert res.exit_code == 0, res.output
     res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city, "--json")
     assert res.exit_code == 0, res.output
@@ -162,14 +166,16 @@ def test_eval_command_runs_the_models_own_metric(bundle, tmp_path):
     assert out["queries"] == 5 and list(out["results"]) == ["onnxruntime", "torch reference"]
     assert set(out["results"]["torch reference"]["retrieval"]) == {"1", "3", "5"}
     assert json.loads(bundle.with_name("bundle.eval.json").read_text()) == out
-    res = invoke("eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city,
-                 "--database", tmp_path)
+    res = invoke(
+        "eval", "--model", "des4pos-tiny", "--config", TINY, "--onnx", bundle, "--map", city, "--database", tmp_path
+    )
     assert res.exit_code == 2 and "evaluated by localisation recall on --map; --database not used" in res.output
 
 
 def test_locate_without_an_int8_text_encoder_says_how_to_make_one(bundle, city):
-    res = invoke("locate", "--onnx-dir", bundle, "--map", city, "--text", "The pose is north of a red car.",
-                 "--int8-text")
+    res = invoke(
+        "locate", "--onnx-dir", bundle, "--map", city, "--text", "The pose is north of a red car.", "--int8-text"
+    )
     assert res.exit_code == 2 and "text_encoder.int8.onnx does not exist" in res.output
     assert "--quantize int8" in res.output
 
@@ -179,6 +185,7 @@ def test_a_bad_or_unwritable_cell_cache_is_rebuilt_not_trusted(bundle, city, mon
     tampered cache is rebuilt with a warning (same positions as a fresh encoding), and a map
     directory that cannot be written costs the cache, not the result."""
     import tempfile
+
     b = Des4PosBundle(bundle)
     fresh = MapIndex.build(b, city, cache=True)
     assert fresh.cache is not None and fresh.cache.is_file() and not fresh.from_cache
@@ -192,7 +199,7 @@ def test_a_bad_or_unwritable_cell_cache_is_rebuilt_not_trusted(bundle, city, mon
         assert not again.from_cache and np.array_equal(again.descriptors, fresh.descriptors)
     with np.load(fresh.cache) as z:
         arrays = {k: z[k] for k in z.files}
-    arrays["descriptors"] = arrays["descriptors"] + 1.0            # tampered values, old hash
+    arrays["descriptors"] = arrays["descriptors"] + 1.0  # tampered values, old hash
     np.savez(fresh.cache, **arrays)
     with pytest.warns(RuntimeWarning, match="do not match the map or their hash"):
         assert not MapIndex.build(b, city).from_cache
@@ -200,7 +207,8 @@ def test_a_bad_or_unwritable_cell_cache_is_rebuilt_not_trusted(bundle, city, mon
 
     def read_only(*args, **kwargs):
         raise PermissionError(13, "Permission denied", str(city.parent))
-    monkeypatch.setattr(tempfile, "mkstemp", read_only)              # a read-only map directory
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)  # a read-only map directory
     with pytest.warns(RuntimeWarning, match="cannot write the cell cache"):
         index = MapIndex.build(b, city)
     assert index.cache is None and np.array_equal(index.descriptors, fresh.descriptors)

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from conftest import invoke
+
 from radaredge.cards import card_from_yaml
 from radaredge.data.text_city import make_city
 from radaredge.errors import ConfigError, InputError
@@ -44,18 +44,26 @@ def _candidates(rng, k=2, t=6, d=32, hints=3):
     mask = np.ones((k, t), bool)
     mask[0, 4:] = False
     feats = (rng.normal(0, 0.3, (k, t, d)) * mask[..., None]).astype(np.float32)
-    return {"object_features": torch.from_numpy(feats), "object_mask": torch.from_numpy(mask),
-            "hint_features": torch.from_numpy(rng.normal(size=(hints, d)).astype(np.float32)),
-            "cell_origin": torch.tensor([[0.0, 0.0], [30.0, 0.0]], dtype=torch.float64),
-            "cell_size": torch.tensor([30.0, 30.0], dtype=torch.float64),
-            "object_centres": torch.from_numpy(rng.uniform(0, 1, (k, t, 3)).astype(np.float32)),
-            "object_colours": torch.from_numpy(rng.uniform(0, 1, (k, t, 3)).astype(np.float32)),
-            "num_points": torch.from_numpy(rng.integers(10, 3000, (k, t)).astype(np.float32))}
+    return {
+        "object_features": torch.from_numpy(feats),
+        "object_mask": torch.from_numpy(mask),
+        "hint_features": torch.from_numpy(rng.normal(size=(hints, d)).astype(np.float32)),
+        "cell_origin": torch.tensor([[0.0, 0.0], [30.0, 0.0]], dtype=torch.float64),
+        "cell_size": torch.tensor([30.0, 30.0], dtype=torch.float64),
+        "object_centres": torch.from_numpy(rng.uniform(0, 1, (k, t, 3)).astype(np.float32)),
+        "object_colours": torch.from_numpy(rng.uniform(0, 1, (k, t, 3)).astype(np.float32)),
+        "num_points": torch.from_numpy(rng.integers(10, 3000, (k, t)).astype(np.float32)),
+    }
 
 
-@pytest.mark.parametrize("fine, match", [("objects: pointnet", "objects must be one of"),
-                                         ("pool: mean", "pool must be one of"),
-                                         ("object_state: points", "object_state must be one of")])
+@pytest.mark.parametrize(
+    "fine, match",
+    [
+        ("objects: pointnet", "objects must be one of"),
+        ("pool: mean", "pool must be one of"),
+        ("object_state: points", "object_state must be one of"),
+    ],
+)
 def test_fine_options_are_checked(fine, match):
     with pytest.raises(ConfigError, match=match):
         create_model(fine_card(fine))
@@ -65,8 +73,13 @@ def test_the_default_fine_graph_keeps_its_inputs():
     """The paper's fine stage (the default) reads the coarse states only: no new graph inputs,
     no new weights."""
     card = fine_card("cra_layers: 3, heads: 2, mlp_hidden: 16")
-    assert FINE_GRAPH.input_names(card) == ["object_features", "object_mask", "hint_features", "cell_origin",
-                                            "cell_size"]
+    assert FINE_GRAPH.input_names(card) == [
+        "object_features",
+        "object_mask",
+        "hint_features",
+        "cell_origin",
+        "cell_size",
+    ]
     model = create_model(card)
     assert not model.fine.needs_summaries and not hasattr(model.fine, "objects")
     enc = create_model(fine_card(ENCODER))
@@ -91,13 +104,18 @@ def test_the_position_mlp_sees_where_each_object_is():
             padded[key][0, 4:] = float("nan")
         off_padded, _ = model.fine(*(padded[n] for n in names))
         mask = feeds["object_mask"].numpy()
-        summaries = [tuple(feeds[k][j][mask[j]] for k in ("object_centres", "object_colours", "num_points"))
-                     for j in range(2)]
-        off_ref, pos_ref = model.fine.reference([feeds["object_features"][j][mask[j]] for j in range(2)],
-                                                feeds["hint_features"], feeds["cell_origin"].numpy(),
-                                                feeds["cell_size"].numpy(), summaries)
-    assert float((off_moved[0] - off[0]).abs().max()) > 1e-4          # the moved object's cell moves
-    torch.testing.assert_close(off_moved[1], off[1])                   # the other cell does not
+        summaries = [
+            tuple(feeds[k][j][mask[j]] for k in ("object_centres", "object_colours", "num_points")) for j in range(2)
+        ]
+        off_ref, pos_ref = model.fine.reference(
+            [feeds["object_features"][j][mask[j]] for j in range(2)],
+            feeds["hint_features"],
+            feeds["cell_origin"].numpy(),
+            feeds["cell_size"].numpy(),
+            summaries,
+        )
+    assert float((off_moved[0] - off[0]).abs().max()) > 1e-4  # the moved object's cell moves
+    torch.testing.assert_close(off_moved[1], off[1])  # the other cell does not
     torch.testing.assert_close(off_padded, off)
     torch.testing.assert_close(off_ref, off, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(pos_ref, pos, atol=1e-4, rtol=1e-7)
@@ -141,9 +159,9 @@ def _red_object_task(rng, k: int, t: int = 6, d: int = 32):
     colours[..., 0] *= 0.4
     colours[torch.arange(k), red] = torch.tensor([0.9, 0.1, 0.1])
     feeds["object_features"] = colours @ torch.from_numpy(fixed.normal(size=(3, d)).astype(np.float32))
-    target = feeds["object_centres"][torch.arange(k), red, :2] - 0.5       # from the cell centre, cell units
+    target = feeds["object_centres"][torch.arange(k), red, :2] - 0.5  # from the cell centre, cell units
     hint = torch.from_numpy(fixed.normal(size=(1, d)).astype(np.float32))
-    hints = hint.unsqueeze(0).expand(k, -1, -1)                            # the same hint everywhere
+    hints = hint.unsqueeze(0).expand(k, -1, -1)  # the same hint everywhere
     return feeds, hints, (feeds["object_centres"], colours, feeds["num_points"]), target
 
 
@@ -154,12 +172,16 @@ def test_the_encoder_learns_an_offset_from_object_positions():
     torch.manual_seed(0)
     rng = np.random.default_rng(2)
     train, held = _red_object_task(rng, 128), _red_object_task(rng, 128)
-    centre = float(held[3].norm(dim=1).mean())                           # the error of a zero offset
+    centre = float(held[3].norm(dim=1).mean())  # the error of a zero offset
 
     def error(model, task):
         feeds, hints, summaries, target = task
-        off = model.fine.offsets(feeds["object_features"], feeds["object_mask"], hints,
-                                 summaries=summaries if model.fine.needs_summaries else None)
+        off = model.fine.offsets(
+            feeds["object_features"],
+            feeds["object_mask"],
+            hints,
+            summaries=summaries if model.fine.needs_summaries else None,
+        )
         return (off - target).norm(dim=1).mean()
 
     held_out = {}
@@ -192,8 +214,9 @@ def test_encoder_bundle_exports_passes_parity_and_locates(encoder_bundle, tmp_pa
     parity with the torch reference, and the runtime feeds them from the map: the bundle and
     the torch reference place every pose alike."""
     card, bundle = encoder_bundle
-    res = invoke("parity-check", "--model", "des4pos-tiny-fine", "--config", card, "--onnx", bundle, "--cases", "6",
-                 "--json")
+    res = invoke(
+        "parity-check", "--model", "des4pos-tiny-fine", "--config", card, "--onnx", bundle, "--cases", "6", "--json"
+    )
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     assert report["graphs"]["fine_stage"]["summary"]["position"]["max_abs"] <= 1e-3
@@ -207,8 +230,7 @@ def test_encoder_bundle_exports_passes_parity_and_locates(encoder_bundle, tmp_pa
     np.testing.assert_allclose(centres, m.points[..., :3].mean(2), atol=1e-6)
     hits = b.locate(str(m.pose_text[0]), index, top_k=3)
     assert len(hits) == 3
-    bare = MapIndex(index.ids, index.origins, index.sizes, index.object_mask, index.descriptors,
-                    index.object_features)
+    bare = MapIndex(index.ids, index.origins, index.sizes, index.object_mask, index.descriptors, index.object_features)
     with pytest.raises(InputError, match="centres, colours and point counts"):
         b.locate(str(m.pose_text[0]), bare, top_k=3)
     report = evaluate_localization(bundle, city, reference=True)
@@ -223,10 +245,10 @@ def test_the_encoder_makes_its_tensors_on_the_inputs_device():
     feeds = _candidates(np.random.default_rng(3))
     hints = feeds["hint_features"].unsqueeze(0).expand(2, -1, -1)
     with torch.device("meta"):
-        centres, colours = torch_summaries(torch.from_numpy(np.random.default_rng(0).random((2, 6, 8, 6),
-                                                                                           np.float32)))
-        off = model.fine.offsets(feeds["object_features"], feeds["object_mask"], hints,
-                                 summaries=(centres, colours, feeds["num_points"]))
+        centres, colours = torch_summaries(torch.from_numpy(np.random.default_rng(0).random((2, 6, 8, 6), np.float32)))
+        off = model.fine.offsets(
+            feeds["object_features"], feeds["object_mask"], hints, summaries=(centres, colours, feeds["num_points"])
+        )
         off.sum().backward()
     assert off.device.type == "cpu" and torch.isfinite(off).all()
     assert model.fine.objects.pos_encoder[0].weight.grad.device.type == "cpu"
@@ -236,8 +258,21 @@ def test_bench_runs_a_fine_stage_with_its_own_object_encoder(encoder_bundle):
     """`radaredge bench` feeds the fine stage the cells' object centres, colours and point counts
     in every backend, the torch reference included."""
     card, bundle = encoder_bundle
-    res = invoke("bench", "--model", "des4pos-tiny-fine", "--config", card, "--onnx", bundle, "--runs", "1",
-                 "--warmup", "0", "--no-openvino", "--json")
+    res = invoke(
+        "bench",
+        "--model",
+        "des4pos-tiny-fine",
+        "--config",
+        card,
+        "--onnx",
+        bundle,
+        "--runs",
+        "1",
+        "--warmup",
+        "0",
+        "--no-openvino",
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     rows = {r["backend"]: r for r in json.loads(res.stdout)["tasks"]["query"]["rows"]}
     assert {"torch reference", "torch export", "onnxruntime"} <= set(rows)
@@ -250,7 +285,7 @@ def test_object_state_picks_the_coarse_stream_the_fine_stage_reads(state, tmp_pa
     object encoder's per-object output instead of the LSTM states: the same descriptor, the
     chosen stream (zero at padding), equal in both formulations, and the bundle passes parity."""
     card = fine_card(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}")
-    assert create_model(fine_card(TINY_FINE[7:-1])).submap.object_state == "mfam"       # a card's default
+    assert create_model(fine_card(TINY_FINE[7:-1])).submap.object_state == "mfam"  # a card's default
     lstm = fine_card("cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: lstm")
     model, lstm_model = create_model(card).eval(), create_model(lstm).eval()
     assert model.state_dict().keys() == lstm_model.state_dict().keys()
@@ -266,14 +301,28 @@ def test_object_state_picks_the_coarse_stream_the_fine_stage_reads(state, tmp_pa
         ref_desc, ref_feats = model.submap.reference(pts[0, :4].numpy(), counts[0, :4].numpy())
     torch.testing.assert_close(desc, lstm_desc)
     assert not torch.allclose(feats[mask], lstm_feats[mask]) and (feats[~mask] == 0).all()
-    torch.testing.assert_close(feats[1], trace[state][1])       # cell 1 is all real: no reordering
+    torch.testing.assert_close(feats[1], trace[state][1])  # cell 1 is all real: no reordering
     torch.testing.assert_close(feats[0, :4], ref_feats, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(desc[0], ref_desc, atol=1e-5, rtol=1e-4)
     path = tmp_path / "des4pos-tiny-state.yaml"
-    path.write_text(fine_card_text(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}")
-                    .replace("name: des4pos-tiny", "name: des4pos-tiny-state"))
-    assert invoke("export", "--model", "des4pos-tiny-state", "--config", path,
-                  "--output", tmp_path / "b").exit_code == 0
-    res = invoke("parity-check", "--model", "des4pos-tiny-state", "--config", path, "--onnx", tmp_path / "b",
-                 "--cases", "4", "--json")
+    path.write_text(
+        fine_card_text(f"cra_layers: 3, heads: 2, mlp_hidden: 16, object_state: {state}").replace(
+            "name: des4pos-tiny", "name: des4pos-tiny-state"
+        )
+    )
+    assert (
+        invoke("export", "--model", "des4pos-tiny-state", "--config", path, "--output", tmp_path / "b").exit_code == 0
+    )
+    res = invoke(
+        "parity-check",
+        "--model",
+        "des4pos-tiny-state",
+        "--config",
+        path,
+        "--onnx",
+        tmp_path / "b",
+        "--cases",
+        "4",
+        "--json",
+    )
     assert res.exit_code == 0 and json.loads(res.stdout)["passed"], res.output

@@ -3,10 +3,9 @@
 import json
 
 from click.testing import CliRunner
+from conftest import assert_parses_in_tensorrt
 
 from radaredge.cli import main
-
-from conftest import assert_parses_in_tensorrt
 
 
 def test_full_card_bundle_export_and_parity(tmp_path):
@@ -19,8 +18,9 @@ def test_full_card_bundle_export_and_parity(tmp_path):
     side = json.loads((out / "submap_encoder.json").read_text())
     assert side["inputs"][0] == {"name": "points", "shape": ["cells", 28, 256, 6]}
     # the command's default case set (20 cases): distinct descriptions, each retrieving its own
-    res = CliRunner().invoke(main, ["parity-check", "--model", "des4pos", "--onnx", str(out), "--json"],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        main, ["parity-check", "--model", "des4pos", "--onnx", str(out), "--json"], catch_exceptions=False
+    )
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     assert report["graphs"]["submap_encoder"]["summary"]["descriptor"]["min_cosine"] >= 0.9999

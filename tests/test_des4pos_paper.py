@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from references import des4pos_paper as paper
 
 from radaredge.cards import load_card
 from radaredge.data.text_city import make_city_for_card
 from radaredge.models import create_model
 from radaredge.models.des4pos.model import MFAM
-from references import des4pos_paper as paper
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
 
@@ -28,7 +28,7 @@ def card():
 def model(card):
     torch.manual_seed(11)
     m = create_model(card)
-    with torch.no_grad():                     # seeded biases are small; make every term count
+    with torch.no_grad():  # seeded biases are small; make every term count
         for name, p in m.named_parameters():
             if not name.startswith("text.backbone") and name.endswith("bias"):
                 p.normal_(0, 0.3)
@@ -48,7 +48,7 @@ def test_mfam_matches_eq_4_5(form):
     s = torch.from_numpy(rng.normal(size=(2, 7, d)).astype(np.float32))
     mask = torch.tensor([[1, 1, 1, 1, 0, 0, 0], [1, 1, 1, 1, 1, 1, 1]], dtype=torch.bool)
     s_pad = s.clone()
-    s_pad[0, 4:] = float("nan")                # padding content never reaches a real object
+    s_pad[0, 4:] = float("nan")  # padding content never reaches a real object
     with torch.no_grad():
         out = block(s_pad, mask)
     sd = {f"mfam.{k}": v for k, v in _sd(block).items()}
@@ -63,11 +63,11 @@ def test_text_heads_match_the_alignment_head(model, card):
     heads = card.get("text.align_heads")
     rng = np.random.default_rng(1)
     p = card.get("text.prior_dim")
-    lengths = [[5, 9, 3], [7, 4, 0]]                       # tokens per hint; 0: a padding hint
+    lengths = [[5, 9, 3], [7, 4, 0]]  # tokens per hint; 0: a padding hint
     tokens = torch.from_numpy(rng.normal(size=(2, 3, 9, p)).astype(np.float32))
     tmask = torch.tensor([[[t < n for t in range(9)] for n in row] for row in lengths])
     hmask = tmask.any(-1)
-    tmask_flat = tmask.reshape(6, 9) | ~hmask.reshape(6, 1)   # a padding hint's tokens are masked by its hint
+    tmask_flat = tmask.reshape(6, 9) | ~hmask.reshape(6, 1)  # a padding hint's tokens are masked by its hint
     with torch.no_grad():
         coarse, fine = model.text.heads(tokens.reshape(6, 9, p), tmask_flat)
         desc = model.text.pool(coarse.reshape(2, 3, -1), hmask)
@@ -76,7 +76,7 @@ def test_text_heads_match_the_alignment_head(model, card):
         real = [tokens[b, h, :n] for h, n in enumerate(lengths[b]) if n]
         want_desc, want_fine = paper.text_heads(real, sd, "text", heads)
         np.testing.assert_allclose(desc[b].numpy(), want_desc.numpy(), atol=2e-5)
-        np.testing.assert_allclose(fine.reshape(2, 3, -1)[b, :len(real)].numpy(), want_fine.numpy(), atol=2e-4)
+        np.testing.assert_allclose(fine.reshape(2, 3, -1)[b, : len(real)].numpy(), want_fine.numpy(), atol=2e-4)
 
 
 def test_cra_matches_eq_10_12(model, card):
@@ -102,7 +102,7 @@ def test_one_objects_points_move_the_cell_descriptor():
     model = create_model(card)
     city = make_city_for_card(card, seed=3, poses=0)
     c = int(np.argmax(city.object_mask.sum(1)))
-    pts, cnt, mask = city.points[c:c + 1], city.num_points[c:c + 1], city.object_mask[c:c + 1]
+    pts, cnt, mask = city.points[c : c + 1], city.num_points[c : c + 1], city.object_mask[c : c + 1]
     other = city.points[(c + 20) % len(city.ids), 0]
     moved = {}
     for form in ("residual", "paper"):

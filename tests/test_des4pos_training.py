@@ -15,8 +15,18 @@ from radaredge.data.text_city import write_cities
 from radaredge.data.text_maps import load_text_maps
 from radaredge.errors import ConfigError
 from radaredge.models import create_model
-from radaredge.training.des4pos import (TextRecipe, _padded_hints, backbone_features, cell_descriptors, coarse_metrics,
-                                        geometry_features, hint_fine_features, hint_table, info_nce, text_descriptors)
+from radaredge.training.des4pos import (
+    TextRecipe,
+    _padded_hints,
+    backbone_features,
+    cell_descriptors,
+    coarse_metrics,
+    geometry_features,
+    hint_fine_features,
+    hint_table,
+    info_nce,
+    text_descriptors,
+)
 
 TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
 
@@ -50,10 +60,14 @@ def _training_recall(card, model, root) -> float:
 def test_coarse_stage_lowers_infonce_and_raises_recall(card, city_dir, tmp_path):
     seeded = create_model(card)
     before = _training_recall(card, seeded, city_dir)
-    report = radaredge.train(card, city_dir, tmp_path / "run",
-                             options={"stages": "coarse", "coarse_epochs": 5, "coarse_batch": 16, "coarse_lr": 2e-3})
+    report = radaredge.train(
+        card,
+        city_dir,
+        tmp_path / "run",
+        options={"stages": "coarse", "coarse_epochs": 5, "coarse_batch": 16, "coarse_lr": 2e-3},
+    )
     rows = [r for r in report.epochs if r["stage"] == "coarse"]
-    assert len(rows) == 5 and report.data["training_poses"] == 144    # 9 steps an epoch, 45 in all
+    assert len(rows) == 5 and report.data["training_poses"] == 144  # 9 steps an epoch, 45 in all
     assert rows[-1]["loss"] < 0.8 * rows[0]["loss"], [r["loss"] for r in rows]
     trained = create_model(card, tmp_path / "run" / "best.pth")
     after = _training_recall(card, trained, city_dir)
@@ -63,8 +77,14 @@ def test_coarse_stage_lowers_infonce_and_raises_recall(card, city_dir, tmp_path)
 
 
 def test_all_stages_run_resume_and_keep_each_stages_best(card, city_dir, tmp_path):
-    opts = {"object_epochs": 1, "prior_epochs": 1, "coarse_epochs": 1, "hints_epochs": 1, "fine_epochs": 2,
-            "coarse_batch": 16}
+    opts = {
+        "object_epochs": 1,
+        "prior_epochs": 1,
+        "coarse_epochs": 1,
+        "hints_epochs": 1,
+        "fine_epochs": 2,
+        "coarse_batch": 16,
+    }
     report = radaredge.train(card, city_dir, tmp_path / "run", options=opts)
     assert [r["stage"] for r in report.epochs] == ["objects", "prior", "coarse", "hints", "fine", "fine"]
     assert set(report.stage_best) == {"objects", "prior", "coarse", "hints", "fine"}
@@ -97,15 +117,23 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
     (``fine.objects: encoder``) takes every weight outside the fine stage from the checkpoint and
     starts the fine stage seeded; a warm-up epoch at a negligible rate leaves it there, and
     without one it trains. A checkpoint that does not fit outside the fine stage is refused."""
-    radaredge.train(card, city_dir, tmp_path / "base", options={"stages": "coarse", "coarse_epochs": 1,
-                                                                 "coarse_batch": 16})
+    radaredge.train(
+        card, city_dir, tmp_path / "base", options={"stages": "coarse", "coarse_epochs": 1, "coarse_batch": 16}
+    )
     ckpt = tmp_path / "base" / "best.pth"
-    text = TINY.read_text().replace("fine: {cra_layers: 3, heads: 2, mlp_hidden: 16}",
-                                    "fine: {cra_layers: 4, heads: 2, mlp_hidden: 16, objects: encoder, pool: hints}")
+    text = TINY.read_text().replace(
+        "fine: {cra_layers: 3, heads: 2, mlp_hidden: 16}",
+        "fine: {cra_layers: 4, heads: 2, mlp_hidden: 16, objects: encoder, pool: hints}",
+    )
     enc_card = card_from_yaml(text)
     fine = ("fine.", "text.fine_words.", "text.fine_mlp.")
-    warm = {"stages": "fine", "fine_epochs": 1, "fine_warmup_epochs": 1, "fine_warmup_lr": 1e-9,
-            "coarse_weights": str(ckpt)}
+    warm = {
+        "stages": "fine",
+        "fine_epochs": 1,
+        "fine_warmup_epochs": 1,
+        "fine_warmup_lr": 1e-9,
+        "coarse_weights": str(ckpt),
+    }
     radaredge.train(enc_card, city_dir, tmp_path / "warm", options=warm)
     trained, seeded = create_model(card, ckpt).state_dict(), create_model(enc_card).state_dict()
     after = create_model(enc_card, tmp_path / "warm" / "best.pth").state_dict()
@@ -115,19 +143,29 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
             torch.testing.assert_close(v, seeded[k], atol=1e-6, rtol=0.0)
         else:
             assert torch.equal(v, trained[k]), k
-    run = radaredge.train(enc_card, city_dir, tmp_path / "fine", options={**warm, "fine_epochs": 3,
-                                                                          "fine_warmup_epochs": 0, "fine_lr": 3e-3})
+    run = radaredge.train(
+        enc_card,
+        city_dir,
+        tmp_path / "fine",
+        options={**warm, "fine_epochs": 3, "fine_warmup_epochs": 0, "fine_lr": 3e-3},
+    )
     losses = [r["loss"] for r in run.epochs]
     assert losses[-1] < losses[0], losses
     moved = create_model(enc_card, tmp_path / "fine" / "best.pth").state_dict()
     assert not torch.equal(moved["fine.objects.pos_encoder.0.weight"], seeded["fine.objects.pos_encoder.0.weight"])
     # fine_text_from: coarse_weights: the fine text branch is the checkpoint's (moved here, so that it
     # differs from the seed), only the CRA starts seeded
-    moved_text = {k: v + 0.25 if k.startswith(("text.fine_words.", "text.fine_mlp.")) and v.is_floating_point()
-                  else v for k, v in trained.items()}
+    moved_text = {
+        k: v + 0.25 if k.startswith(("text.fine_words.", "text.fine_mlp.")) and v.is_floating_point() else v
+        for k, v in trained.items()
+    }
     torch.save(moved_text, tmp_path / "text.pth")
-    radaredge.train(enc_card, city_dir, tmp_path / "text",
-                    options={**warm, "coarse_weights": str(tmp_path / "text.pth"), "fine_text_from": "coarse_weights"})
+    radaredge.train(
+        enc_card,
+        city_dir,
+        tmp_path / "text",
+        options={**warm, "coarse_weights": str(tmp_path / "text.pth"), "fine_text_from": "coarse_weights"},
+    )
     kept = create_model(enc_card, tmp_path / "text" / "best.pth").state_dict()
     for k, v in kept.items():
         if k.startswith("fine."):
@@ -136,13 +174,15 @@ def test_fine_stage_reruns_from_coarse_weights_with_its_own_encoder(card, city_d
             torch.testing.assert_close(v, moved_text[k], atol=1e-6, rtol=0.0)
             assert not torch.equal(v, seeded[k]), k
     with pytest.raises(ConfigError, match="fine_text_from: coarse_weights needs"):
-        radaredge.train(enc_card, city_dir, tmp_path / "none",
-                        options={"stages": "fine", "fine_text_from": "coarse_weights"})
+        radaredge.train(
+            enc_card, city_dir, tmp_path / "none", options={"stages": "fine", "fine_text_from": "coarse_weights"}
+        )
     partial = {k: v for k, v in trained.items() if k != "submap.mfam.v.weight"}
     torch.save(partial, tmp_path / "partial.pth")
     with pytest.raises(ConfigError, match=r"outside the fine stage: missing keys \(1\): submap.mfam.v.weight"):
-        radaredge.train(enc_card, city_dir, tmp_path / "bad",
-                        options={**warm, "coarse_weights": str(tmp_path / "partial.pth")})
+        radaredge.train(
+            enc_card, city_dir, tmp_path / "bad", options={**warm, "coarse_weights": str(tmp_path / "partial.pth")}
+        )
 
 
 def test_hints_stage_warms_the_text_branch_on_the_lstm_states(card, city_dir, tmp_path):
@@ -152,10 +192,11 @@ def test_hints_stage_warms_the_text_branch_on_the_lstm_states(card, city_dir, tm
     starts the CRA from its seed again (a warm-up epoch at a negligible rate leaves it there)."""
     assert create_model(card).submap.object_state == "mfam"
     lstm_card = card_from_yaml(TINY.read_text().replace("mlp_hidden: 16}", "mlp_hidden: 16, object_state: lstm}"))
-    warm = {"fine_lr": 3e-3, "fine_warmup_epochs": 1, "fine_warmup_lr": 1e-9}       # both stages' first epoch
+    warm = {"fine_lr": 3e-3, "fine_warmup_epochs": 1, "fine_warmup_lr": 1e-9}  # both stages' first epoch
     lstm = radaredge.train(lstm_card, city_dir, tmp_path / "lstm", options={"stages": "fine", "fine_epochs": 1, **warm})
-    run = radaredge.train(card, city_dir, tmp_path / "run",
-                          options={"stages": "hints,fine", "hints_epochs": 2, "fine_epochs": 1, **warm})
+    run = radaredge.train(
+        card, city_dir, tmp_path / "run", options={"stages": "hints,fine", "hints_epochs": 2, "fine_epochs": 1, **warm}
+    )
     strip = lambda r: {k: v for k, v in r.items() if k not in ("stage", "seconds")}  # noqa: E731
     assert [r["stage"] for r in run.epochs] == ["hints", "hints", "fine"]
     assert strip(run.epochs[0]) == strip(lstm.epochs[0])
@@ -173,17 +214,22 @@ def test_info_nce_masks_copies_of_the_same_cell():
     ids = torch.tensor([0, 0, 1, 2])
     masked = info_nce(text, text.clone(), ids, 0.1, True)
     counted = info_nce(text, text.clone(), ids, 0.1, False)
-    assert masked < counted                      # the duplicate is no longer a negative
+    assert masked < counted  # the duplicate is no longer a negative
     # a perfect, well-separated pairing approaches zero loss
     eye = torch.eye(4)
     assert float(info_nce(eye, eye, torch.arange(4), 0.01, True)) < 1e-6
 
 
-@pytest.mark.parametrize("options, match", [({"stages": "coarse,warmup"}, "unknown"),
-                                            ({"coarse_lr": -1.0}, "coarse-lr"),
-                                            ({"duplicate_cells": "drop"}, "duplicate_cells"),
-                                            ({"shuffle_hints": 1}, "true or false"),
-                                            ({"negatives": 8}, "unknown Des4Pos training option")])
+@pytest.mark.parametrize(
+    "options, match",
+    [
+        ({"stages": "coarse,warmup"}, "unknown"),
+        ({"coarse_lr": -1.0}, "coarse-lr"),
+        ({"duplicate_cells": "drop"}, "duplicate_cells"),
+        ({"shuffle_hints": 1}, "true or false"),
+        ({"negatives": 8}, "unknown Des4Pos training option"),
+    ],
+)
 def test_recipe_options_are_checked(options, match):
     with pytest.raises(ConfigError, match=match):
         TextRecipe.from_options(options)
@@ -202,8 +248,10 @@ def test_tensors_made_in_the_training_path_follow_the_input_device(card, city_di
         tokens, tmask = backbone_features(model, table, "cpu")
         prior = model.text.prior_tokens(tokens, tmask)
         geometry = geometry_features(model, maps, "cpu")
-        outs = [*cell_descriptors(model, maps, cells, geometry, "cpu"),
-                *cell_descriptors(model, maps, cells, None, "cpu")]
+        outs = [
+            *cell_descriptors(model, maps, cells, geometry, "cpu"),
+            *cell_descriptors(model, maps, cells, None, "cpu"),
+        ]
         model.train()
         desc, objects = cell_descriptors(model, maps, cells, None, "cpu")
         rows, hmask = _padded_hints(maps, table, np.flatnonzero(~maps.validation)[:4], None)
@@ -215,5 +263,6 @@ def test_tensors_made_in_the_training_path_follow_the_input_device(card, city_di
     outs += [tokens, prior, geometry, desc, t, offsets]
     assert all(o.device.type == "cpu" and torch.isfinite(o).all() for o in outs)
     grads = {n: p.grad for n, p in model.submap.named_parameters() if p.grad is not None}
-    assert ({"mfam.o.weight", "lstm.weight_hh_l0", "objects.mlp_merge.0.0.weight"} <= set(grads)
-            and all(g.device.type == "cpu" for g in grads.values())), sorted(grads)
+    assert {"mfam.o.weight", "lstm.weight_hh_l0", "objects.mlp_merge.0.0.weight"} <= set(grads) and all(
+        g.device.type == "cpu" for g in grads.values()
+    ), sorted(grads)

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from references import text2pos_pointnet as text2pos
 
 from radaredge.cards import load_card
 from radaredge.errors import ConfigError
 from radaredge.models import create_model
 from radaredge.models.des4pos.weights import load_object_weights
-from references import text2pos_pointnet as text2pos
 
 
 def _bn_mlp(prefix: str, dims: list[int], g: torch.Generator) -> dict:
@@ -31,10 +31,18 @@ def _bn_mlp(prefix: str, dims: list[int], g: torch.Generator) -> dict:
 def text2pos_pointnet(seed: int = 0) -> dict:
     """A state_dict in the layout of Text2Pos's pointnet_acc0.86_lr1_p256.pth (22 classes, 8 colours)."""
     g = torch.Generator().manual_seed(seed)
-    sd = {**_bn_mlp("sa1.point_conv.local_nn", [6, 32, 64], g), **_bn_mlp("sa2.point_conv.local_nn", [67, 128, 128], g),
-          **_bn_mlp("sa3.point_conv.local_nn", [131, 256, 256], g), **_bn_mlp("ga.mlp", [259, 512, 1024], g)}
-    for name, (o, i) in {"lin1": (512, 1024), "lin2": (256, 512), "class_classifier": (22, 256),
-                         "color_classifier": (8, 256)}.items():
+    sd = {
+        **_bn_mlp("sa1.point_conv.local_nn", [6, 32, 64], g),
+        **_bn_mlp("sa2.point_conv.local_nn", [67, 128, 128], g),
+        **_bn_mlp("sa3.point_conv.local_nn", [131, 256, 256], g),
+        **_bn_mlp("ga.mlp", [259, 512, 1024], g),
+    }
+    for name, (o, i) in {
+        "lin1": (512, 1024),
+        "lin2": (256, 512),
+        "class_classifier": (22, 256),
+        "color_classifier": (8, 256),
+    }.items():
         sd[f"{name}.weight"], sd[f"{name}.bias"] = torch.randn(o, i, generator=g), torch.randn(o, generator=g)
     return sd
 
@@ -55,7 +63,7 @@ def test_text2pos_pointnet_loads_key_for_key(model, tmp_path):
     own = model.submap.objects.pointnet.state_dict()
     for k, v in sd.items():
         assert torch.equal(own[k], v), k
-    assert torch.equal(model.submap.objects.mlp_pointnet[0][0].weight, before)     # the rest untouched
+    assert torch.equal(model.submap.objects.mlp_pointnet[0][0].weight, before)  # the rest untouched
     assert "64 tensors" in report.summary()
 
 
@@ -63,10 +71,14 @@ def test_text2loc_checkpoint_object_encoder_loads(model, tmp_path):
     g = torch.Generator().manual_seed(1)
     objects = {f"object_encoder.{k}": v for k, v in model.submap.objects.state_dict().items()}
     objects = {k: torch.randn(v.shape, generator=g) if v.is_floating_point() else v for k, v in objects.items()}
-    ckpt = {**objects, "object_encoder.class_embedding.weight": torch.randn(22, 256),
-            "object_encoder.color_embedding.weight": torch.randn(8, 256), "language_encoder.x.weight": torch.randn(2)}
+    ckpt = {
+        **objects,
+        "object_encoder.class_embedding.weight": torch.randn(22, 256),
+        "object_encoder.color_embedding.weight": torch.randn(8, 256),
+        "language_encoder.x.weight": torch.randn(2),
+    }
     path = tmp_path / "coarse.pth"
-    torch.save({"model": ckpt}, path)                          # wrapped, as training scripts save it
+    torch.save({"model": ckpt}, path)  # wrapped, as training scripts save it
     report = load_object_weights(model, path)
     assert report.source == "Text2Loc/Des4Pos checkpoint"
     assert report.unused == ["object_encoder.class_embedding.weight", "object_encoder.color_embedding.weight"]
@@ -83,8 +95,9 @@ def test_weights_that_do_not_fit_name_their_keys(model, tmp_path):
         load_object_weights(model, path)
     del sd["sa2.point_conv.local_nn.0.0.weight"]
     torch.save(sd, path)
-    with pytest.raises(ConfigError,
-                       match="PointNet\\+\\+ keys missing \\(1\\): pointnet.sa2.point_conv.local_nn.0.0.weight"):
+    with pytest.raises(
+        ConfigError, match="PointNet\\+\\+ keys missing \\(1\\): pointnet.sa2.point_conv.local_nn.0.0.weight"
+    ):
         load_object_weights(model, path)
     torch.save({"backbone.conv.weight": torch.zeros(2)}, path)
     with pytest.raises(ConfigError, match="neither Text2Pos PointNet"):
@@ -96,7 +109,7 @@ def test_text2pos_weights_compute_text2pos_features(model, tmp_path):
     feature of the upstream reference (tests/references/text2pos_pointnet.py, written from
     Text2Pos's PointNet2 and PyG's fps / radius / PointConv) for objects in cell units."""
     sd = text2pos_pointnet(seed=4)
-    for k, v in sd.items():                      # weights of a scale a trained net has: activations stay O(1)
+    for k, v in sd.items():  # weights of a scale a trained net has: activations stay O(1)
         if k.endswith(".0.weight") or k.startswith(("lin1", "lin2")) and k.endswith("weight"):
             sd[k] = v / v.shape[1] ** 0.5
     path = tmp_path / "pointnet.pth"
@@ -104,7 +117,7 @@ def test_text2pos_weights_compute_text2pos_features(model, tmp_path):
     load_object_weights(model, path)
     net = model.submap.objects.pointnet.eval()
     rng = np.random.default_rng(7)
-    for size in (0.12, 0.35):                                 # a pole-sized and a box-sized object
+    for size in (0.12, 0.35):  # a pole-sized and a box-sized object
         xyz = (rng.uniform(0.3, 0.3 + size, (256, 3))).astype(np.float32)
         rgb = rng.uniform(0, 1, (256, 3)).astype(np.float32)
         want = text2pos.features2(xyz, rgb, sd)

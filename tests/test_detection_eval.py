@@ -10,13 +10,13 @@ import json
 import numpy as np
 import pytest
 import yaml
+from conftest import MAFFNET_TINY_CARD, invoke
 
 import radaredge
-from radaredge.data.kitti_detection import VOD, DetectionSet, radar_boxes_to_labels
-from radaredge.eval.detection import REFERENCE, ORT, ORT_INT8, card_points
-from radaredge.eval.kitti_ap import ap_table, evaluate_frames
 from radaredge.cards import load_card
-from conftest import MAFFNET_TINY_CARD, invoke
+from radaredge.data.kitti_detection import VOD, DetectionSet, radar_boxes_to_labels
+from radaredge.eval.detection import ORT, ORT_INT8, REFERENCE, card_points
+from radaredge.eval.kitti_ap import ap_table, evaluate_frames
 
 
 @pytest.fixture(scope="module")
@@ -31,8 +31,21 @@ def labelled(tmp_path_factory):
 
 def test_eval_scores_every_backend_in_one_table(labelled, maffnet_tiny_export, tmp_path):
     card, onnx = maffnet_tiny_export
-    res = invoke("eval", "--model", "maffnet-tiny", "--config", card, "--onnx", onnx, "--data", labelled,
-                 "--report-dir", tmp_path / "report", "--report", tmp_path / "r.json")
+    res = invoke(
+        "eval",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        card,
+        "--onnx",
+        onnx,
+        "--data",
+        labelled,
+        "--report-dir",
+        tmp_path / "report",
+        "--report",
+        tmp_path / "r.json",
+    )
     assert res.exit_code == 0, res.output
     head = next(line for line in res.output.splitlines() if line.startswith("3D AP"))
     for backend in (REFERENCE, ORT, ORT_INT8):
@@ -41,7 +54,7 @@ def test_eval_scores_every_backend_in_one_table(labelled, maffnet_tiny_export, t
     assert any(line.startswith("box errors") for line in res.output.splitlines())
     report = json.loads((tmp_path / "r.json").read_text())
     errors = report["box_errors"][REFERENCE]["Car"]
-    assert errors["ground_truth"] >= report["ap"][REFERENCE]["entire_area"]["Car"]["num_gt"] > 0   # every label
+    assert errors["ground_truth"] >= report["ap"][REFERENCE]["entire_area"]["Car"]["num_gt"] > 0  # every label
     assert 0 <= errors["matched"] <= errors["ground_truth"]
     assert set(report["box_errors"]) == {"matching", *report["ap"]}
     assert report["frames"] == 4 and report["dataset"] == "vod" and report["reference"] == REFERENCE
@@ -93,13 +106,39 @@ def test_the_api_verb_agrees_with_the_metric_on_the_graphs_detections(labelled, 
 
 def test_eval_refuses_options_of_other_tasks(labelled, maffnet_tiny_export, tmp_path):
     card, onnx = maffnet_tiny_export
-    res = invoke("eval", "--model", "maffnet-tiny", "--config", card, "--onnx", onnx, "--data", labelled,
-                 "--radius", 10, "--report-dir", tmp_path / "r")
+    res = invoke(
+        "eval",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        card,
+        "--onnx",
+        onnx,
+        "--data",
+        labelled,
+        "--radius",
+        10,
+        "--report-dir",
+        tmp_path / "r",
+    )
     assert res.exit_code == 2 and "--radius not used" in res.output
     res = invoke("eval", "--model", "maffnet-tiny", "--config", card, "--onnx", onnx, "--report-dir", tmp_path / "r")
     assert res.exit_code == 2 and "missing --data" in res.output
-    res = invoke("eval", "--model", "maffnet-tiny", "--config", card, "--onnx", onnx, "--data", labelled,
-                 "--split", "test", "--report-dir", tmp_path / "r")
+    res = invoke(
+        "eval",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        card,
+        "--onnx",
+        onnx,
+        "--data",
+        labelled,
+        "--split",
+        "test",
+        "--report-dir",
+        tmp_path / "r",
+    )
     assert res.exit_code == 2 and "val.txt" not in res.output and "lists no frames" in res.output
 
 
@@ -108,7 +147,7 @@ def test_parity_quantized_reports_ap_lost_per_class(maffnet_tiny_export):
     report = radaredge.parity(card, onnx, cases=2, quantized=True)
     task = report.to_dict()["task"]
     assert set(task["loss"]) == {"Car", "Pedestrian", "Cyclist"} and task["budget_ap_points"] == 1.0
-    assert task["frames"] == 36                  # every split of the 3-drive, 12-frame set, not its 12-frame val
+    assert task["frames"] == 36  # every split of the 3-drive, 12-frame set, not its 12-frame val
     assert task["passed"] == all(v <= 1.0 for v in task["loss"].values())
     assert any(line.startswith("int8 by AP") for line in report.lines())
 
@@ -117,17 +156,32 @@ def test_a_tj4d_card_on_a_tj4d_layout(tmp_path):
     """A 4-class card on TJ4DRadSet's columns (x, y, z, v_r, snr), cropped to the camera's view,
     scored with TJ4D's protocol (Car, Pedestrian, Cyclist, Truck; entire area only)."""
     data = yaml.safe_load(MAFFNET_TINY_CARD.read_text())
-    data.update(name="maffnet-tiny-tj4d", features=["x", "y", "z", "v_r", "snr"],
-                classes=["Car", "Pedestrian", "Cyclist", "Truck"],
-                input={"scans_accumulated": 1, "crop": "camera_fov"})
+    data.update(
+        name="maffnet-tiny-tj4d",
+        features=["x", "y", "z", "v_r", "snr"],
+        classes=["Car", "Pedestrian", "Cyclist", "Truck"],
+        input={"scans_accumulated": 1, "crop": "camera_fov"},
+    )
     data["cfa"]["velocity_feature"] = "v_r"
-    data["dense_head"]["anchors"].append({**copy.deepcopy(data["dense_head"]["anchors"][0]), "class_name": "Truck",
-                                          "anchor_sizes": [[8.0, 2.5, 3.0]]})
+    data["dense_head"]["anchors"].append(
+        {**copy.deepcopy(data["dense_head"]["anchors"][0]), "class_name": "Truck", "anchor_sizes": [[8.0, 2.5, 3.0]]}
+    )
     card = tmp_path / "maffnet-tiny-tj4d.yaml"
     card.write_text(yaml.safe_dump(data, sort_keys=False))
     radaredge.export(card, tmp_path / "tj.onnx")
-    res = invoke("make-benchmark", "--task", "detection", "--dataset", "tj4d", "--out", tmp_path / "tj4d",
-                 "--drives", 2, "--frames", 2)
+    res = invoke(
+        "make-benchmark",
+        "--task",
+        "detection",
+        "--dataset",
+        "tj4d",
+        "--out",
+        tmp_path / "tj4d",
+        "--drives",
+        2,
+        "--frames",
+        2,
+    )
     assert res.exit_code == 0 and "TJ4DRadSet" in res.output, res.output
     report = radaredge.evaluate(card, tmp_path / "tj.onnx", data=tmp_path / "tj4d", reference=False)
     assert report.layout == "tj4d" and report.areas == ("entire_area",)

@@ -6,8 +6,12 @@ import torch
 
 from radaredge.errors import InputError
 from radaredge.ops.ego_velocity import (
-    EgoVelocityRansac, RansacConfig, estimate_ego_velocity, estimate_ego_velocity_reference, sample_ranks,
+    EgoVelocityRansac,
+    RansacConfig,
+    estimate_ego_velocity,
+    estimate_ego_velocity_reference,
     hypothesis_table,
+    sample_ranks,
 )
 from radaredge.ops.scan_batch import concat_scans
 
@@ -48,6 +52,7 @@ def test_samples_are_the_same_when_a_runtime_computes_mod_in_float32(seed):
     for n in (3, 17, 300, 1186, 4999):
         exact = table % np.array([n, n - 1, n - 2])
         assert (_mod_in_float32(table, np.array([n, n - 1, n - 2])) == exact).all(), n
+
 
 @pytest.mark.parametrize("dyn", [0.0, 0.2, 0.4])
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -119,12 +124,17 @@ def test_config_rejects_nonsense():
 def test_onnx_export_matches_torch(onnx_roundtrip):
     xyz, v_r, _ = doppler_scan(120, 0.3, 9)
     example = {"xyz": torch.from_numpy(xyz), "v_r": torch.from_numpy(v_r), "valid": torch.ones(120, dtype=torch.bool)}
-    rt = onnx_roundtrip(EgoVelocityRansac(), example, ["v_ego", "static_mask", "valid_estimate"],
-                        {"xyz": {0: "N"}, "v_r": {0: "N"}, "valid": {0: "N"}})
+    rt = onnx_roundtrip(
+        EgoVelocityRansac(),
+        example,
+        ["v_ego", "static_mask", "valid_estimate"],
+        {"xyz": {0: "N"}, "v_r": {0: "N"}, "valid": {0: "N"}},
+    )
     for n, dyn, seed in [(300, 0.4, 1), (57, 0.1, 2), (2, 0.0, 3), (0, 0.0, 4)]:
         xyz, v_r, _ = doppler_scan(n, dyn, seed)
-        ref, got = rt({"xyz": torch.from_numpy(xyz), "v_r": torch.from_numpy(v_r),
-                       "valid": torch.ones(n, dtype=torch.bool)})
+        ref, got = rt(
+            {"xyz": torch.from_numpy(xyz), "v_r": torch.from_numpy(v_r), "valid": torch.ones(n, dtype=torch.bool)}
+        )
         np.testing.assert_allclose(got["v_ego"], ref["v_ego"], atol=1e-5)
         assert np.array_equal(got["static_mask"], ref["static_mask"])
         assert bool(got["valid_estimate"]) == bool(ref["valid_estimate"])
@@ -184,7 +194,7 @@ def test_scans_at_once_equal_scans_alone():
     for k, (xyz, v_r) in enumerate(scans):
         v1, s1, ok1 = estimate_ego_velocity(xyz, v_r)
         np.testing.assert_allclose(v[k].numpy(), v1, atol=1e-6, err_msg=f"scan {k}")
-        assert np.array_equal(static[start:start + len(xyz)].numpy(), s1), f"scan {k}"
+        assert np.array_equal(static[start : start + len(xyz)].numpy(), s1), f"scan {k}"
         assert bool(ok[k]) == ok1, f"scan {k}"
         start += len(xyz)
     assert [bool(o) for o in ok] == [True, False, False, True, True]
@@ -194,8 +204,9 @@ def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
     scans = _mixed_scans()[:3]
     names = [f"{a}_{k}" for k in range(3) for a in ("xyz", "v_r")]
     example = dict(zip(names, [torch.from_numpy(a) for s in scans for a in s]))
-    rt = onnx_roundtrip(_ScansAtOnce(3), example, ["v_ego", "static_mask", "valid_estimate"],
-                        {n: {0: f"N_{n}"} for n in names})
+    rt = onnx_roundtrip(
+        _ScansAtOnce(3), example, ["v_ego", "static_mask", "valid_estimate"], {n: {0: f"N_{n}"} for n in names}
+    )
     for sizes in [(300, 57, 120), (0, 4, 200), (90, 0, 0)]:
         scans = [doppler_scan(n, 0.3, n + 1)[:2] for n in sizes]
         ref, got = rt(dict(zip(names, [torch.from_numpy(a) for s in scans for a in s])))
@@ -211,8 +222,10 @@ def test_a_scan_without_a_static_world_is_not_a_valid_estimate():
     for seed in range(20):
         xyz, _, _ = doppler_scan(300, 0.0, seed)
         rcs_as_doppler = rng.uniform(-20.0, 40.0, len(xyz))
-        for v, static, ok in (estimate_ego_velocity_reference(xyz, rcs_as_doppler),
-                              estimate_ego_velocity(xyz, rcs_as_doppler)):
+        for v, static, ok in (
+            estimate_ego_velocity_reference(xyz, rcs_as_doppler),
+            estimate_ego_velocity(xyz, rcs_as_doppler),
+        ):
             assert not ok and np.all(np.asarray(v) == 0) and np.all(static)
 
 

@@ -49,7 +49,7 @@ def test_radius_boundary_is_inclusive(use_faiss):
     """A database entry exactly 5 m away (a 3-4-5 triangle) is a true positive; 4.99 m is too short."""
     db_desc, db_pos = one_hot_database(3, spacing=20.0)
     q_desc = query_ranking([0, 1], 3)[None]
-    q_pos = np.array([[3.0, 4.0]])                                # 5 m from entry 0 at (0, 0)
+    q_pos = np.array([[3.0, 4.0]])  # 5 m from entry 0 at (0, 0)
     res = recall_at_n(q_desc, q_pos, db_desc, db_pos, ns=(1,), radius=5.0, use_faiss=use_faiss)
     assert res["recall"] == {1: 100.0} and res["top1_distance"][0] == 5.0
     with pytest.raises(InputError, match="within 4.99 m"):
@@ -70,8 +70,9 @@ def test_ties_rank_the_lower_database_index_first(use_faiss):
 @pytest.mark.parametrize("use_faiss", BACKENDS)
 def test_n_beyond_the_database_size_is_recall_at_b(use_faiss):
     db_desc, db_pos = one_hot_database(3)
-    res = recall_at_n(query_ranking([2, 1, 0], 3)[None], db_pos[[0]], db_desc, db_pos, ns=(1, 3, 10),
-                      use_faiss=use_faiss)
+    res = recall_at_n(
+        query_ranking([2, 1, 0], 3)[None], db_pos[[0]], db_desc, db_pos, ns=(1, 3, 10), use_faiss=use_faiss
+    )
     assert res["recall"] == {1: 0.0, 3: 100.0, 10: 100.0} and res["ranked"].shape == (1, 3)
 
 
@@ -79,6 +80,7 @@ def test_faiss_and_numpy_agree_on_a_random_drive():
     """60 queries (enough for FAISS's BLAS search path) against 300 database entries along a
     track, descriptors noisy copies of a per-place code."""
     import faiss
+
     rng = np.random.default_rng(0)
     db_pos = np.column_stack([np.zeros(300), np.arange(300.0)])
     code = rng.normal(size=(300, 64)).astype(np.float32)
@@ -104,7 +106,7 @@ def test_top1_agreement():
 
 
 def test_top1_place_agreement_counts_top1_windows_within_the_radius():
-    db_pos = np.array([[0.0, 0.0], [0.0, 1.0], [0.0, 5.0], [0.0, 30.0]])      # (northing, easting) m
+    db_pos = np.array([[0.0, 0.0], [0.0, 1.0], [0.0, 5.0], [0.0, 30.0]])  # (northing, easting) m
     # same window; 1 m apart; exactly 5 m apart (boundary counts); 29 m apart
     assert top1_place_agreement([0, 0, 0, 1], [0, 1, 2, 3], db_pos, 5.0) == 0.75
     assert top1_place_agreement([0, 0, 0, 1], [0, 1, 2, 3], db_pos, 0.5) == 0.25
@@ -118,6 +120,7 @@ def test_top1_place_agreement_counts_top1_windows_within_the_radius():
 
 def test_bad_arguments_are_named():
     import faiss
+
     db_desc, db_pos = one_hot_database(4)
     with pytest.raises(InputError, match="positions"):
         recall_at_n(db_desc, db_pos[:, :1], db_desc, db_pos)

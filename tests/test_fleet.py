@@ -14,20 +14,21 @@ import signal
 
 import numpy as np
 import pytest
+from conftest import TINY_CARD, invoke, one_error_line
 
 from radaredge import runtime
 from radaredge.data.pr_benchmark import make_pr_benchmark
-from radaredge.fleet import maps
-from radaredge.errors import InputError
-from radaredge.fleet.pipeline import ShardWorker, available_cpus, plan_shards, run_graph, run_sequential
 from radaredge.data.run_shards import MANIFEST, read_run
-from conftest import TINY_CARD, invoke, one_error_line
+from radaredge.errors import InputError
+from radaredge.fleet import maps
+from radaredge.fleet.pipeline import ShardWorker, available_cpus, plan_shards, run_graph, run_sequential
 
 
 @pytest.fixture(scope="module")
 def town(tmp_path_factory):
     """Two short drives of one synthetic town (database and queries) and the tiny TDFANet graph."""
     import radaredge
+
     d = tmp_path_factory.mktemp("fleet")
     make_pr_benchmark(d / "town", drives=2, frames_per_drive=14, seed=3)
     radaredge.export(TINY_CARD, d / "tiny.onnx")
@@ -42,7 +43,7 @@ def _all(out):
 def test_ray_run_equals_the_sequential_runtime_bit_for_bit_and_resumes(town, tmp_path):
     data, onnx = town
     seq = run_sequential(onnx, data, tmp_path / "seq", shard_windows=5)
-    assert seq.windows == 2 * (14 - 2) and seq.shards == 2 * 3          # K = 3 frames: 12 windows a drive
+    assert seq.windows == 2 * (14 - 2) and seq.shards == 2 * 3  # K = 3 frames: 12 windows a drive
     ray_report = run_graph(onnx, data, tmp_path / "ray", workers=2, shard_windows=5)
     assert ray_report.computed_windows == ray_report.windows == seq.windows and ray_report.workers == 2
     (p1, o1), (p2, o2) = _all(tmp_path / "seq"), _all(tmp_path / "ray")
@@ -80,8 +81,23 @@ def test_ray_run_equals_the_sequential_runtime_bit_for_bit_and_resumes(town, tmp
 
 def test_map_build_and_query_give_evals_recall(town, tmp_path):
     data, onnx = town
-    res = invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx,
-                 "--drives", data / "database", "--out", tmp_path / "map", "--workers", 1, "--json")
+    res = invoke(
+        "map",
+        "build",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx,
+        "--drives",
+        data / "database",
+        "--out",
+        tmp_path / "map",
+        "--workers",
+        1,
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     built = json.loads(res.stdout)
     assert built["index"]["kind"] == "flat" and built["windows"] == 12
@@ -90,9 +106,27 @@ def test_map_build_and_query_give_evals_recall(town, tmp_path):
     res = invoke("map", "query", "--map", tmp_path / "map", "--drive", data / "queries", "--radius", 25, "--json")
     assert res.exit_code == 0, res.output
     found = json.loads(res.stdout)
-    res = invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx, "--database",
-                 data / "database", "--queries", data / "queries", "--radius", 25, "--no-reference",
-                 "--report", tmp_path / "eval.json", "--plot", tmp_path / "eval.png", "--json")
+    res = invoke(
+        "eval",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx,
+        "--database",
+        data / "database",
+        "--queries",
+        data / "queries",
+        "--radius",
+        25,
+        "--no-reference",
+        "--report",
+        tmp_path / "eval.json",
+        "--plot",
+        tmp_path / "eval.png",
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     evaluated = json.loads(res.stdout)
     recall = evaluated["recall"]["onnxruntime"]
@@ -100,25 +134,61 @@ def test_map_build_and_query_give_evals_recall(town, tmp_path):
         assert v == pytest.approx(recall[str(n)], abs=1e-9), n
     assert len(found["queries"]) == 12 and len(found["queries"][0]["top"]) == 10
     # eval takes the map as its database: the same Recall@N
-    res = invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx, "--map", tmp_path / "map",
-                 "--queries", data / "queries", "--radius", 25, "--no-reference", "--report", tmp_path / "m.json",
-                 "--plot", tmp_path / "m.png", "--json")
+    res = invoke(
+        "eval",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx,
+        "--map",
+        tmp_path / "map",
+        "--queries",
+        data / "queries",
+        "--radius",
+        25,
+        "--no-reference",
+        "--report",
+        tmp_path / "m.json",
+        "--plot",
+        tmp_path / "m.png",
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     on_map = json.loads(res.stdout)
     # the map holds the graph's descriptors only, so eval --map has no no-learning baseline row
     assert on_map["recall"] == {"onnxruntime": evaluated["recall"]["onnxruntime"]}
     assert "polar_occupancy" in evaluated["recall"] and on_map["database"]["windows"] == 12
-    one_error_line(invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx, "--map",
-                          tmp_path / "map", "--queries", data / "queries"), "--no-reference")
+    one_error_line(
+        invoke(
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            TINY_CARD,
+            "--onnx",
+            onnx,
+            "--map",
+            tmp_path / "map",
+            "--queries",
+            data / "queries",
+        ),
+        "--no-reference",
+    )
     # a graph of other weights is refused
     other = tmp_path / "other.onnx"
     import radaredge
     from radaredge.cards import load_card
+
     card = load_card(TINY_CARD)
     card.data["seed"] = 7
     radaredge.export(card, other)
-    one_error_line(invoke("map", "query", "--map", tmp_path / "map", "--drive", data / "queries", "--onnx", other),
-                   "was built with", "build the map again")
+    one_error_line(
+        invoke("map", "query", "--map", tmp_path / "map", "--drive", data / "queries", "--onnx", other),
+        "was built with",
+        "build the map again",
+    )
 
 
 def test_large_map_index_recovers_the_exact_neighbours():
@@ -145,20 +215,27 @@ def test_the_runtime_backend_auto_picks_and_remembers_one(town, tmp_path, monkey
     cache = json.loads((tmp_path / "backends.json").read_text())
     (entry,) = cache.values()
     assert entry["backend"] == model.backend and set(entry["median_s"]) == {"onnxruntime", "openvino"}
-    assert runtime.load(onnx, threads=1, backend="auto").backend == model.backend     # no second trial
+    assert runtime.load(onnx, threads=1, backend="auto").backend == model.backend  # no second trial
     from radaredge.runtime import backends
-    monkeypatch.setattr(backends, "auto_available", lambda: False)     # no OpenVINO: auto is onnxruntime
+
+    monkeypatch.setattr(backends, "auto_available", lambda: False)  # no OpenVINO: auto is onnxruntime
     assert runtime.load(onnx, threads=1, backend="auto").backend == "onnxruntime"
     monkeypatch.undo()
     ov = runtime.load(onnx, threads=1, backend="openvino")
-    np.testing.assert_allclose(ov.run(frames)["descriptor_normalized"],
-                               runtime.load(onnx, threads=1).run(frames)["descriptor_normalized"], atol=1e-4)
+    np.testing.assert_allclose(
+        ov.run(frames)["descriptor_normalized"],
+        runtime.load(onnx, threads=1).run(frames)["descriptor_normalized"],
+        atol=1e-4,
+    )
 
 
-@pytest.mark.parametrize("case, needles", [
-    ("no-scans", ["no drives found"]),
-    ("bad-address", ["--ray-address 127.0.0.1:1", "cannot connect"]),
-])
+@pytest.mark.parametrize(
+    "case, needles",
+    [
+        ("no-scans", ["no drives found"]),
+        ("bad-address", ["--ray-address 127.0.0.1:1", "cannot connect"]),
+    ],
+)
 def test_bad_fleet_input_ends_with_one_error_line(town, tmp_path, case, needles):
     data, onnx = town
     if case == "no-scans":
@@ -166,6 +243,7 @@ def test_bad_fleet_input_ends_with_one_error_line(town, tmp_path, case, needles)
         res = invoke("run", "--onnx", onnx, "--data", tmp_path / "empty", "--out", tmp_path / "out")
     else:
         import ray
+
         if ray.is_initialized():
             ray.shutdown()
         res = invoke("run", "--onnx", onnx, "--data", data, "--out", tmp_path / "out", "--ray-address", "127.0.0.1:1")
@@ -176,24 +254,28 @@ def test_bad_fleet_input_ends_with_one_error_line(town, tmp_path, case, needles)
 def test_a_detector_runs_over_every_frame_of_vod_bin_drives(tmp_path):
     """MAFF-Net: one frame a window, the drive's .bin scans read as View-of-Delft's (format inferred);
     detections of varying count per frame come back as the runtime gives them."""
+    from conftest import MAFFNET_TINY_CARD
+
     import radaredge
     from radaredge.data.sequences import write_sequence
-    from conftest import MAFFNET_TINY_CARD
+
     radaredge.export(MAFFNET_TINY_CARD, tmp_path / "det.onnx")
     rng = np.random.default_rng(4)
     scans = []
-    for n in (40, 0, 25, 60, 3, 33):                    # VoD's 7 columns: x y z rcs v_r v_r_comp time
+    for n in (40, 0, 25, 60, 3, 33):  # VoD's 7 columns: x y z rcs v_r v_r_comp time
         scan = np.zeros((n, 7), np.float32)
         scan[:, 0], scan[:, 1], scan[:, 2] = rng.uniform(1, 12, n), rng.uniform(-6, 6, n), rng.uniform(-1, 1, n)
         scan[:, 3:6] = rng.normal(0, 3, (n, 3))
         scans.append(scan)
-    write_sequence(tmp_path / "drives" / "d0", scans, np.arange(6) * 0.1, np.stack([np.arange(6.0), np.zeros(6)], 1),
-                   fmt="vod")
+    write_sequence(
+        tmp_path / "drives" / "d0", scans, np.arange(6) * 0.1, np.stack([np.arange(6.0), np.zeros(6)], 1), fmt="vod"
+    )
     report = run_graph(tmp_path / "det.onnx", tmp_path / "drives", tmp_path / "out", workers=1)
     assert report.windows == 6
     poses, outputs = _all(tmp_path / "out")
     model = runtime.load(tmp_path / "det.onnx", threads=1)
     from radaredge.data.sequences import load_sequence
+
     seq = load_sequence(tmp_path / "drives" / "d0", "vod")
     for i in range(6):
         want = model.run([seq.scan(i, model.features)])
@@ -204,8 +286,10 @@ def test_a_detector_runs_over_every_frame_of_vod_bin_drives(tmp_path):
 @contextlib.contextmanager
 def _deadline(seconds: float):
     """Fail the test with TimeoutError after ``seconds`` instead of hanging (main thread only)."""
+
     def expire(signum, frame):
         raise TimeoutError(f"still running after {seconds} s")
+
     old = signal.signal(signal.SIGALRM, expire)
     signal.setitimer(signal.ITIMER_REAL, seconds)
     try:
@@ -242,8 +326,23 @@ def test_drives_whose_paths_flatten_alike_keep_their_own_shards(town, tmp_path):
     """`a/b` and `a__b` were both shard `a__b-00000`: one drive's windows vanished from the run and the map."""
     data, onnx = town
     root = _fleet(tmp_path / "fleet", data, **{"a/b": "database", "a__b": "queries"})
-    res = invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx,
-                 "--drives", root, "--out", tmp_path / "map", "--workers", 1, "--json")
+    res = invoke(
+        "map",
+        "build",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx,
+        "--drives",
+        root,
+        "--out",
+        tmp_path / "map",
+        "--workers",
+        1,
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     manifest, poses, outputs = read_run(tmp_path / "map" / "run")
     assert poses["drive"].tolist() == ["a/b"] * 12 + ["a__b"] * 12
@@ -266,19 +365,19 @@ def test_a_failed_run_leaves_the_previous_run_as_it_was(town, tmp_path):
     and leaves no run.json or shard of the failed attempt: the previous run stays as it was."""
     data, onnx = town
     root, out = _fleet(tmp_path / "fleet", data, d1="database", d2="queries"), tmp_path / "out"
-    bad = _last_scan(root / "d2")                  # in d2's last shard: d1's shards finish before it fails
+    bad = _last_scan(root / "d2")  # in d2's last shard: d1's shards finish before it fails
     good = bad.read_bytes()
-    bad.write_bytes(good[:70])                      # a truncated .npy
+    bad.write_bytes(good[:70])  # a truncated .npy
     args = ("run", "--onnx", onnx, "--data", root, "--out", out, "--workers", 1, "--shard-windows", 5)
     one_error_line(invoke(*args), str(bad.resolve()))
     assert not (out / MANIFEST).exists() and not _shard_files(out)
-    np.save(bad, np.zeros((9, 4), np.float32))    # TransLoc .npy scans have 5 columns
+    np.save(bad, np.zeros((9, 4), np.float32))  # TransLoc .npy scans have 5 columns
     one_error_line(invoke(*args), str(bad.resolve()), "4 columns")
     assert not (out / MANIFEST).exists() and not _shard_files(out)
     bad.write_bytes(good)
     res = invoke(*args)
     assert res.exit_code == 0, res.output
-    assert "finished by an earlier attempt that failed, reused" in res.output     # d1's, staged by the first
+    assert "finished by an earlier attempt that failed, reused" in res.output  # d1's, staged by the first
     manifest, shards = (out / MANIFEST).read_bytes(), _shard_files(out)
     assert len(shards) == 6 and not (out / ".staging").exists()
     # a run over more drives, one of them bad, fails and leaves that run as it was
@@ -316,14 +415,14 @@ def test_a_resumed_run_follows_the_data_as_it_is_now(town, tmp_path):
     run_sequential(onnx, root, out, shard_windows=5)
     shutil.rmtree(root / "d2")
     scan = sorted((root / "d3" / "scans").iterdir())[4]
-    np.save(scan, np.load(scan)[:-3])              # three points fewer in one scan of d3
+    np.save(scan, np.load(scan)[:-3])  # three points fewer in one scan of d3
     res = invoke("run", "--onnx", onnx, "--data", root, "--out", out, "--workers", 1)
     assert res.exit_code == 0, res.output
     assert "1 drive(s) no longer in the data, their shards dropped: d2" in res.output
     assert "1 drive(s) whose scans or gps.csv changed, their shards recomputed: d3" in res.output
     manifest, poses, outputs = read_run(out)
     assert sorted(set(poses["drive"].tolist())) == ["d1", "d3"] and set(manifest["drives"]) == {"d1", "d3"}
-    assert {p.stem for p in (out / "shards").iterdir()} == set(manifest["shards"])      # d2's and d3's old files gone
+    assert {p.stem for p in (out / "shards").iterdir()} == set(manifest["shards"])  # d2's and d3's old files gone
     fresh = run_sequential(onnx, root, tmp_path / "fresh", shard_windows=5)
     assert fresh.windows == 24
     _, _, want = read_run(tmp_path / "fresh")
@@ -363,16 +462,43 @@ def test_threads_and_workers_beyond_the_cpus_are_cut_down_with_a_warning(town, t
     data, onnx = town
     many = max(64, 4 * available_cpus())
     with _deadline(240):
-        res = invoke("run", "--onnx", onnx, "--data", data / "database", "--out", tmp_path / "out",
-                     "--threads", many, "--workers", many)
+        res = invoke(
+            "run",
+            "--onnx",
+            onnx,
+            "--data",
+            data / "database",
+            "--out",
+            tmp_path / "out",
+            "--threads",
+            many,
+            "--workers",
+            many,
+        )
     assert res.exit_code == 0, res.output
     warned = [ln for ln in res.output.splitlines() if ln.startswith("warning:")]
     assert any(f"--threads {many}: more than the" in w for w in warned), res.output
     assert any(f"--workers {many}: more than the" in w for w in warned), res.output
     assert len(read_run(tmp_path / "out")[1]["frame"]) == 12
     with _deadline(240):
-        res = invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx,
-                     "--drives", data / "database", "--out", tmp_path / "map", "--threads", many, "--workers", many)
+        res = invoke(
+            "map",
+            "build",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            TINY_CARD,
+            "--onnx",
+            onnx,
+            "--drives",
+            data / "database",
+            "--out",
+            tmp_path / "map",
+            "--threads",
+            many,
+            "--workers",
+            many,
+        )
     assert res.exit_code == 0, res.output
     assert f"warning: --threads {many}: more than the" in res.output
     res = invoke("map", "query", "--map", tmp_path / "map", "--drive", data / "queries", "--threads", many)

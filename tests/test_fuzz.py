@@ -28,11 +28,17 @@ from radaredge.ops.ego_velocity import RansacConfig
 from radaredge.ops.pillars import PillarConfig
 
 IN_CI = bool(os.environ.get("CI"))
-FUZZ = settings(max_examples=60, deadline=5000, derandomize=IN_CI,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+FUZZ = settings(
+    max_examples=60,
+    deadline=5000,
+    derandomize=IN_CI,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 
-FLOATS = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32),
-                   st.sampled_from([0.0, -0.0, 1e30, -1e30, 3.4e38, -3.4e38, 1e-45, 5.0, 80.0, -40.0]))
+FLOATS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=32),
+    st.sampled_from([0.0, -0.0, 1e30, -1e30, 3.4e38, -3.4e38, 1e-45, 5.0, 80.0, -40.0]),
+)
 
 
 @pytest.fixture(scope="module")
@@ -43,9 +49,14 @@ def model(tiny_export):
 def frames_strategy(columns: int = 5):
     shapes = st.tuples(st.integers(0, 400), st.sampled_from([columns, columns, columns, 3, 6]))
     dtypes = st.sampled_from([np.float32, np.float64, np.float16, np.int32, np.int16, np.uint8, np.int64])
-    arrays = st.builds(lambda shape, dtype, seed, scale, bad: _array(shape, dtype, seed, scale, bad),
-                       shapes, dtypes, st.integers(0, 2**31), st.sampled_from([1.0, 50.0, 1e6, 1e30]),
-                       st.sampled_from([None, np.nan, np.inf, -np.inf]))
+    arrays = st.builds(
+        lambda shape, dtype, seed, scale, bad: _array(shape, dtype, seed, scale, bad),
+        shapes,
+        dtypes,
+        st.integers(0, 2**31),
+        st.sampled_from([1.0, 50.0, 1e6, 1e30]),
+        st.sampled_from([None, np.nan, np.inf, -np.inf]),
+    )
     return st.lists(arrays, min_size=2, max_size=4)
 
 
@@ -64,8 +75,12 @@ def _array(shape, dtype, seed, scale, bad):
 
 
 @FUZZ
-@given(frames=frames_strategy(), stamps=st.one_of(st.none(), st.lists(FLOATS, min_size=0, max_size=4),
-                                                  st.lists(st.floats(1e9, 2e9), min_size=3, max_size=3)))
+@given(
+    frames=frames_strategy(),
+    stamps=st.one_of(
+        st.none(), st.lists(FLOATS, min_size=0, max_size=4), st.lists(st.floats(1e9, 2e9), min_size=3, max_size=3)
+    ),
+)
 def test_runtime_gives_finite_outputs_or_its_own_error(model, frames, stamps):
     try:
         out = model.run(frames, stamps)
@@ -80,8 +95,11 @@ def test_runtime_gives_finite_outputs_or_its_own_error(model, frames, stamps):
 
 
 @FUZZ
-@given(data=st.binary(max_size=3000), suffix=st.sampled_from([".bin", ".npy"]),
-       fmt=st.sampled_from([None, "vod", "tj4d", "transloc"]))
+@given(
+    data=st.binary(max_size=3000),
+    suffix=st.sampled_from([".bin", ".npy"]),
+    fmt=st.sampled_from([None, "vod", "tj4d", "transloc"]),
+)
 def test_scan_reader_on_random_bytes(data, suffix, fmt):
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / f"scan{suffix}"
@@ -94,9 +112,10 @@ def test_scan_reader_on_random_bytes(data, suffix, fmt):
 
 
 @FUZZ
-@given(rows=st.lists(st.lists(st.one_of(FLOATS.map(repr), st.text(max_size=6)), min_size=0, max_size=4),
-                     max_size=6),
-       header=st.sampled_from(["timestamp,northing,easting", "timestamp,easting", "", "easting,timestamp,northing,x"]))
+@given(
+    rows=st.lists(st.lists(st.one_of(FLOATS.map(repr), st.text(max_size=6)), min_size=0, max_size=4), max_size=6),
+    header=st.sampled_from(["timestamp,northing,easting", "timestamp,easting", "", "easting,timestamp,northing,x"]),
+)
 def test_gps_reader_on_random_tables(rows, header):
     with tempfile.TemporaryDirectory() as d:
         drive = Path(d)
@@ -115,8 +134,9 @@ def test_gps_reader_on_random_tables(rows, header):
 
 
 SECTIONS = {"preprocess": {"ransac": RansacConfig}, "pillars": PillarConfig, "network": TDFANetConfig}
-VALUES = st.one_of(FLOATS, st.integers(-10**12, 10**12), st.booleans(), st.text(max_size=5), st.none(),
-                   st.lists(FLOATS, max_size=7))
+VALUES = st.one_of(
+    FLOATS, st.integers(-(10**12), 10**12), st.booleans(), st.text(max_size=5), st.none(), st.lists(FLOATS, max_size=7)
+)
 
 
 @st.composite
@@ -124,8 +144,20 @@ def cards(draw):
     text = Path(__file__).with_name("cards").joinpath("tdfanet-tiny.yaml").read_text()
     data = yaml.safe_load(text)
     for _ in range(draw(st.integers(1, 4))):
-        section = draw(st.sampled_from(["preprocess.ransac", "pillars", "network", "frames", "frame_rate", "seed",
-                                        "features", "max_points_per_frame"]))
+        section = draw(
+            st.sampled_from(
+                [
+                    "preprocess.ransac",
+                    "pillars",
+                    "network",
+                    "frames",
+                    "frame_rate",
+                    "seed",
+                    "features",
+                    "max_points_per_frame",
+                ]
+            )
+        )
         if "." in section or section in ("pillars", "network"):
             cls = RansacConfig if section == "preprocess.ransac" else SECTIONS[section]
             field = draw(st.sampled_from([f for f in cls.__dataclass_fields__]))
@@ -143,15 +175,19 @@ def cards(draw):
 def test_card_parser_refuses_or_builds(text):
     """A fuzzed card is refused with a ConfigError, or every section it has parses into finite values."""
     from radaredge.models import create_model
+
     try:
         card = card_from_yaml(text)
         create_model(card)
     except RadarEdgeError:
         return
-    for section in (card.section("preprocess.ransac", RansacConfig), card.section("pillars", PillarConfig),
-                    card.section("network", TDFANetConfig)):
+    for section in (
+        card.section("preprocess.ransac", RansacConfig),
+        card.section("pillars", PillarConfig),
+        card.section("network", TDFANetConfig),
+    ):
         for value in section.__dict__.values():
-            for x in (value if isinstance(value, tuple) else (value,)):
+            for x in value if isinstance(value, tuple) else (value,):
                 if isinstance(x, float):
                     assert math.isfinite(x)
 

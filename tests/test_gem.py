@@ -50,11 +50,11 @@ def test_large_p_approaches_the_max():
     x = feature_map(seed=2).numpy()
     peak = np.maximum(x.astype(np.float64), 1e-6).max(axis=(-2, -1))
     values = [gem_reference(x, p) for p in (1, 3, 10, 50, 400)]
-    for lower, higher in zip(values, values[1:]):                           # power-mean inequality
+    for lower, higher in zip(values, values[1:]):  # power-mean inequality
         assert np.all(lower <= higher * (1 + 1e-12)) and np.all(higher <= peak * (1 + 1e-12))
     hw = x.shape[-1] * x.shape[-2]
-    assert np.all(values[-1] >= peak * hw ** (-1 / 400) * (1 - 1e-12))      # mean(x^p) >= max^p / HW
-    with torch.no_grad():                                                   # float32 module at p = 50
+    assert np.all(values[-1] >= peak * hw ** (-1 / 400) * (1 - 1e-12))  # mean(x^p) >= max^p / HW
+    with torch.no_grad():  # float32 module at p = 50
         assert_rel_close(GeM(p=50.0)(torch.from_numpy(x)), values[3], "p=50")
 
 
@@ -70,8 +70,7 @@ def test_learnable_flag_and_validation():
 
 def test_onnx_export_matches_torch(onnx_roundtrip):
     gem = GeM(p=3.7)
-    rt = onnx_roundtrip(gem, {"x": feature_map()}, ["descriptor"],
-                        {"x": {0: "B", 2: "H", 3: "W"}})
+    rt = onnx_roundtrip(gem, {"x": feature_map()}, ["descriptor"], {"x": {0: "B", 2: "H", 3: "W"}})
     for shape, scale, seed in [((2, 5, 9, 11), 1.0, 1), ((1, 5, 27, 31), 1e3, 2), ((3, 5, 4, 4), 1e-2, 3)]:
         ref, got = rt({"x": feature_map(shape, scale, seed)})
         assert_rel_close(got["descriptor"], ref["descriptor"], f"onnxruntime {shape}")

@@ -47,14 +47,25 @@ def hostile_scan(seed: int):
     """A radar scan plus points the contract must drop: outside the grid, NaN/Inf, invalid, on cell edges."""
     points, _ = radar_scan(seed)
     rng = np.random.default_rng(seed + 100)
-    outside = np.array([[-0.01, 0.0, 1.0], [51.2, 0.0, 1.0], [60.0, 3.0, 1.0], [10.0, 25.6, 1.0],
-                        [10.0, -25.61, 1.0], [1e30, -1e30, 2.0]], np.float32)
+    outside = np.array(
+        [
+            [-0.01, 0.0, 1.0],
+            [51.2, 0.0, 1.0],
+            [60.0, 3.0, 1.0],
+            [10.0, 25.6, 1.0],
+            [10.0, -25.61, 1.0],
+            [1e30, -1e30, 2.0],
+        ],
+        np.float32,
+    )
     blob_outside = np.c_[rng.normal(-0.5, 0.1, (20, 1)), rng.normal(5.0, 0.1, (20, 1)), np.ones((20, 1))]
     bad = np.array([[np.nan, 1.0, 0.0], [5.0, np.inf, 0.0], [5.0, 1.0, -np.inf]], np.float32)
     edges = np.c_[np.float32(0.16) * np.arange(40, 52), np.full(12, -25.6), np.linspace(-1, 1, 12)]
-    ridge = np.c_[np.float32(0.16) * rng.integers(100, 110, (30, 1)),
-                  np.float32(0.16) * rng.integers(150, 160, (30, 1)),
-                  rng.normal(3.0, 0.5, (30, 1))]                       # points exactly on cell corners
+    ridge = np.c_[
+        np.float32(0.16) * rng.integers(100, 110, (30, 1)),
+        np.float32(0.16) * rng.integers(150, 160, (30, 1)),
+        rng.normal(3.0, 0.5, (30, 1)),
+    ]  # points exactly on cell corners
     points = np.concatenate([points, outside, blob_outside, bad, edges, ridge]).astype(np.float32)
     valid = rng.random(len(points)) > 0.05
     return points, valid
@@ -88,7 +99,7 @@ def guardrail():
 def test_config_from_model_card():
     cfg = config_from_dict(GridDensityConfig, {"map_h": 160, "cc_mode": "exact", "min_density": 8}, WHERE)
     assert (cfg.map_h, cfg.map_w, cfg.cc_mode, cfg.min_density) == (160, 320, "exact", 8)
-    assert VOD.kernel_size == 5                                   # eps 0.4 / 0.16 = 2.5 -> round 2
+    assert VOD.kernel_size == 5  # eps 0.4 / 0.16 = 2.5 -> round 2
     assert GridDensityConfig(eps=0.32).kernel_size == 5
     assert GridDensityConfig(eps=0.05).kernel_size == 3
     for bad in ({"cc_mode": "bfs"}, {"resolution": -0.1}, {"min_density": 200}, {"radius": 1.0}):
@@ -101,7 +112,7 @@ def test_config_from_model_card():
 
 def test_min_density_threshold_and_channels():
     """10 points in one cell make its 5 x 5 window one cluster; 9 points are noise."""
-    cell = np.array([10 * 0.16 + 0.08, -25.6 + 20 * 0.16 + 0.08], np.float32)   # centre of (iy 20, ix 10)
+    cell = np.array([10 * 0.16 + 0.08, -25.6 + 20 * 0.16 + 0.08], np.float32)  # centre of (iy 20, ix 10)
     v = np.arange(10, dtype=np.float32)
     points = np.c_[np.repeat(cell[None], 10, 0), v].astype(np.float32)
     bev, mask, converged = run(GridDensityBEV(VOD), points)
@@ -110,9 +121,9 @@ def test_min_density_threshold_and_channels():
     window[18:23, 8:13] = True
     np.testing.assert_array_equal(bev[1] > 0, window)
     np.testing.assert_allclose(bev[0][20, 10], v.mean(), atol=1e-6)
-    assert bev[0][window].sum() == pytest.approx(v.mean())        # empty cells of the window hold 0 m/s
-    np.testing.assert_array_equal(bev[1][window], 1.0)             # density 10 everywhere, / max
-    np.testing.assert_array_equal(bev[2][window], 1.0)             # the only component, / its own id
+    assert bev[0][window].sum() == pytest.approx(v.mean())  # empty cells of the window hold 0 m/s
+    np.testing.assert_array_equal(bev[1][window], 1.0)  # density 10 everywhere, / max
+    np.testing.assert_array_equal(bev[2][window], 1.0)  # the only component, / its own id
     bev, mask, _ = run(GridDensityBEV(VOD), points[:9])
     assert not mask.any() and not bev.any()
 
@@ -129,12 +140,12 @@ def test_outside_and_non_finite_points_are_dropped_not_wrapped():
     points, _ = radar_scan(3)
     base = run(GridDensityBEV(VOD), points)
     hostile, _ = hostile_scan(3)
-    extra = hostile[len(points):]
-    outside = extra[:29]                                           # outside rows, outside blob, NaN/Inf rows
+    extra = hostile[len(points) :]
+    outside = extra[:29]  # outside rows, outside blob, NaN/Inf rows
     bev, mask, _ = run(GridDensityBEV(VOD), np.concatenate([points, outside]))
     np.testing.assert_array_equal(bev, base[0])
     np.testing.assert_array_equal(mask[: len(points)], base[1])
-    assert not mask[len(points):].any()
+    assert not mask[len(points) :].any()
 
 
 def test_empty_scan():
@@ -151,7 +162,7 @@ def test_maxpool_mode_reports_a_long_cluster_unconverged():
     assert conv_exact and not conv_max
     np.testing.assert_array_equal(mask_max, mask_exact)
     assert len(np.unique(bev_exact[2][bev_exact[2] > 0])) == 1
-    assert len(np.unique(bev_max[2][bev_max[2] > 0])) > 1          # the fork's labels split the rail
+    assert len(np.unique(bev_max[2][bev_max[2] > 0])) > 1  # the fork's labels split the rail
 
 
 # ----------------------------------------------------------------------------- reference
@@ -202,8 +213,10 @@ def test_clusters_agree_with_dbscan(mode):
         assert len(pairs) == len(np.unique(dbscan[dbscan >= 0])) == len(np.unique(grid[grid >= 0])) == 6
         score = adjusted_rand_score(dbscan, grid)
         upstream = adjusted_rand_score(dbscan_cfa_labels(points, with_velocity=True), grid)
-        print(f"{mode} seed {seed}: ARI vs DBSCAN(x, y) {score:.3f}, vs DBSCAN(x, y, v) {upstream:.3f}, "
-              f"converged {converged}")
+        print(
+            f"{mode} seed {seed}: ARI vs DBSCAN(x, y) {score:.3f}, vs DBSCAN(x, y, v) {upstream:.3f}, "
+            f"converged {converged}"
+        )
         scores.append(score)
     print(f"{mode}: ARI min {min(scores):.3f} mean {np.mean(scores):.3f}")
     assert min(scores) >= 0.7
@@ -216,11 +229,20 @@ def test_clusters_agree_with_dbscan(mode):
 def test_onnx_export_dynamic_n(onnx_roundtrip, mode):
     points, valid = hostile_scan(0)
     example = {"points_xyv": torch.from_numpy(points), "valid": torch.from_numpy(valid)}
-    rt = onnx_roundtrip(GridDensityBEV(GridDensityConfig(cc_mode=mode)), example,
-                        ["bev", "point_mask", "converged"],
-                        {"points_xyv": {0: "num_points"}, "valid": {0: "num_points"}})
-    scans = [radar_scan(4)[0], hostile_scan(7)[0], guardrail(), radar_scan(1)[0][:1], radar_scan(1)[0][:3],
-             np.zeros((0, 3), np.float32)]
+    rt = onnx_roundtrip(
+        GridDensityBEV(GridDensityConfig(cc_mode=mode)),
+        example,
+        ["bev", "point_mask", "converged"],
+        {"points_xyv": {0: "num_points"}, "valid": {0: "num_points"}},
+    )
+    scans = [
+        radar_scan(4)[0],
+        hostile_scan(7)[0],
+        guardrail(),
+        radar_scan(1)[0][:1],
+        radar_scan(1)[0][:3],
+        np.zeros((0, 3), np.float32),
+    ]
     for pts in scans:
         ref, got = rt({"points_xyv": torch.from_numpy(pts), "valid": torch.ones(len(pts), dtype=torch.bool)})
         assert_close(got["bev"], ref["bev"], 1e-5, f"bev (N={len(pts)})")

@@ -14,17 +14,15 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import TINY_CARD
 
 import radaredge
 from radaredge import runtime
 from radaredge.cards import PLAUSIBLE_DEFAULTS, load_card, plausible_ranges
 from radaredge.errors import ConfigError, InputError
-from radaredge.models import create_model
+from radaredge.models import create_model, model_spec
 from radaredge.ops.input_flags import drop_implausible, drop_implausible_reference
-from radaredge.models import model_spec
 from radaredge.runtime.flags import IMPLAUSIBLE, NON_FINITE
-
-from conftest import TINY_CARD
 
 MAFF_TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
 F32_MAX = float(np.finfo(np.float32).max)
@@ -33,12 +31,12 @@ F32_MAX = float(np.finfo(np.float32).max)
 def test_drop_implausible_equals_its_reference():
     rng = np.random.default_rng(0)
     pts = rng.normal(0, 60, (500, 5)).astype(np.float32)
-    pts[::7, 3:] = [np.nan, 0.0]                                 # a NaN is not "implausible": non_finite
+    pts[::7, 3:] = [np.nan, 0.0]  # a NaN is not "implausible": non_finite
     lo, hi = [-np.inf] * 3 + [-100.0, -50.0], [np.inf] * 3 + [100.0, 50.0]
     got, bad = drop_implausible(torch.from_numpy(pts), lo, hi)
     ref, ref_bad = drop_implausible_reference(pts, lo, hi)
     np.testing.assert_array_equal(bad.numpy(), ref_bad)
-    np.testing.assert_array_equal(got.numpy(), ref)              # NaN rows compare equal in assert_array_equal
+    np.testing.assert_array_equal(got.numpy(), ref)  # NaN rows compare equal in assert_array_equal
     assert ref_bad.sum() > 50 and not ref_bad[::7].any()
 
 
@@ -46,9 +44,13 @@ def test_cards_take_plausible_ranges_and_refuse_bad_ones(tmp_path):
     card = load_card("maffnet-vod")
     assert plausible_ranges(card) == {f: PLAUSIBLE_DEFAULTS[f] for f in ("rcs", "v_r", "v_r_comp", "time")}
     data = yaml.safe_load(TINY_CARD.read_text())
-    for plausible, expect in (({"v_r": [5, 1]}, "low 5 must be below high 1"), ({"x": [0, 1]}, "are not bounded here"),
-                              ({"v_r": "fast"}, r"expected \[low, high\]"), ({"v_r": [0, float("nan")]}, "finite"),
-                              ({"speed": [0, 1]}, "are not bounded here")):
+    for plausible, expect in (
+        ({"v_r": [5, 1]}, "low 5 must be below high 1"),
+        ({"x": [0, 1]}, "are not bounded here"),
+        ({"v_r": "fast"}, r"expected \[low, high\]"),
+        ({"v_r": [0, float("nan")]}, "finite"),
+        ({"speed": [0, 1]}, "are not bounded here"),
+    ):
         path = tmp_path / "card.yaml"
         path.write_text(yaml.safe_dump({**data, "plausible": plausible}))
         with pytest.raises(ConfigError, match=expect):
@@ -101,13 +103,17 @@ def test_the_runtime_refuses_when_the_card_says_so(tmp_path):
     graph, feeds = _window(load_card(card_path))
     frames = [feeds[n] for n in graph.frame_inputs(m.card)]
     frames[1][4, 4] = 61.0
-    with pytest.raises(InputError, match=r"frame 1: point 4, column 'rcs': 61.0 is outside its plausible range "
-                                         r"\[-40, 60\]"):
+    with pytest.raises(
+        InputError,
+        match=r"frame 1: point 4, column 'rcs': 61.0 is outside its plausible range "
+        r"\[-40, 60\]",
+    ):
         m.run(frames)
     assert m.errors & IMPLAUSIBLE
     raw = {**feeds, graph.frame_inputs(m.card)[1]: frames[1]}
     from radaredge.runtime.session import run_session
-    assert run_session(m.session, raw)["input_flags"][1] & IMPLAUSIBLE      # the graph drops and flags it too
+
+    assert run_session(m.session, raw)["input_flags"][1] & IMPLAUSIBLE  # the graph drops and flags it too
 
 
 def _peak_rss(fn, runs: int = 3) -> float:
@@ -157,12 +163,12 @@ def test_one_absurd_point_costs_no_more_than_a_normal_frame(tmp_path):
     card = m.card
     _, feeds = _window(card)
     normal = feeds["points"]
-    m.run(normal)                                                    # warm-up: arenas, first-run allocations
+    m.run(normal)  # warm-up: arenas, first-run allocations
     ref = m.run(normal)
     base_mem = _peak_rss(lambda: m.run(normal))
     r = card.get("pillars.point_cloud_range")
     centre = np.zeros(len(card.features), np.float32)
-    centre[:3] = [(r[0] + r[3]) / 2, (r[1] + r[4]) / 2, (r[2] + r[5]) / 2]   # where a point reaches the network
+    centre[:3] = [(r[0] + r[3]) / 2, (r[1] + r[4]) / 2, (r[2] + r[5]) / 2]  # where a point reaches the network
     for col, name in enumerate(card.features):
         scan = np.concatenate([normal, centre[None]])
         scan[-1, col] = F32_MAX if name not in ("x", "y", "z") else 1e30

@@ -29,15 +29,29 @@ def test_frame_flags_match_the_reference(seed):
     frames, stamps, outside, full, capacity, not_converged = _case(seed)
     points = torch.from_numpy(np.concatenate(frames)) if frames else torch.zeros(0, 4)
     frame = torch.from_numpy(np.repeat(np.arange(len(frames)), [len(f) for f in frames]))
-    got = frame_flags(points, frame, len(frames), torch.from_numpy(stamps), torch.from_numpy(np.concatenate(outside)),
-                      torch.from_numpy(np.concatenate(full)), torch.from_numpy(capacity),
-                      torch.from_numpy(not_converged))
+    got = frame_flags(
+        points,
+        frame,
+        len(frames),
+        torch.from_numpy(stamps),
+        torch.from_numpy(np.concatenate(outside)),
+        torch.from_numpy(np.concatenate(full)),
+        torch.from_numpy(capacity),
+        torch.from_numpy(not_converged),
+    )
     want = frame_flags_reference(frames, stamps, outside, full, capacity, not_converged)
     assert got.tolist() == want.tolist()
 
 
-@pytest.mark.parametrize("stamps, late", [([0.0, np.nan, 0.2], [0, 1, 1]), ([0.0, 0.1, np.inf], [0, 0, 1]),
-                                          ([np.nan, 0.1, 0.2], [1, 1, 0]), ([0.0, 0.1, 0.1], [0, 0, 1])])
+@pytest.mark.parametrize(
+    "stamps, late",
+    [
+        ([0.0, np.nan, 0.2], [0, 1, 1]),
+        ([0.0, 0.1, np.inf], [0, 0, 1]),
+        ([np.nan, 0.1, 0.2], [1, 1, 0]),
+        ([0.0, 0.1, 0.1], [0, 0, 1]),
+    ],
+)
 def test_a_timestamp_that_is_not_finite_or_not_later_is_flagged(stamps, late):
     frames = [np.zeros((2, 4), np.float32)] * 3
     points, frame = torch.zeros(6, 4), torch.arange(3).repeat_interleave(2)

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
+from conftest import TINY_CARD, invoke, one_error_line
 from onnx import numpy_helper
 
 from radaredge import runtime
 from radaredge.errors import InputError
-from conftest import TINY_CARD, invoke, one_error_line
 
 CONTENT_SHA256 = "radaredge.content_sha256"
 EDITED = "its contents do not match the hash recorded at export: the graph was edited after export; re-export it"
@@ -33,6 +33,7 @@ def _hash(path):
     """The content hash of the file at ``path`` (imported here, so that each test fails on its own
     where the runtime has no content hashes)."""
     from radaredge.runtime import integrity
+
     return integrity.content_hash(path)
 
 
@@ -44,8 +45,10 @@ def _edit_one_weight(src: Path, dst: Path, delta: float = 0.05) -> Path:
     """``src`` with one float of one weight initializer changed, saved to ``dst`` (its metadata,
     recorded content hash included, untouched)."""
     proto = onnx.load(str(src))
-    init = max((t for t in proto.graph.initializer if t.data_type == onnx.TensorProto.FLOAT),
-               key=lambda t: int(np.prod(t.dims)))
+    init = max(
+        (t for t in proto.graph.initializer if t.data_type == onnx.TensorProto.FLOAT),
+        key=lambda t: int(np.prod(t.dims)),
+    )
     values = numpy_helper.to_array(init).copy()
     values.flat[0] += delta
     init.CopyFrom(numpy_helper.from_array(values, init.name))
@@ -69,6 +72,7 @@ def _edit_card(src: Path, dst: Path, old: str, new: str, restamp: bool = False, 
             proto.metadata_props.add(key=k, value=v)
     if restamp:
         from radaredge.exporting.graphs import stamp_content_hash
+
         stamp_content_hash(proto)
     onnx.save(proto, str(dst))
     return dst
@@ -91,7 +95,7 @@ def test_an_unedited_export_records_its_content_hash_and_verifies(tiny_export):
         assert found.status == "verified" and found.recorded == found.computed == recorded
         m = runtime.load(graph)
         assert m.content.status == "verified" and m.content_sha256 == recorded and m.card_findings == []
-    assert _props(debug)[CONTENT_SHA256] != _props(path)[CONTENT_SHA256]        # each graph its own
+    assert _props(debug)[CONTENT_SHA256] != _props(path)[CONTENT_SHA256]  # each graph its own
     sidecar = json.loads(path.with_suffix(".json").read_text())
     assert sidecar["content_sha256"] == _props(path)[CONTENT_SHA256]
     info = runtime.inspect_export(path)
@@ -104,7 +108,8 @@ def test_an_unedited_export_records_its_content_hash_and_verifies(tiny_export):
 
 
 def test_the_hash_covers_weights_nodes_and_radaredge_metadata_but_not_the_doc_string_or_other_tools_metadata(
-        tiny_export, tmp_path):
+    tiny_export, tmp_path
+):
     _, _, path, _ = tiny_export
 
     def edited(name, change):
@@ -118,6 +123,7 @@ def test_the_hash_covers_weights_nodes_and_radaredge_metadata_but_not_the_doc_st
             for p in proto.metadata_props:
                 if p.key == key:
                     p.value = value
+
         return change
 
     def reorder(proto):
@@ -136,8 +142,10 @@ def test_the_hash_covers_weights_nodes_and_radaredge_metadata_but_not_the_doc_st
     _edit_one_weight(path, tmp_path / "weight.onnx")
     assert _hash(tmp_path / "weight.onnx").status == "mismatch"
     # a hash given twice is not trusted either
-    assert edited("twice.onnx", lambda p: p.metadata_props.add(key=CONTENT_SHA256,
-                                                                value=_props(path)[CONTENT_SHA256])) == "mismatch"
+    assert (
+        edited("twice.onnx", lambda p: p.metadata_props.add(key=CONTENT_SHA256, value=_props(path)[CONTENT_SHA256]))
+        == "mismatch"
+    )
 
 
 # ----------------------------------------------------------------------------- an edited graph
@@ -148,11 +156,27 @@ def mapped(tmp_path_factory, tiny_export):
     """A tiny place map of one synthetic drive built with the tiny TDFANet graph, the query
     drive, and a copy of the graph with one initializer edited."""
     from radaredge.data.pr_benchmark import make_pr_benchmark
+
     _, _, onnx_path, _ = tiny_export
     d = tmp_path_factory.mktemp("integrity-map")
     make_pr_benchmark(d / "town", drives=2, frames_per_drive=8, seed=3)
-    res = invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx_path,
-                 "--drives", d / "town" / "database", "--out", d / "map", "--workers", 1, "--json")
+    res = invoke(
+        "map",
+        "build",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx_path,
+        "--drives",
+        d / "town" / "database",
+        "--out",
+        d / "map",
+        "--workers",
+        1,
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     edited = _edit_one_weight(onnx_path, d / "edited.onnx")
     return onnx_path, d / "town", d / "map", edited
@@ -163,16 +187,52 @@ def test_a_graph_with_one_initializer_edited_is_refused_by_map_query_eval_and_ma
     # the edit changes what the graph computes, and the metadata still claims the map's weights
     assert _props(edited)["radaredge.weights_sha256"] == _props(good)["radaredge.weights_sha256"]
     queries = town / "queries"
-    one_error_line(invoke("map", "query", "--map", map_dir, "--drive", queries, "--onnx", edited),
-                   "edited.onnx", EDITED)
+    one_error_line(
+        invoke("map", "query", "--map", map_dir, "--drive", queries, "--onnx", edited), "edited.onnx", EDITED
+    )
     with pytest.raises(InputError) as err:
         runtime.load(edited)
     assert str(err.value) == f"{edited}: {EDITED}"
-    one_error_line(invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", edited, "--map", map_dir,
-                          "--queries", queries, "--radius", 25, "--no-reference"), "edited.onnx", EDITED)
-    one_error_line(invoke("map", "build", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", edited,
-                          "--drives", town / "database", "--out", tmp_path / "map2", "--workers", 1),
-                   "edited.onnx", EDITED)
+    one_error_line(
+        invoke(
+            "eval",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            TINY_CARD,
+            "--onnx",
+            edited,
+            "--map",
+            map_dir,
+            "--queries",
+            queries,
+            "--radius",
+            25,
+            "--no-reference",
+        ),
+        "edited.onnx",
+        EDITED,
+    )
+    one_error_line(
+        invoke(
+            "map",
+            "build",
+            "--model",
+            "tdfanet-tiny",
+            "--config",
+            TINY_CARD,
+            "--onnx",
+            edited,
+            "--drives",
+            town / "database",
+            "--out",
+            tmp_path / "map2",
+            "--workers",
+            1,
+        ),
+        "edited.onnx",
+        EDITED,
+    )
     assert not (tmp_path / "map2" / "map.json").exists()
     # the unedited graph is the map's own
     res = invoke("map", "query", "--map", map_dir, "--drive", queries, "--onnx", good, "--radius", 25, "--json")
@@ -184,14 +244,15 @@ def test_inspect_shows_an_edited_graph(mapped):
     info = runtime.inspect_export(edited)
     graph = info["graphs"][0]
     assert not info["ok"] and len(info["findings"]) == 1 and info["findings"][0].startswith(f"{edited}: ")
-    assert graph["integrity"] == (f"MISMATCH: {EDITED} (recorded {_props(good)[CONTENT_SHA256]}, its contents hash "
-                                  f"to {_hash(edited).computed})")
+    assert graph["integrity"] == (
+        f"MISMATCH: {EDITED} (recorded {_props(good)[CONTENT_SHA256]}, its contents hash to {_hash(edited).computed})"
+    )
     assert graph["content_sha256"] == _props(good)[CONTENT_SHA256]
     assert any(EDITED in f for f in graph["findings"])
     res = invoke("inspect", edited)
     assert "MISMATCH" in res.output and EDITED in res.output, res.output
     res = invoke("inspect", edited, "--json")
-    doc = json.loads(res.stdout)                   # one valid document, the finding in it
+    doc = json.loads(res.stdout)  # one valid document, the finding in it
     assert doc["ok"] is False and EDITED in doc["findings"][0]
 
 
@@ -213,7 +274,8 @@ def test_a_card_that_says_two_frames_on_a_graph_that_takes_three_is_flagged_and_
         bad = _edit_card(path, tmp_path / name, "\nframes: 3\n", "\nframes: 2\n", **how)
         info = runtime.inspect_export(bad)
         assert not info["ok"] and info["findings"] == [
-            f"{bad}: its embedded card disagrees with the graph: {expect}"], info["findings"]
+            f"{bad}: its embedded card disagrees with the graph: {expect}"
+        ], info["findings"]
         assert info["graphs"][0]["integrity"].startswith("verified" if how.get("restamp") else "not recorded")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -230,8 +292,10 @@ def test_a_card_of_another_name_is_flagged(tiny_export, tmp_path):
     _, _, path, _ = tiny_export
     bad = _edit_card(path, tmp_path / "renamed.onnx", "name: tdfanet-tiny", "name: tdfanet-other", restamp=True)
     info = runtime.inspect_export(bad)
-    assert info["findings"] == [f"{bad}: its embedded card disagrees with the graph: its metadata names model "
-                                f"'tdfanet-tiny', its card 'tdfanet-other'"]
+    assert info["findings"] == [
+        f"{bad}: its embedded card disagrees with the graph: its metadata names model "
+        f"'tdfanet-tiny', its card 'tdfanet-other'"
+    ]
 
 
 # ----------------------------------------------------------------------------- graphs from before content hashes
@@ -258,13 +322,14 @@ def test_the_hash_is_computed_once_per_file_identity(tiny_export, tmp_path):
     shutil.copyfile(path, copy)
     _age(copy)
     from radaredge.runtime import integrity
+
     integrity.clear_cache()
     runtime.load(copy)
     runtime.load(copy)
     runtime.inspect_export(copy)
     stats = integrity.cache_stats()
     assert stats["computed"] == 1 and stats["cached"] == 2, stats
-    _age(copy, 60.0)                       # another modification time: hashed again
+    _age(copy, 60.0)  # another modification time: hashed again
     runtime.load(copy)
     assert integrity.cache_stats()["computed"] == 2
     # an edit of the same size keeping the modification time would keep the identity, so a file
@@ -281,6 +346,7 @@ def test_the_hash_is_computed_once_per_file_identity(tiny_export, tmp_path):
 
 def test_int8_copies_record_their_own_content_hash(tmp_path):
     import radaredge
+
     res = radaredge.export(TINY_CARD, tmp_path / "t.onnx", quantize="int8", calibration_windows=2)
     int8 = tmp_path / "t.int8.onnx"
     assert int8.is_file(), res
@@ -295,6 +361,7 @@ def test_a_bundle_manifest_records_each_parts_content_hash(tiny_export, tmp_path
     from radaredge.exporting.graphs import GraphExport, write_manifest
     from radaredge.models import model_spec
     from radaredge.runtime.bundle import read_manifest
+
     card, _, path, debug = tiny_export
     bundle = tmp_path / "bundle"
     bundle.mkdir()
@@ -348,14 +415,23 @@ def test_the_runtime_checks_without_torch_or_onnx(tiny_export, tmp_path):
 def test_eval_checks_the_frames_and_outputs_the_embedded_card_implies(tiny_export):
     """The model family's signature of the embedded card (torch side: ``eval`` and ``map build``)."""
     from types import SimpleNamespace
+
     from radaredge.eval.places import check_export
+
     card, _, path, debug = tiny_export
-    for graph in (path, debug):                  # a debug copy's extra debug.<intermediate> outputs are fine
+    for graph in (path, debug):  # a debug copy's extra debug.<intermediate> outputs are fine
         check_export(card, runtime.load(graph))
     good = runtime.load(path)
-    other = SimpleNamespace(card=good.card, path=Path("other.onnx"), info=good.info, frames=good.frames,
-                            features=good.features, output_names=[n for n in good.output_names
-                                                                  if n != "descriptor_normalized"])
-    with pytest.raises(InputError, match="other.onnx: its embedded card disagrees with the graph: the card's "
-                                         "tdfanet graph takes point frames"):
+    other = SimpleNamespace(
+        card=good.card,
+        path=Path("other.onnx"),
+        info=good.info,
+        frames=good.frames,
+        features=good.features,
+        output_names=[n for n in good.output_names if n != "descriptor_normalized"],
+    )
+    with pytest.raises(
+        InputError,
+        match="other.onnx: its embedded card disagrees with the graph: the card's tdfanet graph takes point frames",
+    ):
         check_export(card, other)

@@ -7,22 +7,41 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from references import vod_devkit_eval as devkit
 
 from radaredge.data.kitti_detection import TJ4D, VOD, Labels
 from radaredge.eval.kitti_ap import ap_table, bootstrap_rows, evaluate_frames, recall_thresholds, resampled_ap
-from references import vod_devkit_eval as devkit
 
-SIZES = {"Car": (4.2, 1.6, 1.8), "Van": (5.0, 2.0, 2.0), "Truck": (8.0, 3.0, 2.5), "Pedestrian": (0.7, 1.7, 0.6),
-         "Person_sitting": (0.8, 1.2, 0.6), "Cyclist": (1.8, 1.7, 0.6), "bicycle": (1.7, 1.1, 0.5)}
-GT_NAMES = ["Car", "Car", "Car", "Pedestrian", "Pedestrian", "Cyclist", "Cyclist", "Van", "Person_sitting",
-            "Truck", "bicycle", "DontCare"]
+SIZES = {
+    "Car": (4.2, 1.6, 1.8),
+    "Van": (5.0, 2.0, 2.0),
+    "Truck": (8.0, 3.0, 2.5),
+    "Pedestrian": (0.7, 1.7, 0.6),
+    "Person_sitting": (0.8, 1.2, 0.6),
+    "Cyclist": (1.8, 1.7, 0.6),
+    "bicycle": (1.7, 1.1, 0.5),
+}
+GT_NAMES = [
+    "Car",
+    "Car",
+    "Car",
+    "Pedestrian",
+    "Pedestrian",
+    "Cyclist",
+    "Cyclist",
+    "Van",
+    "Person_sitting",
+    "Truck",
+    "bicycle",
+    "DontCare",
+]
 DT_NAMES = ["Car", "Pedestrian", "Cyclist", "Truck"]
 
 
 def _objects(rng, names) -> dict:
     """Annotation arrays (the devkits' dict) of objects ``names``, placed and sized at random."""
     m = len(names)
-    dims = np.array([SIZES.get(n, (-1.0, -1.0, -1.0)) for n in names]).reshape(m, 3)     # (l, h, w)
+    dims = np.array([SIZES.get(n, (-1.0, -1.0, -1.0)) for n in names]).reshape(m, 3)  # (l, h, w)
     dims = np.where(dims > 0, dims * rng.uniform(0.8, 1.2, (m, 3)), dims)
     loc = np.column_stack([rng.uniform(-12, 12, m), rng.uniform(1.0, 2.0, m), rng.uniform(2, 45, m)])
     dc = np.array([n == "DontCare" for n in names], bool)
@@ -31,10 +50,17 @@ def _objects(rng, names) -> dict:
     height = rng.choice([rng.uniform(15, 40), rng.uniform(40.5, 300)], m) if m else np.zeros(0)
     left = rng.uniform(0, 1800, m)
     bbox = np.column_stack([left, top, left + rng.uniform(20, 300, m), top + height])
-    return {"name": np.array(names, dtype=object), "truncated": np.zeros(m),
-            "occluded": rng.choice([0, 1, 2, 2, 5], m).astype(np.int64), "alpha": rng.uniform(-np.pi, np.pi, m),
-            "bbox": bbox.reshape(m, 4), "dimensions": dims, "location": loc.reshape(m, 3),
-            "rotation_y": rng.uniform(-np.pi, np.pi, m), "score": np.zeros(m)}
+    return {
+        "name": np.array(names, dtype=object),
+        "truncated": np.zeros(m),
+        "occluded": rng.choice([0, 1, 2, 2, 5], m).astype(np.int64),
+        "alpha": rng.uniform(-np.pi, np.pi, m),
+        "bbox": bbox.reshape(m, 4),
+        "dimensions": dims,
+        "location": loc.reshape(m, 3),
+        "rotation_y": rng.uniform(-np.pi, np.pi, m),
+        "score": np.zeros(m),
+    }
 
 
 def _detections(rng, gt: dict) -> dict:
@@ -44,14 +70,16 @@ def _detections(rng, gt: dict) -> dict:
     keep += [i for i in keep if rng.random() < 0.4]
     n_fp = int(rng.integers(0, 5))
     fp = _objects(rng, list(rng.choice(DT_NAMES, n_fp)))
-    names = [gt["name"][i] if gt["name"][i] in DT_NAMES and rng.random() < 0.85 else str(rng.choice(DT_NAMES))
-             for i in keep]
+    names = [
+        gt["name"][i] if gt["name"][i] in DT_NAMES and rng.random() < 0.85 else str(rng.choice(DT_NAMES)) for i in keep
+    ]
     det = {k: np.concatenate([np.asarray(gt[k])[keep], fp[k]]) if len(keep) else fp[k] for k in gt}
     det["name"] = np.array(names + list(fp["name"]), dtype=object)
     m, k = len(det["name"]), len(keep)
     det["location"] = det["location"] + np.concatenate([rng.normal(0, 0.3, (k, 3)), np.zeros((m - k, 3))])
-    det["dimensions"] = np.abs(det["dimensions"]) * np.concatenate([rng.uniform(0.85, 1.15, (k, 3)),
-                                                                    np.ones((m - k, 3))])
+    det["dimensions"] = np.abs(det["dimensions"]) * np.concatenate(
+        [rng.uniform(0.85, 1.15, (k, 3)), np.ones((m - k, 3))]
+    )
     det["rotation_y"] = det["rotation_y"] + np.concatenate([rng.normal(0, 0.2, k), np.zeros(m - k)])
     det["alpha"] = det["alpha"] + rng.normal(0, 0.3, m)
     det["bbox"] = det["bbox"] + rng.normal(0, 8, (m, 4))
@@ -72,7 +100,7 @@ def _case(seed: int) -> tuple[list[dict], list[dict]]:
         gt = _objects(rng, names)
         dt = _detections(rng, gt)
         if kind == 3 or (seed % 17 == 0):
-            dt = {k: v[:0] for k, v in dt.items()}                     # empty predictions
+            dt = {k: v[:0] for k, v in dt.items()}  # empty predictions
         gts.append(gt)
         dts.append(dt)
     return gts, dts
@@ -91,8 +119,9 @@ def test_ap_equals_the_independent_devkit_reference(layout):
     counted = 0
     for seed in range(120):
         gts, dts = _case(seed + (1000 if layout is TJ4D else 0))
-        ours = ap_table(evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in dts], layout.eval_classes,
-                                        areas))
+        ours = ap_table(
+            evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in dts], layout.eval_classes, areas)
+        )
         for area in areas:
             ref = devkit.evaluate(gts, dts, classes, corridor=area == "corridor")
             for cls in classes:
@@ -100,7 +129,7 @@ def test_ap_equals_the_independent_devkit_reference(layout):
                     a, b = ours[area][cls][metric], ref[cls][metric]
                     assert (np.isnan(a) and np.isnan(b)) or abs(a - b) <= 1e-4, (seed, area, cls, metric, a, b)
                 counted += ref[cls]["3d"] > 0
-    assert counted > 60                     # the cases are not all trivially zero
+    assert counted > 60  # the cases are not all trivially zero
 
 
 def test_perfect_and_empty_detections():
@@ -108,7 +137,7 @@ def test_perfect_and_empty_detections():
     gts = [_objects(rng, ["Car"] * 4 + ["Pedestrian"] * 3 + ["Cyclist"] * 3) for _ in range(20)]
     for g in gts:
         g["rotation_y"] = np.zeros(len(g["name"]))
-        g["bbox"][:, 3] = g["bbox"][:, 1] + 100                        # all tall enough
+        g["bbox"][:, 3] = g["bbox"][:, 1] + 100  # all tall enough
         g["occluded"][:] = 0
     dts = [{**g, "score": rng.uniform(0.5, 1.0, len(g["name"]))} for g in gts]
     perfect = ap_table(evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in dts], VOD.eval_classes))
@@ -116,8 +145,11 @@ def test_perfect_and_empty_detections():
     empty = [{k: v[:0] for k, v in d.items()} for d in dts]
     none = ap_table(evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in empty], VOD.eval_classes))
     assert all(none[a][c]["3d"] == 0.0 for a in none for c in none[a])
-    no_gt = ap_table(evaluate_frames([_labels({k: v[:0] for k, v in g.items()}) for g in gts],
-                                     [_labels(d) for d in dts], VOD.eval_classes))
+    no_gt = ap_table(
+        evaluate_frames(
+            [_labels({k: v[:0] for k, v in g.items()}) for g in gts], [_labels(d) for d in dts], VOD.eval_classes
+        )
+    )
     assert all(no_gt[a][c]["3d"] == 0.0 and no_gt[a][c]["num_gt"] == 0 for a in no_gt for c in no_gt[a])
 
 
@@ -152,8 +184,9 @@ def test_a_resample_scores_as_the_devkit_on_its_frames():
     """The bootstrap's AP of a resample is the devkit's AP (the independent reference) on the
     resampled frames, duplicates included; the identity resample gives the set's own AP."""
     gts, dts = _many_frames(5, 12)
-    curves = evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in dts], VOD.eval_classes,
-                             tables=("3d", "bev"))
+    curves = evaluate_frames(
+        [_labels(g) for g in gts], [_labels(d) for d in dts], VOD.eval_classes, tables=("3d", "bev")
+    )
     rows = np.vstack([np.arange(len(gts)), bootstrap_rows(len(gts), 6, seed=1)])
     checked = 0
     for area in ("entire_area", "corridor"):
@@ -163,8 +196,12 @@ def test_a_resample_scores_as_the_devkit_on_its_frames():
                 ap11, ap40 = resampled_ap(curve.frames, rows)
                 assert ap11[0] == pytest.approx(curve.ap11, abs=1e-9) and ap40[0] == pytest.approx(curve.ap40, abs=1e-9)
                 for r, row in enumerate(rows[1:], 1):
-                    ref = devkit.evaluate([gts[i] for i in row], [dts[i] for i in row],
-                                          ["Car", "Pedestrian", "Cyclist"], corridor=area == "corridor")[cls]
+                    ref = devkit.evaluate(
+                        [gts[i] for i in row],
+                        [dts[i] for i in row],
+                        ["Car", "Pedestrian", "Cyclist"],
+                        corridor=area == "corridor",
+                    )[cls]
                     assert ap11[r] == pytest.approx(ref[metric], abs=1e-4), (area, cls, metric, r)
                     assert ap40[r] == pytest.approx(ref[metric + "_r40"], abs=1e-4), (area, cls, metric, r)
                     checked += ref[metric] > 0
@@ -175,6 +212,7 @@ def test_paired_intervals_of_a_detector_against_itself_and_a_worse_one():
     """The same detections twice: equal intervals and a paired difference of exactly 0; the
     detections with every second true box dropped: a paired difference whose interval lies below 0."""
     from radaredge.eval.detection import ap_intervals
+
     rng = np.random.default_rng(11)
     gts = [_objects(rng, ["Car"] * 6) for _ in range(30)]
     for g in gts:
@@ -183,9 +221,12 @@ def test_paired_intervals_of_a_detector_against_itself_and_a_worse_one():
     dts = [{**g, "score": rng.uniform(0.5, 1.0, len(g["name"]))} for g in gts]
     worse = [{k: v[::2] for k, v in d.items()} for d in dts]
     classes = (VOD.eval_class("Car"),)
-    curves = {name: evaluate_frames([_labels(g) for g in gts], [_labels(d) for d in ds], classes, ("entire_area",),
-                                    ("3d", "bev"))
-              for name, ds in (("a", dts), ("b", dts), ("worse", worse))}
+    curves = {
+        name: evaluate_frames(
+            [_labels(g) for g in gts], [_labels(d) for d in ds], classes, ("entire_area",), ("3d", "bev")
+        )
+        for name, ds in (("a", dts), ("b", dts), ("worse", worse))
+    }
     intervals, deltas = ap_intervals(curves, ["Car"], ("entire_area",), "a", samples=200)
     assert intervals["a"] == intervals["b"] and deltas["b"]["entire_area"]["Car"]["3d"] == (0.0, 0.0)
     low, high = deltas["worse"]["entire_area"]["mAP"]["3d"]

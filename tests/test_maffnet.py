@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import assert_close, assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 from radaredge import runtime
 from radaredge.cards import load_card
@@ -17,15 +18,17 @@ from radaredge.errors import CapacityError, ConfigError
 from radaredge.models import create_model, load_checkpoint
 from radaredge.models.maffnet.model import HeadConfig, decode_boxes
 from radaredge.models.maffnet.spec import STAGE_ONE_GRAPH
-from conftest import assert_close, assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
 
 
 def _conv_bn(prefix, cout, cin, k):
-    return {f"{prefix[0]}.weight": (cout, cin, k, k), **{f"{prefix[1]}.{n}": (cout,) for n in
-            ("weight", "bias", "running_mean", "running_var")}, f"{prefix[1]}.num_batches_tracked": ()}
+    return {
+        f"{prefix[0]}.weight": (cout, cin, k, k),
+        **{f"{prefix[1]}.{n}": (cout,) for n in ("weight", "bias", "running_mean", "running_var")},
+        f"{prefix[1]}.num_batches_tracked": (),
+    }
 
 
 def expected_vod_keys() -> dict[str, tuple]:
@@ -44,12 +47,14 @@ def expected_vod_keys() -> dict[str, tuple]:
     for b, (cin, f, n) in enumerate(zip(chans, filters, nums)):
         keys.update(_conv_bn((f"backbone_2d.blocks.{b}.1", f"backbone_2d.blocks.{b}.2"), f, cin, 3))
         for j in range(n):
-            keys.update(_conv_bn((f"backbone_2d.blocks.{b}.{4 + 3 * j}", f"backbone_2d.blocks.{b}.{5 + 3 * j}"),
-                                 f, f, 3))
+            keys.update(
+                _conv_bn((f"backbone_2d.blocks.{b}.{4 + 3 * j}", f"backbone_2d.blocks.{b}.{5 + 3 * j}"), f, f, 3)
+            )
     for b, (f, up) in enumerate(zip(filters, [1, 2, 4])):
         keys[f"backbone_2d.deblocks.{b}.0.weight"] = (f, 128, up, up)
-        keys.update({f"backbone_2d.deblocks.{b}.1.{n}": (128,)
-                     for n in ("weight", "bias", "running_mean", "running_var")})
+        keys.update(
+            {f"backbone_2d.deblocks.{b}.1.{n}": (128,) for n in ("weight", "bias", "running_mean", "running_var")}
+        )
         keys[f"backbone_2d.deblocks.{b}.1.num_batches_tracked"] = ()
     for name, ch in (("conv_cls", 18), ("conv_box", 42), ("conv_dir_cls", 12)):
         keys.update({f"dense_head.{name}.weight": (ch, 384, 1, 1), f"dense_head.{name}.bias": (ch,)})
@@ -70,14 +75,17 @@ def test_vod_state_dict_follows_upstream_keys(vod_model, tmp_path):
     ckpt = {"model_state": {k: torch.randn(s) if s else torch.tensor(0) for k, s in own.items()}}
     ckpt["model_state"]["dense_head.conv_cls.weight"] = torch.zeros(9, 384, 1, 1)
     torch.save(ckpt, tmp_path / "bad.pth")
-    with pytest.raises(ConfigError, match=r"dense_head.conv_cls.weight \(checkpoint \(9, 384, 1, 1\), "
-                                          r"model \(18, 384, 1, 1\)\)") as err:
+    with pytest.raises(
+        ConfigError,
+        match=r"dense_head.conv_cls.weight \(checkpoint \(9, 384, 1, 1\), "
+        r"model \(18, 384, 1, 1\)\)",
+    ) as err:
         load_checkpoint(vod_model, tmp_path / "bad.pth")
     assert "\n" not in str(err.value)
 
 
 def test_vod_anchors_as_openpcdet(vod_model):
-    a = vod_model.anchors.view(160, 160, 3, 2, 7)                # rows y, columns x, class, rotation
+    a = vod_model.anchors.view(160, 160, 3, 2, 7)  # rows y, columns x, class, rotation
     assert_close(a[0, 0, 0, 0].numpy(), [0.0, -25.6, -1.78 + 0.78, 3.9, 1.6, 1.56, 0.0], 1e-6, "first car anchor")
     assert_close(a[0, 0, 1, 1].numpy(), [0.0, -25.6, -0.6 + 0.865, 0.8, 0.6, 1.73, 1.57], 1e-6, "pedestrian, 1.57")
     assert_close(a[-1, -1, 2, 0, :2].numpy(), [51.2, 25.6], 1e-4, "last anchor at the range corner")
@@ -118,8 +126,18 @@ def test_tiny_parity_and_runtime(tiny_onnx):
     side = json.loads(tiny_onnx.with_suffix(".json").read_text())
     assert side["inputs"] == [{"name": "points", "shape": ["num_points", 7]}]
     assert [o["name"] for o in side["outputs"]][:3] == ["boxes", "scores", "labels"]
-    res = invoke("parity-check", "--model", "maffnet-tiny", "--config", str(TINY), "--onnx", str(tiny_onnx),
-                 "--cases", "6", "--json")
+    res = invoke(
+        "parity-check",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        str(TINY),
+        "--onnx",
+        str(tiny_onnx),
+        "--cases",
+        "6",
+        "--json",
+    )
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     assert summary_of(report)["boxes"]["min_iou"] >= 0.99 and summary_of(report)["boxes"]["mismatches"] == 0
@@ -132,7 +150,7 @@ def test_tiny_parity_and_runtime(tiny_onnx):
 
 def test_runtime_reports_spa_overflow(tiny_onnx):
     rng = np.random.default_rng(0)
-    pts = np.zeros((600, 7), np.float32)                  # 600 points on distinct pillars of the 40 x 40 grid
+    pts = np.zeros((600, 7), np.float32)  # 600 points on distinct pillars of the 40 x 40 grid
     cells = rng.choice(1600, 600, replace=False)
     pts[:, 0] = (cells % 40) * 0.32 + 0.16
     pts[:, 1] = -6.4 + (cells // 40) * 0.32 + 0.16
@@ -142,6 +160,7 @@ def test_runtime_reports_spa_overflow(tiny_onnx):
 
 def test_runtime_rejects_bad_columns(tiny_onnx):
     from radaredge.errors import InputError
+
     with pytest.raises(InputError, match="expected shape \\[N, 7\\]"):
         runtime.load(tiny_onnx).run(np.zeros((10, 5), np.float32))
 
@@ -156,14 +175,23 @@ def test_tj4d_vfe_takes_snr_before_v_r_as_upstreams_radarpillarvfe_tj(reference)
     with torch.no_grad():
         weight = model.vfe.pfn_layers[0].linear.weight
         weight.zero_()
-        weight[:, 3] = 1.0                          # a checkpoint whose VFE reads only its SNR input
+        weight[:, 3] = 1.0  # a checkpoint whose VFE reads only its SNR input
     rng = np.random.default_rng(0)
-    pts = np.stack([rng.uniform(5, 40, 50), rng.uniform(-20, 20, 50), rng.uniform(-1, 1, 50),
-                    rng.uniform(-10, 10, 50), rng.uniform(5, 30, 50)], 1).astype(np.float32)
+    pts = np.stack(
+        [
+            rng.uniform(5, 40, 50),
+            rng.uniform(-20, 20, 50),
+            rng.uniform(-1, 1, 50),
+            rng.uniform(-10, 10, 50),
+            rng.uniform(5, 30, 50),
+        ],
+        1,
+    ).astype(np.float32)
 
     def canvas(p):
         with torch.no_grad():
             return model.pillar_stage(torch.from_numpy(p), reference=reference)[0]
+
     base = canvas(pts)
     assert base.abs().sum() > 0
     other_v_r, other_snr = pts.copy(), pts.copy()
@@ -173,10 +201,15 @@ def test_tj4d_vfe_takes_snr_before_v_r_as_upstreams_radarpillarvfe_tj(reference)
     assert not torch.allclose(canvas(other_snr), base)
 
 
-@pytest.mark.parametrize("columns, needle", [(["x", "y", "z", "rcs", "doppler"], "name each of the card's features"),
-                                             (["y", "x", "z"], "must start with x, y, z"),
-                                             (["x", "y", "z", "rcs", "rcs"], "at most once"),
-                                             ("x, y, z", "must be a list")])
+@pytest.mark.parametrize(
+    "columns, needle",
+    [
+        (["x", "y", "z", "rcs", "doppler"], "name each of the card's features"),
+        (["y", "x", "z"], "must start with x, y, z"),
+        (["x", "y", "z", "rcs", "rcs"], "at most once"),
+        ("x, y, z", "must be a list"),
+    ],
+)
 def test_bad_vfe_features_are_refused_by_name(columns, needle, tmp_path):
     data = load_card(TINY).data
     data["vfe_features"] = columns
@@ -192,7 +225,7 @@ def test_full_card_export_and_parity(model, tmp_path):
     res = invoke("export", "--model", model, "--output", str(onnx))
     assert res.exit_code == 0, res.output
     assert_parses_in_tensorrt(onnx)
-    cases = "5" if model.startswith("maffnet-vod") else "2"     # VoD's fifth case is a dense 5-frame cloud
+    cases = "5" if model.startswith("maffnet-vod") else "2"  # VoD's fifth case is a dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", str(onnx), "--cases", cases, "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
@@ -200,12 +233,29 @@ def test_full_card_export_and_parity(model, tmp_path):
 
 
 def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path):
-    res = invoke("bench", "--model", "maffnet-tiny", "--config", str(TINY), "--onnx", str(tiny_onnx),
-                 "--runs", "3", "--warmup", "1", "--save", tmp_path / "bench.json")
+    res = invoke(
+        "bench",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        str(TINY),
+        "--onnx",
+        str(tiny_onnx),
+        "--runs",
+        "3",
+        "--warmup",
+        "1",
+        "--save",
+        tmp_path / "bench.json",
+    )
     assert res.exit_code == 0, res.output
     report = json.loads((tmp_path / "bench.json").read_text())
-    assert {r["backend"] for r in report["tasks"]["maffnet"]["rows"]} == \
-        {"torch reference", "torch export", "onnxruntime", "openvino"}
+    assert {r["backend"] for r in report["tasks"]["maffnet"]["rows"]} == {
+        "torch reference",
+        "torch export",
+        "onnxruntime",
+        "openvino",
+    }
     saved = report["graphs"]["maffnet"]
     stages = ["VFE+SPA", "CFA", "CAF", "backbone+head", "NMS"]
     for formulation in ("torch export", "torch reference"):
@@ -221,7 +271,9 @@ def test_bench_reports_fps_and_stages(tiny_onnx, tmp_path):
 def test_onnx_nodes_attributed_to_stages(tiny_onnx):
     """Every graph node lands in one MAFF-Net stage, by module scope or by graph position."""
     import onnx
+
     from radaredge.benchmarking.profiling import node_stages
+
     model = onnx.load(str(tiny_onnx), load_external_data=False)
     stage = node_stages(model, list(STAGE_ONE_GRAPH.onnx_stages), STAGE_ONE_GRAPH.onnx_post_outputs)
     nodes = {n.name: n for n in model.graph.node}
@@ -229,9 +281,9 @@ def test_onnx_nodes_attributed_to_stages(tiny_onnx):
     by_op = {}
     for name, s in stage.items():
         by_op.setdefault(nodes[name].op_type, set()).add(s)
-    assert by_op["Loop"] == {"VFE+SPA", "NMS"}                    # full pillars' peels, the greedy fixed point
-    assert by_op["ConvTranspose"] == {"backbone+head"}             # the deblocks
-    assert "CFA" in by_op["MaxPool"]                               # GridDensityBEV's components
+    assert by_op["Loop"] == {"VFE+SPA", "NMS"}  # full pillars' peels, the greedy fixed point
+    assert by_op["ConvTranspose"] == {"backbone+head"}  # the deblocks
+    assert "CFA" in by_op["MaxPool"]  # GridDensityBEV's components
     producers = {o: nodes[n] for n in nodes for o in nodes[n].output}
     assert stage[producers["anchor_scores"].name] == "backbone+head"
     assert stage[producers["boxes"].name] == "NMS"

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import invoke, one_error_line
+from references.maffnet_upstream_keys import openpcdet_checkpoint, upstream_state_dict, upstream_state_dict_shapes
 
 from radaredge.cards import load_card
 from radaredge.models import create_model, load_checkpoint
 from radaredge.models.maffnet.model import STAGE_TWO_PREFIXES, UNUSED_FUSER_KEYS, UNUSED_VFE_KEYS
-from references.maffnet_upstream_keys import openpcdet_checkpoint, upstream_state_dict, upstream_state_dict_shapes
-from conftest import invoke, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 FUSER_RULE = "upstream fuser parameters with no effect at test time"
@@ -23,9 +23,17 @@ VFE_RULE = "upstream RadarPillarVFE_TJ's zero-width SE layer, never called"
 STAGE_ONE_RULE = "stage-two modules on a stage-one card"
 
 
-@pytest.mark.parametrize("card, dataset", [("maffnet-vod-full", "vod"), ("maffnet-vod", "vod"),
-                                           ("maffnet-tj4d", "tj4d"), ("maffnet-tj4d-full", "tj4d"),
-                                           ("maffnet-vod-full-dbscan", "vod"), ("maffnet-tj4d-full-dbscan", "tj4d")])
+@pytest.mark.parametrize(
+    "card, dataset",
+    [
+        ("maffnet-vod-full", "vod"),
+        ("maffnet-vod", "vod"),
+        ("maffnet-tj4d", "tj4d"),
+        ("maffnet-tj4d-full", "tj4d"),
+        ("maffnet-vod-full-dbscan", "vod"),
+        ("maffnet-tj4d-full-dbscan", "tj4d"),
+    ],
+)
 def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, tmp_path):
     model = create_model(load_card(ROOT / "models" / f"{card}.yaml"))
     own = model.state_dict()
@@ -55,8 +63,9 @@ def test_upstream_checkpoint_loads_with_every_key_accounted_for(card, dataset, t
 
 def test_stage_two_keys_of_the_full_cards_are_upstreams():
     for card, dataset in (("maffnet-vod-full", "vod"), ("maffnet-tj4d-full", "tj4d")):
-        own = {k: tuple(v.shape)
-               for k, v in create_model(load_card(ROOT / "models" / f"{card}.yaml")).state_dict().items()}
+        own = {
+            k: tuple(v.shape) for k, v in create_model(load_card(ROOT / "models" / f"{card}.yaml")).state_dict().items()
+        }
         up = upstream_state_dict_shapes(dataset)
         two = {k: s for k, s in up.items() if k.startswith(STAGE_TWO_PREFIXES)}
         assert {k: own.get(k) for k in two} == two, card
@@ -72,8 +81,9 @@ def test_bad_checkpoints_end_with_one_clear_error(tmp_path):
     state = model.state_dict()
 
     def export(path):
-        return invoke("export", "--model", "maffnet-tiny", "--config", tiny, "--checkpoint", path,
-                      "--output", tmp_path / "x.onnx")
+        return invoke(
+            "export", "--model", "maffnet-tiny", "--config", tiny, "--checkpoint", path, "--output", tmp_path / "x.onnx"
+        )
 
     torch.save({"model_state": state}, tmp_path / "good.pth")
     data = (tmp_path / "good.pth").read_bytes()
@@ -84,12 +94,15 @@ def test_bad_checkpoints_end_with_one_clear_error(tmp_path):
     torch.save({"model_state": state, "optimizer": ModelCardLike()}, tmp_path / "object.pth")
     one_error_line(export(tmp_path / "object.pth"), "object.pth", "objects other than tensors", "no pickled code")
     import pickle
+
     (tmp_path / "plain.pkl").write_bytes(pickle.dumps({"a": 1}))
     one_error_line(export(tmp_path / "plain.pkl"), "plain.pkl", "not a file written by torch.save")
     torch.save({"model_state": {**state, "dense_head.conv_cls.weight": torch.zeros(3, 3)}}, tmp_path / "shape.pth")
     one_error_line(export(tmp_path / "shape.pth"), "dense_head.conv_cls.weight (checkpoint (3, 3), model")
-    torch.save({"model_state": {k: v for k, v in state.items() if k != "vfe.pfn_layers.0.linear.weight"}},
-               tmp_path / "missing.pth")
+    torch.save(
+        {"model_state": {k: v for k, v in state.items() if k != "vfe.pfn_layers.0.linear.weight"}},
+        tmp_path / "missing.pth",
+    )
     one_error_line(export(tmp_path / "missing.pth"), "missing keys (1): vfe.pfn_layers.0.linear.weight")
     torch.save({"model_state": {**state, "fuser.extra.weight": torch.zeros(2)}}, tmp_path / "extra.pth")
     one_error_line(export(tmp_path / "extra.pth"), "unexpected keys (1): fuser.extra.weight")

@@ -13,16 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
+from references.maffnet_upstream import upstream_scan_mask
+from references.sklearn_cqca_cfa import upstream_map
 
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import CapacityError, ConfigError
-from radaredge.models import create_model
+from radaredge.models import create_model, model_spec
 from radaredge.models.maffnet.spec import five_frame_points
-from radaredge.models import model_spec
-from references.maffnet_upstream import upstream_scan_mask
-from references.sklearn_cqca_cfa import upstream_map
-from conftest import assert_parses_in_tensorrt, export_with_cli, invoke, summary_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "cards" / "maffnet-tiny-full-dbscan.yaml"
@@ -33,8 +32,17 @@ def _sklearn_map(card, pts):
     scan = upstream_scan_mask(pts, card.get("pillars.point_cloud_range")) & np.isfinite(pts).all(1)
     v = card.features.index(card.get("cfa.velocity_feature"))
     xyv = pts[scan][:, [0, 1, v]]
-    bev, labels = upstream_map(xyv, None, d["eps"], d["min_samples"], d["map_rows"], d["map_cols"],
-                               d["resolution"], d["y_offset"], d["max_cluster_size"])
+    bev, labels = upstream_map(
+        xyv,
+        None,
+        d["eps"],
+        d["min_samples"],
+        d["map_rows"],
+        d["map_cols"],
+        d["resolution"],
+        d["y_offset"],
+        d["max_cluster_size"],
+    )
     cluster = np.zeros(len(pts), bool)
     cluster[np.flatnonzero(scan)] = labels != -1
     return bev, cluster
@@ -55,13 +63,23 @@ def test_clustering_map_equals_sklearn(card_path, cases):
             np.testing.assert_array_equal(cluster.numpy(), want_cluster, err_msg=f"{name} reference={reference}")
             assert bool(converged), name
         seen += int((want_map[2] > 0).sum())
-    assert seen > 20                                       # the cases do produce clusters on the map
+    assert seen > 20  # the cases do produce clusters on the map
 
 
 def test_tiny_dbscan_export_parity_and_runtime(tmp_path):
     onnx_path = export_with_cli(tmp_path, "maffnet-tiny-full-dbscan", TINY)
-    res = invoke("parity-check", "--model", "maffnet-tiny-full-dbscan", "--config", TINY, "--onnx", onnx_path,
-                 "--cases", "5", "--json")
+    res = invoke(
+        "parity-check",
+        "--model",
+        "maffnet-tiny-full-dbscan",
+        "--config",
+        TINY,
+        "--onnx",
+        onnx_path,
+        "--cases",
+        "5",
+        "--json",
+    )
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output
     model = runtime.load(onnx_path)
@@ -84,6 +102,7 @@ def test_runtime_warns_when_the_card_says_warn(tmp_path):
     data["name"] = "maffnet-tiny-dbscan-warn"
     card = tmp_path / "warn.yaml"
     import yaml
+
     card.write_text(yaml.safe_dump(data))
     onnx_path = export_with_cli(tmp_path, "maffnet-tiny-dbscan-warn", card)
     pts = five_frame_points(7, load_card(card))
@@ -96,6 +115,7 @@ def test_runtime_warns_when_the_card_says_warn(tmp_path):
 
 def test_card_names_one_clustering_method(tmp_path):
     import yaml
+
     data = load_card(TINY).data
     data["cfa"]["grid"] = {"map_h": 40, "map_w": 40}
     (tmp_path / "both.yaml").write_text(yaml.safe_dump(data))
@@ -129,7 +149,7 @@ def test_full_dbscan_cards_export_and_parity(model, tmp_path):
     res = invoke("export", "--model", model, "--output", onnx_path)
     assert res.exit_code == 0, res.output
     assert_parses_in_tensorrt(onnx_path)
-    cases = "5" if "vod" in model else "2"                # VoD's fifth case is the dense 5-frame cloud
+    cases = "5" if "vod" in model else "2"  # VoD's fifth case is the dense 5-frame cloud
     res = invoke("parity-check", "--model", model, "--onnx", onnx_path, "--cases", cases, "--json")
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"], res.output

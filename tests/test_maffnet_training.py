@@ -9,13 +9,13 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD, invoke, one_error_line
+from references.maffnet_upstream_keys import openpcdet_checkpoint, trained_like_state_dict
 
 from radaredge.cards import load_card
 from radaredge.models import create_model
 from radaredge.models.factory import save_checkpoint
 from radaredge.training import maffnet as tm
-from references.maffnet_upstream_keys import openpcdet_checkpoint, trained_like_state_dict
-from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD, invoke, one_error_line
 
 CARD = load_card(MAFFNET_TINY_CARD)
 
@@ -25,15 +25,39 @@ def labelled(tmp_path_factory):
     """A labelled synthetic VoD-layout set (version 1: consecutive frames, dense near points for the tiny
     card's 12.8 m): 2 training drives of 20 frames, 1 validation drive."""
     out = tmp_path_factory.mktemp("train-set") / "set"
-    res = invoke("make-benchmark", "--task", "detection", "--out", out, "--drives", 3, "--frames", 20, "--seed", 3,
-                 "--version", 1)
+    res = invoke(
+        "make-benchmark",
+        "--task",
+        "detection",
+        "--out",
+        out,
+        "--drives",
+        3,
+        "--frames",
+        20,
+        "--seed",
+        3,
+        "--version",
+        1,
+    )
     assert res.exit_code == 0, res.output
     return out
 
 
 def _train(labelled, out, *extra):
-    res = invoke("train", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--data", labelled,
-                 "--output", out, "--json", *extra)
+    res = invoke(
+        "train",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        MAFFNET_TINY_CARD,
+        "--data",
+        labelled,
+        "--output",
+        out,
+        "--json",
+        *extra,
+    )
     assert res.exit_code == 0, res.output
     return json.loads(res.stdout)
 
@@ -43,9 +67,24 @@ def test_training_lowers_the_loss_and_raises_validation_ap(labelled, tmp_path):
     the same frames): the loss falls, AP rises above the seeded network's, the best epoch's weights
     are best.pth and export. (The tiny card sees 12.8 m; most labelled objects lie beyond it, so
     its AP stays low: the test is that the loop learns, docs/models/maffnet.md what a card reaches.)"""
-    report = _train(labelled, tmp_path / "run", "--epochs", 10, "--batch-size", 2, "--lr", 0.003,
-                    "--set", "train_frames=12", "--validation", "train", "--set", "val_frames=12",
-                    "--set", "augment=false")
+    report = _train(
+        labelled,
+        tmp_path / "run",
+        "--epochs",
+        10,
+        "--batch-size",
+        2,
+        "--lr",
+        0.003,
+        "--set",
+        "train_frames=12",
+        "--validation",
+        "train",
+        "--set",
+        "val_frames=12",
+        "--set",
+        "augment=false",
+    )
     rows = report["epochs"]
     assert [r["epoch"] for r in rows] == list(range(11))
     assert rows[-1]["loss"] < 0.3 * rows[1]["loss"]
@@ -55,8 +94,17 @@ def test_training_lowers_the_loss_and_raises_validation_ap(labelled, tmp_path):
     assert report["best_epoch"] == max(rows[1:], key=lambda r: r["mAP3d"])["epoch"]
     state = torch.load(tmp_path / "run" / "best.pth", weights_only=True)
     assert state["epoch"] == report["best_epoch"] and math.isclose(state["metrics"]["mAP3d"], best)
-    res = invoke("export", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--checkpoint",
-                 tmp_path / "run" / "best.pth", "--output", tmp_path / "t.onnx")
+    res = invoke(
+        "export",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        MAFFNET_TINY_CARD,
+        "--checkpoint",
+        tmp_path / "run" / "best.pth",
+        "--output",
+        tmp_path / "t.onnx",
+    )
     assert res.exit_code == 0, res.output
 
 
@@ -68,46 +116,81 @@ def test_an_upstream_checkpoint_fine_tunes_key_for_key(labelled, tmp_path, name)
     recipe's prior)."""
     ckpt = trained_like_state_dict("vod", stage_two=True, seed=4)
     torch.save(openpcdet_checkpoint(ckpt), tmp_path / "up.pth")
-    res = invoke("train", "--model", name, "--data", labelled, "--output", tmp_path / "ft",
-                 "--checkpoint", tmp_path / "up.pth", "--epochs", 1, "--batch-size", 2, "--set", "train_frames=2",
-                 "--set", "val_frames=1", "--set", "bn_scans=0", "--json")   # bn_scans re-estimates the statistics
+    res = invoke(
+        "train",
+        "--model",
+        name,
+        "--data",
+        labelled,
+        "--output",
+        tmp_path / "ft",
+        "--checkpoint",
+        tmp_path / "up.pth",
+        "--epochs",
+        1,
+        "--batch-size",
+        2,
+        "--set",
+        "train_frames=2",
+        "--set",
+        "val_frames=1",
+        "--set",
+        "bn_scans=0",
+        "--json",
+    )  # bn_scans re-estimates the statistics
     assert res.exit_code == 0, res.output
     after = torch.load(tmp_path / "ft" / "last.pth", weights_only=True)["model_state"]
     model = create_model(load_card(name))
     assert set(after) == set(model.state_dict())
     loaded = {k: v for k, v in ckpt.items() if k in after}
-    assert set(loaded) == set(after)                         # every tensor came from the checkpoint
+    assert set(loaded) == set(after)  # every tensor came from the checkpoint
     params = {n for n, _ in model.named_parameters()}
-    momentum = {f"{n}.{stat}": m.momentum for n, m in model.named_modules()
-                if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for stat in ("running_mean", "running_var")}
+    momentum = {
+        f"{n}.{stat}": m.momentum
+        for n, m in model.named_modules()
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)
+        for stat in ("running_mean", "running_var")
+    }
     moved, counted = 0, {}
     for key, value in after.items():
-        if key.endswith("num_batches_tracked"):              # every norm counts on from the checkpoint's count
+        if key.endswith("num_batches_tracked"):  # every norm counts on from the checkpoint's count
             counted[key] = int(value) - int(loaded[key])
         elif not value.is_floating_point():
             continue
-        elif key in params:                                  # one Adam step: at most ~lr per element
+        elif key in params:  # one Adam step: at most ~lr per element
             diff = float((value - loaded[key]).abs().max())
             assert diff < 0.05, f"{key} moved {diff} from the checkpoint: re-initialised?"
             moved += diff > 0
-        elif value.numel() > 8 and momentum[key] <= 0.01:    # stage one's running statistics (momentum 0.01);
+        elif value.numel() > 8 and momentum[key] <= 0.01:  # stage one's running statistics (momentum 0.01);
             # stage two's BatchNorm1d keep torch's 0.1, as upstream's, and move further in two scans
             corr = np.corrcoef(value.double().numpy().ravel(), loaded[key].double().numpy().ravel())[0, 1]
             assert corr > 0.9, f"{key} no longer follows the checkpoint's values (correlation {corr:.2f})"
     assert moved > 0.9 * len(params)
-    assert counted.pop("vfe.pfn_layers.0.norm.num_batches_tracked") == 1     # once per batch of 2 scans, as upstream
-    assert set(counted.values()) == {2}                                     # the 2-D norms: once per scan
+    assert counted.pop("vfe.pfn_layers.0.norm.num_batches_tracked") == 1  # once per batch of 2 scans, as upstream
+    assert set(counted.values()) == {2}  # the 2-D norms: once per scan
 
 
 def test_freeze_keeps_parameters_and_their_norm_statistics(labelled, tmp_path):
     start = create_model(CARD).state_dict()
-    _train(labelled, tmp_path / "run", "--epochs", 1, "--set", "train_frames=4", "--set", "val_frames=2",
-           "--freeze", "vfe", "--freeze", "backbone_2d.blocks.*")
+    _train(
+        labelled,
+        tmp_path / "run",
+        "--epochs",
+        1,
+        "--set",
+        "train_frames=4",
+        "--set",
+        "val_frames=2",
+        "--freeze",
+        "vfe",
+        "--freeze",
+        "backbone_2d.blocks.*",
+    )
     after = torch.load(tmp_path / "run" / "last.pth", weights_only=True)["model_state"]
     for key, value in after.items():
         same = torch.equal(value, start[key])
         if key.startswith(("vfe.", "backbone_2d.blocks.")) and "num_batches" not in key:
-            assert same, key                                 # weights and running statistics alike
+            assert same, key  # weights and running statistics alike
         elif key in ("dense_head.conv_box.weight", "backbone_2d.deblocks.0.0.weight"):
             assert not same, key
 
@@ -123,11 +206,25 @@ def test_stage_one_weights_start_a_two_stage_card(labelled, tmp_path):
     one = create_model(CARD)
     with torch.no_grad():
         for p in one.parameters():
-            p.add_(0.01)                                     # unlike the full card's seeded stage one
+            p.add_(0.01)  # unlike the full card's seeded stage one
     save_checkpoint(one, tmp_path / "one.pth")
-    common = ["train", "--model", "maffnet-tiny-full", "--config", MAFFNET_TINY_FULL_CARD, "--data", labelled,
-              "--epochs", 1, "--set", "train_frames=2", "--set", "val_frames=1",
-              "--set", "freeze=" + ",".join(STAGE_ONE)]
+    common = [
+        "train",
+        "--model",
+        "maffnet-tiny-full",
+        "--config",
+        MAFFNET_TINY_FULL_CARD,
+        "--data",
+        labelled,
+        "--epochs",
+        1,
+        "--set",
+        "train_frames=2",
+        "--set",
+        "val_frames=1",
+        "--set",
+        "freeze=" + ",".join(STAGE_ONE),
+    ]
     res = invoke(*common, "--output", tmp_path / "run", "--set", f"stage_one_weights={tmp_path / 'one.pth'}")
     assert res.exit_code == 0, res.output
     assert f"stage_one_weights: {len(one.state_dict())} tensors" in res.output
@@ -143,8 +240,15 @@ def test_stage_one_weights_start_a_two_stage_card(labelled, tmp_path):
     res = invoke(*common, "--output", tmp_path / "bad", "--set", f"stage_one_weights={tmp_path / 'partial.pth'}")
     one_error_line(res, "outside stage two: missing keys (1): dense_head.conv_cls.bias")
     torch.save(seeded, tmp_path / "full.pth")
-    res = invoke(*common, "--output", tmp_path / "bad", "--set", f"stage_one_weights={tmp_path / 'one.pth'}",
-                 "--checkpoint", tmp_path / "full.pth")
+    res = invoke(
+        *common,
+        "--output",
+        tmp_path / "bad",
+        "--set",
+        f"stage_one_weights={tmp_path / 'one.pth'}",
+        "--checkpoint",
+        tmp_path / "full.pth",
+    )
     one_error_line(res, "--checkpoint and stage_one_weights both give initial weights")
 
 
@@ -170,8 +274,10 @@ def test_resume_continues_the_same_run(labelled, tmp_path):
     a = torch.load(tmp_path / "a" / "last.pth", weights_only=True)["model_state"]
     b = torch.load(tmp_path / "b" / "last.pth", weights_only=True)["model_state"]
     assert all(torch.equal(a[k], b[k]) for k in a)
-    def history(report):                                     # as text: the initial row's loss is NaN
+
+    def history(report):  # as text: the initial row's loss is NaN
         return json.dumps([{k: v for k, v in r.items() if k != "seconds"} for r in report.epochs])
+
     assert history(whole) == history(resumed)
     epoch_1 = next(line for line in resumed.lines() if line.split()[:1] == ["1"])
     assert "-" in epoch_1.split() and "AP3d_Car" in "".join(resumed.lines())
@@ -195,11 +301,21 @@ def test_bf16_precision_follows_the_fp32_gradient_and_trains(labelled, tmp_path)
         terms["loss"].backward()
         losses[name] = float(terms["loss"].detach())
         grads[name] = torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
-    assert grads["bf16"].abs().sum() > 0 and not torch.equal(grads["bf16"], grads["fp32"])   # autocast was on
+    assert grads["bf16"].abs().sum() > 0 and not torch.equal(grads["bf16"], grads["fp32"])  # autocast was on
     assert torch.nn.functional.cosine_similarity(grads["bf16"], grads["fp32"], dim=0) > 0.99
     assert losses["bf16"] == pytest.approx(losses["fp32"], rel=0.05)
-    report = _train(labelled, tmp_path / "run", "--epochs", 1, "--set", "train_frames=4", "--set", "val_frames=2",
-                    "--set", "precision=bf16")
+    report = _train(
+        labelled,
+        tmp_path / "run",
+        "--epochs",
+        1,
+        "--set",
+        "train_frames=4",
+        "--set",
+        "val_frames=2",
+        "--set",
+        "precision=bf16",
+    )
     assert report["options"]["precision"] == "bf16" and math.isfinite(report["epochs"][-1]["loss"])
     best = torch.load(tmp_path / "run" / "best.pth", weights_only=True)["model_state"]
     assert all(v.dtype != torch.bfloat16 for v in best.values())
@@ -220,8 +336,9 @@ def test_training_pillar_stage_gives_the_export_canvas_and_gradient(labelled, ca
             canvas, num, overflow = stage(points)
             (canvas * torch.linspace(-1, 1, canvas.numel()).reshape(canvas.shape)).sum().backward()
             outputs.append((canvas.detach(), int(num), bool(overflow)))
-            grads.append({n: p.grad for n, p in model.named_parameters()
-                          if p.grad is not None and not n.endswith("k_mlp.bias")})
+            grads.append(
+                {n: p.grad for n, p in model.named_parameters() if p.grad is not None and not n.endswith("k_mlp.bias")}
+            )
         (want, *counts), (got, *counts_t) = outputs
         assert counts_t == counts and counts[0] > 10
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
@@ -238,8 +355,8 @@ def test_augmentation_moves_points_and_boxes_together():
     boxes = np.array([[10.0, 2.0, 0.5, 4.0, 2.0, 1.5, 0.3], [20.0, -3.0, 1.0, 1.0, 0.6, 1.7, -2.9]], np.float32)
     for _ in range(20):
         p, b = tm.augment(points, boxes, [0, 1, 2], recipe, rng)
-        np.testing.assert_allclose(p[:, :3], b[:, :3], atol=1e-4)           # each point stays at its box centre
-        np.testing.assert_allclose(p[:, 3:], points[:, 3:])                  # speeds, rcs, time unchanged
+        np.testing.assert_allclose(p[:, :3], b[:, :3], atol=1e-4)  # each point stays at its box centre
+        np.testing.assert_allclose(p[:, 3:], points[:, 3:])  # speeds, rcs, time unchanged
         ratio = b[:, 3:6] / boxes[:, 3:6]
         assert np.allclose(ratio, ratio[0, 0]) and 0.95 <= ratio[0, 0] <= 1.05
         assert np.all(b[:, 6] >= -np.pi) and np.all(b[:, 6] < np.pi)
@@ -263,7 +380,7 @@ def test_translate_std_z_lifts_points_and_boxes_by_one_offset_per_scan():
     rng, ref = np.random.default_rng(0), np.random.default_rng(0)
     p, _ = tm.augment(points, boxes, [0, 1, 2], plain, rng)
     np.testing.assert_array_equal(p, points)
-    ref.uniform(1.0, 1.0)                                                    # the scaling's one draw
+    ref.uniform(1.0, 1.0)  # the scaling's one draw
     assert rng.uniform() == ref.uniform()
 
 
@@ -299,28 +416,54 @@ def test_boxes_in_range_keeps_a_box_with_one_corner_inside():
     assert tm.boxes_in_range(boxes, r).tolist() == [True, False, True]
 
 
-@pytest.mark.parametrize("extra, says", [
-    (("--freeze", "nope"), "--freeze 'nope' matches no parameter"),
-    (("--freeze", "*"), "freezes every parameter"),
-    (("--validation", "val", "--validation", "test"), "validates on one split"),
-    (("--validation", "nosuch"), "nosuch.txt: split file missing"),
-    (("--format", "transloc"), "--format transloc"),
-    (("--set", "epoch=3"), "unknown MAFF-Net training option"),
-    (("--set", "scale_min=1.2"), "scale_min (1.2) must not exceed scale_max"),
-    (("--set", "precision=fp16"), "precision must be one of fp32, bf16, not 'fp16'"),
-    (("--set", "stage_one_weights=x.pth"),
-     "stage_one_weights is for a card with a second stage; maffnet-tiny has none"),
-    (("--radar-topic", "/r"), "--radar-topic describe ROS bag drives"),
-    (("--resume",), "--resume"),
-])
+@pytest.mark.parametrize(
+    "extra, says",
+    [
+        (("--freeze", "nope"), "--freeze 'nope' matches no parameter"),
+        (("--freeze", "*"), "freezes every parameter"),
+        (("--validation", "val", "--validation", "test"), "validates on one split"),
+        (("--validation", "nosuch"), "nosuch.txt: split file missing"),
+        (("--format", "transloc"), "--format transloc"),
+        (("--set", "epoch=3"), "unknown MAFF-Net training option"),
+        (("--set", "scale_min=1.2"), "scale_min (1.2) must not exceed scale_max"),
+        (("--set", "precision=fp16"), "precision must be one of fp32, bf16, not 'fp16'"),
+        (
+            ("--set", "stage_one_weights=x.pth"),
+            "stage_one_weights is for a card with a second stage; maffnet-tiny has none",
+        ),
+        (("--radar-topic", "/r"), "--radar-topic describe ROS bag drives"),
+        (("--resume",), "--resume"),
+    ],
+)
 def test_bad_options_are_one_error_line(labelled, tmp_path, extra, says):
-    res = invoke("train", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--data", labelled,
-                 "--output", tmp_path / "run", "--epochs", 1, *extra)
+    res = invoke(
+        "train",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        MAFFNET_TINY_CARD,
+        "--data",
+        labelled,
+        "--output",
+        tmp_path / "run",
+        "--epochs",
+        1,
+        *extra,
+    )
     one_error_line(res, says)
     assert not (tmp_path / "run").exists()
 
 
 def test_a_set_without_labels_of_the_card_is_an_error(tmp_path):
-    res = invoke("train", "--model", "maffnet-tiny", "--config", MAFFNET_TINY_CARD, "--data", tmp_path,
-                 "--output", tmp_path / "run")
+    res = invoke(
+        "train",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        MAFFNET_TINY_CARD,
+        "--data",
+        tmp_path,
+        "--output",
+        tmp_path / "run",
+    )
     one_error_line(res, "no training/ folder")

@@ -12,13 +12,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from references.maffnet_upstream import (
+    UpstreamCQCACaf,
+    UpstreamVSA,
+    randomise,
+    upstream_cda_keypoints,
+    upstream_scan_mask,
+)
 
 from radaredge.cards import load_card
 from radaredge.models import create_model, load_checkpoint
 from radaredge.models.maffnet.model import UNUSED_FUSER_KEYS
 from radaredge.models.maffnet.rcnn import CDAKeypointSampler, KeypointConfig, scan_points
-from references.maffnet_upstream import (UpstreamCQCACaf, UpstreamVSA, randomise, upstream_cda_keypoints,
-                                         upstream_scan_mask)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_FULL = ROOT / "tests" / "cards" / "maffnet-tiny-full.yaml"
@@ -29,8 +34,7 @@ def _with_upstream_part(model, prefix: str, part_state: dict, tmp_path: Path) ->
     state = {k: v for k, v in model.state_dict().items() if not k.startswith(prefix)}
     state.update({prefix + k: v for k, v in part_state.items()})
     path = tmp_path / "upstream.pth"
-    torch.save({"model_state": state, "optimizer_state": {}, "epoch": 80, "it": 1000, "version": "pcdet+0.6.0"},
-               path)
+    torch.save({"model_state": state, "optimizer_state": {}, "epoch": 80, "it": 1000, "version": "pcdet+0.6.0"}, path)
     return path
 
 
@@ -39,18 +43,19 @@ def test_fuser_equals_upstream_cqca_caf(card_path, side, tmp_path):
     card = load_card(card_path)
     model = create_model(card)
     caf = card.get("caf")
-    upstream = UpstreamCQCACaf(64, 128, caf["out_channels"], caf["pool_size"], caf["heads"], caf["ffn_ratio"],
-                               caf["se_reduction"]).eval()
+    upstream = UpstreamCQCACaf(
+        64, 128, caf["out_channels"], caf["pool_size"], caf["heads"], caf["ffn_ratio"], caf["se_reduction"]
+    ).eval()
     state = randomise(upstream, seed=side)
     report = load_checkpoint(model, _with_upstream_part(model, "fuser.", state, tmp_path))
     dropped = report.dropped["upstream fuser parameters with no effect at test time"]
     assert dropped and all(k.startswith(UNUSED_FUSER_KEYS) for k in dropped)
-    assert report.loaded + len(dropped) == len(model.state_dict()) - 36 + len(state)   # 36 = our fuser tensors
+    assert report.loaded + len(dropped) == len(model.state_dict()) - 36 + len(state)  # 36 = our fuser tensors
     g = torch.Generator().manual_seed(1)
     for trial in range(3):
         pillar = torch.randn(1, 64, side, side, generator=g)
         cfa = torch.relu(torch.randn(1, 64, side, side, generator=g))
-        if trial == 2:                                     # sparse maps, as radar gives them
+        if trial == 2:  # sparse maps, as radar gives them
             pillar = pillar * (torch.rand(1, 1, side, side, generator=g) < 0.05)
         with torch.no_grad():
             ours = model.fuser(pillar, cfa)
@@ -64,12 +69,24 @@ def test_fuser_equals_upstream_cqca_caf(card_path, side, tmp_path):
 def _scan(seed: int, n: int, spread: float = 1.0):
     """Points in the tiny card's range (12.8 m x 12.8 m) plus some outside it, a cluster mask and rois."""
     rng = np.random.default_rng(seed)
-    pts = np.stack([rng.uniform(-1, 14, n) * spread, rng.uniform(-7.5, 7.5, n) * spread, rng.uniform(-4, 3, n),
-                    *rng.normal(size=(4, n))], 1).astype(np.float32)
+    pts = np.stack(
+        [
+            rng.uniform(-1, 14, n) * spread,
+            rng.uniform(-7.5, 7.5, n) * spread,
+            rng.uniform(-4, 3, n),
+            *rng.normal(size=(4, n)),
+        ],
+        1,
+    ).astype(np.float32)
     cluster = rng.random(n) < 0.5
     rois = np.zeros((12, 7), np.float32)
-    rois[:5] = [[3, 0, -1, 3.9, 1.6, 1.5, 0.3], [8, 3, -0.5, 0.8, 0.6, 1.7, 1.2], [2, -4, -1, 1.8, 0.6, 1.7, -2.0],
-                [11, 5, 0, 2, 2, 2, 3.0], [6, -2, -2.5, 4, 1.8, 1.6, 0.0]]
+    rois[:5] = [
+        [3, 0, -1, 3.9, 1.6, 1.5, 0.3],
+        [8, 3, -0.5, 0.8, 0.6, 1.7, 1.2],
+        [2, -4, -1, 1.8, 0.6, 1.7, -2.0],
+        [11, 5, 0, 2, 2, 2, 3.0],
+        [6, -2, -2.5, 4, 1.8, 1.6, 0.0],
+    ]
     return pts, cluster, rois
 
 
@@ -79,13 +96,13 @@ def test_cda_keypoints_equal_upstream(case):
     k = 64
     valid = np.arange(len(rois)) < 5
     if case == "many":
-        k = 16                                             # more cylinder points than keypoints: FPS
+        k = 16  # more cylinder points than keypoints: FPS
     if case == "none-inside":
         rois[:5, :2] += 100
     if case == "no-cluster":
         cluster[:] = False
     if case == "short-scan":
-        pts, cluster, k = pts[:30], cluster[:30], 64       # fewer scan points than slots: cyclic fill
+        pts, cluster, k = pts[:30], cluster[:30], 64  # fewer scan points than slots: cyclic fill
     if case == "padding-only":
         rois[:] = 0
         valid[:] = False
@@ -106,14 +123,22 @@ def test_vsa_equals_upstream(tmp_path):
     model = create_model(card)
     sa = card.get("stage_two.vsa.sa_clusterpoints")
     r, v = card.get("pillars.point_cloud_range"), card.get("pillars.voxel_size")
-    upstream = UpstreamVSA(7, card.get("caf.out_channels"), sa["radii"], sa["nsample"], sa["mlps"],
-                           card.get("stage_two.vsa.num_output_features"), r, v).eval()
+    upstream = UpstreamVSA(
+        7,
+        card.get("caf.out_channels"),
+        sa["radii"],
+        sa["nsample"],
+        sa["mlps"],
+        card.get("stage_two.vsa.num_output_features"),
+        r,
+        v,
+    ).eval()
     state = randomise(upstream, seed=3)
     load_checkpoint(model, _with_upstream_part(model, "pfe.", state, tmp_path))
     pts, _, _ = _scan(11, 300)
     xyz, feats, scan = scan_points(torch.from_numpy(pts), r)
     keypoints = torch.from_numpy(pts[:64, :3].copy())
-    keypoints[-4:] = torch.tensor([40.0, 40.0, 0.0])       # far away: empty balls, clamped BEV corners
+    keypoints[-4:] = torch.tensor([40.0, 40.0, 0.0])  # far away: empty balls, clamped BEV corners
     bev = torch.randn(card.get("caf.out_channels"), 40, 40, generator=torch.Generator().manual_seed(2))
     with torch.no_grad():
         before, feats_out = model.pfe(bev, keypoints, xyz, feats, scan)
@@ -129,10 +154,12 @@ def test_tiny_full_fused_map_and_keypoints_equal_upstream_on_its_own_rois(tmp_pa
     card = load_card(TINY_FULL)
     model = create_model(card)
     caf = card.get("caf")
-    fuser = UpstreamCQCACaf(64, 128, caf["out_channels"], caf["pool_size"], caf["heads"], caf["ffn_ratio"],
-                            caf["se_reduction"]).eval()
+    fuser = UpstreamCQCACaf(
+        64, 128, caf["out_channels"], caf["pool_size"], caf["heads"], caf["ffn_ratio"], caf["se_reduction"]
+    ).eval()
     load_checkpoint(model, _with_upstream_part(model, "fuser.", randomise(fuser, 5), tmp_path))
     from radaredge.models import model_spec
+
     spec = model_spec(card).graph()
     k = card.get("stage_two.keypoints.num_keypoints")
     r = card.get("pillars.point_cloud_range")
@@ -156,6 +183,7 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
     5-frame cloud: exactly 1024 keypoints, equal to upstream's CDA given the graph's own rois and
     cluster points, and VSA features within 1e-4 of upstream's VoxelSetAbstraction_cda."""
     from radaredge.models.maffnet.spec import five_frame_points
+
     card = load_card(ROOT / "models" / "maffnet-vod-full.yaml")
     model = create_model(card)
     fuser = UpstreamCQCACaf().eval()
@@ -168,6 +196,7 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
     torch.save({"model_state": state}, tmp_path / "upstream.pth")
     load_checkpoint(model, tmp_path / "upstream.pth")
     from radaredge.models import model_spec
+
     clouds = [model_spec(card).graph().make_cases(card, 1, 5)[0][1]["points"], five_frame_points(3, card)]
     for pts in clouds:
         trace: dict = {}
@@ -176,11 +205,11 @@ def test_vod_full_keypoints_and_vsa_equal_upstream(tmp_path):
             _, _, _, cluster = model.cfa_stage(torch.from_numpy(pts), reference=False)
             cfa_feat, _, _, _ = model.cfa_stage(torch.from_numpy(pts), reference=False)
             pillar, _, _ = model.pillar_stage(torch.from_numpy(pts), reference=False)
-            fused_ref = fuser(cfa_feat, pillar.unsqueeze(0))[0]           # upstream's spatial_features
+            fused_ref = fuser(cfa_feat, pillar.unsqueeze(0))[0]  # upstream's spatial_features
         m = upstream_scan_mask(pts, r) & np.isfinite(pts).all(1)
         ref = upstream_cda_keypoints(pts[m, :3], pts[m & cluster.numpy(), :3], out["rois"].numpy(), 1024, 2.5, 3.0)
         assert out["keypoints"].shape == (1024, 3) and out["keypoint_valid"].all()
         np.testing.assert_array_equal(out["keypoints"].numpy(), ref)
-        with torch.no_grad():                                   # the graph's own VSA output, as wired
+        with torch.no_grad():  # the graph's own VSA output, as wired
             _, features_ref = vsa(ref, fused_ref, pts[m])
         assert float((trace["point_features"] - features_ref).abs().max()) <= 1e-4

@@ -41,11 +41,15 @@ def test_a_family_registered_outside_the_package_runs_export_parity_and_bench(tm
 def test_the_family_s_comparators_decide_the_verdict(tmp_path, monkeypatch):
     """Parity reads the tolerances from the family's spec: an impossible budget fails."""
     from radaredge.models.comparators import Dense
+
     card = TOY / "toy.yaml"
     out = tmp_path / "toy.onnx"
     api.export(card, out)
-    off = replace(toy_family.SPEC.graphs[0], judges=lambda c: (Dense("descriptor", atol=1e-4, rtol=0.0),),
-                  run_reference=lambda m, f, trace=None: {"descriptor": m(toy_family._points(f)) + 1e-3})
+    off = replace(
+        toy_family.SPEC.graphs[0],
+        judges=lambda c: (Dense("descriptor", atol=1e-4, rtol=0.0),),
+        run_reference=lambda m, f, trace=None: {"descriptor": m(toy_family._points(f)) + 1e-3},
+    )
     monkeypatch.setattr(toy_family, "SPEC", replace(toy_family.SPEC, graphs=(off,)))
     report = api.parity(card, out, cases=2)
     assert not report and "FAILED" in "\n".join(report.lines())
@@ -73,9 +77,9 @@ def _modules_outside_the_families():
     for info in pkgutil.walk_packages(radaredge.__path__, "radaredge."):
         parts = info.name.split(".")
         if parts[:2] == ["radaredge", "models"] and len(parts) > 2 and parts[2] in families:
-            continue                                    # a family's own package holds its knowledge
+            continue  # a family's own package holds its knowledge
         if info.name == "radaredge.registry":
-            continue                                    # the registry itself
+            continue  # the registry itself
         yield info.name
 
 
@@ -94,13 +98,15 @@ def test_no_verb_keeps_a_table_keyed_by_family_names():
 def test_the_table_check_finds_a_table(monkeypatch):
     """The check above can fail: a dict keyed by a family name in a verb's module is found."""
     import radaredge.eval.tasks as tasks
+
     monkeypatch.setattr(tasks, "PER_MODEL", {"maffnet": 1}, raising=False)
     with pytest.raises(AssertionError, match="eval.tasks.PER_MODEL"):
         test_no_verb_keeps_a_table_keyed_by_family_names()
 
 
 def test_families_are_discovered_and_import_no_torch():
-    code = ("import sys, radaredge; from radaredge.registry import registered; "
-            "print(registered(), 'torch' in sys.modules)")
+    code = (
+        "import sys, radaredge; from radaredge.registry import registered; print(registered(), 'torch' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "['des4pos', 'maffnet', 'tdfanet'] False"

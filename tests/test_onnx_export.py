@@ -6,11 +6,10 @@ from pathlib import Path
 import numpy as np
 import onnx
 import torch
+from conftest import TINY_CARD, assert_close
 from torch import nn
 
-from conftest import TINY_CARD, assert_close
-
-CELLS = 30000      # 30000 x 8 = 240k floats: under the optimiser's 262144-element folding limit
+CELLS = 30000  # 30000 x 8 = 240k floats: under the optimiser's 262144-element folding limit
 
 
 class ZeroCanvasScatter(nn.Module):
@@ -52,8 +51,9 @@ def test_a_bias_free_layer_reads_a_constant_zero_bias(onnx_roundtrip, tmp_path):
     example = {"x": torch.randn(1, 3, 6, 5)}
     rt = onnx_roundtrip(ConvWithoutBias(), example, ["y"])
     graph = onnx.load(str(tmp_path / "ConvWithoutBias.onnx")).graph
-    constants = ({t.name for t in graph.initializer}
-                 | {o for n in graph.node if n.op_type == "Constant" for o in n.output})
+    constants = {t.name for t in graph.initializer} | {
+        o for n in graph.node if n.op_type == "Constant" for o in n.output
+    }
     assert [n.op_type for n in graph.node if n.op_type in ("Expand", "ConstantOfShape", "Tile")] == []
     conv = next(n for n in graph.node if n.op_type == "Conv")
     assert len(conv.input) == 3 and conv.input[2] in constants
@@ -65,8 +65,8 @@ def test_the_graph_has_the_opset_asked_for_or_none_is_written(tmp_path):
     """A model the exporter can convert comes out at the requested opset; one it cannot (the
     tiny TDFANet at opset 17) is refused with the opset it kept, and no file is left claiming it."""
     from click.testing import CliRunner
-
     from conftest import TINY_CARD
+
     from radaredge.cli import main
     from radaredge.exporting.onnx_call import export_onnx
 
@@ -77,8 +77,9 @@ def test_the_graph_has_the_opset_asked_for_or_none_is_written(tmp_path):
     path = export_onnx(Double(), (torch.ones(3),), tmp_path / "double.onnx", ["x"], ["y"], opset=17)
     assert [o.version for o in onnx.load(str(path)).opset_import if o.domain in ("", "ai.onnx")] == [17]
     out = tmp_path / "tiny.onnx"
-    res = CliRunner().invoke(main, ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                                    "--output", str(out), "--opset", "17"])
+    res = CliRunner().invoke(
+        main, ["export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD), "--output", str(out), "--opset", "17"]
+    )
     assert res.exit_code == 2
     assert "error: opset 17: torch's exporter could not convert this graph to it and kept opset 18" in res.output
     assert not out.exists() and not out.with_suffix(".json").exists()
@@ -93,16 +94,33 @@ def test_exports_are_byte_identical_across_install_locations(tmp_path):
     import sys
 
     import radaredge
+
     digests = []
     for where in ("one", "two/deeper"):
         src = tmp_path / where / "src"
-        shutil.copytree(Path(radaredge.__file__).parent, src / "radaredge",
-                        ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(
+            Path(radaredge.__file__).parent, src / "radaredge", ignore=shutil.ignore_patterns("__pycache__")
+        )
         out = tmp_path / where / "tiny.onnx"
         code = "import sys; from radaredge.cli import main; sys.exit(main())"
-        subprocess.run([sys.executable, "-c", code, "export", "--model", "tdfanet-tiny", "--config", str(TINY_CARD),
-                        "--output", str(out)], check=True, capture_output=True, cwd=tmp_path / where,
-                       env={**os.environ, "PYTHONPATH": str(src)})
+        subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                code,
+                "export",
+                "--model",
+                "tdfanet-tiny",
+                "--config",
+                str(TINY_CARD),
+                "--output",
+                str(out),
+            ],
+            check=True,
+            capture_output=True,
+            cwd=tmp_path / where,
+            env={**os.environ, "PYTHONPATH": str(src)},
+        )
         digests.append(hashlib.sha256(out.read_bytes()).hexdigest())
         proto = onnx.load(str(out))
         assert {p.key for n in proto.graph.node for p in n.metadata_props} <= {"pkg.torch.onnx.name_scopes"}
@@ -115,6 +133,7 @@ class AnyOfPoints(nn.Module):
 
     def forward(self, x: torch.Tensor):
         from radaredge.ops.reduce import any_true
+
         m = x > 0
         return any_true(m, 1), any_true(m)
 
@@ -122,8 +141,9 @@ class AnyOfPoints(nn.Module):
 def test_any_true_is_false_on_an_empty_axis_in_the_graph(onnx_roundtrip):
     """torch's ``any`` exports as a ReduceMax, which onnxruntime answers True over zero elements;
     ``any_true`` is False there, as in eager torch (an empty scan once set every input flag)."""
-    rt = onnx_roundtrip(AnyOfPoints(), {"x": torch.tensor([[1.0, -1.0, 2.0], [-1.0, -2.0, -3.0]])},
-                        ["rows", "all"], {"x": {1: "N"}})
+    rt = onnx_roundtrip(
+        AnyOfPoints(), {"x": torch.tensor([[1.0, -1.0, 2.0], [-1.0, -2.0, -3.0]])}, ["rows", "all"], {"x": {1: "N"}}
+    )
     for x in (torch.tensor([[1.0, -1.0], [-1.0, -2.0]]), torch.zeros(2, 0)):
         ref, got = rt({"x": x})
         assert got["rows"].tolist() == ref["rows"].tolist() and bool(got["all"]) == bool(ref["all"])

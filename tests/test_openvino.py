@@ -5,11 +5,11 @@ import json
 from pathlib import Path
 
 import pytest
-
 from conftest import TINY_CARD, export_with_cli, invoke, summary_of
-from radaredge.runtime import openvino as openvino_runtime
-from radaredge.errors import ConfigError, InputError
+
 import radaredge
+from radaredge.errors import ConfigError, InputError
+from radaredge.runtime import openvino as openvino_runtime
 
 
 def test_tiny_tdfanet_in_openvino_matches_the_reference_to_float32_precision(tiny_export):
@@ -31,8 +31,20 @@ def test_tiny_tdfanet_in_openvino_matches_the_reference_to_float32_precision(tin
 def test_tiny_maffnet_passes_parity_in_openvino(tmp_path):
     config = Path(__file__).parent / "cards" / "maffnet-tiny.yaml"
     path = export_with_cli(tmp_path, "maffnet-tiny", config)
-    res = invoke("parity-check", "--model", "maffnet-tiny", "--config", config, "--onnx", path, "--cases", "4",
-                 "--runtime", "openvino", "--json")
+    res = invoke(
+        "parity-check",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        config,
+        "--onnx",
+        path,
+        "--cases",
+        "4",
+        "--runtime",
+        "openvino",
+        "--json",
+    )
     report = json.loads(res.stdout)
     assert res.exit_code == 0 and report["passed"] and report["runtime"] == "openvino", res.output
     assert summary_of(report)["boxes"]["mismatches"] == 0
@@ -51,8 +63,21 @@ def test_errors_name_the_file_and_the_fix(tmp_path, monkeypatch):
 
 
 def test_bench_times_openvino_and_reports_how_far_it_is_from_onnxruntime(tmp_path, monkeypatch, tiny_export):
-    args = ("bench", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", tiny_export[2],
-            "--runs", "3", "--warmup", "1", "--no-reference", "--openvino")
+    args = (
+        "bench",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        tiny_export[2],
+        "--runs",
+        "3",
+        "--warmup",
+        "1",
+        "--no-reference",
+        "--openvino",
+    )
     res = invoke(*args)
     assert res.exit_code == 0, res.output
     assert "openvino vs onnxruntime:" in res.output
@@ -63,8 +88,16 @@ def test_bench_times_openvino_and_reports_how_far_it_is_from_onnxruntime(tmp_pat
 
 
 def test_bench_refuses_openvino_for_a_bundle():
-    res = invoke("bench", "--model", "des4pos", "--config", Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
-                 "--openvino", "--runs", "1")
+    res = invoke(
+        "bench",
+        "--model",
+        "des4pos",
+        "--config",
+        Path(__file__).parent / "cards" / "des4pos-tiny.yaml",
+        "--openvino",
+        "--runs",
+        "1",
+    )
     assert res.exit_code == 2 and "one-graph models" in res.output
 
 
@@ -88,6 +121,11 @@ def test_ctrl_c_after_two_openvino_graphs_reaches_its_handler(tiny_export):
     signal stack on a freed buffer and the signal killed the process with SIGSEGV."""
     import subprocess
     import sys
-    done = subprocess.run([sys.executable, "-c", _SIGNAL_AFTER_TWO_GRAPHS, str(tiny_export[2])],
-                          capture_output=True, text=True, timeout=300)
+
+    done = subprocess.run(
+        [sys.executable, "-c", _SIGNAL_AFTER_TWO_GRAPHS, str(tiny_export[2])],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0 and "arrived [2]" in done.stdout, (done.returncode, done.stderr[-2000:])

@@ -29,7 +29,7 @@ from packaging.version import Version
 
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED = sorted(p.stem for p in (ROOT / "models").glob("*.yaml"))
-EXPORT_CARD = "tdfanet-edge"        # the quickest shipped card to export (a 2 MB graph)
+EXPORT_CARD = "tdfanet-edge"  # the quickest shipped card to export (a 2 MB graph)
 SITE = Path(sysconfig.get_paths()["purelib"])
 
 
@@ -50,8 +50,9 @@ def wheel(tmp_path_factory) -> Path:
         shutil.copytree(ROOT / tree, src / tree, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(ROOT / name, src / name)
-    _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
-          "-w", d / "dist", src])
+    _run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-w", d / "dist", src]
+    )
     wheels = list((d / "dist").glob("radaredge-*.whl"))
     assert len(wheels) == 1, wheels
     return wheels[0]
@@ -76,12 +77,12 @@ def _wants(req: Requirement, extras: set[str]) -> bool:
 def _closure(requires: list[str], extras: set[str]) -> list[md.Distribution]:
     """The installed distributions that ``requires`` (with ``extras`` selected) pull in."""
     installed = _installed()
-    chosen: dict[str, set[str]] = {}             # distribution -> the extras asked of it so far
+    chosen: dict[str, set[str]] = {}  # distribution -> the extras asked of it so far
     todo = [(Requirement(r), extras) for r in requires]
     while todo:
         req, wanted = todo.pop()
         name = canonicalize_name(req.name)
-        if not _wants(req, wanted) or name == "radaredge":      # radaredge[...]: a self-reference
+        if not _wants(req, wanted) or name == "radaredge":  # radaredge[...]: a self-reference
             continue
         assert name in installed, f"{req} is required but not installed in {SITE}"
         dist = installed[name]
@@ -110,11 +111,12 @@ def _deps_dir(path: Path, dists: list[md.Distribution]) -> Path:
 def _venv(root: Path, wheel: Path, deps: Path) -> tuple[Path, dict]:
     """A fresh venv at ``root`` with ``wheel`` installed non-editable and ``deps`` on its path;
     (its python, an environment that runs its scripts first and sees nothing of this venv)."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "RADAREDGE_CARDS")}
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "RADAREDGE_CARDS")
+    }
     env.update(PATH=f"{root / 'bin'}{os.pathsep}{env.get('PATH', '')}", PYTHONNOUSERSITE="1")
     python = root / "bin" / "python"
-    if Version(md.version("pip")) >= Version("22.3"):       # pip --python: install into another interpreter
+    if Version(md.version("pip")) >= Version("22.3"):  # pip --python: install into another interpreter
         _run([sys.executable, "-m", "venv", "--without-pip", root], env=env)
         pip = [sys.executable, "-m", "pip", "--python", python]
     else:
@@ -152,11 +154,10 @@ def test_wheel_ships_every_package(wheel):
 
 def test_base_install_runs_without_torch(wheel, tiny_export, tmp_path):
     base = [r for r in _requires(wheel) if Requirement(r).marker is None]
-    assert sorted(canonicalize_name(Requirement(r).name) for r in base) == ["click", "numpy", "onnxruntime",
-                                                                          "pyyaml"]
+    assert sorted(canonicalize_name(Requirement(r).name) for r in base) == ["click", "numpy", "onnxruntime", "pyyaml"]
     deps = _deps_dir(tmp_path / "deps", _closure(base, set()))
     python, env = _venv(tmp_path / "venv", wheel, deps)
-    work = tmp_path / "work"                    # not the clone: only the installed package can be found
+    work = tmp_path / "work"  # not the clone: only the installed package can be found
     work.mkdir()
     onnx_path = shutil.copy(tiny_export[2], work / "tiny.onnx")
 
@@ -197,8 +198,11 @@ def test_export_extra_exports_a_shipped_card(wheel, tmp_path):
     work = tmp_path / "work"
     work.mkdir()
 
-    where = _run([python, "-c", "import radaredge, radaredge.cards as c; print(radaredge.__file__); "
-                          "print(c.cards_dir())"], cwd=work, env=env).stdout.split()
+    where = _run(
+        [python, "-c", "import radaredge, radaredge.cards as c; print(radaredge.__file__); print(c.cards_dir())"],
+        cwd=work,
+        env=env,
+    ).stdout.split()
     assert all(Path(w).is_relative_to(tmp_path / "venv") for w in where), where
 
     _run(["radaredge", "export", "--model", EXPORT_CARD, "--output", "out.onnx"], cwd=work, env=env, timeout=240)

@@ -13,9 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD, TINY_CARD, invoke, one_error_line
 
 import radaredge
 from radaredge.cards import load_card, parse_card
+from radaredge.checking.capacity import point_counts
+from radaredge.checking.recording import recorded_cases, spread
 from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.data.pr_benchmark import make_pr_benchmark
 from radaredge.data.readers import read_scan
@@ -23,9 +26,6 @@ from radaredge.errors import ConfigError, InputError
 from radaredge.models import model_spec
 from radaredge.models.maffnet import rcnn
 from radaredge.ops.pillars import PillarConfig, point_drops_reference
-from radaredge.checking.capacity import point_counts
-from radaredge.checking.recording import recorded_cases, spread
-from conftest import MAFFNET_TINY_CARD, MAFFNET_TINY_FULL_DBSCAN_CARD, TINY_CARD, invoke, one_error_line
 
 DES4POS_TINY = Path(__file__).parent / "cards" / "des4pos-tiny.yaml"
 
@@ -72,8 +72,20 @@ def _summary_shape(report: dict) -> dict:
 def test_tdfanet_windows_of_a_drive_pass_like_the_synthetic_cases(tiny_export, drives):
     _, _, onnx_path, _ = tiny_export
     drive = drives / "database" / "drive-00"
-    res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx_path,
-                 "--data", drive, "--frames", 3, "--json")
+    res = invoke(
+        "parity-check",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx_path,
+        "--data",
+        drive,
+        "--frames",
+        3,
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     report = json.loads(res.stdout)
     assert report["passed"]
@@ -89,8 +101,9 @@ def test_tdfanet_windows_of_a_drive_pass_like_the_synthetic_cases(tiny_export, d
     assert cap["points_out_of_range"] > 0 and cap["input_flags"]["out_of_range"] == 9
     assert cap["ego_valid"]["frames"] == 9
     # the same comparators as the synthetic cases, output by output
-    synthetic = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx_path,
-                       "--cases", 2, "--json")
+    synthetic = invoke(
+        "parity-check", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx_path, "--cases", 2, "--json"
+    )
     assert synthetic.exit_code == 0, synthetic.output
     assert _summary_shape(report) == _summary_shape(json.loads(synthetic.stdout))
     assert json.loads(synthetic.stdout)["data"] is None
@@ -115,6 +128,7 @@ def test_tdfanet_on_a_plain_folder_of_bin_scans_and_a_directory_of_drives(tiny_e
 def test_a_recorded_case_fails_through_the_same_comparators(tiny_export, drives, monkeypatch):
     """A graph whose descriptor is off is FAILED on the recording, naming the recording's window."""
     from radaredge.checking import check
+
     _, _, onnx_path, _ = tiny_export
     real = check.graph_runner
 
@@ -126,15 +140,30 @@ def test_a_recorded_case_fails_through_the_same_comparators(tiny_export, drives,
             if "descriptor" in out:
                 out["descriptor"] = out["descriptor"] + 0.01
             return out
+
         return perturbed
 
     monkeypatch.setattr(check, "graph_runner", off)
-    res = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx_path,
-                 "--data", drives / "database" / "drive-00", "--frames", 2, "--json")
+    res = invoke(
+        "parity-check",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx_path,
+        "--data",
+        drives / "database" / "drive-00",
+        "--frames",
+        2,
+        "--json",
+    )
     assert res.exit_code == 1, res.output
     summary = json.loads(res.stdout)["graphs"]["tdfanet"]["summary"]
     assert not summary["descriptor"]["passed"] and summary["descriptor"]["failed_cases"] == [
-        "000000-000002", "000003-000005"]
+        "000000-000002",
+        "000003-000005",
+    ]
     assert summary["input_flags"]["passed"]
 
 
@@ -143,8 +172,22 @@ def test_a_recorded_case_fails_through_the_same_comparators(tiny_export, drives,
 
 def test_maffnet_frames_of_a_kitti_split(maffnet_tiny_export, kitti):
     card_path, onnx_path = maffnet_tiny_export
-    res = invoke("parity-check", "--model", "maffnet-tiny", "--config", card_path, "--onnx", onnx_path,
-                 "--data", kitti / "radar", "--split", "val", "--frames", 1, "--json")
+    res = invoke(
+        "parity-check",
+        "--model",
+        "maffnet-tiny",
+        "--config",
+        card_path,
+        "--onnx",
+        onnx_path,
+        "--data",
+        kitti / "radar",
+        "--split",
+        "val",
+        "--frames",
+        1,
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     report = json.loads(res.stdout)
     data = report["data"]
@@ -167,13 +210,14 @@ def test_maffnet_on_a_plain_folder_and_a_frame_over_the_pillar_capacity(maffnet_
     folder.mkdir()
     shutil.copy(sorted((kitti / "radar" / "training" / "velodyne").iterdir())[0], folder / "000000.bin")
     rng = np.random.default_rng(0)
-    dense = np.zeros((1201, 7), "<f4")                    # 1201 points over 40 x 40 pillars: > 256 occupied
+    dense = np.zeros((1201, 7), "<f4")  # 1201 points over 40 x 40 pillars: > 256 occupied
     dense[:, 0] = rng.uniform(0.1, 12.7, len(dense))
     dense[:, 1] = rng.uniform(-6.3, 6.3, len(dense))
     dense[:, 3] = rng.normal(0, 5, len(dense))
     dense.tofile(folder / "000001.bin")
-    res = invoke("parity-check", "--model", "maffnet-tiny", "--config", card_path, "--onnx", onnx_path,
-                 "--data", folder)
+    res = invoke(
+        "parity-check", "--model", "maffnet-tiny", "--config", card_path, "--onnx", onnx_path, "--data", folder
+    )
     assert res.exit_code == 0, res.output
     text = res.output
     assert "1 recorded frames" in text and "a folder of scan files" in text
@@ -214,8 +258,9 @@ def test_kitti_roots_and_the_camera_crop(kitti, tmp_path):
     assert Path(rec.files[rec.cases[0][0]][0]).parts[-4] == "radar"
     assert Path(five.files[five.cases[0][0]][0]).parts[-4] == "radar_5frames"
     # a single-scan folder for a 5-scan card: checked, with a note; a top folder without it: refused
-    single = recorded_cases(_card_with(MAFFNET_TINY_CARD, **{"input.scans_accumulated": 5}), graph,
-                            kitti / "radar", frames=1)
+    single = recorded_cases(
+        _card_with(MAFFNET_TINY_CARD, **{"input.scans_accumulated": 5}), graph, kitti / "radar", frames=1
+    )
     assert any("holds 1 accumulated scan(s)" in n for n in single.notes)
     top = tmp_path / "example_set"
     shutil.copytree(kitti / "radar", top / "radar")
@@ -241,11 +286,12 @@ def test_point_counts_match_the_reference_drops():
     pts[:, 0] = rng.uniform(-2, 15, len(pts))
     pts[:, 1] = rng.uniform(-8, 8, len(pts))
     pts[:, 2] = rng.uniform(-4, 3, len(pts))
-    pts[:200, :2] = rng.uniform(1.0, 1.5, (200, 2))        # a crowded corner: full pillars
+    pts[:200, :2] = rng.uniform(1.0, 1.5, (200, 2))  # a crowded corner: full pillars
     counts = point_counts(pts, card, pillars)
     outside, full = point_drops_reference(pts, pillars)
     assert counts["out_of_range"] == outside.sum() and counts["over_pillar_cap"] == full.sum() > 0
     import torch
+
     assert counts["scan_points"] == int(rcnn.scan_points(torch.from_numpy(pts), pillars.point_cloud_range)[2].sum())
 
 
@@ -267,7 +313,7 @@ def test_bad_recordings_are_one_error_line(tiny_export, drives, tmp_path):
     bin6 = tmp_path / "bin6"
     bin6.mkdir()
     for i in range(3):
-        np.zeros((5, 6), "<f4").tofile(bin6 / f"{i:06d}.bin")       # 120 bytes: neither 28- nor 32-byte rows
+        np.zeros((5, 6), "<f4").tofile(bin6 / f"{i:06d}.bin")  # 120 bytes: neither 28- nor 32-byte rows
     short = tmp_path / "short"
     short.mkdir()
     for p in sorted((drives / "database" / "drive-00" / "scans").iterdir())[:2]:
@@ -290,15 +336,25 @@ def test_bad_recordings_are_one_error_line(tiny_export, drives, tmp_path):
 
 
 def test_models_without_scans_and_splits_without_imagesets_are_refused(maffnet_tiny_export, kitti, tmp_path):
-    one_error_line(invoke("parity-check", "--model", "des4pos-tiny", "--config", DES4POS_TINY, "--onnx", tmp_path,
-                          "--data", kitti), "des4pos-tiny takes no radar scans", "drop --data")
+    one_error_line(
+        invoke(
+            "parity-check", "--model", "des4pos-tiny", "--config", DES4POS_TINY, "--onnx", tmp_path, "--data", kitti
+        ),
+        "des4pos-tiny takes no radar scans",
+        "drop --data",
+    )
     card_path, onnx_path = maffnet_tiny_export
     no_sets = tmp_path / "no-sets"
     shutil.copytree(kitti / "radar", no_sets)
     shutil.rmtree(no_sets / "ImageSets")
-    one_error_line(_bad(tmp_path, onnx_path, "--data", no_sets, "--split", "val", card=card_path, model="maffnet-tiny"),
-                   "--split val", "drop --split to check every frame")
-    one_error_line(_bad(tmp_path, onnx_path, "--data", kitti / "radar", "--split", "nope", card=card_path,
-                        model="maffnet-tiny"), "ImageSets has ['test', 'train', 'val']")
+    one_error_line(
+        _bad(tmp_path, onnx_path, "--data", no_sets, "--split", "val", card=card_path, model="maffnet-tiny"),
+        "--split val",
+        "drop --split to check every frame",
+    )
+    one_error_line(
+        _bad(tmp_path, onnx_path, "--data", kitti / "radar", "--split", "nope", card=card_path, model="maffnet-tiny"),
+        "ImageSets has ['test', 'train', 'val']",
+    )
     with pytest.raises(ConfigError, match="takes no radar scans"):
         radaredge.parity(DES4POS_TINY, tmp_path, data=kitti)

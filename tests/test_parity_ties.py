@@ -27,13 +27,19 @@ def _outputs(boxes, logits, post_max=4):
     cfg = NmsConfig(score_thresh=-math.inf, iou_thresh=0.7, pre_max=16, post_max=post_max)
     sel = class_agnostic_nms_reference(boxes, logits.max(-1), cfg)
     rois = np.zeros((post_max, 7), np.float32)
-    rois[:len(sel)] = boxes[sel]
+    rois[: len(sel)] = boxes[sel]
     labels = np.zeros(post_max, np.int64)
-    labels[:len(sel)] = 1
+    labels[: len(sel)] = 1
     valid = np.arange(post_max) < len(sel)
     scores = np.linspace(0.9, 0.5, post_max).astype(np.float32)
-    return {"rois": rois, "roi_labels": labels, "roi_valid": valid, "anchor_logits": logits, "anchor_boxes": boxes,
-            "rcnn_scores": scores}
+    return {
+        "rois": rois,
+        "roi_labels": labels,
+        "roi_valid": valid,
+        "anchor_logits": logits,
+        "anchor_boxes": boxes,
+        "rcnn_scores": scores,
+    }
 
 
 def _comparator(**kw):
@@ -42,9 +48,10 @@ def _comparator(**kw):
 
 def test_near_ties_name_an_order_flip_between_overlapping_boxes():
     boxes = [_box(0, 0), _box(0.1, 0), _box(20, 0)]
-    scores = [2.0, 2.0 + 3e-6, 1.0]                       # boxes 0 and 1 overlap (IoU 0.95), scores within noise
-    ties = near_ties(np.array(boxes), np.array(scores, np.float32), NmsConfig(-math.inf, 0.7, 16, 4), (1e-4, 1e-3),
-                     1e-3)
+    scores = [2.0, 2.0 + 3e-6, 1.0]  # boxes 0 and 1 overlap (IoU 0.95), scores within noise
+    ties = near_ties(
+        np.array(boxes), np.array(scores, np.float32), NmsConfig(-math.inf, 0.7, 16, 4), (1e-4, 1e-3), 1e-3
+    )
     assert [(t["decision"], sorted(t["anchors"])) for t in ties] == [("order", [0, 1])]
     assert "order of anchors 1 and 0" in describe_tie(ties[0])
 
@@ -78,14 +85,14 @@ def test_proposals_swapped_slots_pass_as_a_set():
 
 def test_proposals_judged_on_the_graphs_own_anchors():
     boxes = [_box(0, 0), _box(0.1, 0), _box(20, 0)]
-    ref = _outputs(boxes, [[2.0], [2.0 + 3e-6], [1.0]])             # the reference keeps anchor 1
-    got = _outputs(boxes, [[2.0 + 3e-6], [2.0], [1.0]])             # noise: the graph keeps anchor 0
-    post = _outputs(boxes, got["anchor_logits"])                    # the reference layer on the graph's anchors
+    ref = _outputs(boxes, [[2.0], [2.0 + 3e-6], [1.0]])  # the reference keeps anchor 1
+    got = _outputs(boxes, [[2.0 + 3e-6], [2.0], [1.0]])  # noise: the graph keeps anchor 0
+    post = _outputs(boxes, got["anchor_logits"])  # the reference layer on the graph's anchors
     c = _comparator().compare(got, ref, post)
-    assert c, c.reason                                              # a near tie explains the end-to-end flip
+    assert c, c.reason  # a near tie explains the end-to-end flip
     assert c.end_to_end["unmatched"] == 2 and c.end_to_end["near_ties"][0]["decision"] == "order"
     bad = {k: v.copy() for k, v in got.items()}
-    bad["rois"][0, 0] += 0.5                                        # the graph's NMS picked a box it should not
+    bad["rois"][0, 0] += 0.5  # the graph's NMS picked a box it should not
     c = _comparator().compare(bad, ref, post)
     assert not c and "differ from the reference proposal layer" in c.reason
 
@@ -93,11 +100,11 @@ def test_proposals_judged_on_the_graphs_own_anchors():
 def test_an_unexplained_end_to_end_difference_fails():
     boxes = [_box(0, 0), _box(10, 0), _box(20, 0)]
     ref = _outputs(boxes, [[3.0], [2.0], [1.0]])
-    moved = [_box(0, 0), _box(10, 5), _box(20, 0)]                  # a box 5 m away: no float noise does that
+    moved = [_box(0, 0), _box(10, 5), _box(20, 0)]  # a box 5 m away: no float noise does that
     got = _outputs(moved, [[3.0], [2.0], [1.0]])
     c = _comparator().compare(got, ref, post=_outputs(moved, got["anchor_logits"]))
     assert not c and "no decision of the reference's proposal NMS is within float noise" in c.reason
-    assert _comparator().quantized().compare(got, ref, post=_outputs(moved, got["anchor_logits"]))   # int8: reported
+    assert _comparator().quantized().compare(got, ref, post=_outputs(moved, got["anchor_logits"]))  # int8: reported
 
 
 @pytest.mark.parametrize("seed", range(5))

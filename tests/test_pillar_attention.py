@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import assert_close
 
 from radaredge.ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
-from conftest import assert_close
 
 
 def _scene(seed, ny=24, nx=20, c=16, pillars=30):
@@ -28,11 +28,11 @@ def test_matches_reference_and_ignores_padding():
         canvas, occ = _scene(seed, pillars=pillars)
         with torch.no_grad():
             ref = sparse_pillar_attention_reference(spa.pillar_attention_rope, canvas, occ)
-            for n_points in (pillars, pillars + 5, 500):            # slots = min(points, capacity)
+            for n_points in (pillars, pillars + 5, 500):  # slots = min(points, capacity)
                 got, num, overflow = spa(canvas, occ, n_points)
                 assert_close(got.numpy(), ref.numpy(), 1e-5, f"seed {seed} points {n_points}")
                 assert int(num) == pillars and not bool(overflow)
-        assert (ref.reshape(16, -1)[:, ~occ] == 0).all()            # empty cells stay empty
+        assert (ref.reshape(16, -1)[:, ~occ] == 0).all()  # empty cells stay empty
 
 
 def test_overflow_is_reported():
@@ -75,8 +75,12 @@ def test_onnx_roundtrip_any_point_count(onnx_roundtrip):
             return self.spa(canvas, occupied, points.shape[0])
 
     canvas, occ = _scene(5)
-    rt = onnx_roundtrip(Wrap(), {"canvas": canvas, "occupied": occ, "points": torch.zeros(40, 3)},
-                        ["out", "num", "overflow"], {"points": {0: "n"}})
+    rt = onnx_roundtrip(
+        Wrap(),
+        {"canvas": canvas, "occupied": occ, "points": torch.zeros(40, 3)},
+        ["out", "num", "overflow"],
+        {"points": {0: "n"}},
+    )
     spa = rt.module.spa
     for seed, pillars, n in [(6, 30, 31), (7, 5, 5), (8, 0, 0), (9, 64, 300), (10, 70, 80)]:
         canvas, occ = _scene(seed, pillars=pillars)

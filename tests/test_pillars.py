@@ -5,12 +5,21 @@ import pytest
 import torch
 
 from radaredge.errors import CapacityError
-from radaredge.ops.pillars import (PillarConfig, PillarFeatureNet, pillar_canvas, pillar_scatter_reference,
-                                   voxelize_reference)
+from radaredge.ops.pillars import (
+    PillarConfig,
+    PillarFeatureNet,
+    pillar_canvas,
+    pillar_scatter_reference,
+    voxelize_reference,
+)
 from radaredge.ops.scan_batch import concat_scans
 
-SMALL = PillarConfig(point_cloud_range=(0.0, -8.0, -3.0, 16.0, 8.0, 5.0), voxel_size=(0.5, 0.5, 8.0),
-                     max_points_per_pillar=4, out_channels=16)
+SMALL = PillarConfig(
+    point_cloud_range=(0.0, -8.0, -3.0, 16.0, 8.0, 5.0),
+    voxel_size=(0.5, 0.5, 8.0),
+    max_points_per_pillar=4,
+    out_channels=16,
+)
 
 
 def make_net(cfg=SMALL, f=5, seed=0):
@@ -69,8 +78,16 @@ def test_cap_keeps_first_points_in_input_order():
 def test_out_of_range_points_are_dropped_not_wrapped():
     net = make_net()
     r = SMALL.point_cloud_range
-    outside = np.array([[r[3] + 0.1, 0, 0, 1, 1], [r[0] - 0.1, 0, 0, 1, 1], [1, r[4], 0, 1, 1],
-                        [1, 0, r[5] + 0.5, 1, 1], [r[3], 0, 0, 1, 1]], np.float32)
+    outside = np.array(
+        [
+            [r[3] + 0.1, 0, 0, 1, 1],
+            [r[0] - 0.1, 0, 0, 1, 1],
+            [1, r[4], 0, 1, 1],
+            [1, 0, r[5] + 0.5, 1, 1],
+            [r[3], 0, 0, 1, 1],
+        ],
+        np.float32,
+    )
     assert np.abs(run(net, outside)).max() == 0
 
 
@@ -144,11 +161,13 @@ def test_scans_at_once_equal_scans_alone():
 def test_scans_at_once_onnx_matches_torch(onnx_roundtrip):
     net = make_net()
     example = {f"points_{k}": torch.from_numpy(scan(40, k)) for k in range(3)}
-    rt = onnx_roundtrip(_ScansAtOnce(net, 3), example, ["canvas", "occupied"],
-                        {n: {0: f"N{k}"} for k, n in enumerate(example)})
+    rt = onnx_roundtrip(
+        _ScansAtOnce(net, 3), example, ["canvas", "occupied"], {n: {0: f"N{k}"} for k, n in enumerate(example)}
+    )
     for sizes in [(400, 3, 90), (0, 120, 0)]:
-        inputs = {f"points_{k}": torch.from_numpy(scan(n, 10 + k)[: n if n == 0 else None])
-                  for k, n in enumerate(sizes)}
+        inputs = {
+            f"points_{k}": torch.from_numpy(scan(n, 10 + k)[: n if n == 0 else None]) for k, n in enumerate(sizes)
+        }
         ref, got = rt(inputs)
         np.testing.assert_allclose(got["canvas"], ref["canvas"], atol=1e-5)
         assert np.array_equal(got["occupied"], ref["occupied"])

@@ -5,16 +5,22 @@ import numpy as np
 import pytest
 import torch
 
-from radaredge.ops.point_sampling import (ball_query, ball_query_reference, farthest_point_sample,
-                                          farthest_point_sample_reference, group_points, group_points_reference)
+from radaredge.ops.point_sampling import (
+    ball_query,
+    ball_query_reference,
+    farthest_point_sample,
+    farthest_point_sample_reference,
+    group_points,
+    group_points_reference,
+)
 
 
 def _sets(seed, g=5, n=64):
     rng = np.random.default_rng(seed)
     xyz = rng.normal(size=(g, n, 3)).astype(np.float32)
-    xyz[1] = xyz[1, rng.integers(0, 5, n)]            # only 5 distinct points: FPS must repeat
-    xyz[2, :, 2] = 0.0                                 # a flat set
-    xyz[3] = np.round(xyz[3] * 2) / 2                  # many exact distance ties
+    xyz[1] = xyz[1, rng.integers(0, 5, n)]  # only 5 distinct points: FPS must repeat
+    xyz[2, :, 2] = 0.0  # a flat set
+    xyz[3] = np.round(xyz[3] * 2) / 2  # many exact distance ties
     return xyz
 
 
@@ -25,7 +31,7 @@ def test_fps_matches_reference(seed):
     for g in range(len(xyz)):
         np.testing.assert_array_equal(got[g], farthest_point_sample_reference(xyz[g], 24), err_msg=f"set {g}")
     assert got[:, 0].tolist() == [0] * len(xyz)
-    assert len(set(got[0].tolist())) == 24            # distinct points are never picked twice
+    assert len(set(got[0].tolist())) == 24  # distinct points are never picked twice
 
 
 def test_fps_spreads_out():
@@ -43,8 +49,9 @@ def test_ball_query_matches_reference(radius, nsample):
     centres = np.take_along_axis(xyz, centres_idx[..., None], 1)
     got = ball_query(torch.from_numpy(xyz), torch.from_numpy(centres), radius, nsample).numpy()
     for g in range(len(xyz)):
-        np.testing.assert_array_equal(got[g], ball_query_reference(xyz[g], centres[g], radius, nsample),
-                                      err_msg=f"set {g}")
+        np.testing.assert_array_equal(
+            got[g], ball_query_reference(xyz[g], centres[g], radius, nsample), err_msg=f"set {g}"
+        )
 
 
 def test_ball_query_conventions():
@@ -74,8 +81,9 @@ class _Sampler(torch.nn.Module):
 
 
 def test_onnx_roundtrip(onnx_roundtrip):
-    rt = onnx_roundtrip(_Sampler(), {"xyz": torch.from_numpy(_sets(0, n=48))}, ["fps", "neighbours", "grouped"],
-                        {"xyz": {0: "sets"}})
+    rt = onnx_roundtrip(
+        _Sampler(), {"xyz": torch.from_numpy(_sets(0, n=48))}, ["fps", "neighbours", "grouped"], {"xyz": {0: "sets"}}
+    )
     for seed in (1, 2):
         ref, got = rt({"xyz": torch.from_numpy(_sets(seed, g=3 + seed, n=48))})
         np.testing.assert_array_equal(got["fps"], ref["fps"])

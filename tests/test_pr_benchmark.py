@@ -5,14 +5,13 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import TINY_CARD
 
 from radaredge.cli import main
 from radaredge.data.pr_benchmark import DAY_S, make_pr_benchmark, plan_drives
 from radaredge.data.sequences import load_sequence
 from radaredge.data.synthetic import SceneConfig
 from radaredge.errors import ConfigError
-
-from conftest import TINY_CARD
 
 
 def world_points(scan, mask):
@@ -40,7 +39,7 @@ def test_layout_positions_and_times(tmp_path):
         scans = drive.scans()
         assert len(seq) == 6 and seq.scan_paths[0].suffix == ".npy"
         np.testing.assert_allclose(seq.timestamps, d * DAY_S + np.arange(6) / 10.0)
-        np.testing.assert_allclose(seq.positions[:, 0], [s.pose[1, 3] for s in scans])   # northing = world y
+        np.testing.assert_allclose(seq.positions[:, 0], [s.pose[1, 3] for s in scans])  # northing = world y
         # easting = world x + 10 km x seed
         np.testing.assert_allclose(seq.positions[:, 1], [s.pose[0, 3] + 10_000.0 for s in scans])
         np.testing.assert_array_equal(seq.scan(2, ["x", "y", "z", "v_r", "rcs"]), scans[2].points)
@@ -70,14 +69,16 @@ def test_query_days_move_some_parked_cars():
     def parked(scans):
         centres = [s.boxes[~s.box_dynamic, :3].astype(np.float64) @ s.pose[:3, :3].T + s.pose[:3, 3] for s in scans]
         return np.unique(np.concatenate(centres).round(2), axis=0)
+
     there = parked(query)
     moved = np.array([np.linalg.norm(there - c, axis=1).min() for c in parked(database)])
     assert (moved < 0.05).sum() >= 3 and (moved > 0.25).any()
     assert not ((moved > 0.05) & (moved < 0.25)).any()
 
 
-@pytest.mark.parametrize("field, value", [("world_seed", -1), ("world_seed", 1.5), ("road_curvature", 0.02),
-                                          ("parked_change", 1.2)])
+@pytest.mark.parametrize(
+    "field, value", [("world_seed", -1), ("world_seed", 1.5), ("road_curvature", 0.02), ("parked_change", 1.2)]
+)
 def test_scene_knobs_are_validated(field, value):
     with pytest.raises(ConfigError, match=f"SceneConfig.{field}"):
         SceneConfig(**{field: value})
@@ -106,9 +107,23 @@ def small_benchmark(tmp_path_factory):
 def test_eval_on_the_benchmark_agrees_with_the_reference(tiny_export, small_benchmark, tmp_path):
     _, _, onnx, _ = tiny_export
     report_path, plot_path = tmp_path / "report.json", tmp_path / "report.png"
-    res = invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx,
-                 "--database", small_benchmark / "database", "--queries", small_benchmark / "queries",
-                 "--report", report_path, "--plot", plot_path)
+    res = invoke(
+        "eval",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx,
+        "--database",
+        small_benchmark / "database",
+        "--queries",
+        small_benchmark / "queries",
+        "--report",
+        report_path,
+        "--plot",
+        plot_path,
+    )
     assert res.exit_code == 0, res.output
     assert "R@1" in res.output and "top-1 agreement" in res.output
     report = json.loads(report_path.read_text())
@@ -129,9 +144,21 @@ def test_eval_on_the_benchmark_agrees_with_the_reference(tiny_export, small_benc
 
 def test_eval_json_without_reference(tiny_export, small_benchmark):
     _, _, onnx, _ = tiny_export
-    res = invoke("eval", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--onnx", onnx, "--no-reference",
-                 "--database", small_benchmark / "database/drive-00", "--queries", small_benchmark / "queries/drive-02",
-                 "--json")
+    res = invoke(
+        "eval",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--onnx",
+        onnx,
+        "--no-reference",
+        "--database",
+        small_benchmark / "database/drive-00",
+        "--queries",
+        small_benchmark / "queries/drive-02",
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     report = json.loads(res.stdout)
     assert set(report["recall"]) == {"onnxruntime", "polar_occupancy"} and report["top1_agreement"] is None

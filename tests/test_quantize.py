@@ -6,12 +6,12 @@ import numpy as np
 import onnx
 import pytest
 
+import radaredge
 from radaredge import runtime
 from radaredge.cards import parse_card
 from radaredge.errors import ConfigError
-from radaredge.node_scopes import module_names
-import radaredge
 from radaredge.exporting.quantize import fp32_node_names, quantize_int8
+from radaredge.node_scopes import module_names
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,7 @@ def test_only_network_ops_are_quantised(int8):
     assert ops.count("QuantizeLinear") > 0 and ops.count("DequantizeLinear") > 0
     producers = {o: n for n in graph.node for o in n.output}
     for node in graph.node:
-        if node.op_type in ("GridSample", "ScatterElements", "TopK"):   # sampling / scatter / sort stay fp32
+        if node.op_type in ("GridSample", "ScatterElements", "TopK"):  # sampling / scatter / sort stay fp32
             assert all(producers.get(i) is None or producers[i].op_type != "DequantizeLinear" for i in node.input[1:])
 
 
@@ -39,9 +39,14 @@ def test_int8_file_holds_weights_not_folded_tensors(int8):
     half the fp32 graph's bytes."""
     _, _, fp32, path = int8
     fp32_names = {t.name for t in onnx.load(str(fp32)).graph.initializer}
-    folded = [(t.name, list(t.dims)) for t in onnx.load(str(path)).graph.initializer
-              if t.data_type == onnx.TensorProto.FLOAT and t.name not in fp32_names
-              and not t.name.endswith("_scale") and int(np.prod(t.dims)) > 1]
+    folded = [
+        (t.name, list(t.dims))
+        for t in onnx.load(str(path)).graph.initializer
+        if t.data_type == onnx.TensorProto.FLOAT
+        and t.name not in fp32_names
+        and not t.name.endswith("_scale")
+        and int(np.prod(t.dims)) > 1
+    ]
     assert folded == []
     assert _tensor_bytes(path) < 0.5 * _tensor_bytes(fp32)
 
@@ -54,9 +59,13 @@ def _tensor_bytes(path) -> int:
 def _quantised_weight_range(graph) -> tuple[int, set[int]]:
     """(largest |int8 weight|, element types of the activations' QuantizeLinear zero points)."""
     inits = {i.name: i for i in graph.initializer}
-    weights = [onnx.numpy_helper.to_array(inits[n.input[0]]) for n in graph.node
-               if n.op_type == "DequantizeLinear" and n.input[0] in inits
-               and inits[n.input[0]].data_type == onnx.TensorProto.INT8]
+    weights = [
+        onnx.numpy_helper.to_array(inits[n.input[0]])
+        for n in graph.node
+        if n.op_type == "DequantizeLinear"
+        and n.input[0] in inits
+        and inits[n.input[0]].data_type == onnx.TensorProto.INT8
+    ]
     zero_points = {inits[n.input[2]].data_type for n in graph.node if n.op_type == "QuantizeLinear"}
     return max(int(np.abs(w.astype(np.int32)).max()) for w in weights), zero_points
 
@@ -71,8 +80,9 @@ def test_weights_use_seven_bits_unless_the_card_says_otherwise(int8, tiny_export
     assert json.loads(runtime.load(path).metadata["radaredge.quantization"])["weights"].endswith("7-bit range")
     card, _, fp32, _ = tiny_export
     full = parse_card({**card.data, "quantization": {"reduce_range": False}})
-    largest, _ = _quantised_weight_range(onnx.load(str(quantize_int8(full, fp32, tmp_path / "full.onnx",
-                                                                    calibration_cases=2))).graph)
+    largest, _ = _quantised_weight_range(
+        onnx.load(str(quantize_int8(full, fp32, tmp_path / "full.onnx", calibration_cases=2))).graph
+    )
     assert largest == 127
     bad = parse_card({**card.data, "quantization": {"reduce_range": "yes"}})
     with pytest.raises(ConfigError, match="reduce_range must be true or false"):
@@ -86,8 +96,12 @@ def test_every_quantised_layer_has_a_quantised_or_no_bias(int8):
     graph = onnx.load(str(int8[3])).graph
     producers = {o: n for n in graph.node for o in n.output}
     for node in graph.node:
-        if node.op_type in ("Conv", "Gemm") and producers.get(node.input[1]) is not None \
-                and producers[node.input[1]].op_type == "DequantizeLinear" and len(node.input) > 2:
+        if (
+            node.op_type in ("Conv", "Gemm")
+            and producers.get(node.input[1]) is not None
+            and producers[node.input[1]].op_type == "DequantizeLinear"
+            and len(node.input) > 2
+        ):
             bias = producers.get(node.input[2])
             assert bias is not None and bias.op_type == "DequantizeLinear", node.name
 
@@ -112,20 +126,24 @@ def test_keep_fp32_modules_stay_float(tiny_export, tmp_path):
     """quantization.keep_fp32 keeps exactly the named modules' layers in fp32 (the descriptor MLP:
     two 1x1 convs); every other Conv/Gemm still reads dequantised int8 weights."""
     card, _, fp32, _ = tiny_export
-    assert _float_weight_convs(onnx.load(str(quantize_int8(card, fp32, tmp_path / "all.onnx",
-                                                         calibration_cases=2))).graph) == []
+    assert (
+        _float_weight_convs(onnx.load(str(quantize_int8(card, fp32, tmp_path / "all.onnx", calibration_cases=2))).graph)
+        == []
+    )
     kept = parse_card({**card.data, "quantization": {"keep_fp32": ["mlp"]}})
     path = quantize_int8(kept, fp32, tmp_path / "kept.onnx", calibration_cases=2)
     floats = _float_weight_convs(onnx.load(str(path)).graph)
-    mlp = [n.name for n in onnx.load(str(fp32)).graph.node
-           if n.op_type in ("Conv", "Gemm") and "mlp" in module_names(n)]
+    mlp = [
+        n.name for n in onnx.load(str(fp32)).graph.node if n.op_type in ("Conv", "Gemm") and "mlp" in module_names(n)
+    ]
     assert len(mlp) == 2 and sorted(floats) == sorted(mlp)
     q = json.loads(runtime.load(path).metadata["radaredge.quantization"])
     assert q["keep_fp32"] == {"modules": ["mlp"], "nodes": 2}
 
 
-@pytest.mark.parametrize("patterns, message", [(["mlpp"], "match no Conv/MatMul/Gemm"),
-                                               ("mlp", "must be a list of module names")])
+@pytest.mark.parametrize(
+    "patterns, message", [(["mlpp"], "match no Conv/MatMul/Gemm"), ("mlp", "must be a list of module names")]
+)
 def test_keep_fp32_rejects_bad_patterns(tiny_export, tmp_path, patterns, message):
     card, _, fp32, _ = tiny_export
     bad = parse_card({**card.data, "quantization": {"keep_fp32": patterns}})
@@ -139,7 +157,7 @@ def test_quantised_parity_budget(int8):
     assert report, report.to_dict()
     s = report.graph().summary
     assert s["descriptor_normalized"].min_cosine >= 0.99
-    assert s["ego_velocity"].max_abs <= 1e-4          # preprocessing is fp32: unchanged
+    assert s["ego_velocity"].max_abs <= 1e-4  # preprocessing is fp32: unchanged
     assert s["ego_valid"].mismatches == 0
     assert s["descriptor"].tolerance == "reported only"
     assert s["descriptor_normalized"].retrieval_top1 >= 0.98
@@ -149,13 +167,15 @@ def test_quantised_graph_is_not_the_fp32_graph(int8):
     card, _, fp32, path = int8
     a, b = runtime.load(fp32), runtime.load(path)
     from radaredge.models import model_spec
+
     _, feeds = model_spec(card).graph().make_cases(card, 1, 9)[0]
     frames = [feeds[f"points_{k}"] for k in range(3)]
     da = a.run(frames, feeds["timestamps"])["descriptor_normalized"]
     db = b.run(frames, feeds["timestamps"])["descriptor_normalized"]
     assert 0.99 <= float(da @ db) < 1.0 - 1e-7
-    np.testing.assert_array_equal(a.run(frames, feeds["timestamps"])["ego_velocity"],
-                                  b.run(frames, feeds["timestamps"])["ego_velocity"])
+    np.testing.assert_array_equal(
+        a.run(frames, feeds["timestamps"])["ego_velocity"], b.run(frames, feeds["timestamps"])["ego_velocity"]
+    )
 
 
 def _boxes(n, shift=0.0):
@@ -175,14 +195,15 @@ def test_int8_box_budget_is_matched_recall_over_the_case_set(found, passed):
     """The int8 budget for detections: >= 95 % of the reference boxes matched (IoU >= 0.5, same
     label) over all cases together; a moved box (IoU < 0.5) and a missing box both count as missed."""
     from radaredge.models.comparators import Boxes
+
     spec = Boxes("boxes").quantized()
     assert spec.min_recall == 0.95 and spec.min_iou == 0.5
     ref = _boxes(10)
     cases = []
-    for k, n in enumerate((10, found - 10)):         # case 0 finds all 10, case 1 finds n of 10
+    for k, n in enumerate((10, found - 10)):  # case 0 finds all 10, case 1 finds n of 10
         got = ref.copy()
-        got[:, 0] += 0.2                              # a small shift still matches
-        got[n:, 0] += 3.0                             # moved beyond IoU 0.5: missed
+        got[:, 0] += 0.2  # a small shift still matches
+        got[n:, 0] += 3.0  # moved beyond IoU 0.5: missed
         cases.append(spec.compare(_dets(got, np.full(10, 0.3)), _dets(ref, np.full(10, 0.5))))
     s = spec.summarise(cases, ["0", "1"])
     assert s.recall == pytest.approx(found / 20) and s.passed is passed
@@ -192,11 +213,12 @@ def test_int8_box_recall_is_also_reported_by_reference_score_but_judged_overall(
     """Recall per reference-score floor (0.3, 0.5) is reported beside the verdict: here int8 loses
     the six boxes scored 0.12 and keeps every confident one, and the case set still fails."""
     from radaredge.models.comparators import Boxes
+
     spec = Boxes("boxes").quantized()
     ref = _boxes(10)
     ref_scores = np.array([0.12] * 6 + [0.4, 0.4, 0.9, 0.9])
     got = ref.copy()
-    got[:6, 0] += 3.0                                 # the six low-score boxes moved: missed
+    got[:6, 0] += 3.0  # the six low-score boxes moved: missed
     c = spec.compare(_dets(got, ref_scores), _dets(ref, ref_scores))
     assert c.by_score == {"0.3": [4, 4], "0.5": [2, 2]}
     s = spec.summarise([c], ["0"])
@@ -211,10 +233,15 @@ def test_keep_fp32_covers_a_module_traced_without_its_parents_scope(maffnet_tiny
     _, onnx_path = maffnet_tiny_export
     model = onnx.load(str(onnx_path), load_external_data=False)
     nodes = model.graph.node
-    under = {p: {n.name for n in nodes if n.op_type in ("Conv", "Gemm", "MatMul")
-                 and any(s == p or s.startswith(p + ".") for s in module_names(n))}
-             for p in ("vfe", "image_backbone")}
+    under = {
+        p: {
+            n.name
+            for n in nodes
+            if n.op_type in ("Conv", "Gemm", "MatMul") and any(s == p or s.startswith(p + ".") for s in module_names(n))
+        }
+        for p in ("vfe", "image_backbone")
+    }
     assert len(under["vfe"]) == 1 and len(under["image_backbone"]) >= 4
-    assert not any("vfe" in module_names(n) for n in nodes if n.name in under["vfe"])   # no scope of its own
+    assert not any("vfe" in module_names(n) for n in nodes if n.name in under["vfe"])  # no scope of its own
     for pattern, names in under.items():
         assert fp32_node_names(model, [pattern]) == names

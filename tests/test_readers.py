@@ -3,14 +3,27 @@
 import numpy as np
 import pytest
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from radaredge.data.readers import (
-    FORMATS, TJ4D_COLUMNS, VOD_COLUMNS, iter_rosbag, read_rosbag, read_scan, read_tj4d_bin, read_vod_bin,
+    FORMATS,
+    TJ4D_COLUMNS,
+    VOD_COLUMNS,
+    iter_rosbag,
+    read_rosbag,
+    read_scan,
+    read_tj4d_bin,
+    read_vod_bin,
 )
-from radaredge.data.synthetic import (generate_scan, generate_sequence, vod_accumulated_table, write_tj4d_bin,
-                                      write_vod_bin)
+from radaredge.data.synthetic import (
+    generate_scan,
+    generate_sequence,
+    vod_accumulated_table,
+    write_tj4d_bin,
+    write_vod_bin,
+)
 from radaredge.errors import InputError
 
 CARD = ["x", "y", "z", "v_r", "rcs"]
@@ -72,10 +85,10 @@ def test_a_truncated_file_that_fits_the_other_layout_is_refused(tmp_path):
     with pytest.raises(InputError, match="fit the tj4d layout, but its Range column.*fmt='vod'"):
         read_scan(tmp_path / "cut_vod.bin", CARD)
     data = write_tj4d_bin(tmp_path / "full.bin", scan).read_bytes()
-    (tmp_path / "cut_tj4d.bin").write_bytes(data[:28 * 50])
+    (tmp_path / "cut_tj4d.bin").write_bytes(data[: 28 * 50])
     with pytest.raises(InputError, match="fit the vod layout, but its first rows read as TJ4DRadSet rows"):
         read_scan(tmp_path / "cut_tj4d.bin", CARD)
-    assert read_scan(tmp_path / "cut_tj4d.bin", CARD, "vod").shape == (50, 5)     # named: read as told
+    assert read_scan(tmp_path / "cut_tj4d.bin", CARD, "vod").shape == (50, 5)  # named: read as told
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])
@@ -148,14 +161,17 @@ def test_truncated_bin_says_how_many_bytes_and_what_was_expected(tmp_path):
         read_scan(path, CARD, "tj4d")
 
 
-@pytest.mark.parametrize("array, detail", [
-    (np.zeros((4, 4), np.float32), r"4 columns, expected a numeric \[N, 5\]"),
-    (np.zeros((2, 4, 5), np.float32), r"shape \(2, 4, 5\) is not 2-D"),
-    (np.zeros(5, np.float32), r"shape \(5,\) is not 2-D"),
-    (np.array([["a"] * 5]), "dtype <U1 is not numeric"),
-    (np.zeros((2, 5), np.complex64), "dtype complex64 is not numeric"),
-    (np.array([[{"x": 1}] * 5], dtype=object), "pickled object array"),
-])
+@pytest.mark.parametrize(
+    "array, detail",
+    [
+        (np.zeros((4, 4), np.float32), r"4 columns, expected a numeric \[N, 5\]"),
+        (np.zeros((2, 4, 5), np.float32), r"shape \(2, 4, 5\) is not 2-D"),
+        (np.zeros(5, np.float32), r"shape \(5,\) is not 2-D"),
+        (np.array([["a"] * 5]), "dtype <U1 is not numeric"),
+        (np.zeros((2, 5), np.complex64), "dtype complex64 is not numeric"),
+        (np.array([[{"x": 1}] * 5], dtype=object), "pickled object array"),
+    ],
+)
 def test_malformed_npy(tmp_path, array, detail):
     path = tmp_path / "bad.npy"
     np.save(path, array, allow_pickle=True)
@@ -192,8 +208,9 @@ STAMPS = [(1700000000, 250000000), (1700000000, 350000000)]  # (sec, nanosec)
 def header(store, stamp):
     sec, nanosec = stamp
     extra = {"seq": 0} if store is ROS1 else {}
-    return store.types["std_msgs/msg/Header"](**extra, stamp=store.types["builtin_interfaces/msg/Time"](sec, nanosec),
-                                              frame_id="radar")
+    return store.types["std_msgs/msg/Header"](
+        **extra, stamp=store.types["builtin_interfaces/msg/Time"](sec, nanosec), frame_id="radar"
+    )
 
 
 def pointcloud2(store, stamp, columns: dict, *, big_endian=False, height=1, pad=0):
@@ -202,28 +219,45 @@ def pointcloud2(store, stamp, columns: dict, *, big_endian=False, height=1, pad=
     names = list(columns)
     n = len(next(iter(columns.values())))
     order = ">" if big_endian else "<"
-    dtype = np.dtype({"names": names + ["ring"], "formats": [order + "f4"] * len(names) + [order + "u2"],
-                      "offsets": [4 * i for i in range(len(names))] + [4 * len(names)],
-                      "itemsize": 4 * len(names) + 2 + pad})
+    dtype = np.dtype(
+        {
+            "names": names + ["ring"],
+            "formats": [order + "f4"] * len(names) + [order + "u2"],
+            "offsets": [4 * i for i in range(len(names))] + [4 * len(names)],
+            "itemsize": 4 * len(names) + 2 + pad,
+        }
+    )
     points = np.zeros(n, dtype)
     for name in names:
         points[name] = columns[name]
     width = n // height
     rows = points.tobytes()
     row_bytes = width * dtype.itemsize
-    data = b"".join(rows[r * row_bytes:(r + 1) * row_bytes] + b"\xff" * 3 for r in range(height))
+    data = b"".join(rows[r * row_bytes : (r + 1) * row_bytes] + b"\xff" * 3 for r in range(height))
     PointField = store.types["sensor_msgs/msg/PointField"]
     fields = [PointField(name, 4 * i, 7, 1) for i, name in enumerate(names)]  # 7: FLOAT32
     fields.append(PointField("ring", 4 * len(names), 4, 1))  # 4: UINT16
-    return store.types[PCL2](header(store, stamp), height, width, fields, big_endian, dtype.itemsize,
-                             row_bytes + 3, np.frombuffer(data, np.uint8), True)
+    return store.types[PCL2](
+        header(store, stamp),
+        height,
+        width,
+        fields,
+        big_endian,
+        dtype.itemsize,
+        row_bytes + 3,
+        np.frombuffer(data, np.uint8),
+        True,
+    )
 
 
 def pointcloud(store, stamp, xyz, channels: dict):
     Point32 = store.types["geometry_msgs/msg/Point32"]
     Channel = store.types["sensor_msgs/msg/ChannelFloat32"]
-    return store.types[PCL](header(store, stamp), [Point32(*map(float, p)) for p in xyz],
-                            [Channel(name, np.asarray(v, np.float32)) for name, v in channels.items()])
+    return store.types[PCL](
+        header(store, stamp),
+        [Point32(*map(float, p)) for p in xyz],
+        [Channel(name, np.asarray(v, np.float32)) for name, v in channels.items()],
+    )
 
 
 def write_bag(path, ros1: bool, topics: dict, storage=StoragePlugin.SQLITE3):
@@ -248,10 +282,13 @@ def radar_points(seed: int, n: int = 6) -> dict:
 def test_pointcloud2_bag_round_trip(tmp_path, ros1, storage):
     store = ROS1 if ros1 else ROS2
     clouds = [radar_points(0), radar_points(1)]
-    msgs = [pointcloud2(store, STAMPS[0], clouds[0]),
-            pointcloud2(store, STAMPS[1], clouds[1], big_endian=True, height=2, pad=5)]
-    path = write_bag(tmp_path / ("drive.bag" if ros1 else "drive"), ros1, {"/radar": (PCL2, msgs)},
-                     storage or StoragePlugin.SQLITE3)
+    msgs = [
+        pointcloud2(store, STAMPS[0], clouds[0]),
+        pointcloud2(store, STAMPS[1], clouds[1], big_endian=True, height=2, pad=5),
+    ]
+    path = write_bag(
+        tmp_path / ("drive.bag" if ros1 else "drive"), ros1, {"/radar": (PCL2, msgs)}, storage or StoragePlugin.SQLITE3
+    )
     scans = read_rosbag(path, "/radar", ["x", "y", "z", "v_r", "rcs"])
     assert [t for t, _ in scans] == pytest.approx([1700000000.25, 1700000000.35], abs=1e-6)
     for (_, scan), cloud in zip(scans, clouds):
@@ -272,8 +309,11 @@ def test_pointcloud_channels_ntu4dradlm_style(tmp_path, ros1):
     store = ROS1 if ros1 else ROS2
     xyz = np.arange(12, dtype=np.float32).reshape(4, 3)
     channels = {"Doppler": [0.5, -1.0, 2.0, 0.0], "Range": [1, 2, 3, 4], "Power": [10, 20, 30, 40]}
-    path = write_bag(tmp_path / ("ntu.bag" if ros1 else "ntu"), ros1,
-                     {"/radar_enhanced_pcl": (PCL, [pointcloud(store, STAMPS[1], xyz, channels)])})
+    path = write_bag(
+        tmp_path / ("ntu.bag" if ros1 else "ntu"),
+        ros1,
+        {"/radar_enhanced_pcl": (PCL, [pointcloud(store, STAMPS[1], xyz, channels)])},
+    )
     [(stamp, scan)] = read_rosbag(path, "/radar_enhanced_pcl", CARD, field_map={"v_r": 0, "rcs": 2})
     assert stamp == pytest.approx(1700000000.35, abs=1e-6)
     np.testing.assert_array_equal(scan, np.column_stack([xyz, channels["Doppler"], channels["Power"]]))
@@ -290,10 +330,16 @@ def test_iter_rosbag_yields_in_recording_order(tmp_path):
 
 def test_missing_topic_lists_the_topics_present_with_types(tmp_path):
     note = ROS1.types["std_msgs/msg/String"]("hi")
-    path = write_bag(tmp_path / "a.bag", True, {"/radar": (PCL2, [pointcloud2(ROS1, STAMPS[0], radar_points(0))]),
-                                                "/note": ("std_msgs/msg/String", [note])})
-    with pytest.raises(InputError, match=r"no topic '/lidar'; the bag has: /note \(std_msgs/msg/String\), "
-                                         r"/radar \(sensor_msgs/msg/PointCloud2\)"):
+    path = write_bag(
+        tmp_path / "a.bag",
+        True,
+        {"/radar": (PCL2, [pointcloud2(ROS1, STAMPS[0], radar_points(0))]), "/note": ("std_msgs/msg/String", [note])},
+    )
+    with pytest.raises(
+        InputError,
+        match=r"no topic '/lidar'; the bag has: /note \(std_msgs/msg/String\), "
+        r"/radar \(sensor_msgs/msg/PointCloud2\)",
+    ):
         read_rosbag(path, "/lidar", CARD)
     with pytest.raises(InputError, match="'/note' carries std_msgs/msg/String; expected sensor_msgs/msg/PointCloud2"):
         read_rosbag(path, "/note", CARD)
@@ -302,8 +348,11 @@ def test_missing_topic_lists_the_topics_present_with_types(tmp_path):
 def test_unmappable_field_names_it_and_lists_the_fields(tmp_path):
     cloud = {"x": [1.0], "y": [2.0], "z": [3.0], "foo": [4.0]}
     path = write_bag(tmp_path / "a.bag", True, {"/r": (PCL2, [pointcloud2(ROS1, STAMPS[0], cloud)])})
-    with pytest.raises(InputError, match=r"cannot map feature 'v_r': the message's fields are "
-                                         r"\['x', 'y', 'z', 'foo', 'ring'\].*field_map"):
+    with pytest.raises(
+        InputError,
+        match=r"cannot map feature 'v_r': the message's fields are "
+        r"\['x', 'y', 'z', 'foo', 'ring'\].*field_map",
+    ):
         read_rosbag(path, "/r", CARD)
     with pytest.raises(InputError, match="maps 'rcs' to field 'power', which the message lacks"):
         read_rosbag(path, "/r", ["x", "rcs"], field_map={"rcs": "power"})
@@ -342,6 +391,9 @@ def test_npy_header_claiming_more_than_the_file_holds_is_refused_before_allocati
     header = "{'descr': '<f4', 'fortran_order': False, 'shape': (500000000000, 5), }"
     body = (header + " " * (118 - len(header)) + "\n").encode()
     path.write_bytes(b"\x93NUMPY\x01\x00" + len(body).to_bytes(2, "little") + body + bytes(80))
-    with pytest.raises(InputError, match=r"lie.npy: its header claims shape \(500000000000, 5\) of float32 "
-                                         r"\(1e\+13 bytes\) but the file holds 209 bytes"):
+    with pytest.raises(
+        InputError,
+        match=r"lie.npy: its header claims shape \(500000000000, 5\) of float32 "
+        r"\(1e\+13 bytes\) but the file holds 209 bytes",
+    ):
         read_scan(path, ["x", "y", "z", "v_r", "rcs"], "transloc")

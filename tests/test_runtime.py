@@ -7,13 +7,12 @@ import time
 
 import numpy as np
 import pytest
+from conftest import TINY_CARD as TINY
 
 from radaredge import runtime
 from radaredge.cards import load_card
 from radaredge.errors import InputError
 from radaredge.models import model_spec
-
-from conftest import TINY_CARD as TINY
 
 
 @pytest.fixture(scope="module")
@@ -53,15 +52,21 @@ def test_runtime_matches_session_outputs(onnx_path, frames):
     m = runtime.load(onnx_path)
     out = m.run(frames[0], frames[1])
     assert set(out) == {"descriptor", "descriptor_normalized", "ego_velocity", "ego_valid", "input_flags"}
-    assert (out["input_flags"].shape == (3,) and m.card.name == "tdfanet-tiny"
-            and m.features == ["x", "y", "z", "v_r", "rcs"])
+    assert (
+        out["input_flags"].shape == (3,)
+        and m.card.name == "tdfanet-tiny"
+        and m.features == ["x", "y", "z", "v_r", "rcs"]
+    )
 
 
-@pytest.mark.parametrize("mutate, message", [
-    (lambda f: f[:2], "takes 3 frame"),
-    (lambda f: [f[0], f[1][:, :4], f[2]], r"frame 1: expected shape \[N, 5\]"),
-    (lambda f: [f[0], f[1], f[2].astype(str)], "frame 2: expected a numeric array"),
-])
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda f: f[:2], "takes 3 frame"),
+        (lambda f: [f[0], f[1][:, :4], f[2]], r"frame 1: expected shape \[N, 5\]"),
+        (lambda f: [f[0], f[1], f[2].astype(str)], "frame 2: expected a numeric array"),
+    ],
+)
 def test_bad_frames_get_specific_errors(onnx_path, frames, mutate, message):
     m = runtime.load(onnx_path)
     with pytest.raises(InputError, match=message):
@@ -91,14 +96,14 @@ def test_absolute_timestamps_give_the_outputs_of_relative_ones(onnx_path, frames
     stamps would have collapsed (a 0.1 s step is below float32's resolution at 1.7e9 s)."""
     m = runtime.load(onnx_path)
     exact = m.run(frames[0], [0.0, 0.1, 0.2])
-    for t0 in (1_732_500_000.123456, 1e6, 3.7e4):           # epoch seconds (a ROS stamp), time since boot
+    for t0 in (1_732_500_000.123456, 1e6, 3.7e4):  # epoch seconds (a ROS stamp), time since boot
         stamps = t0 + np.array([0.0, 0.1, 0.2])
         out = m.run(frames[0], stamps)
         rel = m.run(frames[0], stamps - stamps[0])
         for k in out:
             np.testing.assert_array_equal(out[k], rel[k], err_msg=f"t0 = {t0}: {k}")
             np.testing.assert_allclose(out[k], exact[k], atol=1e-5, err_msg=f"t0 = {t0}: {k}")
-    with pytest.raises(InputError, match="increase strictly"):      # checked in float64, at epoch scale too
+    with pytest.raises(InputError, match="increase strictly"):  # checked in float64, at epoch scale too
         m.run(frames[0], 1e9 + np.array([0.0, 0.2, 0.1]))
 
 
@@ -106,11 +111,15 @@ def test_ros_epoch_stamps_straight_from_a_bag(onnx_path, frames, tmp_path):
     """Scans and header stamps read from a ROS bag go to the runtime as they come: the outputs are
     bitwise those of the same window with relative stamps."""
     from test_readers import ROS1, pointcloud2, write_bag
+
     stamps = [(1732500000, 123456789 + 100_000_000 * k) for k in range(3)]
-    clouds = [pointcloud2(ROS1, st, {c: f[:, i] for i, c in enumerate(("x", "y", "z", "v_r", "rcs"))})
-              for st, f in zip(stamps, frames[0])]
+    clouds = [
+        pointcloud2(ROS1, st, {c: f[:, i] for i, c in enumerate(("x", "y", "z", "v_r", "rcs"))})
+        for st, f in zip(stamps, frames[0])
+    ]
     bag = write_bag(tmp_path / "drive.bag", True, {"/radar": ("sensor_msgs/msg/PointCloud2", clouds)})
     from radaredge.data.readers import read_rosbag
+
     read = read_rosbag(bag, "/radar", ["x", "y", "z", "v_r", "rcs"])
     t = np.array([s for s, _ in read])
     scans = [a for _, a in read]
@@ -150,24 +159,30 @@ def test_points_per_frame_are_capped_by_the_card(tiny_export, frames, tmp_path):
     """A frame beyond the card's max_points_per_frame (default 65,536) is a CapacityError naming
     the frame, before onnxruntime allocates for it."""
     from radaredge.errors import CapacityError
+
     m = runtime.load(tiny_export[2])
     big = np.zeros((65_537, 5), np.float32)
-    with pytest.raises(CapacityError,
-                       match=r"frame 1: 65537 points; tdfanet-tiny takes at most max_points_per_frame = 65536"):
+    with pytest.raises(
+        CapacityError, match=r"frame 1: 65537 points; tdfanet-tiny takes at most max_points_per_frame = 65536"
+    ):
         m.run([frames[0][0], big, frames[0][2]])
     m.inputs.max_points = 10
     with pytest.raises(CapacityError, match="frame 0"):
         m.run([np.zeros((11, 5), np.float32), frames[0][1], frames[0][2]])
 
 
-@pytest.mark.parametrize("text, message", [
-    ("a: &x [1, 2]\nb: *x\n", "anchors and aliases are not allowed in a model card"),
-    ("a: [1, 2\n", "invalid YAML"),
-    ("a: !!python/object/apply:os.system ['true']\n", "invalid YAML"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("a: &x [1, 2]\nb: *x\n", "anchors and aliases are not allowed in a model card"),
+        ("a: [1, 2\n", "invalid YAML"),
+        ("a: !!python/object/apply:os.system ['true']\n", "invalid YAML"),
+    ],
+)
 def test_card_yaml_is_safe_and_alias_free(tmp_path, text, message):
     from radaredge.cards import card_from_yaml, load_card
     from radaredge.errors import ConfigError
+
     path = tmp_path / "card.yaml"
     path.write_text(text)
     with pytest.raises(ConfigError, match=message):
@@ -179,6 +194,7 @@ def test_card_yaml_is_safe_and_alias_free(tmp_path, text, message):
 def test_a_binary_or_huge_card_file_is_one_error(tmp_path):
     from radaredge.cards import load_card
     from radaredge.errors import ConfigError
+
     binary = tmp_path / "binary.yaml"
     binary.write_bytes(bytes(range(256)))
     with pytest.raises(ConfigError, match="binary.yaml: not a text file"):
@@ -191,14 +207,17 @@ def test_a_binary_or_huge_card_file_is_one_error(tmp_path):
 
 def test_a_graph_whose_metadata_card_is_an_alias_bomb_is_refused(tiny_export, tmp_path):
     import onnx
+
     model = onnx.load(str(tiny_export[2]))
     bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-        f"{c}: &{c} [{', '.join(['*' + p] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi"))
+        f"{c}: &{c} [{', '.join(['*' + p] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi")
+    )
     for prop in model.metadata_props:
         if prop.key == "radaredge.card":
             prop.value = bomb
     path = tmp_path / "bomb.onnx"
     onnx.save(model, str(path))
     from radaredge.errors import ConfigError
+
     with pytest.raises(ConfigError, match="bomb.onnx: the card in its metadata: .*aliases are not allowed"):
         runtime.load(path)

@@ -87,18 +87,21 @@ def gps(*rows, header="timestamp,northing,easting"):
 FIVE = [f"{t},{10 + t},{20 + t}" for t in range(T)]
 
 
-@pytest.mark.parametrize("text, detail", [
-    (gps(*FIVE[:4]), "gps.csv has 4 rows but scans/ holds 5 .npy scan files"),
-    (gps(*FIVE, "5,0,0"), "gps.csv has 6 rows but scans/ holds 5"),
-    (gps(*FIVE[:2], "1.0,0,0", *FIVE[3:]), r"timestamps must increase; row 2 has 1.0 s, not after row 1's 1.0 s"),
-    (gps(*FIVE[::-1]), "row 1 has 3.0 s, not after row 0's 4.0 s"),
-    (gps(*FIVE, header="timestamp,north,easting"), r"header lacks column\(s\) \['northing'\]"),
-    (gps(*FIVE, header="time,northing,east"), r"\['timestamp', 'easting'\]"),
-    (gps(*FIVE[:1], "1,abc,21", *FIVE[2:]), "row 1, column 'northing': cannot read 'abc' as a finite number"),
-    (gps(*FIVE[:3], "3,13,nan", *FIVE[4:]), "row 3, column 'easting': cannot read 'nan'"),
-    (gps(*FIVE[:3], "3,13", *FIVE[4:]), "row 3 has 2 values, the header has 3 columns"),
-    ("", "gps.csv: empty"),
-])
+@pytest.mark.parametrize(
+    "text, detail",
+    [
+        (gps(*FIVE[:4]), "gps.csv has 4 rows but scans/ holds 5 .npy scan files"),
+        (gps(*FIVE, "5,0,0"), "gps.csv has 6 rows but scans/ holds 5"),
+        (gps(*FIVE[:2], "1.0,0,0", *FIVE[3:]), r"timestamps must increase; row 2 has 1.0 s, not after row 1's 1.0 s"),
+        (gps(*FIVE[::-1]), "row 1 has 3.0 s, not after row 0's 4.0 s"),
+        (gps(*FIVE, header="timestamp,north,easting"), r"header lacks column\(s\) \['northing'\]"),
+        (gps(*FIVE, header="time,northing,east"), r"\['timestamp', 'easting'\]"),
+        (gps(*FIVE[:1], "1,abc,21", *FIVE[2:]), "row 1, column 'northing': cannot read 'abc' as a finite number"),
+        (gps(*FIVE[:3], "3,13,nan", *FIVE[4:]), "row 3, column 'easting': cannot read 'nan'"),
+        (gps(*FIVE[:3], "3,13", *FIVE[4:]), "row 3 has 2 values, the header has 3 columns"),
+        ("", "gps.csv: empty"),
+    ],
+)
 def test_malformed_gps_csv(written, text, detail):
     directory = written[0]
     (directory / "gps.csv").write_text(text)

@@ -9,7 +9,14 @@ import pytest
 from radaredge.config import config_from_dict
 from radaredge.data.readers import TJ4D_COLUMNS, VOD_COLUMNS, read_tj4d_bin, read_vod_bin
 from radaredge.data.synthetic import (
-    CLASS_NAMES, COLUMNS, RadarScan, SceneConfig, generate_scan, generate_sequence, write_tj4d_bin, write_vod_bin,
+    CLASS_NAMES,
+    COLUMNS,
+    RadarScan,
+    SceneConfig,
+    generate_scan,
+    generate_sequence,
+    write_tj4d_bin,
+    write_vod_bin,
 )
 from radaredge.errors import ConfigError, InputError
 
@@ -45,8 +52,9 @@ def test_scan_layout_and_dtypes():
     assert scan.boxes.dtype == np.float32 and scan.boxes.shape == (m, 7)
     assert scan.box_velocities.shape == (m, 3) and scan.box_dynamic.shape == (m,)
     assert set(scan.box_labels.tolist()) <= set(range(len(CLASS_NAMES)))
-    np.testing.assert_array_equal(scan.box_num_points, np.bincount(scan.object_index[scan.object_index >= 0],
-                                                                   minlength=m))
+    np.testing.assert_array_equal(
+        scan.box_num_points, np.bincount(scan.object_index[scan.object_index >= 0], minlength=m)
+    )
     assert scan.ego_velocity.shape == (3,) and scan.pose.shape == (4, 4) and scan.timestamp == 0.0
     np.testing.assert_allclose(scan.pose[:3, :3] @ scan.pose[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_array_equal(scan.column("v_r"), scan.points[:, 3])
@@ -108,8 +116,9 @@ def test_ghosts_are_flagged_and_inconsistent_with_the_static_world(seed):
     assert generate_scan(seed=seed, ghost_fraction=0.0).ghost.sum() == 0
 
 
-@pytest.mark.parametrize("fov", [{}, {"max_range": 40.0, "max_azimuth_deg": 45.0, "max_elevation_deg": 10.0,
-                                     "min_range": 3.0}])
+@pytest.mark.parametrize(
+    "fov", [{}, {"max_range": 40.0, "max_azimuth_deg": 45.0, "max_elevation_deg": 10.0, "min_range": 3.0}]
+)
 def test_all_points_and_listed_box_centres_are_inside_the_fov(fov):
     config = SceneConfig(**fov)
     for seed in SEEDS:
@@ -156,8 +165,9 @@ def test_sequence_timestamps_poses_and_velocities_agree():
 def test_static_world_is_the_same_in_every_frame():
     """Parked cars seen from different frames sit at the same world position."""
     seq = generate_sequence(30, seed=2)
-    centres = np.concatenate([(s.pose[:3, :3] @ s.boxes[~s.box_dynamic, :3].T.astype(np.float64)).T + s.pose[:3, 3]
-                              for s in seq])
+    centres = np.concatenate(
+        [(s.pose[:3, :3] @ s.boxes[~s.box_dynamic, :3].T.astype(np.float64)).T + s.pose[:3, 3] for s in seq]
+    )
     d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     assert ((d < 1e-3) | (d > 1.0)).all()
     assert ((d < 1e-3).sum(1) > 1).mean() > 0.9  # nearly every parked car is seen more than once
@@ -169,6 +179,7 @@ def test_frame_does_not_depend_on_sequence_length():
 
 def test_robust_estimator_recovers_ego_velocity():
     from radaredge.ops.ego_velocity import estimate_ego_velocity_reference
+
     for seed in SEEDS:
         scan = generate_scan(seed=seed, dynamic_fraction=0.4)
         v, static, ok = estimate_ego_velocity_reference(scan.points[:, :3], scan.column("v_r"))
@@ -219,24 +230,27 @@ def test_readers_reject_truncated_or_missing_files(tmp_path):
         read_vod_bin(tmp_path / "missing.bin")
 
 
-@pytest.mark.parametrize("overrides, field", [
-    ({"frame_rate": -10.0}, "frame_rate"),
-    ({"frame_rate": 0}, "frame_rate"),
-    ({"dynamic_fraction": 0.95}, "dynamic_fraction"),
-    ({"dynamic_fraction": -0.1}, "dynamic_fraction"),
-    ({"doppler_noise": -0.01}, "doppler_noise"),
-    ({"ghost_fraction": 0.7}, "ghost_fraction"),
-    ({"static_points": -5}, "static_points"),
-    ({"num_cars": 2.5}, "num_cars"),
-    ({"max_azimuth_deg": 120.0}, "max_azimuth_deg"),
-    ({"max_range": 0.5}, "min_range"),
-    ({"ego_speed_min": 10.0, "ego_speed_max": 5.0}, "ego_speed_min"),
-    ({"frame_rate": "fast"}, "frame_rate"),
-    ({"seed": -1}, "seed"),
-    ({"rcs_dbsm": {"tree": (0.0, 1.0)}}, "rcs_dbsm"),
-    ({"rcs_dbsm": {"car": (8.0, -1.0)}}, "rcs_dbsm.car"),
-    ({"bogus": 1}, "bogus"),
-])
+@pytest.mark.parametrize(
+    "overrides, field",
+    [
+        ({"frame_rate": -10.0}, "frame_rate"),
+        ({"frame_rate": 0}, "frame_rate"),
+        ({"dynamic_fraction": 0.95}, "dynamic_fraction"),
+        ({"dynamic_fraction": -0.1}, "dynamic_fraction"),
+        ({"doppler_noise": -0.01}, "doppler_noise"),
+        ({"ghost_fraction": 0.7}, "ghost_fraction"),
+        ({"static_points": -5}, "static_points"),
+        ({"num_cars": 2.5}, "num_cars"),
+        ({"max_azimuth_deg": 120.0}, "max_azimuth_deg"),
+        ({"max_range": 0.5}, "min_range"),
+        ({"ego_speed_min": 10.0, "ego_speed_max": 5.0}, "ego_speed_min"),
+        ({"frame_rate": "fast"}, "frame_rate"),
+        ({"seed": -1}, "seed"),
+        ({"rcs_dbsm": {"tree": (0.0, 1.0)}}, "rcs_dbsm"),
+        ({"rcs_dbsm": {"car": (8.0, -1.0)}}, "rcs_dbsm.car"),
+        ({"bogus": 1}, "bogus"),
+    ],
+)
 def test_bad_config_raises_config_error_naming_the_field(overrides, field):
     with pytest.raises(ConfigError, match=field):
         generate_scan(**overrides)

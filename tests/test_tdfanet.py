@@ -1,19 +1,16 @@
 """TDFANet end to end on the tiny card: export formulation == reference, ONNX parity, checkpoints,
 divergence localisation. The full cards are exported and parity-checked in test_cli.py."""
 
-
 import numpy as np
 import pytest
 import torch
-
-from radaredge.cards import load_card
-from radaredge.errors import ConfigError
-from radaredge.models import create_model, load_checkpoint
-import radaredge
-from radaredge.checking.check import check_graph
-from radaredge.models import model_spec
-
 from conftest import TINY_CARD as TINY
+
+import radaredge
+from radaredge.cards import load_card
+from radaredge.checking.check import check_graph
+from radaredge.errors import ConfigError
+from radaredge.models import create_model, load_checkpoint, model_spec
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +62,7 @@ def test_parity_names_the_first_diverging_tensor(card, exported):
     model, onnx_path, debug_path = exported
     broken = create_model(card)
     with torch.no_grad():
-        broken.vfe.pfn_layers[0].linear.weight.mul_(1.5)   # reference now differs from the ONNX
+        broken.vfe.pfn_layers[0].linear.weight.mul_(1.5)  # reference now differs from the ONNX
     graph = model_spec(card).graph()
     report = check_graph(card, graph, broken, onnx_path, cases_n=2, seed=0, debug_onnx=debug_path)
     assert not report
@@ -113,5 +110,6 @@ def test_debug_export_follows_the_pyramid_depth(tmp_path):
     card = load_card(card_path)
     res = radaredge.export(card, tmp_path / "two.onnx", model=create_model(card), debug=True)
     import json
+
     outputs = json.loads(res.debug["tdfanet"].with_suffix(".json").read_text())["debug_outputs"]
     assert outputs == ["ego_velocity", "bev", "aligned_bev", "aggregated_l2", "aggregated_l1", "aggregated_l0"]

@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import TINY_CARD
+from references import tdfanet_paper as paper
 
 from radaredge.cards import load_card
 from radaredge.models import create_model
-
-from conftest import TINY_CARD
-from references import tdfanet_paper as paper
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +25,9 @@ def model():
             if name == "gem.p":
                 p.fill_(2.5)
             else:
-                p.copy_(torch.randn_like(p) * (0.3 if p.dim() > 1 else 0.1)
-                        + (1.0 if name.endswith("norm.weight") else 0.0))
+                p.copy_(
+                    torch.randn_like(p) * (0.3 if p.dim() > 1 else 0.1) + (1.0 if name.endswith("norm.weight") else 0.0)
+                )
         for name, b in net.named_buffers():
             if name.endswith("running_mean"):
                 b.copy_(torch.randn_like(b) * 0.1)
@@ -76,6 +76,7 @@ def test_batched_windows_are_the_windows_one_by_one(model):
     cells = torch.randn(6, 2)
     with torch.no_grad():
         both = model.aggregate(bev, cells, False, None)
-        one = torch.cat([model.aggregate(bev[:3], cells[:3], False, None),
-                         model.aggregate(bev[3:], cells[3:], False, None)])
+        one = torch.cat(
+            [model.aggregate(bev[:3], cells[:3], False, None), model.aggregate(bev[3:], cells[3:], False, None)]
+        )
     torch.testing.assert_close(both, one, atol=1e-5, rtol=1e-5)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import TINY_CARD, invoke
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
@@ -25,8 +26,6 @@ from radaredge.ops.pillars import pillar_features_reference, scatter_pillars_ref
 from radaredge.training import tdfanet as T
 from radaredge.training.losses import lazy_quadruplet_loss
 from radaredge.training.places import TupleMiner, load_place_windows
-
-from conftest import TINY_CARD, invoke
 
 
 @pytest.fixture(scope="module")
@@ -56,10 +55,10 @@ def _unit(rows):
 
 def test_lazy_quadruplet_loss_by_hand():
     q = _unit([[1.0, 0.0, 0.0]])
-    pos = _unit([[[1.0, 0.1, 0.0], [0.0, 1.0, 0.0]]])          # the best positive is the first
-    neg = _unit([[[0.9, 0.2, 0.0], [0.0, 0.0, 1.0]]])          # the hardest negative is the first
+    pos = _unit([[[1.0, 0.1, 0.0], [0.0, 1.0, 0.0]]])  # the best positive is the first
+    neg = _unit([[[0.9, 0.2, 0.0], [0.0, 0.0, 1.0]]])  # the hardest negative is the first
     star = _unit([[0.95, 0.0, 0.3]])
-    d = lambda a, b: float((a - b).norm())                      # noqa: E731
+    d = lambda a, b: float((a - b).norm())  # noqa: E731
     d_pos, d_neg, d_star = d(q[0], pos[0, 0]), d(q[0], neg[0, 0]), d(q[0], star[0])
     expected = max(0.0, 0.2 + d_pos - d_neg) + max(0.0, 0.1 + d_pos - d_star)
     assert float(lazy_quadruplet_loss(q, pos, neg, star)) == pytest.approx(expected, abs=1e-12)
@@ -85,7 +84,7 @@ def test_tuples_follow_the_radii(card, town):
         assert dist[t.other_negative] > 10.0
         apart = lambda i: all(np.linalg.norm(data.positions[i] - data.positions[n]) > 10.0 for n in t.negatives)  # noqa: E731
         if any(apart(i) for i in np.flatnonzero(~data.validation) if dist[i] > 10.0):
-            assert apart(t.other_negative)       # neg* is a negative of every negative when one exists
+            assert apart(t.other_negative)  # neg* is a negative of every negative when one exists
         assert not any(data.validation[[t.query, *t.positives, *t.negatives, t.other_negative]])
 
 
@@ -97,8 +96,12 @@ def test_the_hardest_other_negative_is_the_nearest_descriptor_among_the_far_wind
     train = np.flatnonzero(~data.validation)
     for q in hardest.queries[::15]:
         t = hardest.tuple_for(int(q), np.random.default_rng(0))
-        far = [i for i in train if data.distances(t.query)[i] > 10.0
-               and all(np.linalg.norm(data.positions[i] - data.positions[n]) > 10.0 for n in t.negatives)]
+        far = [
+            i
+            for i in train
+            if data.distances(t.query)[i] > 10.0
+            and all(np.linalg.norm(data.positions[i] - data.positions[n]) > 10.0 for n in t.negatives)
+        ]
         if far:
             gap = np.linalg.norm(desc[far] - desc[t.query], axis=1)
             assert t.other_negative == far[int(np.argmin(gap))]
@@ -135,8 +138,14 @@ def test_tuple_loss_is_the_full_tuples_loss_and_gradient(card, town):
                 d = F.normalize(torch.cat([model.describe([prepared[i]]) for i in idx]), dim=1)
                 loss = lazy_quadruplet_loss(d[:1], d[1:3][None], d[3:9][None], d[-1:])
             loss.backward()
-            runs.append((loss.detach(), [p.grad.clone() for p in model.parameters()],
-                         {k: v.clone() for k, v in model.state_dict().items()}, torch.get_rng_state()))
+            runs.append(
+                (
+                    loss.detach(),
+                    [p.grad.clone() for p in model.parameters()],
+                    {k: v.clone() for k, v in model.state_dict().items()},
+                    torch.get_rng_state(),
+                )
+            )
         (l0, g0, s0, r0), (l1, g1, s1, r1) = runs
         assert torch.equal(l0, l1) and float(l0) > 0
         assert all(torch.equal(a, b) for a, b in zip(g0, g1))
@@ -153,17 +162,19 @@ def test_pillar_batch_statistics_are_openpcdets_padded_ones(card):
     a.vfe.train()
     b.vfe.train()
     canvas = a.vfe(points, torch.ones(len(points), dtype=torch.bool))
-    feats, coords = pillar_features_reference(b.vfe, points.numpy())          # nn.BatchNorm1d on every slot
+    feats, coords = pillar_features_reference(b.vfe, points.numpy())  # nn.BatchNorm1d on every slot
     reference = scatter_pillars_reference(feats, coords, b.vfe.config)
     torch.testing.assert_close(canvas, reference, atol=2e-5, rtol=1e-5)
     for name in ("running_mean", "running_var"):
         torch.testing.assert_close(getattr(a.vfe.pfn_layers[0].norm, name), getattr(b.vfe.pfn_layers[0].norm, name))
-    a.eval()                                   # eval outputs are those of the running statistics
+    a.eval()  # eval outputs are those of the running statistics
     b.eval()
-    torch.testing.assert_close(a.vfe(points, torch.ones(len(points), dtype=torch.bool)),
-                               scatter_pillars_reference(*pillar_features_reference(b.vfe, points.numpy()),
-                                                         b.vfe.config),
-                               atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        a.vfe(points, torch.ones(len(points), dtype=torch.bool)),
+        scatter_pillars_reference(*pillar_features_reference(b.vfe, points.numpy()), b.vfe.config),
+        atol=2e-5,
+        rtol=1e-5,
+    )
 
 
 @pytest.mark.parametrize("name", ["tdfanet", "tdfanet-edge"])
@@ -196,7 +207,7 @@ def test_forward_creates_no_cpu_tensor_on_another_device(card):
     frames, ts = _window(card)
     model = create_model(load_card("tdfanet-edge")).to("meta")
     with _CpuTensors() as watch:
-        torch.zeros(3)                         # the watch sees a CPU tensor when one is made
+        torch.zeros(3)  # the watch sees a CPU tensor when one is made
     assert watch.ops
     with _CpuTensors() as watch:
         out = model.run([f.to("meta") for f in frames], ts.to("meta"))
@@ -258,9 +269,26 @@ def test_ablation_switches_export_with_parity(switch, tmp_path):
 
 
 def _train(town, out, epochs, *extra):
-    return invoke("train", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--data", town, "--output", out,
-                  "--epochs", epochs, "--set", "negatives=6", "--set", "hard_negatives=3",
-                  "--set", "tuples_per_epoch=12", *extra)
+    return invoke(
+        "train",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--data",
+        town,
+        "--output",
+        out,
+        "--epochs",
+        epochs,
+        "--set",
+        "negatives=6",
+        "--set",
+        "hard_negatives=3",
+        "--set",
+        "tuples_per_epoch=12",
+        *extra,
+    )
 
 
 def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_path):
@@ -278,11 +306,31 @@ def test_train_writes_an_exportable_checkpoint_and_resumes_exactly(town, tmp_pat
     a = torch.load(tmp_path / "a" / "last.pth", weights_only=True)["model_state"]
     b = torch.load(tmp_path / "b" / "last.pth", weights_only=True)["model_state"]
     assert all(torch.equal(a[k], b[k]) for k in a)
-    res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--checkpoint",
-                 tmp_path / "b" / "best.pth", "--output", tmp_path / "t.onnx")
+    res = invoke(
+        "export",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--checkpoint",
+        tmp_path / "b" / "best.pth",
+        "--output",
+        tmp_path / "t.onnx",
+    )
     assert res.exit_code == 0, res.output
-    par = invoke("parity-check", "--model", "tdfanet-tiny", "--config", TINY_CARD, "--checkpoint",
-                 tmp_path / "b" / "best.pth", "--onnx", tmp_path / "t.onnx", "--cases", 4)
+    par = invoke(
+        "parity-check",
+        "--model",
+        "tdfanet-tiny",
+        "--config",
+        TINY_CARD,
+        "--checkpoint",
+        tmp_path / "b" / "best.pth",
+        "--onnx",
+        tmp_path / "t.onnx",
+        "--cases",
+        4,
+    )
     assert par.exit_code == 0, par.output
     again = _train(town, tmp_path / "a", 2, "--resume")
     assert again.exit_code == 2 and "already holds epoch 2" in again.output
@@ -302,10 +350,11 @@ def test_a_run_stopped_within_an_epoch_resumes_at_the_next_step(card, town, tmp_
             if calls["n"] > n:
                 raise KeyboardInterrupt
             return real(*args, **kwargs)
+
         calls["n"] = 0
         monkeypatch.setattr(T, "tuple_loss", loss)
 
-    for stop in (0, 13):                   # before epoch 1's first step; at step 5 of epoch 2
+    for stop in (0, 13):  # before epoch 1's first step; at step 5 of epoch 2
         out = tmp_path / f"a{stop}"
         dies_at(stop)
         with pytest.raises(KeyboardInterrupt):
@@ -357,7 +406,7 @@ def test_a_tiny_card_learns(card, tmp_path):
     assert [e["epoch"] for e in epochs] == [0, 1, 2, 3]
     assert epochs[-1]["loss"] < epochs[1]["loss"]
     assert epochs[-1]["val_R@1"] > epochs[0]["val_R@1"] + 10.0, epochs
-    for e in epochs:                       # the recall is a share of val_queries scored queries
+    for e in epochs:  # the recall is a share of val_queries scored queries
         hits = e["val_R@1"] * e["val_queries"] / 100.0
         assert e["val_queries"] > 0 and abs(hits - round(hits)) < 1e-6, e
 
@@ -374,23 +423,31 @@ def test_every_ablation_trains(switch, town, tmp_path):
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        report = T.train_places(card, model, town, tmp_path / "run",
-                                T.PlaceRecipe(epochs=1, negatives=6, hard_negatives=3, tuples_per_epoch=20))
+        report = T.train_places(
+            card,
+            model,
+            town,
+            tmp_path / "run",
+            T.PlaceRecipe(epochs=1, negatives=6, hard_negatives=3, tuples_per_epoch=20),
+        )
     finally:
         torch.set_num_threads(threads)
     assert np.isfinite(report.epochs[-1]["loss"])
     assert any(not torch.equal(before[k], v) for k, v in model.state_dict().items())
 
 
-@pytest.mark.parametrize("damage, says", [
-    ("no-gps", "gps.csv: no such file"),
-    ("empty-scans", "no .npy scan files"),
-    ("apart", "too few positives"),
-    ("nan", "scans/000004.npy: non-finite value nan at point 1, column 'rcs'"),
-])
+@pytest.mark.parametrize(
+    "damage, says",
+    [
+        ("no-gps", "gps.csv: no such file"),
+        ("empty-scans", "no .npy scan files"),
+        ("apart", "too few positives"),
+        ("nan", "scans/000004.npy: non-finite value nan at point 1, column 'rcs'"),
+    ],
+)
 def test_bad_training_data_is_one_error_line_naming_the_drive(tmp_path, damage, says):
     root = tmp_path / "data"
-    make_pr_benchmark(root / "town-1", drives=4, frames_per_drive=16, seed=1)    # drive-03 validates
+    make_pr_benchmark(root / "town-1", drives=4, frames_per_drive=16, seed=1)  # drive-03 validates
     drive = root / "town-1" / "queries" / "drive-01"
     if damage == "no-gps":
         (drive / "gps.csv").unlink()
@@ -403,13 +460,14 @@ def test_bad_training_data_is_one_error_line_naming_the_drive(tmp_path, damage, 
         np.save(drive / "scans" / "000004.npy", values)
     else:
         lines = (drive / "gps.csv").read_text().splitlines()
-        shifted = [lines[0]] + [",".join([r.split(",")[0], str(float(r.split(",")[1]) + 500.0), r.split(",")[2]])
-                                for r in lines[1:]]
+        shifted = [lines[0]] + [
+            ",".join([r.split(",")[0], str(float(r.split(",")[1]) + 500.0), r.split(",")[2]]) for r in lines[1:]
+        ]
         (drive / "gps.csv").write_text("\n".join(shifted) + "\n")
     res = _train(root, tmp_path / "run", 1)
     assert res.exit_code == 2 and "Traceback" not in res.output
     errors = [line for line in res.stderr.splitlines() if line.startswith("error:")]
-    last = res.stderr.strip().splitlines()[-1]      # progress lines may come first; the error ends the run
+    last = res.stderr.strip().splitlines()[-1]  # progress lines may come first; the error ends the run
     assert errors == [last] and "drive-01" in last and says in last, res.output
     assert not (tmp_path / "run").exists()
 
@@ -420,11 +478,11 @@ def test_transloc4d_layout_matches_rows_to_timestamp_named_files(tmp_path):
     stamps = [1646303235000000 + 100_000 * i for i in range(5)]
     for i, s in enumerate(stamps):
         np.save(drive / "pointclouds" / f"{s}.npy", np.full((4, 5), i, np.float32))
-    np.save(drive / "pointclouds" / "1646303299000000.npy", np.zeros((4, 5), np.float32))   # no row: ignored
+    np.save(drive / "pointclouds" / "1646303299000000.npy", np.zeros((4, 5), np.float32))  # no row: ignored
     rows = ["timestamp,northing,easting,yaw"] + [f"{s},{100 + i},{200 - i},0.1" for i, s in enumerate(stamps)]
     (drive / "gps.csv").write_text("\n".join(rows) + "\n")
     seq = load_sequence(drive)
-    np.testing.assert_allclose(np.diff(seq.timestamps), 0.1, rtol=0, atol=1e-6)   # float64 epoch s: 0.24 us steps
+    np.testing.assert_allclose(np.diff(seq.timestamps), 0.1, rtol=0, atol=1e-6)  # float64 epoch s: 0.24 us steps
     assert seq.scan(3, ["x", "v_r"]).tolist() == [[3.0, 3.0]] * 4
     np.testing.assert_allclose(seq.positions[2], [102.0, 198.0])
     (drive / "pointclouds" / f"{stamps[2]}.npy").unlink()

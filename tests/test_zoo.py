@@ -49,8 +49,9 @@ def _rescore_detector(card, onnx, spec, tmp_path) -> dict:
 
 def _rescore_places(card, onnx, spec, tmp_path) -> dict:
     make_pr_benchmark(tmp_path / "town", spec["drives"], spec["frames"], spec["seed"])
-    report = radaredge.evaluate(card, onnx, tmp_path / "town" / "database", tmp_path / "town" / "queries",
-                                reference=False)
+    report = radaredge.evaluate(
+        card, onnx, tmp_path / "town" / "database", tmp_path / "town" / "queries", reference=False
+    )
     assert report.evaluated == spec["queries"]
     return {"R@1": report.recall(ORT)[1]}
 

@@ -35,8 +35,7 @@ from ..runtime.openvino import openvino_installed
 from ..runtime.runners import lazy_runner
 from ..runtime.session import checked_threads
 from .profiling import onnxruntime_peak_rss_mb, profile_runs, stage_times_from_profile, top_ops
-from .timing import BackendResult, benchmark, cpu_name, format_differences, output_differences, \
-    pinned, results_table
+from .timing import BackendResult, benchmark, cpu_name, format_differences, output_differences, pinned, results_table
 
 
 @dataclass(frozen=True)
@@ -86,11 +85,16 @@ class TaskResult:
         return ort.p50_ms / ov.p50_ms if ort and ov else None
 
     def to_dict(self) -> dict:
-        return {"title": self.title, "baseline": self.baseline, "rows": [asdict(r) for r in self.rows],
-                "onnxruntime_speedup": self.onnxruntime_speedup, "int8_vs_fp32": self.int8_vs_fp32,
-                "openvino_vs_onnxruntime": self.openvino_vs_onnxruntime,
-                **({"items_per_case": self.items_per_case, "item_unit": self.item_unit} if self.items_per_case else {}),
-                **self.facts}
+        return {
+            "title": self.title,
+            "baseline": self.baseline,
+            "rows": [asdict(r) for r in self.rows],
+            "onnxruntime_speedup": self.onnxruntime_speedup,
+            "int8_vs_fp32": self.int8_vs_fp32,
+            "openvino_vs_onnxruntime": self.openvino_vs_onnxruntime,
+            **({"items_per_case": self.items_per_case, "item_unit": self.item_unit} if self.items_per_case else {}),
+            **self.facts,
+        }
 
 
 @dataclass
@@ -126,60 +130,87 @@ class BenchReport:
         return atomic.write_json(path, self.to_dict())
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "threads": self.threads, "cores": self.cores, "cpu": self.cpu, "runs": self.runs,
-                "date": self.date, "tasks": {n: t.to_dict() for n, t in self.tasks.items()},
-                "graphs": {n: {"stage_ms": g.stage_ms, "top_ops": g.top_ops,
-                               "onnxruntime_peak_rss_mib": g.peak_rss_mib,
-                               "openvino_vs_onnxruntime_max_abs": g.openvino_max_abs} for n, g in self.graphs.items()}}
+        return {
+            "model": self.model,
+            "threads": self.threads,
+            "cores": self.cores,
+            "cpu": self.cpu,
+            "runs": self.runs,
+            "date": self.date,
+            "tasks": {n: t.to_dict() for n, t in self.tasks.items()},
+            "graphs": {
+                n: {
+                    "stage_ms": g.stage_ms,
+                    "top_ops": g.top_ops,
+                    "onnxruntime_peak_rss_mib": g.peak_rss_mib,
+                    "openvino_vs_onnxruntime_max_abs": g.openvino_max_abs,
+                }
+                for n, g in self.graphs.items()
+            },
+        }
 
     def lines(self) -> list[str]:
-        out = [f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu}, {self.runs} runs, "
-               f"{self.date}"]
+        out = [
+            f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu}, {self.runs} runs, {self.date}"
+        ]
         for t in self.tasks.values():
             if t.title:
                 out.append(t.title + ":")
             out.append(results_table(t.rows, t.baseline, t.items_per_case, t.item_unit))
             if t.onnxruntime_speedup:
-                out.append("onnxruntime speed-up: "
-                           + ", ".join(f"{v:.2f}x vs {k}" for k, v in t.onnxruntime_speedup.items()))
+                out.append(
+                    "onnxruntime speed-up: " + ", ".join(f"{v:.2f}x vs {k}" for k, v in t.onnxruntime_speedup.items())
+                )
             if t.int8_vs_fp32 is not None:
-                out.append(f"int8 vs fp32: {t.int8_vs_fp32:.2f}x" +
-                           ("  (int8 is SLOWER than fp32 on this CPU)" if t.int8_vs_fp32 < 1 else ""))
+                out.append(
+                    f"int8 vs fp32: {t.int8_vs_fp32:.2f}x"
+                    + ("  (int8 is SLOWER than fp32 on this CPU)" if t.int8_vs_fp32 < 1 else "")
+                )
             extras = self.graphs.get(t.name)
             if t.openvino_vs_onnxruntime is not None and extras and extras.openvino_max_abs is not None:
-                out.append(f"openvino vs onnxruntime: {t.openvino_vs_onnxruntime:.2f}x; largest output difference on "
-                           f"the bench inputs: {format_differences(extras.openvino_max_abs)} "
-                           f"(`radaredge parity-check --runtime openvino` checks it against the reference)")
+                out.append(
+                    f"openvino vs onnxruntime: {t.openvino_vs_onnxruntime:.2f}x; largest output difference on "
+                    f"the bench inputs: {format_differences(extras.openvino_max_abs)} "
+                    f"(`radaredge parity-check --runtime openvino` checks it against the reference)"
+                )
         for name, g in self.graphs.items():
             label = f"{name}: " if len(self.graphs) > 1 else ""
             if g.stage_ms:
                 names = list(dict.fromkeys(k for row in g.stage_ms.values() for k in row))
-                out.append(f"{label}per-stage ms (torch: median; onnxruntime: mean from its profiler): "
-                           + " | ".join(names))
+                out.append(
+                    f"{label}per-stage ms (torch: median; onnxruntime: mean from its profiler): " + " | ".join(names)
+                )
                 for backend, row in g.stage_ms.items():
-                    out.append(f"  {backend:<16}"
-                               + "".join(f"{row[k]:>14.1f}" if k in row else f"{'-':>14}" for k in names))
+                    out.append(
+                        f"  {backend:<16}" + "".join(f"{row[k]:>14.1f}" if k in row else f"{'-':>14}" for k in names)
+                    )
             if g.peak_rss_mib is not None:
-                out.append(f"{label}onnxruntime peak RSS: {g.peak_rss_mib:.0f} MiB (a separate numpy + onnxruntime "
-                           f"process running the bench inputs once)")
+                out.append(
+                    f"{label}onnxruntime peak RSS: {g.peak_rss_mib:.0f} MiB (a separate numpy + onnxruntime "
+                    f"process running the bench inputs once)"
+                )
             if g.top_ops:
-                out.append(f"{label}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a "
-                           "separately profiled session; the profiler slows small ops):")
+                out.append(
+                    f"{label}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a "
+                    "separately profiled session; the profiler slows small ops):"
+                )
                 out += [f"  {op:<24}{ms:10.1f}" for op, ms in g.top_ops]
         return out
 
 
 MAX_RUNS = 100_000
-BENCH_CASES, BENCH_SEED = 4, 1          # the inputs every backend is timed on: 4 synthetic cases, seed 1
+BENCH_CASES, BENCH_SEED = 4, 1  # the inputs every backend is timed on: 4 synthetic cases, seed 1
 
 
-def pipeline_backends(card: ModelCard, graph, module, onnx_path, options: BenchOptions, int8_path=None,
-                      openvino: bool = False) -> dict[str, Callable]:
+def pipeline_backends(
+    card: ModelCard, graph, module, onnx_path, options: BenchOptions, int8_path=None, openvino: bool = False
+) -> dict[str, Callable]:
     """name -> fn(feeds) running one graph's pipeline: the torch reference (``options.reference``),
     the torch export formulation, onnxruntime fp32, onnxruntime on ``int8_path`` and, with
     ``openvino``, the same graph(s) in OpenVINO's CPU plugin. The sessions are never profiled
     (onnxruntime's profiler costs time in every node); profiles come from a session of their own.
     Graphs load on their first run, so one that fails to load is a failed row."""
+
     def torch_export(feeds):
         with torch.no_grad():
             graph.run_export(module, {k: torch.from_numpy(v) for k, v in feeds.items()}, None)
@@ -209,11 +240,20 @@ def default_tasks(card: ModelCard, spec, model, paths: dict[str, Path], options:
     tasks = []
     for g in spec.graphs:
         cases = [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
-        backends = pipeline_backends(card, g, g.module(model), paths[g.name], options, options.int8.get(g.name),
-                                     openvino)
-        tasks.append(BenchTask(g.name, "" if len(spec.graphs) == 1 else f"{g.name}, {options.runs} runs", backends,
-                               cases, options.runs, options.warmup,
-                               baseline="torch reference" if options.reference else "torch export"))
+        backends = pipeline_backends(
+            card, g, g.module(model), paths[g.name], options, options.int8.get(g.name), openvino
+        )
+        tasks.append(
+            BenchTask(
+                g.name,
+                "" if len(spec.graphs) == 1 else f"{g.name}, {options.runs} runs",
+                backends,
+                cases,
+                options.runs,
+                options.warmup,
+                baseline="torch reference" if options.reference else "torch export",
+            )
+        )
     return tasks
 
 
@@ -230,15 +270,32 @@ def _stage_ms(graph, module, cases, n: int, reference: bool, onnx_path, profile)
         laps = [graph.stage_times(module, cases[i % len(cases)], ref) for i in range(n)]
         out[label] = {k: statistics.median(lap[k] for lap in laps) * 1e3 for k in laps[0]}
     if graph.onnx_stages and profile is not None:
-        out["onnxruntime"] = stage_times_from_profile(profile, onnx.load(str(onnx_path), load_external_data=False),
-                                                      list(graph.onnx_stages), graph.onnx_post_outputs, n)
+        out["onnxruntime"] = stage_times_from_profile(
+            profile,
+            onnx.load(str(onnx_path), load_external_data=False),
+            list(graph.onnx_stages),
+            graph.onnx_post_outputs,
+            n,
+        )
     return out
 
 
-def bench(card: ModelCard | str | Path, onnx: str | Path | None = None, *, checkpoint: str | Path | None = None,
-          model=None, threads: int = 2, runs: int = 20, warmup: int = 3, reference: bool = True,
-          int8: str | Path | bool | None = None, profile: bool = False, openvino: bool | None = None,
-          progress: Callable[[str], Callable] | None = None, log: Callable[[str], None] | None = None) -> BenchReport:
+def bench(
+    card: ModelCard | str | Path,
+    onnx: str | Path | None = None,
+    *,
+    checkpoint: str | Path | None = None,
+    model=None,
+    threads: int = 2,
+    runs: int = 20,
+    warmup: int = 3,
+    reference: bool = True,
+    int8: str | Path | bool | None = None,
+    profile: bool = False,
+    openvino: bool | None = None,
+    progress: Callable[[str], Callable] | None = None,
+    log: Callable[[str], None] | None = None,
+) -> BenchReport:
     """Time every backend of the card's model on ``threads`` pinned cores, ``runs`` timed runs
     after ``warmup``, backends alternating every run. ``onnx`` (the bundle, default the export
     path) is exported first when missing. Each graph's int8 copy beside it is timed too when it
@@ -254,8 +311,23 @@ def bench(card: ModelCard | str | Path, onnx: str | Path | None = None, *, check
     if int8 not in (None, True, False) and not Path(int8).is_file():
         raise InputError(f"--int8 {int8} does not exist; write it with `radaredge export --quantize int8`")
     with pinned(threads) as cores:
-        return _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino,
-                      progress, log, cores)
+        return _bench(
+            card,
+            spec,
+            onnx,
+            checkpoint,
+            model,
+            threads,
+            runs,
+            warmup,
+            reference,
+            int8,
+            profile,
+            openvino,
+            progress,
+            log,
+            cores,
+        )
 
 
 def require_int8_copy(int8_path: Path, fp32) -> None:
@@ -264,16 +336,21 @@ def require_int8_copy(int8_path: Path, fp32) -> None:
     weights, so a row labelled int8 times what its label says."""
     q = rt.load(int8_path, threads=1)
     if q.info.quantization is None:
-        raise ConfigError(f"--int8 {int8_path} is not an int8 graph (no radaredge.quantization in its metadata); "
-                          f"write one with `radaredge export --quantize int8`")
+        raise ConfigError(
+            f"--int8 {int8_path} is not an int8 graph (no radaredge.quantization in its metadata); "
+            f"write one with `radaredge export --quantize int8`"
+        )
     if q.card.name != fp32.card.name or q.weights_sha256 != fp32.weights_sha256 or q.info.part != fp32.info.part:
-        raise ConfigError(f"--int8 {int8_path} is the int8 copy of another graph ({q.card.name}, weights "
-                          f"{q.weights_sha256[:12]}) than {fp32.path} ({fp32.card.name}, weights "
-                          f"{fp32.weights_sha256[:12]}); export both from the same card and checkpoint")
+        raise ConfigError(
+            f"--int8 {int8_path} is the int8 copy of another graph ({q.card.name}, weights "
+            f"{q.weights_sha256[:12]}) than {fp32.path} ({fp32.card.name}, weights "
+            f"{fp32.weights_sha256[:12]}); export both from the same card and checkpoint"
+        )
 
 
-def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino, progress,
-           log, cores) -> BenchReport:
+def _bench(
+    card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino, progress, log, cores
+) -> BenchReport:
     say = log or (lambda line: None)
     if model is None:
         model = create_model(card, checkpoint, spec)
@@ -283,24 +360,30 @@ def _bench(card, spec, onnx, checkpoint, model, threads, runs, warmup, reference
     if not all(p.exists() for p in paths.values()):
         say(f"{bundle.path} missing: exporting it first")
         write_export(card, spec, model, bundle)
-    for p in paths.values():                 # a file that is no export of this card is bad input, not a failed backend
+    for p in paths.values():  # a file that is no export of this card is bad input, not a failed backend
         exported = rt.load(p, threads=1)
         if exported.card.name != card.name:
-            raise ConfigError(f"{p} is an export of card {exported.card.name!r}, not {card.name!r}; pass the "
-                              f"--model/--config it was exported with")
+            raise ConfigError(
+                f"{p} is an export of card {exported.card.name!r}, not {card.name!r}; pass the "
+                f"--model/--config it was exported with"
+            )
     int8_paths = int8_copies(card, spec, paths, int8, say)
     options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths, say)
-    tasks = (spec.bench_tasks(card, model, paths, options) if spec.bench_tasks is not None
-             else default_tasks(card, spec, model, paths, options))
+    tasks = (
+        spec.bench_tasks(card, model, paths, options)
+        if spec.bench_tasks is not None
+        else default_tasks(card, spec, model, paths, options)
+    )
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     report = BenchReport(card.name, threads, cores, cpu_name(), runs, stamp)
     for t in tasks:
-        rows = benchmark(t.backends, t.cases, t.runs, t.warmup,
-                         progress=progress(f"bench {t.name}") if progress else None)
+        rows = benchmark(
+            t.backends, t.cases, t.runs, t.warmup, progress=progress(f"bench {t.name}") if progress else None
+        )
         report.tasks[t.name] = TaskResult(t.name, t.title, rows, t.baseline, t.items_per_case, t.item_unit, t.facts)
     n_profiled = max(3, min(runs, 10))
     for g in spec.graphs:
-        task = next((t for t in tasks if t.name == g.name), None)      # the graph's own pipeline task
+        task = next((t for t in tasks if t.name == g.name), None)  # the graph's own pipeline task
         cases = task.cases if task is not None else [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
         extras = GraphExtras(profiled_runs=n_profiled)
         rows = report.tasks[g.name].rows if g.name in report.tasks else []
@@ -326,8 +409,10 @@ def int8_copies(card: ModelCard, spec, paths: dict[str, Path], int8, say) -> dic
         q = rt.load(int8, threads=1)
         name = next((n for n, g in fp32.items() if g.info.part == q.info.part), None)
         if name is None:
-            raise ConfigError(f"--int8 {int8} is not the int8 copy of a graph of {card.name} (its part "
-                              f"{q.info.part!r}; the graphs: {', '.join(paths)})")
+            raise ConfigError(
+                f"--int8 {int8} is not the int8 copy of a graph of {card.name} (its part "
+                f"{q.info.part!r}; the graphs: {', '.join(paths)})"
+            )
         require_int8_copy(Path(int8), fp32[name])
         return {name: Path(int8)}
     policy = spec.int8
@@ -346,7 +431,7 @@ def int8_copies(card: ModelCard, spec, paths: dict[str, Path], int8, say) -> dic
 def write_int8_copies(card: ModelCard, spec, paths: dict[str, Path]) -> None:
     """The model's int8 copies of the graphs at ``paths``, written beside them atomically (made
     from staged copies of the graphs, of which only the int8 files are moved into place)."""
-    with atomic.Staging(next(iter(paths.values())).parent) as stage:     # every graph of a bundle is in one directory
+    with atomic.Staging(next(iter(paths.values())).parent) as stage:  # every graph of a bundle is in one directory
         staged = {name: stage.path(p) for name, p in paths.items()}
         for name, p in paths.items():
             shutil.copyfile(p, staged[name])

@@ -49,24 +49,25 @@ def _module_stage(names: list[str], stages: list[tuple[str, tuple[str, ...]]]) -
     return None
 
 
-def node_stages(model: onnx.ModelProto, stages: list[tuple[str, tuple[str, ...]]],
-                post_outputs: tuple[str, ...] = ()) -> dict[str, str]:
+def node_stages(
+    model: onnx.ModelProto, stages: list[tuple[str, tuple[str, ...]]], post_outputs: tuple[str, ...] = ()
+) -> dict[str, str]:
     """Top-level node name -> stage name, by the three rules of the module docstring."""
     order = [s for s, _ in stages]
     rank = {s: i for i, s in enumerate(order)}
-    nodes = list(model.graph.node)               # topologically sorted (ONNX requires it)
+    nodes = list(model.graph.node)  # topologically sorted (ONNX requires it)
     producer = {out: n.name for n in nodes for out in n.output}
     stage: dict[str, str | None] = {n.name: _module_stage(module_names(n), stages) for n in nodes}
 
     def parents(n):
         return [producer[i] for i in n.input if i in producer]
 
-    post = set()                                 # nodes downstream of a post graph output
+    post = set()  # nodes downstream of a post graph output
     post_tensors = set(post_outputs)
     for n in nodes:
         if stage[n.name] is None and (post_tensors & set(n.input) or any(p in post for p in parents(n))):
             post.add(n.name)
-    for n in nodes:                              # rule 2, then rule 3 (ancestors), in topological order
+    for n in nodes:  # rule 2, then rule 3 (ancestors), in topological order
         if stage[n.name] is not None:
             continue
         if n.name in post:
@@ -79,7 +80,7 @@ def node_stages(model: onnx.ModelProto, stages: list[tuple[str, tuple[str, ...]]
     for n in nodes:
         for p in parents(n):
             consumers[p].append(n.name)
-    for n in reversed(nodes):                    # rule 3 (consumers), in reverse topological order
+    for n in reversed(nodes):  # rule 3 (consumers), in reverse topological order
         if stage[n.name] is None:
             below = [stage[c] for c in consumers[n.name] if stage[c] is not None]
             stage[n.name] = min(below, key=rank.__getitem__) if below else order[0]
@@ -112,16 +113,21 @@ def _subgraph_node_names(model: onnx.ModelProto) -> set[str]:
     def walk(graph):
         for n in graph.node:
             for attr in n.attribute:
-                for g in ([attr.g] if attr.type == onnx.AttributeProto.GRAPH else list(attr.graphs)):
+                for g in [attr.g] if attr.type == onnx.AttributeProto.GRAPH else list(attr.graphs):
                     names.update(m.name for m in g.node)
                     walk(g)
+
     walk(model.graph)
     return names
 
 
-def stage_times_from_profile(events: list[dict], model: onnx.ModelProto,
-                             stages: list[tuple[str, tuple[str, ...]]], post_outputs: tuple[str, ...],
-                             runs: int) -> dict[str, float]:
+def stage_times_from_profile(
+    events: list[dict],
+    model: onnx.ModelProto,
+    stages: list[tuple[str, tuple[str, ...]]],
+    post_outputs: tuple[str, ...],
+    runs: int,
+) -> dict[str, float]:
     """Mean milliseconds per stage and run, from the onnxruntime profile events of ``runs`` runs
     of ``model`` (:func:`profile_runs`).
 
@@ -180,9 +186,13 @@ def onnxruntime_peak_rss_mb(onnx_path, cases: list[dict], threads: int) -> float
     with tempfile.TemporaryDirectory() as tmp:
         npz = Path(tmp) / "cases.npz"
         np.savez(npz, **{f"{i}/{k}": v for i, feeds in enumerate(cases) for k, v in feeds.items()})
-        done = subprocess.run([sys.executable, "-c", _RSS_CHILD, str(onnx_path), str(npz), str(threads)],
-                              capture_output=True, text=True, check=True)
-    return int(done.stdout.split()[-1]) / 1024.0          # VmHWM and Linux ru_maxrss are in KiB
+        done = subprocess.run(
+            [sys.executable, "-c", _RSS_CHILD, str(onnx_path), str(npz), str(threads)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    return int(done.stdout.split()[-1]) / 1024.0  # VmHWM and Linux ru_maxrss are in KiB
 
 
 def top_ops(events: list[dict], k: int = 10, runs: int = 1) -> list[tuple[str, float]]:

@@ -45,6 +45,7 @@ def pin_threads(threads: int) -> list[int] | None:
         # optional: torch's thread count is pinned too when torch is installed (the harness
         # also times torch-free backends)
         import torch
+
         torch.set_num_threads(threads)
     except ImportError:
         pass
@@ -68,6 +69,7 @@ def pinned(threads: int):
         # optional: torch's thread count is pinned too when torch is installed (the harness
         # also times torch-free backends)
         import torch
+
         torch_threads = torch.get_num_threads()
     except ImportError:
         torch = None
@@ -95,8 +97,9 @@ def summarise(name: str, times_s: list[float]) -> BackendResult:
     """Percentiles of one backend's run times (s) as a row."""
     ms = np.asarray(times_s) * 1e3
     p50 = float(np.percentile(ms, 50))
-    return BackendResult(name, len(ms), p50, float(np.percentile(ms, 90)), float(np.percentile(ms, 99)),
-                         float(ms.mean()), 1e3 / p50)
+    return BackendResult(
+        name, len(ms), p50, float(np.percentile(ms, 90)), float(np.percentile(ms, 99)), float(ms.mean()), 1e3 / p50
+    )
 
 
 # Idle time before each timed run, s. torch's OpenMP workers (GNU libgomp, OMP_WAIT_POLICY unset)
@@ -115,7 +118,7 @@ def benchmark(backends: dict, cases: list, runs: int, warmup: int = 3, progress=
         try:
             backends[name](case)
             return True
-        except Exception as exc:        # a backend's own failure: reported in its row, the bench goes on
+        except Exception as exc:  # a backend's own failure: reported in its row, the bench goes on
             failed[name] = f"{type(exc).__name__}: {exc}".splitlines()[0]
             return False
 
@@ -126,17 +129,21 @@ def benchmark(backends: dict, cases: list, runs: int, warmup: int = 3, progress=
     times: dict[str, list[float]] = {n: [] for n in backends}
     order = list(backends)
     it = range(runs)
-    for i in (progress(it) if progress else it):
+    for i in progress(it) if progress else it:
         case = cases[i % len(cases)]
-        for name in order[i % len(order):] + order[: i % len(order)]:   # rotate who goes first
+        for name in order[i % len(order) :] + order[: i % len(order)]:  # rotate who goes first
             if name in failed:
                 continue
             time.sleep(SETTLE_S)
             t0 = time.perf_counter()
             if attempt(name, case):
                 times[name].append(time.perf_counter() - t0)
-    return [BackendResult(n, len(times[n]), None, None, None, None, None, "error", failed[n]) if n in failed
-            else summarise(n, times[n]) for n in backends]
+    return [
+        BackendResult(n, len(times[n]), None, None, None, None, None, "error", failed[n])
+        if n in failed
+        else summarise(n, times[n])
+        for n in backends
+    ]
 
 
 def require_ok(rows: list[BackendResult]) -> list[BackendResult]:
@@ -156,8 +163,11 @@ def output_differences(run_a, run_b, cases: list[dict]) -> dict[str, float]:
         a, b = run_a(feeds), run_b(feeds)
         for name, x in a.items():
             y = np.asarray(b[name])
-            d = (float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64)))) if x.size else 0.0) \
-                if x.shape == y.shape else float("inf")
+            d = (
+                (float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64)))) if x.size else 0.0)
+                if x.shape == y.shape
+                else float("inf")
+            )
             worst[name] = max(worst.get(name, 0.0), d)
     return worst
 
@@ -167,20 +177,28 @@ def format_differences(diffs: dict[str, float]) -> str:
     return ", ".join(f"{k} {v:.2g}" if v != float("inf") else f"{k} (other shape)" for k, v in diffs.items())
 
 
-def results_table(results: list[BackendResult], baseline: str = "torch reference",
-                  items_per_case: int | None = None, item_unit: str = "") -> str:
+def results_table(
+    results: list[BackendResult],
+    baseline: str = "torch reference",
+    items_per_case: int | None = None,
+    item_unit: str = "",
+) -> str:
     """A Markdown table with a speed-up column relative to ``baseline`` (the first working row
     when that failed) and, with ``items_per_case``, a throughput column; failed rows say why."""
     ok = [r for r in results if r]
     base = next((r for r in ok if r.backend == baseline), ok[0] if ok else None)
     extra = f" {item_unit}/s |" if items_per_case else ""
-    lines = [f"| backend | p50 ms | p90 ms | p99 ms | FPS | x vs {base.backend if base else '-'} |{extra}",
-             "|---|---:|---:|---:|---:|---:|" + ("---:|" if items_per_case else "")]
+    lines = [
+        f"| backend | p50 ms | p90 ms | p99 ms | FPS | x vs {base.backend if base else '-'} |{extra}",
+        "|---|---:|---:|---:|---:|---:|" + ("---:|" if items_per_case else ""),
+    ]
     for r in results:
         if not r:
             lines.append(f"| {r.backend} | error: {r.error} |")
             continue
         rate = f" {items_per_case * 1e3 / r.p50_ms:.1f} |" if items_per_case else ""
-        lines.append(f"| {r.backend} | {r.p50_ms:.1f} | {r.p90_ms:.1f} | {r.p99_ms:.1f} | {r.fps:.2f} | "
-                     f"{base.p50_ms / r.p50_ms:.2f} |{rate}")
+        lines.append(
+            f"| {r.backend} | {r.p50_ms:.1f} | {r.p90_ms:.1f} | {r.p99_ms:.1f} | {r.fps:.2f} | "
+            f"{base.p50_ms / r.p50_ms:.2f} |{rate}"
+        )
     return "\n".join(lines)

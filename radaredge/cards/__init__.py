@@ -29,10 +29,10 @@ REQUIRED = ("name", "description", "model", "features")
 CARD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
 # Top-level numbers every model reads: (range, integral). Sections are checked by their dataclasses.
 TOP_LEVEL_NUMBERS = {
-    "frames": (Range(1, 64), True),                       # scans per window
-    "frame_rate": (positive(1000.0), False),              # Hz, the recording's nominal rate
-    "seed": (Range(0, 2**32 - 1), True),                  # weight initialisation seed
-    "max_points_per_frame": (Range(1, 2**24), True),      # runtime capacity per scan
+    "frames": (Range(1, 64), True),  # scans per window
+    "frame_rate": (positive(1000.0), False),  # Hz, the recording's nominal rate
+    "seed": (Range(0, 2**32 - 1), True),  # weight initialisation seed
+    "max_points_per_frame": (Range(1, 2**24), True),  # runtime capacity per scan
 }
 
 # The values a sensor can return in each named point column (units as in radaredge.data.readers):
@@ -41,20 +41,22 @@ TOP_LEVEL_NUMBERS = {
 # ``plausible`` section overrides these per column; a column named neither here nor there is an
 # error. x, y, z are bounded by each model's point_cloud_range, which drops what lies outside.
 PLAUSIBLE_DEFAULTS = {
-    "v_r": (-100.0, 100.0),        # m/s: radial velocity; automotive radars measure well within it
-    "v_r_comp": (-100.0, 100.0),   # m/s: ego-motion compensated radial velocity
-    "rcs": (-100.0, 100.0),        # dBsm (or the power/intensity stand-in, see readers)
-    "snr": (-100.0, 200.0),        # dB
-    "power": (-100.0, 200.0),      # dB
-    "range": (0.0, 1000.0),        # m
-    "alpha": (-360.0, 360.0),      # azimuth angle (degrees or radians)
-    "beta": (-360.0, 360.0),       # elevation angle (degrees or radians)
-    "time": (-10.0, 10.0),         # VoD radar_5frames: the point's scan index, 0 the current, -1 the one before
-    "r": (0.0, 1.0), "g": (0.0, 1.0), "b": (0.0, 1.0),    # colour of a map object's points (Des4Pos)
+    "v_r": (-100.0, 100.0),  # m/s: radial velocity; automotive radars measure well within it
+    "v_r_comp": (-100.0, 100.0),  # m/s: ego-motion compensated radial velocity
+    "rcs": (-100.0, 100.0),  # dBsm (or the power/intensity stand-in, see readers)
+    "snr": (-100.0, 200.0),  # dB
+    "power": (-100.0, 200.0),  # dB
+    "range": (0.0, 1000.0),  # m
+    "alpha": (-360.0, 360.0),  # azimuth angle (degrees or radians)
+    "beta": (-360.0, 360.0),  # elevation angle (degrees or radians)
+    "time": (-10.0, 10.0),  # VoD radar_5frames: the point's scan index, 0 the current, -1 the one before
+    "r": (0.0, 1.0),
+    "g": (0.0, 1.0),
+    "b": (0.0, 1.0),  # colour of a map object's points (Des4Pos)
 }
 COORDINATES = ("x", "y", "z")
 IMPLAUSIBLE_POLICIES = ("drop", "refuse")
-MAX_PLAUSIBLE = 3.0e38               # inside float32: the graphs compare in float32
+MAX_PLAUSIBLE = 3.0e38  # inside float32: the graphs compare in float32
 
 # a window's points are ranked by a float32 CumSum (RANSAC order; TensorRT takes no integer
 # CumSum), exact up to 2**24; the graph adds at most a few padding rows
@@ -70,11 +72,24 @@ MAX_WINDOW_BEV_BYTES = 128 * 2**20
 # Top-level card fields every model takes; each family declares its own sections
 # (radaredge.registry.ModelFamily): any other field of a card of that model is refused, so a
 # misspelt section is an error rather than a section left silently at its defaults.
-COMMON_FIELDS = ("name", "description", "model", "features", "seed", "frames", "frame_rate", "max_points_per_frame",
-                 "classes", "plausible", "implausible", "quantization", "source")
+COMMON_FIELDS = (
+    "name",
+    "description",
+    "model",
+    "features",
+    "seed",
+    "frames",
+    "frame_rate",
+    "max_points_per_frame",
+    "classes",
+    "plausible",
+    "implausible",
+    "quantization",
+    "source",
+)
 
 
-SHIPPED_CARDS = "model_cards"   # the wheel's package of the shipped cards: radaredge/model_cards/*.yaml
+SHIPPED_CARDS = "model_cards"  # the wheel's package of the shipped cards: radaredge/model_cards/*.yaml
 
 
 def cards_dir() -> Path:
@@ -136,7 +151,6 @@ class ModelCard:
         return yaml.safe_dump(self.data, sort_keys=False)
 
 
-
 def _check_window_bev(data: dict, where: str) -> None:
     """ConfigError when a window's BEV maps (``frames`` x the ``pillars`` grid x ``out_channels``
     float32) exceed :data:`MAX_WINDOW_BEV_BYTES`. A malformed pillars section is left to its own
@@ -151,10 +165,12 @@ def _check_window_bev(data: dict, where: str) -> None:
     cells = (nx, ny)
     window = frames * nx * ny * channels * 4
     if window > MAX_WINDOW_BEV_BYTES:
-        raise ConfigError(f"{where}: pillars: {frames} frame(s) of a {cells[0]} x {cells[1]} grid of {channels} "
-                          f"channels are {window / 2**20:.0f} MiB BEV maps per window; at most "
-                          f"{MAX_WINDOW_BEV_BYTES // 2**20} MiB (an export holds 16-31 times that): a coarser "
-                          f"pillars.voxel_size, a smaller point_cloud_range, fewer out_channels or frames")
+        raise ConfigError(
+            f"{where}: pillars: {frames} frame(s) of a {cells[0]} x {cells[1]} grid of {channels} "
+            f"channels are {window / 2**20:.0f} MiB BEV maps per window; at most "
+            f"{MAX_WINDOW_BEV_BYTES // 2**20} MiB (an export holds 16-31 times that): a coarser "
+            f"pillars.voxel_size, a smaller point_cloud_range, fewer out_channels or frames"
+        )
 
 
 def parse_card(data: Any, path: Path | None = None) -> ModelCard:
@@ -176,37 +192,49 @@ def parse_card(data: Any, path: Path | None = None) -> ModelCard:
         if not isinstance(data[key], str) or not data[key]:
             raise ConfigError(f"{where}: {key} must be a non-empty string, got {data[key]!r}")
     if not CARD_NAME.fullmatch(data["name"]) or ".." in data["name"]:
-        raise ConfigError(f"{where}: name {data['name']!r}: a card name becomes file names (export/<name>.onnx, "
-                          f"runs/<name>/), so it is letters, digits and . _ + - only, starting with a letter or "
-                          f"digit, without '..' (e.g. maffnet-vod-edge)")
+        raise ConfigError(
+            f"{where}: name {data['name']!r}: a card name becomes file names (export/<name>.onnx, "
+            f"runs/<name>/), so it is letters, digits and . _ + - only, starting with a letter or "
+            f"digit, without '..' (e.g. maffnet-vod-edge)"
+        )
     for key, (rng, integral) in TOP_LEVEL_NUMBERS.items():
         if key in data:
             if isinstance(data[key], (list, tuple, dict)):
-                raise ConfigError(f"{where}: {key}: expected {'an integer' if integral else 'a number'} in {rng}, "
-                                  f"got {data[key]!r}")
+                raise ConfigError(
+                    f"{where}: {key}: expected {'an integer' if integral else 'a number'} in {rng}, got {data[key]!r}"
+                )
             check_numbers(data[key], rng, integral, f"{where}: {key}")
     window_points = int(data.get("frames", 1)) * int(data.get("max_points_per_frame", 65536))
     if window_points > MAX_WINDOW_POINTS:
-        raise ConfigError(f"{where}: frames x max_points_per_frame is {window_points:,}; at most "
-                          f"{MAX_WINDOW_POINTS:,} points per window (the graphs count points in float32, "
-                          f"exact to 2**24)")
+        raise ConfigError(
+            f"{where}: frames x max_points_per_frame is {window_points:,}; at most "
+            f"{MAX_WINDOW_POINTS:,} points per window (the graphs count points in float32, "
+            f"exact to 2**24)"
+        )
     _check_window_bev(data, where)
     classes = data.get("classes", [])
     if not isinstance(classes, list) or not all(isinstance(c, str) and CARD_NAME.fullmatch(c) for c in classes):
-        raise ConfigError(f"{where}: classes must be a list of class names (letters, digits and . _ + -, as the "
-                          f"labels spell them: they name report files too), got {classes!r}")
+        raise ConfigError(
+            f"{where}: classes must be a list of class names (letters, digits and . _ + -, as the "
+            f"labels spell them: they name report files too), got {classes!r}"
+        )
     sections = card_sections(data["model"])
     known = COMMON_FIELDS + (sections or ())
     unknown = [k for k in data if k not in known]
     if unknown and sections is not None:
-        hints = [f"{k!r} (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(str(k), known, 1))
-                 else repr(k) for k in unknown]
-        raise ConfigError(f"{where}: unknown top-level field(s) {', '.join(hints)}; a {data['model']} card takes "
-                          f"{', '.join(known)}")
+        hints = [
+            f"{k!r} (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(str(k), known, 1)) else repr(k)
+            for k in unknown
+        ]
+        raise ConfigError(
+            f"{where}: unknown top-level field(s) {', '.join(hints)}; a {data['model']} card takes {', '.join(known)}"
+        )
     source = data.get("source", {})
     if not isinstance(source, dict) or not all(isinstance(k, str) for k in source):
-        raise ConfigError(f"{where}: source must be a mapping (where the card came from, e.g. the OpenPCDet config "
-                          f"and its sha256), got {source!r}")
+        raise ConfigError(
+            f"{where}: source must be a mapping (where the card came from, e.g. the OpenPCDet config "
+            f"and its sha256), got {source!r}"
+        )
     card = ModelCard(data=data, path=path)
     _given_ranges(card)
     implausible_policy(card)
@@ -222,8 +250,10 @@ def _given_ranges(card: ModelCard) -> dict[str, tuple[float, float]]:
     unknown = sorted(set(given) - set(card.features) - set(COORDINATES))
     if unknown or any(k in COORDINATES for k in given):
         bad = unknown or [k for k in given if k in COORDINATES]
-        raise ConfigError(f"{where}: plausible: {bad} are not bounded here; name non-coordinate feature columns "
-                          f"of {card.features} (x, y, z are bounded by the point_cloud_range)")
+        raise ConfigError(
+            f"{where}: plausible: {bad} are not bounded here; name non-coordinate feature columns "
+            f"of {card.features} (x, y, z are bounded by the point_cloud_range)"
+        )
     out = {}
     for name, pair in given.items():
         if not (isinstance(pair, list) and len(pair) == 2):
@@ -249,8 +279,10 @@ def plausible_ranges(card: ModelCard) -> dict[str, tuple[float, float]]:
         elif name in PLAUSIBLE_DEFAULTS:
             out[name] = PLAUSIBLE_DEFAULTS[name]
         else:
-            raise ConfigError(f"{card.where}: features: column {name!r} has no plausible range; add "
-                              f"plausible: {{{name}: [low, high]}} (the values your sensor returns in it)")
+            raise ConfigError(
+                f"{card.where}: features: column {name!r} has no plausible range; add "
+                f"plausible: {{{name}: [low, high]}} (the values your sensor returns in it)"
+            )
     return out
 
 
@@ -272,18 +304,21 @@ def load_card(name_or_path: str | Path) -> ModelCard:
     if p.is_dir():
         raise ConfigError(f"{p} is a directory, not a model card (a YAML file)")
     if not p.is_file():
-        raise ConfigError(f"no model card {str(name_or_path)!r}: {p} does not exist; "
-                          f"available: {', '.join(available_cards()) or 'none'}")
-    size = p.stat().st_size          # bounded before anything is read: a sparse 4 GB "card" costs nothing here
+        raise ConfigError(
+            f"no model card {str(name_or_path)!r}: {p} does not exist; "
+            f"available: {', '.join(available_cards()) or 'none'}"
+        )
+    size = p.stat().st_size  # bounded before anything is read: a sparse 4 GB "card" costs nothing here
     if size > MAX_CARD_BYTES:
-        raise ConfigError(f"{p.name}: {size} bytes; a model card is at most {MAX_CARD_BYTES} bytes (the shipped "
-                          f"cards are a few KiB)")
+        raise ConfigError(
+            f"{p.name}: {size} bytes; a model card is at most {MAX_CARD_BYTES} bytes (the shipped cards are a few KiB)"
+        )
     try:
         with open(p, "rb") as f:
             raw = f.read(MAX_CARD_BYTES + 1)
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read the model card ({exc.strerror or type(exc).__name__})") from None
-    if len(raw) > MAX_CARD_BYTES:    # it grew after its stat
+    if len(raw) > MAX_CARD_BYTES:  # it grew after its stat
         raise ConfigError(f"{p.name}: more than {MAX_CARD_BYTES} bytes; a model card is at most {MAX_CARD_BYTES} bytes")
     try:
         text = raw.decode("utf-8")
@@ -297,11 +332,11 @@ def resolve_card(card: "ModelCard | str | Path") -> ModelCard:
     return card if isinstance(card, ModelCard) else load_card(card)
 
 
-MAX_CARD_BYTES = 256 * 1024      # the largest shipped card is a few KiB
+MAX_CARD_BYTES = 256 * 1024  # the largest shipped card is a few KiB
 
 
-MAX_CARD_DEPTH = 16       # nesting levels; the shipped cards use 5
-MAX_INT_DIGITS = 19       # a card's integers are counts and sizes: 64-bit at most
+MAX_CARD_DEPTH = 16  # nesting levels; the shipped cards use 5
+MAX_INT_DIGITS = 19  # a card's integers are counts and sizes: 64-bit at most
 
 
 class _NoAliasLoader(yaml.SafeLoader):
@@ -314,13 +349,15 @@ class _NoAliasLoader(yaml.SafeLoader):
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
-            raise yaml.composer.ComposerError(None, None, "anchors and aliases are not allowed in a model card",
-                                              event.start_mark)
+            raise yaml.composer.ComposerError(
+                None, None, "anchors and aliases are not allowed in a model card", event.start_mark
+            )
         self._depth = getattr(self, "_depth", 0) + 1
         try:
             if self._depth > MAX_CARD_DEPTH:
-                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_CARD_DEPTH} levels",
-                                                  self.peek_event().start_mark)
+                raise yaml.composer.ComposerError(
+                    None, None, f"nested deeper than {MAX_CARD_DEPTH} levels", self.peek_event().start_mark
+                )
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -331,8 +368,12 @@ class _NoAliasLoader(yaml.SafeLoader):
             key = self.construct_object(key_node, deep=True)
             if isinstance(key, (str, int, float, bool)) and key in seen:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"key {key!r} given twice in one mapping (first at line {seen[key] + 1}); "
-                    "a card names each field once", key_node.start_mark)
+                    None,
+                    None,
+                    f"key {key!r} given twice in one mapping (first at line {seen[key] + 1}); "
+                    "a card names each field once",
+                    key_node.start_mark,
+                )
             if isinstance(key, (str, int, float, bool)):
                 seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep)
@@ -340,8 +381,12 @@ class _NoAliasLoader(yaml.SafeLoader):
     def construct_yaml_int(self, node):
         digits = sum(c.isdigit() for c in str(node.value))
         if digits > MAX_INT_DIGITS:
-            raise yaml.constructor.ConstructorError(None, None, f"an integer of {digits} digits; a card's integers "
-                                                    f"have at most {MAX_INT_DIGITS}", node.start_mark)
+            raise yaml.constructor.ConstructorError(
+                None,
+                None,
+                f"an integer of {digits} digits; a card's integers have at most {MAX_INT_DIGITS}",
+                node.start_mark,
+            )
         return super().construct_yaml_int(node)
 
 

@@ -42,8 +42,8 @@ import hashlib
 import math
 import re
 import stat
-from fractions import Fraction
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -58,31 +58,34 @@ CFA_MODULES = {"CQCA_cfa": "dbscan", "GridDensityBEV": "grid_density"}
 COLUMN_NAMES = {"SNR": "snr"}
 # VFE class -> (its ``available_features``, its USE_* flags in the order it selects them)
 VFE_KINDS = {
-    "RadarPillarVFE": (("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"),
-                       (("USE_RCS", "rcs"), ("USE_VR", "v_r"), ("USE_VR_COMP", "v_r_comp"), ("USE_TIME", "time"))),
-    "RadarPillarVFE_TJ": (("x", "y", "z", "v_r", "range", "SNR", "alpha", "beta"),
-                          (("USE_SNR", "SNR"), ("USE_VR", "v_r"), ("USE_RANGE", "range"), ("USE_ALPHA", "alpha"),
-                           ("USE_BETA", "beta"))),
+    "RadarPillarVFE": (
+        ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"),
+        (("USE_RCS", "rcs"), ("USE_VR", "v_r"), ("USE_VR_COMP", "v_r_comp"), ("USE_TIME", "time")),
+    ),
+    "RadarPillarVFE_TJ": (
+        ("x", "y", "z", "v_r", "range", "SNR", "alpha", "beta"),
+        (("USE_SNR", "SNR"), ("USE_VR", "v_r"), ("USE_RANGE", "range"), ("USE_ALPHA", "alpha"), ("USE_BETA", "beta")),
+    ),
 }
 # What the card needs and an OpenPCDet config does not hold: radaredge's choices, as in the shipped cards.
 DEPLOYMENT_CHOICES = {
-    "seed": 0,                                  # seeded initialisation when no checkpoint is given
-    "init": "kaiming",                          # random-init only
-    "spa.capacity": 2048,                       # pillar slots of the exported attention
-    "cfa.dbscan.capacity": 4096,                # scan points clustered per call
-    "cfa.not_converged": "error",               # DBSCAN beyond its capacity is refused at run time
-    "dense_head.cls_prior": 0.1,                # random-init only; a checkpoint replaces the bias
+    "seed": 0,  # seeded initialisation when no checkpoint is given
+    "init": "kaiming",  # random-init only
+    "spa.capacity": 2048,  # pillar slots of the exported attention
+    "cfa.dbscan.capacity": 4096,  # scan points clustered per call
+    "cfa.not_converged": "error",  # DBSCAN beyond its capacity is refused at run time
+    "dense_head.cls_prior": 0.1,  # random-init only; a checkpoint replaces the bias
     "stage_two.keypoints.padded_rois": "upstream",
-    "quantization.keep_fp32": ["dense_head"],   # int8 of the anchor head costs trained weights 15-24 AP points
+    "quantization.keep_fp32": ["dense_head"],  # int8 of the anchor head costs trained weights 15-24 AP points
     "quantization.reduce_range": True,
 }
-STAGE_TWO_KEEP_FP32 = ["roi_head"]   # a two-stage card's keep_fp32 also: int8 of the ROI head costs 0.9 Car AP points
+STAGE_TWO_KEEP_FP32 = ["roi_head"]  # a two-stage card's keep_fp32 also: int8 of the ROI head costs 0.9 Car AP points
 # upstream module constants the card spells out (not config keys)
-CAF_CONSTANTS = {"pool_size": 16, "heads": 8, "ffn_ratio": 4, "se_reduction": 16}   # TransformerFusionBlock, SELayer
-CAF_BN_EPS = 1.0e-5                 # CQCA_caf's fusion conv BatchNorm2d (torch's default)
-DBSCAN_MAX_CLUSTER = 100            # CQCA_cfa's hard-coded "clusters above 100 points are noise"
-GRID_DEFAULTS = {"MAX_DENSITY": 100, "CC_ITERATIONS": 20}   # the fork README's values
-MAP_CHANNELS = 3                    # the CFA map's channels: velocity, density, label
+CAF_CONSTANTS = {"pool_size": 16, "heads": 8, "ffn_ratio": 4, "se_reduction": 16}  # TransformerFusionBlock, SELayer
+CAF_BN_EPS = 1.0e-5  # CQCA_caf's fusion conv BatchNorm2d (torch's default)
+DBSCAN_MAX_CLUSTER = 100  # CQCA_cfa's hard-coded "clusters above 100 points are noise"
+GRID_DEFAULTS = {"MAX_DENSITY": 100, "CC_ITERATIONS": 20}  # the fork README's values
+MAP_CHANNELS = 3  # the CFA map's channels: velocity, density, label
 
 
 # ----------------------------------------------------------------------------- reading and merging
@@ -111,10 +114,12 @@ def _read(path: Path, where: str | None) -> tuple[dict, str]:
         if not stat.S_ISREG(st.st_mode):
             raise ConfigError(f"{label}: not a regular file")
         if st.st_size > MAX_CARD_BYTES:
-            raise ConfigError(f"{label}: {st.st_size} bytes; an OpenPCDet config is at most {MAX_CARD_BYTES} bytes "
-                              f"(upstream's are a few KiB)")
+            raise ConfigError(
+                f"{label}: {st.st_size} bytes; an OpenPCDet config is at most {MAX_CARD_BYTES} bytes "
+                f"(upstream's are a few KiB)"
+            )
         with path.open("rb") as f:
-            raw = f.read(MAX_CARD_BYTES + 1)        # a file that grew since stat is still cut off
+            raw = f.read(MAX_CARD_BYTES + 1)  # a file that grew since stat is still cut off
     except OSError as exc:
         raise ConfigError(f"{label}: cannot read {path} ({exc.strerror or exc})") from None
     if len(raw) > MAX_CARD_BYTES:
@@ -133,8 +138,9 @@ def _read(path: Path, where: str | None) -> tuple[dict, str]:
 
 
 def _yaml_kind(value) -> str:
-    return {list: "list", str: "string", int: "number", float: "number", bool: "boolean"}.get(type(value),
-                                                                                               type(value).__name__)
+    return {list: "list", str: "string", int: "number", float: "number", bool: "boolean"}.get(
+        type(value), type(value).__name__
+    )
 
 
 def _base_path(named: str, config: Path, override: Path | None) -> Path:
@@ -150,8 +156,10 @@ def _base_path(named: str, config: Path, override: Path | None) -> Path:
     for c in candidates:
         if c.is_file():
             return c
-    raise ConfigError(f"{config.name}: {BASE_KEY} {named!r} not found (looked in the working directory and in "
-                      f"{folder} and the folders above it); pass it with --dataset-config")
+    raise ConfigError(
+        f"{config.name}: {BASE_KEY} {named!r} not found (looked in the working directory and in "
+        f"{folder} and the folders above it); pass it with --dataset-config"
+    )
 
 
 def _merge(node: dict, new: dict, at: str, config: Path, override: Path | None, files: list[ConfigFile]) -> None:
@@ -163,8 +171,10 @@ def _merge(node: dict, new: dict, at: str, config: Path, override: Path | None, 
         path = _base_path(named, config, override)
         base, digest = _read(path, f"{config.name}: {at}{BASE_KEY}")
         if BASE_KEY in base:
-            raise ConfigError(f"{path.name}: {BASE_KEY}: a base config's own base is not followed by OpenPCDet "
-                              f"(merge_new_config updates with the base file as it is); merge it by hand")
+            raise ConfigError(
+                f"{path.name}: {BASE_KEY}: a base config's own base is not followed by OpenPCDet "
+                f"(merge_new_config updates with the base file as it is); merge it by hand"
+            )
         files.append(ConfigFile(named, path, digest))
         node.update(base)
     for key, value in new.items():
@@ -174,13 +184,14 @@ def _merge(node: dict, new: dict, at: str, config: Path, override: Path | None, 
         if key not in node:
             node[key] = {}
         elif not isinstance(node[key], dict):
-            raise ConfigError(f"{config.name}: {at}{key}: a mapping here, but the base config's {key} is "
-                              f"{node[key]!r}; OpenPCDet cannot merge the two")
+            raise ConfigError(
+                f"{config.name}: {at}{key}: a mapping here, but the base config's {key} is "
+                f"{node[key]!r}; OpenPCDet cannot merge the two"
+            )
         _merge(node[key], value, f"{at}{key}.", config, override, files)
 
 
-def load_openpcdet_config(path: str | Path, dataset_config: str | Path | None = None
-                          ) -> tuple[dict, list[ConfigFile]]:
+def load_openpcdet_config(path: str | Path, dataset_config: str | Path | None = None) -> tuple[dict, list[ConfigFile]]:
     """The merged config of ``path`` (its ``_BASE_CONFIG_`` chain as OpenPCDet merges it) and the
     files read, the config first; ``dataset_config`` replaces the file its ``_BASE_CONFIG_`` names."""
     path = Path(path)
@@ -193,8 +204,10 @@ def load_openpcdet_config(path: str | Path, dataset_config: str | Path | None = 
         if not override.is_file():
             raise ConfigError(f"--dataset-config {override}: no such file")
         if _count_bases(data) != 1:
-            raise ConfigError(f"--dataset-config: {path.name} names {_count_bases(data)} {BASE_KEY} files; "
-                              f"--dataset-config replaces exactly one")
+            raise ConfigError(
+                f"--dataset-config: {path.name} names {_count_bases(data)} {BASE_KEY} files; "
+                f"--dataset-config replaces exactly one"
+            )
     files = [ConfigFile(path.name, path, digest)]
     merged: dict = {}
     _merge(merged, data, "", path, override, files)
@@ -270,8 +283,10 @@ class _Ledger:
             raise self.error(key, f"expected {_kind_name(kind)}, got {v!r}")
         bad = _non_finite(v, key)
         if bad is not None:
-            raise self.error(bad[0], f"{bad[1]!r} is not a finite number (YAML's .nan / .inf); upstream's "
-                             f"computation is undefined with it")
+            raise self.error(
+                bad[0],
+                f"{bad[1]!r} is not a finite number (YAML's .nan / .inf); upstream's computation is undefined with it",
+            )
         return v
 
     def _mark(self, key: str, fate: str, detail: str) -> None:
@@ -327,8 +342,14 @@ def _kinds(kind) -> tuple:
 
 
 def _kind_name(kind) -> str:
-    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "a mapping",
-             bool: "true/false"}
+    names = {
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "a list",
+        dict: "a mapping",
+        bool: "true/false",
+    }
     return " or ".join(names.get(k, k.__name__) for k in _kinds(kind))
 
 
@@ -358,8 +379,9 @@ class Conversion:
         return out
 
 
-def maffnet_card(cfg: dict, files: list[ConfigFile], *, name: str | None = None, stage_two: bool = True,
-                 cfa: str | None = None) -> Conversion:
+def maffnet_card(
+    cfg: dict, files: list[ConfigFile], *, name: str | None = None, stage_two: bool = True, cfa: str | None = None
+) -> Conversion:
     """The radaredge card of a merged MAFF-Net OpenPCDet config (see the module docstring).
 
     ``stage_two`` False writes a stage-one card (the PFE, point head and ROI head are not run);
@@ -380,8 +402,9 @@ def maffnet_card(cfg: dict, files: list[ConfigFile], *, name: str | None = None,
 
     card: dict = {
         "name": name or _default_name(where, stage_two),
-        "description": (f"MAFF-Net {'two-stage' if stage_two else 'stage one'} converted from the OpenPCDet "
-                        f"config {where}"),
+        "description": (
+            f"MAFF-Net {'two-stage' if stage_two else 'stage one'} converted from the OpenPCDet config {where}"
+        ),
         "model": "maffnet",
         "seed": DEPLOYMENT_CHOICES["seed"],
         "init": DEPLOYMENT_CHOICES["init"],
@@ -393,11 +416,15 @@ def maffnet_card(cfg: dict, files: list[ConfigFile], *, name: str | None = None,
     card["input"] = _input(led)
     pillars, ny, nx = _pillars(led, out_channels)
     card["pillars"] = pillars
-    scatter = led.check("MODEL.MAP_TO_BEV.NAME", ("PointPillarScatter_spa", "PointPillarScatter"),
-                        "the pillar scatter, with or without MAFF-Net's sparse pillar attention")
+    scatter = led.check(
+        "MODEL.MAP_TO_BEV.NAME",
+        ("PointPillarScatter_spa", "PointPillarScatter"),
+        "the pillar scatter, with or without MAFF-Net's sparse pillar attention",
+    )
     spa = scatter == "PointPillarScatter_spa" and led.map("MODEL.MAP_TO_BEV.IS_SPA", "spa.enabled", kind=bool)
-    led.check("MODEL.MAP_TO_BEV.NUM_BEV_FEATURES", (out_channels,),
-              "the pillar map with the VFE's NUM_FILTERS channels")
+    led.check(
+        "MODEL.MAP_TO_BEV.NUM_BEV_FEATURES", (out_channels,), "the pillar map with the VFE's NUM_FILTERS channels"
+    )
     if spa and out_channels != 64:
         raise led.error("MODEL.VFE.NUM_FILTERS", f"[{out_channels}]: upstream's SPA is hard-coded to 64 channels")
     card["spa"] = {"enabled": bool(spa), "capacity": DEPLOYMENT_CHOICES["spa.capacity"]}
@@ -415,18 +442,19 @@ def maffnet_card(cfg: dict, files: list[ConfigFile], *, name: str | None = None,
         for module in ("PFE", "POINT_HEAD", "ROI_HEAD"):
             led.ignore(f"MODEL.{module}", "stage two, not run by a stage-one card (--stage-one)")
     keep = (STAGE_TWO_KEEP_FP32 if stage_two else []) + DEPLOYMENT_CHOICES["quantization.keep_fp32"]
-    card["quantization"] = {"keep_fp32": list(keep),
-                            "reduce_range": DEPLOYMENT_CHOICES["quantization.reduce_range"]}
+    card["quantization"] = {"keep_fp32": list(keep), "reduce_range": DEPLOYMENT_CHOICES["quantization.reduce_range"]}
     _training_and_data_keys(led)
     for f in files[1:]:
         for key in _base_keys(cfg):
             led.ignore(key, f"names the base config merged here ({f.named})")
     unknown = led.unaccounted()
     if unknown:
-        raise ConfigError(f"{where}: {', '.join(unknown)}: not a MAFF-Net config key radaredge knows; it has no "
-                          f"formulation of {'them' if len(unknown) > 1 else 'it'}, so a card cannot reproduce "
-                          f"{'them' if len(unknown) > 1 else 'it'} (remove {'them' if len(unknown) > 1 else 'it'}, "
-                          "or see docs/models/maffnet.md for the keys it maps)")
+        raise ConfigError(
+            f"{where}: {', '.join(unknown)}: not a MAFF-Net config key radaredge knows; it has no "
+            f"formulation of {'them' if len(unknown) > 1 else 'it'}, so a card cannot reproduce "
+            f"{'them' if len(unknown) > 1 else 'it'} (remove {'them' if len(unknown) > 1 else 'it'}, "
+            "or see docs/models/maffnet.md for the keys it maps)"
+        )
     card["source"] = _source(files, stage_two, cfa)
     order = [k for k in _leaves(cfg)]
     keys = sorted(led.fates.values(), key=lambda f: order.index(f.key))
@@ -480,10 +508,12 @@ def _vfe(led: _Ledger, columns: list[str]) -> tuple[list[str], int]:
     docstring on upstream's positional selection)."""
     kind = led.check("MODEL.VFE.NAME", tuple(VFE_KINDS), "MAFF-Net's radar pillar VFE")
     available, flags = VFE_KINDS[kind]
-    for key, value, what in (("USE_NORM", True, "the PFN layer with BatchNorm"),
-                             ("USE_ABSLOTE_XYZ", True, "the VFE on absolute x, y, z"),   # upstream's spelling
-                             ("WITH_DISTANCE", False, "the VFE without the point distance"),
-                             ("USE_ELEVATION", True, "the VFE with z")):
+    for key, value, what in (
+        ("USE_NORM", True, "the PFN layer with BatchNorm"),
+        ("USE_ABSLOTE_XYZ", True, "the VFE on absolute x, y, z"),  # upstream's spelling
+        ("WITH_DISTANCE", False, "the VFE without the point distance"),
+        ("USE_ELEVATION", True, "the VFE with z"),
+    ):
         led.check(f"MODEL.VFE.{key}", (value,), what)
     wanted = ["x", "y", "z"]
     for flag, feature in flags:
@@ -491,25 +521,33 @@ def _vfe(led: _Ledger, columns: list[str]) -> tuple[list[str], int]:
             wanted.append(feature)
     filters = led.map("MODEL.VFE.NUM_FILTERS", "pillars.out_channels", kind=list)
     if len(filters) != 1 or not isinstance(filters[0], int) or isinstance(filters[0], bool):
-        raise led.error("MODEL.VFE.NUM_FILTERS",
-                        f"radaredge's VFE has one PFN layer; expected [channels], got {filters}")
+        raise led.error(
+            "MODEL.VFE.NUM_FILTERS", f"radaredge's VFE has one PFN layer; expected [channels], got {filters}"
+        )
     read = []
     for feature in wanted:
         pos = available.index(feature)
         if pos < len(columns):
             col = columns[pos]
             if col != feature:
-                led.notes.append(f"MODEL.VFE: {kind} reads its {feature} input from column {pos} of the points, "
-                                 f"which used_feature_list makes {col} (it selects by position in {list(available)}, "
-                                 f"TRV-Lab/MAFF-Net#4); the card feeds {col} there, as upstream does")
+                led.notes.append(
+                    f"MODEL.VFE: {kind} reads its {feature} input from column {pos} of the points, "
+                    f"which used_feature_list makes {col} (it selects by position in {list(available)}, "
+                    f"TRV-Lab/MAFF-Net#4); the card feeds {col} there, as upstream does"
+                )
         elif feature in columns:
             col = feature
-            led.notes.append(f"MODEL.VFE: {kind} would read its {feature} input from column {pos}, past the "
-                             f"{len(columns)} columns of used_feature_list {columns} (upstream fails there); the "
-                             f"card takes the column named {feature}")
+            led.notes.append(
+                f"MODEL.VFE: {kind} would read its {feature} input from column {pos}, past the "
+                f"{len(columns)} columns of used_feature_list {columns} (upstream fails there); the "
+                f"card takes the column named {feature}"
+            )
         else:
-            raise led.error("MODEL.VFE", f"{kind} reads {feature} (USE_ flag set) from column {pos}, and the points "
-                            f"have neither that column nor one named {feature}: {columns}")
+            raise led.error(
+                "MODEL.VFE",
+                f"{kind} reads {feature} (USE_ flag set) from column {pos}, and the points "
+                f"have neither that column nor one named {feature}: {columns}",
+            )
         read.append(col)
     if len(set(read)) != len(read):
         raise led.error("MODEL.VFE", f"{kind} would read a column twice: {read} from the points {columns}")
@@ -518,8 +556,7 @@ def _vfe(led: _Ledger, columns: list[str]) -> tuple[list[str], int]:
 
 def _input(led: _Ledger) -> dict:
     """``input``: scans accumulated (VoD's ``radar_<n>frames`` data folder) and the camera crop."""
-    path = led.map("DATA_CONFIG.DATA_PATH", "input.scans_accumulated (a radar_<n>frames folder)", default="",
-                   kind=str)
+    path = led.map("DATA_CONFIG.DATA_PATH", "input.scans_accumulated (a radar_<n>frames folder)", default="", kind=str)
     m = re.search(r"radar_(\d+)frames/*$", path)
     crop = led.map("DATA_CONFIG.FOV_POINTS_ONLY", "input.crop", default=False, kind=bool)
     return {"scans_accumulated": int(m.group(1)) if m else 1, "crop": "camera_fov" if crop else "none"}
@@ -534,8 +571,11 @@ def _processor(led: _Ledger, name: str) -> str | None:
     steps = led.value("DATA_CONFIG.DATA_PROCESSOR", [], kind=list)
     for i, s in enumerate(steps):
         if not isinstance(s, dict) or s.get("NAME") not in PROCESSORS:
-            raise led.error(f"DATA_CONFIG.DATA_PROCESSOR[{i}]", f"{s.get('NAME') if isinstance(s, dict) else s!r}: "
-                            f"radaredge has no formulation of this processor (it knows {', '.join(PROCESSORS)})")
+            raise led.error(
+                f"DATA_CONFIG.DATA_PROCESSOR[{i}]",
+                f"{s.get('NAME') if isinstance(s, dict) else s!r}: "
+                f"radaredge has no formulation of this processor (it knows {', '.join(PROCESSORS)})",
+            )
     hits = [i for i, s in enumerate(steps) if isinstance(s, dict) and s.get("NAME") == name]
     if len(hits) > 1:
         raise led.error("DATA_CONFIG.DATA_PROCESSOR", f"{name} appears {len(hits)} times")
@@ -558,13 +598,19 @@ def _pillars(led: _Ledger, out_channels: int) -> tuple[dict, int, int]:
         raise led.error(f"{vox}.VOXEL_SIZE", f"entries must be > 0, got {size}")
     for i, axis in enumerate("xyz"):
         if not rng[i] < rng[i + 3]:
-            raise led.error("DATA_CONFIG.POINT_CLOUD_RANGE", f"{rng}: [x_min, y_min, z_min, x_max, y_max, z_max] "
-                            f"needs {axis}_min < {axis}_max")
+            raise led.error(
+                "DATA_CONFIG.POINT_CLOUD_RANGE",
+                f"{rng}: [x_min, y_min, z_min, x_max, y_max, z_max] needs {axis}_min < {axis}_max",
+            )
     nx, ny = (round((rng[i + 3] - rng[i]) / size[i]) for i in (0, 1))
     if nx < 1 or ny < 1:
         raise led.error(f"{vox}.VOXEL_SIZE", f"{size}: larger than the range {rng}, the pillar grid has no cell")
-    pillars = {"point_cloud_range": [float(x) for x in rng], "voxel_size": [float(x) for x in size],
-               "max_points_per_pillar": per, "out_channels": out_channels}
+    pillars = {
+        "point_cloud_range": [float(x) for x in rng],
+        "voxel_size": [float(x) for x in size],
+        "max_points_per_pillar": per,
+        "out_channels": out_channels,
+    }
     return pillars, ny, nx
 
 
@@ -580,8 +626,11 @@ def _voxel_cap(led: _Ledger, spa: bool, cells: int) -> None:
         key = f"{key}.test"
     need = DEPLOYMENT_CHOICES["spa.capacity"] if spa else cells
     if not isinstance(test, int) or test < need:
-        raise led.error(key, f"{test!r} pillars at test time would drop pillars the graph keeps; radaredge needs at "
-                        f"least {need} ({'spa.capacity' if spa else 'every grid cell'})")
+        raise led.error(
+            key,
+            f"{test!r} pillars at test time would drop pillars the graph keeps; radaredge needs at "
+            f"least {need} ({'spa.capacity' if spa else 'every grid cell'})",
+        )
     led.ignore(key, f"test-time pillar cap {test} >= {need}: never reached by a scan the graph accepts")
 
 
@@ -593,8 +642,10 @@ def _cfa(led: _Ledger, cfa: str | None, columns: list[str], features: list[str],
     method = cfa or CFA_MODULES[module]
     v = led.value(f"{ib}.DBSCAN_V", kind=int)
     if not 1 <= v <= len(columns):
-        raise led.error(f"{ib}.DBSCAN_V", f"{v} is not a point column: it indexes the batch points "
-                        f"[batch, {', '.join(columns)}] (1..{len(columns)})")
+        raise led.error(
+            f"{ib}.DBSCAN_V",
+            f"{v} is not a point column: it indexes the batch points [batch, {', '.join(columns)}] (1..{len(columns)})",
+        )
     led.map(f"{ib}.DBSCAN_V", "cfa.velocity_feature")
     out: dict = {"velocity_feature": features[v - 1]}
     rows = led.map(f"{ib}.DBSCAN_MAP_W", "cfa map rows (y cells)", kind=int)
@@ -611,19 +662,38 @@ def _cfa(led: _Ledger, cfa: str | None, columns: list[str], features: list[str],
         for k in GRID_DEFAULTS:
             led.ignore(f"{ib}.{k}", "GridDensityBEV only; --cfa dbscan runs CQCA_cfa's DBSCAN")
         out.update(method="dbscan", not_converged=DEPLOYMENT_CHOICES["cfa.not_converged"])
-        out["dbscan"] = {"eps": float(eps), "min_samples": samples, "max_cluster_size": DBSCAN_MAX_CLUSTER,
-                         "capacity": DEPLOYMENT_CHOICES["cfa.dbscan.capacity"], "map_rows": rows, "map_cols": cols,
-                         "resolution": float(res), "y_offset": float(y_off)}
+        out["dbscan"] = {
+            "eps": float(eps),
+            "min_samples": samples,
+            "max_cluster_size": DBSCAN_MAX_CLUSTER,
+            "capacity": DEPLOYMENT_CHOICES["cfa.dbscan.capacity"],
+            "map_rows": rows,
+            "map_cols": cols,
+            "resolution": float(res),
+            "y_offset": float(y_off),
+        }
     else:
-        grid_keys = {k: led.map(f"{ib}.{k}", f"cfa.grid.{k.lower()}", default=d, kind=int)
-                     for k, d in GRID_DEFAULTS.items()}
+        grid_keys = {
+            k: led.map(f"{ib}.{k}", f"cfa.grid.{k.lower()}", default=d, kind=int) for k, d in GRID_DEFAULTS.items()
+        }
         if module == "CQCA_cfa":
-            led.notes.append(f"{ib}: CQCA_cfa's settings run as the fthbng77 fork's GridDensityBEV (--cfa "
-                             f"grid_density), with the fork's MAX_DENSITY {grid_keys['MAX_DENSITY']} and "
-                             f"CC_ITERATIONS {grid_keys['CC_ITERATIONS']}")
-        out["grid"] = {"map_h": rows, "map_w": cols, "resolution": float(res), "x_min": 0.0, "y_min": -float(y_off),
-                       "eps": float(eps), "min_density": samples, "max_density": grid_keys["MAX_DENSITY"],
-                       "cc_mode": "maxpool", "cc_iterations": grid_keys["CC_ITERATIONS"]}
+            led.notes.append(
+                f"{ib}: CQCA_cfa's settings run as the fthbng77 fork's GridDensityBEV (--cfa "
+                f"grid_density), with the fork's MAX_DENSITY {grid_keys['MAX_DENSITY']} and "
+                f"CC_ITERATIONS {grid_keys['CC_ITERATIONS']}"
+            )
+        out["grid"] = {
+            "map_h": rows,
+            "map_w": cols,
+            "resolution": float(res),
+            "x_min": 0.0,
+            "y_min": -float(y_off),
+            "eps": float(eps),
+            "min_density": samples,
+            "max_density": grid_keys["MAX_DENSITY"],
+            "cc_mode": "maxpool",
+            "cc_iterations": grid_keys["CC_ITERATIONS"],
+        }
     return out
 
 
@@ -645,17 +715,26 @@ def _check_map_on_grid(led: _Ledger, res: float, y_off: float, pillars: dict) ->
     (x_min, y_min), (vx, vy) = pillars["point_cloud_range"][:2], pillars["voxel_size"][:2]
     vox = "VOXEL_SIZE of DATA_CONFIG.DATA_PROCESSOR's transform_points_to_voxels"
     if not (_close(res, vx) and _close(res, vy)):
-        raise led.error(f"{ib}.RESOLUTION", f"{res:g} m cells, but the pillar grid's are {vx:g} x {vy:g} m ({vox}); "
-                        "the clustering map is fused with the pillar map cell by cell, so RESOLUTION must equal "
-                        "the voxel size in x and y")
+        raise led.error(
+            f"{ib}.RESOLUTION",
+            f"{res:g} m cells, but the pillar grid's are {vx:g} x {vy:g} m ({vox}); "
+            "the clustering map is fused with the pillar map cell by cell, so RESOLUTION must equal "
+            "the voxel size in x and y",
+        )
     if not _close(x_min, 0.0):
-        raise led.error("DATA_CONFIG.POINT_CLOUD_RANGE", f"x_min {x_min:g}: CQCA_cfa's clustering map starts at "
-                        "x = 0 (it bins x / RESOLUTION, no key offsets it), so the pillar grid it is fused with "
-                        "must start there too")
+        raise led.error(
+            "DATA_CONFIG.POINT_CLOUD_RANGE",
+            f"x_min {x_min:g}: CQCA_cfa's clustering map starts at "
+            "x = 0 (it bins x / RESOLUTION, no key offsets it), so the pillar grid it is fused with "
+            "must start there too",
+        )
     if not _close(-y_off, y_min):
-        raise led.error(f"{ib}.DBSCAN_Y", f"{y_off:g} starts the clustering map at y = {-y_off:g} m, but the pillar "
-                        f"grid starts at POINT_CLOUD_RANGE y_min {y_min:g} m; the two maps are fused cell by cell, "
-                        f"so DBSCAN_Y must be {-y_min:g}")
+        raise led.error(
+            f"{ib}.DBSCAN_Y",
+            f"{y_off:g} starts the clustering map at y = {-y_off:g} m, but the pillar "
+            f"grid starts at POINT_CLOUD_RANGE y_min {y_min:g} m; the two maps are fused cell by cell, "
+            f"so DBSCAN_Y must be {-y_min:g}",
+        )
 
 
 def _caf(led: _Ledger, pillar_channels: int) -> dict:
@@ -666,16 +745,21 @@ def _caf(led: _Ledger, pillar_channels: int) -> dict:
     led.check(f"{fu}.IN_CHANNEL", (pillar_channels + 64,), "the fusion conv over the pillar map and the SE output")
     out = led.map(f"{fu}.OUT_CHANNEL", "caf.out_channels", kind=int)
     if out != pillar_channels:
-        raise led.error(f"{fu}.OUT_CHANNEL", f"{out}: upstream builds BACKBONE_2D on NUM_BEV_FEATURES "
-                        f"({pillar_channels}) channels, so the fused map must be as wide")
+        raise led.error(
+            f"{fu}.OUT_CHANNEL",
+            f"{out}: upstream builds BACKBONE_2D on NUM_BEV_FEATURES "
+            f"({pillar_channels}) channels, so the fused map must be as wide",
+        )
     return {**CAF_CONSTANTS, "out_channels": out, "bn_eps": CAF_BN_EPS}
 
 
 def _backbone(led: _Ledger) -> dict:
     b = "MODEL.BACKBONE_2D"
     led.check(f"{b}.NAME", ("BaseBEVBackbone",), "OpenPCDet's BaseBEVBackbone")
-    return {k.lower(): led.map(f"{b}.{k}", f"backbone_2d.{k.lower()}", kind=list)
-            for k in ("LAYER_NUMS", "LAYER_STRIDES", "NUM_FILTERS", "UPSAMPLE_STRIDES", "NUM_UPSAMPLE_FILTERS")}
+    return {
+        k.lower(): led.map(f"{b}.{k}", f"backbone_2d.{k.lower()}", kind=list)
+        for k in ("LAYER_NUMS", "LAYER_STRIDES", "NUM_FILTERS", "UPSAMPLE_STRIDES", "NUM_UPSAMPLE_FILTERS")
+    }
 
 
 def _dense_head(led: _Ledger) -> dict:
@@ -684,14 +768,24 @@ def _dense_head(led: _Ledger) -> dict:
     led.check(f"{h}.CLASS_AGNOSTIC", (False,), "a class logit per class and anchor")
     # AnchorHeadSingle builds (and AnchorHeadTemplate applies) the direction classifier whenever
     # the key is present: ``model_cfg.get('USE_DIRECTION_CLASSIFIER', None) is not None``
-    if led.check(f"{h}.USE_DIRECTION_CLASSIFIER", (True, False),
-                 "the heading with its direction bin, which upstream builds whenever the key is present") is False:
-        led.notes.append(f"{h}.USE_DIRECTION_CLASSIFIER: False still builds and applies upstream's direction "
-                         "classifier (AnchorHeadSingle tests the key for presence, not truth); the card does too")
-    out = {"dir_offset": float(led.map(f"{h}.DIR_OFFSET", "dense_head.dir_offset", kind=NUMBER)),
-           "dir_limit_offset": float(led.map(f"{h}.DIR_LIMIT_OFFSET", "dense_head.dir_limit_offset", kind=NUMBER)),
-           "num_dir_bins": led.map(f"{h}.NUM_DIR_BINS", "dense_head.num_dir_bins", kind=int),
-           "cls_prior": DEPLOYMENT_CHOICES["dense_head.cls_prior"]}
+    if (
+        led.check(
+            f"{h}.USE_DIRECTION_CLASSIFIER",
+            (True, False),
+            "the heading with its direction bin, which upstream builds whenever the key is present",
+        )
+        is False
+    ):
+        led.notes.append(
+            f"{h}.USE_DIRECTION_CLASSIFIER: False still builds and applies upstream's direction "
+            "classifier (AnchorHeadSingle tests the key for presence, not truth); the card does too"
+        )
+    out = {
+        "dir_offset": float(led.map(f"{h}.DIR_OFFSET", "dense_head.dir_offset", kind=NUMBER)),
+        "dir_limit_offset": float(led.map(f"{h}.DIR_LIMIT_OFFSET", "dense_head.dir_limit_offset", kind=NUMBER)),
+        "num_dir_bins": led.map(f"{h}.NUM_DIR_BINS", "dense_head.num_dir_bins", kind=int),
+        "cls_prior": DEPLOYMENT_CHOICES["dense_head.cls_prior"],
+    }
     ta = f"{h}.TARGET_ASSIGNER_CONFIG"
     led.check(f"{ta}.BOX_CODER", ("ResidualCoder",), "OpenPCDet's ResidualCoder box decoding")
     _box_coder_config(led, f"{ta}.BOX_CODER_CONFIG", "the anchor head's boxes")
@@ -721,22 +815,36 @@ def _anchor_class(led: _Ledger, key: str, card_field: str) -> dict:
     name = led.map(f"{key}.class_name", f"{card_field}.class_name", kind=str)
     sizes = led.map(f"{key}.anchor_sizes", f"{card_field}.anchor_sizes", kind=list)
     if not sizes or not all(_numbers(sz) and len(sz) == 3 and all(x > 0 for x in sz) for sz in sizes):
-        raise led.error(f"{key}.anchor_sizes", f"expected a non-empty list of [dx, dy, dz] sizes > 0, got {sizes} "
-                        "(with none, the class has no anchor and no box of it is ever output)")
+        raise led.error(
+            f"{key}.anchor_sizes",
+            f"expected a non-empty list of [dx, dy, dz] sizes > 0, got {sizes} "
+            "(with none, the class has no anchor and no box of it is ever output)",
+        )
     rots = led.map(f"{key}.anchor_rotations", f"{card_field}.anchor_rotations", kind=list)
     if not _numbers(rots):
-        raise led.error(f"{key}.anchor_rotations", f"expected a non-empty list of headings in radians, got {rots} "
-                        "(with none, the class has no anchor and no box of it is ever output)")
+        raise led.error(
+            f"{key}.anchor_rotations",
+            f"expected a non-empty list of headings in radians, got {rots} "
+            "(with none, the class has no anchor and no box of it is ever output)",
+        )
     heights = led.map(f"{key}.anchor_bottom_heights", f"{card_field}.anchor_bottom_heights", kind=list)
     if not _numbers(heights) or len(heights) != 1:
-        raise led.error(f"{key}.anchor_bottom_heights", f"expected one bottom height, got {heights}: radaredge's "
-                        "anchor head has one anchor height per class")
+        raise led.error(
+            f"{key}.anchor_bottom_heights",
+            f"expected one bottom height, got {heights}: radaredge's anchor head has one anchor height per class",
+        )
     align = led.map(f"{key}.align_center", f"{card_field}.align_center", default=False, kind=bool)
     stride = led.map(f"{key}.feature_map_stride", f"{card_field}.feature_map_stride", kind=int)
     if stride < 1:
         raise led.error(f"{key}.feature_map_stride", f"expected a stride >= 1, got {stride}")
-    return {"class_name": name, "anchor_sizes": sizes, "anchor_rotations": rots, "anchor_bottom_heights": heights,
-            "align_center": align, "feature_map_stride": stride}
+    return {
+        "class_name": name,
+        "anchor_sizes": sizes,
+        "anchor_rotations": rots,
+        "anchor_bottom_heights": heights,
+        "align_center": align,
+        "feature_map_stride": stride,
+    }
 
 
 def _box_coder_config(led: _Ledger, key: str, what: str) -> None:
@@ -750,17 +858,26 @@ def _box_coder_config(led: _Ledger, key: str, what: str) -> None:
     known = ("encode_angle_by_sincos", "code_size")
     for k in led.value(key, kind=dict):
         if k not in known:
-            raise led.error(f"{key}.{k}", f"not a ResidualCoder setting radaredge reproduces; it decodes {what} "
-                            "with the 7-value code (encode_angle_by_sincos: False, code_size: 7)")
+            raise led.error(
+                f"{key}.{k}",
+                f"not a ResidualCoder setting radaredge reproduces; it decodes {what} "
+                "with the 7-value code (encode_angle_by_sincos: False, code_size: 7)",
+            )
     sincos = led.value(f"{key}.encode_angle_by_sincos", False, kind=bool)
     if sincos:
-        raise led.error(f"{key}.encode_angle_by_sincos", f"True makes upstream decode {what} from 8 values (the "
-                        "heading as cos and sin residuals, joined by atan2); radaredge decodes the 7-value "
-                        "ResidualCoder code (one heading residual): encode_angle_by_sincos False only")
+        raise led.error(
+            f"{key}.encode_angle_by_sincos",
+            f"True makes upstream decode {what} from 8 values (the "
+            "heading as cos and sin residuals, joined by atan2); radaredge decodes the 7-value "
+            "ResidualCoder code (one heading residual): encode_angle_by_sincos False only",
+        )
     size = led.value(f"{key}.code_size", 7, kind=int)
     if size != 7:
-        raise led.error(f"{key}.code_size", f"{size}: radaredge decodes {what} from the 7-value ResidualCoder "
-                        "code (x, y, z, dx, dy, dz, heading): code_size 7 only")
+        raise led.error(
+            f"{key}.code_size",
+            f"{size}: radaredge decodes {what} from the 7-value ResidualCoder "
+            "code (x, y, z, dx, dy, dz, heading): code_size 7 only",
+        )
     why = f"{what} decoded from the 7-value ResidualCoder code"
     led.check(f"{key}.encode_angle_by_sincos", (False,), why, default=False)
     led.check(f"{key}.code_size", (7,), why, default=7)
@@ -774,28 +891,35 @@ def _check_head_grid(led: _Ledger, backbone: dict, anchors: list[dict], ny: int,
     anchors beside the wrong cells."""
     b = "MODEL.BACKBONE_2D"
     strides, ups = backbone["layer_strides"], backbone["upsample_strides"]
-    if not (len(strides) == len(ups) >= 1 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
-                                                  for v in strides)
-            and all(isinstance(u, NUMBER) and not isinstance(u, bool) and u > 0 for u in ups)):
-        return          # the model refuses these with the card's own message
+    if not (
+        len(strides) == len(ups) >= 1
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in strides)
+        and all(isinstance(u, NUMBER) and not isinstance(u, bool) and u > 0 for u in ups)
+    ):
+        return  # the model refuses these with the card's own message
     sizes, hw = [], (ny, nx)
     for s, u in zip(strides, ups):
-        hw = tuple(-(-n // s) for n in hw)                       # 3x3 conv, padding 1, stride s
+        hw = tuple(-(-n // s) for n in hw)  # 3x3 conv, padding 1, stride s
         up = Fraction(u).limit_denominator(1000)
         if up >= 1 and up.denominator != 1 or up < 1 and up.numerator != 1:
-            return      # a transposed conv of a fractional stride: the model refuses it
+            return  # a transposed conv of a fractional stride: the model refuses it
         sizes.append(tuple(n * int(up) for n in hw) if up >= 1 else tuple(n // round(1 / up) for n in hw))
     if len(set(sizes)) != 1:
-        raise led.error(f"{b}.UPSAMPLE_STRIDES", f"{ups}: the blocks' upsampled maps are {sizes} cells (rows x "
-                        "columns); BaseBEVBackbone concatenates them, so they must have one size")
+        raise led.error(
+            f"{b}.UPSAMPLE_STRIDES",
+            f"{ups}: the blocks' upsampled maps are {sizes} cells (rows x "
+            "columns); BaseBEVBackbone concatenates them, so they must have one size",
+        )
     head = sizes[0]
     for i, a in enumerate(anchors):
         grid = (ny // a["feature_map_stride"], nx // a["feature_map_stride"])
         if grid != head:
-            raise led.error(f"MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG[{i}].feature_map_stride",
-                            f"{a['feature_map_stride']} gives {grid[0]} x {grid[1]} anchor locations on the "
-                            f"{ny} x {nx} pillar grid, but the head predicts on BACKBONE_2D's {head[0]} x {head[1]} "
-                            "map; they must match")
+            raise led.error(
+                f"MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG[{i}].feature_map_stride",
+                f"{a['feature_map_stride']} gives {grid[0]} x {grid[1]} anchor locations on the "
+                f"{ny} x {nx} pillar grid, but the head predicts on BACKBONE_2D's {head[0]} x {head[1]} "
+                "map; they must match",
+            )
 
 
 def _nms(led: _Ledger, key: str, card_field: str, final: bool = False) -> dict:
@@ -809,14 +933,22 @@ def _nms(led: _Ledger, key: str, card_field: str, final: bool = False) -> dict:
     led.check(f"{key}.NMS_TYPE", ("nms_gpu",), "rotated BEV NMS (OpenPCDet's nms_gpu)")
     thresh = led.value(f"{key}.NMS_THRESH")
     if final and isinstance(thresh, dict):
-        raise led.error(f"{key}.NMS_THRESH", f"{thresh}: per-class NMS thresholds (upstream's CAR/PED/CYC branch) "
-                        "are not supported: radaredge computes one class-agnostic NMS with a single threshold")
+        raise led.error(
+            f"{key}.NMS_THRESH",
+            f"{thresh}: per-class NMS thresholds (upstream's CAR/PED/CYC branch) "
+            "are not supported: radaredge computes one class-agnostic NMS with a single threshold",
+        )
     if final and isinstance(thresh, int) and not isinstance(thresh, bool):
-        raise led.error(f"{key}.NMS_THRESH", f"{thresh} is an integer: upstream's post_processing runs its "
-                        f"class-agnostic NMS only for a float and fails on an integer; write it as {float(thresh)}")
-    return {"iou_thresh": float(led.map(f"{key}.NMS_THRESH", f"{card_field}.iou_thresh", kind=NUMBER)),
-            "pre_max": led.map(f"{key}.NMS_PRE_MAXSIZE", f"{card_field}.pre_max", kind=int),
-            "post_max": led.map(f"{key}.NMS_POST_MAXSIZE", f"{card_field}.post_max", kind=int)}
+        raise led.error(
+            f"{key}.NMS_THRESH",
+            f"{thresh} is an integer: upstream's post_processing runs its "
+            f"class-agnostic NMS only for a float and fails on an integer; write it as {float(thresh)}",
+        )
+    return {
+        "iou_thresh": float(led.map(f"{key}.NMS_THRESH", f"{card_field}.iou_thresh", kind=NUMBER)),
+        "pre_max": led.map(f"{key}.NMS_PRE_MAXSIZE", f"{card_field}.pre_max", kind=int),
+        "post_max": led.map(f"{key}.NMS_POST_MAXSIZE", f"{card_field}.post_max", kind=int),
+    }
 
 
 def _post_processing(led: _Ledger) -> dict:
@@ -841,16 +973,18 @@ def _stage_two(led: _Ledger, nms: dict) -> dict:
     if set(layers) != {"cluster_points"}:
         raise led.error(f"{pfe}.SA_LAYER", f"radaredge's VSA has the cluster_points layer only, got {sorted(layers)}")
     cda = f"{pfe}.CDAM_SAMPLING"
-    keypoints = {"num_keypoints": led.map(f"{pfe}.NUM_KEYPOINTS", "stage_two.keypoints.num_keypoints", kind=int),
-                 "sample_radius_r": float(led.map(f"{cda}.SAMPLE_RADIUS_R", "stage_two.keypoints.sample_radius_r",
-                                                  kind=NUMBER)),
-                 "sample_radius_h": float(led.map(f"{cda}.SAMPLE_RADIUS_H", "stage_two.keypoints.sample_radius_h",
-                                                  kind=NUMBER)),
-                 "num_sectors": led.map(f"{cda}.NUM_SECTORS", "stage_two.keypoints.num_sectors", kind=int),
-                 "padded_rois": DEPLOYMENT_CHOICES["stage_two.keypoints.padded_rois"]}
-    vsa = {"bev_stride": 1,          # the fused map the BEV source reads has stride 1
-           "num_output_features": led.map(f"{pfe}.NUM_OUTPUT_FEATURES", "stage_two.vsa.num_output_features", kind=int),
-           "sa_clusterpoints": _sa(led, sa, "stage_two.vsa.sa_clusterpoints")}
+    keypoints = {
+        "num_keypoints": led.map(f"{pfe}.NUM_KEYPOINTS", "stage_two.keypoints.num_keypoints", kind=int),
+        "sample_radius_r": float(led.map(f"{cda}.SAMPLE_RADIUS_R", "stage_two.keypoints.sample_radius_r", kind=NUMBER)),
+        "sample_radius_h": float(led.map(f"{cda}.SAMPLE_RADIUS_H", "stage_two.keypoints.sample_radius_h", kind=NUMBER)),
+        "num_sectors": led.map(f"{cda}.NUM_SECTORS", "stage_two.keypoints.num_sectors", kind=int),
+        "padded_rois": DEPLOYMENT_CHOICES["stage_two.keypoints.padded_rois"],
+    }
+    vsa = {
+        "bev_stride": 1,  # the fused map the BEV source reads has stride 1
+        "num_output_features": led.map(f"{pfe}.NUM_OUTPUT_FEATURES", "stage_two.vsa.num_output_features", kind=int),
+        "sa_clusterpoints": _sa(led, sa, "stage_two.vsa.sa_clusterpoints"),
+    }
     led.check(f"{ph}.NAME", ("PointHeadSimple",), "OpenPCDet's PointHeadSimple")
     led.check(f"{ph}.CLASS_AGNOSTIC", (True,), "a class-agnostic point head")
     led.check(f"{ph}.USE_POINT_FEATURES_BEFORE_FUSION", (True,), "the point head on the features before fusion")
@@ -864,15 +998,18 @@ def _stage_two(led: _Ledger, nms: dict) -> dict:
     pool = led.value(f"{grid}.POOL_METHOD", "max_pool")
     led.ignore(f"{grid}.POOL_METHOD", "never read: upstream's build_local_aggregation_module always max-pools")
     if pool != "max_pool":
-        led.notes.append(f"{grid}.POOL_METHOD: {pool!r} is never read; upstream's build_local_aggregation_module "
-                         "builds its StackSAModuleMSG with max_pool, and so does the card")
-    roi_head = {"shared_fc": led.map(f"{rh}.SHARED_FC", "stage_two.roi_head.shared_fc", kind=list),
-                "cls_fc": led.map(f"{rh}.CLS_FC", "stage_two.roi_head.cls_fc", kind=list),
-                "reg_fc": led.map(f"{rh}.REG_FC", "stage_two.roi_head.reg_fc", kind=list),
-                "dropout": float(led.map(f"{rh}.DP_RATIO", "stage_two.roi_head.dropout (identity at test time)",
-                                         kind=NUMBER)),
-                "grid_size": led.map(f"{grid}.GRID_SIZE", "stage_two.roi_head.grid_size", kind=int),
-                "roi_grid_pool": _sa(led, grid, "stage_two.roi_head.roi_grid_pool")}
+        led.notes.append(
+            f"{grid}.POOL_METHOD: {pool!r} is never read; upstream's build_local_aggregation_module "
+            "builds its StackSAModuleMSG with max_pool, and so does the card"
+        )
+    roi_head = {
+        "shared_fc": led.map(f"{rh}.SHARED_FC", "stage_two.roi_head.shared_fc", kind=list),
+        "cls_fc": led.map(f"{rh}.CLS_FC", "stage_two.roi_head.cls_fc", kind=list),
+        "reg_fc": led.map(f"{rh}.REG_FC", "stage_two.roi_head.reg_fc", kind=list),
+        "dropout": float(led.map(f"{rh}.DP_RATIO", "stage_two.roi_head.dropout (identity at test time)", kind=NUMBER)),
+        "grid_size": led.map(f"{grid}.GRID_SIZE", "stage_two.roi_head.grid_size", kind=int),
+        "roi_grid_pool": _sa(led, grid, "stage_two.roi_head.roi_grid_pool"),
+    }
     led.check(f"{rh}.TARGET_CONFIG.BOX_CODER", ("ResidualCoder",), "OpenPCDet's ResidualCoder decoding of the rois")
     # RoIHeadTemplate builds its test-time box decoder from TARGET_CONFIG.BOX_CODER(_CONFIG)
     _box_coder_config(led, f"{rh}.TARGET_CONFIG.BOX_CODER_CONFIG", "the ROI head's refined boxes")
@@ -880,18 +1017,32 @@ def _stage_two(led: _Ledger, nms: dict) -> dict:
     led.training(f"{rh}.LOSS_CONFIG", "loss (training only)")
     led.training(f"{rh}.NMS_CONFIG.TRAIN", "proposals while training")
     proposals = _nms(led, f"{rh}.NMS_CONFIG.TEST", "stage_two.proposals")
-    return {"proposals": {"pre_max": proposals["pre_max"], "iou_thresh": proposals["iou_thresh"],
-                          "post_max": proposals["post_max"]},
-            "keypoints": keypoints, "vsa": vsa, "point_head": point_head, "roi_head": roi_head,
-            "post_processing": nms}
+    return {
+        "proposals": {
+            "pre_max": proposals["pre_max"],
+            "iou_thresh": proposals["iou_thresh"],
+            "post_max": proposals["post_max"],
+        },
+        "keypoints": keypoints,
+        "vsa": vsa,
+        "point_head": point_head,
+        "roi_head": roi_head,
+        "post_processing": nms,
+    }
 
 
 def _sa(led: _Ledger, key: str, card_field: str) -> dict:
-    led.check(f"{key}.NAME", ("StackSAModuleMSG",), "multi-scale set abstraction (StackSAModuleMSG, upstream's "
-              "default)", default="StackSAModuleMSG")
-    return {"radii": led.map(f"{key}.POOL_RADIUS", f"{card_field}.radii", kind=list),
-            "nsample": led.map(f"{key}.NSAMPLE", f"{card_field}.nsample", kind=list),
-            "mlps": led.map(f"{key}.MLPS", f"{card_field}.mlps", kind=list)}
+    led.check(
+        f"{key}.NAME",
+        ("StackSAModuleMSG",),
+        "multi-scale set abstraction (StackSAModuleMSG, upstream's default)",
+        default="StackSAModuleMSG",
+    )
+    return {
+        "radii": led.map(f"{key}.POOL_RADIUS", f"{card_field}.radii", kind=list),
+        "nsample": led.map(f"{key}.NSAMPLE", f"{card_field}.nsample", kind=list),
+        "mlps": led.map(f"{key}.MLPS", f"{card_field}.mlps", kind=list),
+    }
 
 
 def _training_and_data_keys(led: _Ledger) -> None:
@@ -909,9 +1060,12 @@ def _training_and_data_keys(led: _Ledger) -> None:
     if mask is None:
         # upstream's batch_dict['points'] (the CFA's clustering, the CDA keypoints, the VSA) are the
         # points after the data processor; radaredge's graph always takes them cropped to the range
-        raise led.error("DATA_CONFIG.DATA_PROCESSOR", "no mask_points_and_boxes_outside_range step: upstream would "
-                        "cluster and sample the points outside POINT_CLOUD_RANGE too, and radaredge's graph always "
-                        "crops them to the range (add the step, as upstream's configs have it)")
+        raise led.error(
+            "DATA_CONFIG.DATA_PROCESSOR",
+            "no mask_points_and_boxes_outside_range step: upstream would "
+            "cluster and sample the points outside POINT_CLOUD_RANGE too, and radaredge's graph always "
+            "crops them to the range (add the step, as upstream's configs have it)",
+        )
     led.check(f"{mask}.NAME", ("mask_points_and_boxes_outside_range",), "the range mask")
     led.training(f"{mask}.REMOVE_OUTSIDE_BOXES", "ground-truth boxes (training only)")
     led.training(f"{mask}.min_num_corners", "ground-truth boxes (training only)")
@@ -921,8 +1075,11 @@ def _training_and_data_keys(led: _Ledger) -> None:
         enabled = led.value(f"{shuffle}.SHUFFLE_ENABLED", kind=(dict, bool))
         test = enabled.get("test", False) if isinstance(enabled, dict) else enabled
         if test is not False:
-            raise led.error(f"{shuffle}.SHUFFLE_ENABLED.test", "shuffled test points: radaredge's graph keeps the "
-                            "points in the order given (upstream's FPS and ball queries depend on it)")
+            raise led.error(
+                f"{shuffle}.SHUFFLE_ENABLED.test",
+                "shuffled test points: radaredge's graph keeps the "
+                "points in the order given (upstream's FPS and ball queries depend on it)",
+            )
         led.training(f"{shuffle}.SHUFFLE_ENABLED", "point shuffling while training (off at test time)")
 
 
@@ -930,11 +1087,14 @@ def render_card(conversion: Conversion) -> str:
     """The card as YAML, after a header that says where it came from and what radaredge chose."""
     src = conversion.card["source"]
     chain = " + ".join([src["config"]] + [b["named"] for b in src.get("base_configs", [])])
-    lines = [f"# Written by `radaredge card from-openpcdet` from {chain} (sha256 of each in `source`).",
-             "# Every key of the merged config is mapped to a field below, checked against what radaredge computes,",
-             "# training-only or ignored with its reason: `radaredge card from-openpcdet ... --json` lists each.",
-             "# Not config keys, radaredge's deployment choices as in the shipped cards: "
-             + ", ".join(DEPLOYMENT_CHOICES) + "."]
+    lines = [
+        f"# Written by `radaredge card from-openpcdet` from {chain} (sha256 of each in `source`).",
+        "# Every key of the merged config is mapped to a field below, checked against what radaredge computes,",
+        "# training-only or ignored with its reason: `radaredge card from-openpcdet ... --json` lists each.",
+        "# Not config keys, radaredge's deployment choices as in the shipped cards: "
+        + ", ".join(DEPLOYMENT_CHOICES)
+        + ".",
+    ]
     lines += [f"# note: {n}" for n in conversion.notes]
     body = yaml.safe_dump(conversion.card, sort_keys=False, default_flow_style=None, width=110)
     return "\n".join(lines) + "\n" + body

@@ -44,19 +44,23 @@ def point_counts(points: np.ndarray, card: ModelCard, pillars: PillarConfig) -> 
     xyz = np.where(usable[:, None], xyz, np.float32(0))
     r = np.asarray(pillars.point_cloud_range, np.float32)
     size = np.asarray(pillars.voxel_size, np.float32)
-    coords = np.floor((xyz - r[:3]) / size).astype(np.int64)      # float32 arithmetic, as the graph
+    coords = np.floor((xyz - r[:3]) / size).astype(np.int64)  # float32 arithmetic, as the graph
     grid = np.asarray(pillars.grid_size, np.int64)
     inside = usable & ((coords >= 0) & (coords < grid)).all(1)
     key = coords[inside, 0] * int(grid[1]) + coords[inside, 1]
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
     first = np.searchsorted(sorted_key, sorted_key, side="left")
-    rank = np.arange(len(sorted_key)) - first                   # points before it in its pillar
+    rank = np.arange(len(sorted_key)) - first  # points before it in its pillar
     x, y = xyz[:, 0], xyz[:, 1]
     scan = usable & (x >= r[0]) & (x <= r[3]) & (y >= r[1]) & (y <= r[4])
-    return {"points": int(len(pts)), "implausible": int(implausible.sum()),
-            "out_of_range": int((usable & ~inside).sum()),
-            "over_pillar_cap": int((rank >= pillars.max_points_per_pillar).sum()), "scan_points": int(scan.sum())}
+    return {
+        "points": int(len(pts)),
+        "implausible": int(implausible.sum()),
+        "out_of_range": int((usable & ~inside).sum()),
+        "over_pillar_cap": int((rank >= pillars.max_points_per_pillar).sum()),
+        "scan_points": int(scan.sum()),
+    }
 
 
 @dataclass
@@ -91,32 +95,47 @@ class CapacityTally:
     def summary(self) -> dict:
         frames = [f for r in self.rows for f in r["frames"]]
         n = len(frames)
-        out = {"cases": len(self.rows), "frames": n,
-               "points": sum(f["points"] for f in frames),
-               "points_out_of_range": sum(f["out_of_range"] for f in frames),
-               "points_over_pillar_cap": sum(f["over_pillar_cap"] for f in frames),
-               "points_implausible": sum(f["implausible"] for f in frames),
-               "max_points_per_pillar": self.pillars.max_points_per_pillar,
-               "input_flags": {name: sum(bool(f["flags"] & bit) for f in frames) for bit, name in FLAG_NAMES.items()}}
+        out = {
+            "cases": len(self.rows),
+            "frames": n,
+            "points": sum(f["points"] for f in frames),
+            "points_out_of_range": sum(f["out_of_range"] for f in frames),
+            "points_over_pillar_cap": sum(f["over_pillar_cap"] for f in frames),
+            "points_implausible": sum(f["implausible"] for f in frames),
+            "max_points_per_pillar": self.pillars.max_points_per_pillar,
+            "input_flags": {name: sum(bool(f["flags"] & bit) for f in frames) for bit, name in FLAG_NAMES.items()},
+        }
         if "num_pillars" in (self.rows[0] if self.rows else {}):
             pillars = [r["num_pillars"] for r in self.rows]
             spa = self.card.section("spa", SpaConfig)
-            out["spa"] = {"capacity": spa.capacity, "enabled": spa.enabled,
-                          "max_pillars": max(pillars), "mean_pillars": float(np.mean(pillars)),
-                          "overflow_cases": [r["case"] for r in self.rows if r.get("spa_overflow")]}
+            out["spa"] = {
+                "capacity": spa.capacity,
+                "enabled": spa.enabled,
+                "max_pillars": max(pillars),
+                "mean_pillars": float(np.mean(pillars)),
+                "overflow_cases": [r["case"] for r in self.rows if r.get("spa_overflow")],
+            }
         if "cfa_converged" in (self.rows[0] if self.rows else {}):
             not_converged = [r["case"] for r in self.rows if not r["cfa_converged"]]
             if self.cfa_method == "dbscan":
                 scan = [r["frames"][0]["scan_points"] for r in self.rows]
                 cap = self.card.section("cfa.dbscan", DbscanConfig).capacity
-                out["cfa"] = {"method": "dbscan", "capacity": cap, "max_scan_points": max(scan),
-                              "mean_scan_points": float(np.mean(scan)),
-                              "over_capacity_cases": [r["case"] for r, s in zip(self.rows, scan) if s > cap],
-                              "not_converged_cases": not_converged}
+                out["cfa"] = {
+                    "method": "dbscan",
+                    "capacity": cap,
+                    "max_scan_points": max(scan),
+                    "mean_scan_points": float(np.mean(scan)),
+                    "over_capacity_cases": [r["case"] for r, s in zip(self.rows, scan) if s > cap],
+                    "not_converged_cases": not_converged,
+                }
             else:
                 grid = self.card.section("cfa.grid", GridDensityConfig)
-                out["cfa"] = {"method": "grid_density", "cc_mode": grid.cc_mode, "cc_iterations": grid.cc_iterations,
-                              "not_converged_cases": not_converged}
+                out["cfa"] = {
+                    "method": "grid_density",
+                    "cc_mode": grid.cc_mode,
+                    "cc_iterations": grid.cc_iterations,
+                    "not_converged_cases": not_converged,
+                }
         if self.rows and "ego_valid" in self.rows[0]:
             valid = [v for r in self.rows for v in r["ego_valid"]]
             out["ego_valid"] = {"valid": int(sum(valid)), "frames": len(valid)}
@@ -135,31 +154,39 @@ class CapacityTally:
             return f"{a:,} ({100 * a / b:.1f} %)" if b else f"{a:,}"
 
         fed = f"{cases} {unit}s" + (f", {n} scans fed" if n != cases else "")
-        out = [f"capacity over the recording ({fed}; graph outputs, and point counts on the scans as fed):",
-               f"  points {s['points']:,}: outside point_cloud_range {share(s['points_out_of_range'], s['points'])}, "
-               f"beyond max_points_per_pillar {s['max_points_per_pillar']} "
-               f"{share(s['points_over_pillar_cap'], s['points'])}"
-               + (f", implausible {share(s['points_implausible'], s['points'])}" if s["points_implausible"] else ""),
-               "  input_flags, scans with the bit: " + ", ".join(f"{k} {v}/{n}" for k, v in s["input_flags"].items())]
+        out = [
+            f"capacity over the recording ({fed}; graph outputs, and point counts on the scans as fed):",
+            f"  points {s['points']:,}: outside point_cloud_range {share(s['points_out_of_range'], s['points'])}, "
+            f"beyond max_points_per_pillar {s['max_points_per_pillar']} "
+            f"{share(s['points_over_pillar_cap'], s['points'])}"
+            + (f", implausible {share(s['points_implausible'], s['points'])}" if s["points_implausible"] else ""),
+            "  input_flags, scans with the bit: " + ", ".join(f"{k} {v}/{n}" for k, v in s["input_flags"].items()),
+        ]
         spa = s.get("spa")
         if spa and spa["enabled"]:
-            out.append(f"  spa: non-empty pillars max {spa['max_pillars']:,} (mean {spa['mean_pillars']:.0f}) of "
-                       f"spa.capacity {spa['capacity']:,} ({100 * spa['max_pillars'] / spa['capacity']:.0f} % "
-                       f"at most); "
-                       f"spa_overflow in {len(spa['overflow_cases'])} of {cases}"
-                       + (f": {', '.join(spa['overflow_cases'][:6])}" if spa["overflow_cases"] else ""))
+            out.append(
+                f"  spa: non-empty pillars max {spa['max_pillars']:,} (mean {spa['mean_pillars']:.0f}) of "
+                f"spa.capacity {spa['capacity']:,} ({100 * spa['max_pillars'] / spa['capacity']:.0f} % "
+                f"at most); "
+                f"spa_overflow in {len(spa['overflow_cases'])} of {cases}"
+                + (f": {', '.join(spa['overflow_cases'][:6])}" if spa["overflow_cases"] else "")
+            )
         cfa = s.get("cfa")
         if cfa and cfa["method"] == "dbscan":
-            out.append(f"  cfa dbscan: scan points max {cfa['max_scan_points']:,} (mean {cfa['mean_scan_points']:.0f}) "
-                       f"of cfa.dbscan.capacity {cfa['capacity']:,} "
-                       f"({100 * cfa['max_scan_points'] / cfa['capacity']:.0f} % at most); cfa_converged false "
-                       f"(points beyond capacity left out) in "
-                       f"{len(cfa['not_converged_cases'])} of {cases}"
-                       + (f": {', '.join(cfa['not_converged_cases'][:6])}" if cfa["not_converged_cases"] else ""))
+            out.append(
+                f"  cfa dbscan: scan points max {cfa['max_scan_points']:,} (mean {cfa['mean_scan_points']:.0f}) "
+                f"of cfa.dbscan.capacity {cfa['capacity']:,} "
+                f"({100 * cfa['max_scan_points'] / cfa['capacity']:.0f} % at most); cfa_converged false "
+                f"(points beyond capacity left out) in "
+                f"{len(cfa['not_converged_cases'])} of {cases}"
+                + (f": {', '.join(cfa['not_converged_cases'][:6])}" if cfa["not_converged_cases"] else "")
+            )
         elif cfa:
-            out.append(f"  cfa grid_density ({cfa['cc_mode']}, cc_iterations {cfa['cc_iterations']}): cfa_converged "
-                       f"false in {len(cfa['not_converged_cases'])} of {cases}"
-                       + (f": {', '.join(cfa['not_converged_cases'][:6])}" if cfa["not_converged_cases"] else ""))
+            out.append(
+                f"  cfa grid_density ({cfa['cc_mode']}, cc_iterations {cfa['cc_iterations']}): cfa_converged "
+                f"false in {len(cfa['not_converged_cases'])} of {cases}"
+                + (f": {', '.join(cfa['not_converged_cases'][:6])}" if cfa["not_converged_cases"] else "")
+            )
         ego = s.get("ego_valid")
         if ego:
             out.append(f"  ego velocity: ego_valid in {ego['valid']} of {ego['frames']} scans")

@@ -21,11 +21,11 @@ import torch
 
 from ..cards import ModelCard
 from ..errors import CapacityError
-from .capacity import CapacityTally
-from ..models.comparators import CaseResult, Comparator, OutputSummary
 from ..exporting.graphs import DEBUG_PREFIX
+from ..models.comparators import CaseResult, Comparator, OutputSummary
 from ..models.spec import GraphSpec
 from ..runtime.runners import graph_runner
+from .capacity import CapacityTally
 
 
 @dataclass
@@ -35,12 +35,12 @@ class GraphParity:
     graph: str
     onnx: str
     comparators: tuple[Comparator, ...]
-    cases: list[dict] = field(default_factory=list)          # {"case": name, "outputs": {name: CaseResult}}
+    cases: list[dict] = field(default_factory=list)  # {"case": name, "outputs": {name: CaseResult}}
     summary: dict[str, OutputSummary] = field(default_factory=dict)
     divergence: dict | None = None
-    quantized: bool = False                                  # judged on the int8 budgets
-    skipped: list[dict] = field(default_factory=list)        # recorded cases the reference refuses: {case, reason}
-    capacity: CapacityTally | None = None                    # recordings: what the graph's capacities did
+    quantized: bool = False  # judged on the int8 budgets
+    skipped: list[dict] = field(default_factory=list)  # recorded cases the reference refuses: {case, reason}
+    capacity: CapacityTally | None = None  # recordings: what the graph's capacities did
 
     @property
     def passed(self) -> bool:
@@ -50,12 +50,18 @@ class GraphParity:
         return self.passed
 
     def to_dict(self) -> dict:
-        return {"onnx": self.onnx, "passed": self.passed, "quantized": self.quantized,
-                "summary": {k: s.to_dict() for k, s in self.summary.items()},
-                "cases": [{"case": c["case"], "outputs": {k: asdict(r) for k, r in c["outputs"].items()}}
-                          for c in self.cases],
-                "divergence": self.divergence, "skipped": list(self.skipped),
-                "capacity": self.capacity.to_dict() if self.capacity is not None else None}
+        return {
+            "onnx": self.onnx,
+            "passed": self.passed,
+            "quantized": self.quantized,
+            "summary": {k: s.to_dict() for k, s in self.summary.items()},
+            "cases": [
+                {"case": c["case"], "outputs": {k: asdict(r) for k, r in c["outputs"].items()}} for c in self.cases
+            ],
+            "divergence": self.divergence,
+            "skipped": list(self.skipped),
+            "capacity": self.capacity.to_dict() if self.capacity is not None else None,
+        }
 
     def lines(self, unit: str = "frame") -> list[str]:
         """The per-output table, comparator notes, the divergence report and, for a recording,
@@ -63,22 +69,34 @@ class GraphParity:
         out = [f"{'output':<24}{'kind':<12}{'max abs':>11}{'max rel':>11}{'p99 abs':>11}{'min cos/IoU':>12}  verdict"]
         for comp in self.comparators:
             s = self.summary[comp.name]
-            cos = (f"{s.min_cosine:.7f}" if s.min_cosine is not None else
-                   f"{s.min_iou:.7f}" if s.min_iou is not None else "-")
-            out.append(f"{s.name:<24}{s.kind:<12}{s.max_abs:>11.3g}{s.max_rel:>11.3g}{s.p99_abs:>11.3g}"
-                       f"{cos:>12}  {'PASSED' if s else 'FAILED'}  tol {s.tolerance}")
+            cos = (
+                f"{s.min_cosine:.7f}"
+                if s.min_cosine is not None
+                else f"{s.min_iou:.7f}"
+                if s.min_iou is not None
+                else "-"
+            )
+            out.append(
+                f"{s.name:<24}{s.kind:<12}{s.max_abs:>11.3g}{s.max_rel:>11.3g}{s.p99_abs:>11.3g}"
+                f"{cos:>12}  {'PASSED' if s else 'FAILED'}  tol {s.tolerance}"
+            )
             out += [f"{'':<24}{note}" for note in comp.notes(s)]
         d = self.divergence
         if d:
             if d["tensor"]:
-                out.append(f"first diverging intermediate (case {d['case']}): {d['tensor']} "
-                           f"(max abs {d['max_abs']:.3g})")
+                out.append(
+                    f"first diverging intermediate (case {d['case']}): {d['tensor']} (max abs {d['max_abs']:.3g})"
+                )
             else:
-                out.append(f"no intermediate diverges beyond tolerance in case {d['case']}: "
-                           "the difference arises in the final outputs")
+                out.append(
+                    f"no intermediate diverges beyond tolerance in case {d['case']}: "
+                    "the difference arises in the final outputs"
+                )
         if self.skipped:
-            out.append(f"not compared: {len(self.skipped)} {unit}(s) the reference refuses (the graph masks what does "
-                       f"not fit its capacity; the runtime refuses these inputs):")
+            out.append(
+                f"not compared: {len(self.skipped)} {unit}(s) the reference refuses (the graph masks what does "
+                f"not fit its capacity; the runtime refuses these inputs):"
+            )
             out += [f"  {s['case']}: {s['reason']}" for s in self.skipped[:6]]
         if not self.cases:
             out.append(f"no {unit} could be compared: FAILED")
@@ -96,8 +114,8 @@ class ParityReport:
     runtime: str = "onnxruntime"
     quantized: bool = False
     graphs: dict[str, GraphParity] = field(default_factory=dict)
-    task: object | None = None      # with --quantized, the int8 graph's task metric (lines, to_dict, bool)
-    data: object | None = None      # with --data, the recording (radaredge.checking.recording.Recording)
+    task: object | None = None  # with --quantized, the int8 graph's task metric (lines, to_dict, bool)
+    data: object | None = None  # with --data, the recording (radaredge.checking.recording.Recording)
 
     @property
     def passed(self) -> bool:
@@ -111,28 +129,42 @@ class ParityReport:
         return self.graphs[name] if name is not None else next(iter(self.graphs.values()))
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "onnx": self.onnx, "runtime": self.runtime, "quantized": self.quantized,
-                "passed": self.passed, "graphs": {n: g.to_dict() for n, g in self.graphs.items()},
-                "task": self.task.to_dict() if self.task is not None else None,
-                "data": self.data.to_dict() if self.data is not None else None}
+        return {
+            "model": self.model,
+            "onnx": self.onnx,
+            "runtime": self.runtime,
+            "quantized": self.quantized,
+            "passed": self.passed,
+            "graphs": {n: g.to_dict() for n, g in self.graphs.items()},
+            "task": self.task.to_dict() if self.task is not None else None,
+            "data": self.data.to_dict() if self.data is not None else None,
+        }
 
     def lines(self) -> list[str]:
         out = []
         unit = self.data.unit if self.data is not None else "case"
         for name, g in self.graphs.items():
-            budget = (" [int8 budget]" if g.quantized else
-                      " [fp32: the model's int8 policy keeps this graph fp32]" if self.quantized else "")
-            cases = (f"{len(g.cases)} recorded {unit}s" if self.data is not None else f"{len(g.cases)} cases")
-            out.append(f"parity {self.model}: {Path(g.onnx).name} ({self.runtime}) vs reference (torch), "
-                       f"{cases}{budget}")
+            budget = (
+                " [int8 budget]"
+                if g.quantized
+                else " [fp32: the model's int8 policy keeps this graph fp32]"
+                if self.quantized
+                else ""
+            )
+            cases = f"{len(g.cases)} recorded {unit}s" if self.data is not None else f"{len(g.cases)} cases"
+            out.append(
+                f"parity {self.model}: {Path(g.onnx).name} ({self.runtime}) vs reference (torch), {cases}{budget}"
+            )
             if self.data is not None:
                 out += self.data.lines()
             out += g.lines(unit)
             if len(self.graphs) > 1:
                 out.append(f"{name}: {'PASSED' if g else 'FAILED'}")
         if self.runtime == "openvino" and not self.passed:
-            out.append("note: OpenVINO's CPU plugin has no float64 kernels; what a graph computes in float64 "
-                       "carries float32 error there")
+            out.append(
+                "note: OpenVINO's CPU plugin has no float64 kernels; what a graph computes in float64 "
+                "carries float32 error there"
+            )
         if len(self.graphs) > 1:
             out.append(f"{self.model}: {sum(map(bool, self.graphs.values()))}/{len(self.graphs)} graphs passed")
         if self.task is not None:
@@ -145,9 +177,19 @@ def _numpy(outputs: dict) -> dict[str, np.ndarray]:
     return {k: v.detach().numpy() for k, v in outputs.items()}
 
 
-def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx_path, cases_n: int = 20,
-                seed: int = 0, quantized: bool = False, runtime: str = "onnxruntime", debug_onnx=None,
-                progress=None, recorded: list | None = None) -> GraphParity:
+def check_graph(
+    card: ModelCard,
+    graph: GraphSpec,
+    module: torch.nn.Module,
+    onnx_path,
+    cases_n: int = 20,
+    seed: int = 0,
+    quantized: bool = False,
+    runtime: str = "onnxruntime",
+    debug_onnx=None,
+    progress=None,
+    recorded: list | None = None,
+) -> GraphParity:
     """Parity of one graph: ``onnx_path`` run in ``runtime`` (onnxruntime, or OpenVINO's CPU plugin)
     against ``graph``'s reference formulation of ``module`` on ``cases_n`` cases drawn with ``seed``,
     or on ``recorded`` cases ([(name, feeds)] of a recording,
@@ -171,7 +213,7 @@ def check_graph(card: ModelCard, graph: GraphSpec, module: torch.nn.Module, onnx
     # phase 1: run the graph and the reference on every case; phase 2: the reference stages that
     # follow a discrete decision, run on the graph's own inputs to them (see GraphSpec)
     got_all, ref_all, post_all, names = [], [], [], []
-    for name, feeds in (progress(cases) if progress else cases):
+    for name, feeds in progress(cases) if progress else cases:
         got = run_graph(feeds)
         if report.capacity is not None:
             report.capacity.add(name, feeds, got)
@@ -218,16 +260,20 @@ def first_divergence(trace_order, got_trace: dict, ref_trace: dict, atol: float 
     return None
 
 
-def locate_divergence(card, graph: GraphSpec, module, debug_onnx, report: GraphParity, cases,
-                      runtime: str = "onnxruntime") -> dict | None:
+def locate_divergence(
+    card, graph: GraphSpec, module, debug_onnx, report: GraphParity, cases, runtime: str = "onnxruntime"
+) -> dict | None:
     """Re-run the first failing case through the debug export (in ``runtime``) and the traced reference."""
     compared = dict(cases)
     failing = next((c["case"] for c in report.cases if not all(c["outputs"].values())), None)
     # a summary that failed with no single case failing: the first compared case (never one the
     # reference refused for a capacity, which report.cases leaves out)
     feeds = compared[failing or report.cases[0]["case"]]
-    got = {k[len(DEBUG_PREFIX):]: v for k, v in graph_runner(debug_onnx, runtime)(feeds).items()
-           if k.startswith(DEBUG_PREFIX)}
+    got = {
+        k[len(DEBUG_PREFIX) :]: v
+        for k, v in graph_runner(debug_onnx, runtime)(feeds).items()
+        if k.startswith(DEBUG_PREFIX)
+    }
     ref_trace: dict = {}
     with torch.no_grad():
         graph.run_reference(module, feeds, ref_trace)

@@ -39,17 +39,25 @@ from pathlib import Path
 import numpy as np
 
 from ..cards import ModelCard
-from ..data.kitti_detection import (LAYOUTS, DetectionSet, camera_fov_mask, check_image_size, read_calibration,
-                                    read_image_size)
+from ..data.kitti_detection import (
+    LAYOUTS,
+    DetectionSet,
+    camera_fov_mask,
+    check_image_size,
+    read_calibration,
+    read_image_size,
+)
 from ..data.readers import FILE_SUFFIX, check_points, read_scan, scan_format
 from ..data.sequences import POINTCLOUDS, frame_order, load_sequence
 from ..errors import CapacityError, ConfigError, InputError
 from ..models.spec import GraphSpec
 from ..runtime import FrameFeeds
 
-DEFAULT_FRAMES = 20          # frames (windows) checked when none are asked for: the synthetic default's cost
-EXPECTED = ("a drive (scans/ + gps.csv) or a directory of drives, a KITTI layout (training/velodyne/: View-of-Delft, "
-            "TJ4DRadSet), or a folder of scan files (.bin or .npy, one per frame in file-name order)")
+DEFAULT_FRAMES = 20  # frames (windows) checked when none are asked for: the synthetic default's cost
+EXPECTED = (
+    "a drive (scans/ + gps.csv) or a directory of drives, a KITTI layout (training/velodyne/: View-of-Delft, "
+    "TJ4DRadSet), or a folder of scan files (.bin or .npy, one per frame in file-name order)"
+)
 
 
 @dataclass
@@ -70,34 +78,50 @@ class Recording:
     how its frames were chosen, for the report."""
 
     directory: str
-    kind: str                    # "drive", "drives", "kitti", "folder"
+    kind: str  # "drive", "drives", "kitti", "folder"
     fmt: str
-    scans: int                   # scan files in the recording (in the split)
-    available: int               # frames (windows) that could be checked
-    window: int                  # scans a case takes (K)
-    timestamps: str              # where window times came from ("" for a one-scan graph)
+    scans: int  # scan files in the recording (in the split)
+    available: int  # frames (windows) that could be checked
+    window: int  # scans a case takes (K)
+    timestamps: str  # where window times came from ("" for a one-scan graph)
     split: str | None = None
     notes: list[str] = field(default_factory=list)
     cases: list = field(default_factory=list)
-    files: dict = field(default_factory=dict)     # case name -> its scan files
+    files: dict = field(default_factory=dict)  # case name -> its scan files
 
     @property
     def unit(self) -> str:
         return "window" if self.window > 1 else "frame"
 
     def to_dict(self) -> dict:
-        return {"directory": self.directory, "kind": self.kind, "format": self.fmt, "scans": self.scans,
-                "unit": self.unit, "window": self.window, "available": self.available, "checked": len(self.cases),
-                "selection": "spread evenly, first and last included", "timestamps": self.timestamps or None,
-                "split": self.split, "notes": list(self.notes), "files": dict(self.files)}
+        return {
+            "directory": self.directory,
+            "kind": self.kind,
+            "format": self.fmt,
+            "scans": self.scans,
+            "unit": self.unit,
+            "window": self.window,
+            "available": self.available,
+            "checked": len(self.cases),
+            "selection": "spread evenly, first and last included",
+            "timestamps": self.timestamps or None,
+            "split": self.split,
+            "notes": list(self.notes),
+            "files": dict(self.files),
+        }
 
     def lines(self) -> list[str]:
-        kinds = {"drive": "a drive: scans/ + gps.csv", "drives": "drives with gps.csv",
-                 "kitti": "KITTI layout" + (f", ImageSets/{self.split}.txt" if self.split else ", every frame"),
-                 "folder": "a folder of scan files"}
-        what = (f"{self.window} consecutive scans" if self.window > 1 else "one scan")
-        out = [f"recording: {self.directory} ({kinds[self.kind]}; {self.scans} {self.fmt} scans); "
-               f"{len(self.cases)} of {self.available} {self.unit}s of {what}, spread evenly (first and last included)"]
+        kinds = {
+            "drive": "a drive: scans/ + gps.csv",
+            "drives": "drives with gps.csv",
+            "kitti": "KITTI layout" + (f", ImageSets/{self.split}.txt" if self.split else ", every frame"),
+            "folder": "a folder of scan files",
+        }
+        what = f"{self.window} consecutive scans" if self.window > 1 else "one scan"
+        out = [
+            f"recording: {self.directory} ({kinds[self.kind]}; {self.scans} {self.fmt} scans); "
+            f"{len(self.cases)} of {self.available} {self.unit}s of {what}, spread evenly (first and last included)"
+        ]
         if self.timestamps:
             out.append(f"window times: {self.timestamps}")
         out += [f"note: {n}" for n in self.notes]
@@ -141,7 +165,7 @@ def _kitti_root(directory: Path, card: ModelCard) -> Path | None:
     if (directory / "training" / "velodyne").is_dir():
         return directory
     scans = int(card.get("input.scans_accumulated", 1))
-    names = {n: ds for layout in LAYOUTS.values() for n, ds in layout.scan_folders().items()}   # primary name first
+    names = {n: ds for layout in LAYOUTS.values() for n, ds in layout.scan_folders().items()}  # primary name first
     present = [d for ds in names.values() for d in ds if (directory / d / "training" / "velodyne").is_dir()]
     if not present:
         return None
@@ -149,43 +173,57 @@ def _kitti_root(directory: Path, card: ModelCard) -> Path | None:
     if mine:
         return directory / mine[0]
     where = f", which View-of-Delft keeps in {' or '.join(d + '/' for d in names[scans])}" if scans in names else ""
-    raise InputError(f"--data {directory}: {card.name} takes {scans} accumulated scan(s) a frame "
-                     f"(input.scans_accumulated){where}"
-                     f"; {directory} holds {', '.join(p + '/' for p in present)}: pass "
-                     f"{'it' if len(present) == 1 else 'one of them'} as --data to check on its scans")
+    raise InputError(
+        f"--data {directory}: {card.name} takes {scans} accumulated scan(s) a frame "
+        f"(input.scans_accumulated){where}"
+        f"; {directory} holds {', '.join(p + '/' for p in present)}: pass "
+        f"{'it' if len(present) == 1 else 'one of them'} as --data to check on its scans"
+    )
 
 
 def _kitti_streams(root: Path, card: ModelCard, split: str | None, fmt: str | None, notes: list[str]):
     velodyne = root / "training" / "velodyne"
     if split is None:
-        paths = _scan_files(velodyne, fmt or "vod")          # KITTI layouts store .bin
+        paths = _scan_files(velodyne, fmt or "vod")  # KITTI layouts store .bin
     else:
         if not (root / "ImageSets" / f"{split}.txt").is_file():
             have = sorted(p.stem for p in (root / "ImageSets").glob("*.txt")) if (root / "ImageSets").is_dir() else []
-            raise InputError(f"--split {split}: {root / 'ImageSets' / (split + '.txt')} does not exist"
-                             + (f"; ImageSets has {have}" if have else "; without ImageSets, drop --split to check "
-                                "every frame"))
+            raise InputError(
+                f"--split {split}: {root / 'ImageSets' / (split + '.txt')} does not exist"
+                + (f"; ImageSets has {have}" if have else "; without ImageSets, drop --split to check every frame")
+            )
         dataset = _format(_scan_files(velodyne, fmt), fmt, root)
         if dataset not in LAYOUTS:
             raise InputError(f"--data {root}: a KITTI layout holds View-of-Delft or TJ4DRadSet scans, not {dataset}")
-        the_set = DetectionSet(root, split, LAYOUTS[dataset], int(card.get("input.scans_accumulated", 1)),
-                               card.get("input.image_size"), say=False)
+        the_set = DetectionSet(
+            root,
+            split,
+            LAYOUTS[dataset],
+            int(card.get("input.scans_accumulated", 1)),
+            card.get("input.image_size"),
+            say=False,
+        )
         paths = [the_set.scan_path(fid) for fid in the_set.frame_ids]
     accumulated = {d: n for layout in LAYOUTS.values() for n, ds in layout.scan_folders().items() for d in ds}
     want = int(card.get("input.scans_accumulated", 1))
     if root.name in accumulated and accumulated[root.name] != want:
-        notes.append(f"{root.name}/ holds {accumulated[root.name]} accumulated scan(s) a frame; {card.name} takes "
-                     f"{want} (input.scans_accumulated): parity holds on any cloud, the capacity figures are of "
-                     f"these clouds")
+        notes.append(
+            f"{root.name}/ holds {accumulated[root.name]} accumulated scan(s) a frame; {card.name} takes "
+            f"{want} (input.scans_accumulated): parity holds on any cloud, the capacity figures are of "
+            f"these clouds"
+        )
     crop = None
     if card.get("input.crop", "none") == "camera_fov":
         if (root / "training" / "calib").is_dir():
             crop = root
-            notes.append("input.crop camera_fov: each scan cropped to the camera's view (training/calib/), as "
-                         "`radaredge eval` feeds it")
+            notes.append(
+                "input.crop camera_fov: each scan cropped to the camera's view (training/calib/), as "
+                "`radaredge eval` feeds it"
+            )
         else:
-            notes.append(f"input.crop camera_fov not applied: {root / 'training'} has no calib/; the scans are "
-                         f"fed whole")
+            notes.append(
+                f"input.crop camera_fov not applied: {root / 'training'} has no calib/; the scans are fed whole"
+            )
     return [Stream("", paths, None, crop)], velodyne
 
 
@@ -200,8 +238,10 @@ def find_streams(directory: Path, card: ModelCard, split: str | None, fmt: str |
     notes: list[str] = []
     kitti = None if _has_gps_drive(directory) else _kitti_root(directory, card)
     if split is not None and kitti is None:
-        raise InputError(f"--split {split}: {directory} is not a KITTI layout (ImageSets/ + training/velodyne/); "
-                         f"drop --split to check its scans")
+        raise InputError(
+            f"--split {split}: {directory} is not a KITTI layout (ImageSets/ + training/velodyne/); "
+            f"drop --split to check its scans"
+        )
     if kitti is not None:
         streams, where = _kitti_streams(kitti, card, split, fmt, notes)
         kind = "kitti"
@@ -264,30 +304,43 @@ def _read(path: Path, card: ModelCard, fmt: str, kitti_root: Path | None) -> np.
     training = kitti_root / "training"
     calib = read_calibration(training / "calib" / f"{path.stem}.txt")
     images = (training / "image_2" / f"{path.stem}{suffix}" for suffix in (".jpg", ".png", ".jpeg"))
-    size = next((read_image_size(p) for p in images if p.exists()), None) \
-        or check_image_size(card.get("input.image_size")) or LAYOUTS[fmt if fmt in LAYOUTS else "vod"].image_size
+    size = (
+        next((read_image_size(p) for p in images if p.exists()), None)
+        or check_image_size(card.get("input.image_size"))
+        or LAYOUTS[fmt if fmt in LAYOUTS else "vod"].image_size
+    )
     xyz = points[:, [card.features.index(c) for c in ("x", "y", "z")]]
     return points[camera_fov_mask(xyz, calib, size)]
 
 
-def recorded_cases(card: ModelCard, graph: GraphSpec, directory: str | os.PathLike, frames: int = DEFAULT_FRAMES,
-                   split: str | None = None, fmt: str | None = None) -> Recording:
+def recorded_cases(
+    card: ModelCard,
+    graph: GraphSpec,
+    directory: str | os.PathLike,
+    frames: int = DEFAULT_FRAMES,
+    split: str | None = None,
+    fmt: str | None = None,
+) -> Recording:
     """The parity cases of ``graph`` from the recording at ``directory`` (module docstring):
     ``frames`` frames (windows), spread evenly. InputError for a recording that is missing,
     holds no scans, too few for one window, or a scan that cannot be read or fed."""
     directory = Path(directory)
     k = len(graph.frame_inputs(card))
     if k > 1 and split is not None:
-        raise ConfigError(f"--split picks labelled frames of a KITTI layout for a one-scan model; {card.name} takes "
-                          f"windows of {k} consecutive scans: drop --split and pass a drive or a folder of consecutive "
-                          f"scans")
+        raise ConfigError(
+            f"--split picks labelled frames of a KITTI layout for a one-scan model; {card.name} takes "
+            f"windows of {k} consecutive scans: drop --split and pass a drive or a folder of consecutive "
+            f"scans"
+        )
     kind, streams, fmt, notes = find_streams(directory, card, split, fmt)
     units = [(s, start) for s in streams for start in range(len(s.paths) - k + 1)]
     scans = sum(len(s.paths) for s in streams)
     if not units:
-        raise InputError(f"--data {directory}: {scans} scan(s) per "
-                         f"{'drive' if kind.startswith('drive') else 'folder'} at most, but one window of {card.name} "
-                         f"takes {k} consecutive scans")
+        raise InputError(
+            f"--data {directory}: {scans} scan(s) per "
+            f"{'drive' if kind.startswith('drive') else 'folder'} at most, but one window of {card.name} "
+            f"takes {k} consecutive scans"
+        )
     timed = graph.timestamps_input is not None
     if timed and all(s.timestamps is not None for s in streams):
         times = "gps.csv timestamps"
@@ -299,12 +352,12 @@ def recorded_cases(card: ModelCard, graph: GraphSpec, directory: str | os.PathLi
     feeder = FrameFeeds.of_card(card, graph.frame_inputs(card), graph.timestamps_input)
     for i in spread(len(units), frames):
         stream, start = units[int(i)]
-        window = stream.paths[start:start + k]
-        stamps = stream.timestamps[start:start + k] if stream.timestamps is not None and timed else None
+        window = stream.paths[start : start + k]
+        stamps = stream.timestamps[start : start + k] if stream.timestamps is not None and timed else None
         try:
             points = [_read(p, card, stream.fmt, stream.kitti_root) for p in window]
             feeds = feeder.feeds(points, stamps)
-        except (InputError, CapacityError) as exc:        # named by the scan's file
+        except (InputError, CapacityError) as exc:  # named by the scan's file
             message = str(exc)
             if not any(message.startswith(str(p)) for p in window):
                 message = _frame_file(message, window)

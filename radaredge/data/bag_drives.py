@@ -72,8 +72,9 @@ def read_fixes(path: str | os.PathLike, topic: str) -> tuple[np.ndarray, np.ndar
     return np.asarray(stamps, np.float64), np.asarray(lat, np.float64), np.asarray(lon, np.float64)
 
 
-def load_bag_sequence(path: str | os.PathLike, features: Sequence[str], source: BagSource = BagSource(),
-                      zone: int | None = None) -> RadarSequence:
+def load_bag_sequence(
+    path: str | os.PathLike, features: Sequence[str], source: BagSource = BagSource(), zone: int | None = None
+) -> RadarSequence:
     """The drive recorded in the bag at ``path`` (module docstring), its scans in the columns
     ``features``, its positions (northing, easting) in UTM ``zone`` (default: the first fix's).
     InputError naming the bag for a missing topic, no valid fix, or no scan within the fixes' time span."""
@@ -81,8 +82,10 @@ def load_bag_sequence(path: str | os.PathLike, features: Sequence[str], source: 
     features = list(features)
     t_fix, lat, lon = read_fixes(path, source.gps_topic)
     if len(t_fix) < 2:
-        raise InputError(f"{path}: {len(t_fix)} valid GNSS fix(es) on {source.gps_topic!r}; positions need at least "
-                         f"2 (a fix with status >= 0 and finite latitude and longitude)")
+        raise InputError(
+            f"{path}: {len(t_fix)} valid GNSS fix(es) on {source.gps_topic!r}; positions need at least "
+            f"2 (a fix with status >= 0 and finite latitude and longitude)"
+        )
     order = np.argsort(t_fix, kind="stable")
     t_fix, lat, lon = t_fix[order], lat[order], lon[order]
     easting, northing, zone, _ = utm_from_latlon(lat, lon, zone)
@@ -94,11 +97,21 @@ def load_bag_sequence(path: str | os.PathLike, features: Sequence[str], source: 
             scans.append(points)
             stamps.append(stamp)
     if not scans:
-        raise InputError(f"{path}: no scan on {source.radar_topic!r} lies within the GNSS fixes' time span "
-                         f"{t_fix[0]:.3f}-{t_fix[-1]:.3f} s")
+        raise InputError(
+            f"{path}: no scan on {source.radar_topic!r} lies within the GNSS fixes' time span "
+            f"{t_fix[0]:.3f}-{t_fix[-1]:.3f} s"
+        )
     stamps = np.asarray(stamps, np.float64)
     order = np.argsort(stamps, kind="stable")
-    keep = order[np.r_[True, np.diff(stamps[order]) > 0]]          # one scan per stamp, in time order
+    keep = order[np.r_[True, np.diff(stamps[order]) > 0]]  # one scan per stamp, in time order
     positions = np.stack([np.interp(stamps[keep], t_fix, northing), np.interp(stamps[keep], t_fix, easting)], 1)
-    return RadarSequence(path.name, [path] * len(keep), stamps[keep], positions, "rosbag",
-                         [scans[i] for i in keep], tuple(features), zone)
+    return RadarSequence(
+        path.name,
+        [path] * len(keep),
+        stamps[keep],
+        positions,
+        "rosbag",
+        [scans[i] for i in keep],
+        tuple(features),
+        zone,
+    )

@@ -55,22 +55,34 @@ from .radar_physics import occluded_share
 from .synthetic import CLASS_NAMES, SceneConfig, generate_sequence, tj4d_table, vod_accumulated_table, vod_table
 
 LABEL_NAMES = {"car": "Car", "pedestrian": "Pedestrian", "cyclist": "Cyclist"}
-ANNOTATED_RANGE = 50.0            # m, VoD annotates objects within 50 m of the LiDAR
-HISTORY = 4                       # scans before a labelled frame (radar_5frames)
-VRU_ON_ROAD = 0.3                 # share of pedestrians and cyclists on the carriageway (the corridor has some)
+ANNOTATED_RANGE = 50.0  # m, VoD annotates objects within 50 m of the LiDAR
+HISTORY = 4  # scans before a labelled frame (radar_5frames)
+VRU_ON_ROAD = 0.3  # share of pedestrians and cyclists on the carriageway (the corridor has some)
 SINGLE_DIR, ACCUMULATED_DIR = "radar", "radar_5frames"
 VERSIONS = (1, 2)
 DEFAULT_DRIVES = {1: 10, 2: 40}
-FRAME_STRIDE = {1: 1, 2: 5}       # scans between labelled frames (10 Hz): version 2's are 0.5 s apart
-PHYSICS_V2 = dict(                # SceneConfig fields of every version-2 drive
-    points_model="radar", occlusion=True, position_noise=0.03, range_noise=0.05, azimuth_noise_deg=0.3,
-    elevation_noise_deg=1.0, micro_doppler=1.0, clutter_points=15.0, moving_ghosts=True, ghost_fraction=0.04,
-    traffic_accel_max=1.5, swerves=0.3, vru_crossing=0.15, vru_on_road=VRU_ON_ROAD)
-MOUNT_JITTER_DEG, MOUNT_HEIGHT_JITTER = 1.0, 0.05    # version 2: |pitch|, |roll|, |yaw| (deg) and |height| (m)
-NOMINAL_MOUNT_HEIGHT = 0.8                           # m, SceneConfig's default
+FRAME_STRIDE = {1: 1, 2: 5}  # scans between labelled frames (10 Hz): version 2's are 0.5 s apart
+PHYSICS_V2 = dict(  # SceneConfig fields of every version-2 drive
+    points_model="radar",
+    occlusion=True,
+    position_noise=0.03,
+    range_noise=0.05,
+    azimuth_noise_deg=0.3,
+    elevation_noise_deg=1.0,
+    micro_doppler=1.0,
+    clutter_points=15.0,
+    moving_ghosts=True,
+    ghost_fraction=0.04,
+    traffic_accel_max=1.5,
+    swerves=0.3,
+    vru_crossing=0.15,
+    vru_on_road=VRU_ON_ROAD,
+)
+MOUNT_JITTER_DEG, MOUNT_HEIGHT_JITTER = 1.0, 0.05  # version 2: |pitch|, |roll|, |yaw| (deg) and |height| (m)
+NOMINAL_MOUNT_HEIGHT = 0.8  # m, SceneConfig's default
 
 
-CAMERAS = {"vod": ((1936, 1216), 1495.0), "tj4d": ((1280, 960), 1110.0)}   # image (w, h) px, focal px
+CAMERAS = {"vod": ((1936, 1216), 1495.0), "tj4d": ((1280, 960), 1110.0)}  # image (w, h) px, focal px
 
 
 def synthetic_calibration(dataset: str = "vod", mount: np.ndarray | None = None) -> Calibration:
@@ -78,9 +90,9 @@ def synthetic_calibration(dataset: str = "vod", mount: np.ndarray | None = None)
     image centre), 0.6 m above and 0.2 m behind the radar as designed, pitched 2 deg down.
     ``mount`` [4, 4] maps the actual radar frame into the designed one (a mounting error)."""
     pitch = math.radians(2.0)
-    axes = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])    # radar x fwd, y left, z up -> cam
+    axes = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # radar x fwd, y left, z up -> cam
     c, s = math.cos(pitch), math.sin(pitch)
-    tilt = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])            # about the camera's x axis
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])  # about the camera's x axis
     rotation = tilt @ axes
     camera_in_radar = np.array([-0.2, 0.0, 0.6])
     v2c = np.column_stack([rotation, -rotation @ camera_in_radar])
@@ -93,8 +105,10 @@ def synthetic_calibration(dataset: str = "vod", mount: np.ndarray | None = None)
 
 def calibration_text(calib: Calibration) -> str:
     """A KITTI calibration file of ``calib``."""
+
     def row(a):
         return " ".join(f"{v:.12e}" for v in np.asarray(a).ravel())
+
     lines = [f"P{k}: {row(calib.P2)}" for k in range(4)]
     lines += [f"R0_rect: {row(calib.R0)}", f"Tr_velo_to_cam: {row(calib.V2C)}", "Tr_imu_to_velo: "]
     return "\n".join(lines) + "\n"
@@ -108,10 +122,20 @@ def _occlusion(boxes: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
     hx, hy = boxes[:, 3] / 2, boxes[:, 4] / 2
-    corners = np.stack([boxes[:, None, 0] + c[:, None] * sx * hx[:, None] - s[:, None] * sy * hy[:, None]
-                        for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))], 1)           # x only, [M, 4]
-    cy = np.stack([boxes[:, None, 1] + s[:, None] * sx * hx[:, None] + c[:, None] * sy * hy[:, None]
-                   for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))], 1)
+    corners = np.stack(
+        [
+            boxes[:, None, 0] + c[:, None] * sx * hx[:, None] - s[:, None] * sy * hy[:, None]
+            for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))
+        ],
+        1,
+    )  # x only, [M, 4]
+    cy = np.stack(
+        [
+            boxes[:, None, 1] + s[:, None] * sx * hx[:, None] + c[:, None] * sy * hy[:, None]
+            for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))
+        ],
+        1,
+    )
     az = np.arctan2(cy, corners)[..., 0]
     lo, hi = az.min(1), az.max(1)
     dist = np.hypot(boxes[:, 0], boxes[:, 1])
@@ -129,8 +153,9 @@ def _occlusion(boxes: np.ndarray) -> np.ndarray:
     return levels
 
 
-def frame_labels(boxes: np.ndarray, labels: np.ndarray, calib: Calibration, image_size: tuple[int, int],
-                 version: int = 1) -> tuple[list[str], np.ndarray]:
+def frame_labels(
+    boxes: np.ndarray, labels: np.ndarray, calib: Calibration, image_size: tuple[int, int], version: int = 1
+) -> tuple[list[str], np.ndarray]:
     """KITTI label lines of the annotated objects among radar-frame boxes [M, 7] (class index
     ``labels`` into synthetic.CLASS_NAMES): within 50 m and at least partly in the image; and
     the rows of ``boxes`` they label. Occlusion by :func:`_occlusion` (version 1) or by ray
@@ -141,8 +166,13 @@ def frame_labels(boxes: np.ndarray, labels: np.ndarray, calib: Calibration, imag
     corners = camera_box_corners(kitti.location, kitti.dimensions, kitti.rotation_y)
     uv, depth = calib.rect_to_image(corners.reshape(-1, 3))
     uv, depth = uv.reshape(-1, 8, 2), depth.reshape(-1, 8)
-    inside = ((depth > 0.1) & (uv[..., 0] >= 0) & (uv[..., 0] < image_size[0]) & (uv[..., 1] >= 0)
-              & (uv[..., 1] < image_size[1])).any(1)
+    inside = (
+        (depth > 0.1)
+        & (uv[..., 0] >= 0)
+        & (uv[..., 0] < image_size[0])
+        & (uv[..., 1] >= 0)
+        & (uv[..., 1] < image_size[1])
+    ).any(1)
     keep = inside & (np.hypot(boxes[:, 0], boxes[:, 1]) <= ANNOTATED_RANGE)
     if version == 1:
         occluded = _occlusion(boxes[keep])
@@ -173,17 +203,27 @@ class DetectionBenchmark:
     distinct: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"out": str(self.out), "dataset": self.dataset, "version": self.version,
-                "frames": {k: len(v) for k, v in self.splits.items()}, "objects": self.objects,
-                "distinct_objects": self.distinct,
-                "layouts": [SINGLE_DIR, ACCUMULATED_DIR] if self.dataset == "vod" else ["."]}
+        return {
+            "out": str(self.out),
+            "dataset": self.dataset,
+            "version": self.version,
+            "frames": {k: len(v) for k, v in self.splits.items()},
+            "objects": self.objects,
+            "distinct_objects": self.distinct,
+            "layouts": [SINGLE_DIR, ACCUMULATED_DIR] if self.dataset == "vod" else ["."],
+        }
 
     def lines(self) -> list[str]:
         """What was written: frames per split with their labels and distinct objects per class."""
-        where = (f"{self.out}/{SINGLE_DIR} and {self.out}/{ACCUMULATED_DIR}" if self.dataset == "vod"
-                 else f"{self.out} (TJ4DRadSet)")
-        out = [f"wrote {sum(len(v) for v in self.splits.values())} labelled frames to {where} (version {self.version}"
-               f"); labels (distinct objects):"]
+        where = (
+            f"{self.out}/{SINGLE_DIR} and {self.out}/{ACCUMULATED_DIR}"
+            if self.dataset == "vod"
+            else f"{self.out} (TJ4DRadSet)"
+        )
+        out = [
+            f"wrote {sum(len(v) for v in self.splits.values())} labelled frames to {where} (version {self.version}"
+            f"); labels (distinct objects):"
+        ]
         for split, ids in self.splits.items():
             counts = ", ".join(f"{n} ({self.distinct[split][c]}) {c}" for c, n in self.objects[split].items())
             out.append(f"  {split:<6}{len(ids):>5} frames   {counts}")
@@ -201,8 +241,11 @@ def split_drives(drives: int, version: int = 1) -> dict[str, list[int]]:
         n_test = drives // 2 if drives >= 4 else 0
         n_val = max(1, round(0.2 * (drives - n_test)))
     n_train = drives - n_val - n_test
-    return {"train": list(range(n_train)), "val": list(range(n_train, n_train + n_val)),
-            "test": list(range(n_train + n_val, drives))}
+    return {
+        "train": list(range(n_train)),
+        "val": list(range(n_train, n_train + n_val)),
+        "test": list(range(n_train + n_val, drives)),
+    }
 
 
 def _drive_mounts(drives: int, seed: int) -> list[dict]:
@@ -211,9 +254,15 @@ def _drive_mounts(drives: int, seed: int) -> list[dict]:
     rng = np.random.default_rng([seed, 2])
     angles = rng.uniform(-MOUNT_JITTER_DEG, MOUNT_JITTER_DEG, (drives, 3))
     heights = NOMINAL_MOUNT_HEIGHT + rng.uniform(-MOUNT_HEIGHT_JITTER, MOUNT_HEIGHT_JITTER, drives)
-    return [dict(mount_pitch_deg=round(float(p), 4), mount_roll_deg=round(float(r), 4),
-                 mount_yaw_deg=round(float(y), 4), mount_height=round(float(h), 4))
-            for (p, r, y), h in zip(angles, heights)]
+    return [
+        dict(
+            mount_pitch_deg=round(float(p), 4),
+            mount_roll_deg=round(float(r), 4),
+            mount_yaw_deg=round(float(y), 4),
+            mount_height=round(float(h), 4),
+        )
+        for (p, r, y), h in zip(angles, heights)
+    ]
 
 
 def _radar_in_vehicle(mount: dict) -> np.ndarray:
@@ -229,17 +278,36 @@ def _drive_traffic(rng: np.random.Generator, drives: int, version: int) -> list[
     """Each drive's traffic (SceneConfig fields); version 2 has more road users, for the test
     split's distinct-object counts."""
     if version == 1:
-        return [dict(num_cars=int(rng.integers(4, 11)), num_pedestrians=int(rng.integers(3, 9)),
-                     num_cyclists=int(rng.integers(2, 7)), static_points=int(rng.integers(250, 500)),
-                     vru_on_road=VRU_ON_ROAD) for _ in range(drives)]
-    return [dict(num_cars=int(rng.integers(6, 13)), num_pedestrians=int(rng.integers(8, 16)),
-                 num_cyclists=int(rng.integers(6, 12)), static_points=int(rng.integers(250, 500)))
-            for _ in range(drives)]
+        return [
+            dict(
+                num_cars=int(rng.integers(4, 11)),
+                num_pedestrians=int(rng.integers(3, 9)),
+                num_cyclists=int(rng.integers(2, 7)),
+                static_points=int(rng.integers(250, 500)),
+                vru_on_road=VRU_ON_ROAD,
+            )
+            for _ in range(drives)
+        ]
+    return [
+        dict(
+            num_cars=int(rng.integers(6, 13)),
+            num_pedestrians=int(rng.integers(8, 16)),
+            num_cyclists=int(rng.integers(6, 12)),
+            static_points=int(rng.integers(250, 500)),
+        )
+        for _ in range(drives)
+    ]
 
 
-def make_detection_benchmark(out: str | os.PathLike, drives: int | None = None, frames: int = 40, seed: int = 0,
-                             progress: Callable | None = None, dataset: str = "vod",
-                             version: int = 2) -> DetectionBenchmark:
+def make_detection_benchmark(
+    out: str | os.PathLike,
+    drives: int | None = None,
+    frames: int = 40,
+    seed: int = 0,
+    progress: Callable | None = None,
+    dataset: str = "vod",
+    version: int = 2,
+) -> DetectionBenchmark:
     """Write the set (module docstring) of ``version`` to ``out``: ``drives`` drives (default 10
     for version 1, 40 for version 2) of ``frames`` labelled frames. ``dataset`` "tj4d" writes
     TJ4DRadSet's layout instead: OUT/training and OUT/ImageSets directly, 8-column scans (one
@@ -269,8 +337,11 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int | None = None, 
     objects = {name: {n: 0 for n in LABEL_NAMES.values()} for name in parts}
     seen: dict[str, dict[str, set]] = {name: {n: set() for n in LABEL_NAMES.values()} for name in parts}
     with atomic.Staging(out) as stage:
-        roots = ({sub: stage.path(out / sub) for sub in subs} if dataset == "vod"
-                 else {"tj4d": stage.path(out / "training").parent})
+        roots = (
+            {sub: stage.path(out / sub) for sub in subs}
+            if dataset == "vod"
+            else {"tj4d": stage.path(out / "training").parent}
+        )
         for root in roots.values():
             for folder in ("velodyne", "label_2", "calib"):
                 (root / "training" / folder).mkdir(parents=True, exist_ok=True)
@@ -279,8 +350,9 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int | None = None, 
         for d in drive_iter:
             calib = synthetic_calibration(dataset, _radar_in_vehicle(mounts[d]) if mounts[d] else None)
             calib_text = calibration_text(calib)
-            scans = generate_sequence((frames - 1) * stride + HISTORY + 1, seed=seed * 1000 + d,
-                                      **{**traffic[d], **physics, **mounts[d]})
+            scans = generate_sequence(
+                (frames - 1) * stride + HISTORY + 1, seed=seed * 1000 + d, **{**traffic[d], **physics, **mounts[d]}
+            )
             for k in range(frames):
                 fid = f"{d:02d}{k:03d}"
                 last = HISTORY + k * stride
@@ -291,8 +363,10 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int | None = None, 
                     objects[split_of[d]][name] += 1
                     seen[split_of[d]][name].add((d, int(scan.box_ids[row])))
                 if dataset == "vod":
-                    tables = {SINGLE_DIR: vod_table(scan),
-                              ACCUMULATED_DIR: vod_accumulated_table(scans[last - HISTORY:last + 1])}
+                    tables = {
+                        SINGLE_DIR: vod_table(scan),
+                        ACCUMULATED_DIR: vod_accumulated_table(scans[last - HISTORY : last + 1]),
+                    }
                 else:
                     tables = {"tj4d": tj4d_table(scan)}
                 for sub, root in roots.items():
@@ -305,10 +379,21 @@ def make_detection_benchmark(out: str | os.PathLike, drives: int | None = None, 
                 (root / "ImageSets" / f"{name}.txt").write_text("".join(f + "\n" for f in ids))
         distinct = {split: {name: len(ids) for name, ids in per.items()} for split, per in seen.items()}
         result = DetectionBenchmark(out, splits, objects, dataset, version, distinct)
-        towns = {name: [seed * 1000 + d for d in ds] for name, ds in parts.items()}   # each drive's own static world
-        atomic.write_json(stage.path(out / "benchmark.json"),
-                          {**result.to_dict(), "seed": seed, "drives": drives, "frames_per_drive": frames,
-                           "frame_stride_scans": stride, "drives_per_split": parts, "towns_per_split": towns,
-                           "physics": physics, "traffic": traffic, "mounts": mounts})
+        towns = {name: [seed * 1000 + d for d in ds] for name, ds in parts.items()}  # each drive's own static world
+        atomic.write_json(
+            stage.path(out / "benchmark.json"),
+            {
+                **result.to_dict(),
+                "seed": seed,
+                "drives": drives,
+                "frames_per_drive": frames,
+                "frame_stride_scans": stride,
+                "drives_per_split": parts,
+                "towns_per_split": towns,
+                "physics": physics,
+                "traffic": traffic,
+                "mounts": mounts,
+            },
+        )
         stage.commit()
     return result

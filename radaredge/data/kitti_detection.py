@@ -62,14 +62,14 @@ from .readers import check_file, check_points, read_bounded, read_scan
 DONT_CARE = "DontCare"
 
 # Bounds on the files of a set, checked from their stat before they are read.
-MAX_LABEL_BYTES = 4 * 2**20      # KITTI labels: one line of ~100-400 bytes an object, a frame a few thousand at most
-MAX_CALIB_BYTES = 64 * 2**10     # KITTI calibration: 7 lines, about 1 KB
-MAX_SPLIT_BYTES = 16 * 2**20     # ImageSets: one frame id a line (VoD: 8,693 frames; a million ids fit)
-MAX_IMAGE_BYTES = 256 * 2**20    # a camera frame, even an uncompressed 8K 16-bit PNG (200 MB)
-MAX_IMAGE_SIDE = 65535           # px: a JPEG's largest; a camera image is far smaller
-_JPEG_HEADER_SPAN = 16 * 2**20   # bytes of JPEG segments searched for the frame header (EXIF APP1 <= 64 KiB each)
-_JPEG_HEADER_SEGMENTS = 1024     # segments before it (a camera JPEG has a dozen) ...
-_JPEG_FILL_BYTES = 64            # ... and 0xFF fill bytes before one marker
+MAX_LABEL_BYTES = 4 * 2**20  # KITTI labels: one line of ~100-400 bytes an object, a frame a few thousand at most
+MAX_CALIB_BYTES = 64 * 2**10  # KITTI calibration: 7 lines, about 1 KB
+MAX_SPLIT_BYTES = 16 * 2**20  # ImageSets: one frame id a line (VoD: 8,693 frames; a million ids fit)
+MAX_IMAGE_BYTES = 256 * 2**20  # a camera frame, even an uncompressed 8K 16-bit PNG (200 MB)
+MAX_IMAGE_SIDE = 65535  # px: a JPEG's largest; a camera image is far smaller
+_JPEG_HEADER_SPAN = 16 * 2**20  # bytes of JPEG segments searched for the frame header (EXIF APP1 <= 64 KiB each)
+_JPEG_HEADER_SEGMENTS = 1024  # segments before it (a camera JPEG has a dozen) ...
+_JPEG_FILL_BYTES = 64  # ... and 0xFF fill bytes before one marker
 
 
 @dataclass(frozen=True)
@@ -94,10 +94,10 @@ class DetectionLayout:
     scan_format: str
     label_classes: tuple[str, ...]
     eval_classes: tuple[EvalClass, ...]
-    image_size: tuple[int, int]            # (width, height) px, when no image_2 file is present
+    image_size: tuple[int, int]  # (width, height) px, when no image_2 file is present
     corridor: bool
-    accumulated_dirs: dict[int, str] = field(default_factory=dict)        # scans a frame -> its folder
-    accumulated_aliases: dict[int, tuple[str, ...]] = field(default_factory=dict)   # other names of that folder
+    accumulated_dirs: dict[int, str] = field(default_factory=dict)  # scans a frame -> its folder
+    accumulated_aliases: dict[int, tuple[str, ...]] = field(default_factory=dict)  # other names of that folder
     title: str = ""
 
     def scan_folders(self) -> dict[int, tuple[str, ...]]:
@@ -108,29 +108,62 @@ class DetectionLayout:
         for c in self.eval_classes:
             if c.name.lower() == name.lower():
                 return c
-        raise InputError(f"{self.name} has no evaluated class {name!r}; it evaluates "
-                         f"{[c.name for c in self.eval_classes]}")
+        raise InputError(
+            f"{self.name} has no evaluated class {name!r}; it evaluates {[c.name for c in self.eval_classes]}"
+        )
 
 
 # View-of-Delft: 13 annotated classes (docs/ANNOTATION.md), DontCare, and KITTI's Van /
 # Person_sitting that the devkit's evaluation knows as neighbours of Car / Pedestrian.
 VOD = DetectionLayout(
-    "vod", "vod",
-    ("Car", "Pedestrian", "Cyclist", "rider", "bicycle", "bicycle_rack", "human_depiction", "moped_scooter",
-     "motor", "ride_other", "ride_uncertain", "truck", "vehicle_other", "Van", "Person_sitting", DONT_CARE),
-    (EvalClass("Car", 0.5, 0.7, ("Van",)), EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
-     EvalClass("Cyclist", 0.25, 0.5)),
-    (1936, 1216), True, {1: "radar", 3: "radar_3frames", 5: "radar_5frames"},
-    {3: ("radar_3_scans",), 5: ("radar_5_scans",)}, "View-of-Delft")   # the devkit's docs/GETTING_STARTED.md names
+    "vod",
+    "vod",
+    (
+        "Car",
+        "Pedestrian",
+        "Cyclist",
+        "rider",
+        "bicycle",
+        "bicycle_rack",
+        "human_depiction",
+        "moped_scooter",
+        "motor",
+        "ride_other",
+        "ride_uncertain",
+        "truck",
+        "vehicle_other",
+        "Van",
+        "Person_sitting",
+        DONT_CARE,
+    ),
+    (
+        EvalClass("Car", 0.5, 0.7, ("Van",)),
+        EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
+        EvalClass("Cyclist", 0.25, 0.5),
+    ),
+    (1936, 1216),
+    True,
+    {1: "radar", 3: "radar_3frames", 5: "radar_5frames"},
+    {3: ("radar_3_scans",), 5: ("radar_5_scans",)},
+    "View-of-Delft",
+)  # the devkit's docs/GETTING_STARTED.md names
 
 # TJ4DRadSet as TRV-Lab/MAFF-Net evaluates it (pcdet/datasets/TJ4DRadSet): Car, Pedestrian,
 # Cyclist, Truck at 0.5 / 0.25 / 0.25 / 0.5, the entire annotated area only.
 TJ4D = DetectionLayout(
-    "tj4d", "tj4d",
+    "tj4d",
+    "tj4d",
     ("Car", "Pedestrian", "Cyclist", "Truck", "Other", "Bus", "Motorcycle", "Van", "Person_sitting", DONT_CARE),
-    (EvalClass("Car", 0.5, 0.7, ("Van",)), EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
-     EvalClass("Cyclist", 0.25, 0.5), EvalClass("Truck", 0.5, 0.7)),
-    (1280, 960), False, title="TJ4DRadSet")     # README: 'Car', 'Pedestrian', 'Cyclist', 'Truck', 'Other'
+    (
+        EvalClass("Car", 0.5, 0.7, ("Van",)),
+        EvalClass("Pedestrian", 0.25, 0.5, ("Person_sitting",)),
+        EvalClass("Cyclist", 0.25, 0.5),
+        EvalClass("Truck", 0.5, 0.7),
+    ),
+    (1280, 960),
+    False,
+    title="TJ4DRadSet",
+)  # README: 'Car', 'Pedestrian', 'Cyclist', 'Truck', 'Other'
 
 LAYOUTS = {"vod": VOD, "tj4d": TJ4D}
 
@@ -175,8 +208,9 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: calibration file missing (expected KITTI lines 'P2: ...', 'Tr_velo_to_cam: ...')")
-    text = read_bounded(path, "a KITTI calibration file", MAX_CALIB_BYTES,
-                        "P2, R0_rect and Tr_velo_to_cam lines of about 1 KB in all").decode(errors="replace")
+    text = read_bounded(
+        path, "a KITTI calibration file", MAX_CALIB_BYTES, "P2, R0_rect and Tr_velo_to_cam lines of about 1 KB in all"
+    ).decode(errors="replace")
     found: dict[str, tuple[np.ndarray, int]] = {}
     for number, line in enumerate(text.splitlines(), 1):
         if ":" not in line:
@@ -196,16 +230,23 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
         found[key] = (numbers, number)
     for key in ("P2", "Tr_velo_to_cam"):
         if key not in found:
-            raise InputError(f"{path}: no {key} line (KITTI calibration: P2 is the camera projection, "
-                             f"Tr_velo_to_cam the radar -> camera transform)")
+            raise InputError(
+                f"{path}: no {key} line (KITTI calibration: P2 is the camera projection, "
+                f"Tr_velo_to_cam the radar -> camera transform)"
+            )
     r0, r0_line = found.get("R0_rect", (np.eye(3).ravel(), 0))
-    calib = Calibration(found["P2"][0].reshape(3, 4), r0.reshape(3, 3), found["Tr_velo_to_cam"][0].reshape(3, 4),
-                        str(path))
-    for name, matrix, number in (("Tr_velo_to_cam", calib.V2C[:, :3], found["Tr_velo_to_cam"][1]),
-                                 ("R0_rect", calib.R0, r0_line)):
+    calib = Calibration(
+        found["P2"][0].reshape(3, 4), r0.reshape(3, 3), found["Tr_velo_to_cam"][0].reshape(3, 4), str(path)
+    )
+    for name, matrix, number in (
+        ("Tr_velo_to_cam", calib.V2C[:, :3], found["Tr_velo_to_cam"][1]),
+        ("R0_rect", calib.R0, r0_line),
+    ):
         if abs(np.linalg.det(matrix)) < 1e-6:
-            raise InputError(f"{path}:{number}: {name}'s 3 x 3 rotation part cannot be inverted (determinant "
-                             f"{np.linalg.det(matrix):.3g}); labels cannot be brought into the radar frame")
+            raise InputError(
+                f"{path}:{number}: {name}'s 3 x 3 rotation part cannot be inverted (determinant "
+                f"{np.linalg.det(matrix):.3g}); labels cannot be brought into the radar frame"
+            )
     if abs(np.linalg.det(calib.P2[:, :3])) < 1e-9:
         raise InputError(f"{path}:{found['P2'][1]}: P2's 3 x 3 part cannot be inverted: not a camera projection")
     return calib
@@ -236,8 +277,17 @@ class Labels:
 
     @staticmethod
     def empty() -> Labels:
-        return Labels(np.zeros(0, dtype=object), np.zeros(0), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)),
-                      np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+        return Labels(
+            np.zeros(0, dtype=object),
+            np.zeros(0),
+            np.zeros(0, np.int64),
+            np.zeros(0),
+            np.zeros((0, 4)),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros(0),
+        )
 
     def select(self, keep: np.ndarray) -> Labels:
         return Labels(*(getattr(self, f)[keep] for f in Labels.__dataclass_fields__))
@@ -255,20 +305,26 @@ def read_labels(path: str | os.PathLike, classes: tuple[str, ...]) -> Labels:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: label file missing (KITTI label_2: one object a line)")
-    text = read_bounded(path, "a KITTI label file", MAX_LABEL_BYTES,
-                        "one line of about 100 bytes an object, and a frame holds at most a few thousand objects"
-                        ).decode(errors="replace")
+    text = read_bounded(
+        path,
+        "a KITTI label file",
+        MAX_LABEL_BYTES,
+        "one line of about 100 bytes an object, and a frame holds at most a few thousand objects",
+    ).decode(errors="replace")
     rows, names = [], []
     for number, line in enumerate(text.splitlines(), 1):
         fields = line.split()
         if not fields:
             continue
         if len(fields) not in (15, 16):
-            raise InputError(f"{path}:{number}: {len(fields)} fields; a KITTI label line has 15 (class, truncated, "
-                             f"occluded, alpha, 4 x bbox, h, w, l, x, y, z, rotation_y) or 16 (with a score)")
+            raise InputError(
+                f"{path}:{number}: {len(fields)} fields; a KITTI label line has 15 (class, truncated, "
+                f"occluded, alpha, 4 x bbox, h, w, l, x, y, z, rotation_y) or 16 (with a score)"
+            )
         if fields[0] not in classes:
-            raise InputError(f"{path}:{number}: unknown class {fields[0]!r}; this dataset's classes are "
-                             f"{list(classes)}")
+            raise InputError(
+                f"{path}:{number}: unknown class {fields[0]!r}; this dataset's classes are {list(classes)}"
+            )
         try:
             values = [float(v) for v in fields[1:]]
         except ValueError:
@@ -282,8 +338,17 @@ def read_labels(path: str | os.PathLike, classes: tuple[str, ...]) -> Labels:
     if not rows:
         return Labels.empty()
     v = np.array(rows, np.float64)
-    return Labels(np.array(names, dtype=object), v[:, 0], v[:, 1].astype(np.int64), v[:, 2], v[:, 3:7],
-                  v[:, [9, 7, 8]], v[:, 10:13], v[:, 13], v[:, 14])
+    return Labels(
+        np.array(names, dtype=object),
+        v[:, 0],
+        v[:, 1].astype(np.int64),
+        v[:, 2],
+        v[:, 3:7],
+        v[:, [9, 7, 8]],
+        v[:, 10:13],
+        v[:, 13],
+        v[:, 14],
+    )
 
 
 def labels_to_radar_boxes(labels: Labels, calib: Calibration) -> np.ndarray:
@@ -297,7 +362,7 @@ def labels_to_radar_boxes(labels: Labels, calib: Calibration) -> np.ndarray:
 def camera_box_corners(location: np.ndarray, dims_lhw: np.ndarray, rotation_y: np.ndarray) -> np.ndarray:
     """Corners [M, 8, 3] (rectified camera frame) of KITTI boxes: bottom centre ``location``,
     (l, h, w), rotation about the camera's y axis (pointing down)."""
-    length, h, w = (dims_lhw[:, i:i + 1] for i in range(3))
+    length, h, w = (dims_lhw[:, i : i + 1] for i in range(3))
     x = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * length / 2
     y = np.array([0, 0, 0, 0, -1, -1, -1, -1]) * h
     z = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * w / 2
@@ -305,8 +370,9 @@ def camera_box_corners(location: np.ndarray, dims_lhw: np.ndarray, rotation_y: n
     return np.stack([c * x + s * z, y, -s * x + c * z], -1) + location[:, None, :]
 
 
-def radar_boxes_to_labels(boxes: np.ndarray, scores: np.ndarray, names: np.ndarray, calib: Calibration,
-                          image_size: tuple[int, int]) -> Labels:
+def radar_boxes_to_labels(
+    boxes: np.ndarray, scores: np.ndarray, names: np.ndarray, calib: Calibration, image_size: tuple[int, int]
+) -> Labels:
     """Detections (OpenPCDet boxes [M, 7] in the radar frame, scores [M], class names [M]) as
     KITTI labels in the camera frame, as OpenPCDet's ``generate_prediction_dicts`` writes them:
     bottom centre, (l, h, w), rotation_y = -heading - pi / 2, the 2D box of the projected
@@ -322,12 +388,27 @@ def radar_boxes_to_labels(boxes: np.ndarray, scores: np.ndarray, names: np.ndarr
     uv, _ = calib.rect_to_image(corners.reshape(-1, 3))
     uv = uv.reshape(-1, 8, 2)
     width, height = image_size
-    bbox = np.column_stack([np.clip(uv[..., 0].min(1), 0, width - 1), np.clip(uv[..., 1].min(1), 0, height - 1),
-                            np.clip(uv[..., 0].max(1), 0, width - 1), np.clip(uv[..., 1].max(1), 0, height - 1)])
+    bbox = np.column_stack(
+        [
+            np.clip(uv[..., 0].min(1), 0, width - 1),
+            np.clip(uv[..., 1].min(1), 0, height - 1),
+            np.clip(uv[..., 0].max(1), 0, width - 1),
+            np.clip(uv[..., 1].max(1), 0, height - 1),
+        ]
+    )
     alpha = -np.arctan2(-boxes[:, 1], boxes[:, 0]) + rotation_y
     n = len(boxes)
-    return Labels(np.asarray(names, dtype=object).reshape(n), np.zeros(n), np.zeros(n, np.int64), alpha,
-                  bbox.reshape(n, 4), dims, location, rotation_y, np.asarray(scores, np.float64).reshape(n))
+    return Labels(
+        np.asarray(names, dtype=object).reshape(n),
+        np.zeros(n),
+        np.zeros(n, np.int64),
+        alpha,
+        bbox.reshape(n, 4),
+        dims,
+        location,
+        rotation_y,
+        np.asarray(scores, np.float64).reshape(n),
+    )
 
 
 # ----------------------------------------------------------------------------- VoD's annotation JSON
@@ -338,7 +419,7 @@ def radar_boxes_to_labels(boxes: np.ndarray, scores: np.ndarray, names: np.ndarr
 # with the radar calibration they reproduce lidar/training/label_2/<id>.txt exactly (3 frames, 62
 # objects, 1e-6 m), with the LiDAR's they miss by 2.4 m.
 _JSON_TO_RADAR = np.diag([1.0, -1.0, -1.0])
-_JSON_RIDER_CLASS = {"bicycle": "Cyclist"}       # a bicycle with has_rider is the .txt's Cyclist
+_JSON_RIDER_CLASS = {"bicycle": "Cyclist"}  # a bicycle with has_rider is the .txt's Cyclist
 
 
 def _occlusion_level(text, where: str) -> int:
@@ -346,14 +427,16 @@ def _occlusion_level(text, where: str) -> int:
     up to 80 % -> 1, beyond -> 2 (0-10% -> 0, 10-40% and 41-80% -> 1, 80-100% -> 2, as the .txt)."""
     m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*-\s*(\d+(?:\.\d+)?)\s*%\s*", str(text))
     if not m:
-        raise InputError(f"{where}: attributes['spatial occlusion'] is {text!r}; expected a percentage range such "
-                         f"as '10-40%'")
+        raise InputError(
+            f"{where}: attributes['spatial occlusion'] is {text!r}; expected a percentage range such as '10-40%'"
+        )
     upper = float(m.group(2))
     return 0 if upper <= 10 else 1 if upper <= 80 else 2
 
 
-def read_vod_json_labels(path: str | os.PathLike, calib: Calibration, image_size: tuple[int, int],
-                         classes: tuple[str, ...] = ()) -> Labels:
+def read_vod_json_labels(
+    path: str | os.PathLike, calib: Calibration, image_size: tuple[int, int], classes: tuple[str, ...] = ()
+) -> Labels:
     """View-of-Delft's annotation-tool JSON labels of one frame (a list of objects: ``className``,
     ``geometry`` {``center`` {x, y, z}, ``size`` {height, width, length}, ``quaternion`` {x, y, z,
     w}}, ``attributes``) as the KITTI labels its ``.txt`` files hold, in the camera frame of
@@ -374,10 +457,16 @@ def read_vod_json_labels(path: str | os.PathLike, calib: Calibration, image_size
     InputError naming the file and the object for anything else; the message points at the
     KITTI ``.txt`` labels of the same objects (VoD's ``lidar/training/label_2/``)."""
     path = Path(path)
-    pointer = ("; the KITTI .txt labels of the same objects are in the dataset's lidar/training/label_2/ (copy "
-               "them into this folder's label_2/)")
-    raw = read_bounded(path, "a View-of-Delft JSON label file", MAX_LABEL_BYTES,
-                       "a JSON object of about 700 bytes a box, a frame holds at most a few thousand")
+    pointer = (
+        "; the KITTI .txt labels of the same objects are in the dataset's lidar/training/label_2/ (copy "
+        "them into this folder's label_2/)"
+    )
+    raw = read_bounded(
+        path,
+        "a View-of-Delft JSON label file",
+        MAX_LABEL_BYTES,
+        "a JSON object of about 700 bytes a box, a frame holds at most a few thousand",
+    )
     try:
         objects = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
@@ -395,9 +484,11 @@ def read_vod_json_labels(path: str | os.PathLike, calib: Calibration, image_size
             qx, qy, qz, qw = (float(g["quaternion"][k]) for k in "xyzw")
             cls = str(obj["className"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{where}: expected className and geometry.center {{x, y, z}}, geometry.size "
-                             f"{{height, width, length}} and geometry.quaternion {{x, y, z, w}} numbers "
-                             f"({type(exc).__name__}: {exc}){pointer}") from None
+            raise InputError(
+                f"{where}: expected className and geometry.center {{x, y, z}}, geometry.size "
+                f"{{height, width, length}} and geometry.quaternion {{x, y, z, w}} numbers "
+                f"({type(exc).__name__}: {exc}){pointer}"
+            ) from None
         values = [*centre, height, width, length, qx, qy, qz, qw]
         if not np.isfinite(values).all() or min(height, width, length) < 0:
             raise InputError(f"{where}: geometry holds a value that is not finite, or a negative size{pointer}")
@@ -425,12 +516,21 @@ def read_vod_json_labels(path: str | os.PathLike, calib: Calibration, image_size
     lwh = np.array(sizes, np.float64)
     radar_centre = np.array(centres, np.float64) @ _JSON_TO_RADAR.T
     yaw = np.array(yaws)
-    boxes = np.column_stack([radar_centre, lwh, -yaw])      # heading -yaw: the y axis is negated
+    boxes = np.column_stack([radar_centre, lwh, -yaw])  # heading -yaw: the y axis is negated
     labels = radar_boxes_to_labels(boxes, np.zeros(len(boxes)), np.array(names, dtype=object), calib, image_size)
     alpha = labels.rotation_y - np.arctan2(labels.location[:, 0], labels.location[:, 2])
     alpha = (alpha + np.pi) % (2 * np.pi) - np.pi
-    return Labels(labels.name, np.array(truncated), np.array(occluded, np.int64), alpha, labels.bbox,
-                  labels.dimensions, labels.location, yaw - np.pi / 2, labels.score)
+    return Labels(
+        labels.name,
+        np.array(truncated),
+        np.array(occluded, np.int64),
+        alpha,
+        labels.bbox,
+        labels.dimensions,
+        labels.location,
+        yaw - np.pi / 2,
+        labels.score,
+    )
 
 
 def camera_fov_mask(xyz: np.ndarray, calib: Calibration, image_size: tuple[int, int]) -> np.ndarray:
@@ -464,24 +564,24 @@ def image_size(path: Path) -> tuple[int, int] | None:
             if f.tell() >= _JPEG_HEADER_SPAN:
                 return None
             marker = f.read(2)
-            for _ in range(_JPEG_FILL_BYTES):                   # fill bytes before a marker
+            for _ in range(_JPEG_FILL_BYTES):  # fill bytes before a marker
                 if marker != b"\xff\xff":
                     break
                 marker = b"\xff" + f.read(1)
             if len(marker) < 2 or marker[0] != 0xFF or marker[1] == 0xFF:
                 return None
             kind = marker[1]
-            if kind in (0xD9, 0xDA):                # end of image, or scan data, before any frame header
+            if kind in (0xD9, 0xDA):  # end of image, or scan data, before any frame header
                 return None
-            if 0xD0 <= kind <= 0xD8 or kind == 0x01:    # markers without a length (RSTn, SOI, TEM)
+            if 0xD0 <= kind <= 0xD8 or kind == 0x01:  # markers without a length (RSTn, SOI, TEM)
                 continue
             length = f.read(2)
             if len(length) < 2:
                 return None
             size = struct.unpack(">H", length)[0]
-            if size < 2:                            # a segment's length counts its own two bytes
+            if size < 2:  # a segment's length counts its own two bytes
                 return None
-            if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):   # a start of frame
+            if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # a start of frame
                 body = f.read(5)
                 if len(body) < 5:
                     return None
@@ -496,19 +596,26 @@ def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
     the file when it is missing, a directory, over :data:`MAX_IMAGE_BYTES`, not a readable PNG
     or JPEG header, or gives a side of 0 or over :data:`MAX_IMAGE_SIDE` px."""
     path = Path(path)
-    check_file(path, "a PNG or JPEG camera image", MAX_IMAGE_BYTES,
-               "a camera frame, even an uncompressed 8K PNG, is smaller; only its header is read")
+    check_file(
+        path,
+        "a PNG or JPEG camera image",
+        MAX_IMAGE_BYTES,
+        "a camera frame, even an uncompressed 8K PNG, is smaller; only its header is read",
+    )
     try:
         size = image_size(path)
     except OSError as exc:
         raise InputError(f"{path}: cannot read the image ({exc.strerror or type(exc).__name__})") from None
     if size is None:
-        raise InputError(f"{path}: not a readable PNG or JPEG header (damaged or cut short?); only the image's size "
-                         f"is read from it")
+        raise InputError(
+            f"{path}: not a readable PNG or JPEG header (damaged or cut short?); only the image's size is read from it"
+        )
     width, height = (int(v) for v in size)
     if not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
-        raise InputError(f"{path}: its header gives a {width} x {height} px image; a camera image is 1 to "
-                         f"{MAX_IMAGE_SIDE} px a side (its size clips the 2D boxes and the camera-view crop)")
+        raise InputError(
+            f"{path}: its header gives a {width} x {height} px image; a camera image is 1 to "
+            f"{MAX_IMAGE_SIDE} px a side (its size clips the 2D boxes and the camera-view crop)"
+        )
     return width, height
 
 
@@ -526,7 +633,7 @@ class DetectionFrame:
 
 _FRAME_ID = re.compile(r"[0-9A-Za-z_-]+")
 _IMAGE_SUFFIXES = (".jpg", ".png", ".jpeg")
-_SCAN_SAMPLE_FRAMES = 4          # frames whose time column tells the scans a frame of an unnamed VoD folder
+_SCAN_SAMPLE_FRAMES = 4  # frames whose time column tells the scans a frame of an unnamed VoD folder
 
 
 def _plural(n: int, word: str) -> str:
@@ -537,8 +644,9 @@ def _scans_phrase(n: int) -> str:
     return "single scans" if n == 1 else f"{n} accumulated scans a frame"
 
 
-def resolve_root(root: str | os.PathLike, layout: DetectionLayout,
-                 scans: int = 1) -> tuple[Path, int | None, list[str]]:
+def resolve_root(
+    root: str | os.PathLike, layout: DetectionLayout, scans: int = 1
+) -> tuple[Path, int | None, list[str]]:
     """(the set's folder, the scans a frame its name says or None, notes) for ``--data root``:
     ``root`` itself when it holds ``training/``; else its subfolder for ``scans`` accumulated
     scans (View-of-Delft: ``radar/``, ``radar_3frames/`` or ``radar_3_scans/``, ``radar_5frames/``
@@ -549,27 +657,35 @@ def resolve_root(root: str | os.PathLike, layout: DetectionLayout,
     named = {name: n for n, names in folders.items() for name in names}
     if (root / "training").is_dir():
         return root, named.get(root.name), []
-    present = {n: next(d for d in names if (root / d / "training").is_dir())
-               for n, names in folders.items() if any((root / d / "training").is_dir() for d in names)}
+    present = {
+        n: next(d for d in names if (root / d / "training").is_dir())
+        for n, names in folders.items()
+        if any((root / d / "training").is_dir() for d in names)
+    }
     if scans in present:
         return root / present[scans], scans, []
     wanted = "/ or ".join(folders.get(scans, ())) + "/" if scans in folders else ""
     if present:
         n = min(present, key=lambda k: (abs(k - scans), -k))
-        note = (f"{root}: no {wanted or 'folder of ' + _scans_phrase(scans)} (the card's input.scans_accumulated = "
-                f"{scans}); read {present[n]}/ ({_scans_phrase(n)}) instead")
+        note = (
+            f"{root}: no {wanted or 'folder of ' + _scans_phrase(scans)} (the card's input.scans_accumulated = "
+            f"{scans}); read {present[n]}/ ({_scans_phrase(n)}) instead"
+        )
         return root / present[n], n, [note]
     subs = sorted({d for names in folders.values() for d in names if (root / d).is_dir()})
-    raise InputError(f"{root}: no training/ folder"
-                     + (f" and no {wanted} for {scans} accumulated scans" if wanted else "")
-                     + (f" (found {subs} without training/)" if subs else "")
-                     + "; expected the KITTI layout [ImageSets/ +] training/{velodyne,label_2,calib}")
+    raise InputError(
+        f"{root}: no training/ folder"
+        + (f" and no {wanted} for {scans} accumulated scans" if wanted else "")
+        + (f" (found {subs} without training/)" if subs else "")
+        + "; expected the KITTI layout [ImageSets/ +] training/{velodyne,label_2,calib}"
+    )
 
 
 def _read_split(split_file: Path, training: Path) -> list[str]:
     """The frame ids of an ImageSets split file, each checked (module docstring)."""
-    text = read_bounded(split_file, "an ImageSets split file", MAX_SPLIT_BYTES,
-                        "one frame id a line; View-of-Delft lists 8,693 frames").decode(errors="replace")
+    text = read_bounded(
+        split_file, "an ImageSets split file", MAX_SPLIT_BYTES, "one frame id a line; View-of-Delft lists 8,693 frames"
+    ).decode(errors="replace")
     frame_ids: list[str] = []
     first_line: dict[str, int] = {}
     for number, line in enumerate(text.splitlines(), 1):
@@ -577,17 +693,20 @@ def _read_split(split_file: Path, training: Path) -> list[str]:
         if not token:
             continue
         if not _FRAME_ID.fullmatch(token):
-            raise InputError(f"{split_file}:{number}: {token[:40]!r} is not a frame id (one id such as 00042 "
-                             f"a line)")
+            raise InputError(f"{split_file}:{number}: {token[:40]!r} is not a frame id (one id such as 00042 a line)")
         if token in first_line:
-            raise InputError(f"{split_file}:{number}: frame {token} is listed again (first on line "
-                             f"{first_line[token]}); a frame listed twice would be scored twice: list each "
-                             f"frame once")
+            raise InputError(
+                f"{split_file}:{number}: frame {token} is listed again (first on line "
+                f"{first_line[token]}); a frame listed twice would be scored twice: list each "
+                f"frame once"
+            )
         first_line[token] = number
         scan = training / "velodyne" / f"{token}.bin"
         if not scan.is_file():
-            raise InputError(f"{split_file}:{number}: frame {token} is listed but {scan} "
-                             + ("is a directory" if scan.is_dir() else "does not exist"))
+            raise InputError(
+                f"{split_file}:{number}: frame {token} is listed but {scan} "
+                + ("is a directory" if scan.is_dir() else "does not exist")
+            )
         frame_ids.append(token)
     if not frame_ids:
         raise InputError(f"{split_file}: lists no frames")
@@ -612,13 +731,17 @@ def _every_labelled_frame(root: Path, training: Path, split: str) -> tuple[list[
     scans = sorted(p.stem for p in velodyne.glob("*.bin") if p.is_file() and _FRAME_ID.fullmatch(p.stem))
     ids = [fid for fid in scans if label_path(training, fid) is not None]
     if not ids:
-        raise InputError(f"{root}: no ImageSets/ folder, and none of the {len(scans)} scans in {velodyne} has a "
-                         f"label file in {training / 'label_2'} (<id>.txt or <id>.json)")
+        raise InputError(
+            f"{root}: no ImageSets/ folder, and none of the {len(scans)} scans in {velodyne} has a "
+            f"label file in {training / 'label_2'} (<id>.txt or <id>.json)"
+        )
     left = len(scans) - len(ids)
-    note = (f"{root}: no ImageSets/ folder, so split {split!r} is every labelled frame of {training}: "
-            f"{_plural(len(ids), 'frame')}" + (f" ({_plural(left, 'scan')} without a label_2 file left out)"
-                                               if left else "")
-            + f"; write ImageSets/{split}.txt (one frame id a line) to choose the frames")
+    note = (
+        f"{root}: no ImageSets/ folder, so split {split!r} is every labelled frame of {training}: "
+        f"{_plural(len(ids), 'frame')}"
+        + (f" ({_plural(left, 'scan')} without a label_2 file left out)" if left else "")
+        + f"; write ImageSets/{split}.txt (one frame id a line) to choose the frames"
+    )
     return ids, note
 
 
@@ -627,6 +750,7 @@ def _time_column(training: Path, frame_ids: list[str]) -> tuple[int, float | Non
     the current scan, -1 the one before, ...): the scans a frame (the most distinct values), and
     a value that is no whole number (times in seconds, not the devkit's scan index), else None."""
     from .readers import read_scan as _read
+
     most, odd = 0, None
     for fid in frame_ids[:_SCAN_SAMPLE_FRAMES]:
         t = _read(training / "velodyne" / f"{fid}.bin", ["time"], fmt="vod")[:, 0]
@@ -693,8 +817,13 @@ def check_image_size(value, where: str = "input.image_size") -> tuple[int, int] 
     return width, height
 
 
-def list_frames(root: str | os.PathLike, split: str = "val", layout: DetectionLayout = VOD,
-                scans_accumulated: int = 1, image_size=None) -> FrameList:
+def list_frames(
+    root: str | os.PathLike,
+    split: str = "val",
+    layout: DetectionLayout = VOD,
+    scans_accumulated: int = 1,
+    image_size=None,
+) -> FrameList:
     """The frames of ``split`` of the KITTI-layout set at ``root`` (:func:`resolve_root`), with the
     notes a run says once (module docstring):
 
@@ -714,9 +843,15 @@ def list_frames(root: str | os.PathLike, split: str = "val", layout: DetectionLa
         frame_ids = _read_split(split_file, training)
     elif image_sets.is_dir():
         have = sorted(p.stem for p in image_sets.glob("*.txt"))
-        raise InputError(f"{split_file}: split file missing" + (f"; ImageSets has {have}" if have else
-                         "; expected ImageSets/{train,val,test}.txt with one frame id a line (or no ImageSets/ "
-                         "folder at all: every labelled frame is read)"))
+        raise InputError(
+            f"{split_file}: split file missing"
+            + (
+                f"; ImageSets has {have}"
+                if have
+                else "; expected ImageSets/{train,val,test}.txt with one frame id a line (or no ImageSets/ "
+                "folder at all: every labelled frame is read)"
+            )
+        )
     else:
         frame_ids, note = _every_labelled_frame(resolved, training, split)
         notes.append(note)
@@ -727,32 +862,42 @@ def list_frames(root: str | os.PathLike, split: str = "val", layout: DetectionLa
         if scans is None:
             scans, how = counted, "distinct values of its time column"
         if odd is not None:
-            notes.append(f"{training / 'velodyne'}: the time column holds {odd:g}, not a whole number: "
-                         f"View-of-Delft's time is the scan index (0 the current scan, -1 the one before, ...), "
-                         f"not seconds; a card trained on View-of-Delft reads the column as scans")
+            notes.append(
+                f"{training / 'velodyne'}: the time column holds {odd:g}, not a whole number: "
+                f"View-of-Delft's time is the scan index (0 the current scan, -1 the one before, ...), "
+                f"not seconds; a card trained on View-of-Delft reads the column as scans"
+            )
     if scans is not None and scans != scans_accumulated:
         folders = layout.scan_folders().get(scans_accumulated)
         where = f" ({layout.title or layout.name}: {' or '.join(f + '/' for f in folders)})" if folders else ""
-        notes.append(f"{resolved} holds {_scans_phrase(scans)} ({how}), but the card's input.scans_accumulated is "
-                     f"{scans_accumulated}{where}: the model sees {'fewer' if scans < scans_accumulated else 'more'} "
-                     f"points a frame than it takes, and its scores are not the card's")
+        notes.append(
+            f"{resolved} holds {_scans_phrase(scans)} ({how}), but the card's input.scans_accumulated is "
+            f"{scans_accumulated}{where}: the model sees {'fewer' if scans < scans_accumulated else 'more'} "
+            f"points a frame than it takes, and its scores are not the card's"
+        )
     size = check_image_size(image_size)
-    without = [fid for fid in frame_ids
-               if not any((training / "image_2" / f"{fid}{s}").exists() for s in _IMAGE_SUFFIXES)]
+    without = [
+        fid for fid in frame_ids if not any((training / "image_2" / f"{fid}{s}").exists() for s in _IMAGE_SUFFIXES)
+    ]
     if without and size is None and _synthetic_set(resolved, layout):
-        size = layout.image_size          # radaredge's own set: its camera is the dataset's, nothing to say
+        size = layout.image_size  # radaredge's own set: its camera is the dataset's, nothing to say
     elif without:
-        source = ("the card's input.image_size" if size else
-                  f"{layout.title or layout.name}'s camera, radaredge's default; the card has no input.image_size")
+        source = (
+            "the card's input.image_size"
+            if size
+            else f"{layout.title or layout.name}'s camera, radaredge's default; the card has no input.image_size"
+        )
         size = size or layout.image_size
         try:
             p2 = read_calibration(training / "calib" / f"{without[0]}.txt").P2
             principal = f"; P2's principal point in calib/{without[0]}.txt is ({p2[0, 2]:.0f}, {p2[1, 2]:.0f}) px"
         except InputError:
             principal = ""
-        notes.append(f"{_plural(len(without), 'frame')} of {len(frame_ids)} have no camera image in "
-                     f"{training / 'image_2'}: their image size is {size[0]} x {size[1]} px ({source}){principal}; "
-                     f"it clips the 2D boxes (KITTI's 40 px height rule) and the camera-view crop (input.crop)")
+        notes.append(
+            f"{_plural(len(without), 'frame')} of {len(frame_ids)} have no camera image in "
+            f"{training / 'image_2'}: their image size is {size[0]} x {size[1]} px ({source}){principal}; "
+            f"it clips the 2D boxes (KITTI's 40 px height rule) and the camera-view crop (input.crop)"
+        )
     return FrameList(resolved, split, frame_ids, split_file, scans, size or layout.image_size, notes)
 
 
@@ -761,8 +906,15 @@ class DetectionSet:
     notes of :func:`list_frames` are in ``notes`` and said once each, as a warning, when the set
     is opened (``say=False``: kept in ``notes`` only)."""
 
-    def __init__(self, root: str | os.PathLike, split: str, layout: DetectionLayout, scans_accumulated: int = 1,
-                 image_size=None, say: bool = True):
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str,
+        layout: DetectionLayout,
+        scans_accumulated: int = 1,
+        image_size=None,
+        say: bool = True,
+    ):
         self.layout = layout
         listed = list_frames(root, split, layout, scans_accumulated, image_size)
         self.root, self.split, self.frame_ids = listed.root, split, listed.frame_ids
@@ -809,8 +961,10 @@ class DetectionSet:
         path = self.scan_path(fid)
         points = read_scan(path, features, fmt=self.layout.scan_format)
         if not len(points):
-            raise InputError(f"{path}: an empty scan (0 bytes): a labelled frame needs its radar points (a failed "
-                             f"copy?); restore the file, or remove frame {fid} from {self.split_file}")
+            raise InputError(
+                f"{path}: an empty scan (0 bytes): a labelled frame needs its radar points (a failed "
+                f"copy?); restore the file, or remove frame {fid} from {self.split_file}"
+            )
         check_points(points, features, path)
         calib = read_calibration(self.training / "calib" / f"{fid}.txt")
         size = self.image_size(fid)

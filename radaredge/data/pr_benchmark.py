@@ -45,16 +45,16 @@ from .synthetic import RadarScan, SceneConfig, generate_sequence
 
 DATABASE_DIR = "database"
 QUERIES_DIR = "queries"
-DAY_S = 86400.0                   # s between the starts of consecutive drives
-DYNAMIC_FRACTION = (0.1, 0.3)     # range of the per-day share of points on moving objects
-CURVE_RADIUS = (80.0, 150.0)      # m, range of the street's radius of curvature
-TOWN_SPACING = 10_000.0           # m of easting between the towns of consecutive seeds
+DAY_S = 86400.0  # s between the starts of consecutive drives
+DYNAMIC_FRACTION = (0.1, 0.3)  # range of the per-day share of points on moving objects
+CURVE_RADIUS = (80.0, 150.0)  # m, range of the street's radius of curvature
+TOWN_SPACING = 10_000.0  # m of easting between the towns of consecutive seeds
 # The largest town seed whose drives stay within the +-MAX_POSITION m a gps.csv may hold (100 km to spare
 # for the town itself): a larger one would write a benchmark its own reader refuses.
 MAX_TOWN_SEED = int((MAX_POSITION - 100_000.0) // TOWN_SPACING)
-LANE_OFFSET = 1.75                # m from a street's centreline to the centre of either lane
-OPPOSITE = 0.25                   # most of a query route's length driven against the database circuit
-SECTION_M = (150.0, 400.0)        # m, length range of the sections of a query route
+LANE_OFFSET = 1.75  # m from a street's centreline to the centre of either lane
+OPPOSITE = 0.25  # most of a query route's length driven against the database circuit
+SECTION_M = (150.0, 400.0)  # m, length range of the sections of a query route
 
 
 @dataclass(frozen=True)
@@ -87,8 +87,13 @@ def _check_options(drives: int, frames_per_drive: int, seed: int, speed: tuple[f
         raise ConfigError(f"speed must be (low, high) m/s with 0 < low <= high, got {speed!r}")
 
 
-def plan_drives(drives: int = 3, frames_per_drive: int = 60, seed: int = 0, speed: tuple[float, float] = (7.0, 10.0),
-                parked_change: float = 0.3) -> list[BenchmarkDrive]:
+def plan_drives(
+    drives: int = 3,
+    frames_per_drive: int = 60,
+    seed: int = 0,
+    speed: tuple[float, float] = (7.0, 10.0),
+    parked_change: float = 0.3,
+) -> list[BenchmarkDrive]:
     """The benchmark's drives, without generating them: drive 0 (database) at ``speed[1]`` m/s
     with the canonical parking, drives 1.. (queries) at speeds uniform in ``speed`` m/s with
     ``parked_change`` of the parked cars changed. The street's curvature, and for every day its
@@ -100,11 +105,19 @@ def plan_drives(drives: int = 3, frames_per_drive: int = 60, seed: int = 0, spee
     plan = []
     for d in range(drives):
         v = speed[1] if d == 0 else rng.uniform(*speed)
-        config = SceneConfig(seed=int(day_seeds[d]), world_seed=seed, road_curvature=curvature, ego_vertical_max=0.0,
-                             ego_speed_min=v, ego_speed_max=v, dynamic_fraction=rng.uniform(*DYNAMIC_FRACTION),
-                             parked_change=0.0 if d == 0 else parked_change)
-        plan.append(BenchmarkDrive(f"drive-{d:02d}", "database" if d == 0 else "query", DAY_S * d,
-                                   frames_per_drive, config))
+        config = SceneConfig(
+            seed=int(day_seeds[d]),
+            world_seed=seed,
+            road_curvature=curvature,
+            ego_vertical_max=0.0,
+            ego_speed_min=v,
+            ego_speed_max=v,
+            dynamic_fraction=rng.uniform(*DYNAMIC_FRACTION),
+            parked_change=0.0 if d == 0 else parked_change,
+        )
+        plan.append(
+            BenchmarkDrive(f"drive-{d:02d}", "database" if d == 0 else "query", DAY_S * d, frames_per_drive, config)
+        )
     return plan
 
 
@@ -115,9 +128,15 @@ def drive_track(scans: list[RadarScan], start: float, easting_offset: float = 0.
     return start + np.array([scan.timestamp for scan in scans]), xy[:, ::-1] + np.array([0.0, easting_offset])
 
 
-def make_pr_benchmark(out_dir: str | os.PathLike, drives: int = 3, frames_per_drive: int = 60, seed: int = 0,
-                      speed: tuple[float, float] = (7.0, 10.0), parked_change: float = 0.3,
-                      progress=None) -> list[BenchmarkDrive]:
+def make_pr_benchmark(
+    out_dir: str | os.PathLike,
+    drives: int = 3,
+    frames_per_drive: int = 60,
+    seed: int = 0,
+    speed: tuple[float, float] = (7.0, 10.0),
+    parked_change: float = 0.3,
+    progress=None,
+) -> list[BenchmarkDrive]:
     """Generate the drives of :func:`plan_drives` and write them under ``out_dir`` (layout in
     the module docstring). ``progress`` optionally wraps the iteration over drives (a progress
     bar). Returns the plan; drive ``d`` is in ``out_dir / d.subdir``."""
@@ -133,13 +152,16 @@ def _check_town_seeds(seed: int, towns: int) -> None:
     """ConfigError when a town of seed ``seed`` .. ``seed + towns - 1`` would lie beyond the
     positions a gps.csv may hold (the town of seed s lies s x 10 km east)."""
     if seed + towns - 1 > MAX_TOWN_SEED:
-        raise ConfigError(f"seed {seed}" + (f" with {towns} towns" if towns > 1 else "") + f": the town of seed s lies "
-                          f"s x {TOWN_SPACING / 1000:g} km east, and gps.csv holds positions within "
-                          f"{MAX_POSITION:g} m; use seeds up to {MAX_TOWN_SEED}")
+        raise ConfigError(
+            f"seed {seed}" + (f" with {towns} towns" if towns > 1 else "") + f": the town of seed s lies "
+            f"s x {TOWN_SPACING / 1000:g} km east, and gps.csv holds positions within "
+            f"{MAX_POSITION:g} m; use seeds up to {MAX_TOWN_SEED}"
+        )
 
 
-def make_pr_towns(out_dir: str | os.PathLike, towns: int, seed: int,
-                  make_town: Callable[[Path, int], list]) -> dict[str, list]:
+def make_pr_towns(
+    out_dir: str | os.PathLike, towns: int, seed: int, make_town: Callable[[Path, int], list]
+) -> dict[str, list]:
     """``towns`` benchmarks of consecutive seeds ``seed``, ``seed + 1``, ... in ``out_dir/town-<seed>``,
     each written by ``make_town(directory, seed)`` (:func:`make_pr_benchmark` or
     :func:`make_route_benchmark` with their other arguments bound); one training directory for
@@ -181,12 +203,16 @@ class RouteBenchmarkDrive:
 def against_circuit(town: RoadNetwork, circuit: list[int], route: list[int]) -> float:
     """Metres of ``route`` driven on streets of ``circuit`` against its direction only."""
     steps = RoadNetwork.steps(circuit)
-    return sum(float(np.linalg.norm(town.nodes[b] - town.nodes[a])) for a, b in zip(route[:-1], route[1:])
-               if (b, a) in steps and (a, b) not in steps)
+    return sum(
+        float(np.linalg.norm(town.nodes[b] - town.nodes[a]))
+        for a, b in zip(route[:-1], route[1:])
+        if (b, a) in steps and (a, b) not in steps
+    )
 
 
-def _query_route(town: RoadNetwork, circuit: list[int], length: float, rng: np.random.Generator,
-                 opposite: float) -> list[int]:
+def _query_route(
+    town: RoadNetwork, circuit: list[int], length: float, rng: np.random.Generator, opposite: float
+) -> list[int]:
     """A query day's route of at least ``length`` m: sections of 150-400 m of the database's
     closed ``circuit`` (junctions), the first from a junction drawn at random, each next one
     from the junction of the circuit with the shortest join, a route there that never turns
@@ -199,15 +225,20 @@ def _query_route(town: RoadNetwork, circuit: list[int], length: float, rng: np.r
     while town.route_length(route) < length:
         want, budget = rng.uniform(*SECTION_M), opposite * length - against_circuit(town, circuit, route)
         best, joined = math.inf, None
-        for step in ((-1, 1) if rng.random() < 0.5 else (1,)):
+        for step in (-1, 1) if rng.random() < 0.5 else (1,):
             for i in rng.permutation(len(loop)):
                 section = [loop[i]]
                 while town.route_length(section) < want:
                     section.append(loop[(i + step * len(section)) % len(loop)])
                 if step < 0 and town.route_length(section) > budget:
                     continue
-                join = town.shortest_route(route[-1], section[0], came_from=route[-2] if len(route) > 1 else None,
-                                           then=section[1], prefer=along_circuit)
+                join = town.shortest_route(
+                    route[-1],
+                    section[0],
+                    came_from=route[-2] if len(route) > 1 else None,
+                    then=section[1],
+                    prefer=along_circuit,
+                )
                 if join is not None and town.route_length(join) < best:
                     joined, best = route + join[1:] + section[1:], town.route_length(join)
             if joined is not None:
@@ -218,9 +249,15 @@ def _query_route(town: RoadNetwork, circuit: list[int], length: float, rng: np.r
     return route
 
 
-def plan_route_drives(days: int = 3, route_m: float = 2200.0, seed: int = 0, speed: tuple[float, float] = (7.0, 10.0),
-                      parked_change: float = 0.3, opposite: float = OPPOSITE, network: NetworkConfig = NetworkConfig()
-                      ) -> tuple[RoadNetwork, list[RouteBenchmarkDrive]]:
+def plan_route_drives(
+    days: int = 3,
+    route_m: float = 2200.0,
+    seed: int = 0,
+    speed: tuple[float, float] = (7.0, 10.0),
+    parked_change: float = 0.3,
+    opposite: float = OPPOSITE,
+    network: NetworkConfig = NetworkConfig(),
+) -> tuple[RoadNetwork, list[RouteBenchmarkDrive]]:
     """The town of ``seed`` and its drives, without generating scans. Day 0 (the database) drives
     a circuit of at least ``route_m`` m through the town (:meth:`RoadNetwork.circuit`: back where it
     started) at ``speed[1]`` m/s in the right-hand lane, with the canonical parking. Days 1.. (queries) each
@@ -242,9 +279,15 @@ def plan_route_drives(days: int = 3, route_m: float = 2200.0, seed: int = 0, spe
         route = town.circuit(rng, route_m) if d == 0 else _query_route(town, circuit, route_m / 2, rng, opposite)
         circuit = circuit or route
         lane = LANE_OFFSET if d > 0 and d % 2 == 0 else -LANE_OFFSET
-        config = SceneConfig(seed=int(day_seeds[d]), world_seed=seed, ego_vertical_max=0.0, ego_speed_min=v,
-                             ego_speed_max=v, dynamic_fraction=float(rng.uniform(*DYNAMIC_FRACTION)),
-                             parked_change=0.0 if d == 0 else parked_change)
+        config = SceneConfig(
+            seed=int(day_seeds[d]),
+            world_seed=seed,
+            ego_vertical_max=0.0,
+            ego_speed_min=v,
+            ego_speed_max=v,
+            dynamic_fraction=float(rng.uniform(*DYNAMIC_FRACTION)),
+            parked_change=0.0 if d == 0 else parked_change,
+        )
         drive = RouteDrive(tuple(int(n) for n in route), lane, 1, config)
         drive = dataclasses.replace(drive, frames=frames_for(drive.path(town, network), v, config.frame_rate))
         against = against_circuit(town, circuit, route) / town.route_length(route)
@@ -252,9 +295,16 @@ def plan_route_drives(days: int = 3, route_m: float = 2200.0, seed: int = 0, spe
     return town, plan
 
 
-def make_route_benchmark(out_dir: str | os.PathLike, days: int = 3, route_m: float = 2200.0, seed: int = 0,
-                         speed: tuple[float, float] = (7.0, 10.0), parked_change: float = 0.3,
-                         network: NetworkConfig = NetworkConfig(), progress=None) -> list[RouteBenchmarkDrive]:
+def make_route_benchmark(
+    out_dir: str | os.PathLike,
+    days: int = 3,
+    route_m: float = 2200.0,
+    seed: int = 0,
+    speed: tuple[float, float] = (7.0, 10.0),
+    parked_change: float = 0.3,
+    network: NetworkConfig = NetworkConfig(),
+    progress=None,
+) -> list[RouteBenchmarkDrive]:
     """Generate the drives of :func:`plan_route_drives` and write them under ``out_dir`` in the
     layout of :func:`make_pr_benchmark` (database/drive-00, queries/drive-01, ...; the town of
     seed ``s`` lies ``s`` x 10 km east). Returns the plan."""

@@ -12,16 +12,16 @@ from __future__ import annotations
 
 import numpy as np
 
-OCCLUDER_SHRINK = 0.9      # occluders block within 90 % of their extent: radar sees under cars and past edges
-OCCLUSION_MARGIN = 0.15    # m: a box this close in front of a point (along the ray) does not hide it
-SNR_SLOPE_DB = 3.0         # dB, width of the detection probability's logistic step
-REFERENCE_RANGE = 10.0     # m, range at which ``snr_margin_db`` applies
+OCCLUDER_SHRINK = 0.9  # occluders block within 90 % of their extent: radar sees under cars and past edges
+OCCLUSION_MARGIN = 0.15  # m: a box this close in front of a point (along the ray) does not hide it
+SNR_SLOPE_DB = 3.0  # dB, width of the detection probability's logistic step
+REFERENCE_RANGE = 10.0  # m, range at which ``snr_margin_db`` applies
 
 # points per (m^2 of projected area / m of range) at full detection probability, per class:
 # a car seen broadside at 10 m gives about 35 points a scan, a pedestrian about 8, a cyclist
 # broadside about 12, falling with 1/range (cells per object) and the detection probability.
 POINT_DENSITY = {"car": 52.0, "pedestrian": 80.0, "cyclist": 40.0}
-SNR_MARGIN_DB = 22.0       # dB of SNR at 10 m above a 0 dBsm reflector's detection threshold
+SNR_MARGIN_DB = 22.0  # dB of SNR at 10 m above a 0 dBsm reflector's detection threshold
 
 # unit-box face samples for the occlusion share of a label: 4 x 4 points on each of the five
 # outer faces (no bottom), with their outward normals
@@ -32,7 +32,7 @@ def _face_samples() -> tuple[np.ndarray, np.ndarray]:
     u, v = (a.ravel() for a in np.meshgrid(_GRID, _GRID))
     points, normals = [], []
     for axis in range(3):
-        for sign in ((1.0, -1.0) if axis < 2 else (1.0,)):
+        for sign in (1.0, -1.0) if axis < 2 else (1.0,):
             p = np.zeros((u.size, 3))
             others = [k for k in range(3) if k != axis]
             p[:, axis] = 0.5 * sign
@@ -53,8 +53,13 @@ def _rotate_z(xyz: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     return np.stack([c * xyz[..., 0] - s * xyz[..., 1], s * xyz[..., 0] + c * xyz[..., 1], xyz[..., 2]], -1)
 
 
-def hidden_by_boxes(points: np.ndarray, boxes: np.ndarray, own: np.ndarray | None = None,
-                    shrink: float = OCCLUDER_SHRINK, margin: float = OCCLUSION_MARGIN) -> np.ndarray:
+def hidden_by_boxes(
+    points: np.ndarray,
+    boxes: np.ndarray,
+    own: np.ndarray | None = None,
+    shrink: float = OCCLUDER_SHRINK,
+    margin: float = OCCLUSION_MARGIN,
+) -> np.ndarray:
     """bool [N]: the straight path from the radar (the origin) to point n passes through a box
     ([M, 7], scaled by ``shrink`` about its centre) more than ``margin`` m before the point, in
     3D (azimuth and elevation). ``own`` [N] is the row of the box each point lies on (-1 for
@@ -65,9 +70,9 @@ def hidden_by_boxes(points: np.ndarray, boxes: np.ndarray, own: np.ndarray | Non
     if n == 0 or m == 0:
         return np.zeros(n, bool)
     yaw = boxes[:, 6]
-    target = _rotate_z(points[:, None, :] - boxes[None, :, :3], -yaw[None, :])     # [N, M, 3] box frame
-    origin = _rotate_z(-boxes[:, :3], -yaw)                                          # [M, 3]
-    half = 0.5 * shrink * boxes[:, 3:6]                                              # [M, 3]
+    target = _rotate_z(points[:, None, :] - boxes[None, :, :3], -yaw[None, :])  # [N, M, 3] box frame
+    origin = _rotate_z(-boxes[:, :3], -yaw)  # [M, 3]
+    half = 0.5 * shrink * boxes[:, 3:6]  # [M, 3]
     direction = target - origin[None]
     with np.errstate(divide="ignore", invalid="ignore"):
         t1 = (-half - origin)[None] / direction
@@ -93,7 +98,7 @@ def occluded_share(boxes: np.ndarray) -> np.ndarray:
     m = len(boxes)
     if m == 0:
         return np.zeros(0)
-    local = _FACE_POINTS[None] * boxes[:, None, 3:6]                                  # [M, K, 3]
+    local = _FACE_POINTS[None] * boxes[:, None, 3:6]  # [M, K, 3]
     points = _rotate_z(local, boxes[:, 6:7]) + boxes[:, None, :3]
     normals = _rotate_z(np.broadcast_to(_FACE_NORMALS, local.shape), boxes[:, 6:7])
     facing = np.einsum("mkj,mkj->mk", normals, points) < 0
@@ -130,13 +135,15 @@ def expected_object_points(boxes: np.ndarray, class_names: list[str], rcs_mean: 
 def incidence_gain_db(normals: np.ndarray, points: np.ndarray, specular_db: float = 6.0) -> np.ndarray:
     """RCS gain (dB) [N] of a face point from its incidence angle: ``specular_db`` head-on, falling
     as cos^4 to -3 dB at grazing incidence (flat panels reflect mostly back along their normal)."""
-    cos_in = np.clip(-np.einsum("ij,ij->i", normals, points) / np.maximum(np.linalg.norm(points, axis=1), 1e-9),
-                     0.0, 1.0)
-    return (specular_db + 3.0) * cos_in ** 4 - 3.0
+    cos_in = np.clip(
+        -np.einsum("ij,ij->i", normals, points) / np.maximum(np.linalg.norm(points, axis=1), 1e-9), 0.0, 1.0
+    )
+    return (specular_db + 3.0) * cos_in**4 - 3.0
 
 
-def spherical_noise(rng: np.random.Generator, xyz: np.ndarray, range_sigma: float, azimuth_sigma: float,
-                    elevation_sigma: float) -> np.ndarray:
+def spherical_noise(
+    rng: np.random.Generator, xyz: np.ndarray, range_sigma: float, azimuth_sigma: float, elevation_sigma: float
+) -> np.ndarray:
     """``xyz`` [N, 3] (m) with Gaussian noise on range (m), azimuth and elevation (rad): a radar
     measures angles, and a 4D radar's elevation far less precisely than its azimuth."""
     xyz = np.asarray(xyz, np.float64)
@@ -146,12 +153,14 @@ def spherical_noise(rng: np.random.Generator, xyz: np.ndarray, range_sigma: floa
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0]) + rng.normal(0, azimuth_sigma, len(xyz))
     elevation = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])) + rng.normal(0, elevation_sigma, len(xyz))
     r = np.maximum(r + rng.normal(0, range_sigma, len(xyz)), 0.0)
-    return np.column_stack([r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth),
-                            r * np.sin(elevation)])
+    return np.column_stack(
+        [r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth), r * np.sin(elevation)]
+    )
 
 
-def micro_doppler_factor(rng: np.random.Generator, class_names: list[str], height_share: np.ndarray,
-                         strength: float) -> np.ndarray:
+def micro_doppler_factor(
+    rng: np.random.Generator, class_names: list[str], height_share: np.ndarray, strength: float
+) -> np.ndarray:
     """Factor [N] on an object point's velocity along the object's heading: a walker's legs
     (lower half) swing between standing still and twice the body's speed, a cyclist's wheel rims
     (lowest 40 %) between 0 and 2x (cos of the rim angle) and the pedalling legs above them by
@@ -172,15 +181,23 @@ def micro_doppler_factor(rng: np.random.Generator, class_names: list[str], heigh
     return factor + strength * spread
 
 
-def false_alarms(rng: np.random.Generator, mean: float, min_range: float, max_range: float, max_azimuth: float,
-                 max_elevation: float, doppler_span: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def false_alarms(
+    rng: np.random.Generator,
+    mean: float,
+    min_range: float,
+    max_range: float,
+    max_azimuth: float,
+    max_elevation: float,
+    doppler_span: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Poisson(``mean``) CFAR false alarms, uniform over the field of view's area (range drawn
     with density rising linearly in r), azimuth and elevation (rad): (xyz [F, 3] m, v_r [F] m/s
     uniform in +-``doppler_span``, rcs [F] dBsm near the noise floor)."""
     count = int(rng.poisson(mean)) if mean > 0 else 0
-    r = np.sqrt(rng.uniform(min_range ** 2, max_range ** 2, count))
+    r = np.sqrt(rng.uniform(min_range**2, max_range**2, count))
     azimuth = rng.uniform(-max_azimuth, max_azimuth, count)
     elevation = rng.uniform(-max_elevation, max_elevation, count)
-    xyz = np.column_stack([r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth),
-                           r * np.sin(elevation)])
+    xyz = np.column_stack(
+        [r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth), r * np.sin(elevation)]
+    )
     return xyz, rng.uniform(-doppler_span, doppler_span, count), rng.normal(-15.0, 4.0, count)

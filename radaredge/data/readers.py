@@ -90,13 +90,17 @@ class _Layout:
 
 
 _LAYOUTS = {
-    "vod": _Layout("View-of-Delft radar", VOD_COLUMNS,
-                   {"x": 0, "y": 1, "z": 2, "rcs": 3, "v_r": 4, "v_r_comp": 5, "time": 6}),
-    "tj4d": _Layout("TJ4DRadSet radar", TJ4D_COLUMNS,
-                    {"x": 0, "y": 1, "z": 2, "v_r": 3, "range": 4, "power": 5, "snr": 5, "alpha": 6, "beta": 7,
-                     "rcs": 5}),
-    "transloc": _Layout("TransLoc4D-style radar", TRANSLOC_COLUMNS,
-                        {"x": 0, "y": 1, "z": 2, "v_r": 3, "intensity": 4, "rcs": 4}),
+    "vod": _Layout(
+        "View-of-Delft radar", VOD_COLUMNS, {"x": 0, "y": 1, "z": 2, "rcs": 3, "v_r": 4, "v_r_comp": 5, "time": 6}
+    ),
+    "tj4d": _Layout(
+        "TJ4DRadSet radar",
+        TJ4D_COLUMNS,
+        {"x": 0, "y": 1, "z": 2, "v_r": 3, "range": 4, "power": 5, "snr": 5, "alpha": 6, "beta": 7, "rcs": 5},
+    ),
+    "transloc": _Layout(
+        "TransLoc4D-style radar", TRANSLOC_COLUMNS, {"x": 0, "y": 1, "z": 2, "v_r": 3, "intensity": 4, "rcs": 4}
+    ),
 }
 _BIN_FORMATS = ("vod", "tj4d")
 # Features a format serves from a column that measures another quantity: fmt -> feature -> what the
@@ -105,7 +109,7 @@ STAND_INS = {
     "tj4d": {"rcs": "its Power column (the signal-to-noise ratio in dB, not a radar cross-section in dBsm)"},
     "transloc": {"rcs": "its intensity column (not a radar cross-section in dBsm)"},
 }
-FILE_SUFFIX = {"vod": ".bin", "tj4d": ".bin", "transloc": ".npy"}   # scan-file formats and their suffix
+FILE_SUFFIX = {"vod": ".bin", "tj4d": ".bin", "transloc": ".npy"}  # scan-file formats and their suffix
 
 
 # ----------------------------------------------------------------------------- bounded files
@@ -150,7 +154,7 @@ def read_bounded(path: str | os.PathLike, what: str, limit: int, why: str, error
 # Scan files hold at most this many points: the largest ``max_points_per_frame`` a card can
 # declare (radaredge.cards.TOP_LEVEL_NUMBERS); a radar scan holds a few hundred to a few thousand.
 MAX_SCAN_POINTS = 2**24
-_NPY_HEADER_BYTES = 1 << 16        # room for a .npy header (NumPy reads headers of at most 10,000 bytes)
+_NPY_HEADER_BYTES = 1 << 16  # room for a .npy header (NumPy reads headers of at most 10,000 bytes)
 # x, y, z of a radar point (m): far beyond any radar's reach (automotive radars see a few hundred
 # metres). Points outside a card's point_cloud_range are left out by its graph; a coordinate
 # beyond this is no measurement (a damaged scan), and far beyond it float32 arithmetic breaks
@@ -165,17 +169,21 @@ def check_points(points: np.ndarray, features: Sequence[str], where) -> np.ndarr
     bad = ~np.isfinite(points)
     if bad.any():
         row, col = (int(v) for v in np.argwhere(bad)[0])
-        raise InputError(f"{where}: non-finite value {points[row, col]} at point {row}, column "
-                         f"{features[col]!r} ({int(bad.any(1).sum())} point(s) affected)")
+        raise InputError(
+            f"{where}: non-finite value {points[row, col]} at point {row}, column "
+            f"{features[col]!r} ({int(bad.any(1).sum())} point(s) affected)"
+        )
     coords = [i for i, f in enumerate(features) if f in COORDINATES]
     if coords and len(points):
         far = np.abs(points[:, coords]) > MAX_COORDINATE
         if far.any():
             row, k = (int(v) for v in np.argwhere(far)[0])
-            raise InputError(f"{where}: point {row}, column {features[coords[k]]!r} is {points[row, coords[k]]:.3g} "
-                             f"m; a radar point lies within {MAX_COORDINATE:g} m ({int(far.any(1).sum())} point(s) "
-                             f"beyond). Points outside the card's point_cloud_range are left out, as its graph "
-                             f"does, but this is no measurement: a damaged scan?")
+            raise InputError(
+                f"{where}: point {row}, column {features[coords[k]]!r} is {points[row, coords[k]]:.3g} "
+                f"m; a radar point lies within {MAX_COORDINATE:g} m ({int(far.any(1).sum())} point(s) "
+                f"beyond). Points outside the card's point_cloud_range are left out, as its graph "
+                f"does, but this is no measurement: a damaged scan?"
+            )
     return points
 
 
@@ -185,8 +193,9 @@ def check_points(points: np.ndarray, features: Sequence[str], where) -> np.ndarr
 def _check_features(features: Sequence[str]) -> list[str]:
     """``features`` as a list of names; a non-empty sequence of strings is required."""
     if isinstance(features, str) or not features or not all(isinstance(f, str) for f in features):
-        raise InputError(f"features must be a non-empty list of column names such as ['x', 'y', 'z', 'v_r', 'rcs'], "
-                         f"got {features!r}")
+        raise InputError(
+            f"features must be a non-empty list of column names such as ['x', 'y', 'z', 'v_r', 'rcs'], got {features!r}"
+        )
     return list(features)
 
 
@@ -195,8 +204,10 @@ def _feature_columns(features: Sequence[str], fmt: str) -> list[int]:
     layout = _LAYOUTS[fmt]
     missing = [f for f in features if f not in layout.features]
     if missing:
-        raise InputError(f"format {fmt!r} ({layout.title}) cannot provide feature(s) {missing}; "
-                         f"it provides {sorted(layout.features)}")
+        raise InputError(
+            f"format {fmt!r} ({layout.title}) cannot provide feature(s) {missing}; "
+            f"it provides {sorted(layout.features)}"
+        )
     return [layout.features[f] for f in features]
 
 
@@ -235,11 +246,15 @@ def infer_format(paths: Sequence[Path]) -> str:
     if suffixes == [".npy"]:
         return "transloc"
     if len(suffixes) > 1:
-        raise InputError(f"{paths[0].parent} mixes {' and '.join(suffixes)} scan files; keep one recording in one "
-                         f"format, or pass fmt= to read only the files of that format")
+        raise InputError(
+            f"{paths[0].parent} mixes {' and '.join(suffixes)} scan files; keep one recording in one "
+            f"format, or pass fmt= to read only the files of that format"
+        )
     if suffixes != [".bin"]:
-        raise InputError(f"{where}: cannot infer the scan format from suffix {suffixes[0]!r}; pass fmt= one of "
-                         f"{list(_LAYOUTS)} (ROS bags: iter_rosbag / read_rosbag)")
+        raise InputError(
+            f"{where}: cannot infer the scan format from suffix {suffixes[0]!r}; pass fmt= one of "
+            f"{list(_LAYOUTS)} (ROS bags: iter_rosbag / read_rosbag)"
+        )
     sizes = [p.stat().st_size for p in paths]
     fits = [fmt for fmt in _BIN_FORMATS if all(size % _bin_row_bytes(fmt) == 0 for size in sizes)]
     step = max(1, len(paths) // _SIGNATURE_FILES)
@@ -250,25 +265,31 @@ def infer_format(paths: Sequence[Path]) -> str:
     if len(fits) != 1:
         what = "both" if fits else "neither"
         size = f"{sizes[0]} bytes" if len(paths) == 1 else "their byte sizes"
-        raise InputError(f"{where}: {size} fit {what} of the .bin layouts vod (7 float32 columns, "
-                         f"{_bin_row_bytes('vod')} bytes a row) and tj4d (8 float32 columns, "
-                         f"{_bin_row_bytes('tj4d')} bytes a row); pass fmt='vod' or fmt='tj4d'")
+        raise InputError(
+            f"{where}: {size} fit {what} of the .bin layouts vod (7 float32 columns, "
+            f"{_bin_row_bytes('vod')} bytes a row) and tj4d (8 float32 columns, "
+            f"{_bin_row_bytes('tj4d')} bytes a row); pass fmt='vod' or fmt='tj4d'"
+        )
     for p, tj4d_like in votes.items():
         if tj4d_like is None or tj4d_like == (fits[0] == "tj4d"):
             continue
         size = p.stat().st_size
         if fits[0] == "tj4d":
-            raise InputError(f"{p}: {size} bytes fit the tj4d layout, but its Range column (5th of 8) is not the "
-                             f"points' distance sqrt(X^2 + Y^2 + Z^2): not a TJ4DRadSet scan (a truncated "
-                             f"View-of-Delft .bin?); pass fmt='vod' or fmt='tj4d'")
-        raise InputError(f"{p}: {size} bytes fit the vod layout, but its first rows read as TJ4DRadSet rows "
-                         f"(the 5th of 8 columns is the points' distance): a truncated tj4d file?; pass "
-                         f"fmt='vod' or fmt='tj4d'")
+            raise InputError(
+                f"{p}: {size} bytes fit the tj4d layout, but its Range column (5th of 8) is not the "
+                f"points' distance sqrt(X^2 + Y^2 + Z^2): not a TJ4DRadSet scan (a truncated "
+                f"View-of-Delft .bin?); pass fmt='vod' or fmt='tj4d'"
+            )
+        raise InputError(
+            f"{p}: {size} bytes fit the vod layout, but its first rows read as TJ4DRadSet rows "
+            f"(the 5th of 8 columns is the points' distance): a truncated tj4d file?; pass "
+            f"fmt='vod' or fmt='tj4d'"
+        )
     return fits[0]
 
 
-_SIGNATURE_FILES = 16     # files of a recording whose content infer_format checks
-_SIGNATURE_ROWS = 64      # rows read from the head of each
+_SIGNATURE_FILES = 16  # files of a recording whose content infer_format checks
+_SIGNATURE_ROWS = 64  # rows read from the head of each
 
 
 def _looks_like_tj4d(path: Path) -> bool | None:
@@ -289,46 +310,62 @@ def _read_bin(path: Path, fmt: str) -> np.ndarray:
     """A little-endian float32 ``.bin`` of ``fmt``'s columns as float32 [N, C]."""
     layout = _LAYOUTS[fmt]
     row = _bin_row_bytes(fmt)
-    size = check_file(path, f"a {layout.title} scan", MAX_SCAN_POINTS * row,
-                      f"{MAX_SCAN_POINTS:,} points of {row} bytes, the most a card's max_points_per_frame can take")
+    size = check_file(
+        path,
+        f"a {layout.title} scan",
+        MAX_SCAN_POINTS * row,
+        f"{MAX_SCAN_POINTS:,} points of {row} bytes, the most a card's max_points_per_frame can take",
+    )
     if size % row:
-        raise InputError(f"{path}: {size} bytes is not a whole number of {layout.title} rows of "
-                         f"{len(layout.columns)} float32 columns {layout.columns}: expected a multiple of {row} "
-                         f"bytes (truncated file, or another format?)")
+        raise InputError(
+            f"{path}: {size} bytes is not a whole number of {layout.title} rows of "
+            f"{len(layout.columns)} float32 columns {layout.columns}: expected a multiple of {row} "
+            f"bytes (truncated file, or another format?)"
+        )
     return np.fromfile(path, dtype="<f4").reshape(-1, len(layout.columns)).astype(np.float32)
 
 
 def _read_npy(path: Path, fmt: str) -> np.ndarray:
     """A 2-D numeric ``.npy`` of ``fmt``'s columns, as float32 [N, C]."""
     layout = _LAYOUTS[fmt]
-    size = check_file(path, f"a {layout.title} .npy scan",
-                      _NPY_HEADER_BYTES + MAX_SCAN_POINTS * len(layout.columns) * 8,
-                      f"{MAX_SCAN_POINTS:,} points of {len(layout.columns)} float64 columns, the most a card's "
-                      f"max_points_per_frame can take")
+    size = check_file(
+        path,
+        f"a {layout.title} .npy scan",
+        _NPY_HEADER_BYTES + MAX_SCAN_POINTS * len(layout.columns) * 8,
+        f"{MAX_SCAN_POINTS:,} points of {len(layout.columns)} float64 columns, the most a card's "
+        f"max_points_per_frame can take",
+    )
     with path.open("rb") as f:
         if f.read(len(np.lib.format.MAGIC_PREFIX)) != np.lib.format.MAGIC_PREFIX:
             raise InputError(f"{path}: not a readable .npy file (no NumPy array header)")
         f.seek(0)
         try:
             version = np.lib.format.read_magic(f)
-            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                           else np.lib.format.read_array_header_2_0)
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
             shape, _, dtype = read_header(f)
         except (ValueError, SyntaxError) as exc:
             raise InputError(f"{path}: not a readable .npy file: {exc}") from None
     claimed = dtype.itemsize * float(np.prod(shape, dtype=np.float64))
-    if claimed > size:              # checked before numpy allocates what the header claims
-        raise InputError(f"{path}: its header claims shape {shape} of {dtype} ({claimed:.3g} bytes) but the file "
-                         f"holds {size} bytes (truncated or damaged)")
+    if claimed > size:  # checked before numpy allocates what the header claims
+        raise InputError(
+            f"{path}: its header claims shape {shape} of {dtype} ({claimed:.3g} bytes) but the file "
+            f"holds {size} bytes (truncated or damaged)"
+        )
     if len(shape) == 2 and shape[0] > MAX_SCAN_POINTS:
-        raise InputError(f"{path}: its header claims {shape[0]:,} points; a scan holds at most {MAX_SCAN_POINTS:,} "
-                         f"(the most a card's max_points_per_frame can take)")
+        raise InputError(
+            f"{path}: its header claims {shape[0]:,} points; a scan holds at most {MAX_SCAN_POINTS:,} "
+            f"(the most a card's max_points_per_frame can take)"
+        )
     try:
         table = np.load(path, allow_pickle=False)
     except ValueError as exc:  # behind a valid header, a pickle is an object array
         if "pickle" in str(exc):
-            raise InputError(f"{path}: holds a pickled object array, which is not loaded (allow_pickle=False); "
-                             f"save the scan as a numeric [N, {len(layout.columns)}] array") from exc
+            raise InputError(
+                f"{path}: holds a pickled object array, which is not loaded (allow_pickle=False); "
+                f"save the scan as a numeric [N, {len(layout.columns)}] array"
+            ) from exc
         raise InputError(f"{path}: not a readable .npy file: {exc}") from exc
     expected = f"a numeric [N, {len(layout.columns)}] array {layout.columns}"
     if table.dtype.kind not in "iuf":
@@ -345,8 +382,10 @@ def _read_table(path: str | os.PathLike, fmt: str) -> np.ndarray:
     own column order (``VOD_COLUMNS``, ``TJ4D_COLUMNS``, ``TRANSLOC_COLUMNS``), units as stored."""
     path = Path(path)
     if fmt not in _LAYOUTS:
-        raise InputError(f"{path}: unknown scan format {fmt!r}; expected one of {list(_LAYOUTS)}"
-                         + (" (a ROS bag holds many scans: use iter_rosbag / read_rosbag)" if fmt == "rosbag" else ""))
+        raise InputError(
+            f"{path}: unknown scan format {fmt!r}; expected one of {list(_LAYOUTS)}"
+            + (" (a ROS bag holds many scans: use iter_rosbag / read_rosbag)" if fmt == "rosbag" else "")
+        )
     if not path.exists():
         raise InputError(f"{path}: no such {_LAYOUTS[fmt].title} file")
     return _read_bin(path, fmt) if fmt in _BIN_FORMATS else _read_npy(path, fmt)
@@ -356,9 +395,12 @@ def stand_in_notes(fmt: str, features: Sequence[str]) -> list[str]:
     """One sentence per feature of ``features`` (a card's ``features``) that a ``fmt`` file serves
     from a column measuring another quantity (:data:`STAND_INS`), naming both; none otherwise."""
     title = _LAYOUTS[fmt].title if fmt in _LAYOUTS else fmt
-    return [f"{title} scans have no {feature!r} column: the card's features name {feature!r}, which is served "
-            f"from {what}; a model trained on {feature} sees another quantity and scale"
-            for feature, what in STAND_INS.get(fmt, {}).items() if feature in features]
+    return [
+        f"{title} scans have no {feature!r} column: the card's features name {feature!r}, which is served "
+        f"from {what}; a model trained on {feature} sees another quantity and scale"
+        for feature, what in STAND_INS.get(fmt, {}).items()
+        if feature in features
+    ]
 
 
 def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None = None) -> np.ndarray:
@@ -375,8 +417,9 @@ def read_scan(path: str | os.PathLike, features: Sequence[str], fmt: str | None 
     path = Path(path)
     if fmt is None:
         if not path.is_file():
-            raise InputError(f"{path} is a directory, not a scan file" if path.is_dir()
-                             else f"{path}: no such scan file")
+            raise InputError(
+                f"{path} is a directory, not a scan file" if path.is_dir() else f"{path}: no such scan file"
+            )
         fmt = infer_format([path])
     table = _read_table(path, fmt)
     columns = _feature_columns(features, fmt)
@@ -414,19 +457,24 @@ def _pick(feature: str, names: list[str], field_map: FieldMap, kind: str, where:
         if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
             if 0 <= key < len(names):
                 return int(key)
-            raise InputError(f"{where}: field_map maps {feature!r} to {kind} index {key}, but the message has "
-                             f"{len(names)} {kind}s {names}")
+            raise InputError(
+                f"{where}: field_map maps {feature!r} to {kind} index {key}, but the message has "
+                f"{len(names)} {kind}s {names}"
+            )
         if key in names:
             return names.index(key)
-        raise InputError(f"{where}: field_map maps {feature!r} to {kind} {key!r}, which the message lacks; "
-                         f"its {kind}s are {names}")
+        raise InputError(
+            f"{where}: field_map maps {feature!r} to {kind} {key!r}, which the message lacks; its {kind}s are {names}"
+        )
     candidates = _DEFAULT_NAMES.get(feature, (feature,))
     lowered = [n.lower() for n in names]
     for name in candidates:
         if name in lowered:
             return lowered.index(name)
-    raise InputError(f"{where}: cannot map feature {feature!r}: the message's {kind}s are {names}, none named "
-                     f"{list(candidates)}; pass field_map={{{feature!r}: <{kind} name or index>}}")
+    raise InputError(
+        f"{where}: cannot map feature {feature!r}: the message's {kind}s are {names}, none named "
+        f"{list(candidates)}; pass field_map={{{feature!r}: <{kind} name or index>}}"
+    )
 
 
 def _cloud2_points(msg, where: str) -> np.ndarray:
@@ -434,9 +482,11 @@ def _cloud2_points(msg, where: str) -> np.ndarray:
     data = np.asarray(msg.data, dtype=np.uint8).ravel()
     height, width, step, row = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
     if row < width * step or data.size < height * row:
-        raise InputError(f"{where}: PointCloud2 data holds {data.size} bytes; expected height {height} x row_step "
-                         f"{row} bytes with row_step >= width {width} x point_step {step}")
-    return data[:height * row].reshape(height, row)[:, :width * step].reshape(height * width, step)
+        raise InputError(
+            f"{where}: PointCloud2 data holds {data.size} bytes; expected height {height} x row_step "
+            f"{row} bytes with row_step >= width {width} x point_step {step}"
+        )
+    return data[: height * row].reshape(height, row)[:, : width * step].reshape(height * width, step)
 
 
 def _cloud2_field(points: np.ndarray, field, big_endian: bool, where: str) -> np.ndarray:
@@ -449,8 +499,9 @@ def _cloud2_field(points: np.ndarray, field, big_endian: bool, where: str) -> np
     dtype = np.dtype(code).newbyteorder(">" if big_endian else "<")
     start, stop = int(field.offset), int(field.offset) + dtype.itemsize
     if stop > points.shape[1]:
-        raise InputError(f"{where}: field {field.name!r} (bytes {start}-{stop}) lies outside point_step "
-                         f"{points.shape[1]}")
+        raise InputError(
+            f"{where}: field {field.name!r} (bytes {start}-{stop}) lies outside point_step {points.shape[1]}"
+        )
     return np.ascontiguousarray(points[:, start:stop]).view(dtype).ravel().astype(np.float32)
 
 
@@ -489,8 +540,9 @@ def _stamp_seconds(msg) -> float:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
 
-def iter_rosbag(path: str | os.PathLike, topic: str, features: Sequence[str],
-                field_map: FieldMap | None = None) -> Iterator[tuple[float, np.ndarray]]:
+def iter_rosbag(
+    path: str | os.PathLike, topic: str, features: Sequence[str], field_map: FieldMap | None = None
+) -> Iterator[tuple[float, np.ndarray]]:
     """Each scan on ``topic`` of a ROS 1 or ROS 2 bag, in recording order: (header stamp in s,
     float32 [N, len(features)] with the columns named by ``features``, in the sensor's frame).
 
@@ -523,6 +575,7 @@ def bag_topic(path: Path, topic: str, msgtypes: Sequence[str], what: str = ""):
     # rosbags is imported here, not at module level, so reading scan files stays numpy-only.
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
+
     try:
         # The default typestore decodes ROS 2 bags that were recorded without message definitions.
         with AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
@@ -532,19 +585,22 @@ def bag_topic(path: Path, topic: str, msgtypes: Sequence[str], what: str = ""):
                 raise InputError(f"{path}: no {what}topic {topic!r}; the bag has: {present or 'no topics'}")
             unsupported = sorted({c.msgtype for c in connections} - set(msgtypes))
             if unsupported:
-                raise InputError(f"{path}: topic {topic!r} carries {', '.join(unsupported)}; expected "
-                                 f"{' or '.join(msgtypes)}")
+                raise InputError(
+                    f"{path}: topic {topic!r} carries {', '.join(unsupported)}; expected {' or '.join(msgtypes)}"
+                )
             yield reader, connections
     except InputError:
         raise
     except AnyReaderError as exc:
         raise InputError(f"{path}: cannot read the ROS bag: {exc}") from exc
     except Exception as exc:  # noqa: BLE001 - a damaged bag fails anywhere inside rosbags' parsers
-        raise InputError(f"{path}: cannot read the ROS bag, it is damaged or not a bag "
-                         f"({type(exc).__name__}: {str(exc)[:200]})") from exc
+        raise InputError(
+            f"{path}: cannot read the ROS bag, it is damaged or not a bag ({type(exc).__name__}: {str(exc)[:200]})"
+        ) from exc
 
 
-def read_rosbag(path: str | os.PathLike, topic: str, features: Sequence[str],
-                field_map: FieldMap | None = None) -> list[tuple[float, np.ndarray]]:
+def read_rosbag(
+    path: str | os.PathLike, topic: str, features: Sequence[str], field_map: FieldMap | None = None
+) -> list[tuple[float, np.ndarray]]:
     """Every scan on ``topic``, as :func:`iter_rosbag` yields them: [(stamp s, float32 [N, F])]."""
     return list(iter_rosbag(path, topic, features, field_map))

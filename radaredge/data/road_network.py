@@ -36,38 +36,63 @@ import numpy as np
 
 from ..config import card_ranges
 from ..errors import ConfigError
-from .synthetic import (_SEGMENT, RadarScan, SceneConfig, _Boxes, _build_segment, _clusters, _draw_ego,
-                        _draw_traffic, _Ego, _Reflectors, _rng, _RoadFrame, _Scene, _Surface, _surface_reflectors,
-                        _synthesize)
+from .synthetic import (
+    _SEGMENT,
+    RadarScan,
+    SceneConfig,
+    _Boxes,
+    _build_segment,
+    _clusters,
+    _draw_ego,
+    _draw_traffic,
+    _Ego,
+    _Reflectors,
+    _rng,
+    _RoadFrame,
+    _Scene,
+    _Surface,
+    _surface_reflectors,
+    _synthesize,
+)
 
-_STREAM_NETWORK, _STREAM_CLUTTER = 16, 17   # generator streams beyond synthetic's own
-_STEP = 0.5                                 # m between the samples of a path
-_KERB = (5.5, 7.4)                          # |d| m of barriers and bins along the kerb
-_SIDEWALK_OBJECTS = (9.6, 11.0)             # |d| m of skips and stalls
+_STREAM_NETWORK, _STREAM_CLUTTER = 16, 17  # generator streams beyond synthetic's own
+_STEP = 0.5  # m between the samples of a path
+_KERB = (5.5, 7.4)  # |d| m of barriers and bins along the kerb
+_SIDEWALK_OBJECTS = (9.6, 11.0)  # |d| m of skips and stalls
 
 
-@card_ranges(columns=(2, 20), rows=(2, 20), spacing=(60.0, 500.0), jitter=(0.0, 40.0), drop=(0.0, 0.5),
-             junction_clear=(0.0, 40.0), corner_sigma=(0.5, 20.0), clutter=(0.0, 1.0))
+@card_ranges(
+    columns=(2, 20),
+    rows=(2, 20),
+    spacing=(60.0, 500.0),
+    jitter=(0.0, 40.0),
+    drop=(0.0, 0.5),
+    junction_clear=(0.0, 40.0),
+    corner_sigma=(0.5, 20.0),
+    clutter=(0.0, 1.0),
+)
 @dataclass(frozen=True)
 class NetworkConfig:
     """The town's street grid and what changes from day to day (module docstring)."""
 
-    columns: int = 5                      # junctions west to east
-    rows: int = 4                         # junctions south to north
-    spacing: tuple = (120.0, 180.0)       # m, range of the distance between neighbouring grid lines
-    jitter: float = 10.0                  # m, largest offset of a junction from its grid point (each axis)
-    drop: float = 0.15                    # share of the grid's streets left out (connected, no dead ends)
-    junction_clear: float = 18.0          # m from a junction where a street's roadside starts
-    corner_sigma: float = 10.0            # m, Gaussian smoothing of a route's centreline (corner radius ~9 m)
-    clutter: float = 0.25                 # chance per segment and day of transient clutter
+    columns: int = 5  # junctions west to east
+    rows: int = 4  # junctions south to north
+    spacing: tuple = (120.0, 180.0)  # m, range of the distance between neighbouring grid lines
+    jitter: float = 10.0  # m, largest offset of a junction from its grid point (each axis)
+    drop: float = 0.15  # share of the grid's streets left out (connected, no dead ends)
+    junction_clear: float = 18.0  # m from a junction where a street's roadside starts
+    corner_sigma: float = 10.0  # m, Gaussian smoothing of a route's centreline (corner radius ~9 m)
+    clutter: float = 0.25  # chance per segment and day of transient clutter
 
     def __post_init__(self):
         if len(self.spacing) != 2 or not self.spacing[0] <= self.spacing[1]:
             raise ConfigError(f"NetworkConfig.spacing must be (low, high) m with low <= high, got {self.spacing!r}")
         if 2 * self.junction_clear + _SEGMENT > self.spacing[0] - 2 * self.jitter:
-            raise ConfigError(f"NetworkConfig: streets as short as {self.spacing[0] - 2 * self.jitter:g} m "
-                              f"(spacing - 2 jitter) hold no {_SEGMENT:g} m roadside segment between two junction "
-                              f"clearances of {self.junction_clear:g} m")
+            raise ConfigError(
+                f"NetworkConfig: streets as short as {self.spacing[0] - 2 * self.jitter:g} m "
+                f"(spacing - 2 jitter) hold no {_SEGMENT:g} m roadside segment between two junction "
+                f"clearances of {self.junction_clear:g} m"
+            )
 
 
 # ----------------------------------------------------------------------------- paths
@@ -130,8 +155,13 @@ class Path(_RoadFrame):
         clamped = np.clip(s, 0.0, self.length)
         beyond = s - clamped
         theta = self.heading(clamped)
-        return np.stack([np.interp(clamped, self.s, self.xy[:, 0]) + beyond * np.cos(theta),
-                         np.interp(clamped, self.s, self.xy[:, 1]) + beyond * np.sin(theta)], axis=-1)
+        return np.stack(
+            [
+                np.interp(clamped, self.s, self.xy[:, 0]) + beyond * np.cos(theta),
+                np.interp(clamped, self.s, self.xy[:, 1]) + beyond * np.sin(theta),
+            ],
+            axis=-1,
+        )
 
     def to_world(self, s, d, h) -> np.ndarray:
         """World points [..., 3] (m) of path coordinates (s, d, h), broadcast together."""
@@ -139,7 +169,6 @@ class Path(_RoadFrame):
         theta = self.heading(s)
         xy = self._point(s)
         return np.stack([xy[..., 0] - d * np.sin(theta), xy[..., 1] + d * np.cos(theta), h], axis=-1)
-
 
 
 # ----------------------------------------------------------------------------- the street grid
@@ -176,11 +205,15 @@ class RoadNetwork:
         grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
         nodes = grid + rng.uniform(-config.jitter, config.jitter, grid.shape)
         index = np.arange(config.columns * config.rows).reshape(config.columns, config.rows)
-        streets = np.concatenate([np.stack([index[:-1].ravel(), index[1:].ravel()], 1),
-                                  np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], 1)])
+        streets = np.concatenate(
+            [
+                np.stack([index[:-1].ravel(), index[1:].ravel()], 1),
+                np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], 1),
+            ]
+        )
         keep = np.ones(len(streets), dtype=bool)
         degree = np.bincount(streets.ravel(), minlength=len(nodes))
-        for e in rng.permutation(len(streets))[:round(config.drop * len(streets))]:
+        for e in rng.permutation(len(streets))[: round(config.drop * len(streets))]:
             a, b = streets[e]
             keep[e] = False
             if min(degree[a], degree[b]) <= 2 or not _connected(len(nodes), streets[keep]):
@@ -220,8 +253,14 @@ class RoadNetwork:
             came_by = e
         return route
 
-    def shortest_route(self, start: int, goal: int, came_from: int | None = None, then: int | None = None,
-                       prefer: set[tuple[int, int]] | None = None) -> list[int] | None:
+    def shortest_route(
+        self,
+        start: int,
+        goal: int,
+        came_from: int | None = None,
+        then: int | None = None,
+        prefer: set[tuple[int, int]] | None = None,
+    ) -> list[int] | None:
         """The junctions of the shortest route (street length) from ``start`` to ``goal`` that
         never turns back: not to ``came_from`` first (the junction before ``start``), not back
         along a street just driven, and not arriving from ``then`` (the junction after
@@ -275,8 +314,13 @@ def _day_clutter(rng: np.random.Generator, config: SceneConfig, road: Path, s0: 
         side, s = float(rng.choice([-1.0, 1.0])), s0 + rng.uniform(0, _SEGMENT - 6.0)
         if rng.random() < 0.5:
             along = np.arange(s, s + rng.uniform(2.0, 6.0), 0.3)
-            surface = _Surface(along, np.full(along.size, side * rng.uniform(*_KERB)),
-                               rng.uniform(0.5, 1.0) + rng.uniform(-0.05, 0.05, along.size), -side, "guard_rail")
+            surface = _Surface(
+                along,
+                np.full(along.size, side * rng.uniform(*_KERB)),
+                rng.uniform(0.5, 1.0) + rng.uniform(-0.05, 0.05, along.size),
+                -side,
+                "guard_rail",
+            )
         else:
             centre = np.array([[s, side * rng.uniform(*_SIDEWALK_OBJECTS), rng.uniform(0.5, 1.2)]])
             pts = _clusters(rng, centre, (0.3, 0.6), (20, 50))
@@ -299,8 +343,9 @@ class NetworkWorld:
             count = int(span // _SEGMENT)
             first = net_config.junction_clear + (span - count * _SEGMENT) / 2
             self._segments += [(e, k, first + k * _SEGMENT) for k in range(count)]
-        self._centres = np.array([self._paths[e].to_world(s0 + _SEGMENT / 2, 0.0, 0.0)[:2]
-                                  for e, _, s0 in self._segments]).reshape(-1, 2)
+        self._centres = np.array(
+            [self._paths[e].to_world(s0 + _SEGMENT / 2, 0.0, 0.0)[:2] for e, _, s0 in self._segments]
+        ).reshape(-1, 2)
         self._built: dict[int, tuple[_Reflectors, _Boxes]] = {}
 
     def _build(self, i: int) -> tuple[_Reflectors, _Boxes]:
@@ -314,15 +359,15 @@ class NetworkWorld:
     def visible(self, s_ego: float, position: np.ndarray) -> tuple[_Reflectors, _Boxes]:
         """Reflectors and parked cars of every segment whose centre lies within the radar's
         maximum range plus a segment of ``position`` (world m); ``s_ego`` is not needed."""
-        near = np.flatnonzero(np.linalg.norm(self._centres - np.asarray(position)[:2], axis=1)
-                              <= self._config.max_range + _SEGMENT)
+        near = np.flatnonzero(
+            np.linalg.norm(self._centres - np.asarray(position)[:2], axis=1) <= self._config.max_range + _SEGMENT
+        )
         for i in near:
             if i not in self._built:
                 self._built[int(i)] = self._build(int(i))
         segments = [self._built[int(i)] for i in near]
         offsets = np.cumsum([0] + [len(cars) for _, cars in segments[:-1]])
-        return (_Reflectors.concat([r for r, _ in segments], offsets),
-                _Boxes.concat([cars for _, cars in segments]))
+        return (_Reflectors.concat([r for r, _ in segments], offsets), _Boxes.concat([cars for _, cars in segments]))
 
 
 # ----------------------------------------------------------------------------- drives

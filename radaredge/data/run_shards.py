@@ -49,10 +49,10 @@ MANIFEST = "run.json"
 SHARDS = "shards"
 STAGING = ".staging"
 JOURNAL = "journal.json"
-FORMAT = 2                      # run.json's layout; 1: before drive fingerprints (no "format" key)
+FORMAT = 2  # run.json's layout; 1: before drive fingerprints (no "format" key)
 READABLE_FORMATS = (1, 2)
 POSE_COLUMNS = ("drive", "frame", "timestamp", "northing", "easting")
-_STEM_CHARS = 64                # of the drive's path in a shard name (file names stay far below 255 bytes)
+_STEM_CHARS = 64  # of the drive's path in a shard name (file names stay far below 255 bytes)
 
 
 def shard_stem(drive: str, fingerprint: str) -> str:
@@ -75,16 +75,19 @@ class ShardPlan:
     path: str
     first: int
     count: int
-    fmt: str = ""           # the drive's scan format ("" = the TransLoc4D pointclouds/ layout's own)
+    fmt: str = ""  # the drive's scan format ("" = the TransLoc4D pointclouds/ layout's own)
 
     def entry(self, sha256: str) -> dict:
         return {"drive": self.drive, "first": self.first, "count": self.count, "sha256": sha256}
 
     def matches(self, entry) -> bool:
         """``entry`` (of a manifest or journal) records this shard's windows."""
-        return isinstance(entry, dict) and isinstance(entry.get("sha256"), str) and \
-            {k: entry.get(k) for k in ("drive", "first", "count")} == \
-            {"drive": self.drive, "first": self.first, "count": self.count}
+        return (
+            isinstance(entry, dict)
+            and isinstance(entry.get("sha256"), str)
+            and {k: entry.get(k) for k in ("drive", "first", "count")}
+            == {"drive": self.drive, "first": self.first, "count": self.count}
+        )
 
 
 def encode_shard(rows: list[dict], outputs: list[dict[str, np.ndarray]]) -> bytes:
@@ -93,6 +96,7 @@ def encode_shard(rows: list[dict], outputs: list[dict[str, np.ndarray]]) -> byte
     # optional: pyarrow is the scale extra
     import pyarrow as pa
     import pyarrow.parquet as pq
+
     names = list(outputs[0]) if outputs else []
     columns = {c: [r[c] for r in rows] for c in POSE_COLUMNS}
     dtypes = {}
@@ -111,12 +115,15 @@ def decode_shard(path: Path) -> tuple[dict[str, np.ndarray], dict[str, list[np.n
     """(pose columns as arrays, output name -> one array per window) of a shard file;
     InputError naming the file when it is not a readable shard."""
     import pyarrow.parquet as pq
+
     try:
         table = pq.read_table(path)
         dtypes = json.loads(table.schema.metadata[b"radaredge.dtypes"])
-    except Exception as exc:     # pyarrow's errors (ArrowInvalid, OSError, KeyError) name no file
-        raise InputError(f"{path}: not a readable radaredge shard ({str(exc).splitlines()[0][:160]}); "
-                         f"delete it and run again to recompute it") from None
+    except Exception as exc:  # pyarrow's errors (ArrowInvalid, OSError, KeyError) name no file
+        raise InputError(
+            f"{path}: not a readable radaredge shard ({str(exc).splitlines()[0][:160]}); "
+            f"delete it and run again to recompute it"
+        ) from None
     poses = {c: table.column(c).to_numpy(zero_copy_only=False) for c in POSE_COLUMNS}
     outputs = {}
     for name, dtype in dtypes.items():
@@ -145,14 +152,18 @@ def recorded(out: str | Path, key: str):
 def _format_of(manifest: dict, path: Path) -> int:
     fmt = manifest.get("format", 1)
     if fmt not in READABLE_FORMATS:
-        raise InputError(f"{path}: run manifest format {fmt!r}, written by a newer radaredge (this one reads formats "
-                         f"{', '.join(map(str, READABLE_FORMATS))}); upgrade radaredge or use another --out")
+        raise InputError(
+            f"{path}: run manifest format {fmt!r}, written by a newer radaredge (this one reads formats "
+            f"{', '.join(map(str, READABLE_FORMATS))}); upgrade radaredge or use another --out"
+        )
     return fmt
 
 
 def _repair_hint(out: Path) -> str:
-    return (f"`radaredge run` with the same arguments (--out {out}; for a map's run/, `radaredge map build` with "
-            f"the same arguments) recomputes it")
+    return (
+        f"`radaredge run` with the same arguments (--out {out}; for a map's run/, `radaredge map build` with "
+        f"the same arguments) recomputes it"
+    )
 
 
 @dataclass
@@ -178,19 +189,25 @@ class RunChanges:
         """What a person needs to know, one line each; none when nothing changed."""
         out = []
         if self.older_format:
-            out.append(f"{MANIFEST} was written by an older radaredge (no drive fingerprints): every shard recomputed "
-                       f"under injective names")
+            out.append(
+                f"{MANIFEST} was written by an older radaredge (no drive fingerprints): every shard recomputed "
+                f"under injective names"
+            )
         if self.removed:
-            out.append(f"{len(self.removed)} drive(s) no longer in the data, their shards dropped: "
-                       + _names(self.removed))
+            out.append(
+                f"{len(self.removed)} drive(s) no longer in the data, their shards dropped: " + _names(self.removed)
+            )
         if self.changed:
-            out.append(f"{len(self.changed)} drive(s) whose scans or gps.csv changed, their shards recomputed: "
-                       + _names(self.changed))
+            out.append(
+                f"{len(self.changed)} drive(s) whose scans or gps.csv changed, their shards recomputed: "
+                + _names(self.changed)
+            )
         if self.added:
             out.append(f"{len(self.added)} drive(s) new in the data, computed: " + _names(self.added))
         if self.missing:
-            out.append(f"{len(self.missing)} shard(s) named in {MANIFEST} but missing, recomputed: "
-                       + _names(self.missing))
+            out.append(
+                f"{len(self.missing)} shard(s) named in {MANIFEST} but missing, recomputed: " + _names(self.missing)
+            )
         if self.reused:
             out.append(f"{self.reused} shard(s) finished by an earlier attempt that failed, reused")
         return out
@@ -215,13 +232,13 @@ class RunOutput:
         self.out, self.setup, self.plans, self.drives = Path(out), setup, plans, drives
         self.path = self.out / MANIFEST
         self.staging = self.out / STAGING
-        self.finished: dict[str, dict] = {}           # name -> entry: kept from the previous run
-        self.staged: dict[str, dict] = {}             # name -> entry: in the staging area
+        self.finished: dict[str, dict] = {}  # name -> entry: kept from the previous run
+        self.staged: dict[str, dict] = {}  # name -> entry: in the staging area
         self.changes = RunChanges()
         previous = self._previous()
         journal = self._journal()
         prev_shards = (previous.get("shards") or {}) if previous else {}
-        prev_drives = None                            # format 1 recorded no drives
+        prev_drives = None  # format 1 recorded no drives
         if previous and _format_of(previous, self.path) >= 2:
             prev_drives = {k: v for k, v in (previous.get("drives") or {}).items() if isinstance(v, dict)}
         self.pending: list[ShardPlan] = []
@@ -231,29 +248,39 @@ class RunOutput:
                 path = self.shard_path(plan.name)
                 if path.is_file():
                     if file_sha256(path) != entry["sha256"]:
-                        raise InputError(f"{path}: its sha256 differs from the one {self.path} recorded when it was "
-                                         f"written (truncated or changed since); delete it and run again to "
-                                         f"recompute it")
+                        raise InputError(
+                            f"{path}: its sha256 differs from the one {self.path} recorded when it was "
+                            f"written (truncated or changed since); delete it and run again to "
+                            f"recompute it"
+                        )
                     self.finished[plan.name] = plan.entry(entry["sha256"])
                     continue
                 self.changes.missing.append(plan.name)
             elif prev_drives is not None and plan.name in prev_drives.get(plan.drive, {}).get("shards", ()):
-                self.changes.missing.append(plan.name)      # the drive lists it, its entry is gone
+                self.changes.missing.append(plan.name)  # the drive lists it, its entry is gone
             if self._staged_ok(plan, journal.get(plan.name)):
                 self.staged[plan.name] = plan.entry(journal[plan.name]["sha256"])
                 self.changes.reused += 1
                 continue
             self.pending.append(plan)
         if previous is not None:
-            before = set(prev_drives) if prev_drives is not None else \
-                {e["drive"] for e in prev_shards.values() if isinstance(e, dict) and isinstance(e.get("drive"), str)}
+            before = (
+                set(prev_drives)
+                if prev_drives is not None
+                else {
+                    e["drive"] for e in prev_shards.values() if isinstance(e, dict) and isinstance(e.get("drive"), str)
+                }
+            )
             now = set(drives)
             self.changes.added = sorted(now - before)
             self.changes.removed = sorted(before - now)
             if prev_drives is not None:
-                self.changes.changed = sorted(d for d in now & before
-                                              if prev_drives[d].get("fingerprint") != drives[d]["fingerprint"]
-                                              or prev_drives[d].get("fmt") != drives[d]["fmt"])
+                self.changes.changed = sorted(
+                    d
+                    for d in now & before
+                    if prev_drives[d].get("fingerprint") != drives[d]["fingerprint"]
+                    or prev_drives[d].get("fmt") != drives[d]["fmt"]
+                )
             self.changes.older_format = prev_drives is None and bool(prev_shards)
             names = {p.name for p in plans}
             self.changes.dropped_shards = sum(1 for n in prev_shards if n not in names)
@@ -272,9 +299,11 @@ class RunOutput:
         _format_of(old, self.path)
         if same != self.setup:
             diff = [k for k in self.setup if same[k] != self.setup[k]]
-            raise ConfigError(f"{self.out} holds a run of other inputs "
-                              f"({'; '.join(f'{k} {same[k]!r} there, {self.setup[k]!r} now' for k in diff)}); "
-                              f"use another --out")
+            raise ConfigError(
+                f"{self.out} holds a run of other inputs "
+                f"({'; '.join(f'{k} {same[k]!r} there, {self.setup[k]!r} now' for k in diff)}); "
+                f"use another --out"
+            )
         return old
 
     def _journal(self) -> dict:
@@ -297,8 +326,10 @@ class RunOutput:
         already moved into shards/ by a commit that was cut short) has the recorded sha256."""
         if not plan.matches(entry):
             return False
-        return any(p.is_file() and file_sha256(p) == entry["sha256"]
-                   for p in (self.staged_path(plan.name), self.shard_path(plan.name)))
+        return any(
+            p.is_file() and file_sha256(p) == entry["sha256"]
+            for p in (self.staged_path(plan.name), self.shard_path(plan.name))
+        )
 
     def shard_path(self, name: str) -> Path:
         return self.out / SHARDS / f"{name}.parquet"
@@ -322,8 +353,12 @@ class RunOutput:
         drives = {label: {**info, "shards": []} for label, info in self.drives.items()}
         for p in self.plans:
             drives[p.drive]["shards"].append(p.name)
-        return {"format": FORMAT, **self.setup, "drives": drives,
-                "shards": {p.name: entries[p.name] for p in self.plans}}
+        return {
+            "format": FORMAT,
+            **self.setup,
+            "drives": drives,
+            "shards": {p.name: entries[p.name] for p in self.plans},
+        }
 
     def commit(self) -> dict:
         """Move the staged shards into shards/, replace run.json, delete the shard files it no longer
@@ -358,19 +393,24 @@ def read_run(out: str | Path) -> tuple[dict, dict[str, np.ndarray], dict[str, np
     except (OSError, ValueError):
         raise InputError(f"{out}: no readable {MANIFEST}; expected the --out directory of `radaredge run`") from None
     _format_of(manifest, out / MANIFEST)
-    names = sorted(manifest.get("shards", {}), key=lambda n: (manifest["shards"][n]["drive"],
-                                                              manifest["shards"][n]["first"]))
+    names = sorted(
+        manifest.get("shards", {}), key=lambda n: (manifest["shards"][n]["drive"], manifest["shards"][n]["first"])
+    )
     if not names:
         raise InputError(f"{out}: the run has no finished shards")
     poses, outputs = {c: [] for c in POSE_COLUMNS}, {}
     for name in names:
         path = out / SHARDS / f"{name}.parquet"
         if not path.is_file():
-            raise InputError(f"{path}: shard {name} of drive {manifest['shards'][name]['drive']}, named in "
-                             f"{out / MANIFEST}, is missing; {_repair_hint(out)}")
+            raise InputError(
+                f"{path}: shard {name} of drive {manifest['shards'][name]['drive']}, named in "
+                f"{out / MANIFEST}, is missing; {_repair_hint(out)}"
+            )
         if file_sha256(path) != manifest["shards"][name]["sha256"]:
-            raise InputError(f"{path}: its sha256 differs from the one {out / MANIFEST} recorded (truncated or changed "
-                             f"since); delete it, then {_repair_hint(out)}")
+            raise InputError(
+                f"{path}: its sha256 differs from the one {out / MANIFEST} recorded (truncated or changed "
+                f"since); delete it, then {_repair_hint(out)}"
+            )
         p, o = decode_shard(path)
         for c in POSE_COLUMNS:
             poses[c].append(p[c])

@@ -44,7 +44,7 @@ from ..errors import ConfigError, InputError
 from .readers import FILE_SUFFIX, TJ4D_COLUMNS, TRANSLOC_COLUMNS, VOD_COLUMNS, check_points, read_bounded, read_scan
 
 GPS_COLUMNS = ("timestamp", "northing", "easting")
-MAX_GPS_BYTES = 64 * 2**20      # gps.csv: one row of ~50 bytes a scan; a million rows is a day of driving at 10 Hz
+MAX_GPS_BYTES = 64 * 2**20  # gps.csv: one row of ~50 bytes a scan; a million rows is a day of driving at 10 Hz
 _FILE_COLUMNS = {"transloc": TRANSLOC_COLUMNS, "vod": VOD_COLUMNS, "tj4d": TJ4D_COLUMNS}
 
 
@@ -79,10 +79,14 @@ class RadarSequence:
             return check_points(read_scan(self.scan_paths[i], features, self.fmt), features, self.scan_paths[i])
         missing = [f for f in features if f not in self.array_features]
         if missing:
-            raise InputError(f"{self.scan_paths[i]}: scans were read with the features {list(self.array_features)}, "
-                             f"not {missing}")
-        return check_points(self.arrays[i][:, [self.array_features.index(f) for f in features]], features,
-                            f"{self.scan_paths[i]}: scan {i}")
+            raise InputError(
+                f"{self.scan_paths[i]}: scans were read with the features {list(self.array_features)}, not {missing}"
+            )
+        return check_points(
+            self.arrays[i][:, [self.array_features.index(f) for f in features]],
+            features,
+            f"{self.scan_paths[i]}: scan {i}",
+        )
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -99,8 +103,10 @@ def _check_increasing(timestamps: np.ndarray, where: str) -> None:
     bad = np.flatnonzero(np.diff(timestamps) <= 0)
     if bad.size:
         i = int(bad[0]) + 1
-        raise InputError(f"{where}: timestamps must increase; row {i} has {float(timestamps[i])!r} s, "
-                         f"not after row {i - 1}'s {float(timestamps[i - 1])!r} s")
+        raise InputError(
+            f"{where}: timestamps must increase; row {i} has {float(timestamps[i])!r} s, "
+            f"not after row {i - 1}'s {float(timestamps[i - 1])!r} s"
+        )
 
 
 def _natural_key(name: str) -> tuple:
@@ -115,8 +121,10 @@ def frame_order(paths, where) -> list[Path]:
     paths = sorted(paths, key=lambda p: (_natural_key(p.name), p.name))
     for a, b in zip(paths, paths[1:]):
         if _natural_key(a.name) == _natural_key(b.name):
-            raise InputError(f"{where}: {a.name} and {b.name} name the same frame number; name scans by frame "
-                             f"(000000{a.suffix}, 000001{a.suffix}, ...)")
+            raise InputError(
+                f"{where}: {a.name} and {b.name} name the same frame number; name scans by frame "
+                f"(000000{a.suffix}, 000001{a.suffix}, ...)"
+            )
     return paths
 
 
@@ -132,8 +140,10 @@ def _scan_files(directory: Path, fmt: str) -> list[Path]:
     paths = frame_order((p for p in scans.iterdir() if p.is_file() and p.suffix == suffix), scans)
     if not paths:
         found = sorted({p.suffix for p in scans.iterdir() if p.is_file()})
-        raise InputError(f"{scans}: no {suffix} scan files for fmt {fmt!r}; suffixes present: {found} "
-                         f"(.npy scans are fmt 'transloc', .bin scans fmt 'vod' or 'tj4d')")
+        raise InputError(
+            f"{scans}: no {suffix} scan files for fmt {fmt!r}; suffixes present: {found} "
+            f"(.npy scans are fmt 'transloc', .bin scans fmt 'vod' or 'tj4d')"
+        )
     return paths
 
 
@@ -152,23 +162,30 @@ def _read_gps(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(timestamps float64 [T] s, positions float64 [T, 2] northing, easting m, the timestamp
     cells as written) of gps.csv."""
     if not path.exists():
-        raise InputError(f"{path}: no such file; expected a CSV with header {','.join(GPS_COLUMNS)} "
-                         f"and one row per scan")
-    data = read_bounded(path, "a gps.csv", MAX_GPS_BYTES,
-                        "one row of about 50 bytes a scan, a day of driving at 10 Hz; split longer recordings into "
-                        "drives")
+        raise InputError(
+            f"{path}: no such file; expected a CSV with header {','.join(GPS_COLUMNS)} and one row per scan"
+        )
+    data = read_bounded(
+        path,
+        "a gps.csv",
+        MAX_GPS_BYTES,
+        "one row of about 50 bytes a scan, a day of driving at 10 Hz; split longer recordings into drives",
+    )
     try:
         rows = [r for r in csv.reader(io.StringIO(data.decode("utf-8"), newline="")) if any(c.strip() for c in r)]
     except (UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{path}: not a text CSV ({type(exc).__name__}: {str(exc)[:120]}); expected a header "
-                         f"line {','.join(GPS_COLUMNS)} and one row per scan") from None
+        raise InputError(
+            f"{path}: not a text CSV ({type(exc).__name__}: {str(exc)[:120]}); expected a header "
+            f"line {','.join(GPS_COLUMNS)} and one row per scan"
+        ) from None
     if not rows:
         raise InputError(f"{path}: empty; expected a header line {','.join(GPS_COLUMNS)} and one row per scan")
     header = [name.strip().lower() for name in rows[0]]
     missing = [name for name in GPS_COLUMNS if name not in header]
     if missing:
-        raise InputError(f"{path}: header lacks column(s) {missing}; it has {header}, "
-                         f"expected {', '.join(GPS_COLUMNS)}")
+        raise InputError(
+            f"{path}: header lacks column(s) {missing}; it has {header}, expected {', '.join(GPS_COLUMNS)}"
+        )
     index = [header.index(name) for name in GPS_COLUMNS]
     values = np.zeros((len(rows) - 1, len(GPS_COLUMNS)))
     for row, cells in enumerate(rows[1:]):
@@ -180,7 +197,7 @@ def _read_gps(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
 
 
 POINTCLOUDS = "pointclouds"
-_INTERVAL_RANGE = (1e-3, 10.0)      # s: plausible median intervals between radar frames
+_INTERVAL_RANGE = (1e-3, 10.0)  # s: plausible median intervals between radar frames
 
 
 def is_drive(path: str | os.PathLike) -> bool:
@@ -199,8 +216,10 @@ def drive_directories(path: str | os.PathLike) -> list[Path]:
         return [path]
     drives = sorted(p for p in path.iterdir() if is_drive(p))
     if not drives:
-        raise InputError(f"{path}: no drives found; expected {path}/scans/*.npy + {path}/gps.csv, or "
-                         f"sub-directories each holding scans/ + gps.csv (make one with `radaredge make-benchmark`)")
+        raise InputError(
+            f"{path}: no drives found; expected {path}/scans/*.npy + {path}/gps.csv, or "
+            f"sub-directories each holding scans/ + gps.csv (make one with `radaredge make-benchmark`)"
+        )
     return drives
 
 
@@ -214,8 +233,9 @@ def _transloc_sequence(directory: Path, fmt: str | None) -> RadarSequence:
         raise InputError(f"{folder}: mixes {suffixes} scan files; a drive holds one format")
     if fmt is None:
         if suffixes[0] != ".npy":
-            raise InputError(f"{folder}: .bin scans can be View-of-Delft or TJ4DRadSet rows; pass the format "
-                             f"(--format vod|tj4d)")
+            raise InputError(
+                f"{folder}: .bin scans can be View-of-Delft or TJ4DRadSet rows; pass the format (--format vod|tj4d)"
+            )
         fmt = "transloc"
     fmt = _check_fmt(fmt)
     if FILE_SUFFIX[fmt] != suffixes[0]:
@@ -226,8 +246,10 @@ def _transloc_sequence(directory: Path, fmt: str | None) -> RadarSequence:
     missing = [(row, p.name) for row, p in enumerate(paths) if not p.is_file()]
     if missing:
         row, name = missing[0]
-        raise InputError(f"{gps}: row {row} (timestamp {stamps[row]}) has no scan {folder / name}; TransLoc4D-style "
-                         f"drives name each scan by its gps.csv timestamp ({len(missing)} row(s) without a file)")
+        raise InputError(
+            f"{gps}: row {row} (timestamp {stamps[row]}) has no scan {folder / name}; TransLoc4D-style "
+            f"drives name each scan by its gps.csv timestamp ({len(missing)} row(s) without a file)"
+        )
     micro = all(st.lstrip("-").isdigit() for st in stamps)
     seconds = np.array([int(st) / 1e6 if micro else float(st) for st in stamps], np.float64)
     if len(seconds) > 1:
@@ -235,16 +257,18 @@ def _transloc_sequence(directory: Path, fmt: str | None) -> RadarSequence:
         lo, hi = _INTERVAL_RANGE
         if not lo <= interval <= hi:
             unit = "integer microseconds" if micro else "seconds (with a decimal point)"
-            raise InputError(f"{gps}: read as {unit}, the timestamps put the frames {interval:g} s apart (median); "
-                             f"expected {lo:g}-{hi:g} s. TransLoc4D-style names are integer microseconds since the "
-                             f"epoch, or seconds with a decimal point")
+            raise InputError(
+                f"{gps}: read as {unit}, the timestamps put the frames {interval:g} s apart (median); "
+                f"expected {lo:g}-{hi:g} s. TransLoc4D-style names are integer microseconds since the "
+                f"epoch, or seconds with a decimal point"
+            )
     check_positions(positions, str(gps))
     return RadarSequence(directory.name, paths, seconds, positions, fmt)
 
 
 _UNITS = ((1e9, "nanoseconds"), (1e6, "microseconds"), (1e3, "milliseconds"))
-MAX_POSITION = 2.0e7        # m: a UTM northing is below 1e7, a local frame far below
-DEGREE_STEP = 1e-4          # a track whose moving steps are this small (median) is not in metres
+MAX_POSITION = 2.0e7  # m: a UTM northing is below 1e7, a local frame far below
+DEGREE_STEP = 1e-4  # a track whose moving steps are this small (median) is not in metres
 
 
 def check_timestamps(timestamps: np.ndarray, where: str) -> None:
@@ -257,9 +281,14 @@ def check_timestamps(timestamps: np.ndarray, where: str) -> None:
     if lo <= interval <= hi:
         return
     unit = next((u for f, u in _UNITS if lo * f <= interval <= hi * f), None)
-    raise InputError(f"{where}: the timestamps put the frames {interval:g} s apart (median); expected {lo:g}-{hi:g} s "
-                     + (f"between radar frames: they look like {unit}; write seconds" if unit else
-                        "between radar frames; timestamps are seconds"))
+    raise InputError(
+        f"{where}: the timestamps put the frames {interval:g} s apart (median); expected {lo:g}-{hi:g} s "
+        + (
+            f"between radar frames: they look like {unit}; write seconds"
+            if unit
+            else "between radar frames; timestamps are seconds"
+        )
+    )
 
 
 def check_positions(positions: np.ndarray, where: str) -> None:
@@ -269,15 +298,19 @@ def check_positions(positions: np.ndarray, where: str) -> None:
         return
     big = np.flatnonzero(np.abs(positions).max(1) > MAX_POSITION)
     if big.size:
-        raise InputError(f"{where}: row {int(big[0])} puts the frame at {positions[big[0]].tolist()}; northing and "
-                         f"easting are metres (UTM or a local frame), at most {MAX_POSITION:g} in size")
+        raise InputError(
+            f"{where}: row {int(big[0])} puts the frame at {positions[big[0]].tolist()}; northing and "
+            f"easting are metres (UTM or a local frame), at most {MAX_POSITION:g} in size"
+        )
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     moving = steps[steps > 0]
     in_degrees = (np.abs(positions[:, 0]) <= 90).all() and (np.abs(positions[:, 1]) <= 180).all()
     if in_degrees and moving.size and float(np.median(moving)) < DEGREE_STEP:
-        raise InputError(f"{where}: the northing/easting columns look like latitude/longitude in degrees (values "
-                         f"within +-90/+-180 moving {float(np.median(moving)):.2g} per frame); radaredge reads "
-                         f"planar metres: project them to UTM first (radaredge.data.geodesy.utm_from_latlon)")
+        raise InputError(
+            f"{where}: the northing/easting columns look like latitude/longitude in degrees (values "
+            f"within +-90/+-180 moving {float(np.median(moving)):.2g} per frame); radaredge reads "
+            f"planar metres: project them to UTM first (radaredge.data.geodesy.utm_from_latlon)"
+        )
 
 
 def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> RadarSequence:
@@ -300,8 +333,10 @@ def load_sequence(directory: str | os.PathLike, fmt: str | None = None) -> Radar
     check_timestamps(timestamps, str(directory / "gps.csv"))
     check_positions(positions, str(directory / "gps.csv"))
     if len(timestamps) != len(paths):
-        raise InputError(f"{directory}: gps.csv has {len(timestamps)} rows but scans/ holds {len(paths)} "
-                         f"{FILE_SUFFIX[fmt]} scan files; expected one row per scan")
+        raise InputError(
+            f"{directory}: gps.csv has {len(timestamps)} rows but scans/ holds {len(paths)} "
+            f"{FILE_SUFFIX[fmt]} scan files; expected one row per scan"
+        )
     return RadarSequence(directory.name, paths, timestamps, positions, fmt)
 
 
@@ -312,7 +347,7 @@ def name_the_scan(sequence: RadarSequence, frames: np.ndarray, message: str) -> 
     m = re.match(r"frame (\d+): (.*)", message, re.S)
     if m and int(m.group(1)) < len(frames):
         return f"{sequence.scan_paths[frames[int(m.group(1))]]}: {m.group(2)}"
-    if any(message.startswith(f"{sequence.scan_paths[f]}:") for f in frames):    # it names the file already
+    if any(message.startswith(f"{sequence.scan_paths[f]}:") for f in frames):  # it names the file already
         return message
     return f"{sequence.name}, window ending at frame {int(frames[-1])}: {message}"
 
@@ -333,7 +368,7 @@ def windows(sequence: RadarSequence, k: int) -> list[np.ndarray]:
 def window_positions(sequence: RadarSequence, k: int) -> np.ndarray:
     """Position of each window of :func:`windows` (that of its last frame): float64 [W, 2],
     (northing, easting) m."""
-    return sequence.positions[_check_window(k) - 1:]
+    return sequence.positions[_check_window(k) - 1 :]
 
 
 def _check_scan(scan: np.ndarray, i: int, fmt: str) -> np.ndarray:
@@ -341,13 +376,20 @@ def _check_scan(scan: np.ndarray, i: int, fmt: str) -> np.ndarray:
     columns = _FILE_COLUMNS[fmt]
     scan = np.asarray(scan)
     if scan.ndim != 2 or scan.shape[1] != len(columns) or scan.dtype.kind not in "iuf":
-        raise InputError(f"scan {i}: {scan.dtype} array of shape {scan.shape}; fmt {fmt!r} stores numeric "
-                         f"[N, {len(columns)}] arrays with columns {columns}")
+        raise InputError(
+            f"scan {i}: {scan.dtype} array of shape {scan.shape}; fmt {fmt!r} stores numeric "
+            f"[N, {len(columns)}] arrays with columns {columns}"
+        )
     return scan.astype(np.float32)
 
 
-def write_sequence(directory: str | os.PathLike, scans: Sequence[np.ndarray], timestamps: Sequence[float],
-                   positions: np.ndarray, fmt: str = "transloc") -> Path:
+def write_sequence(
+    directory: str | os.PathLike,
+    scans: Sequence[np.ndarray],
+    timestamps: Sequence[float],
+    positions: np.ndarray,
+    fmt: str = "transloc",
+) -> Path:
     """Write a drive in the layout of the module docstring and return ``directory``.
 
     ``scans`` are the T frames, each [N, C] in ``fmt``'s file columns: "transloc" x, y, z, v,
@@ -363,8 +405,10 @@ def write_sequence(directory: str | os.PathLike, scans: Sequence[np.ndarray], ti
     if not len(scans):
         raise InputError("write_sequence needs at least one scan")
     if timestamps.shape != (len(scans),) or positions.shape != (len(scans), 2):
-        raise InputError(f"{len(scans)} scans need timestamps of shape ({len(scans)},) and positions of shape "
-                         f"({len(scans)}, 2); got {timestamps.shape} and {positions.shape}")
+        raise InputError(
+            f"{len(scans)} scans need timestamps of shape ({len(scans)},) and positions of shape "
+            f"({len(scans)}, 2); got {timestamps.shape} and {positions.shape}"
+        )
     if not (np.isfinite(timestamps).all() and np.isfinite(positions).all()):
         raise InputError("timestamps and positions must be finite")
     _check_increasing(timestamps, "write_sequence")

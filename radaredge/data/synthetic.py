@@ -106,10 +106,10 @@ _TREE = 9.4
 _SIDEWALK = (9.6, 11.0)
 _VEGETATION = (11.2, 16.0)
 _FACADE = (11.8, 16.0)
-_SEGMENT = 20.0                    # m of road per static-world segment
-_MIN_CURVE_RADIUS = 60.0           # m
-_TRAFFIC_WINDOW = (-30.0, 90.0)    # m of arc length relative to the ego
-_GHOST_DOPPLER = (0.5, 3.0)        # m/s, |v_r offset| of a ghost from the static world
+_SEGMENT = 20.0  # m of road per static-world segment
+_MIN_CURVE_RADIUS = 60.0  # m
+_TRAFFIC_WINDOW = (-30.0, 90.0)  # m of arc length relative to the ego
+_GHOST_DOPPLER = (0.5, 3.0)  # m/s, |v_r offset| of a ghost from the static world
 _DIMS = {  # (low, high) of length, width, height in m
     "car": ((3.9, 4.9), (1.7, 1.95), (1.4, 1.7)),
     "pedestrian": ((0.5, 0.8), (0.5, 0.7), (1.55, 1.9)),
@@ -117,8 +117,8 @@ _DIMS = {  # (low, high) of length, width, height in m
 }
 _FACE_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], dtype=float)
 _STREAM_EGO, _STREAM_WORLD, _STREAM_TRAFFIC, _STREAM_FRAME, _STREAM_PARKING, _STREAM_MANOEUVRE = range(6)
-_CROSSING_SPAN = 11.0              # m, crossing pedestrians and cyclists walk |d| <= 11 m and wrap
-_PARKED_SHIFT = (0.3, 0.8)         # m, |shift| of a moved parked car along its axis (slot gaps are >= 1.6 m)
+_CROSSING_SPAN = 11.0  # m, crossing pedestrians and cyclists walk |d| <= 11 m and wrap
+_PARKED_SHIFT = (0.3, 0.8)  # m, |shift| of a moved parked car along its axis (slot gaps are >= 1.6 m)
 
 _LIMITS = {  # field: (lowest value, highest value or None, lowest value itself allowed)
     "seed": (0, None, True),
@@ -167,52 +167,52 @@ class SceneConfig:
     only some classes; the others keep their defaults.
     """
 
-    seed: int = 0                     # seeds the traffic, the ego motion, every frame, and the world
-    world_seed: int | None = None     # seeds the static world instead of ``seed`` (revisits of one town)
-    frame_rate: float = 10.0          # Hz; frame k is at t = k / frame_rate s
-    ego_speed_min: float = 3.0        # m/s along the road
-    ego_speed_max: float = 15.0       # m/s along the road
-    ego_lateral_max: float = 0.3      # m/s, |v_y| of the radar (radar frame), at most half the speed
-    ego_vertical_max: float = 0.15    # m/s, |v_z| of the radar from the road grade (grade <= 10 %)
-    max_yaw_rate: float = 0.05        # rad/s; 0 gives a straight road
+    seed: int = 0  # seeds the traffic, the ego motion, every frame, and the world
+    world_seed: int | None = None  # seeds the static world instead of ``seed`` (revisits of one town)
+    frame_rate: float = 10.0  # Hz; frame k is at t = k / frame_rate s
+    ego_speed_min: float = 3.0  # m/s along the road
+    ego_speed_max: float = 15.0  # m/s along the road
+    ego_lateral_max: float = 0.3  # m/s, |v_y| of the radar (radar frame), at most half the speed
+    ego_vertical_max: float = 0.15  # m/s, |v_z| of the radar from the road grade (grade <= 10 %)
+    max_yaw_rate: float = 0.05  # rad/s; 0 gives a straight road
     road_curvature: float | None = None  # 1/m (> 0 turns left, |.| <= 1/60) instead of the drawn yaw rate
-    mount_height: float = 0.8         # m, radar above the road surface
-    min_range: float = 1.0            # m
-    max_range: float = 70.0           # m
-    max_azimuth_deg: float = 60.0     # |atan2(y, x)| limit
-    max_elevation_deg: float = 15.0   # |atan2(z, hypot(x, y))| limit
-    static_points: int = 300          # mean number of static points per scan (Poisson)
-    num_cars: int = 4                 # moving cars in the traffic window
-    num_pedestrians: int = 3          # moving pedestrians in the traffic window
-    num_cyclists: int = 2             # moving cyclists in the traffic window
-    dynamic_fraction: float = 0.15    # target fraction of non-ghost points on moving objects, [0, 0.9]
-    doppler_noise: float = 0.05       # m/s, std of the Gaussian noise on v_r
-    position_noise: float = 0.1       # m, std of the isotropic Gaussian noise on x, y, z
-    ghost_fraction: float = 0.03      # expected fraction of multipath ghosts among all points, [0, 0.5]
-    parked_change: float = 0.0        # chance per parked car to be gone (half) or shifted 0.3-0.8 m
-                                      # along its axis (half) in this drive, drawn from ``seed``, [0, 1]
-    vru_on_road: float = 0.0          # chance per pedestrian / cyclist to move on the carriageway
-                                      # (|d| 1-4 m, with the traffic) instead of its sidewalk or bike lane, [0, 1]
+    mount_height: float = 0.8  # m, radar above the road surface
+    min_range: float = 1.0  # m
+    max_range: float = 70.0  # m
+    max_azimuth_deg: float = 60.0  # |atan2(y, x)| limit
+    max_elevation_deg: float = 15.0  # |atan2(z, hypot(x, y))| limit
+    static_points: int = 300  # mean number of static points per scan (Poisson)
+    num_cars: int = 4  # moving cars in the traffic window
+    num_pedestrians: int = 3  # moving pedestrians in the traffic window
+    num_cyclists: int = 2  # moving cyclists in the traffic window
+    dynamic_fraction: float = 0.15  # target fraction of non-ghost points on moving objects, [0, 0.9]
+    doppler_noise: float = 0.05  # m/s, std of the Gaussian noise on v_r
+    position_noise: float = 0.1  # m, std of the isotropic Gaussian noise on x, y, z
+    ghost_fraction: float = 0.03  # expected fraction of multipath ghosts among all points, [0, 0.5]
+    parked_change: float = 0.0  # chance per parked car to be gone (half) or shifted 0.3-0.8 m
+    # along its axis (half) in this drive, drawn from ``seed``, [0, 1]
+    vru_on_road: float = 0.0  # chance per pedestrian / cyclist to move on the carriageway
+    # (|d| 1-4 m, with the traffic) instead of its sidewalk or bike lane, [0, 1]
     rcs_dbsm: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(_DEFAULT_RCS_DBSM))
     # (mean, std) in dBsm of one reflector point per class of RCS_CLASSES
     # --- radar physics (radaredge.data.radar_physics); the defaults give the plain scenes above
-    points_model: str = "budget"      # "budget": objects share dynamic_fraction of the points and parked
-                                      # cars compete with the static world; "radar": every car, pedestrian
-                                      # and cyclist gets Poisson(density x projected area / range x detection
-                                      # probability) points on its radar-facing faces (radar equation)
-    occlusion: bool = False           # drop points whose line of sight passes through a nearer object box
-    range_noise: float = 0.0          # m, std of the range noise (on top of position_noise)
-    azimuth_noise_deg: float = 0.0    # deg, std of the azimuth noise
+    points_model: str = "budget"  # "budget": objects share dynamic_fraction of the points and parked
+    # cars compete with the static world; "radar": every car, pedestrian
+    # and cyclist gets Poisson(density x projected area / range x detection
+    # probability) points on its radar-facing faces (radar equation)
+    occlusion: bool = False  # drop points whose line of sight passes through a nearer object box
+    range_noise: float = 0.0  # m, std of the range noise (on top of position_noise)
+    azimuth_noise_deg: float = 0.0  # deg, std of the azimuth noise
     elevation_noise_deg: float = 0.0  # deg, std of the elevation noise (4D radars: several x the azimuth's)
-    micro_doppler: float = 0.0        # [0, 1]: spread of walkers' legs and cyclists' wheels and pedals
-    clutter_points: float = 0.0       # mean CFAR false alarms a scan, uniform over the FOV, random Doppler
-    moving_ghosts: bool = False       # multipath ghosts of moving objects keep their source's Doppler
-    traffic_accel_max: float = 0.0    # m/s^2, peak acceleration of each mover's sinusoidal speed change
-    swerves: float = 0.0              # chance per car and cyclist of one swerve (0.5-1.5 m) in the first 20 s
-    vru_crossing: float = 0.0         # chance per pedestrian / cyclist to cross the road (heading across it)
-    mount_pitch_deg: float = 0.0      # deg, the radar's mounting error about its y axis (nose down > 0)
-    mount_roll_deg: float = 0.0       # deg, about its x axis
-    mount_yaw_deg: float = 0.0        # deg, about its z axis
+    micro_doppler: float = 0.0  # [0, 1]: spread of walkers' legs and cyclists' wheels and pedals
+    clutter_points: float = 0.0  # mean CFAR false alarms a scan, uniform over the FOV, random Doppler
+    moving_ghosts: bool = False  # multipath ghosts of moving objects keep their source's Doppler
+    traffic_accel_max: float = 0.0  # m/s^2, peak acceleration of each mover's sinusoidal speed change
+    swerves: float = 0.0  # chance per car and cyclist of one swerve (0.5-1.5 m) in the first 20 s
+    vru_crossing: float = 0.0  # chance per pedestrian / cyclist to cross the road (heading across it)
+    mount_pitch_deg: float = 0.0  # deg, the radar's mounting error about its y axis (nose down > 0)
+    mount_roll_deg: float = 0.0  # deg, about its x axis
+    mount_yaw_deg: float = 0.0  # deg, about its z axis
 
     @property
     def static_seed(self) -> int:
@@ -229,15 +229,17 @@ class SceneConfig:
             world_seed = _check_number("world_seed", self.world_seed, True, 0, None, True)
             object.__setattr__(self, "world_seed", int(world_seed))
         if self.road_curvature is not None:
-            curvature = _check_number("road_curvature", self.road_curvature, False, -1 / _MIN_CURVE_RADIUS,
-                                      1 / _MIN_CURVE_RADIUS, True)
+            curvature = _check_number(
+                "road_curvature", self.road_curvature, False, -1 / _MIN_CURVE_RADIUS, 1 / _MIN_CURVE_RADIUS, True
+            )
             object.__setattr__(self, "road_curvature", float(curvature))
         if self.ego_speed_min > self.ego_speed_max:
-            raise ConfigError(f"SceneConfig.ego_speed_min ({self.ego_speed_min} m/s) must be <= "
-                              f"ego_speed_max ({self.ego_speed_max} m/s)")
+            raise ConfigError(
+                f"SceneConfig.ego_speed_min ({self.ego_speed_min} m/s) must be <= "
+                f"ego_speed_max ({self.ego_speed_max} m/s)"
+            )
         if self.min_range >= self.max_range:
-            raise ConfigError(f"SceneConfig.min_range ({self.min_range} m) must be < max_range "
-                              f"({self.max_range} m)")
+            raise ConfigError(f"SceneConfig.min_range ({self.min_range} m) must be < max_range ({self.max_range} m)")
         object.__setattr__(self, "rcs_dbsm", _merge_rcs(self.rcs_dbsm))
         if self.points_model not in POINTS_MODELS:
             raise ConfigError(f"SceneConfig.points_model must be one of {POINTS_MODELS}, got {self.points_model!r}")
@@ -251,8 +253,7 @@ class SceneConfig:
         error: yaw, then pitch, then roll), or None when there is none."""
         if not (self.mount_pitch_deg or self.mount_roll_deg or self.mount_yaw_deg):
             return None
-        yaw, pitch, roll = (math.radians(v) for v in (self.mount_yaw_deg, self.mount_pitch_deg,
-                                                       self.mount_roll_deg))
+        yaw, pitch, roll = (math.radians(v) for v in (self.mount_yaw_deg, self.mount_pitch_deg, self.mount_roll_deg))
         cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
         about_y = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
         about_x = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
@@ -371,8 +372,12 @@ def _in_fov(xyz: np.ndarray, config: SceneConfig) -> np.ndarray:
     r = np.linalg.norm(xyz, axis=1)
     azimuth = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
     elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
-    return ((r >= config.min_range) & (r <= config.max_range)
-            & (np.abs(azimuth) <= config.max_azimuth_deg) & (np.abs(elevation) <= config.max_elevation_deg))
+    return (
+        (r >= config.min_range)
+        & (r <= config.max_range)
+        & (np.abs(azimuth) <= config.max_azimuth_deg)
+        & (np.abs(elevation) <= config.max_elevation_deg)
+    )
 
 
 def _faces_radar(normal: np.ndarray, xyz_world: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -393,8 +398,14 @@ class _RoadFrame:
         """World vectors [..., 3] with components ``along`` and ``left`` of the road at ``s``."""
         s, along, left = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, along, left)))
         theta = self.heading(s)
-        return np.stack([along * np.cos(theta) - left * np.sin(theta),
-                         along * np.sin(theta) + left * np.cos(theta), np.zeros_like(s)], axis=-1)
+        return np.stack(
+            [
+                along * np.cos(theta) - left * np.sin(theta),
+                along * np.sin(theta) + left * np.cos(theta),
+                np.zeros_like(s),
+            ],
+            axis=-1,
+        )
 
     def velocity(self, s, d, s_dot) -> np.ndarray:
         """World velocity [..., 3] (m/s) of a point at (s, d) moving with ds/dt = ``s_dot``."""
@@ -423,10 +434,9 @@ class _Road(_RoadFrame):
         """World points [..., 3] (m) of road coordinates (s, d, h), broadcast together."""
         s, d, h = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s, d, h)))
         theta = self.heading(s)
-        x = s * np.sinc(theta / np.pi) - d * np.sin(theta)                      # sin(ks)/k - d sin
+        x = s * np.sinc(theta / np.pi) - d * np.sin(theta)  # sin(ks)/k - d sin
         y = 0.5 * theta * s * np.sinc(theta / (2 * np.pi)) ** 2 + d * np.cos(theta)  # (1-cos ks)/k + d cos
         return np.stack([x, y, self.grade * s + h], axis=-1)
-
 
 
 @dataclass(frozen=True)
@@ -437,7 +447,7 @@ class _Ego:
     speed: float
     lateral: float
     mount_height: float
-    mount: np.ndarray | None = None   # SceneConfig.mount_rotation
+    mount: np.ndarray | None = None  # SceneConfig.mount_rotation
 
     @property
     def slip(self) -> float:
@@ -506,9 +516,15 @@ class _Boxes:
         return _Boxes(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(_Boxes)))
 
 
-_NO_BOXES = _Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3)),
-                   np.zeros(0, dtype=np.int64))
-_MOVER_ID = 1_000_000              # RadarScan.box_ids of movers start here; parked cars: 16 (segment + 4096) + slot
+_NO_BOXES = _Boxes(
+    np.zeros((0, 3)),
+    np.zeros((0, 3)),
+    np.zeros(0),
+    np.zeros(0, dtype=np.int64),
+    np.zeros((0, 3)),
+    np.zeros(0, dtype=np.int64),
+)
+_MOVER_ID = 1_000_000  # RadarScan.box_ids of movers start here; parked cars: 16 (segment + 4096) + slot
 
 
 @dataclass(frozen=True)
@@ -525,11 +541,15 @@ class _Reflectors:
     @staticmethod
     def concat(parts: Sequence[_Reflectors], owner_offsets: Sequence[int]) -> _Reflectors:
         """All ``parts`` in one; the owners of part i are shifted by ``owner_offsets[i]``."""
-        owner = [np.zeros(0, dtype=np.int64)] + [np.where(p.owner >= 0, p.owner + o, -1)
-                                                 for p, o in zip(parts, owner_offsets)]
-        return _Reflectors(np.concatenate([np.zeros((0, 3))] + [p.xyz for p in parts]),
-                           np.concatenate([np.zeros((0, 3))] + [p.normal for p in parts]),
-                           np.concatenate([np.zeros(0)] + [p.rcs for p in parts]), np.concatenate(owner))
+        owner = [np.zeros(0, dtype=np.int64)] + [
+            np.where(p.owner >= 0, p.owner + o, -1) for p, o in zip(parts, owner_offsets)
+        ]
+        return _Reflectors(
+            np.concatenate([np.zeros((0, 3))] + [p.xyz for p in parts]),
+            np.concatenate([np.zeros((0, 3))] + [p.normal for p in parts]),
+            np.concatenate([np.zeros(0)] + [p.rcs for p in parts]),
+            np.concatenate(owner),
+        )
 
 
 @dataclass(frozen=True)
@@ -583,8 +603,9 @@ def _pole(rng: np.random.Generator, s0: float, side: float) -> _Surface:
     return _Surface(np.full(h.size, s0 + rng.uniform(0, _SEGMENT)), np.full(h.size, side * _POLE), h, 0.0, "pole")
 
 
-def _clusters(rng: np.random.Generator, centres: np.ndarray, spread: tuple[float, float],
-              size: tuple[int, int]) -> np.ndarray:
+def _clusters(
+    rng: np.random.Generator, centres: np.ndarray, spread: tuple[float, float], size: tuple[int, int]
+) -> np.ndarray:
     """Gaussian point clusters [K, 3] around road-coordinate ``centres`` [C, 3] (m)."""
     parts = [c + rng.normal(0, rng.uniform(*spread), (rng.integers(*size), 3)) for c in centres]
     return np.concatenate([np.zeros((0, 3))] + parts)
@@ -594,10 +615,16 @@ def _vegetation(rng: np.random.Generator, s0: float, side: float, far: float) ->
     """Bushes between the sidewalk and |d| = ``far``, and street-tree crowns (4-7 m up) over the
     sidewalk's kerb side: Gaussian point clusters."""
     n_bush, n_tree = rng.poisson(2), rng.poisson(1.5)
-    bushes = np.column_stack([s0 + rng.uniform(0, _SEGMENT, n_bush), side * rng.uniform(_VEGETATION[0], far, n_bush),
-                              rng.uniform(0.5, 1.5, n_bush)])
-    trees = np.column_stack([s0 + rng.uniform(0, _SEGMENT, n_tree), np.full(n_tree, side * _TREE),
-                             rng.uniform(4.0, 7.0, n_tree)])
+    bushes = np.column_stack(
+        [
+            s0 + rng.uniform(0, _SEGMENT, n_bush),
+            side * rng.uniform(_VEGETATION[0], far, n_bush),
+            rng.uniform(0.5, 1.5, n_bush),
+        ]
+    )
+    trees = np.column_stack(
+        [s0 + rng.uniform(0, _SEGMENT, n_tree), np.full(n_tree, side * _TREE), rng.uniform(4.0, 7.0, n_tree)]
+    )
     pts = np.concatenate([_clusters(rng, bushes, (0.25, 0.7), (15, 40)), _clusters(rng, trees, (0.8, 1.5), (40, 100))])
     return _Surface(pts[:, 0], pts[:, 1], np.maximum(pts[:, 2], 0.1), 0.0, "vegetation")
 
@@ -616,8 +643,12 @@ def _parked_cars(rng: np.random.Generator, road: _Road, s0: float, side: float) 
 def _surface_reflectors(rng: np.random.Generator, config: SceneConfig, road: _Road, surface: _Surface) -> _Reflectors:
     n = surface.s.size
     normal = road.to_world_direction(surface.s, 0.0, surface.facing)
-    return _Reflectors(road.to_world(surface.s, surface.d, surface.h), normal,
-                       _draw_rcs(rng, config, surface.kind, n), np.full(n, -1, dtype=np.int64))
+    return _Reflectors(
+        road.to_world(surface.s, surface.d, surface.h),
+        normal,
+        _draw_rcs(rng, config, surface.kind, n),
+        np.full(n, -1, dtype=np.int64),
+    )
 
 
 def _box_surface(rng: np.random.Generator, dims: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -643,13 +674,20 @@ def _box_reflectors(rng: np.random.Generator, config: SceneConfig, boxes: _Boxes
         l, w, h = boxes.dims[i]
         local, normal = _box_surface(rng, boxes.dims[i], round(density * (l * w + 2 * (l + w) * h)))
         xyz, normal = _box_points_world(boxes, i, local, normal)
-        parts.append(_Reflectors(xyz, normal, _draw_rcs(rng, config, CLASS_NAMES[boxes.label[i]], len(xyz)),
-                                 np.full(len(xyz), i, dtype=np.int64)))
+        parts.append(
+            _Reflectors(
+                xyz,
+                normal,
+                _draw_rcs(rng, config, CLASS_NAMES[boxes.label[i]], len(xyz)),
+                np.full(len(xyz), i, dtype=np.int64),
+            )
+        )
     return _Reflectors.concat(parts, [0] * len(parts))
 
 
-def _change_parking(rng: np.random.Generator, cars: _Boxes, reflectors: _Reflectors,
-                    change: float) -> tuple[_Boxes, _Reflectors]:
+def _change_parking(
+    rng: np.random.Generator, cars: _Boxes, reflectors: _Reflectors, change: float
+) -> tuple[_Boxes, _Reflectors]:
     """This drive's parked cars: each with chance ``change`` gone (half of them) or shifted by
     0.3-0.8 m along its own horizontal axis, forwards or backwards (the other half), together
     with its reflectors (``owner`` = row of ``cars``). Rows are renumbered after removals."""
@@ -661,10 +699,19 @@ def _change_parking(rng: np.random.Generator, cars: _Boxes, reflectors: _Reflect
     on_kept = kept[reflectors.owner]
     owner = reflectors.owner[on_kept]
     row = np.cumsum(kept) - 1
-    return (_Boxes(cars.centre[kept] + offset[kept], cars.dims[kept], cars.yaw[kept], cars.label[kept],
-                   cars.velocity[kept], cars.ident[kept]),
-            _Reflectors(reflectors.xyz[on_kept] + offset[owner], reflectors.normal[on_kept], reflectors.rcs[on_kept],
-                        row[owner]))
+    return (
+        _Boxes(
+            cars.centre[kept] + offset[kept],
+            cars.dims[kept],
+            cars.yaw[kept],
+            cars.label[kept],
+            cars.velocity[kept],
+            cars.ident[kept],
+        ),
+        _Reflectors(
+            reflectors.xyz[on_kept] + offset[owner], reflectors.normal[on_kept], reflectors.rcs[on_kept], row[owner]
+        ),
+    )
 
 
 def _build_segment(config: SceneConfig, road: _Road, index: int, s0: float) -> tuple[_Reflectors, _Boxes]:
@@ -689,8 +736,9 @@ def _build_segment(config: SceneConfig, road: _Road, index: int, s0: float) -> t
     parts = [_surface_reflectors(rng, config, road, s) for s in surfaces]
     car_reflectors = _box_reflectors(rng, config, cars, density=3.0)
     if config.parked_change > 0:
-        cars, car_reflectors = _change_parking(_rng(config.seed, _STREAM_PARKING, index), cars, car_reflectors,
-                                               config.parked_change)
+        cars, car_reflectors = _change_parking(
+            _rng(config.seed, _STREAM_PARKING, index), cars, car_reflectors, config.parked_change
+        )
     return _Reflectors.concat(parts + [car_reflectors], [0] * (len(parts) + 1)), cars
 
 
@@ -710,8 +758,7 @@ class _StaticWorld:
                 self._segments[i] = _build_segment(self._config, self._road, i, i * _SEGMENT)
         segments = [self._segments[i] for i in indices]
         offsets = np.cumsum([0] + [len(cars) for _, cars in segments[:-1]])
-        return (_Reflectors.concat([r for r, _ in segments], offsets),
-                _Boxes.concat([cars for _, cars in segments]))
+        return (_Reflectors.concat([r for r, _ in segments], offsets), _Boxes.concat([cars for _, cars in segments]))
 
     def visible(self, s_ego: float, position: np.ndarray) -> tuple[_Reflectors, _Boxes]:
         """Reflectors and parked cars a radar at arc length ``s_ego`` (m) may see: one segment
@@ -821,16 +868,27 @@ def _draw_manoeuvres(config: SceneConfig, traffic: _Traffic) -> _Traffic:
     m = len(traffic.label)
     pedestrian, cyclist, car = (traffic.label == k for k in range(3))
     crossing = (pedestrian | cyclist) & (rng.random(m) < config.vru_crossing)
-    cross = np.where(crossing, rng.choice([-1.0, 1.0], m) * np.where(pedestrian, rng.uniform(0.8, 1.8, m),
-                                                                     rng.uniform(2.5, 5.0, m)), 0.0)
+    cross = np.where(
+        crossing,
+        rng.choice([-1.0, 1.0], m) * np.where(pedestrian, rng.uniform(0.8, 1.8, m), rng.uniform(2.5, 5.0, m)),
+        0.0,
+    )
     omega = rng.uniform(0.15, 0.5, m)
     amplitude = np.minimum(config.traffic_accel_max / omega, 0.6 * np.abs(traffic.s_dot)) * rng.uniform(0.3, 1.0, m)
     changing = (car | cyclist) & ~crossing & (rng.random(m) < config.swerves)
-    swerve = rng.uniform(0.5, 1.5, m) * np.where(np.abs(traffic.d) < 2.5, np.sign(traffic.d),
-                                                 rng.choice([-1.0, 1.0], m))
+    swerve = rng.uniform(0.5, 1.5, m) * np.where(
+        np.abs(traffic.d) < 2.5, np.sign(traffic.d), rng.choice([-1.0, 1.0], m)
+    )
     shift = np.where(changing, swerve, 0.0)
-    manoeuvres = _Manoeuvres(np.where(crossing, 0.0, amplitude), omega, rng.uniform(0, 2 * np.pi, m), shift,
-                             rng.uniform(0.0, 20.0, m), rng.uniform(2.0, 4.0, m), cross)
+    manoeuvres = _Manoeuvres(
+        np.where(crossing, 0.0, amplitude),
+        omega,
+        rng.uniform(0, 2 * np.pi, m),
+        shift,
+        rng.uniform(0.0, 20.0, m),
+        rng.uniform(2.0, 4.0, m),
+        cross,
+    )
     d = np.where(crossing, rng.uniform(-_CROSSING_SPAN, _CROSSING_SPAN, m), traffic.d)
     return dataclasses.replace(traffic, d=d, s_dot=np.where(crossing, 0.0, traffic.s_dot), manoeuvres=manoeuvres)
 
@@ -848,8 +906,9 @@ class _Scene:
     traffic: _Traffic
 
 
-def _sample_static(rng: np.random.Generator, config: SceneConfig, reflectors: _Reflectors,
-                   pose: np.ndarray) -> np.ndarray:
+def _sample_static(
+    rng: np.random.Generator, config: SceneConfig, reflectors: _Reflectors, pose: np.ndarray
+) -> np.ndarray:
     """Indices of the reflectors detected in this scan (radar-facing, in FOV, weighted sample)."""
     xyz = _to_radar(pose, reflectors.xyz)
     candidates = np.flatnonzero(_in_fov(xyz, config) & _faces_radar(reflectors.normal, reflectors.xyz, pose[:3, 3]))
@@ -860,8 +919,9 @@ def _sample_static(rng: np.random.Generator, config: SceneConfig, reflectors: _R
     return rng.choice(candidates, size=n, replace=False, p=weight / weight.sum())
 
 
-def _sample_moving(rng: np.random.Generator, config: SceneConfig, movers: _Boxes, pose: np.ndarray,
-                   n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sample_moving(
+    rng: np.random.Generator, config: SceneConfig, movers: _Boxes, pose: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """About ``n`` points on the radar-facing faces of the movers whose centre is in the FOV:
     (world xyz [n, 3] m, rcs [n] dBsm, mover row [n])."""
     centre = _to_radar(pose, movers.centre)
@@ -885,8 +945,9 @@ def _sample_moving(rng: np.random.Generator, config: SceneConfig, movers: _Boxes
     return np.concatenate(xyz), np.concatenate(rcs), np.concatenate(owner)
 
 
-def _ghosts(rng: np.random.Generator, config: SceneConfig, xyz: np.ndarray, rcs: np.ndarray,
-            v_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _ghosts(
+    rng: np.random.Generator, config: SceneConfig, xyz: np.ndarray, rcs: np.ndarray, v_ego: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Multipath ghosts of the real radar-frame points ``xyz``: (xyz [G, 3] m, noise-free v_r [G]
     m/s, rcs [G] dBsm, source row [G]). Half are mirrored across a vertical plane y = const 1-8 m
     beyond their source, half are double bounces at twice the source's range."""
@@ -910,12 +971,14 @@ def _radar_frame_boxes(objects: _Boxes, pose: np.ndarray) -> np.ndarray:
     """float64 [M, 7] boxes of ``objects`` in the radar frame of ``pose``: centre, dims, yaw
     relative to the radar's heading (a mounting tilt moves the centre, not the box's axes)."""
     radar_yaw = math.atan2(pose[1, 0], pose[0, 0])
-    return np.column_stack([_to_radar(pose, objects.centre), objects.dims,
-                            _wrap_angle(objects.yaw - radar_yaw)]).reshape(-1, 7)
+    return np.column_stack(
+        [_to_radar(pose, objects.centre), objects.dims, _wrap_angle(objects.yaw - radar_yaw)]
+    ).reshape(-1, 7)
 
 
-def _radar_boxes(config: SceneConfig, objects: _Boxes, pose: np.ndarray, object_index: np.ndarray,
-                 n_parked: int) -> tuple[dict, np.ndarray]:
+def _radar_boxes(
+    config: SceneConfig, objects: _Boxes, pose: np.ndarray, object_index: np.ndarray, n_parked: int
+) -> tuple[dict, np.ndarray]:
     """RadarScan box fields of the objects in the FOV or with points, and ``object_index``
     renumbered to rows of those boxes."""
     counts = np.bincount(object_index[object_index >= 0], minlength=len(objects))
@@ -933,19 +996,29 @@ def _radar_boxes(config: SceneConfig, objects: _Boxes, pose: np.ndarray, object_
     return fields, row[object_index]
 
 
-def _detect(rng: np.random.Generator, config: SceneConfig, reflectors: _Reflectors, movers: _Boxes, n_parked: int,
-            pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _detect(
+    rng: np.random.Generator,
+    config: SceneConfig,
+    reflectors: _Reflectors,
+    movers: _Boxes,
+    n_parked: int,
+    pose: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The true reflectors of one scan: (world xyz [N, 3] m, rcs [N] dBsm, object row [N] in
     parked cars + movers, -1 for none); static points first, then those on movers."""
     picked = _sample_static(rng, config, reflectors, pose)
     n_dynamic = round(picked.size * config.dynamic_fraction / (1 - config.dynamic_fraction))
     moving_xyz, moving_rcs, mover = _sample_moving(rng, config, movers, pose, n_dynamic)
-    return (np.concatenate([reflectors.xyz[picked], moving_xyz]), np.concatenate([reflectors.rcs[picked], moving_rcs]),
-            np.concatenate([reflectors.owner[picked], mover + n_parked]))
+    return (
+        np.concatenate([reflectors.xyz[picked], moving_xyz]),
+        np.concatenate([reflectors.rcs[picked], moving_rcs]),
+        np.concatenate([reflectors.owner[picked], mover + n_parked]),
+    )
 
 
-def _sample_objects(rng: np.random.Generator, config: SceneConfig, objects: _Boxes, boxes: np.ndarray,
-                    pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sample_objects(
+    rng: np.random.Generator, config: SceneConfig, objects: _Boxes, boxes: np.ndarray, pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points on every object by the radar equation (``points_model`` "radar"): Poisson(
     :func:`radar_physics.expected_object_points`) a scan, drawn on the radar-facing faces with
     chance proportional to the cosine of incidence (projected area), their RCS the class's
@@ -961,37 +1034,60 @@ def _sample_objects(rng: np.random.Generator, config: SceneConfig, objects: _Box
         points, normal = _box_points_world(objects, i, local, normal)
         radar_xyz, radar_normal = _to_radar(pose, points), normal @ pose[:3, :3]
         cos_in = np.clip(-np.einsum("ij,ij->i", radar_normal, _unit(radar_xyz)), 0.0, 1.0)
-        chosen = np.flatnonzero((rng.random(len(points)) < cos_in) & _in_fov(radar_xyz, config))[:counts[i]]
+        chosen = np.flatnonzero((rng.random(len(points)) < cos_in) & _in_fov(radar_xyz, config))[: counts[i]]
         xyz.append(points[chosen])
-        rcs.append(_draw_rcs(rng, config, names[i], chosen.size)
-                   + radar_physics.incidence_gain_db(radar_normal[chosen], radar_xyz[chosen]))
+        rcs.append(
+            _draw_rcs(rng, config, names[i], chosen.size)
+            + radar_physics.incidence_gain_db(radar_normal[chosen], radar_xyz[chosen])
+        )
         owner.append(np.full(chosen.size, i, dtype=np.int64))
     return np.concatenate(xyz), np.concatenate(rcs), np.concatenate(owner)
 
 
-def _detect_radar(rng: np.random.Generator, config: SceneConfig, reflectors: _Reflectors, objects: _Boxes,
-                  boxes: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _detect_radar(
+    rng: np.random.Generator,
+    config: SceneConfig,
+    reflectors: _Reflectors,
+    objects: _Boxes,
+    boxes: np.ndarray,
+    pose: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_detect` for ``points_model`` "radar": the static world without parked cars' fixed
     reflectors (weighted sample, as "budget"), then every object by :func:`_sample_objects`."""
     background = reflectors.owner < 0
-    world = _Reflectors(reflectors.xyz[background], reflectors.normal[background], reflectors.rcs[background],
-                        reflectors.owner[background])
+    world = _Reflectors(
+        reflectors.xyz[background],
+        reflectors.normal[background],
+        reflectors.rcs[background],
+        reflectors.owner[background],
+    )
     picked = _sample_static(rng, config, world, pose)
     object_xyz, object_rcs, owner = _sample_objects(rng, config, objects, boxes, pose)
-    return (np.concatenate([world.xyz[picked], object_xyz]), np.concatenate([world.rcs[picked], object_rcs]),
-            np.concatenate([np.full(picked.size, -1, dtype=np.int64), owner]))
+    return (
+        np.concatenate([world.xyz[picked], object_xyz]),
+        np.concatenate([world.rcs[picked], object_rcs]),
+        np.concatenate([np.full(picked.size, -1, dtype=np.int64), owner]),
+    )
 
 
-def _measure(rng: np.random.Generator, config: SceneConfig, xyz_world: np.ndarray, object_index: np.ndarray,
-             dynamic: np.ndarray, objects: _Boxes, pose: np.ndarray,
-             v_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _measure(
+    rng: np.random.Generator,
+    config: SceneConfig,
+    xyz_world: np.ndarray,
+    object_index: np.ndarray,
+    dynamic: np.ndarray,
+    objects: _Boxes,
+    pose: np.ndarray,
+    v_ego: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Reported positions (radar frame, with position noise) [N, 3] m and their noise-free v_r
     = r̂·(v_obj - v_ego) [N] m/s, with v_obj the object's velocity for dynamic points, else 0.
     With ``range_noise`` / ``*_noise_deg`` the positions also get spherical noise, and with
     ``micro_doppler`` a walker's or cyclist's limb and wheel points their own speed."""
     xyz = _to_radar(pose, xyz_world) + rng.normal(0, config.position_noise, xyz_world.shape)
-    xyz = radar_physics.spherical_noise(rng, xyz, config.range_noise, math.radians(config.azimuth_noise_deg),
-                                        math.radians(config.elevation_noise_deg))
+    xyz = radar_physics.spherical_noise(
+        rng, xyz, config.range_noise, math.radians(config.azimuth_noise_deg), math.radians(config.elevation_noise_deg)
+    )
     velocity = np.vstack([objects.velocity @ pose[:3, :3], np.zeros((1, 3))])  # radar frame; row -1: none
     v_obj = np.where(dynamic[:, None], velocity[object_index], 0.0)
     if config.micro_doppler and dynamic.any():
@@ -1019,8 +1115,9 @@ def _synthesize(scene: _Scene, k: int) -> RadarScan:
     else:
         xyz_world, rcs, object_index = _detect(rng, config, reflectors, movers, len(parked), pose)
     if config.occlusion:
-        seen = ~radar_physics.hidden_by_boxes(_to_radar(pose, xyz_world), _radar_frame_boxes(objects, pose),
-                                              object_index)
+        seen = ~radar_physics.hidden_by_boxes(
+            _to_radar(pose, xyz_world), _radar_frame_boxes(objects, pose), object_index
+        )
         xyz_world, rcs, object_index = xyz_world[seen], rcs[seen], object_index[seen]
     dynamic = object_index >= len(parked)
     xyz, v_r = _measure(rng, config, xyz_world, object_index, dynamic, objects, pose, v_ego)
@@ -1029,8 +1126,14 @@ def _synthesize(scene: _Scene, k: int) -> RadarScan:
         ghost_v_r = np.where(dynamic[source], v_r[source], ghost_v_r)
     if config.clutter_points:
         alarm_xyz, alarm_v_r, alarm_rcs = radar_physics.false_alarms(
-            rng, config.clutter_points, config.min_range, config.max_range, math.radians(config.max_azimuth_deg),
-            math.radians(config.max_elevation_deg), doppler_span=15.0)
+            rng,
+            config.clutter_points,
+            config.min_range,
+            config.max_range,
+            math.radians(config.max_azimuth_deg),
+            math.radians(config.max_elevation_deg),
+            doppler_span=15.0,
+        )
         ghost_xyz, ghost_v_r = np.concatenate([ghost_xyz, alarm_xyz]), np.concatenate([ghost_v_r, alarm_v_r])
         ghost_rcs = np.concatenate([ghost_rcs, alarm_rcs])
     n_real, n_ghost = len(xyz), len(ghost_xyz)
@@ -1042,9 +1145,17 @@ def _synthesize(scene: _Scene, k: int) -> RadarScan:
 
     order = rng.permutation(np.flatnonzero(_in_fov(points[:, :3], config)))
     box_fields, object_index = _radar_boxes(config, objects, pose, object_index[order], len(parked))
-    return RadarScan(points=points[order].astype(np.float32).reshape(-1, len(COLUMNS)), dynamic=dynamic[order],
-                     ghost=ghost[order], object_index=object_index, ego_velocity=v_ego, yaw_rate=ego.yaw_rate_at(t),
-                     pose=pose, timestamp=t, **box_fields)
+    return RadarScan(
+        points=points[order].astype(np.float32).reshape(-1, len(COLUMNS)),
+        dynamic=dynamic[order],
+        ghost=ghost[order],
+        object_index=object_index,
+        ego_velocity=v_ego,
+        yaw_rate=ego.yaw_rate_at(t),
+        pose=pose,
+        timestamp=t,
+        **box_fields,
+    )
 
 
 # ----------------------------------------------------------------------------- public API
@@ -1064,8 +1175,9 @@ def _resolve_config(config: SceneConfig | None, seed: int | None, overrides: dic
     return dataclasses.replace(base, **overrides)
 
 
-def generate_sequence(n_frames: int, config: SceneConfig | None = None, *, seed: int | None = None,
-                      **overrides) -> list[RadarScan]:
+def generate_sequence(
+    n_frames: int, config: SceneConfig | None = None, *, seed: int | None = None, **overrides
+) -> list[RadarScan]:
     """``n_frames`` consecutive scans of one scene: same world, traffic and ego trajectory.
 
     Frame k has timestamp k / frame_rate s. ``seed`` and ``overrides`` (SceneConfig field names)
@@ -1138,8 +1250,16 @@ def tj4d_table(scan: RadarScan) -> np.ndarray:
     """
     xyz = scan.points[:, :3].astype(np.float64)
     x, y, z = xyz.T
-    return np.column_stack([xyz, scan.column("v_r"), np.linalg.norm(xyz, axis=1), scan.column("rcs"),
-                            np.arctan2(y, x), np.arctan2(z, np.hypot(x, y))]).astype(np.float32)
+    return np.column_stack(
+        [
+            xyz,
+            scan.column("v_r"),
+            np.linalg.norm(xyz, axis=1),
+            scan.column("rcs"),
+            np.arctan2(y, x),
+            np.arctan2(z, np.hypot(x, y)),
+        ]
+    ).astype(np.float32)
 
 
 def write_vod_bin(path: str | os.PathLike, scan: RadarScan) -> Path:

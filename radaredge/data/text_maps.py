@@ -20,9 +20,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError
+from ..runtime.cellmap import CellMap, load_map, validate_map
 from ..runtime.des4pos import is_index_cache
 from ..runtime.text_tokens import split_hints
-from ..runtime.cellmap import CellMap, load_map, validate_map
 
 
 def find_maps(root: str | os.PathLike) -> list[Path]:
@@ -31,13 +31,20 @@ def find_maps(root: str | os.PathLike) -> list[Path]:
     if root.is_file():
         return [root]
     if not root.is_dir():
-        raise InputError(f"{root} does not exist; expected a cell map (.npz from `radaredge make-city`, a KITTI360Pose "
-                         f"cells/<scene>.pkl) or a directory of them")
-    maps = (sorted(p for p in root.glob("*.npz") if not is_index_cache(p)) + sorted((root / "cells").glob("*.pkl"))
-            + sorted(root.glob("*/cells/*.pkl")))
+        raise InputError(
+            f"{root} does not exist; expected a cell map (.npz from `radaredge make-city`, a KITTI360Pose "
+            f"cells/<scene>.pkl) or a directory of them"
+        )
+    maps = (
+        sorted(p for p in root.glob("*.npz") if not is_index_cache(p))
+        + sorted((root / "cells").glob("*.pkl"))
+        + sorted(root.glob("*/cells/*.pkl"))
+    )
     if not maps:
-        raise InputError(f"{root}: no cell maps; expected .npz maps from `radaredge make-city` or KITTI360Pose "
-                         f"cells/<scene>.pkl with poses/<scene>.pkl")
+        raise InputError(
+            f"{root}: no cell maps; expected .npz maps from `radaredge make-city` or KITTI360Pose "
+            f"cells/<scene>.pkl with poses/<scene>.pkl"
+        )
     return maps
 
 
@@ -45,15 +52,15 @@ def find_maps(root: str | os.PathLike) -> list[Path]:
 class TextMaps:
     """Cells and described poses of several scenes, joined."""
 
-    cells: CellMap                      # every cell of every map
-    map_of_cell: np.ndarray             # [C] the map (scene) index of each cell
-    names: list[str]                    # map names, by index
-    paths: list[Path]                   # map files, by index
-    pose_w: np.ndarray                  # [Q, 2] float64 m
-    pose_id: np.ndarray                 # [Q] int: the pose's index in its own map
-    pose_cell: np.ndarray               # [Q] int: the best cell, an index into ``cells``
-    pose_hints: list[list[str]]         # [Q] hint sentences
-    validation: np.ndarray              # [Q] bool: a validation pose
+    cells: CellMap  # every cell of every map
+    map_of_cell: np.ndarray  # [C] the map (scene) index of each cell
+    names: list[str]  # map names, by index
+    paths: list[Path]  # map files, by index
+    pose_w: np.ndarray  # [Q, 2] float64 m
+    pose_id: np.ndarray  # [Q] int: the pose's index in its own map
+    pose_cell: np.ndarray  # [Q] int: the best cell, an index into ``cells``
+    pose_hints: list[list[str]]  # [Q] hint sentences
+    validation: np.ndarray  # [Q] bool: a validation pose
 
     @property
     def cell_validation(self) -> np.ndarray:
@@ -66,13 +73,27 @@ class TextMaps:
 
 def _join(maps: list[CellMap]) -> CellMap:
     cat = lambda name: np.concatenate([getattr(m, name) for m in maps])  # noqa: E731
-    return CellMap(ids=cat("ids"), scenes=cat("scenes"), origins=cat("origins"), sizes=cat("sizes"),
-                   points=cat("points"), num_points=cat("num_points"), object_mask=cat("object_mask"),
-                   labels=np.concatenate([np.asarray(m.labels, "<U24") for m in maps]))
+    return CellMap(
+        ids=cat("ids"),
+        scenes=cat("scenes"),
+        origins=cat("origins"),
+        sizes=cat("sizes"),
+        points=cat("points"),
+        num_points=cat("num_points"),
+        object_mask=cat("object_mask"),
+        labels=np.concatenate([np.asarray(m.labels, "<U24") for m in maps]),
+    )
 
 
-def load_text_maps(root: str | os.PathLike, slots: int, points: int, max_hints: int,
-                   validation: Sequence[str] | None = None, seed: int = 0, split: bool = True) -> TextMaps:
+def load_text_maps(
+    root: str | os.PathLike,
+    slots: int,
+    points: int,
+    max_hints: int,
+    validation: Sequence[str] | None = None,
+    seed: int = 0,
+    split: bool = True,
+) -> TextMaps:
     """The maps under ``root`` packed for a model of ``slots`` objects of ``points`` points
     (module docstring). InputError naming the map for one without described poses, a pose whose
     best cell is not in its map, a description with more than ``max_hints`` hints, or an unknown
@@ -87,7 +108,7 @@ def load_text_maps(root: str | os.PathLike, slots: int, points: int, max_hints: 
             raise InputError(f"validation scene(s) {unknown} are not maps under {root}; maps: {names}")
         held = set(validation)
     else:
-        held = {max(names)} if len(names) > 1 else set()       # the last map by name
+        held = {max(names)} if len(names) > 1 else set()  # the last map by name
     if not split:
         held = set()
     maps, map_of_cell, pose_w, pose_id, pose_cell, hints, val = [], [], [], [], [], [], []
@@ -98,8 +119,10 @@ def load_text_maps(root: str | os.PathLike, slots: int, points: int, max_hints: 
         texts = np.asarray(m.pose_text, str)
         described = np.flatnonzero(np.char.str_len(texts) > 0)
         if not len(described):
-            raise InputError(f"{path}: no described pose; make maps with poses (`radaredge make-city --poses N`) "
-                             f"or put KITTI360Pose's poses/<scene>.pkl beside cells/")
+            raise InputError(
+                f"{path}: no described pose; make maps with poses (`radaredge make-city --poses N`) "
+                f"or put KITTI360Pose's poses/<scene>.pkl beside cells/"
+            )
         index = {cid: j for j, cid in enumerate(m.ids.tolist())}
         for q in described:
             cell = index.get(str(m.pose_cell[q]))
@@ -117,12 +140,20 @@ def load_text_maps(root: str | os.PathLike, slots: int, points: int, max_hints: 
         map_of_cell += [i] * len(m)
         offset += len(m)
     validation_mask = np.array(val)
-    if not held and split:                               # a single map: every tenth pose, seeded
+    if not held and split:  # a single map: every tenth pose, seeded
         rng = np.random.default_rng(seed)
         validation_mask = np.zeros(len(val), bool)
         validation_mask[rng.permutation(len(val))[: max(1, len(val) // 10)]] = True
     if validation_mask.all():
         raise InputError(f"{root}: every described pose is a validation pose; training needs another map")
-    return TextMaps(_join(maps), np.array(map_of_cell), names, paths, np.array(pose_w, np.float64), np.array(pose_id),
-                    np.array(pose_cell),
-                    hints, validation_mask)
+    return TextMaps(
+        _join(maps),
+        np.array(map_of_cell),
+        names,
+        paths,
+        np.array(pose_w, np.float64),
+        np.array(pose_id),
+        np.array(pose_cell),
+        hints,
+        validation_mask,
+    )

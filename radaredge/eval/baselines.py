@@ -20,8 +20,14 @@ from ..errors import InputError
 RINGS, SECTORS, MAX_RANGE = 20, 60, 70.0
 
 
-def polar_occupancy(frames: Sequence[np.ndarray], x_column: int = 0, y_column: int = 1, rings: int = RINGS,
-                    sectors: int = SECTORS, max_range: float = MAX_RANGE) -> np.ndarray:
+def polar_occupancy(
+    frames: Sequence[np.ndarray],
+    x_column: int = 0,
+    y_column: int = 1,
+    rings: int = RINGS,
+    sectors: int = SECTORS,
+    max_range: float = MAX_RANGE,
+) -> np.ndarray:
     """float32 [rings * sectors]: the window's polar occupancy descriptor (module docstring) of
     ``frames`` (float32 [N_k, F] each, metres in columns ``x_column`` and ``y_column``)."""
     points = np.concatenate([np.asarray(f, dtype=np.float64)[:, [x_column, y_column]] for f in frames])

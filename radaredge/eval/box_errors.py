@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-MATCH_DISTANCE = 2.0        # m, nuScenes' centre distance for its true-positive metrics
+MATCH_DISTANCE = 2.0  # m, nuScenes' centre distance for its true-positive metrics
 
 
 @dataclass(frozen=True)
@@ -77,19 +77,30 @@ def class_box_errors(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) ->
     d, g = np.asarray(found, np.float64), np.asarray(truth, np.float64)
     err = d - g
     heading = np.abs((err[:, 6] + np.pi) % (2 * np.pi) - np.pi)
-    return BoxErrors(total, len(d), float(np.hypot(err[:, 0], err[:, 1]).mean()), float(err[:, 2].mean()),
-                     float(np.abs(err[:, 2]).mean()), float(np.abs(err[:, 3]).mean()),
-                     float(np.abs(err[:, 4]).mean()), float(np.abs(err[:, 5]).mean()),
-                     float(np.degrees(heading).mean()))
+    return BoxErrors(
+        total,
+        len(d),
+        float(np.hypot(err[:, 0], err[:, 1]).mean()),
+        float(err[:, 2].mean()),
+        float(np.abs(err[:, 2]).mean()),
+        float(np.abs(err[:, 3]).mean()),
+        float(np.abs(err[:, 4]).mean()),
+        float(np.abs(err[:, 5]).mean()),
+        float(np.degrees(heading).mean()),
+    )
 
 
 def box_error_lines(errors: dict[str, dict[str, BoxErrors]]) -> list[str]:
     """Text: a row per backend and class (``errors[backend][class]``)."""
-    head = (f"{'box errors':<18}{'class':<12}{'matched':>12}{'xy m':>8}{'dz m':>8}{'|dz| m':>8}{'|dl| m':>8}"
-            f"{'|dw| m':>8}{'|dh| m':>8}{'heading':>9}")
+    head = (
+        f"{'box errors':<18}{'class':<12}{'matched':>12}{'xy m':>8}{'dz m':>8}{'|dz| m':>8}{'|dl| m':>8}"
+        f"{'|dw| m':>8}{'|dh| m':>8}{'heading':>9}"
+    )
     lines = [head]
     for backend, per_class in errors.items():
         for cls, e in per_class.items():
-            lines.append(f"{backend:<18}{cls:<12}{f'{e.matched}/{e.ground_truth}':>12}{e.xy:>8.2f}{e.dz:>+8.2f}"
-                         f"{e.abs_dz:>8.2f}{e.abs_dl:>8.2f}{e.abs_dw:>8.2f}{e.abs_dh:>8.2f}{e.heading_deg:>8.1f}°")
+            lines.append(
+                f"{backend:<18}{cls:<12}{f'{e.matched}/{e.ground_truth}':>12}{e.xy:>8.2f}{e.dz:>+8.2f}"
+                f"{e.abs_dz:>8.2f}{e.abs_dl:>8.2f}{e.abs_dw:>8.2f}{e.abs_dh:>8.2f}{e.heading_deg:>8.1f}°"
+            )
     return lines

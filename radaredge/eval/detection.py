@@ -35,8 +35,16 @@ import torch
 from .. import artifacts, atomic, runtime
 from ..cards import ModelCard
 from ..data.detection_benchmark import make_detection_benchmark
-from ..data.kitti_detection import LAYOUTS, DetectionFrame, DetectionLayout, DetectionSet, Labels, \
-    camera_fov_mask, labels_to_radar_boxes, radar_boxes_to_labels
+from ..data.kitti_detection import (
+    LAYOUTS,
+    DetectionFrame,
+    DetectionLayout,
+    DetectionSet,
+    Labels,
+    camera_fov_mask,
+    labels_to_radar_boxes,
+    radar_boxes_to_labels,
+)
 from ..data.readers import scan_features
 from ..errors import CapacityError, ConfigError, InputError
 from ..exporting.graphs import require_same_weights
@@ -49,10 +57,10 @@ from .kitti_ap import AREAS, ClassCurve, ap_table, bootstrap_rows, evaluate_fram
 from .recall_stats import percentile_interval
 
 REFERENCE, ORT, ORT_INT8, OPENVINO = "torch reference", "onnxruntime", "onnxruntime int8", "openvino"
-PICTURE_FRAMES = 4          # BEV pictures in the report directory, the frames where backends disagree most
-PICTURE_BOXES = 20          # detections drawn (and compared) per backend and frame, highest scores first
+PICTURE_FRAMES = 4  # BEV pictures in the report directory, the frames where backends disagree most
+PICTURE_BOXES = 20  # detections drawn (and compared) per backend and frame, highest scores first
 AREA_LABELS = {"entire_area": "entire area", "corridor": "corridor"}
-AP_RESAMPLES, AP_INTERVAL_METRICS = 1000, ("3d", "bev")   # bootstrap over frames (seed 0) behind each AP interval
+AP_RESAMPLES, AP_INTERVAL_METRICS = 1000, ("3d", "bev")  # bootstrap over frames (seed 0) behind each AP interval
 MEAN = "mAP"
 
 Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -67,8 +75,10 @@ def layout_for_card(card: ModelCard, name: str | None = None) -> DetectionLayout
         return LAYOUTS[name]
     fits = [n for n, layout in LAYOUTS.items() if set(card.features) <= set(scan_features(layout.scan_format))]
     if not fits:
-        raise ConfigError(f"{card.name}: its features {card.features} are not all in a VoD or TJ4D scan file; "
-                          f"no labelled dataset layout reads them")
+        raise ConfigError(
+            f"{card.name}: its features {card.features} are not all in a VoD or TJ4D scan file; "
+            f"no labelled dataset layout reads them"
+        )
     return LAYOUTS[fits[0]]
 
 
@@ -76,8 +86,11 @@ def layout_for_card(card: ModelCard, name: str | None = None) -> DetectionLayout
 
 
 def _detections(out: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return (np.asarray(out["boxes"], np.float64).reshape(-1, 7), np.asarray(out["scores"], np.float64).ravel(),
-            np.asarray(out["labels"], np.int64).ravel())
+    return (
+        np.asarray(out["boxes"], np.float64).reshape(-1, 7),
+        np.asarray(out["scores"], np.float64).ravel(),
+        np.asarray(out["labels"], np.int64).ravel(),
+    )
 
 
 def reference_detector(net) -> Detector:
@@ -85,6 +98,7 @@ def reference_detector(net) -> Detector:
         with torch.no_grad():
             out = net.run(torch.from_numpy(points), reference=True)
         return _detections({k: v.numpy() for k, v in out.items() if k in ("boxes", "scores", "labels")})
+
     return run
 
 
@@ -92,6 +106,7 @@ def graph_detector(exported, runner=None) -> Detector:
     """Detections of an exported graph (a :class:`radaredge.runtime.RadarModel`) in onnxruntime,
     or through ``runner`` (feeds -> outputs, e.g. OpenVINO) with the same input checks. The
     detector's ``model`` is the graph (its ``flag_tally`` counts the input flags of onnxruntime's runs)."""
+
     def run(points):
         if runner is None:
             return _detections(exported.run([points]))
@@ -99,12 +114,14 @@ def graph_detector(exported, runner=None) -> Detector:
         out = runner(feeds)
         exported.apply_checks(out, feeds)
         return _detections(out)
+
     run.model = exported
     return run
 
 
-def detectors(card: ModelCard, onnx_path, checkpoint=None, reference: bool = True,
-              openvino: bool | None = None) -> dict[str, Detector]:
+def detectors(
+    card: ModelCard, onnx_path, checkpoint=None, reference: bool = True, openvino: bool | None = None
+) -> dict[str, Detector]:
     """Backend name -> detector for the export at ``onnx_path``: the torch reference (unless
     ``reference`` is False), onnxruntime, its int8 copy when present, OpenVINO when installed
     (``openvino`` None) or asked for (True). ``onnx_path`` may name the int8 copy itself; then
@@ -116,15 +133,19 @@ def detectors(card: ModelCard, onnx_path, checkpoint=None, reference: bool = Tru
     if not graphs:
         raise InputError(f"{given}: no such graph")
     for g in graphs.values():
-        g.say_flags = False           # evaluate_detection says the input flags' totals once
+        g.say_flags = False  # evaluate_detection says the input flags' totals once
     for name, g in graphs.items():
         if g.card.name != card.name or g.features != card.features:
-            raise ConfigError(f"{g.path} is an export of card {g.card.name!r} ({g.features}), not {card.name!r} "
-                              f"({card.features}); pass the --model/--config it was exported with")
+            raise ConfigError(
+                f"{g.path} is an export of card {g.card.name!r} ({g.features}), not {card.name!r} "
+                f"({card.features}); pass the --model/--config it was exported with"
+            )
     first = next(iter(graphs.values()))
     if len(graphs) == 2 and graphs[ORT_INT8].weights_sha256 != graphs[ORT].weights_sha256:
-        raise ConfigError(f"{int8} was quantised from other weights than {fp32}; re-write it with "
-                          f"`radaredge export --model {card.name} --quantize int8`")
+        raise ConfigError(
+            f"{int8} was quantised from other weights than {fp32}; re-write it with "
+            f"`radaredge export --model {card.name} --quantize int8`"
+        )
     out: dict[str, Detector] = {}
     if reference:
         net = create_model(card, checkpoint)
@@ -145,8 +166,14 @@ def flag_notes(card: ModelCard, backends: dict[str, Detector]) -> list[str]:
     """The input flags of the first graph backend's runs over the set, as sentences to say once:
     frames with points dropped by a pillar's cap (``pillars.max_points_per_pillar``, input_flags
     bit 8) and the share of points outside ``pillars.point_cloud_range`` (bit 4)."""
-    tally = next((d.model.flag_tally for d in backends.values()
-                  if getattr(d, "model", None) is not None and d.model.flag_tally.runs), None)
+    tally = next(
+        (
+            d.model.flag_tally
+            for d in backends.values()
+            if getattr(d, "model", None) is not None and d.model.flag_tally.runs
+        ),
+        None,
+    )
     if tally is None:
         return []
     notes = [tally.capacity_note(card, "frame")] if tally.capacity else []
@@ -169,8 +196,9 @@ def as_labels(detections, frame: DetectionFrame, classes: list[str]) -> Labels:
     indices into the card's ``classes``)."""
     boxes, scores, labels = detections
     if len(labels) and (labels.min() < 1 or labels.max() > len(classes)):
-        raise InputError(f"frame {frame.frame_id}: class index {int(labels.max())} outside the card's classes "
-                         f"{classes}")
+        raise InputError(
+            f"frame {frame.frame_id}: class index {int(labels.max())} outside the card's classes {classes}"
+        )
     names = np.array([classes[i - 1] for i in labels], dtype=object)
     return radar_boxes_to_labels(boxes, scores, names, frame.calib, frame.image_size)
 
@@ -187,9 +215,11 @@ def unmatched_boxes(a, b, top: int = PICTURE_BOXES) -> int:
     """Boxes of two detection sets ((boxes [D, 7], scores [D], labels [D]), the ``top`` highest
     scores of each) that find no box of the same class with BEV IoU >= 0.5 in the other, greedily
     by score: 0 when the two detectors agree on every box."""
+
     def top_boxes(d):
         order = np.argsort(-d[1], kind="stable")[:top]
         return d[0][order], d[2][order]
+
     (ba, la), (bb, lb) = top_boxes(a), top_boxes(b)
     if not len(ba) or not len(bb):
         return len(ba) + len(bb)
@@ -230,10 +260,10 @@ class DetectionEvalReport:
     areas: tuple[str, ...]
     disagreement: list[tuple[str, int]] = field(default_factory=list)
     box_errors: dict[str, dict[str, BoxErrors]] = field(default_factory=dict)
-    notes: list[str] = field(default_factory=list)      # what was read or dropped unasked, said once as warnings
+    notes: list[str] = field(default_factory=list)  # what was read or dropped unasked, said once as warnings
     # 95 % bootstrap intervals over frames (:func:`ap_intervals`): [backend][area][class or "mAP"][metric]
     intervals: dict = field(default_factory=dict)
-    delta_intervals: dict = field(default_factory=dict)   # paired, against the baseline; other backends only
+    delta_intervals: dict = field(default_factory=dict)  # paired, against the baseline; other backends only
 
     @property
     def baseline(self) -> str:
@@ -252,29 +282,48 @@ class DetectionEvalReport:
         difference from the reference, frames per second, and the frames where backends disagree most."""
         backends = list(self.ap)
         return {
-            "model": self.model, "onnx": self.onnx, "checkpoint": self.checkpoint, "data": self.data,
-            "split": self.split, "dataset": self.layout, "frames": len(self.frames), "classes": self.classes,
-            "protocol": {"min_iou_3d_bev": self.min_iou, "areas": list(self.areas),
-                         "ap": "11 recall positions (VoD's reported figure); *_r40: 40 positions",
-                         "interval": f"95 % percentile bootstrap over frames ({AP_RESAMPLES} resamples, seed 0), the "
-                                     f"devkit's AP recomputed on each; differences paired (same resamples)",
-                         "corridor": "camera x in [-4, 4] m, z <= 25 m", "min_box_height_px": 40},
-            "backends": backends, "reference": self.baseline,
+            "model": self.model,
+            "onnx": self.onnx,
+            "checkpoint": self.checkpoint,
+            "data": self.data,
+            "split": self.split,
+            "dataset": self.layout,
+            "frames": len(self.frames),
+            "classes": self.classes,
+            "protocol": {
+                "min_iou_3d_bev": self.min_iou,
+                "areas": list(self.areas),
+                "ap": "11 recall positions (VoD's reported figure); *_r40: 40 positions",
+                "interval": f"95 % percentile bootstrap over frames ({AP_RESAMPLES} resamples, seed 0), the "
+                f"devkit's AP recomputed on each; differences paired (same resamples)",
+                "corridor": "camera x in [-4, 4] m, z <= 25 m",
+                "min_box_height_px": 40,
+            },
+            "backends": backends,
+            "reference": self.baseline,
             "ap": self.ap,
-            "map": {b: {a: {m: self.mean_ap(b, a, m) for m in ("3d", "bev", "aos")} for a in self.areas}
-                    for b in backends},
-            "delta_ap_points": {b: {a: {c: {m: self.delta(b, a, c, m) for m in ("3d", "bev", "aos")}
-                                        for c in self.classes} for a in self.areas}
-                                for b in backends if b != self.baseline},
+            "map": {
+                b: {a: {m: self.mean_ap(b, a, m) for m in ("3d", "bev", "aos")} for a in self.areas} for b in backends
+            },
+            "delta_ap_points": {
+                b: {
+                    a: {c: {m: self.delta(b, a, c, m) for m in ("3d", "bev", "aos")} for c in self.classes}
+                    for a in self.areas
+                }
+                for b in backends
+                if b != self.baseline
+            },
             "ap_interval": self.intervals,
             "delta_ap_interval": self.delta_intervals,
             "frames_per_second": self.fps,
             "most_disagreeing_frames": [{"frame": f, "unmatched_boxes": n} for f, n in self.disagreement],
             "notes": list(self.notes),
-            "box_errors": {"matching": f"nuScenes' true-positive matching: centres within {MATCH_DISTANCE:g} m in "
-                                       f"bird's-eye view, detections in descending score; radar frame, metres, "
-                                       f"dz = detection minus ground truth",
-                           **{b: {c: e.to_dict() for c, e in per.items()} for b, per in self.box_errors.items()}},
+            "box_errors": {
+                "matching": f"nuScenes' true-positive matching: centres within {MATCH_DISTANCE:g} m in "
+                f"bird's-eye view, detections in descending score; radar frame, metres, "
+                f"dz = detection minus ground truth",
+                **{b: {c: e.to_dict() for c, e in per.items()} for b, per in self.box_errors.items()},
+            },
         }
 
     def lines(self) -> list[str]:
@@ -283,12 +332,16 @@ class DetectionEvalReport:
         backends = list(self.ap)
         others = [b for b in backends if b != self.baseline]
         n_gt = {a: {c: self.ap[self.baseline][a][c]["num_gt"] for c in self.classes} for a in self.areas}
-        lines = [f"eval {self.model} on {self.data} ({self.layout}, split {self.split}): {len(self.frames)} frames; "
-                 f"AP in % at 11 recall positions (VoD's protocol); min IoU "
-                 + ", ".join(f"{c} {v:g}" for c, v in self.min_iou.items())]
+        lines = [
+            f"eval {self.model} on {self.data} ({self.layout}, split {self.split}): {len(self.frames)} frames; "
+            f"AP in % at 11 recall positions (VoD's protocol); min IoU "
+            + ", ".join(f"{c} {v:g}" for c, v in self.min_iou.items())
+        ]
         if self.intervals:
-            lines.append(f"[95 % interval: percentile bootstrap over frames, {AP_RESAMPLES} resamples; diff: paired, "
-                         f"against {self.baseline}]")
+            lines.append(
+                f"[95 % interval: percentile bootstrap over frames, {AP_RESAMPLES} resamples; diff: paired, "
+                f"against {self.baseline}]"
+            )
 
         def cell(backend: str, area: str, cls: str, metric: str, value: float) -> str:
             iv = self.intervals.get(backend, {}).get(area, {}).get(cls, {}).get(metric)
@@ -311,13 +364,19 @@ class DetectionEvalReport:
                         value = {b: self.ap[b][area][cls][metric] for b in backends}
                         row = f"{cls:<12}{AREA_LABELS[area]:<13}{n_gt[area][cls]:>8}"
                     row += cell(self.baseline, area, cls, metric, value[self.baseline])
-                    row += "".join(cell(b, area, cls, metric, value[b])
-                                   + diff(b, area, cls, metric, value[b] - value[self.baseline]) for b in others)
+                    row += "".join(
+                        cell(b, area, cls, metric, value[b])
+                        + diff(b, area, cls, metric, value[b] - value[self.baseline])
+                        for b in others
+                    )
                     lines.append(row)
         if self.box_errors:
-            lines += ["", *box_error_lines(self.box_errors),
-                      f"(matched: detections within {MATCH_DISTANCE:g} m of a labelled box's centre, "
-                      f"nuScenes' rule; dz = detection minus ground truth)"]
+            lines += [
+                "",
+                *box_error_lines(self.box_errors),
+                f"(matched: detections within {MATCH_DISTANCE:g} m of a labelled box's centre, "
+                f"nuScenes' rule; dz = detection minus ground truth)",
+            ]
         lines += ["", "frames per second: " + ", ".join(f"{b} {v:.1f}" for b, v in self.fps.items())]
         return lines
 
@@ -332,8 +391,10 @@ class DetectionEvalReport:
         with atomic.Staging(directory) as stage:
             written = [self.write_json(stage.path(directory / "report.json"))]
             written += [self._pr_plot(stage.path(directory / f"pr-{cls}.png"), cls) for cls in self.classes]
-            written += [self._bev_plot(stage.path(directory / f"bev-{fid}.png"), fid)
-                        for fid, _ in self.disagreement[:PICTURE_FRAMES]]
+            written += [
+                self._bev_plot(stage.path(directory / f"bev-{fid}.png"), fid)
+                for fid, _ in self.disagreement[:PICTURE_FRAMES]
+            ]
             stage.commit()
         return [directory / p.name for p in written]
 
@@ -341,6 +402,7 @@ class DetectionEvalReport:
         # optional: matplotlib (eval extra) draws the report's pictures only when they are asked for
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
+
         fig = Figure(figsize=size, layout="constrained")
         FigureCanvasAgg(fig)
         return fig
@@ -350,10 +412,21 @@ class DetectionEvalReport:
         for ax, area in zip(np.atleast_1d(fig.subplots(1, len(self.areas))), self.areas):
             for backend, style in zip(self.ap, ("-", "--", ":", "-.")):
                 curve: ClassCurve = self.curves[backend][area][cls]["3d"]
-                ax.plot(curve.recall[:curve.filled], curve.precision[:curve.filled], style, marker=".", ms=3,
-                        label=f"{backend} (AP {curve.ap11:.1f})")
-            ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.01),
-                   title=f"{cls}, {AREA_LABELS[area]}, 3D IoU > {self.min_iou[cls]:g}")
+                ax.plot(
+                    curve.recall[: curve.filled],
+                    curve.precision[: curve.filled],
+                    style,
+                    marker=".",
+                    ms=3,
+                    label=f"{backend} (AP {curve.ap11:.1f})",
+                )
+            ax.set(
+                xlabel="recall",
+                ylabel="precision",
+                xlim=(0, 1.01),
+                ylim=(0, 1.01),
+                title=f"{cls}, {AREA_LABELS[area]}, 3D IoU > {self.min_iou[cls]:g}",
+            )
             ax.grid(alpha=0.3)
             ax.legend(loc="lower left", fontsize="small")
         with atomic.atomic_path(path) as tmp:
@@ -362,6 +435,7 @@ class DetectionEvalReport:
 
     def _bev_plot(self, path: Path, fid: str) -> Path:
         from matplotlib.patches import Polygon
+
         i = [f.frame_id for f in self.frames].index(fid)
         frame, pts = self.frames[i], self.points[i]
         fig = self._figure((7, 7))
@@ -371,15 +445,37 @@ class DetectionEvalReport:
         def draw(boxes, colour, style, label):
             for k, b in enumerate(boxes):
                 c, s = np.cos(b[6]), np.sin(b[6])
-                corners = [(b[0] + c * u - s * v, b[1] + s * u + c * v)
-                           for u, v in ((b[3] / 2, b[4] / 2), (-b[3] / 2, b[4] / 2), (-b[3] / 2, -b[4] / 2),
-                                        (b[3] / 2, -b[4] / 2))]
-                ax.add_patch(Polygon([(y, x) for x, y in corners], fill=False, ec=colour, ls=style, lw=1.4,
-                                     label=label if k == 0 else None))
-        draw(labels_to_radar_boxes(frame.labels.select(np.array([n != "DontCare" for n in frame.labels.name], bool)),
-                                   frame.calib), "tab:green", "-", "ground truth")
-        for (backend, dets), colour, style in zip(self.detections.items(), ("tab:blue", "tab:red", "tab:orange",
-                                                                            "tab:purple"), ("-", "--", ":", "-.")):
+                corners = [
+                    (b[0] + c * u - s * v, b[1] + s * u + c * v)
+                    for u, v in (
+                        (b[3] / 2, b[4] / 2),
+                        (-b[3] / 2, b[4] / 2),
+                        (-b[3] / 2, -b[4] / 2),
+                        (b[3] / 2, -b[4] / 2),
+                    )
+                ]
+                ax.add_patch(
+                    Polygon(
+                        [(y, x) for x, y in corners],
+                        fill=False,
+                        ec=colour,
+                        ls=style,
+                        lw=1.4,
+                        label=label if k == 0 else None,
+                    )
+                )
+
+        draw(
+            labels_to_radar_boxes(
+                frame.labels.select(np.array([n != "DontCare" for n in frame.labels.name], bool)), frame.calib
+            ),
+            "tab:green",
+            "-",
+            "ground truth",
+        )
+        for (backend, dets), colour, style in zip(
+            self.detections.items(), ("tab:blue", "tab:red", "tab:orange", "tab:purple"), ("-", "--", ":", "-.")
+        ):
             boxes, scores, _ = dets[i]
             draw(boxes[np.argsort(-scores, kind="stable")[:PICTURE_BOXES]], colour, style, backend)
         ax.set(xlabel="y (m, left)", ylabel="x (m, forward)", aspect="equal", title=f"frame {fid}")
@@ -390,8 +486,9 @@ class DetectionEvalReport:
         return path
 
 
-def ap_intervals(curves: dict, classes: list[str], areas: tuple[str, ...], baseline: str,
-                 samples: int = AP_RESAMPLES, seed: int = 0) -> tuple[dict, dict]:
+def ap_intervals(
+    curves: dict, classes: list[str], areas: tuple[str, ...], baseline: str, samples: int = AP_RESAMPLES, seed: int = 0
+) -> tuple[dict, dict]:
     """95 % percentile-bootstrap intervals over frames (``samples`` resamples drawn with
     ``seed``) of every backend's 11-point AP (%) in ``curves`` [backend][area][class][metric] for
     the metrics of :data:`AP_INTERVAL_METRICS`, per class and for the mean over ``classes``
@@ -399,34 +496,58 @@ def ap_intervals(curves: dict, classes: list[str], areas: tuple[str, ...], basel
     Returns ([backend][area][class][metric] -> (low, high), the same for the differences)."""
     frames = len(curves[baseline][areas[0]][classes[0]][AP_INTERVAL_METRICS[0]].frames)
     rows = bootstrap_rows(frames, samples, seed)
-    draws = {b: {a: {c: {m: resampled_ap(per_class[c][m].frames, rows)[0] for m in AP_INTERVAL_METRICS}
-                     for c in classes} for a, per_class in per_area.items() if a in areas}
-             for b, per_area in curves.items()}
+    draws = {
+        b: {
+            a: {c: {m: resampled_ap(per_class[c][m].frames, rows)[0] for m in AP_INTERVAL_METRICS} for c in classes}
+            for a, per_class in per_area.items()
+            if a in areas
+        }
+        for b, per_area in curves.items()
+    }
     for per_area in draws.values():
         for per_class in per_area.values():
             per_class[MEAN] = {m: np.mean([per_class[c][m] for c in classes], 0) for m in AP_INTERVAL_METRICS}
 
     def intervals(pick) -> dict:
-        return {a: {c: {m: percentile_interval(pick(a, c, m)) for m in AP_INTERVAL_METRICS} for c in [*classes, MEAN]}
-                for a in areas}
-    return ({b: intervals(lambda a, c, m, b=b: draws[b][a][c][m]) for b in draws},
-            {b: intervals(lambda a, c, m, b=b: draws[b][a][c][m] - draws[baseline][a][c][m])
-             for b in draws if b != baseline})
+        return {
+            a: {c: {m: percentile_interval(pick(a, c, m)) for m in AP_INTERVAL_METRICS} for c in [*classes, MEAN]}
+            for a in areas
+        }
+
+    return (
+        {b: intervals(lambda a, c, m, b=b: draws[b][a][c][m]) for b in draws},
+        {
+            b: intervals(lambda a, c, m, b=b: draws[b][a][c][m] - draws[baseline][a][c][m])
+            for b in draws
+            if b != baseline
+        },
+    )
 
 
-def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", checkpoint=None,
-                       reference: bool = True, dataset: str | None = None, openvino: bool | None = None,
-                       progress: Callable[[str], Callable] | None = None) -> DetectionEvalReport:
+def evaluate_detection(
+    card: ModelCard,
+    onnx_path,
+    data,
+    split: str = "val",
+    checkpoint=None,
+    reference: bool = True,
+    dataset: str | None = None,
+    openvino: bool | None = None,
+    progress: Callable[[str], Callable] | None = None,
+) -> DetectionEvalReport:
     """AP of every backend (:func:`detectors`) over the ``split`` of the labelled set at ``data``
     (module docstring). ``progress(desc)`` wraps each backend's frame loop (a progress bar)."""
     layout = layout_for_card(card, dataset)
     classes = [c.name for c in layout.eval_classes if c.name in card.get("classes")]
     if not classes:
-        raise ConfigError(f"{card.name} detects {card.get('classes')}, none of the classes {layout.name} evaluates "
-                          f"({[c.name for c in layout.eval_classes]})")
+        raise ConfigError(
+            f"{card.name} detects {card.get('classes')}, none of the classes {layout.name} evaluates "
+            f"({[c.name for c in layout.eval_classes]})"
+        )
     eval_classes = tuple(layout.eval_class(c) for c in classes)
-    the_set = DetectionSet(data, split, layout, int(card.get("input.scans_accumulated", 1)),
-                           card.get("input.image_size"))
+    the_set = DetectionSet(
+        data, split, layout, int(card.get("input.scans_accumulated", 1)), card.get("input.image_size")
+    )
     backends = detectors(card, onnx_path, checkpoint, reference, openvino)
     frames = [the_set.frame(i, card.features) for i in range(len(the_set))]
     points = [card_points(f, card) for f in frames]
@@ -443,35 +564,65 @@ def evaluate_detection(card: ModelCard, onnx_path, data, split: str = "val", che
         fps[name] = len(frames) / max(time.perf_counter() - start, 1e-9)
         detections[name] = found
     notes = the_set.notes + flag_notes(card, backends)
-    for note in notes[len(the_set.notes):]:
+    for note in notes[len(the_set.notes) :]:
         warnings.warn(note, UserWarning, stacklevel=2)
     areas = AREAS if layout.corridor else ("entire_area",)
     gts = [f.labels for f in frames]
-    curves = {name: evaluate_frames(gts, [as_labels(d, f, card.get("classes")) for d, f in zip(dets, frames)],
-                                    eval_classes, areas, AP_INTERVAL_METRICS)
-              for name, dets in detections.items()}
+    curves = {
+        name: evaluate_frames(
+            gts,
+            [as_labels(d, f, card.get("classes")) for d, f in zip(dets, frames)],
+            eval_classes,
+            areas,
+            AP_INTERVAL_METRICS,
+        )
+        for name, dets in detections.items()
+    }
     ap = {name: ap_table(c) for name, c in curves.items()}
-    report = DetectionEvalReport(card.name, str(onnx_path), str(checkpoint) if checkpoint else None, str(the_set.root),
-                                 split, layout.name, classes, frames, points, detections, ap, curves, fps,
-                                 {c.name: c.min_iou for c in eval_classes}, areas)
+    report = DetectionEvalReport(
+        card.name,
+        str(onnx_path),
+        str(checkpoint) if checkpoint else None,
+        str(the_set.root),
+        split,
+        layout.name,
+        classes,
+        frames,
+        points,
+        detections,
+        ap,
+        curves,
+        fps,
+        {c.name: c.min_iou for c in eval_classes},
+        areas,
+    )
     report.notes = notes
     report.intervals, report.delta_intervals = ap_intervals(curves, classes, areas, report.baseline)
-    report.box_errors = {name: {cls: class_box_errors([_class_pair(d, f, card.get("classes"), cls)
-                                                       for d, f in zip(dets, frames)]) for cls in classes}
-                         for name, dets in detections.items()}
+    report.box_errors = {
+        name: {
+            cls: class_box_errors([_class_pair(d, f, card.get("classes"), cls) for d, f in zip(dets, frames)])
+            for cls in classes
+        }
+        for name, dets in detections.items()
+    }
     base = detections[report.baseline]
-    score = [max((unmatched_boxes(base[i], dets[i]) for name, dets in detections.items() if name != report.baseline),
-                 default=0) for i in range(len(frames))]
+    score = [
+        max(
+            (unmatched_boxes(base[i], dets[i]) for name, dets in detections.items() if name != report.baseline),
+            default=0,
+        )
+        for i in range(len(frames))
+    ]
     order = sorted(range(len(frames)), key=lambda i: -score[i])
-    report.disagreement = [(frames[i].frame_id, int(score[i])) for i in order[:max(PICTURE_FRAMES, 10)]]
+    report.disagreement = [(frames[i].frame_id, int(score[i])) for i in order[: max(PICTURE_FRAMES, 10)]]
     return report
 
 
 # ----------------------------------------------------------------------------- int8 judged by AP
 
-INT8_AP_BUDGET = 1.0        # AP points per class an int8 graph may lose against its fp32 graph
-INT8_AP_DRIVES, INT8_AP_FRAMES = 3, 12     # the labelled synthetic set, every split of it: 36 frames
-INT8_AP_SPLIT = "all"       # the split int8_ap_loss writes: every frame of the set (a model never trained on it)
+INT8_AP_BUDGET = 1.0  # AP points per class an int8 graph may lose against its fp32 graph
+INT8_AP_DRIVES, INT8_AP_FRAMES = 3, 12  # the labelled synthetic set, every split of it: 36 frames
+INT8_AP_SPLIT = "all"  # the split int8_ap_loss writes: every frame of the set (a model never trained on it)
 
 
 @dataclass
@@ -495,18 +646,31 @@ class Int8ApReport:
         return self.passed
 
     def to_dict(self) -> dict:
-        return {"metric": "3D AP, entire area, 11 recall positions (%)", "frames": self.frames,
-                "budget_ap_points": self.budget, "fp32": self.fp32, "int8": self.int8,
-                "loss": {c: self.loss(c) for c in self.fp32}, "passed": self.passed}
+        return {
+            "metric": "3D AP, entire area, 11 recall positions (%)",
+            "frames": self.frames,
+            "budget_ap_points": self.budget,
+            "fp32": self.fp32,
+            "int8": self.int8,
+            "loss": {c: self.loss(c) for c in self.fp32},
+            "passed": self.passed,
+        }
 
     def lines(self) -> list[str]:
-        out = [f"int8 by AP: 3D AP (entire area) on {self.frames} labelled synthetic frames, budget "
-               f"{self.budget:g} point lost per class"]
-        out += [f"  {c:<12} fp32 {self.fp32[c]:6.2f}  int8 {self.int8[c]:6.2f}  lost {self.loss(c):+6.2f}"
-                f"  {'ok' if self.loss(c) <= self.budget else 'FAIL'}" for c in self.fp32]
+        out = [
+            f"int8 by AP: 3D AP (entire area) on {self.frames} labelled synthetic frames, budget "
+            f"{self.budget:g} point lost per class"
+        ]
+        out += [
+            f"  {c:<12} fp32 {self.fp32[c]:6.2f}  int8 {self.int8[c]:6.2f}  lost {self.loss(c):+6.2f}"
+            f"  {'ok' if self.loss(c) <= self.budget else 'FAIL'}"
+            for c in self.fp32
+        ]
         if max(self.fp32.values(), default=0.0) < 10.0:
-            out.append("  note: the fp32 graph scores below 10 AP here (seeded or unfitted weights), so this says "
-                       "little; judge int8 by AP on trained weights and your own labelled split (`radaredge eval`)")
+            out.append(
+                "  note: the fp32 graph scores below 10 AP here (seeded or unfitted weights), so this says "
+                "little; judge int8 by AP on trained weights and your own labelled split (`radaredge eval`)"
+            )
         return out
 
 
@@ -519,8 +683,10 @@ def int8_ap_loss(card: ModelCard, onnx_path, checkpoint=None) -> Int8ApReport:
     fp32 = artifacts.graph_of_copy(onnx_path)
     for path, what in ((fp32, "fp32 graph"), (artifacts.copy_path(fp32, artifacts.INT8), "int8 copy")):
         if not path.is_file():
-            raise InputError(f"{path} does not exist: AP lost to int8 compares the {what} with the other one; "
-                             f"write both with `radaredge export --model {card.name} --quantize int8`")
+            raise InputError(
+                f"{path} does not exist: AP lost to int8 compares the {what} with the other one; "
+                f"write both with `radaredge export --model {card.name} --quantize int8`"
+            )
     layout = layout_for_card(card)
     with tempfile.TemporaryDirectory(prefix="radaredge-int8-ap-") as tmp:
         root = Path(tmp) / "set"
@@ -528,9 +694,12 @@ def int8_ap_loss(card: ModelCard, onnx_path, checkpoint=None) -> Int8ApReport:
         for image_sets in root.glob("**/ImageSets"):
             ids = "".join((image_sets / f"{split}.txt").read_text() for split in ("train", "val", "test"))
             (image_sets / f"{INT8_AP_SPLIT}.txt").write_text(ids)
-        with warnings.catch_warnings():        # the notes of a synthetic set compared with itself say nothing
+        with warnings.catch_warnings():  # the notes of a synthetic set compared with itself say nothing
             warnings.simplefilter("ignore", UserWarning)
             report = evaluate_detection(card, fp32, root, INT8_AP_SPLIT, checkpoint, reference=False, openvino=False)
     area = "entire_area"
-    return Int8ApReport({c: report.ap[ORT][area][c]["3d"] for c in report.classes},
-                        {c: report.ap[ORT_INT8][area][c]["3d"] for c in report.classes}, len(report.frames))
+    return Int8ApReport(
+        {c: report.ap[ORT][area][c]["3d"] for c in report.classes},
+        {c: report.ap[ORT_INT8][area][c]["3d"] for c in report.classes},
+        len(report.frames),
+    )

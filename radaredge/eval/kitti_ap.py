@@ -52,10 +52,10 @@ from ..data.kitti_detection import DONT_CARE, EvalClass, Labels
 from ..ops.box_iou import bev_overlap_paired
 
 N_SAMPLE_PTS = 41
-MIN_HEIGHT_PX = 40.0        # clean_data: min_instance_height
-MAX_OCCLUSION = 4           # clean_data: max_instance_occlusion
-CORRIDOR_X = (-4.0, 4.0)    # m, camera x (lateral)
-CORRIDOR_Z = 25.0           # m, camera z (forward)
+MIN_HEIGHT_PX = 40.0  # clean_data: min_instance_height
+MAX_OCCLUSION = 4  # clean_data: max_instance_occlusion
+CORRIDOR_X = (-4.0, 4.0)  # m, camera x (lateral)
+CORRIDOR_Z = 25.0  # m, camera z (forward)
 METRICS = ("bbox", "bev", "3d")
 AREAS = ("entire_area", "corridor")
 _NO_DETECTION = -10_000_000.0
@@ -68,8 +68,11 @@ def _bev_boxes(labels: Labels) -> torch.Tensor:
     """Camera-frame BEV footprints as OpenPCDet 7-vectors: (x, z) centre, (l, w), heading -ry."""
     zero = np.zeros(len(labels))
     loc, dims = labels.location, labels.dimensions
-    return torch.from_numpy(np.column_stack([loc[:, 0], loc[:, 2], zero, dims[:, 0], dims[:, 2], zero,
-                                             -labels.rotation_y]).astype(np.float64))
+    return torch.from_numpy(
+        np.column_stack([loc[:, 0], loc[:, 2], zero, dims[:, 0], dims[:, 2], zero, -labels.rotation_y]).astype(
+            np.float64
+        )
+    )
 
 
 def _pairwise_bev_overlap(dt: Labels, gt: Labels) -> np.ndarray:
@@ -98,7 +101,7 @@ def overlaps(metric: str, dt: Labels, gt: Labels) -> np.ndarray:
     else:
         y_dt, h_dt = dt.location[:, 1][:, None], dt.dimensions[:, 1][:, None]
         y_gt, h_gt = gt.location[:, 1][None, :], gt.dimensions[:, 1][None, :]
-        height = np.minimum(y_dt, y_gt) - np.maximum(y_dt - h_dt, y_gt - h_gt)     # y points down: box is [y - h, y]
+        height = np.minimum(y_dt, y_gt) - np.maximum(y_dt - h_dt, y_gt - h_gt)  # y points down: box is [y - h, y]
         inc = np.where((inter > 0) & (height > 0), inter * height, 0.0)
         vol_dt = np.prod(dt.dimensions, 1)[:, None]
         vol_gt = np.prod(gt.dimensions, 1)[None, :]
@@ -134,7 +137,7 @@ class _Cleaned:
     num_valid_gt: int
     ignored_gt: np.ndarray
     ignored_dt: np.ndarray
-    dont_care: np.ndarray        # [D, 4] 2D boxes
+    dont_care: np.ndarray  # [D, 4] 2D boxes
 
 
 def _outside_corridor(location: np.ndarray) -> np.ndarray:
@@ -173,9 +176,19 @@ class _Stats:
     thresholds: tuple = ()
 
 
-def statistics(overlap: np.ndarray, gt_alpha: np.ndarray, dt_alpha: np.ndarray, dt_score: np.ndarray,
-               dt_bbox: np.ndarray, c: _Cleaned, metric: str, min_overlap: float, thresh: float = 0.0,
-               compute_fp: bool = False, compute_aos: bool = False) -> _Stats:
+def statistics(
+    overlap: np.ndarray,
+    gt_alpha: np.ndarray,
+    dt_alpha: np.ndarray,
+    dt_score: np.ndarray,
+    dt_bbox: np.ndarray,
+    c: _Cleaned,
+    metric: str,
+    min_overlap: float,
+    thresh: float = 0.0,
+    compute_fp: bool = False,
+    compute_aos: bool = False,
+) -> _Stats:
     """The devkit's ``compute_statistics_jit`` for one frame: greedy matching of each ground-truth
     box, in order, to an unassigned detection (``overlap`` [n_dt, n_gt])."""
     n_dt = len(dt_score)
@@ -190,14 +203,14 @@ def statistics(overlap: np.ndarray, gt_alpha: np.ndarray, dt_alpha: np.ndarray, 
         if cand.any():
             if not compute_fp:
                 idx = np.flatnonzero(cand)
-                det = int(idx[np.argmax(dt_score[idx])])          # first of the best scores
+                det = int(idx[np.argmax(dt_score[idx])])  # first of the best scores
             else:
                 counted = cand & (c.ignored_dt == 0)
                 if counted.any():
                     idx = np.flatnonzero(counted)
-                    det = int(idx[np.argmax(overlap[idx, i])])     # first of the largest overlaps
+                    det = int(idx[np.argmax(overlap[idx, i])])  # first of the largest overlaps
                 else:
-                    det = int(np.flatnonzero(cand)[0])             # the first ignored detection
+                    det = int(np.flatnonzero(cand)[0])  # the first ignored detection
         if det < 0:
             if c.ignored_gt[i] == 0:
                 fn += 1
@@ -240,7 +253,7 @@ def recall_thresholds(scores: np.ndarray, num_gt: int, num_sample_pts: int = N_S
     kept, current, last = [], 0.0, -1
     while last < n - 1:
         keep = ~((right - current) < (current - left))
-        keep[n - 1] = True                      # the last score is always kept
+        keep[n - 1] = True  # the last score is always kept
         keep[: last + 1] = False
         last = int(np.argmax(keep))
         kept.append(last)
@@ -259,7 +272,7 @@ class ClassCurve:
     orientation: np.ndarray | None
     num_gt: int
     filled: int = 0
-    frames: "FrameTable | None" = None      # per frame, for the bootstrap (:func:`resampled_ap`)
+    frames: "FrameTable | None" = None  # per frame, for the bootstrap (:func:`resampled_ap`)
 
     @property
     def ap11(self) -> float:
@@ -280,8 +293,15 @@ class ClassCurve:
         return None if self.orientation is None else float(np.sum(self.orientation[1:]) / 40 * 100)
 
 
-def class_curve(gts: list[Labels], dts: list[Labels], cls: EvalClass, metric: str, corridor: bool,
-                frame_overlaps: list[np.ndarray] | None = None, table: bool = False) -> ClassCurve:
+def class_curve(
+    gts: list[Labels],
+    dts: list[Labels],
+    cls: EvalClass,
+    metric: str,
+    corridor: bool,
+    frame_overlaps: list[np.ndarray] | None = None,
+    table: bool = False,
+) -> ClassCurve:
     """The devkit's ``eval_class`` for one class, metric and area over all frames; ``table``
     keeps the per-frame :class:`FrameTable` the bootstrap resamples."""
     if len(gts) != len(dts):
@@ -291,8 +311,10 @@ def class_curve(gts: list[Labels], dts: list[Labels], cls: EvalClass, metric: st
     ovs = frame_overlaps if frame_overlaps is not None else [overlaps(metric, d, g) for g, d in zip(gts, dts)]
     cleaned = [clean(g, d, cls, corridor) for g, d in zip(gts, dts)]
     num_gt = sum(c.num_valid_gt for c in cleaned)
-    found = [np.asarray(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap).thresholds,
-                        np.float64) for g, d, c, ov in zip(gts, dts, cleaned, ovs)]
+    found = [
+        np.asarray(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap).thresholds, np.float64)
+        for g, d, c, ov in zip(gts, dts, cleaned, ovs)
+    ]
     thresholds = recall_thresholds(np.concatenate(found or [np.zeros(0)]), num_gt) if num_gt else np.zeros(0)
     pr = np.zeros((len(thresholds), 4))
     for g, d, c, ov in zip(gts, dts, cleaned, ovs):
@@ -303,11 +325,19 @@ def class_curve(gts: list[Labels], dts: list[Labels], cls: EvalClass, metric: st
     frames = None
     if table:
         cuts = [np.unique(np.asarray(d.score, np.float64)) for d in dts]
-        counts = [np.array([_counts(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap, t, True))
-                            for t in (*cut, np.inf)], np.float64).reshape(-1, 3)
-                  for g, d, c, ov, cut in zip(gts, dts, cleaned, ovs, cuts)]
-        frames = FrameTable(tuple(found), np.array([c.num_valid_gt for c in cleaned], np.int64), tuple(cuts),
-                            tuple(counts))
+        counts = [
+            np.array(
+                [
+                    _counts(statistics(ov, g.alpha, d.alpha, d.score, d.bbox, c, metric, min_overlap, t, True))
+                    for t in (*cut, np.inf)
+                ],
+                np.float64,
+            ).reshape(-1, 3)
+            for g, d, c, ov, cut in zip(gts, dts, cleaned, ovs, cuts)
+        ]
+        frames = FrameTable(
+            tuple(found), np.array([c.num_valid_gt for c in cleaned], np.int64), tuple(cuts), tuple(counts)
+        )
     return ClassCurve(precision, recall, orientation, num_gt, len(thresholds), frames)
 
 
@@ -364,12 +394,16 @@ def resampled_ap(table: FrameTable, rows: np.ndarray) -> tuple[np.ndarray, np.nd
     threshold of a resample is one of the set's true-positive scores, so each frame's counts are
     looked up once for each of those scores, and a resample sums them with its frame weights."""
     ap11, ap40 = np.zeros(len(rows)), np.zeros(len(rows))
-    found_frame = np.concatenate([np.full(len(f), i, np.int64) for i, f in enumerate(table.found)]
-                                 or [np.zeros(0, np.int64)])
+    found_frame = np.concatenate(
+        [np.full(len(f), i, np.int64) for i, f in enumerate(table.found)] or [np.zeros(0, np.int64)]
+    )
     found = np.concatenate(list(table.found) or [np.zeros(0)])
     candidates = np.unique(found)
-    at = np.stack([c[np.searchsorted(cut, candidates, side="left")] for cut, c in zip(table.cuts, table.counts)]) \
-        if len(table) else np.zeros((0, len(candidates), 3))                         # [F, U, 3]
+    at = (
+        np.stack([c[np.searchsorted(cut, candidates, side="left")] for cut, c in zip(table.cuts, table.counts)])
+        if len(table)
+        else np.zeros((0, len(candidates), 3))
+    )  # [F, U, 3]
     for s, row in enumerate(rows):
         weight = np.bincount(row, minlength=len(table))
         num_gt = int(weight @ table.num_gt)
@@ -382,15 +416,24 @@ def resampled_ap(table: FrameTable, rows: np.ndarray) -> tuple[np.ndarray, np.nd
     return ap11, ap40
 
 
-def evaluate_frames(gts: list[Labels], dts: list[Labels], classes: tuple[EvalClass, ...],
-                    areas: tuple[str, ...] = AREAS,
-                    tables: tuple[str, ...] = ()) -> dict[str, dict[str, dict[str, ClassCurve]]]:
+def evaluate_frames(
+    gts: list[Labels],
+    dts: list[Labels],
+    classes: tuple[EvalClass, ...],
+    areas: tuple[str, ...] = AREAS,
+    tables: tuple[str, ...] = (),
+) -> dict[str, dict[str, dict[str, ClassCurve]]]:
     """area -> class name -> metric -> :class:`ClassCurve` over paired frames of ground truth
     and detections (camera-frame KITTI labels; detections carry scores); the metrics in
     ``tables`` keep their per-frame tables for the bootstrap."""
     ovs = {m: [overlaps(m, d, g) for g, d in zip(gts, dts)] for m in METRICS}
-    return {area: {c.name: {m: class_curve(gts, dts, c, m, area == "corridor", ovs[m], m in tables) for m in METRICS}
-                   for c in classes} for area in areas}
+    return {
+        area: {
+            c.name: {m: class_curve(gts, dts, c, m, area == "corridor", ovs[m], m in tables) for m in METRICS}
+            for c in classes
+        }
+        for area in areas
+    }
 
 
 def ap_table(curves: dict[str, dict[str, dict[str, ClassCurve]]]) -> dict[str, dict[str, dict[str, float]]]:
@@ -399,9 +442,16 @@ def ap_table(curves: dict[str, dict[str, dict[str, ClassCurve]]]) -> dict[str, d
     for area, per_class in curves.items():
         out[area] = {}
         for cls, per_metric in per_class.items():
-            row = {"3d": per_metric["3d"].ap11, "bev": per_metric["bev"].ap11, "aos": per_metric["bbox"].aos11,
-                   "bbox": per_metric["bbox"].ap11, "3d_r40": per_metric["3d"].ap40,
-                   "bev_r40": per_metric["bev"].ap40, "aos_r40": per_metric["bbox"].aos40,
-                   "bbox_r40": per_metric["bbox"].ap40, "num_gt": per_metric["3d"].num_gt}
+            row = {
+                "3d": per_metric["3d"].ap11,
+                "bev": per_metric["bev"].ap11,
+                "aos": per_metric["bbox"].aos11,
+                "bbox": per_metric["bbox"].ap11,
+                "3d_r40": per_metric["3d"].ap40,
+                "bev_r40": per_metric["bev"].ap40,
+                "aos_r40": per_metric["bbox"].aos40,
+                "bbox_r40": per_metric["bbox"].ap40,
+                "num_gt": per_metric["3d"].num_gt,
+            }
             out[area][cls] = row
     return out

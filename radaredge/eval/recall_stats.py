@@ -30,8 +30,10 @@ def neighbours_within(query_pos: np.ndarray, db_pos: np.ndarray, radius: float, 
     """int64 [Q]: database positions within ``radius`` m (inclusive) of each query; positions
     [Q, 2] and [B, 2] (northing, easting) m."""
     query_pos, db_pos = np.asarray(query_pos, dtype=np.float64), np.asarray(db_pos, dtype=np.float64)
-    counts = [(np.linalg.norm(db_pos[None] - query_pos[i:i + block, None], axis=2) <= radius).sum(1)
-              for i in range(0, len(query_pos), block)]
+    counts = [
+        (np.linalg.norm(db_pos[None] - query_pos[i : i + block, None], axis=2) <= radius).sum(1)
+        for i in range(0, len(query_pos), block)
+    ]
     return np.concatenate(counts or [np.zeros(0, dtype=np.int64)]).astype(np.int64)
 
 
@@ -47,16 +49,21 @@ def chance_recall(query_pos: np.ndarray, db_pos: np.ndarray, radius: float, ns: 
     result = {}
     for n in ns:
         n = min(int(n), total)
-        miss = np.ones_like(answerable)              # C(B - m, n) / C(B, n) as a running product
+        miss = np.ones_like(answerable)  # C(B - m, n) / C(B, n) as a running product
         for i in range(n):
             miss *= np.clip((total - answerable - i) / (total - i), 0.0, None)
         result[n] = 100.0 * float((1.0 - miss).mean())
-    return {"recall": result, "database_within": float(answerable.mean()), "evaluated": int(answerable.size),
-            "skipped": int((within == 0).sum())}
+    return {
+        "recall": result,
+        "database_within": float(answerable.mean()),
+        "evaluated": int(answerable.size),
+        "skipped": int((within == 0).sum()),
+    }
 
 
-def bootstrap_interval(hits: np.ndarray, samples: int = BOOTSTRAP_SAMPLES, level: float = 0.95,
-                       seed: int = 0) -> tuple[float, float]:
+def bootstrap_interval(
+    hits: np.ndarray, samples: int = BOOTSTRAP_SAMPLES, level: float = 0.95, seed: int = 0
+) -> tuple[float, float]:
     """The ``level`` percentile-bootstrap interval (percent) of the mean of ``hits`` ([Q], one per
     evaluated query: bool hits, or for a paired interval the difference of two methods' hits on
     the same queries), from ``samples`` resamples drawn with ``seed``."""
@@ -67,7 +74,7 @@ def bootstrap_interval(hits: np.ndarray, samples: int = BOOTSTRAP_SAMPLES, level
     means = np.empty(samples)
     for i in range(0, samples, 256):
         rows = rng.integers(0, hits.size, (min(256, samples - i), hits.size))
-        means[i:i + len(rows)] = hits[rows].mean(1)
+        means[i : i + len(rows)] = hits[rows].mean(1)
     low, high = percentile_interval(100.0 * means, level)
     return low, high
 
@@ -95,6 +102,11 @@ def chance_of_benchmark(root: str | os.PathLike, radii: Sequence[float] = CHANCE
     out = {}
     for radius in radii:
         c = chance_recall(queries, db, radius)
-        out[f"{radius:g}"] = {"recall_at_1": c["recall"][1], "database_within": c["database_within"],
-                              "database_scans": len(db), "query_scans": len(queries), "skipped": c["skipped"]}
+        out[f"{radius:g}"] = {
+            "recall_at_1": c["recall"][1],
+            "database_within": c["database_within"],
+            "database_scans": len(db),
+            "query_scans": len(queries),
+            "skipped": c["skipped"],
+        }
     return out

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-MIN_MOVE_M = 0.5            # a window that moves less than this has no heading (the car stands)
+MIN_MOVE_M = 0.5  # a window that moves less than this has no heading (the car stands)
 AGAINST, WITH, UNKNOWN = 1, 0, -1
 
 
@@ -36,7 +36,7 @@ def against_database(query_pos, query_heading, db_pos, db_heading, radius: float
     out = np.full(len(query_pos), UNKNOWN, dtype=np.int8)
     for first in range(0, len(query_pos), 512):
         block = slice(first, first + 512)
-        dist = np.linalg.norm(db_pos[None] - query_pos[block, None], axis=2)       # [q, B] m
+        dist = np.linalg.norm(db_pos[None] - query_pos[block, None], axis=2)  # [q, B] m
         nearest = dist.argmin(1)
         near = dist[np.arange(len(nearest)), nearest] <= radius
         turn = np.abs(np.angle(np.exp(1j * (np.asarray(query_heading[block]) - db_heading[nearest]))))

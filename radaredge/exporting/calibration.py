@@ -31,7 +31,8 @@ from ..errors import ConfigError, InputError
 from ..registry import model_spec
 from ..runtime import FrameFeeds
 
-DEFAULT_WINDOWS = 16        # calibration windows when none are asked for
+DEFAULT_WINDOWS = 16  # calibration windows when none are asked for
+
 
 class FeedList(CalibrationDataReader):
     """onnxruntime calibration reader over a list of input-feed dicts, one window per call."""
@@ -58,8 +59,10 @@ def recorded_scan_paths(directory: str | os.PathLike, fmt: str | None = None) ->
     is given. InputError when there are none."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise InputError(f"calibration: {directory} is not a directory; expected one holding a recording's "
-                         f"scan files (.npy or .bin, one per frame) or a drive with scans/")
+        raise InputError(
+            f"calibration: {directory} is not a directory; expected one holding a recording's "
+            f"scan files (.npy or .bin, one per frame) or a drive with scans/"
+        )
     if fmt is not None and fmt not in FILE_SUFFIX:
         raise ConfigError(f"calibration format {fmt!r}: expected one of {list(FILE_SUFFIX)}")
     suffixes = {FILE_SUFFIX[fmt]} if fmt else set(FILE_SUFFIX.values())
@@ -78,8 +81,9 @@ def recording_format(paths: list[Path], fmt: str | None = None) -> str:
     return scan_format(paths, fmt, "calibration", "radaredge export: --calibration-format")
 
 
-def check_recording(directory: str | os.PathLike, k: int, n: int,
-                    fmt: str | None = None) -> tuple[list[Path], str, np.ndarray]:
+def check_recording(
+    directory: str | os.PathLike, k: int, n: int, fmt: str | None = None
+) -> tuple[list[Path], str, np.ndarray]:
     """The recording's scan files, their format and the first-frame indices of its ``n``
     calibration windows of ``k`` frames (:func:`window_starts`), before any scan is read, so
     that a wrong directory fails before an export. InputError / ConfigError as those say."""
@@ -95,16 +99,19 @@ def window_starts(num_scans: int, k: int, n: int) -> np.ndarray:
     if n < 1:
         raise ConfigError(f"calibration needs at least one window, got {n}")
     if num_scans < k:
-        raise InputError(f"calibration: the recording holds {num_scans} scan(s) but one window of this model "
-                         f"takes {k} consecutive frames")
+        raise InputError(
+            f"calibration: the recording holds {num_scans} scan(s) but one window of this model "
+            f"takes {k} consecutive frames"
+        )
     last = num_scans - k
     if last + 1 <= n:
         return np.arange(last + 1)
     return np.unique(np.round(np.linspace(0, last, n)).astype(np.int64))
 
 
-def recorded_feeds(model: FrameFeeds, directory: str | os.PathLike, n: int,
-                   fmt: str | None = None) -> tuple[list[dict[str, np.ndarray]], dict]:
+def recorded_feeds(
+    model: FrameFeeds, directory: str | os.PathLike, n: int, fmt: str | None = None
+) -> tuple[list[dict[str, np.ndarray]], dict]:
     """Input feeds of ``n`` windows (:func:`window_starts`) of the recording in ``directory``,
     built by ``model`` (a graph's :class:`radaredge.runtime.FrameFeeds`, or a loaded
     :class:`radaredge.runtime.RadarModel`) in its feature columns and checked like any runtime
@@ -114,10 +121,15 @@ def recorded_feeds(model: FrameFeeds, directory: str | os.PathLike, n: int,
     paths, fmt, starts = check_recording(directory, model.frames, n, fmt)
     feeds = []
     for s in starts:
-        window = paths[s:s + model.frames]
+        window = paths[s : s + model.frames]
         try:
             feeds.append(model.feeds([read_scan(p, model.features, fmt) for p in window]))
         except InputError as exc:
             raise InputError(f"calibration window {', '.join(p.name for p in window)}: {exc}") from exc
-    return feeds, {"data": "recorded", "directory": str(directory), "format": fmt, "scans": len(paths),
-                   "windows": len(feeds)}
+    return feeds, {
+        "data": "recorded",
+        "directory": str(directory),
+        "format": fmt,
+        "scans": len(paths),
+        "windows": len(feeds),
+    }

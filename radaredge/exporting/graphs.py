@@ -24,19 +24,21 @@ import onnxruntime
 import torch
 
 from .. import artifacts
-from ..version import __version__
 from ..atomic import Staging
 from ..cards import ModelCard
 from ..errors import ConfigError, ExportError
 from ..models.factory import weights_hash
 from ..models.spec import GraphSpec, ModelSpec
 from ..runtime import RadarModel
-from ..runtime.flags import BITS as FLAG_BITS, OUTPUT as FLAGS_OUTPUT, input_error_bits
+from ..runtime.flags import BITS as FLAG_BITS
+from ..runtime.flags import OUTPUT as FLAGS_OUTPUT
+from ..runtime.flags import input_error_bits
 from ..runtime.integrity import content_hash_of
 from ..runtime.metadata import CONTENT_SHA256, GraphMetadata
+from ..version import __version__
 from .onnx_call import DEFAULT_OPSET, export_onnx
 
-DEBUG_PREFIX = "debug."   # debug-export outputs are named debug.<intermediate>
+DEBUG_PREFIX = "debug."  # debug-export outputs are named debug.<intermediate>
 
 
 def stamp_content_hash(proto: onnx.ModelProto) -> str:
@@ -68,8 +70,10 @@ def require_same_weights(exported: RadarModel, model: torch.nn.Module, checkpoin
     """ConfigError unless ``exported`` was exported from exactly ``model``'s weights."""
     if exported.weights_sha256 != weights_hash(model):
         source = f"checkpoint {checkpoint}" if checkpoint else "the seeded initialisation of this card"
-        raise ConfigError(f"{exported.path} was exported with other weights than {source}; "
-                          f"pass the same --checkpoint/--config as at export")
+        raise ConfigError(
+            f"{exported.path} was exported with other weights than {source}; "
+            f"pass the same --checkpoint/--config as at export"
+        )
 
 
 class _PipelineWrapper(torch.nn.Module):
@@ -100,25 +104,48 @@ class GraphExport:
     metadata: GraphMetadata
 
     def to_dict(self) -> dict:
-        return {"onnx": str(self.path), "sidecar": str(self.sidecar), "size_bytes": self.size_bytes,
-                "op_histogram": self.op_histogram}
+        return {
+            "onnx": str(self.path),
+            "sidecar": str(self.sidecar),
+            "size_bytes": self.size_bytes,
+            "op_histogram": self.op_histogram,
+        }
 
 
-def graph_metadata(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, opset: int,
-                   part: str | None = None, bundle_hash: str | None = None) -> GraphMetadata:
+def graph_metadata(
+    card: ModelCard,
+    spec: ModelSpec,
+    graph: GraphSpec,
+    module: torch.nn.Module,
+    opset: int,
+    part: str | None = None,
+    bundle_hash: str | None = None,
+) -> GraphMetadata:
     """The metadata written into one graph (:mod:`radaredge.runtime.metadata`)."""
     flagged = FLAGS_OUTPUT in graph.output_names(card)
     return GraphMetadata(
-        model=card.name, card_yaml=card.to_yaml(), features=card.features,
+        model=card.name,
+        card_yaml=card.to_yaml(),
+        features=card.features,
         input_names=graph.input_names(card),
         dynamic_axes={k: {str(a): s for a, s in v.items()} for k, v in graph.dynamic_axes(card).items()},
-        frame_inputs=graph.frame_inputs(card), timestamps_input=graph.timestamps_input,
-        output_names=graph.output_names(card), weights_sha256=weights_hash(module),
-        versions={"radaredge": __version__, "torch": torch.__version__, "onnx": onnx.__version__,
-                  "onnxruntime": onnxruntime.__version__, "opset": opset},
-        checks=list(spec.runtime_checks(card)), part=part, bundle_weights_sha256=bundle_hash,
+        frame_inputs=graph.frame_inputs(card),
+        timestamps_input=graph.timestamps_input,
+        output_names=graph.output_names(card),
+        weights_sha256=weights_hash(module),
+        versions={
+            "radaredge": __version__,
+            "torch": torch.__version__,
+            "onnx": onnx.__version__,
+            "onnxruntime": onnxruntime.__version__,
+            "opset": opset,
+        },
+        checks=list(spec.runtime_checks(card)),
+        part=part,
+        bundle_weights_sha256=bundle_hash,
         input_flags={str(bit): text for bit, text in FLAG_BITS.items()} if flagged else None,
-        input_errors=input_error_bits(card) if flagged else None)
+        input_errors=input_error_bits(card) if flagged else None,
+    )
 
 
 def export_example(card: ModelCard, graph: GraphSpec, candidates: int = 4) -> dict:
@@ -140,17 +167,30 @@ def check_finite_outputs(card: ModelCard, spec: ModelSpec, model: torch.nn.Modul
         feeds = export_example(card, graph)
         with torch.no_grad():
             out = graph.run_export(graph.module(model), {k: torch.from_numpy(v) for k, v in feeds.items()})
-        bad = [n for n in graph.output_names(card) if torch.is_tensor(out.get(n)) and out[n].is_floating_point()
-               and not bool(torch.isfinite(out[n]).all())]
+        bad = [
+            n
+            for n in graph.output_names(card)
+            if torch.is_tensor(out.get(n)) and out[n].is_floating_point() and not bool(torch.isfinite(out[n]).all())
+        ]
         if bad:
-            raise ExportError(f"{card.name}: with these weights, {', '.join(bad)} of graph {graph.name} are not finite "
-                              f"(NaN or Inf) on a synthetic {', '.join(feeds)} example; the checkpoint's values "
-                              f"overflow float32 in this network")
+            raise ExportError(
+                f"{card.name}: with these weights, {', '.join(bad)} of graph {graph.name} are not finite "
+                f"(NaN or Inf) on a synthetic {', '.join(feeds)} example; the checkpoint's values "
+                f"overflow float32 in this network"
+            )
 
 
-def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: torch.nn.Module, output: str | Path,
-                 opset: int = DEFAULT_OPSET, debug: bool = False, part: str | None = None,
-                 bundle_hash: str | None = None) -> GraphExport:
+def export_graph(
+    card: ModelCard,
+    spec: ModelSpec,
+    graph: GraphSpec,
+    module: torch.nn.Module,
+    output: str | Path,
+    opset: int = DEFAULT_OPSET,
+    debug: bool = False,
+    part: str | None = None,
+    bundle_hash: str | None = None,
+) -> GraphExport:
     """Export one graph of the card's model (``module`` = ``graph.module(model)``) to ``output``
     and write ``output`` with suffix .json beside it.
 
@@ -169,8 +209,8 @@ def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: tor
     actual = [o.name for o in proto.graph.output]
     if not debug and actual != meta.output_names:
         raise ExportError(f"the exported graph's outputs are {actual}, not {meta.output_names}")
-    meta.output_names = actual       # a debug graph: the outputs plus debug.<intermediate> (an intermediate
-                                     # that is also an output keeps one name, its debug one)
+    meta.output_names = actual  # a debug graph: the outputs plus debug.<intermediate> (an intermediate
+    # that is also an output keeps one name, its debug one)
     del proto.metadata_props[:]
     for k, v in meta.to_props().items():
         proto.metadata_props.add(key=k, value=v)
@@ -186,14 +226,24 @@ def export_graph(card: ModelCard, spec: ModelSpec, graph: GraphSpec, module: tor
         raise ExportError(f"exported graph uses custom op domains {custom}; radaredge graphs must not")
     sidecar = artifacts.copy_path(path, artifacts.SIDECAR)
     result = GraphExport(path, sidecar, path.stat().st_size, hist, meta)
-    sidecar.write_text(json.dumps({
-        "model": card.name, "onnx": path.name, "size_bytes": result.size_bytes, "opset": opset,
-        "debug_outputs": list(graph.trace_order(card)) if debug else [],
-        "inputs": [{"name": i.name, "shape": _shape(i)} for i in proto.graph.input],
-        "outputs": [{"name": o.name, "shape": _shape(o)} for o in proto.graph.output],
-        "op_histogram": hist, "weights_sha256": meta.weights_sha256, "content_sha256": meta.content_sha256,
-        "versions": meta.versions,
-    }, indent=2))
+    sidecar.write_text(
+        json.dumps(
+            {
+                "model": card.name,
+                "onnx": path.name,
+                "size_bytes": result.size_bytes,
+                "opset": opset,
+                "debug_outputs": list(graph.trace_order(card)) if debug else [],
+                "inputs": [{"name": i.name, "shape": _shape(i)} for i in proto.graph.input],
+                "outputs": [{"name": o.name, "shape": _shape(o)} for o in proto.graph.output],
+                "op_histogram": hist,
+                "weights_sha256": meta.weights_sha256,
+                "content_sha256": meta.content_sha256,
+                "versions": meta.versions,
+            },
+            indent=2,
+        )
+    )
     return result
 
 
@@ -202,8 +252,15 @@ def _shape(value_info) -> list:
     return [d.dim_param or d.dim_value for d in dims]
 
 
-def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, bundle: artifacts.Bundle,
-                  opset: int = DEFAULT_OPSET, debug: bool = False, progress=None) -> dict[str, GraphExport]:
+def export_graphs(
+    card: ModelCard,
+    spec: ModelSpec,
+    model: torch.nn.Module,
+    bundle: artifacts.Bundle,
+    opset: int = DEFAULT_OPSET,
+    debug: bool = False,
+    progress=None,
+) -> dict[str, GraphExport]:
     """Export every graph of the card's model to its file in ``bundle`` (``debug``: each graph's
     debug copy beside it); a bundle of several graphs also gets the model's shared files
     (``spec.files``) and the manifest. Writes in place: :func:`write_export` is the atomic form."""
@@ -211,13 +268,22 @@ def export_graphs(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, bund
     bundle_hash = weights_hash(model) if bundle.multi else None
     graphs = list(spec.graphs)
     done = {}
-    for g in (progress(graphs) if progress else graphs):
+    for g in progress(graphs) if progress else graphs:
         module = g.module(model)
         part = g.name if bundle.multi else None
         done[g.name] = export_graph(card, spec, g, module, paths[g.name], opset, part=part, bundle_hash=bundle_hash)
         if debug:
-            export_graph(card, spec, g, module, artifacts.copy_path(paths[g.name], artifacts.DEBUG), opset, debug=True,
-                         part=part, bundle_hash=bundle_hash)
+            export_graph(
+                card,
+                spec,
+                g,
+                module,
+                artifacts.copy_path(paths[g.name], artifacts.DEBUG),
+                opset,
+                debug=True,
+                part=part,
+                bundle_hash=bundle_hash,
+            )
     if bundle.multi:
         write_manifest(card, spec, bundle, done, opset, bundle_hash)
     return done
@@ -227,9 +293,16 @@ def _moved(path: Path, stage: Staging, dest: Path) -> Path:
     return dest / path.relative_to(stage.dir) if path.is_relative_to(stage.dir) else path
 
 
-def write_export(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, bundle: artifacts.Bundle,
-                 opset: int = DEFAULT_OPSET, debug: bool = False, int8=None,
-                 progress=None) -> tuple[dict[str, GraphExport], dict[str, Path]]:
+def write_export(
+    card: ModelCard,
+    spec: ModelSpec,
+    model: torch.nn.Module,
+    bundle: artifacts.Bundle,
+    opset: int = DEFAULT_OPSET,
+    debug: bool = False,
+    int8=None,
+    progress=None,
+) -> tuple[dict[str, GraphExport], dict[str, Path]]:
     """:func:`export_graphs` (and ``int8(paths)`` -> {graph: int8 path}, the model's int8 hook
     applied to the fp32 graphs) into a staging directory, then every file moved into place at
     once (:class:`radaredge.atomic.Staging`): a failed or interrupted export leaves the previous
@@ -246,8 +319,14 @@ def write_export(card: ModelCard, spec: ModelSpec, model: torch.nn.Module, bundl
     return graphs, {n: _moved(p, stage, bundle.root) for n, p in int8_paths.items()}
 
 
-def write_manifest(card: ModelCard, spec: ModelSpec, bundle: artifacts.Bundle, graphs: dict[str, GraphExport],
-                   opset: int, bundle_hash: str) -> Path:
+def write_manifest(
+    card: ModelCard,
+    spec: ModelSpec,
+    bundle: artifacts.Bundle,
+    graphs: dict[str, GraphExport],
+    opset: int,
+    bundle_hash: str,
+) -> Path:
     """Copy the model's shared files into the bundle's directory and write its manifest: the
     graphs with their hashes (weights, and contents as recorded in each graph), the files and the
     card."""
@@ -256,11 +335,27 @@ def write_manifest(card: ModelCard, spec: ModelSpec, bundle: artifacts.Bundle, g
         shutil.copyfile(src, bundle.root / fname)
         files[fname] = str(fname)
     manifest = bundle.manifest
-    manifest.write_text(json.dumps({
-        "model": card.name, "family": card.model, "opset": opset, "weights_sha256": bundle_hash,
-        "parts": {n: {"onnx": r.path.name, "sidecar": r.sidecar.name, "size_bytes": r.size_bytes,
-                      "weights_sha256": r.metadata.weights_sha256, "content_sha256": r.metadata.content_sha256}
-                  for n, r in graphs.items()},
-        "files": files, "card": card.data,
-    }, indent=2))
+    manifest.write_text(
+        json.dumps(
+            {
+                "model": card.name,
+                "family": card.model,
+                "opset": opset,
+                "weights_sha256": bundle_hash,
+                "parts": {
+                    n: {
+                        "onnx": r.path.name,
+                        "sidecar": r.sidecar.name,
+                        "size_bytes": r.size_bytes,
+                        "weights_sha256": r.metadata.weights_sha256,
+                        "content_sha256": r.metadata.content_sha256,
+                    }
+                    for n, r in graphs.items()
+                },
+                "files": files,
+                "card": card.data,
+            },
+            indent=2,
+        )
+    )
     return manifest

@@ -61,13 +61,11 @@ def export_onnx(
             if not axes:
                 dynamic_shapes.append(None)
                 continue
-            dynamic_shapes.append({
-                ax: dims.setdefault(sym, torch.export.Dim.DYNAMIC) for ax, sym in axes.items()
-            })
+            dynamic_shapes.append({ax: dims.setdefault(sym, torch.export.Dim.DYNAMIC) for ax, sym in axes.items()})
         dynamic_shapes = tuple(dynamic_shapes)
         params = inspect.signature(module.forward).parameters.values()
         if any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in params):
-            dynamic_shapes = (dynamic_shapes,)      # forward(*inputs): one nested entry
+            dynamic_shapes = (dynamic_shapes,)  # forward(*inputs): one nested entry
     module = module.eval()
     sink = io.StringIO()
     # The exporter and onnx_ir print progress and notes on stdout/stderr; failures still raise.
@@ -94,21 +92,23 @@ def export_onnx(
             onnxscript.optimizer.remove_unused_nodes(program.model)
             program.save(str(path))
     except Exception as exc:  # torch raises many types; wrap them with context
-        raise ExportError(
-            f"exporting {type(module).__name__} to ONNX failed: {type(exc).__name__}: {exc}"
-        ) from exc
-    actual = next((o.version for o in onnx.load(str(path), load_external_data=False).opset_import
-                   if o.domain in ("", "ai.onnx")), None)
+        raise ExportError(f"exporting {type(module).__name__} to ONNX failed: {type(exc).__name__}: {exc}") from exc
+    actual = next(
+        (o.version for o in onnx.load(str(path), load_external_data=False).opset_import if o.domain in ("", "ai.onnx")),
+        None,
+    )
     if actual != opset:
         path.unlink(missing_ok=True)
-        raise ExportError(f"opset {opset}: torch's exporter could not convert this graph to it and "
-                          f"kept opset {actual}; export with --opset {actual} (radaredge's default is {DEFAULT_OPSET})")
+        raise ExportError(
+            f"opset {opset}: torch's exporter could not convert this graph to it and "
+            f"kept opset {actual}; export with --opset {actual} (radaredge's default is {DEFAULT_OPSET})"
+        )
     _finish(path, dynamic_axes or {})
     return path
 
 
 _GENERATORS = frozenset({"ConstantOfShape", "Expand", "Tile"})
-SMALL_FILL_ELEMENTS = 4096   # more than any layer's channel count in the cards (512)
+SMALL_FILL_ELEMENTS = 4096  # more than any layer's channel count in the cards (512)
 
 
 def _fold_unless_generator(node) -> bool | None:
@@ -139,7 +139,7 @@ def _fill_size(node) -> int | None:
             return None
         if node.op_type == "Expand":
             return int(np.prod(np.broadcast_shapes(values[0].shape, tuple(int(d) for d in values[1]))))
-        return int(np.prod(values[1]))                 # Tile of one element: the product of repeats
+        return int(np.prod(values[1]))  # Tile of one element: the product of repeats
     except (AttributeError, TypeError, ValueError, IndexError):
         return None
 
@@ -152,7 +152,7 @@ def _finish(path: Path, dynamic_axes: Mapping[str, Mapping[int, str]]) -> None:
     onnx.save(proto, str(path))
 
 
-KEPT_NODE_METADATA = ("pkg.torch.onnx.name_scopes",)   # module paths: profiling and int8 read them
+KEPT_NODE_METADATA = ("pkg.torch.onnx.name_scopes",)  # module paths: profiling and int8 read them
 
 
 def strip_provenance(graph: onnx.GraphProto) -> None:

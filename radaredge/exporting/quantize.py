@@ -36,15 +36,15 @@ import onnxruntime as ort
 from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_dynamic, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
-from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_feeds
 from ..artifacts import INT8, copy_path
 from ..cards import ModelCard
 from ..errors import ConfigError, ExportError
-from ..registry import model_spec
 from ..models.spec import GraphSpec, ModelSpec
 from ..node_scopes import fused_from, module_names
+from ..registry import model_spec
 from ..runtime import FrameFeeds
 from ..runtime.metadata import CONTENT_SHA256, QUANTIZATION
+from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_feeds
 from .graphs import save_stamped
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
@@ -68,8 +68,10 @@ def keep_fp32_patterns(card: ModelCard) -> list[str]:
     """The card's ``quantization.keep_fp32`` module-name patterns (default none)."""
     patterns = card.get("quantization.keep_fp32", []) or []
     if not isinstance(patterns, list) or not all(isinstance(p, str) and p for p in patterns):
-        raise ConfigError(f"card {card.name!r}: quantization.keep_fp32 must be a list of module names "
-                          f"(fnmatch patterns such as 'dfa.*.attn.value_proj'), got {patterns!r}")
+        raise ConfigError(
+            f"card {card.name!r}: quantization.keep_fp32 must be a list of module names "
+            f"(fnmatch patterns such as 'dfa.*.attn.value_proj'), got {patterns!r}"
+        )
     return patterns
 
 
@@ -84,17 +86,22 @@ def fp32_node_names(fp32_model: onnx.ModelProto, patterns: list[str], card_name:
     for node in fp32_model.graph.node:
         if node.op_type not in QUANTIZED_OPS:
             continue
-        scopes = {".".join(parts[:k]) for parts in (n.split(".") for n in module_names(node))
-                  for k in range(1, len(parts) + 1)}
+        scopes = {
+            ".".join(parts[:k])
+            for parts in (n.split(".") for n in module_names(node))
+            for k in range(1, len(parts) + 1)
+        }
         for name in scopes:
             for p in patterns:
                 if fnmatch.fnmatchcase(name, p):
                     hits[p].add(node.name)
     missing = [p for p, names in hits.items() if not names]
     if missing:
-        raise ConfigError(f"card {card_name!r}: quantization.keep_fp32 pattern(s) {missing} match no "
-                          f"Conv/MatMul/Gemm of the exported graph; module names look like "
-                          f"'backbone_2d.blocks.0' (the state dict's prefixes)")
+        raise ConfigError(
+            f"card {card_name!r}: quantization.keep_fp32 pattern(s) {missing} match no "
+            f"Conv/MatMul/Gemm of the exported graph; module names look like "
+            f"'backbone_2d.blocks.0' (the state dict's prefixes)"
+        )
     return set().union(*hits.values())
 
 
@@ -105,8 +112,9 @@ def _optimised_names(pre: onnx.ModelProto, names: set[str]) -> list[str]:
     found = [n.name for n in pre.graph.node if n.op_type in QUANTIZED_OPS and fused_from(n.name) in names]
     lost = sorted(names - {fused_from(n) for n in found})
     if lost:
-        raise ExportError(f"quantization.keep_fp32: onnxruntime's pre-processing renamed or fused {lost}; "
-                          f"they cannot be kept in fp32")
+        raise ExportError(
+            f"quantization.keep_fp32: onnxruntime's pre-processing renamed or fused {lost}; they cannot be kept in fp32"
+        )
     return found
 
 
@@ -125,8 +133,9 @@ def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Pat
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
     options.optimized_model_filepath = str(tmp)
     options.log_severity_level = 3
-    ort.InferenceSession(str(fp32_path), options, providers=["CPUExecutionProvider"],
-                         disabled_optimizers=["ConstantFolding"])
+    ort.InferenceSession(
+        str(fp32_path), options, providers=["CPUExecutionProvider"], disabled_optimizers=["ConstantFolding"]
+    )
     quant_pre_process(str(tmp), str(out_path), skip_optimization=True, skip_symbolic_shape=True)
     tmp.unlink()
     return Path(out_path)
@@ -140,9 +149,16 @@ def reduce_range(card: ModelCard) -> bool:
     return value
 
 
-def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
-                  calibration_cases: int | None = None, seed: int = 12345, calibration_dir: str | Path | None = None,
-                  calibration_format: str | None = None, graph: GraphSpec | None = None) -> Path:
+def quantize_int8(
+    card: ModelCard,
+    fp32_path: str | Path,
+    out_path: str | Path,
+    calibration_cases: int | None = None,
+    seed: int = 12345,
+    calibration_dir: str | Path | None = None,
+    calibration_format: str | None = None,
+    graph: GraphSpec | None = None,
+) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
     Calibration uses ``calibration_cases`` windows (default ``DEFAULT_WINDOWS``): synthetic ones
@@ -172,19 +188,33 @@ def quantize_int8(card: ModelCard, fp32_path: str | Path, out_path: str | Path,
         try:
             optimise_without_folding(fp32_path, pre)
             excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
-            quantize_static(str(pre), str(out_path), FeedList(feeds),
-                            quant_format=QuantFormat.QDQ, per_channel=True,
-                            op_types_to_quantize=list(QUANTIZED_OPS),
-                            weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
-                            reduce_range=seven_bit, calibrate_method=CalibrationMethod.MinMax,
-                            nodes_to_exclude=excluded)
+            quantize_static(
+                str(pre),
+                str(out_path),
+                FeedList(feeds),
+                quant_format=QuantFormat.QDQ,
+                per_channel=True,
+                op_types_to_quantize=list(QUANTIZED_OPS),
+                weight_type=QuantType.QInt8,
+                activation_type=QuantType.QUInt8,
+                reduce_range=seven_bit,
+                calibrate_method=CalibrationMethod.MinMax,
+                nodes_to_exclude=excluded,
+            )
         except Exception as exc:
             raise ExportError(f"int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
-    carry_metadata(fp32_path, out_path, {
-        "format": "QDQ", "weights": "int8 per-channel, 7-bit range" if seven_bit else "int8 per-channel",
-        "activations": "uint8", "ops": list(QUANTIZED_OPS),
-        "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
-        "calibration": {**source, "method": "minmax"}})
+    carry_metadata(
+        fp32_path,
+        out_path,
+        {
+            "format": "QDQ",
+            "weights": "int8 per-channel, 7-bit range" if seven_bit else "int8 per-channel",
+            "activations": "uint8",
+            "ops": list(QUANTIZED_OPS),
+            "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
+            "calibration": {**source, "method": "minmax"},
+        },
+    )
     return out_path
 
 
@@ -203,13 +233,28 @@ def quantize_dynamic_int8(fp32_path: str | Path, out_path: str | Path, seven_bit
             del clean.graph.value_info[:]
             pre = Path(tmp) / "pre.onnx"
             onnx.save(clean, str(pre))
-            quantize_dynamic(str(pre), str(out_path), weight_type=QuantType.QInt8, per_channel=True,
-                             reduce_range=seven_bit, op_types_to_quantize=["MatMul", "Gemm"])
+            quantize_dynamic(
+                str(pre),
+                str(out_path),
+                weight_type=QuantType.QInt8,
+                per_channel=True,
+                reduce_range=seven_bit,
+                op_types_to_quantize=["MatMul", "Gemm"],
+            )
     except Exception as exc:
         raise ExportError(f"dynamic int8 quantisation of {fp32_path} failed: {type(exc).__name__}: {exc}") from exc
-    carry_metadata(fp32_path, out_path, {"format": "dynamic", "weights": "int8", "activations": "uint8 at run time",
-                                         "ops": ["MatMul", "Gemm"], "per_channel": True,
-                                         "reduce_range": seven_bit})
+    carry_metadata(
+        fp32_path,
+        out_path,
+        {
+            "format": "dynamic",
+            "weights": "int8",
+            "activations": "uint8 at run time",
+            "ops": ["MatMul", "Gemm"],
+            "per_channel": True,
+            "reduce_range": seven_bit,
+        },
+    )
     return out_path
 
 
@@ -226,17 +271,29 @@ class Int8Options:
 def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
     """Static QDQ int8 copies, beside them, of the graphs the spec's int8 plan names (calibrated
     on ``options``' recording or on synthetic scenes)."""
-    return {g.name: quantize_int8(card, paths[g.name], copy_path(paths[g.name], INT8), options.windows,
-                                  calibration_dir=options.calibration_dir,
-                                  calibration_format=options.calibration_format, graph=g)
-            for g in spec.graphs if spec.int8.quantises(g.name)}
+    return {
+        g.name: quantize_int8(
+            card,
+            paths[g.name],
+            copy_path(paths[g.name], INT8),
+            options.windows,
+            calibration_dir=options.calibration_dir,
+            calibration_format=options.calibration_format,
+            graph=g,
+        )
+        for g in spec.graphs
+        if spec.int8.quantises(g.name)
+    }
 
 
 def dynamic_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
     """Dynamically quantised copies, beside them, of the graphs the spec's int8 plan names (int8
     MatMul/Gemm weights at the card's reduce_range, no calibration)."""
-    return {g.name: quantize_dynamic_int8(paths[g.name], copy_path(paths[g.name], INT8), reduce_range(card))
-            for g in spec.graphs if spec.int8.quantises(g.name)}
+    return {
+        g.name: quantize_dynamic_int8(paths[g.name], copy_path(paths[g.name], INT8), reduce_range(card))
+        for g in spec.graphs
+        if spec.int8.quantises(g.name)
+    }
 
 
 # Int8Plan.method -> how its copies are made
@@ -248,6 +305,7 @@ def make_int8_copies(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], o
     try:
         make = INT8_METHODS[spec.int8.method]
     except KeyError:
-        raise ConfigError(f"{card.name}: its spec asks for int8 method {spec.int8.method!r}; known: "
-                          f"{sorted(INT8_METHODS)}") from None
+        raise ConfigError(
+            f"{card.name}: its spec asks for int8 method {spec.int8.method!r}; known: {sorted(INT8_METHODS)}"
+        ) from None
     return make(card, spec, paths, options)

@@ -34,10 +34,10 @@ import numpy as np
 
 from .. import runtime
 from ..data.readers import infer_format
+from ..data.run_shards import RunChanges, RunOutput, ShardPlan, encode_shard, recorded, shard_stem
 from ..data.sequences import drive_directories, is_drive, load_sequence, name_the_scan, windows
 from ..errors import ConfigError, InputError, RadarEdgeError
 from ..runtime.backends import check_backend
-from ..data.run_shards import RunChanges, RunOutput, ShardPlan, encode_shard, recorded, shard_stem
 
 DEFAULT_SHARD_WINDOWS = 256
 
@@ -57,7 +57,7 @@ def find_drives(data: str | Path) -> list[tuple[str, Path]]:
                 found.append(((here_path / name).relative_to(data).as_posix(), here_path / name))
         dirs[:] = sorted(d for d in dirs if not is_drive(here_path / d))
     if not found:
-        drive_directories(data)              # its error: no drives found, and what a drive is
+        drive_directories(data)  # its error: no drives found, and what a drive is
     return sorted(found)
 
 
@@ -85,8 +85,9 @@ def drive_fingerprint(seq, directory: Path) -> str:
     return h.hexdigest()
 
 
-def plan_run(data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOWS,
-             fmt: str | None = None) -> tuple[list[ShardPlan], dict[str, dict]]:
+def plan_run(
+    data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOWS, fmt: str | None = None
+) -> tuple[list[ShardPlan], dict[str, dict]]:
     """The shards of every drive under ``data`` (:func:`find_drives`): its K-frame windows in
     order, ``shard_windows`` a shard, named by :func:`radaredge.data.run_shards.shard_stem` (the
     drive's relative path and fingerprint); and each drive's record for the manifest (label ->
@@ -109,18 +110,22 @@ def plan_run(data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOW
         stem = shard_stem(label, fingerprint)
         drives[label] = {"fmt": drive_fmt, "fingerprint": fingerprint, "scans": len(seq), "windows": n}
         for i, first in enumerate(range(0, n, shard_windows)):
-            plans.append(ShardPlan(f"{stem}-{i:05d}", label, str(d.resolve()), first, min(shard_windows, n - first),
-                                   drive_fmt))
+            plans.append(
+                ShardPlan(f"{stem}-{i:05d}", label, str(d.resolve()), first, min(shard_windows, n - first), drive_fmt)
+            )
     seen: dict[str, str] = {}
-    for p in plans:                           # 64 bits of sha256 apart: never expected to fire
+    for p in plans:  # 64 bits of sha256 apart: never expected to fire
         if seen.setdefault(p.name.lower(), p.drive) != p.drive:
-            raise InputError(f"drives {seen[p.name.lower()]!r} and {p.drive!r} under {data} hash to one shard name "
-                             f"{p.name}; rename one of them")
+            raise InputError(
+                f"drives {seen[p.name.lower()]!r} and {p.drive!r} under {data} hash to one shard name "
+                f"{p.name}; rename one of them"
+            )
     return plans, drives
 
 
-def plan_shards(data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOWS,
-                fmt: str | None = None) -> list[ShardPlan]:
+def plan_shards(
+    data: str | Path, k: int, shard_windows: int = DEFAULT_SHARD_WINDOWS, fmt: str | None = None
+) -> list[ShardPlan]:
     """The shards of :func:`plan_run`."""
     return plan_run(data, k, shard_windows, fmt)[0]
 
@@ -146,8 +151,7 @@ def bound_threads(threads: int, cpus: int, where: str = "available to this proce
     starts (the run would wait for it for ever)."""
     threads = _positive(threads, "threads")
     if threads > cpus:
-        warnings.warn(f"--threads {threads}: more than the {cpus} CPU(s) {where}; using --threads {cpus}",
-                      stacklevel=2)
+        warnings.warn(f"--threads {threads}: more than the {cpus} CPU(s) {where}; using --threads {cpus}", stacklevel=2)
         return cpus
     return threads
 
@@ -156,7 +160,7 @@ class ShardWorker:
     """One loaded graph that computes whole shards: what a Ray actor holds, and what the
     sequential run uses directly."""
 
-    bound: tuple = ()       # (graph, threads, backend) of a subclass made for Ray (:func:`_ray_results`)
+    bound: tuple = ()  # (graph, threads, backend) of a subclass made for Ray (:func:`_ray_results`)
 
     def __init__(self, graph: str | None = None, threads: int = 1, backend: str = "onnxruntime"):
         if graph is None:
@@ -179,19 +183,30 @@ class ShardWorker:
             except InputError as exc:
                 raise InputError(name_the_scan(seq, frames, str(exc))) from None
             last = int(frames[-1])
-            rows.append({"drive": plan.drive, "frame": last, "timestamp": float(seq.timestamps[last]),
-                         "northing": float(seq.positions[last, 0]), "easting": float(seq.positions[last, 1])})
+            rows.append(
+                {
+                    "drive": plan.drive,
+                    "frame": last,
+                    "timestamp": float(seq.timestamps[last]),
+                    "northing": float(seq.positions[last, 0]),
+                    "easting": float(seq.positions[last, 1]),
+                }
+            )
         return rows, outs
 
     def __call__(self, row: dict) -> dict:
         """Ray Data's row function: a planned shard in, its Parquet bytes (or the error) out."""
-        plan = ShardPlan(**{k: (int(row[k]) if k in ("first", "count") else str(row[k]))
-                            for k in ("name", "drive", "path", "first", "count", "fmt")})
+        plan = ShardPlan(
+            **{
+                k: (int(row[k]) if k in ("first", "count") else str(row[k]))
+                for k in ("name", "drive", "path", "first", "count", "fmt")
+            }
+        )
         try:
             return {"name": plan.name, "parquet": encode_shard(*self.outputs(plan)), "error": ""}
         except RadarEdgeError as exc:
             return {"name": plan.name, "parquet": b"", "error": str(exc)}
-        except OSError as exc:         # a scan file that vanished or cannot be read on this node
+        except OSError as exc:  # a scan file that vanished or cannot be read on this node
             return {"name": plan.name, "parquet": b"", "error": f"{exc.filename or plan.path}: {exc.strerror or exc}"}
 
 
@@ -209,7 +224,7 @@ class RunReport:
     workers: int
     seconds: float
     engine: str
-    changes: dict = field(default_factory=dict)     # RunChanges.to_dict(): what differed from the previous run
+    changes: dict = field(default_factory=dict)  # RunChanges.to_dict(): what differed from the previous run
 
     @property
     def windows_per_second(self) -> float:
@@ -220,21 +235,28 @@ class RunReport:
 
     def lines(self) -> list[str]:
         reused = self.shards - self.computed_shards
-        return [f"{self.out}: {self.windows} windows in {self.shards} shards ({reused} already finished)",
-                f"computed {self.computed_windows} windows in {self.seconds:.1f} s on {self.workers} "
-                f"{self.engine} worker(s): {self.windows_per_second:.1f} windows/s",
-                *RunChanges(**self.changes).lines()]
+        return [
+            f"{self.out}: {self.windows} windows in {self.shards} shards ({reused} already finished)",
+            f"computed {self.computed_windows} windows in {self.seconds:.1f} s on {self.workers} "
+            f"{self.engine} worker(s): {self.windows_per_second:.1f} windows/s",
+            *RunChanges(**self.changes).lines(),
+        ]
 
 
 def _setup(graph: Path, data: Path, shard_windows: int) -> tuple[dict, int]:
     model = runtime.load(graph, threads=1)
-    return {"graph_weights_sha256": model.weights_sha256, "model": model.card.name, "data": str(data.resolve()),
-            "window_frames": model.frames, "shard_windows": shard_windows}, model.frames
+    return {
+        "graph_weights_sha256": model.weights_sha256,
+        "model": model.card.name,
+        "data": str(data.resolve()),
+        "window_frames": model.frames,
+        "shard_windows": shard_windows,
+    }, model.frames
 
 
 def _prepare(graph, data, out, shard_windows, fmt=None) -> tuple[list[ShardPlan], RunOutput]:
     graph, data, out = Path(graph), Path(data), Path(out)
-    if shard_windows is None:                 # a resumed run keeps its shards; a new one takes the default
+    if shard_windows is None:  # a resumed run keeps its shards; a new one takes the default
         shard_windows = recorded(out, "shard_windows") or DEFAULT_SHARD_WINDOWS
     if isinstance(shard_windows, bool) or not isinstance(shard_windows, int) or shard_windows < 1:
         raise ConfigError(f"shard_windows must be a positive integer, got {shard_windows!r}")
@@ -245,13 +267,30 @@ def _prepare(graph, data, out, shard_windows, fmt=None) -> tuple[list[ShardPlan]
 
 def _report(out, plans, output: RunOutput, workers: int, seconds: float, engine: str) -> RunReport:
     pending = output.pending
-    return RunReport(str(out), len(plans), sum(p.count for p in plans), len(pending), sum(p.count for p in pending),
-                     workers, seconds, engine, output.changes.to_dict())
+    return RunReport(
+        str(out),
+        len(plans),
+        sum(p.count for p in plans),
+        len(pending),
+        sum(p.count for p in pending),
+        workers,
+        seconds,
+        engine,
+        output.changes.to_dict(),
+    )
 
 
-def run_sequential(graph: str | Path, data: str | Path, out: str | Path, *, threads: int = 1,
-                   backend: str = "onnxruntime", shard_windows: int | None = None, fmt: str | None = None,
-                   progress: Callable | None = None) -> RunReport:
+def run_sequential(
+    graph: str | Path,
+    data: str | Path,
+    out: str | Path,
+    *,
+    threads: int = 1,
+    backend: str = "onnxruntime",
+    shard_windows: int | None = None,
+    fmt: str | None = None,
+    progress: Callable | None = None,
+) -> RunReport:
     """:func:`run_graph`'s shards computed in this process, one after the other (no Ray)."""
     threads = bound_threads(threads, available_cpus())
     plans, output = _prepare(graph, data, out, shard_windows, fmt)
@@ -272,10 +311,12 @@ def start_ray(address: str | None = None):
     when one is running)."""
     # optional: ray is the scale extra
     import logging
+
     # Ray Data keeps the actor class in Ray's object store, and Ray's C++ core reports that as an
     # "E" line on stderr; only its fatal errors go there (the variable still takes the user's value)
     os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "fatal")
     import ray
+
     if ray.is_initialized():
         return ray
     address = address or os.environ.get("RAY_ADDRESS") or None
@@ -285,12 +326,15 @@ def start_ray(address: str | None = None):
         if address:
             ray.init(address=address, logging_level=logging.ERROR, log_to_driver=False)
         else:
-            ray.init(num_cpus=available_cpus(), include_dashboard=False, logging_level=logging.ERROR,
-                     log_to_driver=False)
+            ray.init(
+                num_cpus=available_cpus(), include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False
+            )
     except (ConnectionError, RuntimeError, ValueError) as exc:
-        raise ConfigError(f"--ray-address {address}: cannot connect to a Ray cluster there "
-                          f"({str(exc).splitlines()[0][:160]})" if address else
-                          f"cannot start an embedded Ray instance ({str(exc).splitlines()[0][:160]})") from None
+        raise ConfigError(
+            f"--ray-address {address}: cannot connect to a Ray cluster there ({str(exc).splitlines()[0][:160]})"
+            if address
+            else f"cannot start an embedded Ray instance ({str(exc).splitlines()[0][:160]})"
+        ) from None
     ctx = ray.data.DataContext.get_current()
     ctx.enable_progress_bars = False
     ctx.print_on_execution_start = False
@@ -302,6 +346,7 @@ def _quiet_ray_loggers() -> None:
     """Ray and Ray Data configure their own loggers (at init and when Ray Data loads): only their
     errors reach stderr, where radaredge's own lines and its progress bar are."""
     import logging
+
     for name in [n for n in logging.root.manager.loggerDict if n == "ray" or n.startswith("ray.")]:
         logging.getLogger(name).setLevel(logging.ERROR)
 
@@ -311,6 +356,7 @@ def _reachable(address: str, timeout: float = 5.0) -> None:
     Ray) accepts a TCP connection within ``timeout`` s: Ray itself retries an unreachable address
     for minutes."""
     import socket
+
     hostport = address.split("://", 1)[-1]
     if address == "auto" or ":" not in hostport:
         return
@@ -319,14 +365,16 @@ def _reachable(address: str, timeout: float = 5.0) -> None:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
             pass
     except (OSError, ValueError) as exc:
-        raise ConfigError(f"--ray-address {address}: cannot connect to a Ray cluster there "
-                          f"({getattr(exc, 'strerror', None) or exc})") from None
+        raise ConfigError(
+            f"--ray-address {address}: cannot connect to a Ray cluster there ({getattr(exc, 'strerror', None) or exc})"
+        ) from None
 
 
-def _ray_results(ray, graph: str, pending: list[ShardPlan], workers: int, threads: int,
-                 backend: str) -> Iterator[dict]:
-    items = [{"name": p.name, "drive": p.drive, "path": p.path, "first": p.first, "count": p.count, "fmt": p.fmt}
-             for p in pending]
+def _ray_results(ray, graph: str, pending: list[ShardPlan], workers: int, threads: int, backend: str) -> Iterator[dict]:
+    items = [
+        {"name": p.name, "drive": p.drive, "path": p.path, "first": p.first, "count": p.count, "fmt": p.fmt}
+        for p in pending
+    ]
     ds = ray.data.from_items(items, override_num_blocks=len(items))
     # the settings travel in the class, not as constructor arguments in Ray's object store (whose
     # loss would stop a restarted actor from being built)
@@ -336,10 +384,19 @@ def _ray_results(ray, graph: str, pending: list[ShardPlan], workers: int, thread
     yield from ds.iter_rows()
 
 
-def run_graph(graph: str | Path, data: str | Path, out: str | Path, *, workers: int | None = None,
-              threads: int = 1, backend: str = "onnxruntime", ray_address: str | None = None,
-              shard_windows: int | None = None, fmt: str | None = None,
-              progress: Callable | None = None) -> RunReport:
+def run_graph(
+    graph: str | Path,
+    data: str | Path,
+    out: str | Path,
+    *,
+    workers: int | None = None,
+    threads: int = 1,
+    backend: str = "onnxruntime",
+    ray_address: str | None = None,
+    shard_windows: int | None = None,
+    fmt: str | None = None,
+    progress: Callable | None = None,
+) -> RunReport:
     """Run the exported single-graph model ``graph`` over every window of every drive under
     ``data`` on Ray Data and write Parquet shards of its outputs, with each window's drive,
     frame, timestamp and pose, to ``out`` (layout in :mod:`radaredge.data.run_shards`).
@@ -374,7 +431,7 @@ def ray_node_cpus(ray) -> list[int]:
     """The CPUs of each live node of the running Ray instance (one entry when embedded)."""
     try:
         nodes = [int(n.get("Resources", {}).get("CPU", 0)) for n in ray.nodes() if n.get("Alive", True)]
-    except Exception:                           # an older or remote client without the node table
+    except Exception:  # an older or remote client without the node table
         nodes = []
     return [c for c in nodes if c > 0] or [max(1, int(ray.cluster_resources().get("CPU", 1)))]
 
@@ -388,18 +445,22 @@ def bound_workers(workers: int | None, threads: int, node_cpus: list[int]) -> in
         return fit
     _positive(workers, "workers")
     if workers > fit:
-        warnings.warn(f"--workers {workers}: more than the {fit} worker(s) of --threads {threads} that the "
-                      f"{sum(node_cpus)} CPU(s) {'of the Ray cluster' if len(node_cpus) > 1 else 'Ray has here'} "
-                      f"hold; using --workers {fit}", stacklevel=2)
+        warnings.warn(
+            f"--workers {workers}: more than the {fit} worker(s) of --threads {threads} that the "
+            f"{sum(node_cpus)} CPU(s) {'of the Ray cluster' if len(node_cpus) > 1 else 'Ray has here'} "
+            f"hold; using --workers {fit}",
+            stacklevel=2,
+        )
         return fit
     return workers
 
 
-def _run_on_ray(graph, output: RunOutput, workers, threads: int, backend: str, ray_address,
-                progress) -> tuple[int, float]:
+def _run_on_ray(
+    graph, output: RunOutput, workers, threads: int, backend: str, ray_address, progress
+) -> tuple[int, float]:
     """Compute the pending shards on Ray and stage each: (the workers used, when Ray was up)."""
     ray = start_ray(ray_address)
-    start = time.perf_counter()                # the timing starts at a running Ray (its start is once per process)
+    start = time.perf_counter()  # the timing starts at a running Ray (its start is once per process)
     nodes = ray_node_cpus(ray)
     threads = bound_threads(threads, max(nodes), "a Ray node has" if len(nodes) > 1 else "Ray has here")
     used = min(bound_workers(workers, threads, nodes), len(output.pending))

@@ -28,6 +28,6 @@ __all__ = ["model_spec", "registered", *_FACTORY]
 
 def __getattr__(name):
     if name in _FACTORY:
-        factory = importlib.import_module(f"{__name__}.factory")     # torch: loaded when first used
+        factory = importlib.import_module(f"{__name__}.factory")  # torch: loaded when first used
         return getattr(factory, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

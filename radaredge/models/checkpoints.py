@@ -24,8 +24,8 @@ from ..errors import ConfigError
 # The largest checkpoint radaredge reads: its models' weights are tens of MB (maffnet-vod-full
 # about 40 MB); a training run's last.pth, with the optimiser's state, about three times that.
 MAX_CHECKPOINT_BYTES = 2 * 2**30
-_ZIP_MAGIC = b"PK\x03\x04"                          # torch.save since torch 1.6
-_PICKLE_MAGIC = tuple(b"\x80" + bytes([p]) for p in (2, 3, 4, 5))   # the legacy format: a pickle, protocol >= 2
+_ZIP_MAGIC = b"PK\x03\x04"  # torch.save since torch 1.6
+_PICKLE_MAGIC = tuple(b"\x80" + bytes([p]) for p in (2, 3, 4, 5))  # the legacy format: a pickle, protocol >= 2
 
 
 def check_checkpoint_file(path: str | Path) -> None:
@@ -34,20 +34,28 @@ def check_checkpoint_file(path: str | Path) -> None:
     protocol 2 or later): checked from its stat and its first bytes, before torch.load reads it."""
     if not Path(path).exists():
         raise ConfigError(f"checkpoint {path} does not exist")
-    check_file(path, "a torch checkpoint (.pth)", MAX_CHECKPOINT_BYTES,
-               "radaredge's models' weights are tens of MB, a training run's last.pth a few times that",
-               error=ConfigError)
+    check_file(
+        path,
+        "a torch checkpoint (.pth)",
+        MAX_CHECKPOINT_BYTES,
+        "radaredge's models' weights are tens of MB, a training run's last.pth a few times that",
+        error=ConfigError,
+    )
     with open(path, "rb") as f:
         head = f.read(4)
     if not head:
         raise ConfigError(f"checkpoint {path} is empty (0 bytes): not a file written by torch.save")
     if not (head.startswith(_ZIP_MAGIC) or head[:2] in _PICKLE_MAGIC):
-        if _pickle_calls_code(path):             # an old-protocol pickle that imports or calls code
-            raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: a pickle of objects other than "
-                              f"tensors and plain containers (radaredge runs no pickled code)")
-        raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: it begins with bytes {head!r}, "
-                          f"not the zip archive (PK\\x03\\x04) or pickle (\\x80 and a protocol >= 2) that "
-                          f"torch.save writes")
+        if _pickle_calls_code(path):  # an old-protocol pickle that imports or calls code
+            raise ConfigError(
+                f"checkpoint {path} is not a readable torch checkpoint: a pickle of objects other than "
+                f"tensors and plain containers (radaredge runs no pickled code)"
+            )
+        raise ConfigError(
+            f"checkpoint {path} is not a readable torch checkpoint: it begins with bytes {head!r}, "
+            f"not the zip archive (PK\\x03\\x04) or pickle (\\x80 and a protocol >= 2) that "
+            f"torch.save writes"
+        )
 
 
 _CODE_OPCODES = {"GLOBAL", "STACK_GLOBAL", "INST", "OBJ", "REDUCE", "NEWOBJ", "NEWOBJ_EX", "BUILD"}
@@ -61,7 +69,7 @@ def _pickle_calls_code(path: str | Path) -> bool:
     try:
         with open(path, "rb") as f:
             return any(op.name in _CODE_OPCODES for op, _, _ in pickletools.genops(f))
-    except Exception:                        # not a pickle, or a truncated one
+    except Exception:  # not a pickle, or a truncated one
         return False
 
 
@@ -77,7 +85,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
     whose ``features`` give the column order the first layer's weights expect; None otherwise)."""
     check_checkpoint_file(path)
     try:
-        with warnings.catch_warnings():            # torch warns about pickle protocols before refusing
+        with warnings.catch_warnings():  # torch warns about pickle protocols before refusing
             warnings.simplefilter("ignore")
             obj = torch.load(str(path), map_location="cpu", weights_only=True)
     except FileNotFoundError:
@@ -109,6 +117,8 @@ def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
     broken = [k for k, v in obj.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if broken:
         more = f" and {len(broken) - 5} more" if len(broken) > 5 else ""
-        raise ConfigError(f"checkpoint {path}: values are not finite (NaN or Inf) in {', '.join(broken[:5])}{more}; "
-                          f"a diverged training run writes such weights")
+        raise ConfigError(
+            f"checkpoint {path}: values are not finite (NaN or Inf) in {', '.join(broken[:5])}{more}; "
+            f"a diverged training run writes such weights"
+        )
     return obj, features

@@ -53,9 +53,9 @@ class CaseResult:
     cosine: float | None = None
     min_iou: float | None = None
     mismatches: int = 0
-    matched: int = 0              # boxes: reference boxes matched
-    reference: int = 0            # boxes: reference boxes
-    by_score: dict = field(default_factory=dict)   # int8 boxes: {band: [matched, reference boxes scored >= band]}
+    matched: int = 0  # boxes: reference boxes matched
+    reference: int = 0  # boxes: reference boxes
+    by_score: dict = field(default_factory=dict)  # int8 boxes: {band: [matched, reference boxes scored >= band]}
     end_to_end: dict | None = None  # boxes judged against the reference NMS of the graph's own anchors
     reason: str = ""
 
@@ -78,8 +78,8 @@ class OutputSummary:
     min_iou: float | None = None
     mismatches: int = 0
     failed_cases: list = field(default_factory=list)
-    retrieval_top1: float | None = None      # descriptors: share of cases whose nearest reference is their own
-    recall: float | None = None              # boxes judged by recall: matched share of reference boxes
+    retrieval_top1: float | None = None  # descriptors: share of cases whose nearest reference is their own
+    recall: float | None = None  # boxes judged by recall: matched share of reference boxes
     recall_by_score: dict | None = None
     end_to_end: dict | None = None
 
@@ -94,13 +94,18 @@ def _worst(name: str, kind: str, tolerance, results: Sequence[CaseResult], case_
     cos = [r.cosine for r in results if r.cosine is not None]
     ious = [r.min_iou for r in results if r.min_iou is not None]
     return OutputSummary(
-        name, kind, all(results), tolerance,
+        name,
+        kind,
+        all(results),
+        tolerance,
         max_abs=max((r.max_abs for r in results), default=0.0),
         max_rel=max((r.max_rel for r in results), default=0.0),
         p99_abs=max((r.p99_abs for r in results), default=0.0),
-        min_cosine=min(cos) if cos else None, min_iou=min(ious) if ious else None,
+        min_cosine=min(cos) if cos else None,
+        min_iou=min(ious) if ious else None,
         mismatches=sum(r.mismatches for r in results),
-        failed_cases=[c for c, r in zip(case_names, results) if not r])
+        failed_cases=[c for c, r in zip(case_names, results) if not r],
+    )
 
 
 @dataclass(frozen=True)
@@ -140,8 +145,13 @@ class Comparator(abc.ABC):
     def tolerance(self) -> dict | str:
         """What the verdict is held to, as reported."""
 
-    def summarise(self, results: Sequence[CaseResult], case_names: Sequence[str],
-                  got: Sequence[Outputs] = (), ref: Sequence[Outputs] = ()) -> OutputSummary:
+    def summarise(
+        self,
+        results: Sequence[CaseResult],
+        case_names: Sequence[str],
+        got: Sequence[Outputs] = (),
+        ref: Sequence[Outputs] = (),
+    ) -> OutputSummary:
         """Worst case per statistic over the set; ``got``/``ref`` are every case's outputs."""
         return _worst(self.name, self.kind, self.tolerance(), results, case_names)
 
@@ -162,8 +172,15 @@ def _operands(comp: "Comparator", got: Outputs, ref: Outputs):
     return g, r, None
 
 
-def _dense_stats(c: CaseResult, got: np.ndarray, ref: np.ndarray, atol: float, rtol: float,
-                 angle_column: int = -1, angle_period: float = 0.0) -> np.ndarray | None:
+def _dense_stats(
+    c: CaseResult,
+    got: np.ndarray,
+    ref: np.ndarray,
+    atol: float,
+    rtol: float,
+    angle_column: int = -1,
+    angle_period: float = 0.0,
+) -> np.ndarray | None:
     """Fill max abs / max rel / p99 and the atol + rtol mismatch count; the flat float64 pair, or
     None (and ``c`` failed) when a value is not finite."""
     g, r = got.astype(np.float64).ravel(), ref.astype(np.float64).ravel()
@@ -211,8 +228,9 @@ class Dense(Comparator):
         """The verdict of one case from its statistics and the flat float64 values."""
         c.passed = c.mismatches == 0
         if not c.passed:
-            c.reason = (f"{c.mismatches} element(s) beyond atol {self.atol:g} + rtol {self.rtol:g} "
-                        f"(max abs {c.max_abs:.3g})")
+            c.reason = (
+                f"{c.mismatches} element(s) beyond atol {self.atol:g} + rtol {self.rtol:g} (max abs {c.max_abs:.3g})"
+            )
 
     def tolerance(self):
         return {"atol": self.atol, "rtol": self.rtol}
@@ -263,8 +281,9 @@ class Descriptor(Dense):
     def summarise(self, results, case_names, got=(), ref=()):
         s = super().summarise(results, case_names)
         if got:
-            s.retrieval_top1 = retrieval_top1_agreement(np.stack([np.ravel(o[self.name]) for o in got]),
-                                                        np.stack([np.ravel(o[self.name]) for o in ref]))
+            s.retrieval_top1 = retrieval_top1_agreement(
+                np.stack([np.ravel(o[self.name]) for o in got]), np.stack([np.ravel(o[self.name]) for o in ref])
+            )
             if s.retrieval_top1 < self.min_top1:
                 s.passed = False
         return s
@@ -275,8 +294,10 @@ class Descriptor(Dense):
     def notes(self, summary):
         if summary.retrieval_top1 is None:
             return []
-        return [f"retrieval top-1 agreement over the case set: {summary.retrieval_top1 * 100:.1f}% "
-                f"(needs >= {self.min_top1 * 100:.0f}%)"]
+        return [
+            f"retrieval top-1 agreement over the case set: {summary.retrieval_top1 * 100:.1f}% "
+            f"(needs >= {self.min_top1 * 100:.0f}%)"
+        ]
 
 
 @dataclass(frozen=True)
@@ -290,8 +311,9 @@ class Exact(Comparator):
         if bad:
             return bad
         mism = int((g != r).sum())
-        return CaseResult(self.name, self.kind, mism == 0, mismatches=mism,
-                          reason="" if mism == 0 else f"{mism} element(s) differ")
+        return CaseResult(
+            self.name, self.kind, mism == 0, mismatches=mism, reason="" if mism == 0 else f"{mism} element(s) differ"
+        )
 
     def tolerance(self):
         return "exact"
@@ -310,8 +332,11 @@ def retrieval_top1_agreement(got: np.ndarray, ref: np.ndarray) -> float:
 def match_boxes(got_boxes, got_labels, ref_boxes, ref_labels, min_iou: float):
     """Greedy one-to-one matching of detections [M, 7] by rotated BEV IoU (best pairs first, same
     label, IoU >= min_iou). Returns (pairs [(i_got, j_ref, iou)], unmatched got, unmatched ref)."""
-    iou = bev_iou_matrix_reference(got_boxes, ref_boxes) if len(got_boxes) and len(ref_boxes) else \
-        np.zeros((len(got_boxes), len(ref_boxes)))
+    iou = (
+        bev_iou_matrix_reference(got_boxes, ref_boxes)
+        if len(got_boxes) and len(ref_boxes)
+        else np.zeros((len(got_boxes), len(ref_boxes)))
+    )
     iou = np.where(np.asarray(got_labels)[:, None] == np.asarray(ref_labels)[None, :], iou, -1.0)
     pairs, used_g, used_r = [], set(), set()
     for flat in np.argsort(-iou, axis=None, kind="stable"):
@@ -323,8 +348,11 @@ def match_boxes(got_boxes, got_labels, ref_boxes, ref_labels, min_iou: float):
         pairs.append((i, j, float(iou[i, j])))
         used_g.add(i)
         used_r.add(j)
-    return (pairs, [i for i in range(len(got_boxes)) if i not in used_g],
-            [j for j in range(len(ref_boxes)) if j not in used_r])
+    return (
+        pairs,
+        [i for i in range(len(got_boxes)) if i not in used_g],
+        [j for j in range(len(ref_boxes)) if j not in used_r],
+    )
 
 
 @dataclass(frozen=True)
@@ -367,21 +395,24 @@ class Boxes(Comparator):
         if not (np.isfinite(gb).all() and np.isfinite(gs).all()):
             return CaseResult(self.name, self.kind, False, reason="non-finite boxes or scores")
         pairs, lone_g, lone_r = match_boxes(gb, gl, rb, rl, self.min_iou)
-        c = CaseResult(self.name, self.kind, True, mismatches=len(lone_g) + len(lone_r), matched=len(pairs),
-                       reference=len(rb))
+        c = CaseResult(
+            self.name, self.kind, True, mismatches=len(lone_g) + len(lone_r), matched=len(pairs), reference=len(rb)
+        )
         if pairs:
             c.max_abs = max(abs(float(gs[i]) - float(rs[j])) for i, j, _ in pairs)
             c.min_iou = min(iou for _, _, iou in pairs)
             c.max_rel = max(float(np.abs(gb[i] - rb[j]).max()) for i, j, _ in pairs)
-        if self.min_recall is not None:       # judged over the case set (summarise)
+        if self.min_recall is not None:  # judged over the case set (summarise)
             found = np.zeros(len(rb), bool)
             found[[j for _, j, _ in pairs]] = True
             c.by_score = {f"{b:g}": [int(found[rs >= b].sum()), int((rs >= b).sum())] for b in RECALL_SCORE_BANDS}
             return c
         reasons = []
         if lone_g or lone_r:
-            reasons.append(f"{len(gb)} boxes vs {len(rb)} in the reference; {len(lone_g) + len(lone_r)} unmatched "
-                           f"at IoU >= {self.min_iou}")
+            reasons.append(
+                f"{len(gb)} boxes vs {len(rb)} in the reference; {len(lone_g) + len(lone_r)} unmatched "
+                f"at IoU >= {self.min_iou}"
+            )
         if c.max_abs > self.max_score_diff:
             reasons.append(f"score diff {c.max_abs:.3g} > {self.max_score_diff:g}")
         c.passed = not reasons
@@ -393,8 +424,12 @@ class Boxes(Comparator):
             return self._match(got, ref)
         c = self._match(got, post)
         e2e = self._match(got, ref)
-        c.end_to_end = {"unmatched": e2e.mismatches, "boxes": int(len(got[self.name])),
-                        "reference_boxes": int(len(ref[self.name])), "max_score_diff": e2e.max_abs}
+        c.end_to_end = {
+            "unmatched": e2e.mismatches,
+            "boxes": int(len(got[self.name])),
+            "reference_boxes": int(len(ref[self.name])),
+            "max_score_diff": e2e.max_abs,
+        }
         return c
 
     def tolerance(self):
@@ -407,8 +442,10 @@ class Boxes(Comparator):
         if self.min_recall is not None:
             ref_n = sum(r.reference for r in results)
             s.recall = sum(r.matched for r in results) / ref_n if ref_n else 1.0
-            s.recall_by_score = {f"{b:g}": [sum(r.by_score.get(f"{b:g}", [0, 0])[i] for r in results) for i in (0, 1)]
-                                 for b in RECALL_SCORE_BANDS}
+            s.recall_by_score = {
+                f"{b:g}": [sum(r.by_score.get(f"{b:g}", [0, 0])[i] for r in results) for i in (0, 1)]
+                for b in RECALL_SCORE_BANDS
+            }
             s.passed = s.recall >= self.min_recall
             s.failed_cases = [] if s.passed else ["the case set"]
         e2e = [r.end_to_end for r in results if r.end_to_end is not None]
@@ -417,28 +454,40 @@ class Boxes(Comparator):
         return s
 
     def quantized(self):
-        return replace(self, min_iou=self.quantized_min_iou, min_recall=self.quantized_min_recall,
-                       max_score_diff=float("inf"))
+        return replace(
+            self, min_iou=self.quantized_min_iou, min_recall=self.quantized_min_recall, max_score_diff=float("inf")
+        )
 
     def notes(self, s):
         if s.recall is not None:
-            lines = [f"boxes: end to end vs the full reference; matched-box recall {s.recall * 100:.1f} % "
-                     f"(needs >= {self.min_recall * 100:.0f} % at IoU >= {self.min_iou}); "
-                     f"max abs = score diff, max rel = box coordinate diff"]
-            bands = "; ".join(f">= {b}: {100 * m / n:.1f} % of {n}" if n else f">= {b}: no boxes"
-                              for b, (m, n) in (s.recall_by_score or {}).items())
+            lines = [
+                f"boxes: end to end vs the full reference; matched-box recall {s.recall * 100:.1f} % "
+                f"(needs >= {self.min_recall * 100:.0f} % at IoU >= {self.min_iou}); "
+                f"max abs = score diff, max rel = box coordinate diff"
+            ]
+            bands = "; ".join(
+                f">= {b}: {100 * m / n:.1f} % of {n}" if n else f">= {b}: no boxes"
+                for b, (m, n) in (s.recall_by_score or {}).items()
+            )
             if bands:
                 lines.append(f"recall by reference score (reported, not judged): {bands}")
             return lines
-        against = ("the graph's NMS vs the reference NMS on the graph's anchor outputs" if s.end_to_end
-                   else "vs the reference")
+        against = (
+            "the graph's NMS vs the reference NMS on the graph's anchor outputs" if s.end_to_end else "vs the reference"
+        )
         lines = [f"boxes: {against}; max abs = score diff, max rel = box coordinate diff, {s.mismatches} unmatched"]
         e = s.end_to_end
         if e:
-            lines.append(f"end to end vs the full reference: {e['boxes']} vs {e['reference_boxes']} boxes, "
-                         f"{e['unmatched']} unmatched" +
-                         (" (reported, not judged: the NMS is judged on the graph's own inputs above; an "
-                          "earlier decision within float noise changes its input)" if e["unmatched"] else ""))
+            lines.append(
+                f"end to end vs the full reference: {e['boxes']} vs {e['reference_boxes']} boxes, "
+                f"{e['unmatched']} unmatched"
+                + (
+                    " (reported, not judged: the NMS is judged on the graph's own inputs above; an "
+                    "earlier decision within float noise changes its input)"
+                    if e["unmatched"]
+                    else ""
+                )
+            )
         return lines
 
 
@@ -485,30 +534,48 @@ class Proposals(Comparator):
     def _conditioned(self, got: Outputs, post: Outputs, c: CaseResult) -> list[str]:
         gv, pv = np.asarray(got[self.valid], bool), np.asarray(post[self.valid], bool)
         if gv.shape != pv.shape or not np.array_equal(gv, pv):
-            return [f"{int(gv.sum())} valid rois vs {int(pv.sum())} from the reference proposal layer on the "
-                    f"graph's anchors"]
+            return [
+                f"{int(gv.sum())} valid rois vs {int(pv.sum())} from the reference proposal layer on the "
+                f"graph's anchors"
+            ]
         diff = np.abs(np.asarray(got[self.name], np.float64)[gv] - np.asarray(post[self.name], np.float64)[gv])
         c.max_abs = float(diff.max()) if diff.size else 0.0
         wrong = int((np.asarray(got[self.labels])[gv] != np.asarray(post[self.labels])[gv]).sum())
         c.mismatches = wrong + int((diff > self.max_box_diff).any(1).sum()) if diff.size else wrong
-        return [f"{c.mismatches} roi(s) differ from the reference proposal layer on the graph's anchors "
-                f"(max box diff {c.max_abs:.3g})"] if c.mismatches else []
+        return (
+            [
+                f"{c.mismatches} roi(s) differ from the reference proposal layer on the graph's anchors "
+                f"(max box diff {c.max_abs:.3g})"
+            ]
+            if c.mismatches
+            else []
+        )
 
     def _end_to_end(self, got: Outputs, ref: Outputs) -> dict:
         gv, rv = np.asarray(got[self.valid], bool), np.asarray(ref[self.valid], bool)
         gi, ri = np.flatnonzero(gv), np.flatnonzero(rv)
-        pairs, lone_g, lone_r = match_boxes(np.asarray(got[self.name])[gv], np.asarray(got[self.labels])[gv],
-                                            np.asarray(ref[self.name])[rv], np.asarray(ref[self.labels])[rv],
-                                            self.min_iou)
+        pairs, lone_g, lone_r = match_boxes(
+            np.asarray(got[self.name])[gv],
+            np.asarray(got[self.labels])[gv],
+            np.asarray(ref[self.name])[rv],
+            np.asarray(ref[self.labels])[rv],
+            self.min_iou,
+        )
         e = {"rois": len(gi), "reference_rois": len(ri), "unmatched": len(lone_g) + len(lone_r), "near_ties": []}
         if self.rcnn_scores in got and self.rcnn_scores in ref and pairs:
             gs, rs = np.asarray(got[self.rcnn_scores]), np.asarray(ref[self.rcnn_scores])
             e["rcnn_score_diff"] = max(abs(float(gs[gi[i]]) - float(rs[ri[j]])) for i, j, _ in pairs)
         if e["unmatched"]:
-            config = NmsConfig(score_thresh=-math.inf, iou_thresh=self.iou_thresh, pre_max=self.pre_max,
-                               post_max=self.post_max)
-            e["near_ties"] = near_ties(np.asarray(ref[self.anchor_boxes]), np.asarray(ref[self.logits]).max(-1),
-                                       config, tuple(self.score_tol), self.iou_tol)
+            config = NmsConfig(
+                score_thresh=-math.inf, iou_thresh=self.iou_thresh, pre_max=self.pre_max, post_max=self.post_max
+            )
+            e["near_ties"] = near_ties(
+                np.asarray(ref[self.anchor_boxes]),
+                np.asarray(ref[self.logits]).max(-1),
+                config,
+                tuple(self.score_tol),
+                self.iou_tol,
+            )
         return e
 
     def compare(self, got, ref, post=None):
@@ -517,42 +584,54 @@ class Proposals(Comparator):
         e = self._end_to_end(got, ref)
         c.end_to_end, c.matched, c.reference = e, e["reference_rois"] - e["unmatched"], e["reference_rois"]
         if self.judge_end_to_end and e["unmatched"] and not e["near_ties"]:
-            reasons.append(f"{e['unmatched']} roi(s) unmatched end to end, and no decision of the reference's "
-                           f"proposal NMS is within float noise")
+            reasons.append(
+                f"{e['unmatched']} roi(s) unmatched end to end, and no decision of the reference's "
+                f"proposal NMS is within float noise"
+            )
         c.passed, c.reason = not reasons, "; ".join(reasons)
         return c
 
     def tolerance(self):
-        return {"max_box_diff": self.max_box_diff, "end_to_end": "matched, or a near tie" if self.judge_end_to_end
-                else "reported", "min_iou": self.min_iou}
+        return {
+            "max_box_diff": self.max_box_diff,
+            "end_to_end": "matched, or a near tie" if self.judge_end_to_end else "reported",
+            "min_iou": self.min_iou,
+        }
 
     def summarise(self, results, case_names, got=(), ref=()):
         s = super().summarise(results, case_names)
         ties = [{"case": name, **t} for name, r in zip(case_names, results) for t in r.end_to_end["near_ties"]]
-        s.end_to_end = {"unmatched": sum(r.end_to_end["unmatched"] for r in results),
-                        "rois": sum(r.end_to_end["rois"] for r in results),
-                        "reference_rois": sum(r.end_to_end["reference_rois"] for r in results),
-                        "cases_with_unmatched": [n for n, r in zip(case_names, results) if r.end_to_end["unmatched"]],
-                        "near_ties": ties,
-                        "rcnn_score_diff": max((r.end_to_end.get("rcnn_score_diff", 0.0) for r in results),
-                                               default=0.0)}
+        s.end_to_end = {
+            "unmatched": sum(r.end_to_end["unmatched"] for r in results),
+            "rois": sum(r.end_to_end["rois"] for r in results),
+            "reference_rois": sum(r.end_to_end["reference_rois"] for r in results),
+            "cases_with_unmatched": [n for n, r in zip(case_names, results) if r.end_to_end["unmatched"]],
+            "near_ties": ties,
+            "rcnn_score_diff": max((r.end_to_end.get("rcnn_score_diff", 0.0) for r in results), default=0.0),
+        }
         return s
 
     def quantized(self):
         return replace(self, judge_end_to_end=False)
 
     def notes(self, s):
-        lines = [f"rois: the graph's proposal layer vs the reference proposal layer on the graph's {self.logits} "
-                 f"and {self.anchor_boxes}; max abs = box diff, {s.mismatches} differing"]
+        lines = [
+            f"rois: the graph's proposal layer vs the reference proposal layer on the graph's {self.logits} "
+            f"and {self.anchor_boxes}; max abs = box diff, {s.mismatches} differing"
+        ]
         e = s.end_to_end or {}
         if e:
-            lines.append(f"end to end vs the full reference: {e['rois']} vs {e['reference_rois']} rois, "
-                         f"{e['unmatched']} unmatched; {self.rcnn_scores} of matched rois within "
-                         f"{e['rcnn_score_diff']:.3g}")
+            lines.append(
+                f"end to end vs the full reference: {e['rois']} vs {e['reference_rois']} rois, "
+                f"{e['unmatched']} unmatched; {self.rcnn_scores} of matched rois within "
+                f"{e['rcnn_score_diff']:.3g}"
+            )
             if e["cases_with_unmatched"]:
-                lines.append(f"near ties in the reference's proposal NMS (score noise atol {self.score_tol[0]:g} + "
-                             f"rtol {self.score_tol[1]:g}, IoU noise {self.iou_tol:g}), in "
-                             f"{', '.join(e['cases_with_unmatched'])}:")
+                lines.append(
+                    f"near ties in the reference's proposal NMS (score noise atol {self.score_tol[0]:g} + "
+                    f"rtol {self.score_tol[1]:g}, IoU noise {self.iou_tol:g}), in "
+                    f"{', '.join(e['cases_with_unmatched'])}:"
+                )
                 lines += [f"  {t['case']}: {describe_tie(t)}" for t in e["near_ties"][:6]]
                 if not e["near_ties"]:
                     lines.append("  none")

@@ -47,7 +47,7 @@ class LoadReport:
 
     path: str
     loaded: int
-    dropped: dict[str, list[str]] = field(default_factory=dict)   # rule -> keys
+    dropped: dict[str, list[str]] = field(default_factory=dict)  # rule -> keys
     ignored: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
@@ -70,16 +70,24 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
     obj, trained_features = read_checkpoint(path)
     features = getattr(model, "features", None)
     if trained_features is not None and features is not None and list(features) != trained_features:
-        raise ConfigError(f"checkpoint {path} was trained on point columns {trained_features}, in that order; this "
-                          f"card's features are {list(features)}. The first layer's weights follow the column "
-                          f"order: list the card's features as the checkpoint's")
+        raise ConfigError(
+            f"checkpoint {path} was trained on point columns {trained_features}, in that order; this "
+            f"card's features are {list(features)}. The first layer's weights follow the column "
+            f"order: list the card's features as the checkpoint's"
+        )
     rules = model.checkpoint_drop_rules() if hasattr(model, "checkpoint_drop_rules") else []
     own = model.state_dict()
     report = LoadReport(str(path), 0)
     state = {}
     for key, value in obj.items():
-        rule = next((r for r, prefixes, empty_only in rules if key not in own and key.startswith(tuple(prefixes))
-                     and (value.numel() == 0 or not empty_only)), None)
+        rule = next(
+            (
+                r
+                for r, prefixes, empty_only in rules
+                if key not in own and key.startswith(tuple(prefixes)) and (value.numel() == 0 or not empty_only)
+            ),
+            None,
+        )
         if rule is not None:
             report.dropped.setdefault(rule, []).append(key)
         elif key in IGNORED_CHECKPOINT_KEYS and key not in own:
@@ -88,8 +96,11 @@ def load_checkpoint(model: torch.nn.Module, path: str | Path) -> LoadReport:
             state[key] = value
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
-    shapes = sorted(f"{k} (checkpoint {tuple(state[k].shape)}, model {tuple(own[k].shape)})"
-                    for k in set(own) & set(state) if tuple(state[k].shape) != tuple(own[k].shape))
+    shapes = sorted(
+        f"{k} (checkpoint {tuple(state[k].shape)}, model {tuple(own[k].shape)})"
+        for k in set(own) & set(state)
+        if tuple(state[k].shape) != tuple(own[k].shape)
+    )
     problems = []
     for what, keys in (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)):
         if keys:
@@ -122,29 +133,32 @@ def check_weight_values(model: torch.nn.Module, state: dict, path) -> None:
         bound = MAX_ABS_PARAMETER if key in params else MAX_ABS_STATISTIC
         peak = float(value.abs().max())
         if peak > bound:
-            raise ConfigError(f"checkpoint {path}: {key} holds a value of magnitude {peak:.3g}; a trained network's "
-                              f"{'weights' if key in params else 'statistics'} stay within {bound:g} (this one "
-                              f"would overflow float32 activations)")
+            raise ConfigError(
+                f"checkpoint {path}: {key} holds a value of magnitude {peak:.3g}; a trained network's "
+                f"{'weights' if key in params else 'statistics'} stay within {bound:g} (this one "
+                f"would overflow float32 activations)"
+            )
     for name, module in model.named_modules():
         prefix = f"{name}." if name else ""
         if isinstance(module, torch.nn.modules.batchnorm._NormBase) and f"{prefix}running_var" in state:
             low = float(state[f"{prefix}running_var"].min()) if state[f"{prefix}running_var"].numel() else 0.0
             if low < 0:
-                raise ConfigError(f"checkpoint {path}: {prefix}running_var has a negative variance ({low:.3g}); "
-                                  f"BatchNorm variances are >= 0")
+                raise ConfigError(
+                    f"checkpoint {path}: {prefix}running_var has a negative variance ({low:.3g}); "
+                    f"BatchNorm variances are >= 0"
+                )
         if isinstance(module, GeM) and f"{prefix}p" in state:
             p = float(state[f"{prefix}p"].min())
             if p <= 0:
                 raise ConfigError(f"checkpoint {path}: {prefix}p = {p:.3g}; GeM pooling needs an exponent p > 0")
 
 
-def create_model(card: ModelCard, checkpoint: str | Path | None = None,
-                 spec: ModelSpec | None = None) -> torch.nn.Module:
+def create_model(
+    card: ModelCard, checkpoint: str | Path | None = None, spec: ModelSpec | None = None
+) -> torch.nn.Module:
     """The card's model (``spec`` when the caller resolved it), seeded, with ``checkpoint``
     loaded when given (its :class:`LoadReport` as ``model.checkpoint_report``)."""
     model = (spec or model_spec(card)).build(card)
     if checkpoint:
         model.checkpoint_report = load_checkpoint(model, checkpoint)
     return model.eval()
-
-

@@ -115,7 +115,7 @@ class BenchTask:
     baseline: str = "torch reference"
     items_per_case: int | None = None
     item_unit: str = ""
-    facts: dict = field(default_factory=dict)     # what the title states, for JSON
+    facts: dict = field(default_factory=dict)  # what the title states, for JSON
 
 
 @dataclass(frozen=True)

@@ -53,8 +53,14 @@ class BevGrid:
         """Grid of a model card's ``point_cloud_range`` (x_min, y_min, z_min, x_max, y_max, z_max)
         and ``voxel_size`` (sx, sy[, sz]), metres."""
         r, v = point_cloud_range, voxel_size
-        return cls(float(r[0]), float(r[1]), float(v[0]), float(v[1]),
-                   int(round((r[3] - r[0]) / v[0])), int(round((r[4] - r[1]) / v[1])))
+        return cls(
+            float(r[0]),
+            float(r[1]),
+            float(v[0]),
+            float(v[1]),
+            int(round((r[3] - r[0]) / v[0])),
+            int(round((r[4] - r[1]) / v[1])),
+        )
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -66,8 +72,13 @@ class BevGrid:
         return -self.x_min / self.voxel_x - 0.5, -self.y_min / self.voxel_y - 0.5
 
 
-def grid_displacement(ego_velocities: torch.Tensor, voxel_size, *, frame_interval: float | None = None,
-                      timestamps: torch.Tensor | None = None) -> torch.Tensor:
+def grid_displacement(
+    ego_velocities: torch.Tensor,
+    voxel_size,
+    *,
+    frame_interval: float | None = None,
+    timestamps: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Grid displacement from each frame to the current (last) one, [K, 2] cells (eq. 4-5).
 
     ``ego_velocities`` [K, 3] m/s is the radar's velocity w.r.t. the world in each frame's radar
@@ -86,8 +97,8 @@ def grid_displacement(ego_velocities: torch.Tensor, voxel_size, *, frame_interva
         dt = torch.full_like(ego_velocities[1:, 0], frame_interval)
     else:
         dt = (timestamps[1:] - timestamps[:-1]).to(ego_velocities.dtype)
-    steps = ego_velocities[:-1, :2] * dt.unsqueeze(1)                        # [K-1, 2] m
-    to_current = torch.flip(torch.cumsum(torch.flip(steps, [0]), 0), [0])    # sum_{j >= k} steps_j
+    steps = ego_velocities[:-1, :2] * dt.unsqueeze(1)  # [K-1, 2] m
+    to_current = torch.flip(torch.cumsum(torch.flip(steps, [0]), 0), [0])  # sum_{j >= k} steps_j
     metres = torch.cat([to_current, torch.zeros_like(steps[:1])], 0)
     return metres / torch.tensor([voxel_size[0], voxel_size[1]], dtype=metres.dtype, device=metres.device)
 
@@ -96,10 +107,13 @@ def _check_inputs(past_map: torch.Tensor, displacement_cells: torch.Tensor, yaw,
     if past_map.dim() != 4 or tuple(past_map.shape[2:]) != grid.shape:
         raise InputError(
             f"past_map must be [B, C, H=ny, W=nx] = [B, C, {grid.ny}, {grid.nx}] for this grid, got "
-            f"{list(past_map.shape)}")
+            f"{list(past_map.shape)}"
+        )
     if tuple(displacement_cells.shape) != (past_map.shape[0], 2):
-        raise InputError(f"displacement_cells must be [B, 2] = [{past_map.shape[0]}, 2] (dx, dy cells), "
-                         f"got {list(displacement_cells.shape)}")
+        raise InputError(
+            f"displacement_cells must be [B, 2] = [{past_map.shape[0]}, 2] (dx, dy cells), "
+            f"got {list(displacement_cells.shape)}"
+        )
     if yaw is not None and tuple(yaw.shape) != (past_map.shape[0],):
         raise InputError(f"yaw must be [B] = [{past_map.shape[0]}] rad, got {list(yaw.shape)}")
 
@@ -121,12 +135,12 @@ def _index_map(displacement_cells: torch.Tensor, yaw, grid: BevGrid):
     cos = torch.cos(yaw).to(dtype).view(-1, 1, 1)
     sin = torch.sin(yaw).to(dtype).view(-1, 1, 1)
     ratio = grid.voxel_y / grid.voxel_x
-    return (cu + cos * (u - cu) - sin * ratio * (v - cv) + du,
-            cv + sin / ratio * (u - cu) + cos * (v - cv) + dv)
+    return (cu + cos * (u - cu) - sin * ratio * (v - cv) + du, cv + sin / ratio * (u - cu) + cos * (v - cv) + dv)
 
 
-def align_bev(past_map: torch.Tensor, displacement_cells: torch.Tensor, yaw: torch.Tensor | None = None, *,
-              grid: BevGrid) -> torch.Tensor:
+def align_bev(
+    past_map: torch.Tensor, displacement_cells: torch.Tensor, yaw: torch.Tensor | None = None, *, grid: BevGrid
+) -> torch.Tensor:
     """Export formulation: warp past maps [B, C, H=ny, W=nx] into the current frame.
 
     ``displacement_cells`` [B, 2] is the radar displacement past -> current in cells (dx/sx, dy/sy),
@@ -137,8 +151,8 @@ def align_bev(past_map: torch.Tensor, displacement_cells: torch.Tensor, yaw: tor
     _check_inputs(past_map, displacement_cells, yaw, grid)
     u, v = _index_map(displacement_cells, yaw, grid)
     # grid_sample, align_corners=False: pixel k of n spans normalised [2k/n - 1, 2(k+1)/n - 1].
-    gx = (2.0 * u + 1.0) / grid.nx - 1.0        # width axis = x cells
-    gy = (2.0 * v + 1.0) / grid.ny - 1.0        # height axis = y cells
+    gx = (2.0 * u + 1.0) / grid.nx - 1.0  # width axis = x cells
+    gy = (2.0 * v + 1.0) / grid.ny - 1.0  # height axis = y cells
     sample_grid = torch.stack(torch.broadcast_tensors(gx, gy), -1).to(past_map.dtype)
     return F.grid_sample(past_map, sample_grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
@@ -166,8 +180,9 @@ def bilinear_sample_reference(image: torch.Tensor, rows: torch.Tensor, cols: tor
     return out.to(image.dtype)
 
 
-def align_bev_reference(past_map: torch.Tensor, displacement_cells: torch.Tensor,
-                        yaw: torch.Tensor | None = None, *, grid: BevGrid) -> torch.Tensor:
+def align_bev_reference(
+    past_map: torch.Tensor, displacement_cells: torch.Tensor, yaw: torch.Tensor | None = None, *, grid: BevGrid
+) -> torch.Tensor:
     """Reference formulation of :func:`align_bev`, derived in metres and sampled explicitly.
 
     For every current cell centre p (m): p_past = R(yaw) p + d with d = ``displacement_cells``
@@ -178,7 +193,7 @@ def align_bev_reference(past_map: torch.Tensor, displacement_cells: torch.Tensor
     b = past_map.shape[0]
     x = grid.x_min + (torch.arange(grid.nx, dtype=torch.float64) + 0.5) * grid.voxel_x
     y = grid.y_min + (torch.arange(grid.ny, dtype=torch.float64) + 0.5) * grid.voxel_y
-    py, px = (t.reshape(1, -1) for t in torch.meshgrid(y, x, indexing="ij"))    # [1, H*W]
+    py, px = (t.reshape(1, -1) for t in torch.meshgrid(y, x, indexing="ij"))  # [1, H*W]
     d = displacement_cells.double() * torch.tensor([grid.voxel_x, grid.voxel_y], dtype=torch.float64)
     psi = torch.zeros(b, dtype=torch.float64) if yaw is None else yaw.double()
     cos, sin = torch.cos(psi).unsqueeze(1), torch.sin(psi).unsqueeze(1)
@@ -188,4 +203,3 @@ def align_bev_reference(past_map: torch.Tensor, displacement_cells: torch.Tensor
     cols = (past_x - grid.x_min) / grid.voxel_x - 0.5
     out = bilinear_sample_reference(past_map, rows, cols)
     return out.reshape(past_map.shape)
-

@@ -34,7 +34,7 @@ def bev_interpolate(bev: torch.Tensor, xy: torch.Tensor, origin, cell, stride: i
     x1 = torch.clamp(x0 + 1, 0, w - 1)
     y1 = torch.clamp(y0 + 1, 0, h - 1)
     x0, y0 = torch.clamp(x0, 0, w - 1), torch.clamp(y0, 0, h - 1)
-    flat = bev.reshape(c, h * w).t()                                         # [H*W, C]
+    flat = bev.reshape(c, h * w).t()  # [H*W, C]
 
     def at(yi, xi):
         return flat[(yi * w + xi).to(torch.int64)]
@@ -43,8 +43,12 @@ def bev_interpolate(bev: torch.Tensor, xy: torch.Tensor, origin, cell, stride: i
     wb = (x1 - u) * (v - y0)
     wc = (u - x0) * (y1 - v)
     wd = (u - x0) * (v - y0)
-    return (at(y0, x0) * wa.unsqueeze(1) + at(y1, x0) * wb.unsqueeze(1) + at(y0, x1) * wc.unsqueeze(1)
-            + at(y1, x1) * wd.unsqueeze(1))
+    return (
+        at(y0, x0) * wa.unsqueeze(1)
+        + at(y1, x0) * wb.unsqueeze(1)
+        + at(y0, x1) * wc.unsqueeze(1)
+        + at(y1, x1) * wd.unsqueeze(1)
+    )
 
 
 def bev_interpolate_reference(bev: np.ndarray, xy: np.ndarray, origin, cell, stride: int = 1) -> np.ndarray:

@@ -28,18 +28,18 @@ import math
 import numpy as np
 import torch
 
-EPS_UNION = 1e-8      # OpenPCDet iou3d_nms kernel: overlap / max(union, EPS)
-EDGE_TOL = 1e-5       # m, float32 inputs; see the module docstring
-EDGE_TOL_F64 = 1e-9   # m, float64 inputs
+EPS_UNION = 1e-8  # OpenPCDet iou3d_nms kernel: overlap / max(union, EPS)
+EDGE_TOL = 1e-5  # m, float32 inputs; see the module docstring
+EDGE_TOL_F64 = 1e-9  # m, float64 inputs
 
 
 def bev_corners(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Counter-clockwise BEV corners of boxes [P, 7]: (x [4, P], y [4, P]) in metres, pairs last
     (onnxruntime broadcasts fastest over a long contiguous last axis)."""
-    b = boxes.t()                                                        # [7, P]
+    b = boxes.t()  # [7, P]
     sx = torch.tensor([[1.0], [-1.0], [-1.0], [1.0]], dtype=boxes.dtype, device=boxes.device)
     sy = torch.tensor([[1.0], [1.0], [-1.0], [-1.0]], dtype=boxes.dtype, device=boxes.device)
-    lx, ly = sx * (b[3] / 2), sy * (b[4] / 2)                            # [4, P]
+    lx, ly = sx * (b[3] / 2), sy * (b[4] / 2)  # [4, P]
     c, s = torch.cos(b[6]), torch.sin(b[6])
     return c * lx - s * ly + b[0], s * lx + c * ly + b[1]
 
@@ -49,19 +49,26 @@ def _next_corner(corner: torch.Tensor) -> torch.Tensor:
     return torch.cat([corner[1:], corner[:1]])
 
 
-def _clipped_boundary_area(px: torch.Tensor, py: torch.Tensor, p_len: torch.Tensor, qx: torch.Tensor,
-                           qy: torch.Tensor, q_len: torch.Tensor, tol: float,
-                           skip_shared: torch.Tensor) -> torch.Tensor:
+def _clipped_boundary_area(
+    px: torch.Tensor,
+    py: torch.Tensor,
+    p_len: torch.Tensor,
+    qx: torch.Tensor,
+    qy: torch.Tensor,
+    q_len: torch.Tensor,
+    tol: float,
+    skip_shared: torch.Tensor,
+) -> torch.Tensor:
     """Sum over the edges of polygon p (corners ``px``, ``py`` [4, P]) of cross(start, end)/2 of
     the part of the edge inside polygon q (``qx``, ``qy`` [4, P]); both counter-clockwise,
     ``*_len`` [4, P] the edge lengths. An edge parallel to a side of q and within ``tol`` of its
     line lies on it: inside, unless ``skip_shared`` [P] (bool) is set and the two run the same way.
     Returns [P]. Axes: k = p's edge, l = q's side, pairs last."""
-    dx, dy = _next_corner(px) - px, _next_corner(py) - py                # edge k: p[k] -> p[k+1]
-    ex, ey = (_next_corner(qx) - qx).unsqueeze(0), (_next_corner(qy) - qy).unsqueeze(0)   # [1, 4l, P]
-    e_len, d_len = q_len.unsqueeze(0), p_len.unsqueeze(1)                # [1, 4l, P], [4k, 1, P]
+    dx, dy = _next_corner(px) - px, _next_corner(py) - py  # edge k: p[k] -> p[k+1]
+    ex, ey = (_next_corner(qx) - qx).unsqueeze(0), (_next_corner(qy) - qy).unsqueeze(0)  # [1, 4l, P]
+    e_len, d_len = q_len.unsqueeze(0), p_len.unsqueeze(1)  # [1, 4l, P], [4k, 1, P]
     # inside side l: cross(e_l, x - q_l) >= 0 for x = p_k + t d_k, i.e. num + t den >= 0
-    num = ex * (py.unsqueeze(1) - qy.unsqueeze(0)) - ey * (px.unsqueeze(1) - qx.unsqueeze(0))   # [4k, 4l, P]
+    num = ex * (py.unsqueeze(1) - qy.unsqueeze(0)) - ey * (px.unsqueeze(1) - qx.unsqueeze(0))  # [4k, 4l, P]
     den = ex * dy.unsqueeze(1) - ey * dx.unsqueeze(1)
     parallel = den.abs() <= (1e-5 if px.dtype == torch.float32 else 1e-12) * e_len * d_len
     on_line = parallel & (num.abs() <= tol * e_len)
@@ -87,13 +94,25 @@ def bev_overlap_paired(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Te
     p = boxes_a.shape[0]
     ax, ay = bev_corners(boxes_a)
     bx, by = bev_corners(boxes_b)
-    ox, oy = boxes_a[:, 0], boxes_a[:, 1]                                # cross products about A's centre
+    ox, oy = boxes_a[:, 0], boxes_a[:, 1]  # cross products about A's centre
     ax, ay, bx, by = ax - ox, ay - oy, bx - ox, by - oy
-    la, lb = boxes_a[:, 3:5].t().repeat(2, 1), boxes_b[:, 3:5].t().repeat(2, 1)   # [4, P], edge lengths
-    skip = torch.cat([torch.zeros(p, dtype=torch.bool, device=boxes_a.device),
-                      torch.ones(p, dtype=torch.bool, device=boxes_a.device)])
-    parts = _clipped_boundary_area(torch.cat([ax, bx], 1), torch.cat([ay, by], 1), torch.cat([la, lb], 1),
-                                   torch.cat([bx, ax], 1), torch.cat([by, ay], 1), torch.cat([lb, la], 1), tol, skip)
+    la, lb = boxes_a[:, 3:5].t().repeat(2, 1), boxes_b[:, 3:5].t().repeat(2, 1)  # [4, P], edge lengths
+    skip = torch.cat(
+        [
+            torch.zeros(p, dtype=torch.bool, device=boxes_a.device),
+            torch.ones(p, dtype=torch.bool, device=boxes_a.device),
+        ]
+    )
+    parts = _clipped_boundary_area(
+        torch.cat([ax, bx], 1),
+        torch.cat([ay, by], 1),
+        torch.cat([la, lb], 1),
+        torch.cat([bx, ax], 1),
+        torch.cat([by, ay], 1),
+        torch.cat([lb, la], 1),
+        tol,
+        skip,
+    )
     return torch.clamp(parts[:p] + parts[p:], min=0.0)
 
 
@@ -119,10 +138,12 @@ def bev_iou_upper_bound(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.T
     area_b - u). It equals the IoU for two axis-aligned boxes and is 0 for disjoint rectangles."""
     exa, eya = bev_half_extents(boxes_a)
     exb, eyb = bev_half_extents(boxes_b)
-    ix = (torch.minimum(boxes_a[:, 0] + exa, boxes_b[:, 0] + exb)
-          - torch.maximum(boxes_a[:, 0] - exa, boxes_b[:, 0] - exb))
-    iy = (torch.minimum(boxes_a[:, 1] + eya, boxes_b[:, 1] + eyb)
-          - torch.maximum(boxes_a[:, 1] - eya, boxes_b[:, 1] - eyb))
+    ix = torch.minimum(boxes_a[:, 0] + exa, boxes_b[:, 0] + exb) - torch.maximum(
+        boxes_a[:, 0] - exa, boxes_b[:, 0] - exb
+    )
+    iy = torch.minimum(boxes_a[:, 1] + eya, boxes_b[:, 1] + eyb) - torch.maximum(
+        boxes_a[:, 1] - eya, boxes_b[:, 1] - eyb
+    )
     area_a, area_b = boxes_a[:, 3] * boxes_a[:, 4], boxes_b[:, 3] * boxes_b[:, 4]
     u = torch.minimum(torch.clamp(ix, min=0.0) * torch.clamp(iy, min=0.0), torch.minimum(area_a, area_b))
     return u / torch.clamp(area_a + area_b - u, min=EPS_UNION)
@@ -157,6 +178,7 @@ def _corners_reference(box) -> list[tuple[float, float]]:
 
 def _clip(polygon, a, b):
     """Part of ``polygon`` left of the directed line a -> b (Sutherland-Hodgman step)."""
+
     def side(p):
         return (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
 
@@ -192,4 +214,5 @@ def bev_iou_reference(box_a, box_b) -> float:
 def bev_iou_matrix_reference(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     """Reference IoU of every box of boxes_a [N, 7] with every box of boxes_b [M, 7] -> [N, M]."""
     return np.array([[bev_iou_reference(a, b) for b in boxes_b] for a in boxes_a], np.float64).reshape(
-        len(boxes_a), len(boxes_b))
+        len(boxes_a), len(boxes_b)
+    )

@@ -63,8 +63,8 @@ import torch.nn.functional as F
 from ..errors import InputError
 
 MODES = ("exact", "maxpool")
-MAXPOOL_ITERATIONS = 20   # the fork's CC_ITERATIONS
-_MAX_CELLS = 2**24        # ids must stay exact in float32
+MAXPOOL_ITERATIONS = 20  # the fork's CC_ITERATIONS
+_MAX_CELLS = 2**24  # ids must stay exact in float32
 
 
 def exact_rounds(h: int, w: int) -> int:
@@ -88,8 +88,9 @@ def connected_components(mask: torch.Tensor, mode: str = "exact", iterations: in
     if mode not in MODES:
         raise InputError(f"connected_components: mode must be one of {MODES}, got {mode!r}")
     if mask.dtype != torch.bool or mask.dim() != 3:
-        raise InputError(f"connected_components: mask must be a [B, H, W] bool tensor, got "
-                         f"{mask.dtype} of shape {tuple(mask.shape)}")
+        raise InputError(
+            f"connected_components: mask must be a [B, H, W] bool tensor, got {mask.dtype} of shape {tuple(mask.shape)}"
+        )
     h, w = int(mask.shape[1]), int(mask.shape[2])
     if h * w >= _MAX_CELLS:
         raise InputError(f"connected_components: an {h} x {w} map exceeds {_MAX_CELLS} cells")
@@ -122,8 +123,8 @@ def _exact_components(mask: torch.Tensor, jumps: list[int]):
     """Hook-and-contract rounds (see module docstring); ``jumps[k]`` pointer jumps in round k."""
     _, h, w = mask.shape
     valid = mask.reshape(-1, h * w)
-    cells = torch.arange(h * w, device=mask.device).unsqueeze(0).expand_as(valid)   # linear index of every cell
-    parent = cells                           # every cell its own root; background stays so
+    cells = torch.arange(h * w, device=mask.device).unsqueeze(0).expand_as(valid)  # linear index of every cell
+    parent = cells  # every cell its own root; background stays so
     for count in jumps:
         parent = _hook(parent, valid, cells, h, w)
         for _ in range(count):
@@ -156,8 +157,12 @@ def hook_roots(parent, active, ids, nb_max, nb_min, dim: int):
     up = ids.scatter_reduce(dim, parent, torch.where(active, nb_max, ids), reduce="amax", include_self=True)
     down = ids.scatter_reduce(dim, parent, torch.where(active, nb_min, ids), reduce="amin", include_self=True)
     hooks_up = up > ids
-    hooked_onto = torch.zeros_like(parent).scatter_reduce(
-        dim, torch.where(hooks_up, up, ids), hooks_up.to(torch.int64), reduce="amax", include_self=True) > 0
+    hooked_onto = (
+        torch.zeros_like(parent).scatter_reduce(
+            dim, torch.where(hooks_up, up, ids), hooks_up.to(torch.int64), reduce="amax", include_self=True
+        )
+        > 0
+    )
     stagnant = ~hooks_up & ~hooked_onto & (down < ids)
     return torch.where(hooks_up, up, torch.where(stagnant, down, parent))
 

@@ -94,26 +94,34 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..config import card_ranges, positive
 from ..errors import InputError
 from .components import exact_schedule, hook_roots
 from .grid_density import MAX_MAP_CELLS
-from ..config import card_ranges, positive
 
 
-@card_ranges(eps=positive(100.0), min_samples=(1, 100_000), max_cluster_size=(0, 2**24), capacity=(1, 2**24 - 1),
-             map_rows=(1, 8192), map_cols=(1, 8192), resolution=positive(100.0), y_offset=(-1000.0, 1000.0))
+@card_ranges(
+    eps=positive(100.0),
+    min_samples=(1, 100_000),
+    max_cluster_size=(0, 2**24),
+    capacity=(1, 2**24 - 1),
+    map_rows=(1, 8192),
+    map_cols=(1, 8192),
+    resolution=positive(100.0),
+    y_offset=(-1000.0, 1000.0),
+)
 @dataclass(frozen=True)
 class DbscanConfig:
     """CQCA_cfa's DBSCAN and map settings (mixed m and m/s for eps, metres, cells); VoD by default."""
 
-    eps: float = 0.4               # DBSCAN radius over (x m, y m, v m/s) (DBSCAN_EPS)
-    min_samples: int = 10          # neighbourhood size of a core point, itself included (DBSCAN_SAMPLE)
-    max_cluster_size: int = 100    # larger clusters become noise (upstream's hard-coded 100)
-    capacity: int = 2048           # points clustered per scan; the rest are dropped (see docstring)
-    map_rows: int = 320            # y cells, first map dim (upstream's DBSCAN_MAP_W)
-    map_cols: int = 320            # x cells, second map dim (upstream's DBSCAN_MAP_H)
-    resolution: float = 0.16       # m per cell (RESOLUTION)
-    y_offset: float = 25.6         # m added to y before binning (DBSCAN_Y)
+    eps: float = 0.4  # DBSCAN radius over (x m, y m, v m/s) (DBSCAN_EPS)
+    min_samples: int = 10  # neighbourhood size of a core point, itself included (DBSCAN_SAMPLE)
+    max_cluster_size: int = 100  # larger clusters become noise (upstream's hard-coded 100)
+    capacity: int = 2048  # points clustered per scan; the rest are dropped (see docstring)
+    map_rows: int = 320  # y cells, first map dim (upstream's DBSCAN_MAP_W)
+    map_cols: int = 320  # x cells, second map dim (upstream's DBSCAN_MAP_H)
+    resolution: float = 0.16  # m per cell (RESOLUTION)
+    y_offset: float = 25.6  # m added to y before binning (DBSCAN_Y)
 
     def __post_init__(self):
         if not (self.eps > 0 and np.isfinite(self.eps)):
@@ -125,8 +133,10 @@ class DbscanConfig:
         if not 1 <= self.capacity < 2**24:
             raise ValueError(f"capacity must be in [1, 2^24), got {self.capacity}")
         if self.map_rows < 1 or self.map_cols < 1 or self.map_rows * self.map_cols > MAX_MAP_CELLS:
-            raise ValueError(f"map_rows and map_cols must be >= 1 with at most {MAX_MAP_CELLS} cells (the CFA "
-                             f"convolves the map at 64 channels: 256 MiB), got {self.map_rows} x {self.map_cols}")
+            raise ValueError(
+                f"map_rows and map_cols must be >= 1 with at most {MAX_MAP_CELLS} cells (the CFA "
+                f"convolves the map at 64 channels: 256 MiB), got {self.map_rows} x {self.map_cols}"
+            )
         if not (self.resolution > 0 and np.isfinite(self.resolution)):
             raise ValueError(f"resolution must be a finite number > 0, got {self.resolution}")
         if not np.isfinite(self.y_offset):
@@ -144,11 +154,15 @@ def dbscan_rounds(capacity: int) -> list[int]:
 
 def _check_inputs(xyv: torch.Tensor, valid: torch.Tensor, what: str) -> None:
     if xyv.dtype != torch.float32 or xyv.dim() != 2 or xyv.shape[1] != 3:
-        raise InputError(f"{what}: points_xyv must be a [N, 3] float32 tensor (x m, y m, v m/s), "
-                         f"got {xyv.dtype} of shape {tuple(xyv.shape)}")
+        raise InputError(
+            f"{what}: points_xyv must be a [N, 3] float32 tensor (x m, y m, v m/s), "
+            f"got {xyv.dtype} of shape {tuple(xyv.shape)}"
+        )
     if valid.dtype != torch.bool or valid.dim() != 1 or valid.shape[0] != xyv.shape[0]:
-        raise InputError(f"{what}: valid must be a [N] bool tensor (N = {xyv.shape[0]} points), got "
-                         f"{valid.dtype} of shape {tuple(valid.shape)}")
+        raise InputError(
+            f"{what}: valid must be a [N] bool tensor (N = {xyv.shape[0]} points), got "
+            f"{valid.dtype} of shape {tuple(valid.shape)}"
+        )
 
 
 # ----------------------------------------------------------------------------- export: DBSCAN
@@ -169,18 +183,18 @@ def dbscan_labels(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig, rou
     # One always-invalid sentinel point keeps every row reduction non-empty (N = 0 included).
     pts = torch.cat([head, head.new_zeros(1, 3)])
     ok = torch.cat([valid[:cap], valid.new_zeros(1)]) & torch.isfinite(pts).all(1)
-    m = pts.shape[0]                                   # min(N, capacity) + 1
+    m = pts.shape[0]  # min(N, capacity) + 1
     idx = torch.arange(m, device=xyv.device)
 
     p = torch.where(ok.unsqueeze(1), pts, 0.0).to(torch.float64)
-    dx, dy, dz = (p[:, k].unsqueeze(1) - p[:, k].unsqueeze(0) for k in range(3))   # [M, M] float64, exact
-    d2 = dx * dx + dy * dy + dz * dz                   # sklearn's rdist order: ((dx^2 + dy^2) + dz^2)
+    dx, dy, dz = (p[:, k].unsqueeze(1) - p[:, k].unsqueeze(0) for k in range(3))  # [M, M] float64, exact
+    d2 = dx * dx + dy * dy + dz * dz  # sklearn's rdist order: ((dx^2 + dy^2) + dz^2)
     near = (d2 <= float(cfg.eps) * float(cfg.eps)) & ok.unsqueeze(1) & ok.unsqueeze(0)
-    core = ok & (near.to(torch.float32).sum(1) >= cfg.min_samples)   # counts exact in float32
+    core = ok & (near.to(torch.float32).sum(1) >= cfg.min_samples)  # counts exact in float32
     adj = near & core.unsqueeze(1) & core.unsqueeze(0)  # core graph, self loops on core points
-    adj = adj.to(torch.float32)                        # a 0/1 mask for the row maxima below
+    adj = adj.to(torch.float32)  # a 0/1 mask for the row maxima below
 
-    schedule = exact_schedule(cap, 1, rounds)          # proven rounds unless overridden
+    schedule = exact_schedule(cap, 1, rounds)  # proven rounds unless overridden
     parent = idx
     for jumps in schedule:
         parent = _hook(parent, adj, core, idx, m)
@@ -191,7 +205,7 @@ def dbscan_labels(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig, rou
     star = parent.gather(0, parent) == parent
     settled = ~core | ((nb_max == parent) & (nb_min == parent))
     beyond = valid[cap:] & torch.isfinite(xyv[cap:]).all(1)
-    converged = (star & settled).all() & (beyond.to(torch.int64).sum() == 0)   # sum: empty-safe in ORT
+    converged = (star & settled).all() & (beyond.to(torch.int64).sum() == 0)  # sum: empty-safe in ORT
 
     # canonical numbering: component id = smallest core index, cluster = rank of that index
     low = idx.scatter_reduce(0, parent, idx, reduce="amin", include_self=True).gather(0, parent)
@@ -199,11 +213,11 @@ def dbscan_labels(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig, rou
     # a float32 CumSum (TensorRT refuses integer ones): exact up to 2**24 points, where capacity stops
     rank = (torch.cumsum(first.to(torch.float32), 0) - 1.0).to(torch.int64)
     cluster = torch.where(core, rank.gather(0, low), m)
-    reach = near & core.unsqueeze(0)                   # j is a core point within eps of i
+    reach = near & core.unsqueeze(0)  # j is a core point within eps of i
     border = torch.where(reach, cluster.unsqueeze(0), m).amin(1)
     labels = torch.where(border < m, border, -1)[: m - 1]
     core = core[: m - 1]
-    tail = n - (m - 1)                                 # points beyond capacity
+    tail = n - (m - 1)  # points beyond capacity
     labels = torch.cat([labels, labels.new_full((tail,), -1)])
     core = torch.cat([core, core.new_zeros(tail)])
     return labels, core, converged
@@ -243,7 +257,7 @@ def cqca_cfa_map(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig):
     rows, cols, cap = cfg.map_rows, cfg.map_cols, cfg.capacity
 
     clustered = labels >= 0
-    slot = torch.where(clustered, labels, cap)         # labels < capacity; slot cap collects noise
+    slot = torch.where(clustered, labels, cap)  # labels < capacity; slot cap collects noise
     counts = torch.zeros(cap + 1, device=xyv.device).scatter_add(0, slot, torch.ones(n, device=xyv.device))
     density = torch.where(clustered, counts.gather(0, slot), 0.0)
     labels = torch.where(density > cfg.max_cluster_size, -1, labels)
@@ -254,11 +268,12 @@ def cqca_cfa_map(xyv: torch.Tensor, valid: torch.Tensor, cfg: DbscanConfig):
     col = _cell_index(pts[:, 0] / cfg.resolution, cols)
     row = _cell_index((pts[:, 1] + cfg.y_offset) / cfg.resolution, rows)
     write = (labels > 0) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-    cell = torch.where(write, row * cols + col, rows * cols)          # rows*cols = not written
+    cell = torch.where(write, row * cols + col, rows * cols)  # rows*cols = not written
     winner = torch.full((rows * cols + 1,), -1, dtype=torch.int64, device=xyv.device).scatter_reduce(
-        0, cell, torch.arange(n, device=xyv.device), reduce="amax", include_self=True)[: rows * cols]
+        0, cell, torch.arange(n, device=xyv.device), reduce="amax", include_self=True
+    )[: rows * cols]
     values = torch.stack([pts[:, 2], density, labels.to(torch.float32)], 1)
-    values = torch.cat([values, values.new_zeros(1, 3)])               # row n: an empty cell
+    values = torch.cat([values, values.new_zeros(1, 3)])  # row n: an empty cell
     bev = values.index_select(0, torch.where(winner >= 0, winner, n))  # [rows * cols, 3]
     return bev.t().reshape(3, rows, cols), cluster_points, converged
 
@@ -286,8 +301,8 @@ def dbscan_labels_reference(xyv, valid, cfg: DbscanConfig):
     points = np.asarray(xyv, np.float32).reshape(-1, 3)
     n = len(points)
     ok = np.asarray(valid, bool).reshape(-1) & np.isfinite(points).all(1)
-    converged = not ok[cfg.capacity:].any()
-    ok[cfg.capacity:] = False
+    converged = not ok[cfg.capacity :].any()
+    ok[cfg.capacity :] = False
     p = points.astype(np.float64)
     e2 = float(cfg.eps) * float(cfg.eps)
     hood: list[np.ndarray] = []
@@ -336,7 +351,7 @@ def cqca_cfa_map_reference(xyv, valid, cfg: DbscanConfig):
     for i, (x, y, v) in enumerate(points):
         if labels[i] <= 0:
             continue
-        col = int(x / res) - 1                       # float32 arithmetic, truncation toward zero
+        col = int(x / res) - 1  # float32 arithmetic, truncation toward zero
         row = int((y + off) / res) - 1
         col = cfg.map_cols - 1 if col == -1 else col
         row = cfg.map_rows - 1 if row == -1 else row
@@ -365,8 +380,9 @@ def cqca_cfa_map_sklearn(xyv, cfg: DbscanConfig = VOD, vectorised: bool = False)
     from sklearn.cluster import DBSCAN
 
     xyv = torch.as_tensor(np.asarray(xyv, np.float32).reshape(-1, 3))
-    labels = torch.as_tensor(DBSCAN(eps=cfg.eps, min_samples=cfg.min_samples).fit_predict(xyv.numpy()),
-                             dtype=torch.int64)
+    labels = torch.as_tensor(
+        DBSCAN(eps=cfg.eps, min_samples=cfg.min_samples).fit_predict(xyv.numpy()), dtype=torch.int64
+    )
     if vectorised:
         _, inverse, counts = np.unique(labels.numpy(), return_inverse=True, return_counts=True)
         density = torch.as_tensor(np.where(labels.numpy() >= 0, counts[inverse], 0), dtype=torch.float32)

@@ -41,8 +41,9 @@ def _level_shapes(spatial_shapes, value: torch.Tensor, sampling_locations: torch
     if value.shape[1] != total:
         raise InputError(f"value has {value.shape[1]} positions but spatial_shapes {shapes} hold {total}")
     if sampling_locations.shape[3] != len(shapes):
-        raise InputError(f"sampling_locations has {sampling_locations.shape[3]} levels (axis 3), "
-                         f"spatial_shapes has {len(shapes)}")
+        raise InputError(
+            f"sampling_locations has {sampling_locations.shape[3]} levels (axis 3), spatial_shapes has {len(shapes)}"
+        )
     return shapes
 
 
@@ -57,20 +58,22 @@ def _weighted_sum(samples: list[torch.Tensor], attention_weights: torch.Tensor) 
     """Per-level samples [N*M, D, Lq, P] and head-major weights [N, M, Lq, L, P] -> output
     [N, M*D, Lq], channels first (channel m*D + d is head m's channel d)."""
     n, m, lq, levels, p = attention_weights.shape
-    stacked = torch.stack(samples, -2).flatten(-2)                                  # [N*M, D, Lq, L*P]
+    stacked = torch.stack(samples, -2).flatten(-2)  # [N*M, D, Lq, L*P]
     out = (stacked * attention_weights.reshape(n * m, 1, lq, levels * p)).sum(-1)  # [N*M, D, Lq]
     return out.reshape(n, m * out.shape[1], lq)
 
 
-def ms_deform_attn(value: torch.Tensor, spatial_shapes, sampling_locations: torch.Tensor,
-                   attention_weights: torch.Tensor) -> torch.Tensor:
+def ms_deform_attn(
+    value: torch.Tensor, spatial_shapes, sampling_locations: torch.Tensor, attention_weights: torch.Tensor
+) -> torch.Tensor:
     """Export formulation of multi-scale deformable attention -> [N, Lq, M*D] (module docstring)."""
     grids = (2.0 * sampling_locations - 1.0).transpose(1, 2)
     return ms_deform_attn_heads(value, spatial_shapes, grids, attention_weights.transpose(1, 2)).transpose(1, 2)
 
 
-def ms_deform_attn_heads(value: torch.Tensor, spatial_shapes, grids: torch.Tensor,
-                         attention_weights: torch.Tensor) -> torch.Tensor:
+def ms_deform_attn_heads(
+    value: torch.Tensor, spatial_shapes, grids: torch.Tensor, attention_weights: torch.Tensor
+) -> torch.Tensor:
     """:func:`ms_deform_attn` in the layout grid_sample works in: locations already in its [-1, 1]
     coordinates (grid = 2 * location - 1), heads before queries (grids [N, M, Lq, L, P, 2],
     weights [N, M, Lq, L, P]), output channels first, [N, M*D, Lq]."""
@@ -85,8 +88,9 @@ def ms_deform_attn_heads(value: torch.Tensor, spatial_shapes, grids: torch.Tenso
     return _weighted_sum(samples, attention_weights)
 
 
-def ms_deform_attn_reference(value: torch.Tensor, spatial_shapes, sampling_locations: torch.Tensor,
-                             attention_weights: torch.Tensor) -> torch.Tensor:
+def ms_deform_attn_reference(
+    value: torch.Tensor, spatial_shapes, sampling_locations: torch.Tensor, attention_weights: torch.Tensor
+) -> torch.Tensor:
     """Reference formulation: explicit four-corner bilinear gathers at (x*W - 0.5, y*H - 0.5)."""
     shapes = _level_shapes(spatial_shapes, value, sampling_locations)
     n, lq, m, _, p, _ = sampling_locations.shape
@@ -125,9 +129,9 @@ class MSDeformAttn(nn.Module):
         nn.init.zeros_(self.sampling_offsets.weight)
         theta = torch.arange(self.n_heads, dtype=torch.float32) * (2.0 * math.pi / self.n_heads)
         ring = torch.stack([theta.cos(), theta.sin()], -1)
-        ring = ring / ring.abs().max(-1, keepdim=True).values                     # [M, 2]
+        ring = ring / ring.abs().max(-1, keepdim=True).values  # [M, 2]
         scale = torch.arange(1, self.n_points + 1, dtype=torch.float32).view(1, 1, -1, 1)
-        bias = ring.view(self.n_heads, 1, 1, 2) * scale                            # [M, 1, P, 2]
+        bias = ring.view(self.n_heads, 1, 1, 2) * scale  # [M, 1, P, 2]
         with torch.no_grad():
             self.sampling_offsets.bias.copy_(bias.expand(-1, self.n_levels, -1, -1).reshape(-1))
         nn.init.zeros_(self.attention_weights.weight)
@@ -136,8 +140,15 @@ class MSDeformAttn(nn.Module):
             nn.init.xavier_uniform_(proj.weight)
             nn.init.zeros_(proj.bias)
 
-    def forward(self, query: torch.Tensor, reference_points: torch.Tensor, value_flat: torch.Tensor,
-                spatial_shapes, padding_mask: torch.Tensor | None = None, reference: bool = False) -> torch.Tensor:
+    def forward(
+        self,
+        query: torch.Tensor,
+        reference_points: torch.Tensor,
+        value_flat: torch.Tensor,
+        spatial_shapes,
+        padding_mask: torch.Tensor | None = None,
+        reference: bool = False,
+    ) -> torch.Tensor:
         n, lq, _ = query.shape
         m, levels, p = self.n_heads, self.n_levels, self.n_points
         if reference_points.shape[2:] != (levels, 2):
@@ -146,8 +157,9 @@ class MSDeformAttn(nn.Module):
         if padding_mask is not None:
             value = value.masked_fill(padding_mask[..., None], 0.0)
         value = value.reshape(n, value.shape[1], m, self.d_model // m)
-        size_xy = torch.tensor([[w, h] for h, w in _shape_list(spatial_shapes)], dtype=query.dtype,
-                               device=query.device)                                                  # [L, 2]
+        size_xy = torch.tensor(
+            [[w, h] for h, w in _shape_list(spatial_shapes)], dtype=query.dtype, device=query.device
+        )  # [L, 2]
         if reference:
             weights = self.attention_weights(query).reshape(n, lq, m, levels * p).softmax(-1)
             weights = weights.reshape(n, lq, m, levels, p)
@@ -165,7 +177,7 @@ class MSDeformAttn(nn.Module):
         b_off = (self.sampling_offsets.bias * scale).reshape(m, 1, levels * p * 2)
         w_att = self.attention_weights.weight.reshape(m, levels * p, c).transpose(1, 2)
         b_att = self.attention_weights.bias.reshape(m, 1, levels * p)
-        rows = query.unsqueeze(1)                                                  # [N, 1, Lq, C]
+        rows = query.unsqueeze(1)  # [N, 1, Lq, C]
         # The biases are expanded over the queries and the offset bias joins the reference grid
         # (laid out like the offset columns), so each sum is one add of [1, M, Lq, K] operands
         # broadcast over N only: a broadcast over an inner axis of 2 or P is slow in onnxruntime.
@@ -175,7 +187,8 @@ class MSDeformAttn(nn.Module):
         grid_base = ref_grid.reshape(ref_grid.shape[0], 1, lq, -1) + b_off.unsqueeze(0)
         grids = grid_base + torch.matmul(rows, w_off)
         logits = b_att.unsqueeze(0).expand(-1, -1, lq, -1) + torch.matmul(rows, w_att)
-        head_weights = logits.softmax(-1)                                          # [N, M, Lq, L*P]
-        out = ms_deform_attn_heads(value, spatial_shapes, grids.reshape(n, m, lq, levels, p, 2),
-                                   head_weights.reshape(n, m, lq, levels, p))
+        head_weights = logits.softmax(-1)  # [N, M, Lq, L*P]
+        out = ms_deform_attn_heads(
+            value, spatial_shapes, grids.reshape(n, m, lq, levels, p, 2), head_weights.reshape(n, m, lq, levels, p)
+        )
         return self.output_proj(out.transpose(1, 2))

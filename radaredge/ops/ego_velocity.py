@@ -63,25 +63,34 @@ from ..errors import InputError
 _TABLE_MAX = 2**24
 
 
-@card_ranges(inlier_threshold=positive(100.0), num_hypotheses=(1, 65_536), min_inliers=(3, 2**24),
-             min_range=(0.0, 10_000.0), max_range=positive(10_000.0), max_azimuth_deg=Range(0, 90, True, True),
-             max_elevation_deg=Range(0, 90, True, True), min_det=(0.0, 1.0), seed=(0, 2**32 - 1),
-             max_speed=positive(1000.0), min_inlier_ratio=(0.0, 1.0))
+@card_ranges(
+    inlier_threshold=positive(100.0),
+    num_hypotheses=(1, 65_536),
+    min_inliers=(3, 2**24),
+    min_range=(0.0, 10_000.0),
+    max_range=positive(10_000.0),
+    max_azimuth_deg=Range(0, 90, True, True),
+    max_elevation_deg=Range(0, 90, True, True),
+    min_det=(0.0, 1.0),
+    seed=(0, 2**32 - 1),
+    max_speed=positive(1000.0),
+    min_inlier_ratio=(0.0, 1.0),
+)
 @dataclass(frozen=True)
 class RansacConfig:
     """Model-card section ``preprocess.ransac`` (units: m/s, m, degrees)."""
 
-    inlier_threshold: float = 0.15      # m/s, |v_r + r.v_e| below this is static (REVE 0.15)
-    num_hypotheses: int = 64            # 3-point samples (REVE needs 38 at 40 % outliers)
-    min_inliers: int = 5                # fewer inliers -> estimate flagged invalid
-    min_range: float = 1.0              # m, REVE min_dist (near-field clutter)
-    max_range: float = 400.0            # m, REVE max_dist
-    max_azimuth_deg: float = 60.0       # |atan2(y, x)| limit for eligible points (< 90)
-    max_elevation_deg: float = 22.5     # |elevation| limit (REVE elevation_thresh_deg)
-    min_det: float = 1e-3               # |det| of a 3-point sample below this is degenerate
-    seed: int = 0                       # seed of the hypothesis table
-    max_speed: float = 70.0             # m/s; a faster estimate is implausible -> invalid
-    min_inlier_ratio: float = 0.2       # winner's inliers / eligible points below this -> invalid
+    inlier_threshold: float = 0.15  # m/s, |v_r + r.v_e| below this is static (REVE 0.15)
+    num_hypotheses: int = 64  # 3-point samples (REVE needs 38 at 40 % outliers)
+    min_inliers: int = 5  # fewer inliers -> estimate flagged invalid
+    min_range: float = 1.0  # m, REVE min_dist (near-field clutter)
+    max_range: float = 400.0  # m, REVE max_dist
+    max_azimuth_deg: float = 60.0  # |atan2(y, x)| limit for eligible points (< 90)
+    max_elevation_deg: float = 22.5  # |elevation| limit (REVE elevation_thresh_deg)
+    min_det: float = 1e-3  # |det| of a 3-point sample below this is degenerate
+    seed: int = 0  # seed of the hypothesis table
+    max_speed: float = 70.0  # m/s; a faster estimate is implausible -> invalid
+    min_inlier_ratio: float = 0.2  # winner's inliers / eligible points below this -> invalid
 
     def __post_init__(self):
         if self.inlier_threshold <= 0:
@@ -146,8 +155,11 @@ def estimate_ego_velocity_reference(xyz, v_r, config: RansacConfig = RansacConfi
     rng = np.linalg.norm(safe_xyz, axis=1)
     dirs = safe_xyz / np.maximum(rng, 1e-9)[:, None]
     x, y, z = safe_xyz.T
-    in_fov = ((x > 0) & (np.abs(y) <= np.tan(np.radians(config.max_azimuth_deg)) * x)
-              & (np.abs(z) <= np.tan(np.radians(config.max_elevation_deg)) * np.sqrt(x * x + y * y)))
+    in_fov = (
+        (x > 0)
+        & (np.abs(y) <= np.tan(np.radians(config.max_azimuth_deg)) * x)
+        & (np.abs(z) <= np.tan(np.radians(config.max_elevation_deg)) * np.sqrt(x * x + y * y))
+    )
     eligible = usable & (rng >= config.min_range) & (rng <= config.max_range) & in_fov
     fallback = (np.zeros(3), usable, False)
     elig_idx = np.flatnonzero(eligible)
@@ -211,12 +223,13 @@ class EgoVelocityRansac(nn.Module):
     def __init__(self, config: RansacConfig = RansacConfig()):
         super().__init__()
         self.config = config
-        self.register_buffer("table", torch.from_numpy(hypothesis_table(config.num_hypotheses, config.seed)),
-                             persistent=False)
+        self.register_buffer(
+            "table", torch.from_numpy(hypothesis_table(config.num_hypotheses, config.seed)), persistent=False
+        )
 
     def _ranks(self, n: torch.Tensor) -> torch.Tensor:
         """Tensor version of :func:`sample_ranks` for each scan's count ``n`` [K] (int64) -> [K, H, 3]."""
-        n = n.unsqueeze(1)                                             # [K, 1]
+        n = n.unsqueeze(1)  # [K, 1]
         one = torch.ones_like(n)
         t = self.table
         r0 = torch.remainder(t[:, 0], torch.maximum(n, one))
@@ -233,8 +246,9 @@ class EgoVelocityRansac(nn.Module):
         v_ego, static, ok = self.estimate_frames(xyz, v_r, valid, frame, 1)
         return v_ego[0], static, ok[0]
 
-    def estimate_frames(self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor,
-                        count: int):
+    def estimate_frames(
+        self, xyz: torch.Tensor, v_r: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor, count: int
+    ):
         """``count`` scans concatenated along N: xyz [N, 3] m, v_r [N] m/s, valid [N] bool, and
         ``frame`` [N] int64, the scan (0 .. count-1) each point belongs to
         (:func:`radaredge.ops.scan_batch.concat_scans`).
@@ -256,12 +270,15 @@ class EgoVelocityRansac(nn.Module):
         rng = torch.linalg.vector_norm(xyz, dim=1)
         dirs = xyz / torch.clamp(rng, min=1e-9).unsqueeze(1)
         x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        in_fov = ((x > 0) & (y.abs() <= math.tan(math.radians(cfg.max_azimuth_deg)) * x)
-                  & (z.abs() <= math.tan(math.radians(cfg.max_elevation_deg)) * torch.sqrt(x * x + y * y)))
+        in_fov = (
+            (x > 0)
+            & (y.abs() <= math.tan(math.radians(cfg.max_azimuth_deg)) * x)
+            & (z.abs() <= math.tan(math.radians(cfg.max_elevation_deg)) * torch.sqrt(x * x + y * y))
+        )
         eligible = usable & (rng >= cfg.min_range) & (rng <= cfg.max_range) & in_fov
         frame = torch.cat([frame, torch.zeros(3, dtype=torch.int64, device=dev)], 0)
-        member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)   # [K, N]
-        own_eligible = eligible.unsqueeze(0) & member                          # [K, N]
+        member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)  # [K, N]
+        own_eligible = eligible.unsqueeze(0) & member  # [K, N]
 
         # Indices of eligible points in input order, without a sort (TensorRT's TopK stops at
         # K = 3839): each eligible point's rank among them (a float32 CumSum, exact below 2**24
@@ -273,26 +290,30 @@ class EgoVelocityRansac(nn.Module):
         rank = (torch.cumsum(eligible.to(torch.float32), 0) - 1.0).to(torch.int64)
         slot = torch.where(eligible, rank, torch.full_like(rank, n))
         order = torch.zeros(n + 1, dtype=torch.int64, device=dev).scatter(0, slot, pos)[:n]
-        n_elig = own_eligible.long().sum(1)                                    # [K]
+        n_elig = own_eligible.long().sum(1)  # [K]
         counts = n_elig.to(torch.float32)
-        first = (torch.cumsum(counts, 0) - counts).to(torch.int64)             # [K]
-        sample = order[first.view(-1, 1, 1) + self._ranks(n_elig)]             # [K, H, 3]
+        first = (torch.cumsum(counts, 0) - counts).to(torch.int64)  # [K]
+        sample = order[first.view(-1, 1, 1) + self._ranks(n_elig)]  # [K, H, 3]
 
-        rows = dirs[sample]                                                    # [K, H, 3, 3]
-        v_hyp, det = _solve3(rows, -v_r[sample])                               # [K, H, 3], [K, H]
-        resid = (v_r + v_hyp @ dirs.T).abs()                                   # [K, H, N]
+        rows = dirs[sample]  # [K, H, 3, 3]
+        v_hyp, det = _solve3(rows, -v_r[sample])  # [K, H, 3], [K, H]
+        resid = (v_r + v_hyp @ dirs.T).abs()  # [K, H, N]
         inl = (resid < cfg.inlier_threshold) & own_eligible.unsqueeze(1)
         counts = torch.where(det.abs() >= cfg.min_det, inl.long().sum(2), torch.full_like(det, -1, dtype=torch.int64))
-        best = torch.argmax(counts, 1, keepdim=True)                           # [K, 1], first on ties
+        best = torch.argmax(counts, 1, keepdim=True)  # [K, 1], first on ties
         best_count = counts.gather(1, best).squeeze(1)
-        w = inl.gather(1, best.unsqueeze(2).expand(-1, -1, n)).squeeze(1).to(xyz.dtype)   # [K, N]
+        w = inl.gather(1, best.unsqueeze(2).expand(-1, -1, n)).squeeze(1).to(xyz.dtype)  # [K, N]
 
-        normal = (dirs.unsqueeze(0) * w.unsqueeze(2)).transpose(1, 2) @ dirs   # [K, 3, 3]
-        rhs = -(dirs.unsqueeze(0) * (w * v_r).unsqueeze(2)).sum(1)             # [K, 3]
+        normal = (dirs.unsqueeze(0) * w.unsqueeze(2)).transpose(1, 2) @ dirs  # [K, 3, 3]
+        rhs = -(dirs.unsqueeze(0) * (w * v_r).unsqueeze(2)).sum(1)  # [K, 3]
         v_ego, det_n = _solve3(normal, rhs)
-        ok = ((n_elig >= 3) & (best_count >= cfg.min_inliers) & (det_n.abs() >= cfg.min_det)
-              & (best_count.double() >= cfg.min_inlier_ratio * n_elig.double())
-              & (torch.linalg.vector_norm(v_ego, dim=1) <= cfg.max_speed))
+        ok = (
+            (n_elig >= 3)
+            & (best_count >= cfg.min_inliers)
+            & (det_n.abs() >= cfg.min_det)
+            & (best_count.double() >= cfg.min_inlier_ratio * n_elig.double())
+            & (torch.linalg.vector_norm(v_ego, dim=1) <= cfg.max_speed)
+        )
         v_ego = torch.where(ok.unsqueeze(1), v_ego, torch.zeros_like(v_ego))
         static = usable & (~ok[frame] | ((v_r + (dirs * v_ego[frame]).sum(1)).abs() < cfg.inlier_threshold))
         return v_ego.to(out_dtype), static[:n_in], ok

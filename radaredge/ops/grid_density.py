@@ -46,30 +46,37 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .components import MODES, connected_components
 from ..config import card_ranges, positive
+from .components import MODES, connected_components
+
+MAX_MAP_CELLS = 2**20  # CFA map cells: 64 float32 channels of it make 256 MiB
 
 
-MAX_MAP_CELLS = 2**20      # CFA map cells: 64 float32 channels of it make 256 MiB
-
-
-@card_ranges(map_h=(1, 8192), map_w=(1, 8192), resolution=positive(100.0), x_min=(-1000.0, 1000.0),
-             y_min=(-1000.0, 1000.0), eps=positive(100.0), min_density=(1, 1_000_000),
-             max_density=(1, 1_000_000), cc_iterations=(1, 100_000))
+@card_ranges(
+    map_h=(1, 8192),
+    map_w=(1, 8192),
+    resolution=positive(100.0),
+    x_min=(-1000.0, 1000.0),
+    y_min=(-1000.0, 1000.0),
+    eps=positive(100.0),
+    min_density=(1, 1_000_000),
+    max_density=(1, 1_000_000),
+    cc_iterations=(1, 100_000),
+)
 @dataclass(frozen=True)
 class GridDensityConfig:
     """Model-card section of GridDensityBEV (metres, cells, point counts); VoD values by default."""
 
-    map_h: int = 320              # rows = y cells (upstream's DBSCAN_MAP_W: its first axis is y)
-    map_w: int = 320              # columns = x cells (upstream's DBSCAN_MAP_H)
-    resolution: float = 0.16      # m per cell (RESOLUTION)
-    x_min: float = 0.0            # m, x of the first column's lower edge
-    y_min: float = -25.6          # m, y of the first row's lower edge (-DBSCAN_Y)
-    eps: float = 0.4              # m, DBSCAN radius the density window stands in for (DBSCAN_EPS)
-    min_density: int = 10         # points in the window for a non-noise cell (DBSCAN_SAMPLE)
-    max_density: int = 100        # more points than this is noise too (MAX_DENSITY)
-    cc_mode: str = "maxpool"      # "maxpool" (the fork's labels) or "exact"
-    cc_iterations: int = 20       # maxpool steps (CC_ITERATIONS); exact mode uses its proven bound
+    map_h: int = 320  # rows = y cells (upstream's DBSCAN_MAP_W: its first axis is y)
+    map_w: int = 320  # columns = x cells (upstream's DBSCAN_MAP_H)
+    resolution: float = 0.16  # m per cell (RESOLUTION)
+    x_min: float = 0.0  # m, x of the first column's lower edge
+    y_min: float = -25.6  # m, y of the first row's lower edge (-DBSCAN_Y)
+    eps: float = 0.4  # m, DBSCAN radius the density window stands in for (DBSCAN_EPS)
+    min_density: int = 10  # points in the window for a non-noise cell (DBSCAN_SAMPLE)
+    max_density: int = 100  # more points than this is noise too (MAX_DENSITY)
+    cc_mode: str = "maxpool"  # "maxpool" (the fork's labels) or "exact"
+    cc_iterations: int = 20  # maxpool steps (CC_ITERATIONS); exact mode uses its proven bound
 
     def __post_init__(self):
         if self.map_h < 1 or self.map_w < 1:
@@ -83,8 +90,10 @@ class GridDensityConfig:
         if self.cc_iterations < 0:
             raise ValueError("cc_iterations must be >= 0")
         if self.map_h * self.map_w > MAX_MAP_CELLS:
-            raise ValueError(f"a {self.map_h} x {self.map_w} map is {self.map_h * self.map_w} cells; at most "
-                             f"{MAX_MAP_CELLS} (the CFA convolves it at 64 channels: 256 MiB)")
+            raise ValueError(
+                f"a {self.map_h} x {self.map_w} map is {self.map_h * self.map_w} cells; at most "
+                f"{MAX_MAP_CELLS} (the CFA convolves it at 64 channels: 256 MiB)"
+            )
 
     @property
     def kernel_size(self) -> int:
@@ -104,22 +113,23 @@ class GridDensityBEV(nn.Module):
         self.config = config
         k = config.kernel_size
         self.register_buffer("density_kernel", torch.ones(1, 1, k, k), persistent=False)
-        self.register_buffer("origin", torch.tensor([config.x_min, config.y_min], dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("cell", torch.tensor([config.resolution] * 2, dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("extent", torch.tensor([config.map_w, config.map_h], dtype=torch.float32),
-                             persistent=False)
+        self.register_buffer(
+            "origin", torch.tensor([config.x_min, config.y_min], dtype=torch.float32), persistent=False
+        )
+        self.register_buffer("cell", torch.tensor([config.resolution] * 2, dtype=torch.float32), persistent=False)
+        self.register_buffer(
+            "extent", torch.tensor([config.map_w, config.map_h], dtype=torch.float32), persistent=False
+        )
 
     def forward(self, points_xyv: torch.Tensor, valid: torch.Tensor):
         cfg = self.config
         h, w = cfg.map_h, cfg.map_w
         finite = torch.isfinite(points_xyv).all(1)
         points = torch.where(finite.unsqueeze(1), points_xyv, 0.0)
-        grid = torch.floor((points[:, :2] - self.origin) / self.cell)          # [N, 2] (ix, iy)
+        grid = torch.floor((points[:, :2] - self.origin) / self.cell)  # [N, 2] (ix, iy)
         inside = valid & finite & ((grid >= 0) & (grid < self.extent)).all(1)
         grid = torch.where(inside.unsqueeze(1), grid, 0.0).to(torch.int64)
-        cell = torch.where(inside, grid[:, 1] * w + grid[:, 0], h * w)        # h*w = dropped
+        cell = torch.where(inside, grid[:, 1] * w + grid[:, 0], h * w)  # h*w = dropped
 
         weight = inside.to(torch.float32)
         zeros = torch.zeros(h * w + 1, device=cell.device)
@@ -129,15 +139,17 @@ class GridDensityBEV(nn.Module):
         density = F.conv2d(count.view(1, 1, h, w), self.density_kernel, padding=pad).view(h, w)
         keep = (density >= cfg.min_density) & (density <= cfg.max_density)
 
-        iterations = cfg.cc_iterations if cfg.cc_mode == "maxpool" else None   # exact: proven bound
+        iterations = cfg.cc_iterations if cfg.cc_mode == "maxpool" else None  # exact: proven bound
         labels, converged = connected_components(keep.unsqueeze(0), cfg.cc_mode, iterations)
         labels = labels[0].to(torch.float32)
         density = torch.where(keep, density, 0.0)
-        bev = torch.stack([
-            torch.where(keep, vel_sum / torch.clamp(count, min=1.0), 0.0),
-            density / torch.clamp(density.max(), min=1.0),
-            labels / torch.clamp(labels.max(), min=1.0),
-        ])
+        bev = torch.stack(
+            [
+                torch.where(keep, vel_sum / torch.clamp(count, min=1.0), 0.0),
+                density / torch.clamp(density.max(), min=1.0),
+                labels / torch.clamp(labels.max(), min=1.0),
+            ]
+        )
         keep_flat = torch.cat([keep.reshape(-1), torch.zeros(1, dtype=torch.bool, device=keep.device)])
         point_mask = inside & keep_flat[cell]
         return bev, point_mask, converged[0]
@@ -169,7 +181,7 @@ def grid_density_bev_reference(points_xyv, valid, config: GridDensityConfig):
             vel_sum[cell] += v
     density = np.zeros((h, w), np.float32)
     for iy, ix in zip(*np.nonzero(count)):
-        density[max(iy - r, 0): iy + r + 1, max(ix - r, 0): ix + r + 1] += count[iy, ix]
+        density[max(iy - r, 0) : iy + r + 1, max(ix - r, 0) : ix + r + 1] += count[iy, ix]
     keep = (density >= cfg.min_density) & (density <= cfg.max_density)
 
     if cfg.cc_mode == "exact":
@@ -178,11 +190,13 @@ def grid_density_bev_reference(points_xyv, valid, config: GridDensityConfig):
         labels, converged = _maxpool_labels(keep, cfg.cc_iterations)
     labels = labels.astype(np.float32)
     density = np.where(keep, density, np.float32(0))
-    bev = np.stack([
-        np.where(keep, vel_sum / np.maximum(count, np.float32(1)), np.float32(0)),
-        density / max(density.max(), np.float32(1)),
-        labels / max(labels.max(), np.float32(1)),
-    ]).astype(np.float32)
+    bev = np.stack(
+        [
+            np.where(keep, vel_sum / np.maximum(count, np.float32(1)), np.float32(0)),
+            density / max(density.max(), np.float32(1)),
+            labels / max(labels.max(), np.float32(1)),
+        ]
+    ).astype(np.float32)
     point_mask = np.array([c is not None and bool(keep[c]) for c in cells], bool)
     return bev, point_mask, converged
 

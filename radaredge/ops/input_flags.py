@@ -51,17 +51,24 @@ def drop_implausible_reference(points: np.ndarray, lo, hi) -> tuple[np.ndarray, 
     return out, bad
 
 
-def frame_flags(points: torch.Tensor, frame: torch.Tensor, count: int, timestamps: torch.Tensor | None = None,
-                outside: torch.Tensor | None = None, full: torch.Tensor | None = None,
-                capacity: torch.Tensor | None = None, not_converged: torch.Tensor | None = None,
-                implausible: torch.Tensor | None = None) -> torch.Tensor:
+def frame_flags(
+    points: torch.Tensor,
+    frame: torch.Tensor,
+    count: int,
+    timestamps: torch.Tensor | None = None,
+    outside: torch.Tensor | None = None,
+    full: torch.Tensor | None = None,
+    capacity: torch.Tensor | None = None,
+    not_converged: torch.Tensor | None = None,
+    implausible: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Export formulation: int32 [count] flags of ``count`` scans concatenated as ``points`` [N, F]
     with their scan index ``frame`` [N]; per point ``outside``, ``full`` and ``implausible`` [N]
     bool (dropped for the range, dropped from a full pillar, set to NaN by
     :func:`drop_implausible`); per scan ``timestamps`` [count] s, and ``capacity``,
     ``not_converged`` [count] or [] bool from the model's own stages."""
     dev = points.device
-    member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)   # [K, N]
+    member = frame.unsqueeze(0) == torch.arange(count, dtype=torch.int64, device=dev).unsqueeze(1)  # [K, N]
 
     def any_point(mask: torch.Tensor) -> torch.Tensor:
         return any_true(member & mask.unsqueeze(0), 1).to(torch.int32)
@@ -72,7 +79,7 @@ def frame_flags(points: torch.Tensor, frame: torch.Tensor, count: int, timestamp
     flags = any_point(non_finite) * NON_FINITE
     if timestamps is not None:
         after = torch.cat([torch.ones(1, dtype=torch.bool, device=dev), timestamps[1:] > timestamps[:-1]])
-        late = ~(after & torch.isfinite(timestamps))         # (a NaN compares False: flagged too)
+        late = ~(after & torch.isfinite(timestamps))  # (a NaN compares False: flagged too)
         flags = flags + late.to(torch.int32) * TIME_ORDER
     if outside is not None:
         flags = flags + any_point(outside) * OUT_OF_RANGE
@@ -87,9 +94,15 @@ def frame_flags(points: torch.Tensor, frame: torch.Tensor, count: int, timestamp
     return flags
 
 
-def frame_flags_reference(frames: Sequence[np.ndarray], timestamps=None, outside: Sequence[np.ndarray] | None = None,
-                          full: Sequence[np.ndarray] | None = None, capacity=None, not_converged=None,
-                          implausible: Sequence[np.ndarray] | None = None) -> torch.Tensor:
+def frame_flags_reference(
+    frames: Sequence[np.ndarray],
+    timestamps=None,
+    outside: Sequence[np.ndarray] | None = None,
+    full: Sequence[np.ndarray] | None = None,
+    capacity=None,
+    not_converged=None,
+    implausible: Sequence[np.ndarray] | None = None,
+) -> torch.Tensor:
     """Reference formulation of :func:`frame_flags`, frame by frame: ``frames`` [N_k, F] arrays,
     per-frame point masks ``outside``, ``full`` and ``implausible``, per-frame (or one)
     ``capacity`` and ``not_converged`` booleans."""
@@ -101,8 +114,9 @@ def frame_flags_reference(frames: Sequence[np.ndarray], timestamps=None, outside
             bits |= NON_FINITE
         if bad.any():
             bits |= IMPLAUSIBLE
-        if timestamps is not None and (not np.isfinite(float(timestamps[k]))
-                                       or k > 0 and not float(timestamps[k]) > float(timestamps[k - 1])):
+        if timestamps is not None and (
+            not np.isfinite(float(timestamps[k])) or k > 0 and not float(timestamps[k]) > float(timestamps[k - 1])
+        ):
             bits |= TIME_ORDER
         if outside is not None and np.asarray(outside[k]).any():
             bits |= OUT_OF_RANGE

@@ -33,10 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..config import card_ranges
 from .box_iou import bev_half_extents, bev_iou_paired, bev_iou_reference, bev_iou_upper_bound
 from .loops import fixed_point_loop
 from .topk import topk_indices
-from ..config import card_ranges
 
 
 @card_ranges(score_thresh=(0.0, 1.0), iou_thresh=(0.0, 1.0), pre_max=(1, 2**20), post_max=(1, 2**20))
@@ -45,9 +45,9 @@ class NmsConfig:
     """OpenPCDet POST_PROCESSING values (SCORE_THRESH, NMS_CONFIG)."""
 
     score_thresh: float = 0.1
-    iou_thresh: float = 0.1         # NMS_THRESH
-    pre_max: int = 4096             # NMS_PRE_MAXSIZE
-    post_max: int = 500             # NMS_POST_MAXSIZE
+    iou_thresh: float = 0.1  # NMS_THRESH
+    pre_max: int = 4096  # NMS_PRE_MAXSIZE
+    post_max: int = 500  # NMS_POST_MAXSIZE
 
     def __post_init__(self):
         if self.pre_max < 1 or self.post_max < 1:
@@ -70,11 +70,11 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
     """
     k = boxes.shape[0]
     ex, ey = bev_half_extents(boxes)
-    ex, ey = ex + 1e-3, ey + 1e-3                                            # m
+    ex, ey = ex + 1e-3, ey + 1e-3  # m
     x, y = boxes[:, 0], boxes[:, 1]
     dev = boxes.device
     idx = torch.arange(k, device=dev)
-    candidate = ((x.unsqueeze(1) - x.unsqueeze(0)).abs() <= ex.unsqueeze(1) + ex.unsqueeze(0))
+    candidate = (x.unsqueeze(1) - x.unsqueeze(0)).abs() <= ex.unsqueeze(1) + ex.unsqueeze(0)
     candidate &= (y.unsqueeze(1) - y.unsqueeze(0)).abs() <= ey.unsqueeze(1) + ey.unsqueeze(0)
     candidate &= (idx.unsqueeze(1) < idx.unsqueeze(0)) & valid.unsqueeze(1) & valid.unsqueeze(0)
     # P candidate pairs (data-dependent) plus 8 dummy pairs (0, 0) written to a spare slot and
@@ -82,12 +82,13 @@ def suppression_matrix(boxes: torch.Tensor, valid: torch.Tensor, iou_thresh: flo
     # a data-dependent size is not 0 or 1 when it decides broadcasts, which broke scans with
     # almost no candidates). float64: the reference computes IoU in float64, and a float32 IoU
     # can sit on the other side of iou_thresh when the true value is within ~3e-5 of it.
-    found = torch.nonzero(candidate)                                          # [P, 2]
-    dummy = torch.cat([torch.zeros(found.shape[0], dtype=torch.bool, device=dev),
-                       torch.ones(8, dtype=torch.bool, device=dev)])
+    found = torch.nonzero(candidate)  # [P, 2]
+    dummy = torch.cat(
+        [torch.zeros(found.shape[0], dtype=torch.bool, device=dev), torch.ones(8, dtype=torch.bool, device=dev)]
+    )
     pairs = torch.cat([found, torch.zeros(8, 2, dtype=torch.int64, device=dev)])
     target = torch.cat([found[:, 0] * k + found[:, 1], torch.full((8,), k * k, dtype=torch.int64, device=dev)])
-    both = boxes.to(torch.float64).index_select(0, pairs.reshape(-1)).reshape(-1, 2, 7)   # one pair count
+    both = boxes.to(torch.float64).index_select(0, pairs.reshape(-1)).reshape(-1, 2, 7)  # one pair count
     near = torch.nonzero((bev_iou_upper_bound(both[:, 0], both[:, 1]) > iou_thresh - 1e-6) | dummy).squeeze(1)
     both, target = both.index_select(0, near), target.index_select(0, near)
     iou = bev_iou_paired(both[:, 0], both[:, 1])
@@ -100,6 +101,7 @@ def greedy_keep(suppress: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Greedy NMS over a score-sorted list as a fixed point: keep [K] bool (see module docstring).
 
     The rounds run in :func:`radaredge.ops.loops.fixed_point_loop` (an ONNX ``Loop`` once exported)."""
+
     def not_done(keep, changed):
         return changed.clone()
 
@@ -117,13 +119,13 @@ def class_agnostic_nms(boxes: torch.Tensor, scores: torch.Tensor, config: NmsCon
     above = scores >= config.score_thresh
     # Equal scores: lower anchor index first. A float64 key with a per-index step smaller than
     # any float32 spacing at or above the threshold gives that order through one TopK.
-    step = 2.0 ** -26 * max(config.score_thresh, 1e-3) / max(a, 1)
+    step = 2.0**-26 * max(config.score_thresh, 1e-3) / max(a, 1)
     key = torch.where(above, scores.to(torch.float64), torch.full_like(scores, -1.0, dtype=torch.float64))
     key = key - torch.arange(a, dtype=torch.float64, device=scores.device) * step
     order = topk_indices(key, min(config.pre_max, a))
     # The boxes above the threshold come first in ``order``; keep only them (n, data-dependent)
     # plus 8 invalid padding rows, so the K x K work is (n + 8)^2 rather than pre_max^2.
-    order = order.index_select(0, torch.nonzero(above.index_select(0, order)).squeeze(1))          # [n]
+    order = order.index_select(0, torch.nonzero(above.index_select(0, order)).squeeze(1))  # [n]
     cand = torch.cat([boxes.index_select(0, order), torch.zeros(8, 7, dtype=boxes.dtype, device=boxes.device)])
     valid = torch.cat([torch.ones_like(order, dtype=torch.bool), torch.zeros(8, dtype=torch.bool, device=order.device)])
     keep = greedy_keep(suppression_matrix(cand, valid, config.iou_thresh), valid)
@@ -154,8 +156,11 @@ def class_agnostic_nms_eager(boxes: torch.Tensor, scores: torch.Tensor, config: 
         if len(kept) == config.post_max:
             break
         later = torch.arange(i + 1, len(order), device=order.device)
-        later = later[alive[later] & ((cand[later, 0] - cand[i, 0]).abs() <= ex[later] + ex[i])
-                      & ((cand[later, 1] - cand[i, 1]).abs() <= ey[later] + ey[i])]
+        later = later[
+            alive[later]
+            & ((cand[later, 0] - cand[i, 0]).abs() <= ex[later] + ex[i])
+            & ((cand[later, 1] - cand[i, 1]).abs() <= ey[later] + ey[i])
+        ]
         later = later[bev_iou_upper_bound(cand[i].expand(len(later), 7), cand[later]) > config.iou_thresh - 1e-6]
         if len(later):
             iou = bev_iou_paired(cand[i].expand(len(later), 7), cand[later])
@@ -199,8 +204,14 @@ def class_agnostic_nms_reference(boxes: np.ndarray, scores: np.ndarray, config: 
 # ----------------------------------------------------------------------------- near ties
 
 
-def near_ties(boxes: np.ndarray, scores: np.ndarray, config: NmsConfig, score_tol: tuple[float, float],
-              iou_tol: float, limit: int = 20) -> list[dict]:
+def near_ties(
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    config: NmsConfig,
+    score_tol: tuple[float, float],
+    iou_tol: float,
+    limit: int = 20,
+) -> list[dict]:
     """The decisions of :func:`class_agnostic_nms_reference` on ``boxes`` [A, 7] and ``scores``
     [A] that inputs perturbed by float noise could take the other way: the evidence a parity
     report needs before it calls an end-to-end difference a near tie.
@@ -228,8 +239,14 @@ def near_ties(boxes: np.ndarray, scores: np.ndarray, config: NmsConfig, score_to
 
     def add(decision, anchors, values, threshold):
         if len(ties) < limit:
-            ties.append({"decision": decision, "anchors": [int(a) for a in anchors],
-                         "values": [float(v) for v in values], "threshold": float(threshold)})
+            ties.append(
+                {
+                    "decision": decision,
+                    "anchors": [int(a) for a in anchors],
+                    "values": [float(v) for v in values],
+                    "threshold": float(threshold),
+                }
+            )
 
     thresh = np.float32(config.score_thresh)
     order = sorted((i for i in range(len(scores)) if scores[i] >= thresh), key=lambda i: (-float(scores[i]), i))
@@ -247,7 +264,7 @@ def near_ties(boxes: np.ndarray, scores: np.ndarray, config: NmsConfig, score_to
         return float(((centre[i] - centre[j]) ** 2).sum()) <= float(radius[i] + radius[j]) ** 2
 
     for p, a in enumerate(cand):
-        for b in cand[p + 1:]:
+        for b in cand[p + 1 :]:
             if not swap(float(scores[a]), float(scores[b])):
                 break
             if reach(a, b) and bev_iou_reference(boxes[a], boxes[b]) > config.iou_thresh - iou_tol:
@@ -264,8 +281,9 @@ def near_ties(boxes: np.ndarray, scores: np.ndarray, config: NmsConfig, score_to
             suppressed |= iou > config.iou_thresh
         if not suppressed:
             kept.append(j)
-    if len(kept) > config.post_max and swap(float(scores[kept[config.post_max - 1]]),
-                                            float(scores[kept[config.post_max]])):
+    if len(kept) > config.post_max and swap(
+        float(scores[kept[config.post_max - 1]]), float(scores[kept[config.post_max]])
+    ):
         a, b = kept[config.post_max - 1], kept[config.post_max]
         add("post_max cut", [a, b], [scores[a], scores[b]], config.post_max)
     return ties

@@ -94,12 +94,12 @@ class SparsePillarAttention(nn.Module):
         ncell = ny * nx
         slots = torch.sym_min(num_points, self.capacity)
         cell = torch.arange(ncell, dtype=torch.int64, device=canvas.device)
-        key = torch.where(occupied, ncell - cell, torch.zeros_like(cell))   # occupied cells first, by index
+        key = torch.where(occupied, ncell - cell, torch.zeros_like(cell))  # occupied cells first, by index
         top = torch.topk(key, slots)
         slot_valid = top.values > 0
         idx = top.indices
-        flat = canvas.reshape(c, ncell).T                                  # [ncell, C]
-        h = -1.0 + (idx // nx).to(torch.float32) * (2.0 / max(ny - 1, 1))   # linspace(-1, 1, ny)[iy]
+        flat = canvas.reshape(c, ncell).T  # [ncell, C]
+        h = -1.0 + (idx // nx).to(torch.float32) * (2.0 / max(ny - 1, 1))  # linspace(-1, 1, ny)[iy]
         w = -1.0 + (idx % nx).to(torch.float32) * (2.0 / max(nx - 1, 1))
         f = add_rope(flat[idx], rope_angles(h, w, c))
         out = self.pillar_attention_rope.attend(f, slot_valid)
@@ -116,15 +116,16 @@ class SparsePillarAttention(nn.Module):
         canvas is :func:`radaredge.ops.pillars.pillar_canvas`'s (channels last)."""
         c = features.shape[1]
         num_pillars = torch.tensor(cells.shape[0], dtype=torch.int64, device=cells.device)
-        idx, f = cells[:self.capacity], features[:self.capacity]
+        idx, f = cells[: self.capacity], features[: self.capacity]
         h = -1.0 + (idx // nx).to(torch.float32) * (2.0 / max(ny - 1, 1))
         w = -1.0 + (idx % nx).to(torch.float32) * (2.0 / max(nx - 1, 1))
         out = self.pillar_attention_rope.attend(add_rope(f, rope_angles(h, w, c)))
         return pillar_canvas(out, idx, ny, nx), num_pillars, num_pillars > self.capacity
 
 
-def sparse_pillar_attention_reference(block: PillarAttentionWithRoPE, canvas: torch.Tensor,
-                                      occupied: torch.Tensor) -> torch.Tensor:
+def sparse_pillar_attention_reference(
+    block: PillarAttentionWithRoPE, canvas: torch.Tensor, occupied: torch.Tensor
+) -> torch.Tensor:
     """Reference formulation (upstream's dense rope and boolean-mask gather/scatter): [C, ny, nx]."""
     c, ny, nx = canvas.shape
     h, w = torch.meshgrid(torch.linspace(-1, 1, ny), torch.linspace(-1, 1, nx), indexing="ij")

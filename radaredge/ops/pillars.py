@@ -39,16 +39,21 @@ from ..errors import CapacityError
 from .loops import fixed_point_loop
 from .reduce import any_true
 
-
-MAX_GRID_CELLS = 2**22     # BEV cells (x * y * z) a card may ask for: 4.2 M
+MAX_GRID_CELLS = 2**22  # BEV cells (x * y * z) a card may ask for: 4.2 M
 # One frame's BEV map (x * y cells x out_channels float32) a card may ask for: the networks keep
 # several maps of this size and a few times it in their widest layers, so a card past it fails
 # to allocate at run time (a 0.05 m grid did, after exporting), and is refused when read instead.
 MAX_BEV_BYTES = 256 * 2**20
 
 
-@card_ranges(point_cloud_range=(-1000.0, 1000.0), voxel_size=positive(100.0), max_points_per_pillar=(1, 1024),
-             max_pillars=(0, 2**22), out_channels=(1, 4096), bn_eps=positive(1.0))
+@card_ranges(
+    point_cloud_range=(-1000.0, 1000.0),
+    voxel_size=positive(100.0),
+    max_points_per_pillar=(1, 1024),
+    max_pillars=(0, 2**22),
+    out_channels=(1, 4096),
+    bn_eps=positive(1.0),
+)
 @dataclass(frozen=True)
 class PillarConfig:
     """Model-card section ``pillars`` (metres)."""
@@ -56,18 +61,20 @@ class PillarConfig:
     point_cloud_range: tuple = (0.0, -39.68, -3.0, 69.12, 39.68, 10.0)  # x_min y_min z_min x_max y_max z_max
     voxel_size: tuple = (0.32, 0.32, 13.0)
     max_points_per_pillar: int = 32
-    max_pillars: int = 0          # reference only; 0 = one per grid cell (no cap)
+    max_pillars: int = 0  # reference only; 0 = one per grid cell (no cap)
     out_channels: int = 64
-    bn_eps: float = 1e-3          # OpenPCDet PFNLayer BatchNorm1d(eps=1e-3, momentum=0.01)
+    bn_eps: float = 1e-3  # OpenPCDet PFNLayer BatchNorm1d(eps=1e-3, momentum=0.01)
 
     def __post_init__(self):
         if len(self.point_cloud_range) != 6 or len(self.voxel_size) != 3:
             raise ValueError("point_cloud_range needs 6 values and voxel_size 3")
         lo, hi = self.point_cloud_range[:3], self.point_cloud_range[3:]
         if not all(a < b for a, b in zip(lo, hi)):
-            raise ValueError(f"point_cloud_range must be [x_min, y_min, z_min, x_max, y_max, z_max] with each "
-                             f"min < max, got {list(self.point_cloud_range)}")
-        if not all(v > 0 for v in self.voxel_size):       # (NaN too) before the grid divides by them
+            raise ValueError(
+                f"point_cloud_range must be [x_min, y_min, z_min, x_max, y_max, z_max] with each "
+                f"min < max, got {list(self.point_cloud_range)}"
+            )
+        if not all(v > 0 for v in self.voxel_size):  # (NaN too) before the grid divides by them
             raise ValueError(f"voxel_size entries must be > 0, got {list(self.voxel_size)}")
         if min(self.grid_size) < 1:
             raise ValueError(f"voxel_size {list(self.voxel_size)} is larger than the point_cloud_range it divides")
@@ -76,9 +83,11 @@ class PillarConfig:
             raise ValueError(f"point_cloud_range / voxel_size make {cells} grid cells; at most {MAX_GRID_CELLS}")
         bev = self.grid_size[0] * self.grid_size[1] * self.out_channels * 4
         if bev > MAX_BEV_BYTES:
-            raise ValueError(f"a {self.grid_size[0]} x {self.grid_size[1]} grid of {self.out_channels} channels is "
-                             f"a {bev / 2**20:.0f} MiB BEV map per frame; at most {MAX_BEV_BYTES // 2**20} MiB "
-                             f"(coarser voxel_size, a smaller range or fewer out_channels)")
+            raise ValueError(
+                f"a {self.grid_size[0]} x {self.grid_size[1]} grid of {self.out_channels} channels is "
+                f"a {bev / 2**20:.0f} MiB BEV map per frame; at most {MAX_BEV_BYTES // 2**20} MiB "
+                f"(coarser voxel_size, a smaller range or fewer out_channels)"
+            )
         if self.max_points_per_pillar < 1:
             raise ValueError("max_points_per_pillar must be >= 1")
 
@@ -110,7 +119,7 @@ class PFNLayer(nn.Module):
         super().__init__()
         self.linear = nn.Linear(in_channels, out_channels, bias=False)
         self.norm = nn.BatchNorm1d(out_channels, eps=eps, momentum=0.01)
-        self._batch: list | None = None          # [SlotMoments, running statistics updated] in batch_statistics
+        self._batch: list | None = None  # [SlotMoments, running statistics updated] in batch_statistics
 
     @contextlib.contextmanager
     def batch_statistics(self, moments: SlotMoments):
@@ -148,8 +157,9 @@ class PFNLayer(nn.Module):
         y = self.linear(x.reshape(-1, shape[-1]))
         return torch.relu(self.norm(y)).reshape(*shape[:-1], y.shape[-1])
 
-    def forward_slots(self, x: torch.Tensor, weight: torch.Tensor,
-                      slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward_slots(
+        self, x: torch.Tensor, weight: torch.Tensor, slots: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The points of padded pillars without the padding: x [N, in] (rows with ``weight`` 0 are
         not points), ``slots`` [] the number of pillar slots the points occupy, OpenPCDet's
         pillars x ``max_points_per_pillar``. Returns (per-point output [N, out], the output of an
@@ -220,8 +230,9 @@ class PillarFeatureNet(nn.Module):
     def forward(self, points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         return self.scatter(points, valid)[0]
 
-    def scatter(self, points: torch.Tensor, valid: torch.Tensor, drops: dict | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+    def scatter(
+        self, points: torch.Tensor, valid: torch.Tensor, drops: dict | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(canvas [C, ny, nx], occupied [ny * nx] bool: the pillar holds at least one kept point);
         ``drops`` as in :meth:`scatter_frames`."""
         canvas, occupied = self.scatter_frames(points, valid, None, 1, drops)
@@ -242,8 +253,9 @@ class PillarFeatureNet(nn.Module):
         cap = self.config.max_points_per_pillar
         pos = torch.arange(n, dtype=torch.int64, device=dev)
         first = torch.full((spare + 1,), n, dtype=torch.int64, device=dev).scatter_reduce(
-            0, cell, pos, reduce="amin", include_self=True)
-        label = first[cell]                                             # [N] in [0, N): the pillar's id
+            0, cell, pos, reduce="amin", include_self=True
+        )
+        label = first[cell]  # [N] in [0, N): the pillar's id
         held = torch.zeros(n + 1, dtype=torch.float32, device=dev).scatter_add(0, label, inside.to(torch.float32))
         crowded = inside & (held[label] > cap)
 
@@ -254,16 +266,23 @@ class PillarFeatureNet(nn.Module):
             # made in the body: OpenVINO's CPU plugin scatters in place into a tensor captured
             # from outside a Loop, so a captured buffer would carry the earlier rounds' heads
             none = torch.full((n + 1,), n, dtype=torch.int64, device=dev)
-            head = none.scatter_reduce(0, torch.where(remaining, label, n), torch.where(remaining, pos, n),
-                                       reduce="amin", include_self=True)
+            head = none.scatter_reduce(
+                0, torch.where(remaining, label, n), torch.where(remaining, pos, n), reduce="amin", include_self=True
+            )
             peeled = remaining & (head[label] == pos)
             return rounds + 1, remaining & ~peeled, keep | peeled
 
         start = (torch.zeros((), dtype=torch.int64, device=dev), crowded, inside & ~crowded)
         return fixed_point_loop(more, peel, start, max_rounds=cap)[2]
 
-    def scatter_frames(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None,
-                       count: int, drops: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def scatter_frames(
+        self,
+        points: torch.Tensor,
+        valid: torch.Tensor,
+        frame: torch.Tensor | None,
+        count: int,
+        drops: dict | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``count`` scans concatenated along N (``frame`` [N] int64: the scan of each point, as
         :func:`radaredge.ops.scan_batch.concat_scans` gives it; None: all scan 0) ->
         (canvases [count, C, ny, nx], occupied [count, ny * nx] bool), each scan's
@@ -273,11 +292,12 @@ class PillarFeatureNet(nn.Module):
         because their pillar already held ``max_points_per_pillar`` points."""
         nx, ny, _ = self.config.grid_size
         ncell = nx * ny
-        spare = count * ncell                                     # the cell of dropped points
+        spare = count * ncell  # the cell of dropped points
         feats, cell, count_per_cell = self._point_outputs(points, valid, frame, count, drops)
         c = feats.shape[1]
         canvas = torch.zeros(spare + 1, c, dtype=feats.dtype, device=points.device).scatter_reduce(
-            0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
+            0, cell.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True
+        )
         canvas = canvas[:spare].reshape(count, ncell, c).transpose(1, 2).reshape(count, c, ny, nx)
         return canvas, (count_per_cell[:spare] > 0).reshape(count, ncell)
 
@@ -293,12 +313,14 @@ class PillarFeatureNet(nn.Module):
         cells, row = torch.unique(cell, sorted=True, return_inverse=True)
         c = feats.shape[1]
         pillar = torch.zeros(cells.shape[0], c, dtype=feats.dtype, device=points.device).scatter_reduce(
-            0, row.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True)
-        kept = cells < nx * ny                                    # not the spare cell of dropped points
+            0, row.unsqueeze(1).expand(-1, c), feats, reduce="amax", include_self=True
+        )
+        kept = cells < nx * ny  # not the spare cell of dropped points
         return pillar[kept], cells[kept]
 
-    def _point_outputs(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int,
-                       drops: dict | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _point_outputs(
+        self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int, drops: dict | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """What each point brings to its pillar's max: (features [N, C], its pillar's cell [N] as
         in :meth:`_slot_inputs`, points per cell [cells + 1])."""
         feats, w, cell, count_per_cell, count_at_point, slots = self._slot_inputs(points, valid, frame, count, drops)
@@ -309,8 +331,9 @@ class PillarFeatureNet(nn.Module):
         has_free_slots = (count_at_point < self.config.max_points_per_pillar).unsqueeze(1)
         return torch.where(has_free_slots, torch.maximum(feats, pad_value), feats), cell, count_per_cell
 
-    def _slot_inputs(self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int,
-                     drops: dict | None):
+    def _slot_inputs(
+        self, points: torch.Tensor, valid: torch.Tensor, frame: torch.Tensor | None, count: int, drops: dict | None
+    ):
         """The PFN layer's input of :meth:`scatter_frames`: (features [N, F + 6], weight [N] 1 for
         a kept point, cell [N] its pillar (the spare cell ``count * ny * nx`` for a left-out
         point), points per cell [cells + 1], points in the point's pillar [N], slots [] the
@@ -318,7 +341,7 @@ class PillarFeatureNet(nn.Module):
         cfg = self.config
         nx, ny, nz = cfg.grid_size
         ncell = nx * ny
-        spare = count * ncell                                     # the cell of dropped points
+        spare = count * ncell  # the cell of dropped points
         dev = points.device
         finite = torch.isfinite(points).all(1)
         points = torch.where(finite.unsqueeze(1), points, torch.zeros_like(points))
@@ -342,7 +365,8 @@ class PillarFeatureNet(nn.Module):
         w = keep.to(points.dtype)
         count_per_cell = torch.zeros(spare + 1, dtype=points.dtype, device=dev).scatter_add(0, cell, w)
         sums = torch.zeros(spare + 1, 3, dtype=points.dtype, device=dev).scatter_add(
-            0, cell.unsqueeze(1).expand(-1, 3), xyz * w.unsqueeze(1))
+            0, cell.unsqueeze(1).expand(-1, 3), xyz * w.unsqueeze(1)
+        )
         count_at_point = count_per_cell[cell]
         mean = sums[cell] / torch.clamp(count_at_point, min=1.0).unsqueeze(1)
         feats = torch.cat([points, xyz - mean, _centre_offsets(xyz, coords, cfg)], 1)
@@ -450,8 +474,9 @@ def scatter_pillars_reference(features: torch.Tensor, coords: np.ndarray, config
     return canvas.reshape(features.shape[1], ny, nx)
 
 
-def pillar_scatter_reference(net: PillarFeatureNet, points: np.ndarray,
-                             valid: np.ndarray | None = None) -> torch.Tensor:
+def pillar_scatter_reference(
+    net: PillarFeatureNet, points: np.ndarray, valid: np.ndarray | None = None
+) -> torch.Tensor:
     """Reference formulation: voxelize, PillarVFE on padded pillars as OpenPCDet, scatter. [C, ny, nx]."""
     pillar, coords = pillar_features_reference(net, points, valid)
     return scatter_pillars_reference(pillar, coords, net.config)

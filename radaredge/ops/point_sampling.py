@@ -63,7 +63,7 @@ def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
     dist = torch.full((g, n), float("inf"), dtype=xyz.dtype, device=dev)
     chosen = [idx]
     for _ in range(npoint - 1):
-        centre = torch.gather(xyz, 1, far.view(g, 1, 1).expand(g, 1, 3))        # [G, 1, 3]
+        centre = torch.gather(xyz, 1, far.view(g, 1, 1).expand(g, 1, 3))  # [G, 1, 3]
         dist = torch.minimum(dist, _sqdist(xyz, centre))
         far = torch.argmax(dist, dim=1)
         chosen.append(far.view(g, 1))
@@ -84,8 +84,9 @@ def farthest_point_sample_reference(xyz: np.ndarray, npoint: int) -> np.ndarray:
     return np.array(out, np.int64)
 
 
-def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint: int,
-                                 picks: torch.Tensor | None = None) -> torch.Tensor:
+def farthest_point_sample_masked(
+    xyz: torch.Tensor, valid: torch.Tensor, npoint: int, picks: torch.Tensor | None = None
+) -> torch.Tensor:
     """Export formulation of FPS over the valid points of one set. xyz [N, 3] (finite), valid [N]
     bool -> int64 [npoint] indices into N.
 
@@ -100,18 +101,17 @@ def farthest_point_sample_masked(xyz: torch.Tensor, valid: torch.Tensor, npoint:
     """
     n, dev = xyz.shape[0], xyz.device
     start = torch.argmax(torch.cat([valid, torch.zeros(1, dtype=torch.bool, device=dev)]).to(torch.int64))
-    start = torch.where(start < n, start, 0)                    # the first valid point (0 if none; N = 0 too)
+    start = torch.where(start < n, start, 0)  # the first valid point (0 if none; N = 0 too)
     dist = torch.where(valid, torch.full((n,), float("inf"), device=dev), torch.full((n,), -1.0, device=dev))
     slots = torch.arange(npoint, dtype=torch.int64, device=dev)
     out = torch.zeros(npoint, dtype=torch.int64, device=dev) + start
-    limit = (torch.full((), npoint, dtype=torch.int64, device=dev) if picks is None
-             else torch.clamp(picks, max=npoint))
+    limit = torch.full((), npoint, dtype=torch.int64, device=dev) if picks is None else torch.clamp(picks, max=npoint)
 
     def not_done(i, far, dist, out, limit):
         return i < limit
 
     def step(i, far, dist, out, limit):
-        centre = torch.index_select(xyz, 0, far.view(1))                       # [1, 3]
+        centre = torch.index_select(xyz, 0, far.view(1))  # [1, 3]
         dist = torch.minimum(dist, _sqdist(xyz, centre))
         far = torch.argmax(dist)
         return i + 1, far, dist, torch.where(slots == i, far, out), limit.clone()
@@ -140,8 +140,14 @@ def ball_query(xyz: torch.Tensor, centres: torch.Tensor, radius: float, nsample:
     return ball_query_masked(xyz, None, centres, radius, nsample, strict=False)[0]
 
 
-def ball_query_masked(xyz: torch.Tensor, valid: torch.Tensor | None, centres: torch.Tensor, radius: float,
-                      nsample: int, strict: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+def ball_query_masked(
+    xyz: torch.Tensor,
+    valid: torch.Tensor | None,
+    centres: torch.Tensor,
+    radius: float,
+    nsample: int,
+    strict: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Export formulation of the general ball query. xyz [G, N, 3], valid [G, N] bool or None (all
     candidates), centres [G, S, 3] -> (idx int64 [G, S, nsample], empty bool [G, S]).
 
@@ -153,17 +159,17 @@ def ball_query_masked(xyz: torch.Tensor, valid: torch.Tensor | None, centres: to
     the first hits in index order.
     """
     n = xyz.shape[1]
-    d2 = _sqdist(centres.unsqueeze(2), xyz.unsqueeze(1))                     # [G, S, N]
+    d2 = _sqdist(centres.unsqueeze(2), xyz.unsqueeze(1))  # [G, S, N]
     hit = d2 < radius * radius if strict else d2 <= radius * radius
     if valid is not None:
         hit = hit & valid.unsqueeze(1)
     ar = torch.arange(n, dtype=torch.float32, device=xyz.device).view(1, 1, n)
     key = torch.where(hit, ar, ar + n)
     k = min(nsample, n)
-    first = torch.topk(key, k, dim=2, largest=False, sorted=True).values.to(torch.int64)   # [G, S, k]
+    first = torch.topk(key, k, dim=2, largest=False, sorted=True).values.to(torch.int64)  # [G, S, k]
     empty = first[..., 0] >= n
     idx = torch.where(first >= n, first[..., :1], first)
-    if k < nsample:                                                          # fewer points than slots
+    if k < nsample:  # fewer points than slots
         idx = torch.cat([idx, idx[..., :1].expand(-1, -1, nsample - k)], 2)
     return torch.where(idx >= n, idx - n, idx), empty
 
@@ -174,8 +180,9 @@ def ball_query_reference(xyz: np.ndarray, centres: np.ndarray, radius: float, ns
     return ball_query_masked_reference(xyz, None, centres, radius, nsample, strict=False)[0]
 
 
-def ball_query_masked_reference(xyz: np.ndarray, valid: np.ndarray | None, centres: np.ndarray, radius: float,
-                                nsample: int, strict: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def ball_query_masked_reference(
+    xyz: np.ndarray, valid: np.ndarray | None, centres: np.ndarray, radius: float, nsample: int, strict: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """Reference of :func:`ball_query_masked` on one set, one centre at a time: the valid
     candidates with d2 < r2 (or <=) in index order (the CUDA kernel's scan), cut at ``nsample``
     and filled with the first. -> (idx int64 [S, nsample], empty bool [S])."""
@@ -183,7 +190,7 @@ def ball_query_masked_reference(xyz: np.ndarray, valid: np.ndarray | None, centr
     valid = np.ones(len(xyz), bool) if valid is None else np.asarray(valid, bool)
     out = np.zeros((len(centres), nsample), np.int64)
     empty = np.zeros(len(centres), bool)
-    r2 = np.float32(radius * radius)        # the threshold torch compares against, rounded once
+    r2 = np.float32(radius * radius)  # the threshold torch compares against, rounded once
     for s, c in enumerate(np.asarray(centres, np.float32)):
         d2 = _sqdist_np(xyz, c)
         found = np.flatnonzero(valid & ((d2 < r2) if strict else (d2 <= r2)))[:nsample].tolist()

@@ -35,8 +35,9 @@ from torch import nn
 from .point_sampling import ball_query_masked, ball_query_masked_reference, group_points
 
 
-def group_relative_reference(xyz: np.ndarray, features: np.ndarray, centres: np.ndarray, idx: np.ndarray,
-                             empty: np.ndarray) -> np.ndarray:
+def group_relative_reference(
+    xyz: np.ndarray, features: np.ndarray, centres: np.ndarray, idx: np.ndarray, empty: np.ndarray
+) -> np.ndarray:
     """Step 2 on one set, plainly: xyz [N, 3], features [N, C], centres [S, 3], idx [S, K], empty [S]
     -> [S, K, 3 + C] = [neighbour xyz - centre, features], all zero for an empty ball (loops)."""
     s, k = idx.shape
@@ -86,8 +87,9 @@ class SAModuleMSG(nn.Module):
         self.mlps = nn.ModuleList(shared_mlp(3 + in_channels, m) for m in mlps)
         self.out_channels = sum(m[-1] for m in mlps)
 
-    def forward(self, xyz: torch.Tensor, valid: torch.Tensor, features: torch.Tensor,
-                centres: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, xyz: torch.Tensor, valid: torch.Tensor, features: torch.Tensor, centres: torch.Tensor
+    ) -> torch.Tensor:
         """Export formulation: xyz [N, 3], valid [N] bool, features [N, C], centres [S, 3] -> [S, out].
 
         The point set is padded with max(nsample) invalid rows, so any N (0 included) gives the
@@ -98,11 +100,10 @@ class SAModuleMSG(nn.Module):
         features = torch.cat([features, features.new_zeros(pad, features.shape[1])])
         out = []
         for radius, nsample, mlp in zip(self.radii, self.nsamples, self.mlps):
-            idx, empty = ball_query_masked(xyz.unsqueeze(0), valid.unsqueeze(0), centres.unsqueeze(0),
-                                           radius, nsample)
-            idx, empty = idx[0], empty[0]                                            # [S, K], [S]
-            w = mlp[0].weight.flatten(1)                                             # [m0, 3 + C]
-            per_point = features @ w[:, 3:].t()                                      # [N, m0]
+            idx, empty = ball_query_masked(xyz.unsqueeze(0), valid.unsqueeze(0), centres.unsqueeze(0), radius, nsample)
+            idx, empty = idx[0], empty[0]  # [S, K], [S]
+            w = mlp[0].weight.flatten(1)  # [m0, 3 + C]
+            per_point = features @ w[:, 3:].t()  # [N, m0]
             rel = group_points(xyz.unsqueeze(0), idx.unsqueeze(0))[0] - centres.unsqueeze(1)
             h = rel @ w[:, :3].t() + group_points(per_point.unsqueeze(0), idx.unsqueeze(0))[0]
             h = torch.where(empty.view(-1, 1, 1), torch.zeros_like(h), h)
@@ -120,6 +121,6 @@ class SAModuleMSG(nn.Module):
         for radius, nsample, mlp in zip(self.radii, self.nsamples, self.mlps):
             idx, empty = ball_query_masked_reference(xyz, valid, centres, radius, nsample)
             grouped = torch.from_numpy(group_relative_reference(xyz, features, centres, idx, empty))
-            h = mlp(grouped.permute(2, 0, 1).unsqueeze(0))                           # [1, m, S, K]
+            h = mlp(grouped.permute(2, 0, 1).unsqueeze(0))  # [1, m, S, K]
             out.append(h.amax(3)[0].t())
         return torch.cat(out, -1)

@@ -28,6 +28,7 @@ def __getattr__(name):
     if name in _MODEL_NAMES:
         # lazy: radaredge.cli imports radaredge.runtime, and its light commands must not load numpy and onnxruntime
         from . import model
+
         return getattr(model, name)
     raise AttributeError(f"module 'radaredge.runtime' has no attribute {name!r}")
 

@@ -61,7 +61,7 @@ def cached_choice(weights_sha256: str, threads: int) -> str | None:
 
 
 def _median_seconds(run: Runner, feeds, runs: int) -> float:
-    run(feeds)                                   # warm-up: first-run allocations
+    run(feeds)  # warm-up: first-run allocations
     times = []
     for _ in range(runs):
         t = time.perf_counter()
@@ -85,7 +85,7 @@ def choose(weights_sha256: str, threads: int, runners: dict[str, Runner], feeds)
     cache[_cache_key(weights_sha256, threads)] = {"backend": best, "median_s": timings}
     try:
         atomic.write_json(path, cache)
-    except OSError:                               # a read-only home: the choice holds for this process
+    except OSError:  # a read-only home: the choice holds for this process
         pass
     return best
 

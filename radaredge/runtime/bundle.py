@@ -28,20 +28,25 @@ def read_manifest(path: Path, check_parts: bool = True) -> dict:
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable bundle manifest ({type(exc).__name__}: {str(exc)[:120]}); "
-                         f"re-export the bundle") from None
+        raise InputError(
+            f"{path}: not a readable bundle manifest ({type(exc).__name__}: {str(exc)[:120]}); re-export the bundle"
+        ) from None
     parts = manifest.get("parts") if isinstance(manifest, dict) else None
     if not isinstance(parts, dict) or not isinstance(manifest.get("weights_sha256"), str):
-        raise InputError(f"{path}: a bundle manifest holds 'weights_sha256' (a string) and 'parts' (graph name -> "
-                         f"file); re-export the bundle")
+        raise InputError(
+            f"{path}: a bundle manifest holds 'weights_sha256' (a string) and 'parts' (graph name -> "
+            f"file); re-export the bundle"
+        )
     for name, info in parts.items():
         onnx_name = info.get("onnx") if isinstance(info, dict) else None
         if not isinstance(onnx_name, str) or Path(onnx_name).name != onnx_name or not onnx_name.endswith(".onnx"):
             raise InputError(f"{path}: parts.{name}.onnx must name an .onnx file inside the bundle, got {onnx_name!r}")
         recorded = info.get("content_sha256")
         if recorded is not None and not (isinstance(recorded, str) and _SHA256.fullmatch(recorded)):
-            raise InputError(f"{path}: parts.{name}.content_sha256 must be a sha256 (64 hex digits), got "
-                             f"{recorded!r}; re-export the bundle")
+            raise InputError(
+                f"{path}: parts.{name}.content_sha256 must be a sha256 (64 hex digits), got "
+                f"{recorded!r}; re-export the bundle"
+            )
     if check_parts:
         for message in _part_mismatches(path.parent, parts).values():
             raise InputError(f"{path}: {message}")
@@ -52,12 +57,14 @@ def _part_mismatches(directory: Path, parts: dict) -> dict[str, str]:
     found = {}
     for name, info in parts.items():
         recorded, file = info.get("content_sha256"), directory / info["onnx"]
-        if recorded is None or not file.is_file():      # an older manifest; a missing file is named by its loader
+        if recorded is None or not file.is_file():  # an older manifest; a missing file is named by its loader
             continue
         computed = content_hash(file).computed
         if computed != recorded:
-            found[name] = (f"parts.{name}: the contents of {info['onnx']} hash to {computed}, not the {recorded} "
-                           f"recorded at export: the file was replaced or edited after export; re-export the bundle")
+            found[name] = (
+                f"parts.{name}: the contents of {info['onnx']} hash to {computed}, not the {recorded} "
+                f"recorded at export: the file was replaced or edited after export; re-export the bundle"
+            )
     return found
 
 
@@ -80,6 +87,7 @@ def bundle_graphs(path: str | Path, check_parts: bool = True) -> dict[str | None
         return {None: path}
     manifest = artifacts.manifest_path(path)
     if not manifest.is_file():
-        raise InputError(f"{path} is a directory without {manifest.name}; pass an .onnx or a multi-graph export "
-                         f"directory")
+        raise InputError(
+            f"{path} is a directory without {manifest.name}; pass an .onnx or a multi-graph export directory"
+        )
     return {name: path / info["onnx"] for name, info in read_manifest(manifest, check_parts)["parts"].items()}

@@ -38,12 +38,12 @@ BITS = {
     TIME_ORDER: "time_order: the frame's timestamp is not finite, or not after the previous frame's",
     OUT_OF_RANGE: "out_of_range: points outside the card's point_cloud_range were dropped",
     CAPACITY: "capacity: a fixed capacity overflowed (points beyond max_points_per_pillar in a pillar, or a "
-              "model's pillar or clustering capacity); what did not fit was left out",
+    "model's pillar or clustering capacity); what did not fit was left out",
     NOT_CONVERGED: "not_converged: connected components stopped before converging",
     IMPLAUSIBLE: "implausible: points with a value outside its column's plausible range were left out",
 }
 OUTPUT = "input_flags"
-INPUT_ERRORS = NON_FINITE | TIME_ORDER        # bits that always mean the input was wrong, not just informative
+INPUT_ERRORS = NON_FINITE | TIME_ORDER  # bits that always mean the input was wrong, not just informative
 
 
 def input_error_bits(card) -> int:

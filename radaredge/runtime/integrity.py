@@ -51,11 +51,11 @@ from .metadata import CONTENT_SHA256, PREFIX
 
 SCHEME = b"radaredge.content_sha256/1\n"
 _DOC_STRING, _METADATA_PROPS = 6, 14
-_LEN = 2                         # wire type of a length-delimited field
+_LEN = 2  # wire type of a length-delimited field
 _KEY = CONTENT_SHA256.encode()
 _PREFIX = PREFIX.encode()
-CACHE_SIZE = 256                 # file identities remembered per process
-RACY_NS = 2_000_000_000          # a file modified this recently is not remembered (see content_hash)
+CACHE_SIZE = 256  # file identities remembered per process
+RACY_NS = 2_000_000_000  # a file modified this recently is not remembered (see content_hash)
 
 
 class WireError(ValueError):
@@ -95,7 +95,7 @@ def _records(buf, start: int, end: int):
             pos = payload + n
         elif wire == 5:
             payload, pos = pos, pos + 4
-        else:                    # groups (3, 4) are not used by ONNX; 6, 7 do not exist
+        else:  # groups (3, 4) are not used by ONNX; 6, 7 do not exist
             raise WireError(f"wire type {wire} at byte {begin}")
         if pos > end:
             raise WireError(f"field {field} at byte {begin} runs past the end")
@@ -194,8 +194,9 @@ def content_hash(path: str | Path) -> ContentHash:
     except OSError as exc:
         raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     except WireError as exc:
-        raise InputError(f"{path}: not a well-formed ONNX file ({exc}); pass an .onnx written by "
-                         f"`radaredge export`") from None
+        raise InputError(
+            f"{path}: not a well-formed ONNX file ({exc}); pass an .onnx written by `radaredge export`"
+        ) from None
     with _lock:
         _stats["computed"] += 1
         if unchanged:
@@ -219,8 +220,10 @@ def clear_cache() -> None:
 
 
 MISMATCH = "its contents do not match the hash recorded at export: the graph was edited after export; re-export it"
-NOT_RECORDED = ("exported before radaredge recorded content hashes (no radaredge.content_sha256 in its metadata), "
-                "so an edit made after export cannot be detected; re-export it to have its contents checked")
+NOT_RECORDED = (
+    "exported before radaredge recorded content hashes (no radaredge.content_sha256 in its metadata), "
+    "so an edit made after export cannot be detected; re-export it to have its contents checked"
+)
 
 
 def finding(found: ContentHash) -> str | None:

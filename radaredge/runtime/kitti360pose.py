@@ -21,14 +21,14 @@ never the other way round).
 
 from __future__ import annotations
 
+import copyreg
+import importlib
 import pickle
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-import copyreg
-import importlib
 
 TEXT2LOC_MODULE = "datapreparation.kitti360pose.imports"
 # Text2Loc maps this older module path onto the one above for data generated before a rename.
@@ -39,15 +39,17 @@ class _Record:
     """Stand-in for a Text2Loc class: pickle's BUILD fills its ``__dict__``."""
 
     def __setstate__(self, state):
-        if isinstance(state, tuple):          # (dict, slots) form
+        if isinstance(state, tuple):  # (dict, slots) form
             state = {**(state[0] or {}), **(state[1] or {})}
         if not isinstance(state, dict):
             raise InputError(f"unexpected pickled state of type {type(state).__name__} for {type(self).__name__}")
         self.__dict__.update(state)
 
 
-_CLASSES = {name: type(name, (_Record,), {}) for name in
-            ("Cell", "Object3d", "Pose", "DescriptionPoseCell", "DescriptionBestCell")}
+_CLASSES = {
+    name: type(name, (_Record,), {})
+    for name in ("Cell", "Object3d", "Pose", "DescriptionPoseCell", "DescriptionBestCell")
+}
 
 
 def _numpy_globals() -> dict:
@@ -56,8 +58,12 @@ def _numpy_globals() -> dict:
     core = "numpy._core" if hasattr(np, "_core") else "numpy.core"
     multiarray = importlib.import_module(f"{core}.multiarray")
     numeric = importlib.import_module(f"{core}.numeric")
-    out = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype,
-           ("copyreg", "_reconstructor"): copyreg._reconstructor, ("builtins", "object"): object}
+    out = {
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+        ("copyreg", "_reconstructor"): copyreg._reconstructor,
+        ("builtins", "object"): object,
+    }
     for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
         out[(mod, "_reconstruct")] = multiarray._reconstruct
         out[(mod, "scalar")] = multiarray.scalar
@@ -69,15 +75,19 @@ def _numpy_globals() -> dict:
 class RestrictedUnpickler(pickle.Unpickler):
     """Resolves only Text2Loc's data classes and numpy's array reconstruction."""
 
-    allowed = {**{(module, n): c for module in (TEXT2LOC_MODULE, TEXT2LOC_OLD_MODULE) for n, c in _CLASSES.items()},
-               **_numpy_globals()}
+    allowed = {
+        **{(module, n): c for module in (TEXT2LOC_MODULE, TEXT2LOC_OLD_MODULE) for n, c in _CLASSES.items()},
+        **_numpy_globals(),
+    }
 
     def find_class(self, module, name):
         try:
             return self.allowed[(module, name)]
         except KeyError:
-            raise InputError(f"refusing to unpickle {module}.{name}: a KITTI360Pose pickle holds only "
-                             f"{TEXT2LOC_MODULE} data classes and numpy arrays") from None
+            raise InputError(
+                f"refusing to unpickle {module}.{name}: a KITTI360Pose pickle holds only "
+                f"{TEXT2LOC_MODULE} data classes and numpy arrays"
+            ) from None
 
 
 def read_pickle(path: str | Path):
@@ -120,9 +130,9 @@ def _list(obj, attr: str, where: str) -> list | tuple:
 # What one pickle may make radaredge build: pickle's memo lets a few kilobytes name one list
 # from many places, so nested lists of shared lists describe billions of numbers; they are
 # counted, shared parts as often as they occur, before any array is built.
-MAX_ARRAY_VALUES = 10**7        # numbers in one field (an object's points: a few thousand x 3)
-MAX_ITEMS = 10**6               # cells, objects of a cell, poses, descriptions of a pose
-MAX_FILE_VALUES = 10**8         # numbers in one file's objects (a KITTI360Pose scene holds a few million)
+MAX_ARRAY_VALUES = 10**7  # numbers in one field (an object's points: a few thousand x 3)
+MAX_ITEMS = 10**6  # cells, objects of a cell, poses, descriptions of a pose
+MAX_FILE_VALUES = 10**8  # numbers in one file's objects (a KITTI360Pose scene holds a few million)
 
 
 def _count_values(value, limit: int, where: str, attr: str) -> None:
@@ -140,8 +150,10 @@ def _count_values(value, limit: int, where: str, attr: str) -> None:
         if count > limit:
             break
     if count > limit:
-        raise InputError(f"{where}: {attr} unpacks into more than {limit:,} values (nested references to shared "
-                         f"lists); a KITTI360Pose field holds an object's points at most")
+        raise InputError(
+            f"{where}: {attr} unpacks into more than {limit:,} values (nested references to shared "
+            f"lists); a KITTI360Pose field holds an object's points at most"
+        )
 
 
 def _array(obj, attr: str, where: str, shape: tuple) -> np.ndarray:
@@ -152,12 +164,18 @@ def _array(obj, attr: str, where: str, shape: tuple) -> np.ndarray:
     try:
         arr = np.asarray(value, np.float64)
     except (TypeError, ValueError):
-        raise InputError(f"{where}: {attr} must be numbers of shape {_shape_text(shape)}, got "
-                         f"{type(value).__name__}") from None
-    if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)) \
-            or not np.isfinite(arr).all():
-        raise InputError(f"{where}: {attr} must be finite numbers of shape {_shape_text(shape)}, got shape "
-                         f"{arr.shape}" + ("" if np.isfinite(arr).all() else " with NaN/Inf"))
+        raise InputError(
+            f"{where}: {attr} must be numbers of shape {_shape_text(shape)}, got {type(value).__name__}"
+        ) from None
+    if (
+        arr.ndim != len(shape)
+        or any(s is not None and a != s for a, s in zip(arr.shape, shape))
+        or not np.isfinite(arr).all()
+    ):
+        raise InputError(
+            f"{where}: {attr} must be finite numbers of shape {_shape_text(shape)}, got shape "
+            f"{arr.shape}" + ("" if np.isfinite(arr).all() else " with NaN/Inf")
+        )
     return arr
 
 
@@ -167,8 +185,7 @@ def _shape_text(shape: tuple) -> str:
 
 def hint_text(description) -> str:
     """Text2Loc's rendering of one hint."""
-    return (f"The pose is {description.direction} of a {description.object_color_text} "
-            f"{description.object_label}.")
+    return f"The pose is {description.direction} of a {description.object_color_text} {description.object_label}."
 
 
 def read_cells(path: str | Path) -> list[dict]:
@@ -195,11 +212,20 @@ def read_cells(path: str | Path) -> list[dict]:
             xyz = _array(o, "xyz", at, (None, 3))
             total += 2 * xyz.size
             if total > MAX_FILE_VALUES:
-                raise InputError(f"{at}: the file's objects hold more than {MAX_FILE_VALUES:,} numbers (nested "
-                                 f"references to shared objects?); a KITTI360Pose scene holds a few million")
+                raise InputError(
+                    f"{at}: the file's objects hold more than {MAX_FILE_VALUES:,} numbers (nested "
+                    f"references to shared objects?); a KITTI360Pose scene holds a few million"
+                )
             objs.append({"xyz": xyz, "rgb": _array(o, "rgb", at, (len(xyz), 3)), "label": _text(o, "label", at)})
-        raw.append({"id": cid, "scene": _text(c, "scene_name", where), "origin": bbox[:2], "size": float(size),
-                    "objects": objs})
+        raw.append(
+            {
+                "id": cid,
+                "scene": _text(c, "scene_name", where),
+                "origin": bbox[:2],
+                "size": float(size),
+                "objects": objs,
+            }
+        )
     return raw
 
 
@@ -225,5 +251,4 @@ def read_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 _text(d, attr, at)
             hints.append(hint_text(d))
         pose_text.append(" ".join(hints))
-    return (np.array(pose_w, np.float64).reshape(-1, 2), np.array(pose_cell, dtype=str),
-            np.array(pose_text, dtype=str))
+    return (np.array(pose_w, np.float64).reshape(-1, 2), np.array(pose_cell, dtype=str), np.array(pose_text, dtype=str))

@@ -116,7 +116,7 @@ class GraphMetadata:
     quantization: dict | None = None
     input_flags: dict[str, str] | None = None
     input_errors: int | None = None
-    content_sha256: str | None = None      # written by the exporter once the graph is final (absent before)
+    content_sha256: str | None = None  # written by the exporter once the graph is final (absent before)
 
     def to_props(self) -> dict[str, str]:
         """``metadata_props`` entries, key -> string value."""
@@ -124,8 +124,14 @@ class GraphMetadata:
             MODEL: self.model,
             CARD: self.card_yaml,
             FEATURES: json.dumps(self.features),
-            INPUTS: json.dumps({"names": self.input_names, "dynamic_axes": self.dynamic_axes,
-                                "frames": self.frame_inputs, "timestamps": self.timestamps_input}),
+            INPUTS: json.dumps(
+                {
+                    "names": self.input_names,
+                    "dynamic_axes": self.dynamic_axes,
+                    "frames": self.frame_inputs,
+                    "timestamps": self.timestamps_input,
+                }
+            ),
             OUTPUTS: json.dumps(self.output_names),
             CHECKS: json.dumps([asdict(c) for c in self.checks]),
             WEIGHTS_SHA256: self.weights_sha256,
@@ -157,18 +163,27 @@ class GraphMetadata:
         try:
             inputs = json.loads(props[INPUTS])
             meta = cls(
-                model=props[MODEL], card_yaml=props[CARD], features=list(json.loads(props[FEATURES])),
-                input_names=list(inputs["names"]), dynamic_axes=dict(inputs.get("dynamic_axes", {})),
-                frame_inputs=list(inputs["frames"]), timestamps_input=inputs.get("timestamps"),
-                output_names=list(json.loads(props[OUTPUTS])), weights_sha256=props[WEIGHTS_SHA256],
+                model=props[MODEL],
+                card_yaml=props[CARD],
+                features=list(json.loads(props[FEATURES])),
+                input_names=list(inputs["names"]),
+                dynamic_axes=dict(inputs.get("dynamic_axes", {})),
+                frame_inputs=list(inputs["frames"]),
+                timestamps_input=inputs.get("timestamps"),
+                output_names=list(json.loads(props[OUTPUTS])),
+                weights_sha256=props[WEIGHTS_SHA256],
                 versions=json.loads(props.get(VERSIONS, "{}")),
                 checks=[OutputCheck(**c) for c in json.loads(props.get(CHECKS, "[]"))],
-                part=props.get(PART), bundle_weights_sha256=props.get(BUNDLE_WEIGHTS_SHA256),
+                part=props.get(PART),
+                bundle_weights_sha256=props.get(BUNDLE_WEIGHTS_SHA256),
                 quantization=json.loads(props[QUANTIZATION]) if QUANTIZATION in props else None,
                 input_flags=json.loads(props[INPUT_FLAGS]) if INPUT_FLAGS in props else None,
                 input_errors=int(props[INPUT_ERRORS]) if INPUT_ERRORS in props else None,
-                content_sha256=props.get(CONTENT_SHA256))
+                content_sha256=props.get(CONTENT_SHA256),
+            )
         except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{where}: unreadable radaredge metadata ({type(exc).__name__}: {exc}); "
-                             f"re-export it with this radaredge") from None
+            raise InputError(
+                f"{where}: unreadable radaredge metadata ({type(exc).__name__}: {exc}); "
+                f"re-export it with this radaredge"
+            ) from None
         return meta

@@ -8,7 +8,6 @@ at export (:mod:`.integrity`) and its embedded card against the graph (:func:`ca
 reports what it found instead.
 """
 
-
 from __future__ import annotations
 
 import warnings
@@ -24,12 +23,12 @@ from ..config import checked_arguments
 from ..errors import CapacityError, ConfigError, InputError
 from . import backends, integrity
 from .bundle import bundle_graphs, part_findings
-from .flags import CAPACITY, INPUT_ERRORS, OUT_OF_RANGE, OUTPUT as FLAGS_OUTPUT, describe
+from .flags import CAPACITY, INPUT_ERRORS, OUT_OF_RANGE, describe
+from .flags import OUTPUT as FLAGS_OUTPUT
 from .metadata import GraphMetadata
 from .session import make_session, run_session
 
-
-DEFAULT_MAX_POINTS = 65_536      # points per frame a card takes unless it says max_points_per_frame
+DEFAULT_MAX_POINTS = 65_536  # points per frame a card takes unless it says max_points_per_frame
 
 
 def max_points_per_frame(card: ModelCard) -> int:
@@ -51,9 +50,17 @@ class FrameFeeds:
     feed a graph the same way. ``refuse`` maps the columns whose values are checked against a
     plausible (low, high) before the graph runs (a card with ``implausible: refuse``)."""
 
-    def __init__(self, name: str, features: list[str], frame_inputs: list[str], timestamps_input: str | None,
-                 frame_rate: float = 10.0, where: str = "", max_points: int = DEFAULT_MAX_POINTS,
-                 refuse: dict[str, tuple[float, float]] | None = None):
+    def __init__(
+        self,
+        name: str,
+        features: list[str],
+        frame_inputs: list[str],
+        timestamps_input: str | None,
+        frame_rate: float = 10.0,
+        where: str = "",
+        max_points: int = DEFAULT_MAX_POINTS,
+        refuse: dict[str, tuple[float, float]] | None = None,
+    ):
         self.name, self.features, self.frame_inputs = name, list(features), list(frame_inputs)
         self.timestamps_input, self.frame_rate, self.where = timestamps_input, float(frame_rate), where or name
         self.frames = len(self.frame_inputs)
@@ -61,12 +68,21 @@ class FrameFeeds:
         self.refuse = dict(refuse or {})
 
     @classmethod
-    def of_card(cls, card: ModelCard, frame_inputs: list[str], timestamps_input: str | None,
-                where: str = "") -> "FrameFeeds":
+    def of_card(
+        cls, card: ModelCard, frame_inputs: list[str], timestamps_input: str | None, where: str = ""
+    ) -> "FrameFeeds":
         """The feeds of a graph of ``card`` taking ``frame_inputs`` (and ``timestamps_input``)."""
         refuse = plausible_ranges(card) if implausible_policy(card) == "refuse" else None
-        return cls(card.name, card.features, frame_inputs, timestamps_input, float(card.get("frame_rate", 10.0)),
-                   where, max_points_per_frame(card), refuse)
+        return cls(
+            card.name,
+            card.features,
+            frame_inputs,
+            timestamps_input,
+            float(card.get("frame_rate", 10.0)),
+            where,
+            max_points_per_frame(card),
+            refuse,
+        )
 
     def _check_plausible(self, k: int, a: np.ndarray) -> None:
         for col, name in enumerate(self.features):
@@ -75,9 +91,11 @@ class FrameFeeds:
             lo, hi = self.refuse[name]
             bad = np.flatnonzero((a[:, col] < lo) | (a[:, col] > hi))
             if bad.size:
-                raise InputError(f"frame {k}: point {int(bad[0])}, column '{name}': {float(a[bad[0], col])!r} is "
-                                 f"outside its plausible range [{lo:g}, {hi:g}] ({bad.size} point(s) affected; "
-                                 f"the card's plausible, implausible: refuse)")
+                raise InputError(
+                    f"frame {k}: point {int(bad[0])}, column '{name}': {float(a[bad[0], col])!r} is "
+                    f"outside its plausible range [{lo:g}, {hi:g}] ({bad.size} point(s) affected; "
+                    f"the card's plausible, implausible: refuse)"
+                )
 
     def _check_period(self, ts: np.ndarray) -> None:
         """InputError when consecutive frame times are not within PERIOD_FACTOR of the card's
@@ -88,12 +106,15 @@ class FrameFeeds:
         if not bad.size:
             return
         gap = float(gaps[bad[0]])
-        unit = next((u for f, u in _TIME_UNITS if period * f / PERIOD_FACTOR <= gap <= period * f * PERIOD_FACTOR),
-                    None)
+        unit = next(
+            (u for f, u in _TIME_UNITS if period * f / PERIOD_FACTOR <= gap <= period * f * PERIOD_FACTOR), None
+        )
         hint = f"; they look like {unit}: pass seconds" if unit else ""
-        raise InputError(f"timestamps: frames {int(bad[0])} and {int(bad[0]) + 1} are {gap:g} s apart; {self.name} "
-                         f"records at {self.frame_rate:g} Hz (a frame every {period:g} s), and frame times more than "
-                         f"{PERIOD_FACTOR:g}x off that are refused{hint}")
+        raise InputError(
+            f"timestamps: frames {int(bad[0])} and {int(bad[0]) + 1} are {gap:g} s apart; {self.name} "
+            f"records at {self.frame_rate:g} Hz (a frame every {period:g} s), and frame times more than "
+            f"{PERIOD_FACTOR:g}x off that are refused{hint}"
+        )
 
     def validate(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Check frame count, shapes, dtype and finiteness against the card; return float32 copies."""
@@ -115,15 +136,19 @@ class FrameFeeds:
             if a.ndim != 2 or a.shape[1] != cols:
                 raise InputError(f"frame {k}: expected shape [N, {cols}] with columns {self.features}, got {a.shape}")
             if len(a) > self.max_points:
-                raise CapacityError(f"frame {k}: {len(a)} points; {self.name} takes at most max_points_per_frame = "
-                                    f"{self.max_points} a frame (memory grows with every point): crop or "
-                                    f"subsample the scan, or raise the card's max_points_per_frame")
+                raise CapacityError(
+                    f"frame {k}: {len(a)} points; {self.name} takes at most max_points_per_frame = "
+                    f"{self.max_points} a frame (memory grows with every point): crop or "
+                    f"subsample the scan, or raise the card's max_points_per_frame"
+                )
             a = np.ascontiguousarray(a, np.float32)
             bad = ~np.isfinite(a)
             if bad.any():
                 row, col = np.argwhere(bad)[0]
-                raise InputError(f"frame {k}: non-finite value {a[row, col]} at point {row}, column "
-                                 f"'{self.features[col]}' ({int(bad.any(1).sum())} point(s) affected)")
+                raise InputError(
+                    f"frame {k}: non-finite value {a[row, col]} at point {row}, column "
+                    f"'{self.features[col]}' ({int(bad.any(1).sum())} point(s) affected)"
+                )
             if self.refuse:
                 self._check_plausible(k, a)
             out.append(a)
@@ -188,7 +213,7 @@ def input_counts(card: ModelCard, frames: Sequence[np.ndarray]) -> dict[str, int
     r = card.get("pillars.point_cloud_range")
     if r is None or not all(c in card.features for c in ("x", "y", "z")):
         return out
-    lo, hi = np.asarray(r[:3], np.float32), np.asarray(r[3:], np.float32)     # float32, as the graph compares
+    lo, hi = np.asarray(r[:3], np.float32), np.asarray(r[3:], np.float32)  # float32, as the graph compares
     xyz_cols = [card.features.index(c) for c in ("x", "y", "z")]
     in_range = outside = 0
     for a in arrays:
@@ -218,15 +243,19 @@ class FlagTally:
 
     def capacity_note(self, card: ModelCard, what: str = "run") -> str:
         """The totals of bit 8 as one sentence (``what`` names a run: frame, window)."""
-        return (f"input_flags bit 8 (capacity) in {self.capacity} of {_count(self.runs, what)}: a pillar held more "
-                f"points than the card's pillars.max_points_per_pillar = {card.get('pillars.max_points_per_pillar')} "
-                f"keeps, and the points beyond were dropped")
+        return (
+            f"input_flags bit 8 (capacity) in {self.capacity} of {_count(self.runs, what)}: a pillar held more "
+            f"points than the card's pillars.max_points_per_pillar = {card.get('pillars.max_points_per_pillar')} "
+            f"keeps, and the points beyond were dropped"
+        )
 
     def range_note(self, card: ModelCard, what: str = "run") -> str:
         """The share of points outside the range as one sentence."""
-        return (f"{self.outside} of {self.points} points fed ({self.outside / max(self.points, 1):.1%}; input_flags "
-                f"bit 4 in {self.out_of_range} of {_count(self.runs, what)}) lie outside the card's "
-                f"pillars.point_cloud_range {card.get('pillars.point_cloud_range')} and were dropped")
+        return (
+            f"{self.outside} of {self.points} points fed ({self.outside / max(self.points, 1):.1%}; input_flags "
+            f"bit 4 in {self.out_of_range} of {_count(self.runs, what)}) lie outside the card's "
+            f"pillars.point_cloud_range {card.get('pillars.point_cloud_range')} and were dropped"
+        )
 
 
 def _count(n: int, what: str) -> str:
@@ -242,8 +271,14 @@ class RadarModel:
     ``inspect`` uses) the findings are kept in ``.content`` and ``.card_findings`` instead.
     Metadata that does not describe the graph (:func:`check_signature`) is refused either way."""
 
-    def __init__(self, session: ort.InferenceSession, path: Path, backend: str = "onnxruntime", threads: int = 2,
-                 strict: bool = True):
+    def __init__(
+        self,
+        session: ort.InferenceSession,
+        path: Path,
+        backend: str = "onnxruntime",
+        threads: int = 2,
+        strict: bool = True,
+    ):
         self.session = session
         self.path = path
         self.metadata = session.get_modelmeta().custom_metadata_map
@@ -260,15 +295,19 @@ class RadarModel:
         self.card_findings: list[str] = card_findings(session, self.info, self.card)
         if strict and self.card_findings:
             raise InputError(f"{path}: {CARD_DISAGREES}: {'; '.join(self.card_findings)}; re-export it")
-        self.inputs = FrameFeeds.of_card(self.card, self.info.frame_inputs, self.info.timestamps_input,
-                                         f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})")
+        self.inputs = FrameFeeds.of_card(
+            self.card,
+            self.info.frame_inputs,
+            self.info.timestamps_input,
+            f"{path} ({self.info.part or self.card.name}, inputs {self.input_names})",
+        )
         self.errors = INPUT_ERRORS if self.info.input_errors is None else self.info.input_errors
         self.frames = self.inputs.frames
         self.frame_rate = self.inputs.frame_rate
         self.threads = threads
-        self.backend = backends.check_backend(backend)      # "auto" becomes the chosen one at the first run
+        self.backend = backends.check_backend(backend)  # "auto" becomes the chosen one at the first run
         if backend == "auto" and not backends.auto_available():
-            self.backend = "onnxruntime"                    # nothing to choose from without OpenVINO
+            self.backend = "onnxruntime"  # nothing to choose from without OpenVINO
         elif backend == "auto":
             self.backend = backends.cached_choice(self.weights_sha256, threads) or "auto"
         self._runner = self._runner_of(self.backend) if self.backend != "auto" else None
@@ -308,7 +347,7 @@ class RadarModel:
             return
         frames = [feeds[n] for n in self.info.frame_inputs if n in feeds]
         values = {**input_counts(self.card, frames), **out}
-        for check in self.info.checks:        # declared by the model at export (capacity flags)
+        for check in self.info.checks:  # declared by the model at export (capacity flags)
             check.apply(values)
 
     def tally_flags(self, out: Mapping[str, np.ndarray], feeds: Mapping[str, np.ndarray]) -> None:
@@ -327,19 +366,26 @@ class RadarModel:
         t.outside += counts.get("points_outside", 0)
         if not self.say_flags:
             return
-        once = (f" (first in run {t.runs} of this graph; said once, RadarModel.flag_tally counts every run)")
+        once = f" (first in run {t.runs} of this graph; said once, RadarModel.flag_tally counts every run)"
         if flags & CAPACITY and CAPACITY not in self._said:
             self._said.add(CAPACITY)
-            warnings.warn(f"{self.path}: input_flags bit 8 (capacity) is set: a pillar held more points than the "
-                          f"card's pillars.max_points_per_pillar = {self.card.get('pillars.max_points_per_pillar')} "
-                          f"keeps, and the points beyond were dropped{once}", UserWarning, stacklevel=3)
+            warnings.warn(
+                f"{self.path}: input_flags bit 8 (capacity) is set: a pillar held more points than the "
+                f"card's pillars.max_points_per_pillar = {self.card.get('pillars.max_points_per_pillar')} "
+                f"keeps, and the points beyond were dropped{once}",
+                UserWarning,
+                stacklevel=3,
+            )
         if flags & OUT_OF_RANGE and OUT_OF_RANGE not in self._said:
             self._said.add(OUT_OF_RANGE)
             n, k = counts["points"], counts.get("points_outside", 0)
-            warnings.warn(f"{self.path}: input_flags bit 4 (out_of_range) is set: {k} of the {n} points fed "
-                          f"({k / max(n, 1):.1%}) lie outside the card's pillars.point_cloud_range "
-                          f"{self.card.get('pillars.point_cloud_range')} and were dropped{once}", UserWarning,
-                          stacklevel=3)
+            warnings.warn(
+                f"{self.path}: input_flags bit 4 (out_of_range) is set: {k} of the {n} points fed "
+                f"({k / max(n, 1):.1%}) lie outside the card's pillars.point_cloud_range "
+                f"{self.card.get('pillars.point_cloud_range')} and were dropped{once}",
+                UserWarning,
+                stacklevel=3,
+            )
 
     def run(self, frames: Sequence[np.ndarray], timestamps: Sequence[float] | None = None) -> dict[str, np.ndarray]:
         """Run the pipeline. ``timestamps`` (s, oldest first) default to the card's frame rate."""
@@ -347,10 +393,11 @@ class RadarModel:
         out = self._execute(feeds)
         self.apply_checks(out, feeds)
         refused = np.asarray(out.get(FLAGS_OUTPUT, 0)) & self.errors
-        if refused.any():                      # the checks above let no such input through; the graph agrees
+        if refused.any():  # the checks above let no such input through; the graph agrees
             k = int(np.flatnonzero(refused.ravel())[0])
-            raise InputError(f"{self.path}: frame {k}: the graph flagged its input: "
-                             f"{'; '.join(describe(refused.ravel()[k]))}")
+            raise InputError(
+                f"{self.path}: frame {k}: the graph flagged its input: {'; '.join(describe(refused.ravel()[k]))}"
+            )
         self.tally_flags(out, feeds)
         return out
 
@@ -367,14 +414,19 @@ def check_signature(session: ort.InferenceSession, info: GraphMetadata, card: Mo
     inputs = {i.name: i for i in session.get_inputs()}
     outputs = [o.name for o in session.get_outputs()]
     if list(inputs) != list(info.input_names):
-        raise InputError(f"{where}: the graph's inputs are {list(inputs)}, the metadata declares {info.input_names}; "
-                         f"re-export it with radaredge")
+        raise InputError(
+            f"{where}: the graph's inputs are {list(inputs)}, the metadata declares {info.input_names}; "
+            f"re-export it with radaredge"
+        )
     if outputs != list(info.output_names):
-        raise InputError(f"{where}: the graph's outputs are {outputs}, the metadata declares {info.output_names}; "
-                         f"re-export it with radaredge")
+        raise InputError(
+            f"{where}: the graph's outputs are {outputs}, the metadata declares {info.output_names}; "
+            f"re-export it with radaredge"
+        )
     if list(info.features) != card.features:
-        raise InputError(f"{where}: the metadata's feature columns {info.features} differ from its card's "
-                         f"{card.features}")
+        raise InputError(
+            f"{where}: the metadata's feature columns {info.features} differ from its card's {card.features}"
+        )
     undeclared = [n for n in [*info.frame_inputs, info.timestamps_input] if n is not None and n not in inputs]
     if undeclared:
         raise InputError(f"{where}: frame or timestamp input(s) {undeclared} are not inputs of the graph")
@@ -382,13 +434,17 @@ def check_signature(session: ort.InferenceSession, info: GraphMetadata, card: Mo
         i = inputs[name]
         width = i.shape[1] if len(i.shape) == 2 else None
         if i.type != _ONNX_FLOAT or len(i.shape) != 2 or (isinstance(width, int) and width != len(card.features)):
-            raise InputError(f"{where}: input {name!r} is {i.type} {i.shape}; a point frame is float [N, "
-                             f"{len(card.features)}] (columns {card.features})")
+            raise InputError(
+                f"{where}: input {name!r} is {i.type} {i.shape}; a point frame is float [N, "
+                f"{len(card.features)}] (columns {card.features})"
+            )
     if info.timestamps_input is not None:
         i = inputs[info.timestamps_input]
         if i.type != _ONNX_FLOAT or len(i.shape) != 1:
-            raise InputError(f"{where}: input {info.timestamps_input!r} is {i.type} {i.shape}; timestamps are "
-                             f"float [{len(info.frame_inputs)}]")
+            raise InputError(
+                f"{where}: input {info.timestamps_input!r} is {i.type} {i.shape}; timestamps are "
+                f"float [{len(info.frame_inputs)}]"
+            )
 
 
 CARD_DISAGREES = "its embedded card disagrees with the graph"
@@ -415,16 +471,23 @@ def card_findings(session: ort.InferenceSession, info: GraphMetadata, card: Mode
     frames = [n for n in info.frame_inputs if n in inputs]
     stated = card.data.get("frames")
     if frames and stated is not None and stated != len(frames):
-        found.append(f"the card says frames: {stated}, the graph takes {len(frames)} point frame(s) "
-                     f"({', '.join(frames)})")
+        found.append(
+            f"the card says frames: {stated}, the graph takes {len(frames)} point frame(s) ({', '.join(frames)})"
+        )
     for name in frames:
         shape = inputs[name].shape
         if len(shape) == 2 and isinstance(shape[0], int):
-            found.append(f"input {name!r} takes exactly {shape[0]} points, the card any number up to "
-                         f"max_points_per_frame = {max_points_per_frame(card)}")
+            found.append(
+                f"input {name!r} takes exactly {shape[0]} points, the card any number up to "
+                f"max_points_per_frame = {max_points_per_frame(card)}"
+            )
     ts = info.timestamps_input
-    if ts in inputs and len(inputs[ts].shape) == 1 and isinstance(inputs[ts].shape[0], int) \
-            and inputs[ts].shape[0] != len(frames):
+    if (
+        ts in inputs
+        and len(inputs[ts].shape) == 1
+        and isinstance(inputs[ts].shape[0], int)
+        and inputs[ts].shape[0] != len(frames)
+    ):
         found.append(f"input {ts!r} takes {inputs[ts].shape[0]} frame times for {len(frames)} point frame(s)")
     return found
 
@@ -473,22 +536,31 @@ def inspect_export(path: str | Path, targets: tuple[str, ...] = ()) -> dict:
         findings += [f"{CARD_DISAGREES}: {x}" for x in m.card_findings]
         if part in replaced:
             findings.append(replaced[part])
-        graphs.append({
-            "model": m.card.name, "graph": m.info.part or m.card.name, "onnx": str(f), "features": m.features,
-            "frames": m.info.frame_inputs,
-            "inputs": {i.name: i.shape for i in m.session.get_inputs()},
-            "outputs": {o.name: o.shape for o in m.session.get_outputs()},
-            "checks": [c.output for c in m.info.checks],
-            "input_flags": m.info.input_flags,
-            "quantization": m.info.quantization,
-            "weights_sha256": m.weights_sha256, "versions": m.info.versions,
-            "content_sha256": m.content.recorded, "integrity": integrity.describe(m.content), "findings": findings,
-        })
+        graphs.append(
+            {
+                "model": m.card.name,
+                "graph": m.info.part or m.card.name,
+                "onnx": str(f),
+                "features": m.features,
+                "frames": m.info.frame_inputs,
+                "inputs": {i.name: i.shape for i in m.session.get_inputs()},
+                "outputs": {o.name: o.shape for o in m.session.get_outputs()},
+                "checks": [c.output for c in m.info.checks],
+                "input_flags": m.info.input_flags,
+                "quantization": m.info.quantization,
+                "weights_sha256": m.weights_sha256,
+                "versions": m.info.versions,
+                "content_sha256": m.content.recorded,
+                "integrity": integrity.describe(m.content),
+                "findings": findings,
+            }
+        )
         problems += [f"{f}: {x}" for x in findings]
-        if m.card.data.get("source"):        # where the card came from (an OpenPCDet config and its sha256)
+        if m.card.data.get("source"):  # where the card came from (an OpenPCDet config and its sha256)
             graphs[-1]["source"] = m.card.data["source"]
         if targets:
             # optional: the target checks need the onnx package, which a runtime-only install lacks
             from ..targets import check_graph
+
             graphs[-1]["targets"] = {t: [x.to_dict() for x in found] for t, found in check_graph(f, targets).items()}
     return {"path": str(path), "ok": not problems, "findings": problems, "graphs": graphs}

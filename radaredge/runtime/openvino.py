@@ -39,7 +39,7 @@ class OpenVinoModel:
     def __init__(self, path: Path, compiled, output_names: list[str]):
         self.path = path
         self._request = compiled.create_infer_request()
-        self.output_names = output_names        # the graph's names, in order: compilation may merge
+        self.output_names = output_names  # the graph's names, in order: compilation may merge
         self._outputs = list(compiled.outputs)  # the names of outputs that share a tensor
 
     def run(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -58,6 +58,7 @@ def _core():
     SIGTERM) kills the process with SIGSEGV. One Core for the process's life makes one plugin."""
     # optional: OpenVINO is the openvino extra
     import openvino as ov
+
     return ov.Core()
 
 
@@ -81,11 +82,19 @@ def compile_openvino(path: str | Path, threads: int = 2) -> OpenVinoModel:
         frontend = FrontEndManager().load_by_framework("onnx")
         model = frontend.convert(frontend.load(str(path)))
         names = [o.get_any_name() for o in model.outputs]
-        compiled = _core().compile_model(model, "CPU", {
-            "INFERENCE_NUM_THREADS": threads, "NUM_STREAMS": 1,
-            "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32"})
-    except Exception as exc:      # OpenVINO's errors end with the reason, after where it was raised
+        compiled = _core().compile_model(
+            model,
+            "CPU",
+            {
+                "INFERENCE_NUM_THREADS": threads,
+                "NUM_STREAMS": 1,
+                "PERFORMANCE_HINT": "LATENCY",
+                "INFERENCE_PRECISION_HINT": "f32",
+            },
+        )
+    except Exception as exc:  # OpenVINO's errors end with the reason, after where it was raised
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-        raise InputError(f"{path}: OpenVINO cannot compile it for the CPU "
-                         f"({lines[-1] if lines else type(exc).__name__})") from None
+        raise InputError(
+            f"{path}: OpenVINO cannot compile it for the CPU ({lines[-1] if lines else type(exc).__name__})"
+        ) from None
     return OpenVinoModel(path, compiled, names)

@@ -21,6 +21,7 @@ def lazy_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
         if not loaded:
             loaded.append(graph_runner(onnx_path, runtime, threads))
         return loaded[0](feeds)
+
     return run
 
 
@@ -31,10 +32,12 @@ def graph_runner(onnx_path, runtime: str = "onnxruntime", threads: int = 2):
         # lazy: radaredge.cli imports RUNTIMES from here, and its light commands (list, --help)
         # must not load onnxruntime
         from .session import make_session, run_session
+
         session = make_session(onnx_path, threads=threads)
         return lambda feeds: run_session(session, feeds)
     if runtime == "openvino":
         # lazy: as above, and OpenVINO is an optional extra
         from .openvino import compile_openvino
+
         return compile_openvino(onnx_path, threads=threads).run
     raise ConfigError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")

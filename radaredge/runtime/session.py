@@ -13,7 +13,7 @@ import onnxruntime as ort
 
 from ..errors import ConfigError, InputError
 
-THREADS_PER_CORE_MAX = 4      # more threads than this per usable core only slow a run down and cost memory
+THREADS_PER_CORE_MAX = 4  # more threads than this per usable core only slow a run down and cost memory
 
 
 def usable_cores() -> int:
@@ -28,18 +28,27 @@ def checked_threads(threads) -> int:
     """``threads`` as an int in 1 .. :data:`THREADS_PER_CORE_MAX` x the usable cores; ConfigError
     outside it (a huge count exhausts memory creating threads), a RuntimeWarning above the core count."""
     cores = usable_cores()
-    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or \
-            not 1 <= threads <= THREADS_PER_CORE_MAX * cores:
-        raise ConfigError(f"threads: expected an integer from 1 to {THREADS_PER_CORE_MAX * cores} "
-                          f"({THREADS_PER_CORE_MAX} x the {cores} usable cores), got {threads!r}")
+    if (
+        isinstance(threads, bool)
+        or not isinstance(threads, (int, np.integer))
+        or not 1 <= threads <= THREADS_PER_CORE_MAX * cores
+    ):
+        raise ConfigError(
+            f"threads: expected an integer from 1 to {THREADS_PER_CORE_MAX * cores} "
+            f"({THREADS_PER_CORE_MAX} x the {cores} usable cores), got {threads!r}"
+        )
     if threads > cores:
-        warnings.warn(f"threads = {threads} is more than the {cores} usable cores; runs will be slower, not faster",
-                      RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"threads = {threads} is more than the {cores} usable cores; runs will be slower, not faster",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     return int(threads)
 
 
-def make_session(path: str | Path, threads: int = 2, profile: bool = False,
-                 graph_level: str = "all") -> ort.InferenceSession:
+def make_session(
+    path: str | Path, threads: int = 2, profile: bool = False, graph_level: str = "all"
+) -> ort.InferenceSession:
     """An onnxruntime CPU session with a fixed number of intra-op threads.
 
     ``graph_level`` is one of ``disable``, ``basic``, ``extended``, ``all``. The worker threads
@@ -52,8 +61,10 @@ def make_session(path: str | Path, threads: int = 2, profile: bool = False,
     """
     threads = checked_threads(threads)
     if Path(path).is_dir():
-        raise InputError(f"{path} is a directory; pass one graph's .onnx (a multi-graph export directory goes "
-                         f"to the commands that take one: inspect, parity-check, bench, eval, locate)")
+        raise InputError(
+            f"{path} is a directory; pass one graph's .onnx (a multi-graph export directory goes "
+            f"to the commands that take one: inspect, parity-check, bench, eval, locate)"
+        )
     if not Path(path).is_file():
         raise InputError(f"{path} does not exist; export one with `radaredge export --model NAME`")
     opts = ort.SessionOptions()
@@ -73,10 +84,12 @@ def make_session(path: str | Path, threads: int = 2, profile: bool = False,
         opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "radaredge_ort_profile")
     try:
         return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
-    except Exception as exc:      # onnxruntime's own error types (InvalidArgument, Fail, ...)
+    except Exception as exc:  # onnxruntime's own error types (InvalidArgument, Fail, ...)
         reason = str(exc).split(" : ")[-1].strip()
-        raise InputError(f"{path}: onnxruntime cannot load it as a model ({type(exc).__name__}: {reason}); "
-                         f"pass an .onnx written by `radaredge export`") from None
+        raise InputError(
+            f"{path}: onnxruntime cannot load it as a model ({type(exc).__name__}: {reason}); "
+            f"pass an .onnx written by `radaredge export`"
+        ) from None
 
 
 def run_session(session: ort.InferenceSession, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -30,6 +30,7 @@ def load_tokenizer(path: str | Path):
     """A ``tokenizers.Tokenizer`` from ``tokenizer.json`` (file or the directory holding it)."""
     # optional: tokenizers (eval and export extras) is needed by Des4Pos only
     from tokenizers import Tokenizer
+
     path = Path(path)
     if path.is_dir():
         path = path / "tokenizer.json"
@@ -37,7 +38,7 @@ def load_tokenizer(path: str | Path):
         raise ConfigError(f"no tokenizer at {path}; a Des4Pos bundle carries tokenizer.json beside its graphs")
     try:
         tok = Tokenizer.from_file(str(path))
-    except Exception as exc:                  # tokenizers raises its own Exception type with serde's message
+    except Exception as exc:  # tokenizers raises its own Exception type with serde's message
         raise InputError(f"{path}: not a readable tokenizer.json ({' '.join(str(exc).split())[:160]})") from None
     tok.no_padding()
     tok.no_truncation()
@@ -51,20 +52,22 @@ def encode_hints(tokenizer, hints: list[str], max_tokens: int, max_hints: int) -
     ``max_tokens`` tokens (named by number and text, with its token count).
     """
     if not hints:
-        raise InputError("the description has no hint sentence; e.g. \"The pose is north of a red box.\"")
+        raise InputError('the description has no hint sentence; e.g. "The pose is north of a red box."')
     if len(hints) > max_hints:
         raise InputError(f"the description has {len(hints)} hint sentences; this model takes at most {max_hints}")
     rows = []
     for i, h in enumerate(hints):
         ids = tokenizer.encode(h).ids
         if len(ids) > max_tokens:
-            raise InputError(f"hint {i + 1} ({h!r}) is {len(ids)} tokens long; this model takes at most {max_tokens} "
-                             f"per hint sentence: split it into shorter sentences")
+            raise InputError(
+                f"hint {i + 1} ({h!r}) is {len(ids)} tokens long; this model takes at most {max_tokens} "
+                f"per hint sentence: split it into shorter sentences"
+            )
         rows.append(ids)
     length = max(len(r) for r in rows)
     ids = np.zeros((len(rows), length), np.int64)
     mask = np.zeros((len(rows), length), np.int64)
     for i, r in enumerate(rows):
-        ids[i, :len(r)] = r
-        mask[i, :len(r)] = 1
+        ids[i, : len(r)] = r
+        mask[i, : len(r)] = 1
     return ids, mask

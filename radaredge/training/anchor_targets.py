@@ -38,11 +38,15 @@ def class_thresholds(card) -> list[tuple[float, float]]:
         hi = entry.get("matched_threshold", default[0] if default else None)
         lo = entry.get("unmatched_threshold", default[1] if default else None)
         if hi is None or lo is None:
-            raise ConfigError(f"{card.where}: dense_head.anchors[{i}] ({name}) needs matched_threshold and "
-                              f"unmatched_threshold for training (upstream knows {sorted(THRESHOLDS)} only)")
+            raise ConfigError(
+                f"{card.where}: dense_head.anchors[{i}] ({name}) needs matched_threshold and "
+                f"unmatched_threshold for training (upstream knows {sorted(THRESHOLDS)} only)"
+            )
         if not 0.0 <= lo <= hi <= 1.0:
-            raise ConfigError(f"{card.where}: dense_head.anchors[{i}] ({name}): expected 0 <= unmatched_threshold "
-                              f"<= matched_threshold <= 1, got {lo} and {hi}")
+            raise ConfigError(
+                f"{card.where}: dense_head.anchors[{i}] ({name}): expected 0 <= unmatched_threshold "
+                f"<= matched_threshold <= 1, got {lo} and {hi}"
+            )
         out.append((float(hi), float(lo)))
     return out
 
@@ -59,7 +63,7 @@ def nearest_bev(boxes: torch.Tensor) -> torch.Tensor:
     """Axis-aligned BEV rectangles (x1, y1, x2, y2) of boxes [N, 7] rotated to the nearest axis
     (OpenPCDet boxes3d_nearest_bev_iou): a heading within 45 degrees of the y axis swaps length
     and width."""
-    yaw = boxes[:, 6] - torch.floor(boxes[:, 6] / math.pi + 0.5) * math.pi        # limit to [-pi/2, pi/2)
+    yaw = boxes[:, 6] - torch.floor(boxes[:, 6] / math.pi + 0.5) * math.pi  # limit to [-pi/2, pi/2)
     swap = yaw.abs() > math.pi / 4
     dx = torch.where(swap, boxes[:, 4], boxes[:, 3])
     dy = torch.where(swap, boxes[:, 3], boxes[:, 4])
@@ -80,16 +84,31 @@ def encode_boxes(gt: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
     """OpenPCDet ResidualCoder.encode_torch: residuals [A, 7] of gt [A, 7] w.r.t. anchors [A, 7],
     the inverse of :func:`radaredge.models.maffnet.model.decode_boxes` before its direction fix."""
     anchors = torch.cat([anchors[:, :3], anchors[:, 3:6].clamp(min=1e-5), anchors[:, 6:]], 1)
-    gt = torch.cat([gt[:, :3], gt[:, 3:6].clamp(min=1e-5), gt[:, 6:]], 1)     # as upstream: no log(0)
+    gt = torch.cat([gt[:, :3], gt[:, 3:6].clamp(min=1e-5), gt[:, 6:]], 1)  # as upstream: no log(0)
     xa, ya, za, dxa, dya, dza, ra = anchors.unbind(-1)
     xg, yg, zg, dxg, dyg, dzg, rg = gt.unbind(-1)
-    diagonal = torch.sqrt(dxa ** 2 + dya ** 2)
-    return torch.stack([(xg - xa) / diagonal, (yg - ya) / diagonal, (zg - za) / dza, torch.log(dxg / dxa),
-                        torch.log(dyg / dya), torch.log(dzg / dza), rg - ra], -1)
+    diagonal = torch.sqrt(dxa**2 + dya**2)
+    return torch.stack(
+        [
+            (xg - xa) / diagonal,
+            (yg - ya) / diagonal,
+            (zg - za) / dza,
+            torch.log(dxg / dxa),
+            torch.log(dyg / dya),
+            torch.log(dzg / dza),
+            rg - ra,
+        ],
+        -1,
+    )
 
 
-def assign_targets(anchors: torch.Tensor, classes: torch.Tensor, gt: torch.Tensor, gt_labels: torch.Tensor,
-                   thresholds: list[tuple[float, float]]) -> dict[str, torch.Tensor]:
+def assign_targets(
+    anchors: torch.Tensor,
+    classes: torch.Tensor,
+    gt: torch.Tensor,
+    gt_labels: torch.Tensor,
+    thresholds: list[tuple[float, float]],
+) -> dict[str, torch.Tensor]:
     """OpenPCDet's AxisAlignedTargetAssigner for one scan. Per class, an anchor is positive when its
     axis-aligned BEV IoU with a box of that class reaches the matched threshold, or when it is a
     box's best anchor (IoU > 0), and is matched to the box it overlaps most; negative below the
@@ -105,12 +124,12 @@ def assign_targets(anchors: torch.Tensor, classes: torch.Tensor, gt: torch.Tenso
             continue
         idx_a = torch.nonzero(on_a).squeeze(1)
         boxes = gt[on_g]
-        iou = axis_aligned_iou(rect[idx_a], nearest_bev(boxes))                 # [Ac, Gc]
+        iou = axis_aligned_iou(rect[idx_a], nearest_bev(boxes))  # [Ac, Gc]
         best_iou, best_gt = iou.max(1)
         pos = best_iou >= hi
         per_gt = iou.max(0).values
-        forced = ((iou == per_gt[None]) & (per_gt[None] > 0)).any(1)           # each box's best anchor(s)
-        pos = pos | forced                                                      # matched to their own best box
+        forced = ((iou == per_gt[None]) & (per_gt[None] > 0)).any(1)  # each box's best anchor(s)
+        pos = pos | forced  # matched to their own best box
         sub = torch.where(best_iou < lo, 0, -1)
         sub[pos] = c + 1
         labels[idx_a] = sub
@@ -141,7 +160,7 @@ def sigmoid_focal(logits: torch.Tensor, targets: torch.Tensor, alpha: float = 0.
 def smooth_l1(diff: torch.Tensor, beta: float) -> torch.Tensor:
     """Smooth-L1 per element of ``diff``: 0.5 d^2 / beta below beta, |d| - beta / 2 above."""
     d = diff.abs()
-    return torch.where(d < beta, 0.5 * d ** 2 / beta, d - 0.5 * beta)
+    return torch.where(d < beta, 0.5 * d**2 / beta, d - 0.5 * beta)
 
 
 def head_loss(cls_logits, box_pred, dir_logits, targets: dict, cfg, num_classes: int) -> dict[str, torch.Tensor]:
@@ -158,12 +177,10 @@ def head_loss(cls_logits, box_pred, dir_logits, targets: dict, cfg, num_classes:
     terms["loc"] = terms["dir"] = zero
     if pos.any():
         pred, tgt = box_pred[pos], targets["box_targets"][pos]
-        sin_pred = torch.sin(pred[:, 6:7]) * torch.cos(tgt[:, 6:7])          # sin(a - b) split between the two
+        sin_pred = torch.sin(pred[:, 6:7]) * torch.cos(tgt[:, 6:7])  # sin(a - b) split between the two
         sin_tgt = torch.cos(pred[:, 6:7]) * torch.sin(tgt[:, 6:7])
         diff = torch.cat([pred[:, :6] - tgt[:, :6], sin_pred - sin_tgt], 1)
         terms["loc"] = LOSS_WEIGHTS["loc"] * smooth_l1(diff, 1.0 / 9.0).sum() / norm
         dirs = direction_targets(targets["matched"][pos], cfg)
         terms["dir"] = LOSS_WEIGHTS["dir"] * F.cross_entropy(dir_logits[pos], dirs, reduction="sum") / norm
     return {"loss": terms["cls"] + terms["loc"] + terms["dir"], **terms}
-
-

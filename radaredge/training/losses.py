@@ -21,20 +21,26 @@ import torch
 SECOND_TERMS = ("paper", "pointnetvlad")
 
 
-def lazy_quadruplet_loss(query: torch.Tensor, positives: torch.Tensor, negatives: torch.Tensor,
-                         other_negative: torch.Tensor, alpha: float = 0.2, beta: float = 0.1,
-                         second_term: str = "paper") -> torch.Tensor:
+def lazy_quadruplet_loss(
+    query: torch.Tensor,
+    positives: torch.Tensor,
+    negatives: torch.Tensor,
+    other_negative: torch.Tensor,
+    alpha: float = 0.2,
+    beta: float = 0.1,
+    second_term: str = "paper",
+) -> torch.Tensor:
     """Eq. 10 for a batch of B tuples: query [B, D], positives [B, P, D], negatives [B, N, D],
     other_negative [B, D] (descriptors, the paper's U) -> the mean loss over the tuples (a
     scalar). ``alpha`` and ``beta`` are the margins (paper: 0.2 and 0.1)."""
     if second_term not in SECOND_TERMS:
         raise ValueError(f"second_term must be one of {SECOND_TERMS}, got {second_term!r}")
-    d_pos = torch.linalg.vector_norm(positives - query[:, None], dim=-1).min(1).values     # best positive [B]
-    d_neg = torch.linalg.vector_norm(negatives - query[:, None], dim=-1)                   # [B, N]
+    d_pos = torch.linalg.vector_norm(positives - query[:, None], dim=-1).min(1).values  # best positive [B]
+    d_neg = torch.linalg.vector_norm(negatives - query[:, None], dim=-1)  # [B, N]
     first = torch.relu(alpha + d_pos[:, None] - d_neg).max(1).values
     if second_term == "paper":
         second = torch.relu(beta + d_pos - torch.linalg.vector_norm(other_negative - query, dim=-1))
     else:
-        d_star = torch.linalg.vector_norm(negatives - other_negative[:, None], dim=-1)     # [B, N]
+        d_star = torch.linalg.vector_norm(negatives - other_negative[:, None], dim=-1)  # [B, N]
         second = torch.relu(beta + d_pos[:, None] - d_star).max(1).values
     return (first + second).mean()

@@ -87,56 +87,79 @@ from ..models.maffnet.model import decode_boxes
 from ..models.maffnet.rcnn import STAGE_TWO_MODULES, run_stage_two, scan_points
 from ..ops.input_flags import drop_implausible
 from ..ops.nms import class_agnostic_nms_eager
-from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
-from .roi_targets import (RoiSampling, box_corners, point_head_loss, point_labels, roi_head_loss, sample_rois,
-                          training_proposals)
-from .run import (RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, pick_device, recipe_from_options)
 from ..progress import no_progress
+from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
+from .roi_targets import (
+    RoiSampling,
+    box_corners,
+    point_head_loss,
+    point_labels,
+    roi_head_loss,
+    sample_rois,
+    training_proposals,
+)
+from .run import RunDir, Stopwatch, TrainingState, TrainReport, load_weights_outside, pick_device, recipe_from_options
 
 TRAIN_SPLIT, VALIDATION_SPLIT = "train", "val"
-TERMS = ("loss", "cls", "loc", "dir")                                   # logged per epoch as loss_<term>
+TERMS = ("loss", "cls", "loc", "dir")  # logged per epoch as loss_<term>
 STAGE_TWO_TERMS = ("point", "rcnn_cls", "rcnn_reg", "rcnn_corner")
-PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}                  # recipe.precision -> autocast dtype
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}  # recipe.precision -> autocast dtype
 
 
-@card_ranges(epochs=(1, 10_000), batch_size=(1, 256), lr=positive(1.0), weight_decay=(0.0, 1.0),
-             pct_start=Range(0.0, 1.0, True, True), div_factor=positive(1e6), grad_clip=positive(1e6),
-             rotation=(0.0, math.pi), scale_min=positive(10.0), scale_max=positive(10.0), translate_std_z=(0.0, 10.0),
-             val_every=(1, 10_000), val_frames=(0, 10**7), train_frames=(0, 10**7),
-             head_prior=Range(0.0, 1.0, True, True), bn_scans=(0, 10**6),
-             roi_per_image=(1, 2**16), train_proposals=(1, 2**16), train_proposals_pre=(1, 2**20), seed=(0, 2**32 - 1))
+@card_ranges(
+    epochs=(1, 10_000),
+    batch_size=(1, 256),
+    lr=positive(1.0),
+    weight_decay=(0.0, 1.0),
+    pct_start=Range(0.0, 1.0, True, True),
+    div_factor=positive(1e6),
+    grad_clip=positive(1e6),
+    rotation=(0.0, math.pi),
+    scale_min=positive(10.0),
+    scale_max=positive(10.0),
+    translate_std_z=(0.0, 10.0),
+    val_every=(1, 10_000),
+    val_frames=(0, 10**7),
+    train_frames=(0, 10**7),
+    head_prior=Range(0.0, 1.0, True, True),
+    bn_scans=(0, 10**6),
+    roi_per_image=(1, 2**16),
+    train_proposals=(1, 2**16),
+    train_proposals_pre=(1, 2**20),
+    seed=(0, 2**32 - 1),
+)
 @dataclass(frozen=True)
 class DetectionRecipe:
     """The options of MAFF-Net training (module docstring); defaults are upstream's
     (MAFF-Net_vod.yaml OPTIMIZATION and DATA_AUGMENTOR)."""
 
-    epochs: int = 60                 # NUM_EPOCHS (VoD; TJ4D 80)
-    batch_size: int = 4              # BATCH_SIZE_PER_GPU
-    lr: float = 0.01                 # LR (the one-cycle peak)
-    weight_decay: float = 0.01       # WEIGHT_DECAY
-    pct_start: float = 0.4           # PCT_START
-    div_factor: float = 10.0         # DIV_FACTOR
-    grad_clip: float = 10.0          # GRAD_NORM_CLIP
-    flip_x: bool = True              # random_world_flip ALONG_AXIS_LIST ['x']
-    rotation: float = 0.78539816     # random_world_rotation WORLD_ROT_ANGLE +-
-    scale_min: float = 0.95          # random_world_scaling WORLD_SCALE_RANGE
+    epochs: int = 60  # NUM_EPOCHS (VoD; TJ4D 80)
+    batch_size: int = 4  # BATCH_SIZE_PER_GPU
+    lr: float = 0.01  # LR (the one-cycle peak)
+    weight_decay: float = 0.01  # WEIGHT_DECAY
+    pct_start: float = 0.4  # PCT_START
+    div_factor: float = 10.0  # DIV_FACTOR
+    grad_clip: float = 10.0  # GRAD_NORM_CLIP
+    flip_x: bool = True  # random_world_flip ALONG_AXIS_LIST ['x']
+    rotation: float = 0.78539816  # random_world_rotation WORLD_ROT_ANGLE +-
+    scale_min: float = 0.95  # random_world_scaling WORLD_SCALE_RANGE
     scale_max: float = 1.05
-    translate_std_z: float = 0.0     # random_world_translation NOISE_TRANSLATE_STD's z (m); 0: off, as upstream
-    augment: bool = True             # false: no augmentation at all
-    val_every: int = 1               # epochs between validations (the last epoch is always validated)
-    val_frames: int = 0              # validation frames (evenly spaced over the split); 0: all
-    train_frames: int = 0            # training frames (evenly spaced over the split); 0: all
-    freeze: str = ""                 # comma-separated parameter-name patterns kept fixed (fnmatch; "vfe" = "vfe.*")
-    head_prior: float = 0.01         # without --checkpoint: the class bias's prior (upstream's init)
-    stage_one_weights: str = ""      # two-stage cards: a one-stage checkpoint (a trained maffnet-vod's best.pth)
-                                     # whose weights start stage one; stage two starts seeded
-    bn_scans: int = 64               # ours: batch-norm statistics re-estimated on this many training scans
-                                     # before each validation (0: upstream's running averages as they are)
-    roi_per_image: int = 128         # two-stage cards: ROI_HEAD.TARGET_CONFIG.ROI_PER_IMAGE (rois sampled per scan)
-    train_proposals: int = 512       # ROI_HEAD.NMS_CONFIG.TRAIN.NMS_POST_MAXSIZE
+    translate_std_z: float = 0.0  # random_world_translation NOISE_TRANSLATE_STD's z (m); 0: off, as upstream
+    augment: bool = True  # false: no augmentation at all
+    val_every: int = 1  # epochs between validations (the last epoch is always validated)
+    val_frames: int = 0  # validation frames (evenly spaced over the split); 0: all
+    train_frames: int = 0  # training frames (evenly spaced over the split); 0: all
+    freeze: str = ""  # comma-separated parameter-name patterns kept fixed (fnmatch; "vfe" = "vfe.*")
+    head_prior: float = 0.01  # without --checkpoint: the class bias's prior (upstream's init)
+    stage_one_weights: str = ""  # two-stage cards: a one-stage checkpoint (a trained maffnet-vod's best.pth)
+    # whose weights start stage one; stage two starts seeded
+    bn_scans: int = 64  # ours: batch-norm statistics re-estimated on this many training scans
+    # before each validation (0: upstream's running averages as they are)
+    roi_per_image: int = 128  # two-stage cards: ROI_HEAD.TARGET_CONFIG.ROI_PER_IMAGE (rois sampled per scan)
+    train_proposals: int = 512  # ROI_HEAD.NMS_CONFIG.TRAIN.NMS_POST_MAXSIZE
     train_proposals_pre: int = 9000  # ROI_HEAD.NMS_CONFIG.TRAIN.NMS_PRE_MAXSIZE
     seed: int = 0
-    precision: str = "fp32"          # "bf16": mixed precision (module docstring); upstream trains in fp32
+    precision: str = "fp32"  # "bf16": mixed precision (module docstring); upstream trains in fp32
 
     def __post_init__(self):
         if self.precision not in PRECISIONS:
@@ -146,8 +169,9 @@ class DetectionRecipe:
 
     def roi_sampling(self) -> RoiSampling:
         """Stage two's training proposals and roi sampling (upstream's thresholds)."""
-        return RoiSampling(pre_max=self.train_proposals_pre, post_max=self.train_proposals,
-                           roi_per_image=self.roi_per_image)
+        return RoiSampling(
+            pre_max=self.train_proposals_pre, post_max=self.train_proposals, roi_per_image=self.roi_per_image
+        )
 
     @classmethod
     def from_options(cls, options: dict) -> "DetectionRecipe":
@@ -188,8 +212,10 @@ def load_split(card: ModelCard, root, split: str, data_format: str | None, limit
         points = card_points(frame, card)
         if not np.isfinite(points).all():
             point, column = (int(x[0]) for x in np.nonzero(~np.isfinite(points)))
-            raise InputError(f"{the_set.training / 'velodyne' / (frame.frame_id + '.bin')}: non-finite value at point "
-                             f"{point}, column {card.features[column]!r}")
+            raise InputError(
+                f"{the_set.training / 'velodyne' / (frame.frame_id + '.bin')}: non-finite value at point "
+                f"{point}, column {card.features[column]!r}"
+            )
         keep = np.array([n in index for n in frame.labels.name], bool)
         boxes = labels_to_radar_boxes(frame.labels.select(keep), frame.calib).astype(np.float32)
         classes = np.array([index[n] for n in frame.labels.name[keep]], np.int64)
@@ -197,8 +223,9 @@ def load_split(card: ModelCard, root, split: str, data_format: str | None, limit
     return out
 
 
-def augment(points: np.ndarray, boxes: np.ndarray, xyz: list[int], recipe: DetectionRecipe,
-            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def augment(
+    points: np.ndarray, boxes: np.ndarray, xyz: list[int], recipe: DetectionRecipe, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Upstream's world augmentation (module docstring) of one scan: (points, boxes) copies."""
     points, boxes = points.copy(), boxes.astype(np.float64).copy()
     ix, iy, iz = xyz
@@ -241,8 +268,9 @@ def mixed_precision(device: torch.device, dtype: torch.dtype | None):
     return torch.autocast(device.type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)
 
 
-def fused_map(model, points: torch.Tensor, dtype: torch.dtype | None = None,
-              training: bool = False) -> dict[str, torch.Tensor]:
+def fused_map(
+    model, points: torch.Tensor, dtype: torch.dtype | None = None, training: bool = False
+) -> dict[str, torch.Tensor]:
     """One scan through VFE + SPA, CFA and the fusion, export formulation (``training``: the
     pillars' training formulation, the same values with a cheaper backward,
     :meth:`~radaredge.models.maffnet.model.MAFFNet.pillar_stage_training`): ``points`` [N, F]
@@ -268,8 +296,8 @@ class LossSetup:
     thresholds: list
     sampling: RoiSampling | None
     dtype: torch.dtype | None = None
-    export_pillars: bool = False     # the pillar stage's export formulation (the same values, a slower
-                                     # backward; benchmarks/maffnet_train_step.py times both)
+    export_pillars: bool = False  # the pillar stage's export formulation (the same values, a slower
+    # backward; benchmarks/maffnet_train_step.py times both)
 
 
 def stage_two_terms(model, scan: dict, cls, box, direction, gt, gt_labels, setup: LossSetup) -> dict:
@@ -287,8 +315,10 @@ def stage_two_terms(model, scan: dict, cls, box, direction, gt, gt_labels, setup
     before, point_features = model.pfe(scan["fused"][0], keypoints, xyz, feats, in_scan)
     logits = model.point_head.logits(before)
     rcnn_cls, rcnn_reg = model.roi_head(t["rois"], keypoints, valid, point_features * torch.sigmoid(logits)[:, None])
-    return {"point": point_head_loss(logits, point_labels(keypoints, valid, gt)),
-            **roi_head_loss(rcnn_cls, rcnn_reg, t)}
+    return {
+        "point": point_head_loss(logits, point_labels(keypoints, valid, gt)),
+        **roi_head_loss(rcnn_cls, rcnn_reg, t),
+    }
 
 
 def scan_terms(model, points: torch.Tensor, gt: torch.Tensor, gt_classes: torch.Tensor, setup: LossSetup) -> dict:
@@ -318,8 +348,9 @@ def detect(model, points: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndar
     scan = fused_map(model, points)
     logits, boxes = model.head_stage(scan["fused"])
     if model.stage_two_config is not None:
-        out = run_stage_two(model, scan["points"], scan["fused"][0], scan["cluster"], logits, boxes, False,
-                            eager_nms=True)
+        out = run_stage_two(
+            model, scan["points"], scan["fused"][0], scan["cluster"], logits, boxes, False, eager_nms=True
+        )
         boxes, best, label = out["boxes"], out["scores"], out["labels"]
     else:
         best, label = torch.sigmoid(logits).max(-1)
@@ -338,8 +369,10 @@ def frozen_parameters(model, patterns: str) -> list[str]:
         hit = [n for n in names if fnmatch.fnmatchcase(n, pat) or n.startswith(pat.rstrip(".") + ".")]
         if not hit:
             tops = sorted({n.split(".")[0] for n in names})
-            raise ConfigError(f"--freeze {pat!r} matches no parameter; the modules are {tops} "
-                              f"(patterns match parameter names, e.g. 'backbone_2d.blocks.0.*')")
+            raise ConfigError(
+                f"--freeze {pat!r} matches no parameter; the modules are {tops} "
+                f"(patterns match parameter names, e.g. 'backbone_2d.blocks.0.*')"
+            )
         out.update(hit)
     if out and len(out) == len(names):
         raise ConfigError(f"--freeze {patterns!r} freezes every parameter; nothing would train")
@@ -359,12 +392,21 @@ def set_train_mode(model, frozen: set[str]) -> None:
 def _adam_onecycle(model, recipe: DetectionRecipe, steps: int):
     """OpenPCDet's adam_onecycle (module docstring) as torch AdamW + OneCycleLR."""
     params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.AdamW(params, lr=recipe.lr / recipe.div_factor, betas=(0.95, 0.99),
-                            weight_decay=recipe.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=recipe.lr, total_steps=max(steps, 1),
-                                                pct_start=recipe.pct_start, anneal_strategy="cos",
-                                                cycle_momentum=True, base_momentum=0.85, max_momentum=0.95,
-                                                div_factor=recipe.div_factor, final_div_factor=1e4)
+    opt = torch.optim.AdamW(
+        params, lr=recipe.lr / recipe.div_factor, betas=(0.95, 0.99), weight_decay=recipe.weight_decay
+    )
+    sched = torch.optim.lr_scheduler.OneCycleLR(
+        opt,
+        max_lr=recipe.lr,
+        total_steps=max(steps, 1),
+        pct_start=recipe.pct_start,
+        anneal_strategy="cos",
+        cycle_momentum=True,
+        base_momentum=0.85,
+        max_momentum=0.95,
+        div_factor=recipe.div_factor,
+        final_div_factor=1e4,
+    )
     return params, opt, sched
 
 
@@ -384,8 +426,9 @@ def batch_norm_statistics(model, scans: list[torch.Tensor]):
     return model.vfe.pfn_layers[0].batch_statistics(functools.reduce(operator.add, moments))
 
 
-def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str], setup: LossSetup,
-                               pc_range, device, batch_size: int) -> None:
+def reestimate_norm_statistics(
+    model, scans: list[LabelledScan], frozen: set[str], setup: LossSetup, pc_range, device, batch_size: int
+) -> None:
     """Batch-norm running statistics of the trainable modules recomputed with the current weights:
     the cumulative average over ``scans`` (no augmentation) in batches of ``batch_size``
     consecutive scans (:func:`batch_norm_statistics`), run as in training (a two-stage card's second stage on its
@@ -402,34 +445,45 @@ def reestimate_norm_statistics(model, scans: list[LabelledScan], frozen: set[str
         m.momentum = None
     with torch.no_grad():
         for first in range(0, len(scans), batch_size):
-            batch = scans[first:first + batch_size]
+            batch = scans[first : first + batch_size]
             with batch_norm_statistics(model, [torch.from_numpy(s.points).to(device) for s in batch]):
                 for scan in batch:
                     keep = boxes_in_range(scan.boxes, pc_range)
-                    scan_terms(model, torch.from_numpy(scan.points).to(device),
-                               torch.from_numpy(scan.boxes[keep]).to(device),
-                               torch.from_numpy(scan.classes[keep]).to(device), setup)
+                    scan_terms(
+                        model,
+                        torch.from_numpy(scan.points).to(device),
+                        torch.from_numpy(scan.boxes[keep]).to(device),
+                        torch.from_numpy(scan.classes[keep]).to(device),
+                        setup,
+                    )
     for m, momentum in zip(norms, saved):
         m.momentum = momentum
     model.eval()
 
 
-
-def validation_ap(model, scans: list[LabelledScan], card: ModelCard, data_format: str | None,
-                  device: torch.device, progress=no_progress) -> dict[str, float]:
+def validation_ap(
+    model,
+    scans: list[LabelledScan],
+    card: ModelCard,
+    data_format: str | None,
+    device: torch.device,
+    progress=no_progress,
+) -> dict[str, float]:
     """3D AP (%, entire area, 11 recall positions, the dataset's IoU thresholds) per evaluated
     class of the model's detections (:func:`detect`) on ``scans``, and their mean
     ``mAP``; also each class's BEV AP."""
     layout = layout_for_card(card, data_format)
-    eval_classes = tuple(layout.eval_class(c) for c in card.get("classes")
-                         if c in {e.name for e in layout.eval_classes})
+    eval_classes = tuple(
+        layout.eval_class(c) for c in card.get("classes") if c in {e.name for e in layout.eval_classes}
+    )
     model.eval()
     dts = []
     bar = progress("validation AP", len(scans))
     with torch.no_grad():
         for scan in scans:
-            dts.append(as_labels(detect(model, torch.from_numpy(scan.points).to(device)), scan.frame,
-                                 card.get("classes")))
+            dts.append(
+                as_labels(detect(model, torch.from_numpy(scan.points).to(device)), scan.frame, card.get("classes"))
+            )
             bar.update()
     bar.close()
     table = ap_table(evaluate_frames([s.frame.labels for s in scans], dts, eval_classes, ("entire_area",)))
@@ -449,21 +503,29 @@ def require_labelled_objects(card: ModelCard, root, data_format: str | None, tra
     "succeed" with a best.pth that learnt nothing."""
     if any(len(scan.classes) for scan in train):
         return
-    the_set = DetectionSet(root, TRAIN_SPLIT, layout_for_card(card, data_format),
-                           int(card.get("input.scans_accumulated", 1)))
+    the_set = DetectionSet(
+        root, TRAIN_SPLIT, layout_for_card(card, data_format), int(card.get("input.scans_accumulated", 1))
+    )
     others = sorted({str(n) for scan in train for n in scan.frame.labels.name} - {"DontCare"})
     found = f"their labels name only {others}" if others else "their label files hold no object"
-    raise InputError(f"{the_set.split_file}: none of the {len(train)} training frames read has a labelled object of "
-                     f"the card's classes {list(card.get('classes'))} ({found}); training would learn nothing. "
-                     f"Train on a split with labelled objects of these classes, or a card whose classes the labels use")
+    raise InputError(
+        f"{the_set.split_file}: none of the {len(train)} training frames read has a labelled object of "
+        f"the card's classes {list(card.get('classes'))} ({found}); training would learn nothing. "
+        f"Train on a split with labelled objects of these classes, or a card whose classes the labels use"
+    )
 
 
 def _signature(card: ModelCard, root, recipe: DetectionRecipe, validation: str, train: list, val: list) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
     keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "val_every")}
-    return {"card": card.data, "data": str(Path(root).resolve()), "validation": validation,
-            "train_frames": [s.frame.frame_id for s in train], "val_frames": [s.frame.frame_id for s in val],
-            "recipe": keep}
+    return {
+        "card": card.data,
+        "data": str(Path(root).resolve()),
+        "validation": validation,
+        "train_frames": [s.frame.frame_id for s in train],
+        "val_frames": [s.frame.frame_id for s in val],
+        "recipe": keep,
+    }
 
 
 def _epoch_line(e: dict, classes: list[str]) -> str:
@@ -473,10 +535,20 @@ def _epoch_line(e: dict, classes: list[str]) -> str:
     return f"epoch {e['epoch']:>3}: loss {loss}{val}, {e['seconds'] / 60:.1f} min"
 
 
-def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionRecipe, device: str = "cpu",
-                   resume: bool = False, validation: str = VALIDATION_SPLIT, data_format: str | None = None,
-                   checkpoint=None, progress=no_progress,
-                   log: Callable[[str], None] = lambda line: None) -> TrainReport:
+def train_detector(
+    card: ModelCard,
+    model,
+    data_root,
+    output,
+    recipe: DetectionRecipe,
+    device: str = "cpu",
+    resume: bool = False,
+    validation: str = VALIDATION_SPLIT,
+    data_format: str | None = None,
+    checkpoint=None,
+    progress=no_progress,
+    log: Callable[[str], None] = lambda line: None,
+) -> TrainReport:
     """Train ``model`` (a MAFF-Net of ``card``, one stage or two) on the ``train`` split under ``data_root``
     with ``recipe``, validate on the ``validation`` split, and write the run directory ``output``
     (:mod:`.run`: best.pth by validation mAP, last.pth for ``resume``, train-log.json)."""
@@ -492,23 +564,35 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
     xyz = [card.features.index(c) for c in ("x", "y", "z")]
     pc_range = card.get("pillars.point_cloud_range")
     n_boxes = {c: int(sum((s.classes == i).sum() for s in train)) for i, c in enumerate(card.get("classes"))}
-    summary = {"root": str(data_root), "train_frames": len(train), "validation_split": validation,
-               "validation_frames": len(val), "train_boxes": n_boxes,
-               "initial_weights": (str(checkpoint) if checkpoint else
-                                   f"stage one {recipe.stage_one_weights}, stage two seeded" if recipe.stage_one_weights
-                                   else f"seeded (card seed {card.get('seed', 0)})"),
-               "frozen_parameters": len(frozen)}
-    log(f"data: {len(train)} training frames ({', '.join(f'{v} {k}' for k, v in n_boxes.items())}), "
+    summary = {
+        "root": str(data_root),
+        "train_frames": len(train),
+        "validation_split": validation,
+        "validation_frames": len(val),
+        "train_boxes": n_boxes,
+        "initial_weights": (
+            str(checkpoint)
+            if checkpoint
+            else f"stage one {recipe.stage_one_weights}, stage two seeded"
+            if recipe.stage_one_weights
+            else f"seeded (card seed {card.get('seed', 0)})"
+        ),
+        "frozen_parameters": len(frozen),
+    }
+    log(
+        f"data: {len(train)} training frames ({', '.join(f'{v} {k}' for k, v in n_boxes.items())}), "
         f"{len(val)} validation frames ({validation}); weights: {summary['initial_weights']}"
-        + (f"; {len(frozen)} parameter tensors frozen" if frozen else ""))
+        + (f"; {len(frozen)} parameter tensors frozen" if frozen else "")
+    )
     if recipe.stage_one_weights and not resume:
         if model.stage_two_config is None:
-            raise ConfigError(f"stage_one_weights is for a card with a second stage; {card.name} has none "
-                              f"(a checkpoint of the whole network loads with --checkpoint)")
+            raise ConfigError(
+                f"stage_one_weights is for a card with a second stage; {card.name} has none "
+                f"(a checkpoint of the whole network loads with --checkpoint)"
+            )
         if checkpoint:
             raise ConfigError("--checkpoint and stage_one_weights both give initial weights; give one")
-        log(load_weights_outside(model, recipe.stage_one_weights, STAGE_TWO_MODULES, "stage two",
-                                 "stage_one_weights"))
+        log(load_weights_outside(model, recipe.stage_one_weights, STAGE_TWO_MODULES, "stage two", "stage_one_weights"))
     elif not checkpoint:
         with torch.no_grad():
             model.dense_head.conv_cls.bias.fill_(-math.log((1 - recipe.head_prior) / recipe.head_prior))
@@ -519,16 +603,20 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
     # convolutions then run without converting layouts back and forth (measured on maffnet-vod,
     # bf16: 0.70 against 1.0 s a training scan)
     model.to(dev, memory_format=torch.channels_last)
-    setup = LossSetup(anchor_classes(card, len(model.anchors)).to(dev), thresholds,
-                      recipe.roi_sampling() if model.stage_two_config is not None else None,
-                      PRECISIONS[recipe.precision])
+    setup = LossSetup(
+        anchor_classes(card, len(model.anchors)).to(dev),
+        thresholds,
+        recipe.roi_sampling() if model.stage_two_config is not None else None,
+        PRECISIONS[recipe.precision],
+    )
     steps_per_epoch = math.ceil(len(train) / recipe.batch_size)
     params, opt, sched = _adam_onecycle(model, recipe, steps_per_epoch * recipe.epochs)
     rng = np.random.default_rng(recipe.seed)
     torch.manual_seed(recipe.seed)
     signature = _signature(card, data_root, recipe, validation, train, val)
-    report = TrainReport(card.name, run.path, "mAP3d", data=summary,
-                         options={**dataclasses.asdict(recipe), "device": device})
+    report = TrainReport(
+        card.name, run.path, "mAP3d", data=summary, options={**dataclasses.asdict(recipe), "device": device}
+    )
     start, best = 1, None
     saved = TrainingState(run, signature, model, rng, report, opt, sched)
     if resume:
@@ -548,20 +636,28 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         sums = dict.fromkeys(TERMS + (STAGE_TWO_TERMS if setup.sampling else ()), 0.0)
         counted = skipped = overflows = 0
         for first in range(0, len(order), recipe.batch_size):
-            batch = order[first:first + recipe.batch_size]
+            batch = order[first : first + recipe.batch_size]
             opt.zero_grad()
             inputs = []
             for i in batch:
                 scan = train[int(i)]
-                points, boxes = ((augment(scan.points, scan.boxes, xyz, recipe, rng)) if recipe.augment
-                                 else (scan.points, scan.boxes))
+                points, boxes = (
+                    (augment(scan.points, scan.boxes, xyz, recipe, rng))
+                    if recipe.augment
+                    else (scan.points, scan.boxes)
+                )
                 keep = boxes_in_range(boxes, pc_range)
                 bar.update()
                 if not keep.any():
                     skipped += 1
                     continue
-                inputs.append((torch.from_numpy(points).to(dev), torch.from_numpy(boxes[keep]).to(dev),
-                               torch.from_numpy(scan.classes[keep]).to(dev)))
+                inputs.append(
+                    (
+                        torch.from_numpy(points).to(dev),
+                        torch.from_numpy(boxes[keep]).to(dev),
+                        torch.from_numpy(scan.classes[keep]).to(dev),
+                    )
+                )
             with batch_norm_statistics(model, [points for points, _, _ in inputs]):
                 for points, boxes, classes in inputs:
                     terms = scan_terms(model, points, boxes, classes, setup)
@@ -578,14 +674,28 @@ def train_detector(card: ModelCard, model, data_root, output, recipe: DetectionR
         bar.close()
         means = {k: v / max(counted, 1) for k, v in sums.items()}
         if not math.isfinite(means["loss"]):
-            raise ConfigError(f"training diverged in epoch {epoch} (loss {means['loss']}); lower --lr "
-                              f"(now {recipe.lr:g})")
-        row = {"epoch": epoch, "loss": means.pop("loss"), **{f"loss_{k}": v for k, v in means.items()},
-               "lr": float(opt.param_groups[0]["lr"]), "skipped_scans": skipped, "spa_overflows": overflows}
+            raise ConfigError(
+                f"training diverged in epoch {epoch} (loss {means['loss']}); lower --lr (now {recipe.lr:g})"
+            )
+        row = {
+            "epoch": epoch,
+            "loss": means.pop("loss"),
+            **{f"loss_{k}": v for k, v in means.items()},
+            "lr": float(opt.param_groups[0]["lr"]),
+            "skipped_scans": skipped,
+            "spa_overflows": overflows,
+        }
         if epoch % recipe.val_every == 0 or epoch == recipe.epochs:
             if recipe.bn_scans:
-                reestimate_norm_statistics(model, [train[i] for i in evenly(len(train), recipe.bn_scans)], frozen_set,
-                                           dataclasses.replace(setup, dtype=None), pc_range, dev, recipe.batch_size)
+                reestimate_norm_statistics(
+                    model,
+                    [train[i] for i in evenly(len(train), recipe.bn_scans)],
+                    frozen_set,
+                    dataclasses.replace(setup, dtype=None),
+                    pc_range,
+                    dev,
+                    recipe.batch_size,
+                )
             row.update(validation_ap(model, val, card, data_format, dev, progress))
             if best is None or row["mAP3d"] > best:
                 best, report.best_epoch = row["mAP3d"], epoch

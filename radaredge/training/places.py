@@ -41,7 +41,7 @@ from ..errors import InputError
 from ..eval.places import WindowSet
 
 MAX_DEPTH = 4
-MAX_WINDOW_GAP_S = 1.0      # s: a window whose consecutive scans lie further apart is skipped
+MAX_WINDOW_GAP_S = 1.0  # s: a window whose consecutive scans lie further apart is skipped
 
 
 def find_drives(root: str | os.PathLike) -> list[Path]:
@@ -60,9 +60,11 @@ def find_drives(root: str | os.PathLike) -> list[Path]:
                 nxt += sorted(p for p in d.iterdir() if (p.is_dir() or is_bag(p)) and not p.name.startswith("."))
         level = nxt
     if not found:
-        raise InputError(f"{root}: no drives found; a drive is a directory with scans/ (one scan file per frame) "
-                         f"or TransLoc4D's pointclouds/, and gps.csv (timestamp, northing, easting), e.g. from "
-                         f"`radaredge make-benchmark`")
+        raise InputError(
+            f"{root}: no drives found; a drive is a directory with scans/ (one scan file per frame) "
+            f"or TransLoc4D's pointclouds/, and gps.csv (timestamp, northing, easting), e.g. from "
+            f"`radaredge make-benchmark`"
+        )
     return sorted(found)
 
 
@@ -90,8 +92,9 @@ class PlaceWindows(WindowSet):
         return np.linalg.norm(pos - self.positions[i], axis=1)
 
 
-def _load_drives(drives: list[Path], fmt: str | None, features: Sequence[str] | None,
-                 bag: BagSource | None) -> list[RadarSequence]:
+def _load_drives(
+    drives: list[Path], fmt: str | None, features: Sequence[str] | None, bag: BagSource | None
+) -> list[RadarSequence]:
     """Each drive's sequence; bags are read whole (``features`` columns), all in one UTM zone."""
     out, zone = [], None
     for d in drives:
@@ -106,9 +109,15 @@ def _load_drives(drives: list[Path], fmt: str | None, features: Sequence[str] | 
     return out
 
 
-def load_place_windows(root: str | os.PathLike, k: int, validation: Sequence[str] | None = None,
-                       fmt: str | None = None, positive_radius: float = 5.0, features: Sequence[str] | None = None,
-                       bag: BagSource | None = None) -> PlaceWindows:
+def load_place_windows(
+    root: str | os.PathLike,
+    k: int,
+    validation: Sequence[str] | None = None,
+    fmt: str | None = None,
+    positive_radius: float = 5.0,
+    features: Sequence[str] | None = None,
+    bag: BagSource | None = None,
+) -> PlaceWindows:
     """The windows of every drive under ``root`` (see the module docstring), with the drives
     named in ``validation`` (paths relative to ``root``; None: :func:`default_validation`; an
     empty list: none) held out. Scan files are read on demand; ROS bags (``bag`` says where
@@ -133,15 +142,25 @@ def load_place_windows(root: str | os.PathLike, k: int, validation: Sequence[str
     for row, seq in enumerate(sequences):
         for frames in windows(seq, k):
             if np.diff(seq.timestamps[frames]).max(initial=0.0) > MAX_WINDOW_GAP_S:
-                continue                  # frames missing, or two recordings merged into one folder
+                continue  # frames missing, or two recordings merged into one folder
             items.append((row, frames))
             positions.append(seq.positions[frames[-1]])
             drive.append(row)
         if row not in drive:
-            raise InputError(f"{drives[row]}: no {k} consecutive scans lie within {MAX_WINDOW_GAP_S:g} s of each "
-                             f"other (gps.csv timestamps); no window can be formed")
-    out = PlaceWindows(root, k, sequences, items, np.asarray(positions, np.float64), names, np.asarray(drive),
-                       np.array([names[r] in held for r in drive]))
+            raise InputError(
+                f"{drives[row]}: no {k} consecutive scans lie within {MAX_WINDOW_GAP_S:g} s of each "
+                f"other (gps.csv timestamps); no window can be formed"
+            )
+    out = PlaceWindows(
+        root,
+        k,
+        sequences,
+        items,
+        np.asarray(positions, np.float64),
+        names,
+        np.asarray(drive),
+        np.array([names[r] in held for r in drive]),
+    )
     _check_overlap(out, positive_radius)
     return out
 
@@ -152,18 +171,22 @@ def _check_overlap(data: PlaceWindows, radius: float) -> None:
     the first drive that has none."""
     train = ~data.validation
     if len(set(data.drive[train])) < 2:
-        raise InputError(f"{data.path}: training needs two or more training drives of the same places; "
-                         f"found {sorted({data.names[r] for r in data.drive[train]})} "
-                         f"(validation: {sorted({data.names[r] for r in data.drive[data.validation]})})")
+        raise InputError(
+            f"{data.path}: training needs two or more training drives of the same places; "
+            f"found {sorted({data.names[r] for r in data.drive[train]})} "
+            f"(validation: {sorted({data.names[r] for r in data.drive[data.validation]})})"
+        )
     for row, name in enumerate(data.names):
         mine = np.flatnonzero(data.drive == row)
         others = np.flatnonzero(train & (data.drive != row))
         near = np.array([(data.distances(i, others) <= radius).any() for i in mine])
         if not near.any():
             role = "validation" if data.validation[mine[0]] else "training"
-            raise InputError(f"{data.path / name}: none of this {role} drive's {len(mine)} windows lies within "
-                             f"{radius:g} m of a window of another training drive (too few positives: it shares "
-                             f"no place with the others; check its gps.csv)")
+            raise InputError(
+                f"{data.path / name}: none of this {role} drive's {len(mine)} windows lies within "
+                f"{radius:g} m of a window of another training drive (too few positives: it shares "
+                f"no place with the others; check its gps.csv)"
+            )
 
 
 OTHER_NEGATIVES = ("random", "hardest")
@@ -194,9 +217,17 @@ class TupleMiner:
     descriptor space among up to ``hard_pool`` of them (``"hardest"``).
     """
 
-    def __init__(self, data: PlaceWindows, positives: int, negatives: int, hard: int,
-                 positive_radius: float = 5.0, negative_radius: float = 10.0, hard_pool: int = 4000,
-                 other_negative: str = "random"):
+    def __init__(
+        self,
+        data: PlaceWindows,
+        positives: int,
+        negatives: int,
+        hard: int,
+        positive_radius: float = 5.0,
+        negative_radius: float = 10.0,
+        hard_pool: int = 4000,
+        other_negative: str = "random",
+    ):
         if other_negative not in OTHER_NEGATIVES:
             raise ValueError(f"other_negative must be one of {list(OTHER_NEGATIVES)}, got {other_negative!r}")
         self.other = other_negative
@@ -205,12 +236,15 @@ class TupleMiner:
         self.train = np.flatnonzero(~data.validation)
         self.descriptors: np.ndarray | None = None
         # a query needs a positive and negatives + 1 true negatives (the negatives and neg*)
-        self.queries = np.array([i for i in self.train if len(self._positives(i))
-                                 and len(self._negatives(i)) > self.n], dtype=np.int64)
+        self.queries = np.array(
+            [i for i in self.train if len(self._positives(i)) and len(self._negatives(i)) > self.n], dtype=np.int64
+        )
         if not len(self.queries):
-            raise InputError(f"{data.path}: no training window has both a window of another training drive within "
-                             f"{positive_radius:g} m and {self.n + 1} training windows beyond {negative_radius:g} m; "
-                             f"the drives share no place, or cover too little ground for the negatives")
+            raise InputError(
+                f"{data.path}: no training window has both a window of another training drive within "
+                f"{positive_radius:g} m and {self.n + 1} training windows beyond {negative_radius:g} m; "
+                f"the drives share no place, or cover too little ground for the negatives"
+            )
 
     def _positives(self, i: int) -> np.ndarray:
         d = self.data
@@ -228,9 +262,11 @@ class TupleMiner:
         pos = self._positives(q)
         neg_all = self._negatives(q)
         if not len(pos) or len(neg_all) < self.n + 1:
-            raise InputError(f"window {q} of {self.data.names[self.data.drive[q]]}: {len(pos)} positives within "
-                             f"{self.pos_r:g} m and {len(neg_all)} negatives beyond {self.neg_r:g} m; a tuple needs "
-                             f"1 and {self.n + 1}")
+            raise InputError(
+                f"window {q} of {self.data.names[self.data.drive[q]]}: {len(pos)} positives within "
+                f"{self.pos_r:g} m and {len(neg_all)} negatives beyond {self.neg_r:g} m; a tuple needs "
+                f"1 and {self.n + 1}"
+            )
         positives = list(rng.choice(pos, self.p, replace=len(pos) < self.p))
         chosen: list[int] = []
         if self.hard and self.descriptors is not None:
@@ -239,8 +275,13 @@ class TupleMiner:
             chosen = list(cand[np.argsort(dist, kind="stable")[: self.hard]])
         rest = np.setdiff1d(neg_all, chosen)
         chosen += list(rng.choice(rest, self.n - len(chosen), replace=False))
-        far = neg_all[np.all(np.linalg.norm(self.data.positions[neg_all][:, None] - self.data.positions[chosen][None],
-                                            axis=2) > self.neg_r, axis=1)]
+        far = neg_all[
+            np.all(
+                np.linalg.norm(self.data.positions[neg_all][:, None] - self.data.positions[chosen][None], axis=2)
+                > self.neg_r,
+                axis=1,
+            )
+        ]
         far = far if len(far) else np.setdiff1d(neg_all, chosen)
         if self.other == "hardest" and self.descriptors is not None:
             cand = rng.choice(far, min(len(far), self.pool), replace=False)

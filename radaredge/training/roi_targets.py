@@ -46,29 +46,38 @@ from ..ops.box_iou import boxes_iou3d
 from ..ops.nms import NmsConfig, class_agnostic_nms_eager
 from .anchor_targets import encode_boxes, sigmoid_focal, smooth_l1
 
-GT_EXTRA_WIDTH = 0.2       # POINT_HEAD.TARGET_CONFIG.GT_EXTRA_WIDTH, m added to dx, dy and dz
-POINT_IN_BOX_TOL = 1e-5    # m, OpenPCDet's points_in_boxes: |local x| < dx / 2 + tol
+GT_EXTRA_WIDTH = 0.2  # POINT_HEAD.TARGET_CONFIG.GT_EXTRA_WIDTH, m added to dx, dy and dz
+POINT_IN_BOX_TOL = 1e-5  # m, OpenPCDet's points_in_boxes: |local x| < dx / 2 + tol
 LOSS_WEIGHTS = {"point": 1.0, "rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0}
 
 
-@card_ranges(pre_max=(1, 2**20), post_max=(1, 2**16), nms_iou=(0.0, 1.0), roi_per_image=(1, 2**16),
-             fg_ratio=(0.0, 1.0), reg_fg_thresh=(0.0, 1.0), cls_fg_thresh=(0.0, 1.0),
-             cls_bg_thresh=(0.0, 1.0), cls_bg_thresh_lo=(0.0, 1.0), hard_bg_ratio=(0.0, 1.0))
+@card_ranges(
+    pre_max=(1, 2**20),
+    post_max=(1, 2**16),
+    nms_iou=(0.0, 1.0),
+    roi_per_image=(1, 2**16),
+    fg_ratio=(0.0, 1.0),
+    reg_fg_thresh=(0.0, 1.0),
+    cls_fg_thresh=(0.0, 1.0),
+    cls_bg_thresh=(0.0, 1.0),
+    cls_bg_thresh_lo=(0.0, 1.0),
+    hard_bg_ratio=(0.0, 1.0),
+)
 @dataclass(frozen=True)
 class RoiSampling:
     """ROI_HEAD.NMS_CONFIG.TRAIN and TARGET_CONFIG; defaults are upstream's (MAFF-Net_vod.yaml and
     _TJ4D.yaml, the same as OpenPCDet's pv_rcnn.yaml)."""
 
-    pre_max: int = 9000            # NMS_PRE_MAXSIZE (TRAIN)
-    post_max: int = 512            # NMS_POST_MAXSIZE (TRAIN)
-    nms_iou: float = 0.8           # NMS_THRESH (TRAIN)
-    roi_per_image: int = 128       # ROI_PER_IMAGE
-    fg_ratio: float = 0.5          # FG_RATIO
-    reg_fg_thresh: float = 0.55    # REG_FG_THRESH
-    cls_fg_thresh: float = 0.75    # CLS_FG_THRESH
-    cls_bg_thresh: float = 0.25    # CLS_BG_THRESH
+    pre_max: int = 9000  # NMS_PRE_MAXSIZE (TRAIN)
+    post_max: int = 512  # NMS_POST_MAXSIZE (TRAIN)
+    nms_iou: float = 0.8  # NMS_THRESH (TRAIN)
+    roi_per_image: int = 128  # ROI_PER_IMAGE
+    fg_ratio: float = 0.5  # FG_RATIO
+    reg_fg_thresh: float = 0.55  # REG_FG_THRESH
+    cls_fg_thresh: float = 0.75  # CLS_FG_THRESH
+    cls_bg_thresh: float = 0.25  # CLS_BG_THRESH
     cls_bg_thresh_lo: float = 0.1  # CLS_BG_THRESH_LO (easy / hard background)
-    hard_bg_ratio: float = 0.8     # HARD_BG_RATIO
+    hard_bg_ratio: float = 0.8  # HARD_BG_RATIO
 
     def __post_init__(self):
         if not self.cls_bg_thresh < self.cls_fg_thresh:
@@ -84,13 +93,16 @@ def training_proposals(cls_logits: torch.Tensor, boxes: torch.Tensor, cfg: RoiSa
     fill the empty slots, as upstream's zero-initialised roi tensor does."""
     with torch.no_grad():
         score, label = cls_logits.max(-1)
-        sel = class_agnostic_nms_eager(boxes, score, NmsConfig(score_thresh=-math.inf, iou_thresh=cfg.nms_iou,
-                                                              pre_max=cfg.pre_max, post_max=cfg.post_max))
+        sel = class_agnostic_nms_eager(
+            boxes,
+            score,
+            NmsConfig(score_thresh=-math.inf, iou_thresh=cfg.nms_iou, pre_max=cfg.pre_max, post_max=cfg.post_max),
+        )
         sel = sel.to(boxes.device)
         rois = boxes.new_zeros((cfg.post_max, 7))
         labels = torch.ones(cfg.post_max, dtype=torch.int64, device=boxes.device)
-        rois[:len(sel)] = boxes[sel].detach()
-        labels[:len(sel)] = label[sel] + 1
+        rois[: len(sel)] = boxes[sel].detach()
+        labels[: len(sel)] = label[sel] + 1
     return rois, labels
 
 
@@ -118,8 +130,9 @@ def _draw(indices: torch.Tensor, n: int, gen: torch.Generator | None = None) -> 
     return indices[torch.randint(len(indices), (n,), generator=gen, device=_draw_device(gen)).to(indices.device)]
 
 
-def _background(hard: torch.Tensor, easy: torch.Tensor, n: int, ratio: float,
-                gen: torch.Generator | None = None) -> torch.Tensor:
+def _background(
+    hard: torch.Tensor, easy: torch.Tensor, n: int, ratio: float, gen: torch.Generator | None = None
+) -> torch.Tensor:
     """OpenPCDet sample_bg_inds: ``n`` background rois with replacement, int(n * ratio) of them hard
     (at most as many as there are) when both kinds exist, else all of the kind there is."""
     if len(hard) and len(easy):
@@ -147,8 +160,9 @@ def subsample_rois(iou: torch.Tensor, cfg: RoiSampling, gen: torch.Generator | N
     raise ValueError(f"no roi has a finite IoU with the boxes (IoUs {iou[:8].tolist()} ...)")
 
 
-def sample_rois(rois, roi_labels, gt, gt_labels, cfg: RoiSampling,
-                gen: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+def sample_rois(
+    rois, roi_labels, gt, gt_labels, cfg: RoiSampling, gen: torch.Generator | None = None
+) -> dict[str, torch.Tensor]:
     """The proposal target layer for one scan (module docstring, step 2): rois [S, 7], roi_labels
     [S], iou [S], gt_of_rois [S, 7] (the matched box, in the radar frame), reg_valid [S] bool,
     cls_labels [S] float in [0, 1]; S = roi_per_image. Draws from ``gen`` (default: torch's global
@@ -158,11 +172,20 @@ def sample_rois(rois, roi_labels, gt, gt_labels, cfg: RoiSampling,
         keep = subsample_rois(iou, cfg, gen)
         iou = iou[keep]
         soft = (iou - cfg.cls_bg_thresh) / (cfg.cls_fg_thresh - cfg.cls_bg_thresh)
-        cls_labels = torch.where(iou > cfg.cls_fg_thresh, torch.ones_like(iou),
-                                 torch.where(iou < cfg.cls_bg_thresh, torch.zeros_like(iou), soft))
-        padded = gt if len(gt) else gt.new_zeros((1, 7))        # no box: upstream's one zero row
-        return {"rois": rois[keep], "roi_labels": roi_labels[keep], "iou": iou, "gt_of_rois": padded[index[keep]],
-                "reg_valid": iou > cfg.reg_fg_thresh, "cls_labels": cls_labels}
+        cls_labels = torch.where(
+            iou > cfg.cls_fg_thresh,
+            torch.ones_like(iou),
+            torch.where(iou < cfg.cls_bg_thresh, torch.zeros_like(iou), soft),
+        )
+        padded = gt if len(gt) else gt.new_zeros((1, 7))  # no box: upstream's one zero row
+        return {
+            "rois": rois[keep],
+            "roi_labels": roi_labels[keep],
+            "iou": iou,
+            "gt_of_rois": padded[index[keep]],
+            "reg_valid": iou > cfg.reg_fg_thresh,
+            "cls_labels": cls_labels,
+        }
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -170,13 +193,22 @@ def sample_rois(rois, roi_labels, gt, gt_labels, cfg: RoiSampling,
 
 def box_corners(boxes: torch.Tensor) -> torch.Tensor:
     """The 8 corners [N, 8, 3] (m) of boxes [N, 7]."""
-    signs = torch.tensor([[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)],
-                         dtype=boxes.dtype, device=boxes.device) / 2
+    signs = (
+        torch.tensor(
+            [[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)], dtype=boxes.dtype, device=boxes.device
+        )
+        / 2
+    )
     local = boxes[:, None, 3:6] * signs[None]
     c, s = torch.cos(boxes[:, 6])[:, None], torch.sin(boxes[:, 6])[:, None]
-    return torch.stack([local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0],
-                        local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1],
-                        local[..., 2] + boxes[:, None, 2]], -1)
+    return torch.stack(
+        [
+            local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0],
+            local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1],
+            local[..., 2] + boxes[:, None, 2],
+        ],
+        -1,
+    )
 
 
 def canonical_boxes(rois: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
@@ -201,8 +233,11 @@ def points_in_boxes(points: torch.Tensor, boxes: torch.Tensor, extra: float = 0.
     c, s = torch.cos(boxes[:, 6])[None], torch.sin(boxes[:, 6])[None]
     lx, ly = d[..., 0] * c + d[..., 1] * s, -d[..., 0] * s + d[..., 1] * c
     half = (boxes[None, :, 3:6] + extra) / 2
-    return ((d[..., 2].abs() <= half[..., 2]) & (lx.abs() < half[..., 0] + POINT_IN_BOX_TOL)
-            & (ly.abs() < half[..., 1] + POINT_IN_BOX_TOL))
+    return (
+        (d[..., 2].abs() <= half[..., 2])
+        & (lx.abs() < half[..., 0] + POINT_IN_BOX_TOL)
+        & (ly.abs() < half[..., 1] + POINT_IN_BOX_TOL)
+    )
 
 
 # ----------------------------------------------------------------------------- losses
@@ -229,8 +264,10 @@ def corner_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     the corner distance to the nearer of gt's corner and the corner of gt turned by pi; [N]."""
     flipped = torch.cat([gt[:, :6], gt[:, 6:] + math.pi], 1)
     pc = box_corners(pred)
-    dist = torch.minimum(torch.linalg.vector_norm(pc - box_corners(gt), dim=2),
-                         torch.linalg.vector_norm(pc - box_corners(flipped), dim=2))
+    dist = torch.minimum(
+        torch.linalg.vector_norm(pc - box_corners(gt), dim=2),
+        torch.linalg.vector_norm(pc - box_corners(flipped), dim=2),
+    )
     return smooth_l1(dist, 1.0).mean(1)
 
 
@@ -245,8 +282,9 @@ def roi_head_loss(cls_logit: torch.Tensor, residuals: torch.Tensor, t: dict) -> 
         rois = t["rois"][fg]
         centred = torch.cat([torch.zeros_like(rois[:, :3]), rois[:, 3:6], torch.zeros_like(rois[:, 6:])], 1)
         target = encode_boxes(canonical_boxes(rois, t["gt_of_rois"][fg]), centred)
-        terms["rcnn_reg"] = (LOSS_WEIGHTS["rcnn_reg"] * smooth_l1(residuals[fg] - target, 1.0 / 9.0).sum()
-                             / int(fg.sum()))
+        terms["rcnn_reg"] = (
+            LOSS_WEIGHTS["rcnn_reg"] * smooth_l1(residuals[fg] - target, 1.0 / 9.0).sum() / int(fg.sum())
+        )
         decoded = decode_roi_residuals(residuals[fg], rois)
         terms["rcnn_corner"] = LOSS_WEIGHTS["rcnn_corner"] * corner_loss(decoded, t["gt_of_rois"][fg]).mean()
     return terms

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..cards import ModelCard
 from ..atomic import atomic_path, write_json
+from ..cards import ModelCard
 from ..config import check_numbers, check_writable_dir, field_range, refuse_overwriting_inputs
 from ..errors import ConfigError
 from ..models.checkpoints import check_checkpoint_file, read_checkpoint
@@ -69,8 +69,10 @@ def pick_device(name: str) -> torch.device:
     if name not in DEVICES:
         raise ConfigError(f"--device must be one of {list(DEVICES)}, got {name!r}")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: this torch build sees no CUDA device (torch.cuda.is_available() is False); "
-                          "use --device cpu or install a CUDA build of torch")
+        raise ConfigError(
+            "--device cuda: this torch build sees no CUDA device (torch.cuda.is_available() is False); "
+            "use --device cpu or install a CUDA build of torch"
+        )
     return torch.device(name)
 
 
@@ -84,9 +86,14 @@ def random_states(rng: np.random.Generator) -> dict:
     """The numpy generator's, Python's and torch's random states (plain containers and tensors);
     torch's CUDA generators' too once CUDA is in use (dropout on a GPU draws from them)."""
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() and torch.cuda.is_initialized() else None
-    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "cuda": cuda,
-            "python": list(random.getstate()[1]), "python_version": random.getstate()[0],
-            "python_gauss": random.getstate()[2]}
+    return {
+        "numpy": rng.bit_generator.state,
+        "torch": torch.get_rng_state(),
+        "cuda": cuda,
+        "python": list(random.getstate()[1]),
+        "python_version": random.getstate()[0],
+        "python_gauss": random.getstate()[2],
+    }
 
 
 def restore_random_states(rng: np.random.Generator, states: dict) -> None:
@@ -116,6 +123,7 @@ def load_weights_outside(model: torch.nn.Module, path, seeded: tuple[str, ...], 
     keep their current weights, whatever the checkpoint holds for them. Any other missing, unexpected or mis-shaped
     key, or a value no trained layer holds, is a ConfigError naming ``option``. Returns a
     one-line summary."""
+
     def kept(key: str) -> bool:
         return key.startswith(tuple(m + "." for m in seeded))
 
@@ -125,11 +133,13 @@ def load_weights_outside(model: torch.nn.Module, path, seeded: tuple[str, ...], 
     missing = sorted(k for k in own if not kept(k) and k not in outside)
     unexpected = sorted(k for k in outside if k not in own)
     shapes = sorted(k for k in outside if k in own and tuple(outside[k].shape) != tuple(own[k].shape))
-    problems = [f"{what} ({len(keys)}): {', '.join(keys[:8])}" for what, keys in
-                (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)) if keys]
+    problems = [
+        f"{what} ({len(keys)}): {', '.join(keys[:8])}"
+        for what, keys in (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes))
+        if keys
+    ]
     if problems:
-        raise ConfigError(f"{option} {path} does not fit this card's model outside {part}: "
-                          f"{'; '.join(problems)}")
+        raise ConfigError(f"{option} {path} does not fit this card's model outside {part}: {'; '.join(problems)}")
     check_weight_values(model, outside, path)
     model.load_state_dict({**own, **outside})
     n_seeded = sum(1 for k in own if kept(k))
@@ -149,8 +159,10 @@ def prepare_run_output(output: Path, resume: bool, overwrite: bool, inputs: dict
     refuse_overwriting_inputs({"--output": [output, *files]}, inputs)
     held = [f for f in files if f.exists()]
     if held and not resume and not overwrite:
-        raise ConfigError(f"--output {output}: holds a previous run ({', '.join(f.name for f in held)}); continue it "
-                          f"with --resume, replace it with --overwrite, or choose another --output")
+        raise ConfigError(
+            f"--output {output}: holds a previous run ({', '.join(f.name for f in held)}); continue it "
+            f"with --resume, replace it with --overwrite, or choose another --output"
+        )
     if overwrite:
         for f in held:
             f.unlink()
@@ -165,7 +177,7 @@ class RunDir:
 
     def __post_init__(self):
         self.path = Path(self.path)
-        check_writable_dir(self.path, "--output")     # made at the first save: a failed start leaves nothing
+        check_writable_dir(self.path, "--output")  # made at the first save: a failed start leaves nothing
 
     @property
     def best(self) -> Path:
@@ -180,8 +192,9 @@ class RunDir:
         return self.path / LOG
 
     def save_best(self, model: torch.nn.Module, epoch: int, metrics: dict) -> Path:
-        return _atomic_save({"model_state": model.state_dict(), "card": self.card.data, "epoch": epoch,
-                             "metrics": metrics}, self.best)
+        return _atomic_save(
+            {"model_state": model.state_dict(), "card": self.card.data, "epoch": epoch, "metrics": metrics}, self.best
+        )
 
     def save_last(self, state: dict) -> Path:
         return _atomic_save(state, self.last)
@@ -193,8 +206,10 @@ class RunDir:
         """ConfigError unless ``last.pth`` exists and is bounded and headed as torch.save writes
         (``--resume`` needs it; checked before the data is read)."""
         if not self.last.is_file():
-            raise ConfigError(f"--resume: {self.last} does not exist; start without --resume (or pass the --output "
-                              f"of the run to continue)")
+            raise ConfigError(
+                f"--resume: {self.last} does not exist; start without --resume (or pass the --output "
+                f"of the run to continue)"
+            )
         try:
             check_checkpoint_file(self.last)
         except ConfigError as exc:
@@ -207,15 +222,19 @@ class RunDir:
         try:
             state = torch.load(str(self.last), map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - any unreadable file is the same user error
-            raise ConfigError(f"--resume: {self.last} is not a readable radaredge training state "
-                              f"({type(exc).__name__})") from None
+            raise ConfigError(
+                f"--resume: {self.last} is not a readable radaredge training state ({type(exc).__name__})"
+            ) from None
         if not isinstance(state, dict) or "signature" not in state:
             raise ConfigError(f"--resume: {self.last} is not a radaredge training state")
         if state["signature"] != signature:
-            diff = sorted(k for k in set(signature) | set(state["signature"])
-                          if signature.get(k) != state["signature"].get(k))
-            raise ConfigError(f"--resume: {self.last} was written for another run (differs in {', '.join(diff)}); "
-                              f"use the same card, data and recipe options, or a new --output")
+            diff = sorted(
+                k for k in set(signature) | set(state["signature"]) if signature.get(k) != state["signature"].get(k)
+            )
+            raise ConfigError(
+                f"--resume: {self.last} was written for another run (differs in {', '.join(diff)}); "
+                f"use the same card, data and recipe options, or a new --output"
+            )
         return state
 
 
@@ -225,10 +244,10 @@ class TrainReport:
 
     model: str
     output: Path
-    metric: str                                   # the validation metric that picks the best epoch
+    metric: str  # the validation metric that picks the best epoch
     epochs: list[dict] = field(default_factory=list)
     best_epoch: int | None = None
-    stage_best: dict = field(default_factory=dict)   # staged recipes: stage -> its best epoch (kept weights)
+    stage_best: dict = field(default_factory=dict)  # staged recipes: stage -> its best epoch (kept weights)
     data: dict = field(default_factory=dict)
     options: dict = field(default_factory=dict)
     seconds: float = 0.0
@@ -238,16 +257,27 @@ class TrainReport:
         return next((e for e in self.epochs if e["epoch"] == self.best_epoch), None)
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "output": str(self.output), "best_checkpoint": str(Path(self.output) / BEST),
-                "last_state": str(Path(self.output) / LAST), "metric": self.metric, "best_epoch": self.best_epoch,
-                **({"stage_best": self.stage_best} if self.stage_best else {}),
-                "seconds": round(self.seconds, 1), "data": self.data, "options": self.options, "epochs": self.epochs}
+        return {
+            "model": self.model,
+            "output": str(self.output),
+            "best_checkpoint": str(Path(self.output) / BEST),
+            "last_state": str(Path(self.output) / LAST),
+            "metric": self.metric,
+            "best_epoch": self.best_epoch,
+            **({"stage_best": self.stage_best} if self.stage_best else {}),
+            "seconds": round(self.seconds, 1),
+            "data": self.data,
+            "options": self.options,
+            "epochs": self.epochs,
+        }
 
     def lines(self) -> list[str]:
-        out = [f"train {self.model}: {len(self.epochs)} epoch(s) in {self.seconds / 60:.1f} min; data: "
-               + ", ".join(f"{k} {v}" for k, v in self.data.items() if not isinstance(v, (list, dict)))]
+        out = [
+            f"train {self.model}: {len(self.epochs)} epoch(s) in {self.seconds / 60:.1f} min; data: "
+            + ", ".join(f"{k} {v}" for k, v in self.data.items() if not isinstance(v, (list, dict)))
+        ]
         bests = []
-        for stage in dict.fromkeys(e.get("stage") for e in self.epochs):      # rows of a staged recipe by stage
+        for stage in dict.fromkeys(e.get("stage") for e in self.epochs):  # rows of a staged recipe by stage
             rows = [e for e in self.epochs if e.get("stage") == stage]
             keys = [k for k in dict.fromkeys(k for e in rows for k in e) if k not in ("stage", "epoch", "seconds")]
             best, metric = (self.stage_best.get(stage), None) if stage else (self.best_epoch, self.metric)
@@ -257,14 +287,17 @@ class TrainReport:
             out.append(f"{'epoch':>5}" + "".join(f"{k:>{w}}" for k, w in zip(keys, width)))
             for e in rows:
                 mark = "  *" if e["epoch"] == best else ""
-                out.append(f"{e['epoch']:>5}" + "".join(f"{_fmt(e.get(k, '-')):>{w}}" for k, w in zip(keys, width))
-                           + mark)
+                out.append(
+                    f"{e['epoch']:>5}" + "".join(f"{_fmt(e.get(k, '-')):>{w}}" for k, w in zip(keys, width)) + mark
+                )
                 if mark:
                     metric = metric or keys[1]
                     bests.append(f"{stage + ' ' if stage else ''}epoch {best} ({metric} {_fmt(e[metric])})")
         if bests:
-            out.append(f"best {', '.join(bests)}: {Path(self.output) / BEST}; export it with `radaredge export "
-                       f"--model {self.model} --checkpoint {Path(self.output) / BEST}`")
+            out.append(
+                f"best {', '.join(bests)}: {Path(self.output) / BEST}; export it with `radaredge export "
+                f"--model {self.model} --checkpoint {Path(self.output) / BEST}`"
+            )
         return out
 
 
@@ -287,9 +320,16 @@ class TrainingState:
 
     def save(self, epoch: int | None, clock: Stopwatch, **extra) -> Path:
         """Writes ``last.pth`` after ``epoch`` (None: the recipe counts epochs in ``extra``)."""
-        state = {"signature": self.signature, "epoch": epoch, "model_state": self.model.state_dict(),
-                 "random": random_states(self.rng), "history": self.report.epochs,
-                 "best_epoch": self.report.best_epoch, "seconds": clock(), **extra}
+        state = {
+            "signature": self.signature,
+            "epoch": epoch,
+            "model_state": self.model.state_dict(),
+            "random": random_states(self.rng),
+            "history": self.report.epochs,
+            "best_epoch": self.report.best_epoch,
+            "seconds": clock(),
+            **extra,
+        }
         if self.optimizer is not None:
             state["optimizer"] = self.optimizer.state_dict()
         if self.scheduler is not None:
@@ -305,11 +345,14 @@ class TrainingState:
         state = self.run.load_last(self.signature)
         last = self.run.last
         if schedule and epochs is not None and state.get("epochs", epochs) != epochs:
-            raise ConfigError(f"--resume: {last} was written for a {state['epochs']}-epoch schedule (the learning "
-                              f"rate spans all epochs); resume with --epochs {state['epochs']}")
+            raise ConfigError(
+                f"--resume: {last} was written for a {state['epochs']}-epoch schedule (the learning "
+                f"rate spans all epochs); resume with --epochs {state['epochs']}"
+            )
         if epochs is not None and state["epoch"] is not None and state["epoch"] >= epochs and not state.get("partial"):
-            raise ConfigError(f"--resume: {last} already holds epoch {state['epoch']} of {epochs}; raise --epochs "
-                              f"to train on")
+            raise ConfigError(
+                f"--resume: {last} already holds epoch {state['epoch']} of {epochs}; raise --epochs to train on"
+            )
         self.model.load_state_dict(state["model_state"])
         if self.optimizer is not None:
             self.optimizer.load_state_dict(state["optimizer"])
@@ -332,5 +375,3 @@ class Stopwatch:
 
     def __call__(self) -> float:
         return self.carried + time.perf_counter() - self.start
-
-

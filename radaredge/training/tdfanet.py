@@ -57,60 +57,84 @@ import torch
 import torch.nn.functional as F
 
 from ..cards import ModelCard
-from ..config import card_ranges, positive, Range
-from ..errors import ConfigError, InputError
+from ..config import Range, card_ranges, positive
 from ..data.bag_drives import BagSource
+from ..errors import ConfigError, InputError
 from ..eval.places import RECALL_NS, recall_at_n
+from ..progress import no_progress
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
 from .places import OTHER_NEGATIVES, PlaceWindows, TupleMiner, load_place_windows
-from .run import (RunDir, Stopwatch, TrainingState, TrainReport, pick_device, recipe_from_options,
-                  set_torch_rng_state, torch_rng_state)
-from ..progress import no_progress
-
+from .run import (
+    RunDir,
+    Stopwatch,
+    TrainingState,
+    TrainReport,
+    pick_device,
+    recipe_from_options,
+    set_torch_rng_state,
+    torch_rng_state,
+)
 
 BATCH_NORMS = ("frozen", "reestimate", "window")
-FIXED_NORMS = ("frozen", "reestimate")     # training normalises with fixed statistics, as the graph does
+FIXED_NORMS = ("frozen", "reestimate")  # training normalises with fixed statistics, as the graph does
 
 
-@card_ranges(epochs=(1, 10_000), batch_size=(1, 1024), lr=positive(1.0), lr_decay=Range(0.0, 1.0, True),
-             positives=(1, 64), negatives=(1, 256), hard_negatives=(0, 256), hard_pool=(1, 10**7),
-             hard_from_epoch=(1, 10_000), alpha=(0.0, 10.0), beta=(0.0, 10.0), positive_radius=positive(1e4),
-             negative_radius=positive(1e4), seed=(0, 2**32 - 1), weight_decay=(0.0, 1.0), norm_windows=(1, 10**6),
-             tuples_per_epoch=(0, 10**7), save_minutes=(0.0, 10_000.0))
+@card_ranges(
+    epochs=(1, 10_000),
+    batch_size=(1, 1024),
+    lr=positive(1.0),
+    lr_decay=Range(0.0, 1.0, True),
+    positives=(1, 64),
+    negatives=(1, 256),
+    hard_negatives=(0, 256),
+    hard_pool=(1, 10**7),
+    hard_from_epoch=(1, 10_000),
+    alpha=(0.0, 10.0),
+    beta=(0.0, 10.0),
+    positive_radius=positive(1e4),
+    negative_radius=positive(1e4),
+    seed=(0, 2**32 - 1),
+    weight_decay=(0.0, 1.0),
+    norm_windows=(1, 10**6),
+    tuples_per_epoch=(0, 10**7),
+    save_minutes=(0.0, 10_000.0),
+)
 @dataclass(frozen=True)
 class PlaceRecipe:
     """The options of TDFANet training (module docstring); defaults are the paper's where it
     gives a value and PointNetVLAD's tuple otherwise."""
 
     epochs: int = 5
-    batch_size: int = 1             # tuples per optimiser step (paper: 1)
-    lr: float = 8e-4                # Adam (paper)
-    lr_decay: float = 0.9           # exponential decay per epoch (paper: base 0.9)
+    batch_size: int = 1  # tuples per optimiser step (paper: 1)
+    lr: float = 8e-4  # Adam (paper)
+    lr_decay: float = 0.9  # exponential decay per epoch (paper: base 0.9)
     weight_decay: float = 0.0
-    positives: int = 2              # PointNetVLAD's (18 negatives, 10 hard); ours: 10, 6 hard
+    positives: int = 2  # PointNetVLAD's (18 negatives, 10 hard); ours: 10, 6 hard
     negatives: int = 10
     hard_negatives: int = 6
     hard_pool: int = 4000
-    hard_from_epoch: int = 1        # 1: mine from the first epoch on, with the initial descriptors
-    alpha: float = 0.2              # eq. 10 margins (paper)
+    hard_from_epoch: int = 1  # 1: mine from the first epoch on, with the initial descriptors
+    alpha: float = 0.2  # eq. 10 margins (paper)
     beta: float = 0.1
-    second_term: str = "paper"      # eq. 10 as printed, or "pointnetvlad" (see losses.py)
-    batch_norm: str = "frozen"      # "frozen": statistics estimated once, then fixed; "reestimate": also after
-                                    # every epoch from the trained weights; "window": batch statistics
-    norm_windows: int = 200         # training windows the frozen statistics are estimated on
-    tuples_per_epoch: int = 0       # ours: 0 = every training window once an epoch; N: N of them, drawn anew
+    second_term: str = "paper"  # eq. 10 as printed, or "pointnetvlad" (see losses.py)
+    batch_norm: str = "frozen"  # "frozen": statistics estimated once, then fixed; "reestimate": also after
+    # every epoch from the trained weights; "window": batch statistics
+    norm_windows: int = 200  # training windows the frozen statistics are estimated on
+    tuples_per_epoch: int = 0  # ours: 0 = every training window once an epoch; N: N of them, drawn anew
     other_negative: str = "random"  # neg*: "random" true negative, or the "hardest" (nearest descriptor) one
-    positive_radius: float = 5.0    # m (paper)
-    negative_radius: float = 10.0   # m (paper)
+    positive_radius: float = 5.0  # m (paper)
+    negative_radius: float = 10.0  # m (paper)
     seed: int = 0
-    save_minutes: float = 10.0      # ours: minutes of training between saves of last.pth within an epoch
+    save_minutes: float = 10.0  # ours: minutes of training between saves of last.pth within an epoch
 
     def __post_init__(self):
         if self.second_term not in SECOND_TERMS:
             raise ValueError(f"second_term must be one of {list(SECOND_TERMS)}, got {self.second_term!r}")
         if self.negative_radius < self.positive_radius:
-            raise ValueError(f"negative_radius ({self.negative_radius} m) must not be below positive_radius "
-                             f"({self.positive_radius} m)")
+            raise ValueError(
+                f"negative_radius ({self.negative_radius} m) must not be below positive_radius "
+                f"({self.positive_radius} m)"
+            )
         if self.other_negative not in OTHER_NEGATIVES:
             raise ValueError(f"other_negative must be one of {list(OTHER_NEGATIVES)}, got {self.other_negative!r}")
         if self.batch_norm not in BATCH_NORMS:
@@ -135,10 +159,19 @@ def prepare_windows(model, data: PlaceWindows, device: torch.device, progress=no
                 bad = ~np.isfinite(scan)
                 if bad.any():
                     point, column = (int(x[0]) for x in np.nonzero(bad))
-                    raise InputError(data.locate_error(i, f"frame {k}: non-finite value {scan[point, column]} at point "
-                                                          f"{point}, column {model.features[column]!r}"))
-            out.append(model.prepare([torch.from_numpy(s).to(device) for s in scans],
-                                     torch.as_tensor(t, dtype=torch.float32, device=device)))
+                    raise InputError(
+                        data.locate_error(
+                            i,
+                            f"frame {k}: non-finite value {scan[point, column]} at point "
+                            f"{point}, column {model.features[column]!r}",
+                        )
+                    )
+            out.append(
+                model.prepare(
+                    [torch.from_numpy(s).to(device) for s in scans],
+                    torch.as_tensor(t, dtype=torch.float32, device=device),
+                )
+            )
             bar.update()
     bar.close()
     return out
@@ -151,14 +184,18 @@ def ego_motion_summary(data: PlaceWindows, prepared: Sequence) -> list[str]:
     (positive approaching) flips it."""
     v = np.stack([w.ego_velocity[-1].cpu().numpy() for w in prepared])
     ok = np.array([bool(w.ego_valid[-1]) for w in prepared])
-    lines = [f"ego velocity (RANSAC): valid in {100 * ok.mean():.0f} % of the windows' current scans, median speed "
-             f"{np.median(np.linalg.norm(v[ok], axis=1)) if ok.any() else 0.0:.1f} m/s"]
+    lines = [
+        f"ego velocity (RANSAC): valid in {100 * ok.mean():.0f} % of the windows' current scans, median speed "
+        f"{np.median(np.linalg.norm(v[ok], axis=1)) if ok.any() else 0.0:.1f} m/s"
+    ]
     for row, name in enumerate(data.names):
         mine = ok & (data.drive == row)
         if mine.sum() >= 3 and np.median(v[mine, 0]) < -0.5:
-            lines.append(f"warning: {data.path / name}: the radar moves backwards in its RANSAC fits (median v_x "
-                         f"{np.median(v[mine, 0]):.1f} m/s); if the car drove forwards, its Doppler sign is reversed "
-                         f"(positive approaching; radaredge's v_r is positive moving away)")
+            lines.append(
+                f"warning: {data.path / name}: the radar moves backwards in its RANSAC fits (median v_x "
+                f"{np.median(v[mine, 0]):.1f} m/s); if the car drove forwards, its Doppler sign is reversed "
+                f"(positive approaching; radaredge's v_r is positive moving away)"
+            )
     return lines
 
 
@@ -184,8 +221,15 @@ def validation_recall(descriptors: np.ndarray, data: PlaceWindows, radius: float
     against the training windows, and ``val_queries``, how many validation windows had a
     training window within ``radius`` m (the queries those percentages are of)."""
     val, train = data.validation, ~data.validation
-    res = recall_at_n(descriptors[val], data.positions[val], descriptors[train], data.positions[train],
-                      RECALL_NS, radius, use_faiss=False)
+    res = recall_at_n(
+        descriptors[val],
+        data.positions[val],
+        descriptors[train],
+        data.positions[train],
+        RECALL_NS,
+        radius,
+        use_faiss=False,
+    )
     return {**{f"val_R@{n}": float(r) for n, r in res["recall"].items()}, "val_queries": int(res["evaluated"])}
 
 
@@ -201,7 +245,7 @@ def estimate_norm_statistics(model, prepared: Sequence, windows: np.ndarray) -> 
     momenta = [m.momentum for m in norms]
     for m in norms:
         m.reset_running_stats()
-        m.momentum = None                  # cumulative average
+        m.momentum = None  # cumulative average
     model.train()
     dropouts = [m for m in model.modules() if isinstance(m, torch.nn.Dropout)]
     for m in dropouts:
@@ -262,8 +306,9 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
     p, n = len(tup.positives), len(tup.negatives)
 
     def score(d: torch.Tensor) -> torch.Tensor:
-        return lazy_quadruplet_loss(d[:1], d[1:1 + p][None], d[1 + p:1 + p + n][None], d[-1:], recipe.alpha,
-                                    recipe.beta, recipe.second_term)
+        return lazy_quadruplet_loss(
+            d[:1], d[1 : 1 + p][None], d[1 + p : 1 + p + n][None], d[-1:], recipe.alpha, recipe.beta, recipe.second_term
+        )
 
     dev = next(model.parameters()).device
     states = []
@@ -279,7 +324,7 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
     active = [j for j in range(len(idx)) if bool(probe.grad[j].abs().sum() > 0)]
     if not active:
         return loss.detach(), 0
-    with _FrozenNormStatistics(model):     # these batches were counted by the pass above
+    with _FrozenNormStatistics(model):  # these batches were counted by the pass above
         for j in active:
             set_torch_rng_state(states[j], dev)
             rows[j] = _describe_window(model, prepared[idx[j]])
@@ -290,18 +335,33 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
 def _signature(card: ModelCard, data: PlaceWindows, recipe: PlaceRecipe) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
     keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "save_minutes")}
-    return {"card": card.data, "data": str(Path(data.path).resolve()), "windows": len(data),
-            "validation": sorted({data.names[r] for r in data.drive[data.validation]}), "recipe": keep}
+    return {
+        "card": card.data,
+        "data": str(Path(data.path).resolve()),
+        "windows": len(data),
+        "validation": sorted({data.names[r] for r in data.drive[data.validation]}),
+        "recipe": keep,
+    }
 
 
 def _rank(metrics: dict) -> tuple:
     return tuple(metrics[f"val_R@{n}"] for n in RECALL_NS)
 
 
-def train_places(card: ModelCard, model, data_root: str | Path, output: str | Path, recipe: PlaceRecipe,
-                 device: str = "cpu", resume: bool = False, validation: Sequence[str] | None = None,
-                 data_format: str | None = None, progress=no_progress,
-                 log: Callable[[str], None] = lambda line: None, bag: BagSource | None = None) -> TrainReport:
+def train_places(
+    card: ModelCard,
+    model,
+    data_root: str | Path,
+    output: str | Path,
+    recipe: PlaceRecipe,
+    device: str = "cpu",
+    resume: bool = False,
+    validation: Sequence[str] | None = None,
+    data_format: str | None = None,
+    progress=no_progress,
+    log: Callable[[str], None] = lambda line: None,
+    bag: BagSource | None = None,
+) -> TrainReport:
     """Train ``model`` (a TDFANet of ``card``) on the drives under ``data_root`` with ``recipe``;
     write the run directory ``output`` (:mod:`.run`) and return the report. ``validation`` names
     the held-out drives (paths relative to ``data_root``; default one per directory of drives),
@@ -310,18 +370,34 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
     dev = pick_device(device)
     run = RunDir(output, card)
     if resume:
-        run.require_last()                 # before reading the data, not after
-    data = load_place_windows(data_root, model.frames, validation, data_format, recipe.positive_radius,
-                              model.features, bag)
-    miner = TupleMiner(data, recipe.positives, recipe.negatives, recipe.hard_negatives, recipe.positive_radius,
-                       recipe.negative_radius, recipe.hard_pool, recipe.other_negative)
-    summary = {"root": str(data_root), "drives": len(data.names), "windows": len(data),
-               "training_windows": int((~data.validation).sum()), "validation_windows": int(data.validation.sum()),
-               "queries_per_epoch": min(len(miner.queries), recipe.tuples_per_epoch or len(miner.queries)),
-               "validation_drives": sorted({data.names[r] for r in data.drive[data.validation]})}
-    log(f"data: {summary['drives']} drives, {summary['windows']} windows of K = {model.frames} "
+        run.require_last()  # before reading the data, not after
+    data = load_place_windows(
+        data_root, model.frames, validation, data_format, recipe.positive_radius, model.features, bag
+    )
+    miner = TupleMiner(
+        data,
+        recipe.positives,
+        recipe.negatives,
+        recipe.hard_negatives,
+        recipe.positive_radius,
+        recipe.negative_radius,
+        recipe.hard_pool,
+        recipe.other_negative,
+    )
+    summary = {
+        "root": str(data_root),
+        "drives": len(data.names),
+        "windows": len(data),
+        "training_windows": int((~data.validation).sum()),
+        "validation_windows": int(data.validation.sum()),
+        "queries_per_epoch": min(len(miner.queries), recipe.tuples_per_epoch or len(miner.queries)),
+        "validation_drives": sorted({data.names[r] for r in data.drive[data.validation]}),
+    }
+    log(
+        f"data: {summary['drives']} drives, {summary['windows']} windows of K = {model.frames} "
         f"({summary['training_windows']} training, {summary['validation_windows']} validation); "
-        f"{summary['queries_per_epoch']} training queries per epoch")
+        f"{summary['queries_per_epoch']} training queries per epoch"
+    )
     model.to(dev)
     prepared = prepare_windows(model, data, dev, progress)
     for line in ego_motion_summary(data, prepared):
@@ -331,13 +407,15 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
     opt = torch.optim.Adam(model.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=recipe.lr_decay)
     signature = _signature(card, data, recipe)
-    report = TrainReport(card.name, run.path, "val_R@1", data=summary,
-                         options={**dataclasses.asdict(recipe), "device": device})
+    report = TrainReport(
+        card.name, run.path, "val_R@1", data=summary, options={**dataclasses.asdict(recipe), "device": device}
+    )
     start, best_rank = 1, None
     train_rows = np.flatnonzero(~data.validation)
-    norm_rows = np.sort(np.random.default_rng(recipe.seed).choice(train_rows, min(recipe.norm_windows, len(train_rows)),
-                                                                  replace=False))
-    partial = None                         # the epoch a mid-epoch last.pth stopped in: its queries, tuples done, losses
+    norm_rows = np.sort(
+        np.random.default_rng(recipe.seed).choice(train_rows, min(recipe.norm_windows, len(train_rows)), replace=False)
+    )
+    partial = None  # the epoch a mid-epoch last.pth stopped in: its queries, tuples done, losses
     saved_state = TrainingState(run, signature, model, rng, report, opt, sched)
     if resume:
         state, clock = saved_state.resume(recipe.epochs)
@@ -352,15 +430,17 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
             estimate_norm_statistics(model, prepared, norm_rows)
         descriptors = describe_all(model, prepared, progress, "epoch 0: describe windows")
         metrics = validation_recall(descriptors, data, recipe.positive_radius)
-        report.epochs.append({"epoch": 0, "loss": float("nan"), "lr": recipe.lr, **metrics,
-                              "seconds": round(clock(), 1)})
+        report.epochs.append(
+            {"epoch": 0, "loss": float("nan"), "lr": recipe.lr, **metrics, "seconds": round(clock(), 1)}
+        )
         report.seconds = clock()
         log(_epoch_line(report.epochs[-1]))
 
     def save_last(epoch: int, partial: dict | None = None) -> None:
         """last.pth after ``epoch``, or within the next epoch (``partial``)."""
-        saved_state.save(epoch, clock, descriptors=torch.from_numpy(descriptors),
-                         **({"partial": partial} if partial else {}))
+        saved_state.save(
+            epoch, clock, descriptors=torch.from_numpy(descriptors), **({"partial": partial} if partial else {})
+        )
 
     if not resume:
         save_last(0)
@@ -371,19 +451,19 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
             queries, done, losses = partial["queries"].numpy(), partial["done"], list(partial["losses"])
             partial = None
         else:
-            queries, done, losses = rng.permutation(miner.queries)[:recipe.tuples_per_epoch or None], 0, []
+            queries, done, losses = rng.permutation(miner.queries)[: recipe.tuples_per_epoch or None], 0, []
         set_train_mode(model, recipe)
         bar = progress(f"epoch {epoch}/{recipe.epochs}", len(queries))
         bar.update(done)
         saved = clock()
         for first in range(done, len(queries), recipe.batch_size):
-            batch = [miner.tuple_for(int(q), rng) for q in queries[first:first + recipe.batch_size]]
+            batch = [miner.tuple_for(int(q), rng) for q in queries[first : first + recipe.batch_size]]
             scored = [tuple_loss(model, prepared, t, recipe) for t in batch]
             loss = torch.stack([s for s, _ in scored]).mean()
             opt.zero_grad()
             if any(active for _, active in scored):
                 loss.backward()
-            else:                          # Adam still steps on a zero gradient (its moments decay)
+            else:  # Adam still steps on a zero gradient (its moments decay)
                 for param in model.parameters():
                     param.grad = torch.zeros_like(param)
             opt.step()
@@ -421,5 +501,7 @@ def train_places(card: ModelCard, model, data_root: str | Path, output: str | Pa
 def _epoch_line(e: dict) -> str:
     recall = " / ".join(f"{e[f'val_R@{n}']:.1f}" for n in RECALL_NS)
     loss = "-" if not math.isfinite(e["loss"]) else f"{e['loss']:.4f}"
-    return (f"epoch {e['epoch']:>3}: loss {loss}, validation R@{'/'.join(map(str, RECALL_NS))} {recall} %, "
-            f"{e['seconds'] / 60:.1f} min")
+    return (
+        f"epoch {e['epoch']:>3}: loss {loss}, validation R@{'/'.join(map(str, RECALL_NS))} {recall} %, "
+        f"{e['seconds'] / 60:.1f} min"
+    )

@@ -19,14 +19,14 @@ def union_find_labels(mask: np.ndarray) -> np.ndarray:
         root = i
         while parent[root] != root:
             root = parent[root]
-        while parent[i] != root:          # path compression
+        while parent[i] != root:  # path compression
             parent[i], i = root, parent[i]
         return root
 
     def union(a: int, b: int) -> None:
         ra, rb = find(a), find(b)
         if ra != rb:
-            parent[min(ra, rb)] = max(ra, rb)   # the root is always the largest index
+            parent[min(ra, rb)] = max(ra, rb)  # the root is always the largest index
 
     rows, cols = np.nonzero(mask)
     for r, c in zip(rows.tolist(), cols.tolist()):

@@ -16,8 +16,13 @@ import numpy as np
 from sklearn.cluster import DBSCAN
 
 
-def dbscan_cfa_labels(points_xyv: np.ndarray, eps: float = 0.4, min_samples: int = 10,
-                      max_cluster_size: int = 100, with_velocity: bool = False) -> np.ndarray:
+def dbscan_cfa_labels(
+    points_xyv: np.ndarray,
+    eps: float = 0.4,
+    min_samples: int = 10,
+    max_cluster_size: int = 100,
+    with_velocity: bool = False,
+) -> np.ndarray:
     """Cluster id per point (>= 0), or -1 for noise; points_xyv [N, 3] = x, y (m), velocity (m/s)."""
     points = np.asarray(points_xyv, np.float64)
     features = points if with_velocity else points[:, :2]

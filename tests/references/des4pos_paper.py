@@ -110,7 +110,7 @@ def text_heads(prior_tokens: list[torch.Tensor], sd: dict, prefix: str, heads: i
 def cra_offset(objects: torch.Tensor, hints: torch.Tensor, sd: dict, prefix: str, heads: int, layers: int):
     """Eq. 10-12 on one candidate cell: its real objects' features N [n, D], the hints' T [H, D]
     -> the offset [2] from the cell centre, in cell units."""
-    r = [hints, objects]                                  # R_-1 = T, R_0 = N
+    r = [hints, objects]  # R_-1 = T, R_0 = N
     for i in range(layers):
         older, newer = r[-2], r[-1]
         r.append(attention(older, newer, sd, f"{prefix}.attn.{i}", heads) + older)

@@ -27,7 +27,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-
 # ----------------------------------------------------------------------------- fuser (CQCA_caf)
 
 
@@ -68,8 +67,18 @@ class _CrossAttention(nn.Module):
         super().__init__()
         self.h, self.dk = h, d_model // h
         q = d_model // 4
-        self.dpb = nn.Sequential(nn.Linear(2, q), nn.LayerNorm(q), nn.ReLU(), nn.Linear(q, q), nn.LayerNorm(q),
-                                 nn.ReLU(), nn.Linear(q, q), nn.LayerNorm(q), nn.ReLU(), nn.Linear(q, 1))
+        self.dpb = nn.Sequential(
+            nn.Linear(2, q),
+            nn.LayerNorm(q),
+            nn.ReLU(),
+            nn.Linear(q, q),
+            nn.LayerNorm(q),
+            nn.ReLU(),
+            nn.Linear(q, q),
+            nn.LayerNorm(q),
+            nn.ReLU(),
+            nn.Linear(q, 1),
+        )
         for side in ("vis", "ir"):
             for kind in ("que", "key", "val"):
                 setattr(self, f"{kind}_proj_{side}", nn.Linear(d_model, d_model))
@@ -81,15 +90,18 @@ class _CrossAttention(nn.Module):
     def forward(self, vis: torch.Tensor, ir: torch.Tensor):
         b, n, _ = vis.shape
 
-        def split(t):                               # (b, n, h*dk) -> (b, h, n, dk)
+        def split(t):  # (b, n, h*dk) -> (b, h, n, dk)
             return t.contiguous().view(b, n, self.h, self.dk).permute(0, 2, 1, 3)
 
         v_in, i_in = self.LN1(vis), self.LN2(ir)
-        q_vis, k_vis, v_vis = (split(self.que_proj_vis(v_in)), split(self.key_proj_vis(v_in)),
-                               split(self.val_proj_vis(v_in)))
+        q_vis, k_vis, v_vis = (
+            split(self.que_proj_vis(v_in)),
+            split(self.key_proj_vis(v_in)),
+            split(self.val_proj_vis(v_in)),
+        )
         q_ir, k_ir, v_ir = split(self.que_proj_ir(i_in)), split(self.key_proj_ir(i_in)), split(self.val_proj_ir(i_in))
-        att_vis = torch.softmax(q_ir @ k_vis.transpose(-1, -2) / np.sqrt(self.dk), -1)   # pillar queries, CFA keys
-        att_ir = torch.softmax(q_vis @ k_ir.transpose(-1, -2) / np.sqrt(self.dk), -1)    # CFA queries, pillar keys
+        att_vis = torch.softmax(q_ir @ k_vis.transpose(-1, -2) / np.sqrt(self.dk), -1)  # pillar queries, CFA keys
+        att_ir = torch.softmax(q_vis @ k_ir.transpose(-1, -2) / np.sqrt(self.dk), -1)  # CFA queries, pillar keys
         out_vis = (att_vis @ v_vis).permute(0, 2, 1, 3).contiguous().view(b, n, -1)
         out_ir = (att_ir @ v_ir).permute(0, 2, 1, 3).contiguous().view(b, n, -1)
         return self.out_proj_vis(out_vis), self.out_proj_ir(out_ir)
@@ -105,8 +117,11 @@ class _CrossTransformerBlock(nn.Module):
         self.ln_input = nn.LayerNorm(d_model)
         self.ln_output = nn.LayerNorm(d_model)
         self.crossatt = _CrossAttention(d_model, h)
-        self.mlp_vis, self.mlp_ir, self.mlp = (_mlp(d_model, block_exp), _mlp(d_model, block_exp),
-                                               _mlp(d_model, block_exp))
+        self.mlp_vis, self.mlp_ir, self.mlp = (
+            _mlp(d_model, block_exp),
+            _mlp(d_model, block_exp),
+            _mlp(d_model, block_exp),
+        )
         self.LN1 = nn.LayerNorm(d_model)
         self.LN2 = nn.LayerNorm(d_model)
         for i in range(1, 9):
@@ -127,9 +142,10 @@ class _CrossTransformerBlock(nn.Module):
 class _ImageEmbedder(nn.Module):
     def __init__(self, dim: int, image_size: int, patch_size: int, channels: int):
         super().__init__()
-        patches, patch_dim = (image_size // patch_size) ** 2, channels * patch_size ** 2
-        self.to_patch_embedding = nn.Sequential(_NoParams(), nn.LayerNorm(patch_dim), nn.Linear(patch_dim, dim),
-                                                nn.LayerNorm(dim))
+        patches, patch_dim = (image_size // patch_size) ** 2, channels * patch_size**2
+        self.to_patch_embedding = nn.Sequential(
+            _NoParams(), nn.LayerNorm(patch_dim), nn.Linear(patch_dim, dim), nn.LayerNorm(dim)
+        )
         self.pos_embedding = nn.Parameter(torch.randn(1, patches + 1, dim))
 
 
@@ -144,8 +160,9 @@ class _TransformerFusionBlock(nn.Module):
         self.crosstransformer = nn.Sequential(_CrossTransformerBlock(d_model, h, block_exp))
 
     def tokens(self, x: torch.Tensor, weights: _Weights, pos: torch.Tensor) -> torch.Tensor:
-        mixed = (_adaptive_pool(x, self.anchors, "avg") * weights.w1
-                 + _adaptive_pool(x, self.anchors, "max") * weights.w2)
+        mixed = (
+            _adaptive_pool(x, self.anchors, "avg") * weights.w1 + _adaptive_pool(x, self.anchors, "max") * weights.w2
+        )
         b, c = mixed.shape[:2]
         return mixed.contiguous().view(b, c, -1).permute(0, 2, 1) + pos
 
@@ -156,14 +173,18 @@ class _TransformerFusionBlock(nn.Module):
         vis, ir = self.crosstransformer[0](vis, ir)
         s = self.anchors
         ir_map = ir.contiguous().view(b, s, s, c).permute(0, 3, 1, 2)
-        return F.interpolate(ir_map, size=[h, w], mode="bilinear") + pillar      # eval mode: bilinear
+        return F.interpolate(ir_map, size=[h, w], mode="bilinear") + pillar  # eval mode: bilinear
 
 
 class _SE(nn.Module):
     def __init__(self, channel: int, reduction: int = 16):
         super().__init__()
-        self.fc = nn.Sequential(nn.Linear(channel, channel // reduction, bias=False), nn.ReLU(),
-                                nn.Linear(channel // reduction, channel, bias=False), nn.Sigmoid())
+        self.fc = nn.Sequential(
+            nn.Linear(channel, channel // reduction, bias=False),
+            nn.ReLU(),
+            nn.Linear(channel // reduction, channel, bias=False),
+            nn.Sigmoid(),
+        )
 
     def forward(self, x):
         b, c = x.shape[:2]
@@ -173,13 +194,22 @@ class _SE(nn.Module):
 class UpstreamCQCACaf(nn.Module):
     """Upstream ``fuser`` (CQCA_caf) with all of its parameters; eval-mode forward (dropouts off)."""
 
-    def __init__(self, in_channel_cross: int = 64, in_channel: int = 128, out_channel: int = 64,
-                 anchors: int = 16, heads: int = 8, block_exp: int = 4, se_reduction: int = 16):
+    def __init__(
+        self,
+        in_channel_cross: int = 64,
+        in_channel: int = 128,
+        out_channel: int = 64,
+        anchors: int = 16,
+        heads: int = 8,
+        block_exp: int = 4,
+        se_reduction: int = 16,
+    ):
         super().__init__()
         self.crossfusion = _TransformerFusionBlock(in_channel_cross, anchors, heads, block_exp)
         self.se = _SE(in_channel_cross, se_reduction)
-        self.conv = nn.Sequential(nn.Conv2d(in_channel, out_channel, 3, padding=1, bias=False),
-                                  nn.BatchNorm2d(out_channel), nn.ReLU(True))
+        self.conv = nn.Sequential(
+            nn.Conv2d(in_channel, out_channel, 3, padding=1, bias=False), nn.BatchNorm2d(out_channel), nn.ReLU(True)
+        )
 
     def forward(self, spatial_features_img: torch.Tensor, spatial_features: torch.Tensor) -> torch.Tensor:
         out = self.se(self.crossfusion(spatial_features_img, spatial_features))
@@ -221,8 +251,9 @@ def _fps(xyz: np.ndarray, npoint: int) -> list[int]:
     return picks
 
 
-def upstream_cda_keypoints(points: np.ndarray, cluster_points: np.ndarray, rois: np.ndarray,
-                           num_keypoints: int, r_add: float, h_add: float) -> np.ndarray:
+def upstream_cda_keypoints(
+    points: np.ndarray, cluster_points: np.ndarray, rois: np.ndarray, num_keypoints: int, r_add: float, h_add: float
+) -> np.ndarray:
     """VoxelSetAbstraction_cda.get_sampled_points for one scan with SAMPLE_METHOD CDA, one sector.
 
     points [N, 3] = batch_dict['points'] xyz (the range-masked scan), cluster_points [M, 3] (the
@@ -239,7 +270,7 @@ def upstream_cda_keypoints(points: np.ndarray, cluster_points: np.ndarray, rois:
     mask = ((d_xy <= radius[None]) & z_ok).any(1)
     first = cp[:1] if int(mask.sum()) == 0 else cp[mask]
     first = first.numpy()
-    if len(first) > num_keypoints:                        # sector_fps with one sector
+    if len(first) > num_keypoints:  # sector_fps with one sector
         first = first[_fps(first, num_keypoints)]
     need = num_keypoints - len(first)
     pts = np.asarray(points, np.float32)
@@ -289,13 +320,13 @@ class _StackSAModuleMSG(nn.Module):
             for m, c in enumerate(new_xyz):
                 d = xyz - c
                 d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
-                hits = np.flatnonzero(d2 < r2)[:nsample].tolist()     # the kernel's scan in index order
-                if not hits:                               # empty ball: grouped xyz and features zeroed
+                hits = np.flatnonzero(d2 < r2)[:nsample].tolist()  # the kernel's scan in index order
+                if not hits:  # empty ball: grouped xyz and features zeroed
                     continue
                 hits += [hits[0]] * (nsample - len(hits))
                 grouped[m, :3] = (xyz[hits] - c).T
                 grouped[m, 3:] = features[hits].T
-            x = torch.from_numpy(grouped).permute(1, 0, 2).unsqueeze(0)          # (1, C, M, nsample)
+            x = torch.from_numpy(grouped).permute(1, 0, 2).unsqueeze(0)  # (1, C, M, nsample)
             x = mlp(x)
             outs.append(F.max_pool2d(x, kernel_size=[1, x.size(3)]).squeeze(-1)[0].t())
         return torch.cat(outs, 1)
@@ -304,14 +335,24 @@ class _StackSAModuleMSG(nn.Module):
 class UpstreamVSA(nn.Module):
     """Upstream ``pfe`` (VoxelSetAbstraction_cda) with FEATURES_SOURCE [bev, cluster_points]."""
 
-    def __init__(self, num_rawpoint_features: int, bev_channels: int, radii, nsamples, mlps, out_features: int,
-                 point_cloud_range, voxel_size):
+    def __init__(
+        self,
+        num_rawpoint_features: int,
+        bev_channels: int,
+        radii,
+        nsamples,
+        mlps,
+        out_features: int,
+        point_cloud_range,
+        voxel_size,
+    ):
         super().__init__()
         self.pc_range, self.voxel = point_cloud_range, voxel_size
         self.SA_clusterpoints = _StackSAModuleMSG(num_rawpoint_features - 3, radii, nsamples, mlps)
         c_in = bev_channels + sum(m[-1] for m in mlps)
-        self.vsa_point_feature_fusion = nn.Sequential(nn.Linear(c_in, out_features, bias=False),
-                                                      nn.BatchNorm1d(out_features), nn.ReLU())
+        self.vsa_point_feature_fusion = nn.Sequential(
+            nn.Linear(c_in, out_features, bias=False), nn.BatchNorm1d(out_features), nn.ReLU()
+        )
 
     def forward(self, keypoints: np.ndarray, spatial_features: torch.Tensor, points: np.ndarray, stride: int = 1):
         """keypoints [K, 3], spatial_features [C, H, W] (the fuser output), points [N, 3 + F] (the scan)
@@ -329,4 +370,4 @@ class UpstreamVSA(nn.Module):
 def upstream_scan_mask(points: np.ndarray, point_cloud_range) -> np.ndarray:
     """common_utils.mask_points_by_range: x and y inside the range, bounds included (z untested)."""
     r = point_cloud_range
-    return ((points[:, 0] >= r[0]) & (points[:, 0] <= r[3]) & (points[:, 1] >= r[1]) & (points[:, 1] <= r[4]))
+    return (points[:, 0] >= r[0]) & (points[:, 0] <= r[3]) & (points[:, 1] >= r[1]) & (points[:, 1] <= r[4])

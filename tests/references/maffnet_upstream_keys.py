@@ -81,9 +81,17 @@ CONFIGS = {
         "class_names": ["Car", "Pedestrian", "Cyclist"],
         "used_feature_list": ["x", "y", "z", "rcs", "v_r", "v_r_comp", "time"],
         # MAFF-Net_vod.yaml l.38-48
-        "vfe": {"NAME": "RadarPillarVFE", "USE_RCS": True, "USE_VR": True, "USE_VR_COMP": True,
-                "USE_TIME": True, "WITH_DISTANCE": False, "USE_ABSLOTE_XYZ": True,
-                "USE_NORM": True, "NUM_FILTERS": [64]},
+        "vfe": {
+            "NAME": "RadarPillarVFE",
+            "USE_RCS": True,
+            "USE_VR": True,
+            "USE_VR_COMP": True,
+            "USE_TIME": True,
+            "WITH_DISTANCE": False,
+            "USE_ABSLOTE_XYZ": True,
+            "USE_NORM": True,
+            "NUM_FILTERS": [64],
+        },
         # anchor count per class: len(anchor_rotations) * len(anchor_sizes) * len(bottom_heights)
         "anchor_sets": [(2, 1, 1)] * 3,
     },
@@ -92,12 +100,22 @@ CONFIGS = {
         "class_names": ["Car", "Pedestrian", "Cyclist", "Truck"],
         "used_feature_list": ["x", "y", "z", "v_r", "SNR"],
         # MAFF-Net_TJ4D.yaml l.43-54
-        "vfe": {"NAME": "RadarPillarVFE_TJ", "USE_RANGE": False, "USE_VR": True, "USE_SNR": True,
-                "USE_ALPHA": False, "USE_BETA": False, "WITH_DISTANCE": False,
-                "USE_ABSLOTE_XYZ": True, "USE_NORM": True, "NUM_FILTERS": [64]},
+        "vfe": {
+            "NAME": "RadarPillarVFE_TJ",
+            "USE_RANGE": False,
+            "USE_VR": True,
+            "USE_SNR": True,
+            "USE_ALPHA": False,
+            "USE_BETA": False,
+            "WITH_DISTANCE": False,
+            "USE_ABSLOTE_XYZ": True,
+            "USE_NORM": True,
+            "NUM_FILTERS": [64],
+        },
         "anchor_sets": [(2, 1, 1)] * 4,
     },
 }
+
 
 def _config(dataset) -> dict:
     """The dataset values of ``dataset``: 'vod' or 'tj4d' (:data:`CONFIGS`), or a dict of the same
@@ -112,26 +130,47 @@ def _config(dataset) -> dict:
 
 # Identical in both model configs (line numbers of MAFF-Net_vod.yaml; TJ4D's sit 6 to 17 lines later).
 COMMON = {
-    "MAP_TO_BEV": {"IS_SPA": True, "NUM_BEV_FEATURES": 64},                          # l.50-53
-    "FUSER": {"IN_CHANNEL_CROSS": 64, "IN_CHANNEL": 128, "OUT_CHANNEL": 64},       # l.68-72
-    "BACKBONE_2D": {"LAYER_NUMS": [3, 5, 5], "LAYER_STRIDES": [2, 2, 2],           # l.74-80
-                    "NUM_FILTERS": [64, 128, 512], "UPSAMPLE_STRIDES": [1, 2, 4],
-                    "NUM_UPSAMPLE_FILTERS": [128, 128, 128]},
-    "DENSE_HEAD": {"CLASS_AGNOSTIC": False, "USE_DIRECTION_CLASSIFIER": True,      # l.82-89
-                   "NUM_DIR_BINS": 2, "CODE_SIZE": 7},                             # ResidualCoder
-    "PFE": {"NUM_OUTPUT_FEATURES": 128, "FEATURES_SOURCE": ["bev", "cluster_points"],  # l.140-157
-            "SA_LAYER": {"cluster_points": {"MLPS": [[16, 16], [16, 16]]}}},
-    "POINT_HEAD": {"CLS_FC": [256, 256], "CLASS_AGNOSTIC": True,                   # l.159-163
-                   "USE_POINT_FEATURES_BEFORE_FUSION": True},
-    "ROI_HEAD": {"CLASS_AGNOSTIC": True, "SHARED_FC": [256, 256], "CLS_FC": [256, 256],  # l.172-197
-                 "REG_FC": [256, 256], "DP_RATIO": 0.3, "CODE_SIZE": 7,
-                 "ROI_GRID_POOL": {"GRID_SIZE": 6, "MLPS": [[64, 64], [64, 64]]}},
+    "MAP_TO_BEV": {"IS_SPA": True, "NUM_BEV_FEATURES": 64},  # l.50-53
+    "FUSER": {"IN_CHANNEL_CROSS": 64, "IN_CHANNEL": 128, "OUT_CHANNEL": 64},  # l.68-72
+    "BACKBONE_2D": {
+        "LAYER_NUMS": [3, 5, 5],
+        "LAYER_STRIDES": [2, 2, 2],  # l.74-80
+        "NUM_FILTERS": [64, 128, 512],
+        "UPSAMPLE_STRIDES": [1, 2, 4],
+        "NUM_UPSAMPLE_FILTERS": [128, 128, 128],
+    },
+    "DENSE_HEAD": {
+        "CLASS_AGNOSTIC": False,
+        "USE_DIRECTION_CLASSIFIER": True,  # l.82-89
+        "NUM_DIR_BINS": 2,
+        "CODE_SIZE": 7,
+    },  # ResidualCoder
+    "PFE": {
+        "NUM_OUTPUT_FEATURES": 128,
+        "FEATURES_SOURCE": ["bev", "cluster_points"],  # l.140-157
+        "SA_LAYER": {"cluster_points": {"MLPS": [[16, 16], [16, 16]]}},
+    },
+    "POINT_HEAD": {
+        "CLS_FC": [256, 256],
+        "CLASS_AGNOSTIC": True,  # l.159-163
+        "USE_POINT_FEATURES_BEFORE_FUSION": True,
+    },
+    "ROI_HEAD": {
+        "CLASS_AGNOSTIC": True,
+        "SHARED_FC": [256, 256],
+        "CLS_FC": [256, 256],  # l.172-197
+        "REG_FC": [256, 256],
+        "DP_RATIO": 0.3,
+        "CODE_SIZE": 7,
+        "ROI_GRID_POOL": {"GRID_SIZE": 6, "MLPS": [[64, 64], [64, 64]]},
+    },
 }
 
 
 # ---------------------------------------------------------------------------------------------
 # Layer helpers (torch.nn key names and shapes)
 # ---------------------------------------------------------------------------------------------
+
 
 def _bn(keys: Keys, prefix: str, c: int) -> None:
     """BatchNorm1d/2d (affine, track_running_stats)."""
@@ -182,6 +221,7 @@ def _stack_sa_msg(keys: Keys, prefix: str, input_channels: int, mlps) -> int:
 # Module helpers
 # ---------------------------------------------------------------------------------------------
 
+
 def num_rawpoint_features(dataset: str) -> int:
     """point_feature_encoder.py l.57: len(used_feature_list) (VoD 7, TJ4D 5)."""
     return len(_config(dataset)["used_feature_list"])
@@ -224,7 +264,7 @@ def map_to_bev_keys() -> Tuple[Keys, int]:
     keys: Keys = {}
     if cfg["IS_SPA"]:
         p = "map_to_bev_module.pillar_attention_rope"
-        dim = hidden = 64                     # hard-coded at l.52-53, not read from the config
+        dim = hidden = 64  # hard-coded at l.52-53, not read from the config
         for name in ("q_mlp", "k_mlp", "v_mlp"):
             _linear(keys, f"{p}.{name}", dim, hidden)
         _linear(keys, f"{p}.ffn.0", hidden, hidden)
@@ -288,8 +328,16 @@ def fuser_keys() -> Tuple[Keys, int]:
     _linear(keys, f"{a}.dpb.6", c, c)
     _ln(keys, f"{a}.dpb.7", c)
     _linear(keys, f"{a}.dpb.9", c, 1)
-    for name in ("que_proj_vis", "key_proj_vis", "val_proj_vis",
-                 "que_proj_ir", "key_proj_ir", "val_proj_ir", "out_proj_vis", "out_proj_ir"):
+    for name in (
+        "que_proj_vis",
+        "key_proj_vis",
+        "val_proj_vis",
+        "que_proj_ir",
+        "key_proj_ir",
+        "val_proj_ir",
+        "out_proj_vis",
+        "out_proj_ir",
+    ):
         _linear(keys, f"{a}.{name}", d, d)
     _ln(keys, f"{a}.LN1", d)
     _ln(keys, f"{a}.LN2", d)
@@ -314,21 +362,21 @@ def fuser_keys() -> Tuple[Keys, int]:
 # ln_output, block LN1 and ``mlp`` are never called; with n_layer=1 the block's rgb output
 # (coefficient1/2/5/6, mlp_vis) is dropped. Prefixes, matched against the key names.
 FUSER_KEYS_WITHOUT_EFFECT_PREFIXES = (
-    "fuser.crossfusion.bev_embedder.",                       # l.290, uses commented out
-    "fuser.crossfusion.crosstransformer.0.ln_input.",        # l.178, never called
-    "fuser.crossfusion.crosstransformer.0.ln_output.",       # l.179, never called
-    "fuser.crossfusion.crosstransformer.0.LN1.",             # l.201, never called
-    "fuser.crossfusion.crosstransformer.0.mlp.",             # l.193, never called
-    "fuser.crossfusion.crosstransformer.0.mlp_vis.",         # l.226, rgb output only
-    "fuser.crossfusion.crosstransformer.0.coefficient1.",    # l.224, rgb output only
-    "fuser.crossfusion.crosstransformer.0.coefficient2.",    # l.224
-    "fuser.crossfusion.crosstransformer.0.coefficient5.",    # l.226
-    "fuser.crossfusion.crosstransformer.0.coefficient6.",    # l.226
-    "fuser.crossfusion.crosstransformer.0.crossatt.dpb.",    # l.146-149, bias computed, never added
-    "fuser.crossfusion.crosstransformer.0.crossatt.key_proj_vis.",   # l.125 -> att_vis (l.138)
-    "fuser.crossfusion.crosstransformer.0.crossatt.val_proj_vis.",   # l.127 -> out_vis (l.157)
-    "fuser.crossfusion.crosstransformer.0.crossatt.que_proj_ir.",    # l.131 -> att_vis (l.138)
-    "fuser.crossfusion.crosstransformer.0.crossatt.out_proj_vis.",   # l.159 -> out_vis
+    "fuser.crossfusion.bev_embedder.",  # l.290, uses commented out
+    "fuser.crossfusion.crosstransformer.0.ln_input.",  # l.178, never called
+    "fuser.crossfusion.crosstransformer.0.ln_output.",  # l.179, never called
+    "fuser.crossfusion.crosstransformer.0.LN1.",  # l.201, never called
+    "fuser.crossfusion.crosstransformer.0.mlp.",  # l.193, never called
+    "fuser.crossfusion.crosstransformer.0.mlp_vis.",  # l.226, rgb output only
+    "fuser.crossfusion.crosstransformer.0.coefficient1.",  # l.224, rgb output only
+    "fuser.crossfusion.crosstransformer.0.coefficient2.",  # l.224
+    "fuser.crossfusion.crosstransformer.0.coefficient5.",  # l.226
+    "fuser.crossfusion.crosstransformer.0.coefficient6.",  # l.226
+    "fuser.crossfusion.crosstransformer.0.crossatt.dpb.",  # l.146-149, bias computed, never added
+    "fuser.crossfusion.crosstransformer.0.crossatt.key_proj_vis.",  # l.125 -> att_vis (l.138)
+    "fuser.crossfusion.crosstransformer.0.crossatt.val_proj_vis.",  # l.127 -> out_vis (l.157)
+    "fuser.crossfusion.crosstransformer.0.crossatt.que_proj_ir.",  # l.131 -> att_vis (l.138)
+    "fuser.crossfusion.crosstransformer.0.crossatt.out_proj_vis.",  # l.159 -> out_vis
 )
 
 
@@ -386,8 +434,9 @@ def pfe_keys(dataset: str, num_bev_features1: int) -> Tuple[Keys, int, int]:
     if "bev" in cfg["FEATURES_SOURCE"]:
         c_in += num_bev_features1
     if "cluster_points" in cfg["FEATURES_SOURCE"]:
-        c_in += _stack_sa_msg(keys, "pfe.SA_clusterpoints", num_rawpoint_features(dataset) - 3,
-                              cfg["SA_LAYER"]["cluster_points"]["MLPS"])
+        c_in += _stack_sa_msg(
+            keys, "pfe.SA_clusterpoints", num_rawpoint_features(dataset) - 3, cfg["SA_LAYER"]["cluster_points"]["MLPS"]
+        )
     out = cfg["NUM_OUTPUT_FEATURES"]
     _linear(keys, "pfe.vsa_point_feature_fusion.0", c_in, out, bias=False)
     _bn(keys, "pfe.vsa_point_feature_fusion.1", out)
@@ -452,6 +501,7 @@ def roi_head_keys(dataset: str, input_channels: int) -> Keys:
 # Public API
 # ---------------------------------------------------------------------------------------------
 
+
 def upstream_state_dict_shapes(dataset: str, stage_two: bool = True) -> Dict[str, Tuple[int, ...]]:
     """Every key of ``model.state_dict()`` of upstream's MAFF_Net built from the ``dataset``
     ('vod' or 'tj4d', or a dict as :func:`_config` takes) config, with its shape, in state_dict order.
@@ -461,7 +511,7 @@ def upstream_state_dict_shapes(dataset: str, stage_two: bool = True) -> Dict[str
     i.e. the same dict without the ``pfe.*``, ``point_head.*`` and ``roi_head.*`` keys.
     """
     _config(dataset)
-    keys: Keys = {"global_step": (1,)}          # detector3d_template.py l.20
+    keys: Keys = {"global_step": (1,)}  # detector3d_template.py l.20
     vfe, _ = vfe_keys(dataset)
     keys.update(vfe)
     bev, num_bev_features = map_to_bev_keys()
@@ -503,8 +553,14 @@ def upstream_state_dict(dataset: str, stage_two: bool = True, seed: int = 0) -> 
 
 # Upstream's last layers of each head, initialised small in upstream (OpenPCDet's init_weights):
 # the box, direction and class convolutions of the dense head and the roi/point heads' outputs.
-HEAD_OUTPUTS = ("dense_head.conv_box.", "dense_head.conv_dir_cls.", "dense_head.conv_cls.",
-                "roi_head.reg_layers.", "roi_head.cls_layers.", "point_head.cls_layers.")
+HEAD_OUTPUTS = (
+    "dense_head.conv_box.",
+    "dense_head.conv_dir_cls.",
+    "dense_head.conv_cls.",
+    "roi_head.reg_layers.",
+    "roi_head.cls_layers.",
+    "point_head.cls_layers.",
+)
 
 
 def trained_like_state_dict(dataset: str, stage_two: bool = True, seed: int = 0) -> Dict[str, torch.Tensor]:
@@ -522,8 +578,9 @@ def trained_like_state_dict(dataset: str, stage_two: bool = True, seed: int = 0)
         if key.endswith("running_var"):
             state[key] = torch.rand(value.shape, generator=g) + 0.5
         elif value.dim() >= 2:
-            last = key.startswith(HEAD_OUTPUTS) and (key.startswith("dense_head.") or
-                                                     key.rsplit(".", 2)[-2] == str(_last_index(state, key)))
+            last = key.startswith(HEAD_OUTPUTS) and (
+                key.startswith("dense_head.") or key.rsplit(".", 2)[-2] == str(_last_index(state, key))
+            )
             fan_in = value[0].numel()
             state[key] = n * (0.01 if last else math.sqrt(2.0 / max(fan_in, 1)))
         elif key.endswith("weight"):
@@ -536,8 +593,11 @@ def trained_like_state_dict(dataset: str, stage_two: bool = True, seed: int = 0)
 def _last_index(state: Dict[str, torch.Tensor], key: str) -> int:
     """The highest layer index of the Sequential that ``key`` (``prefix.<i>.weight``) belongs to."""
     prefix = key.rsplit(".", 2)[0]
-    return max(int(k[len(prefix) + 1:].split(".")[0]) for k in state if k.startswith(prefix + ".")
-               and k[len(prefix) + 1:].split(".")[0].isdigit())
+    return max(
+        int(k[len(prefix) + 1 :].split(".")[0])
+        for k in state
+        if k.startswith(prefix + ".") and k[len(prefix) + 1 :].split(".")[0].isdigit()
+    )
 
 
 def openpcdet_checkpoint(state: Dict[str, torch.Tensor]) -> dict:
@@ -545,8 +605,10 @@ def openpcdet_checkpoint(state: Dict[str, torch.Tensor]) -> dict:
     around ``state``, with a small placeholder optimizer state."""
     return {
         "model_state": state,
-        "optimizer_state": {"state": {}, "param_groups": [{"lr": 0.01, "betas": (0.95, 0.99),
-                                                           "weight_decay": 0.01, "params": [0]}]},
+        "optimizer_state": {
+            "state": {},
+            "param_groups": [{"lr": 0.01, "betas": (0.95, 0.99), "weight_decay": 0.01, "params": [0]}],
+        },
         "epoch": 80,
         "it": 1000,
         "version": "pcdet+0.6.0",

@@ -44,8 +44,17 @@ def upstream_dbscan(points_xyv, valid=None, eps: float = 0.4, min_samples: int =
     return labels, core
 
 
-def upstream_map(points_xyv, valid=None, eps: float = 0.4, min_samples: int = 10, rows: int = 320,
-                 cols: int = 320, resolution: float = 0.16, y_offset: float = 25.6, max_cluster_size: int = 100):
+def upstream_map(
+    points_xyv,
+    valid=None,
+    eps: float = 0.4,
+    min_samples: int = 10,
+    rows: int = 320,
+    cols: int = 320,
+    resolution: float = 0.16,
+    y_offset: float = 25.6,
+    max_cluster_size: int = 100,
+):
     """The clustering map as upstream builds it: (map [3, rows, cols] float32, labels [N] int64).
 
     ``labels`` are the final ones (clusters above ``max_cluster_size`` are -1); upstream's
@@ -67,8 +76,8 @@ def upstream_map(points_xyv, valid=None, eps: float = 0.4, min_samples: int = 10
     for i in range(len(labels)):
         if labels[i] <= 0:
             continue
-        bev_x = int((xyv[i, 0] / resolution).long()) - 1            # float32 tensor maths, as upstream
+        bev_x = int((xyv[i, 0] / resolution).long()) - 1  # float32 tensor maths, as upstream
         bev_y = int(((xyv[i, 1] + y_offset) / resolution).long()) - 1
-        if -1 <= bev_y < rows and -1 <= bev_x < cols:                # -1 wraps to the last row / column
+        if -1 <= bev_y < rows and -1 <= bev_x < cols:  # -1 wraps to the last row / column
             bev[bev_y, bev_x] = (float(xyv[i, 2]), float(density[i]), float(labels[i]))
     return np.ascontiguousarray(bev.transpose(2, 0, 1)), labels.numpy()

@@ -48,12 +48,12 @@ def _conv(x: torch.Tensor, weight: torch.Tensor, stride: int, pad: int) -> torch
     cout, cin, k, _ = weight.shape
     h, w = x.shape[1:]
     padded = torch.zeros(cin, h + 2 * pad, w + 2 * pad, dtype=x.dtype)
-    padded[:, pad:pad + h, pad:pad + w] = x
+    padded[:, pad : pad + h, pad : pad + w] = x
     ho, wo = (h + 2 * pad - k) // stride + 1, (w + 2 * pad - k) // stride + 1
     out = torch.zeros(cout, ho, wo, dtype=x.dtype)
     for i in range(k):
         for j in range(k):
-            patch = padded[:, i:i + stride * ho:stride, j:j + stride * wo:stride]     # [Cin, Ho, Wo]
+            patch = padded[:, i : i + stride * ho : stride, j : j + stride * wo : stride]  # [Cin, Ho, Wo]
             out += torch.einsum("oc,chw->ohw", weight[:, :, i, j], patch)
     return out
 
@@ -95,8 +95,9 @@ def upsample(image: torch.Tensor, h: int, w: int) -> torch.Tensor:
             sx = max((j + 0.5) * wi / w - 0.5, 0.0)
             x0 = min(int(math.floor(sx)), wi - 1)
             x1, fx = min(x0 + 1, wi - 1), sx - math.floor(sx)
-            out[:, i, j] = ((1 - fy) * ((1 - fx) * image[:, y0, x0] + fx * image[:, y0, x1])
-                            + fy * ((1 - fx) * image[:, y1, x0] + fx * image[:, y1, x1]))
+            out[:, i, j] = (1 - fy) * ((1 - fx) * image[:, y0, x0] + fx * image[:, y0, x1]) + fy * (
+                (1 - fx) * image[:, y1, x0] + fx * image[:, y1, x1]
+            )
     return out
 
 
@@ -107,8 +108,9 @@ def align(past: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
     return bilinear(past.double(), v + dy, u + dx).to(past.dtype)
 
 
-def deformable_attention(d: torch.Tensor, value_map: torch.Tensor, sd: dict, name: str, heads: int,
-                         points: int) -> torch.Tensor:
+def deformable_attention(
+    d: torch.Tensor, value_map: torch.Tensor, sd: dict, name: str, heads: int, points: int
+) -> torch.Tensor:
     """eq. 8 for every cell: advanced queries d [H*W, C] (row-major cells) over one value map
     [C, H, W] -> M [H*W, C]. Each query's reference point is its own cell's centre."""
     c, h, w = value_map.shape
@@ -120,12 +122,14 @@ def deformable_attention(d: torch.Tensor, value_map: torch.Tensor, sd: dict, nam
     cols = torch.arange(h * w) % w
     out = torch.zeros(h * w, c, dtype=d.dtype)
     for m in range(heads):
-        weights = torch.softmax(logits[:, m], dim=-1)                     # [HW, P]
+        weights = torch.softmax(logits[:, m], dim=-1)  # [HW, P]
         for p in range(points):
             # reference (x, y) = ((col + 0.5) / W, (row + 0.5) / H); location = ref + offset / (W, H);
             # pixel coordinates (location * size - 0.5): col + offset_x, row + offset_y
-            sample = bilinear(value[m * ch:(m + 1) * ch], rows + offsets[:, m, 0, p, 1], cols + offsets[:, m, 0, p, 0])
-            out[:, m * ch:(m + 1) * ch] += weights[:, p:p + 1] * sample.T
+            sample = bilinear(
+                value[m * ch : (m + 1) * ch], rows + offsets[:, m, 0, p, 1], cols + offsets[:, m, 0, p, 0]
+            )
+            out[:, m * ch : (m + 1) * ch] += weights[:, p : p + 1] * sample.T
     return _linear(out, sd, f"{name}.output_proj")
 
 
@@ -135,27 +139,41 @@ def _layer_norm(x: torch.Tensor, sd: dict, name: str, eps: float = 1e-5) -> torc
     return (x - mean) / torch.sqrt(var + eps) * sd[f"{name}.weight"] + sd[f"{name}.bias"]
 
 
-def dfa_layer(current: torch.Tensor, past: list[torch.Tensor], coarser: torch.Tensor | None, sd: dict, name: str,
-              heads: int, points: int) -> torch.Tensor:
+def dfa_layer(
+    current: torch.Tensor,
+    past: list[torch.Tensor],
+    coarser: torch.Tensor | None,
+    sd: dict,
+    name: str,
+    heads: int,
+    points: int,
+) -> torch.Tensor:
     """eq. 6-9 at one level: F_t,l [C, H, W], the K-1 aligned past maps F^a_t-k,l, A_l+1 (None at
     the top) -> A_l [C, H, W]."""
     c, h, w = current.shape
-    q = current.reshape(c, h * w).T                                        # [HW, C]
-    if coarser is not None:                                                # eq. 6
+    q = current.reshape(c, h * w).T  # [HW, C]
+    if coarser is not None:  # eq. 6
         q = _linear(torch.cat([q, upsample(coarser, h, w).reshape(-1, h * w).T], 1), sd, f"{name}.query_fuse")
     total = torch.zeros_like(q)
     for frame in past:
         f = frame.reshape(c, h * w).T
-        d = _linear(torch.cat([q, f], 1), sd, f"{name}.advanced_query")    # eq. 7
-        total = total + deformable_attention(d, frame, sd, f"{name}.attn", heads, points)   # eq. 8
-    x = _layer_norm(total + q, sd, f"{name}.norm")                         # eq. 9 (dropout: identity)
+        d = _linear(torch.cat([q, f], 1), sd, f"{name}.advanced_query")  # eq. 7
+        total = total + deformable_attention(d, frame, sd, f"{name}.attn", heads, points)  # eq. 8
+    x = _layer_norm(total + q, sd, f"{name}.norm")  # eq. 9 (dropout: identity)
     hidden = torch.relu(_linear(x, sd, f"{name}.ffn.0"))
     a = x + _linear(hidden, sd, f"{name}.ffn.3")
     return a.T.reshape(c, h, w)
 
 
-def descriptor(maps: list[torch.Tensor], cells: list[tuple[float, float]], sd: dict, heads: int, points: int,
-               stages: int, gem_eps: float = 1e-6) -> torch.Tensor:
+def descriptor(
+    maps: list[torch.Tensor],
+    cells: list[tuple[float, float]],
+    sd: dict,
+    heads: int,
+    points: int,
+    stages: int,
+    gem_eps: float = 1e-6,
+) -> torch.Tensor:
     """The descriptor [D] (before L2 normalisation) of K BEV maps [C, H, W] (oldest first) with
     the displacement (dx, dy) in cells of each to the last one."""
     aligned = [align(m, dx, dy) for m, (dx, dy) in zip(maps[:-1], cells[:-1])] + [maps[-1]]
@@ -167,8 +185,8 @@ def descriptor(maps: list[torch.Tensor], cells: list[tuple[float, float]], sd: d
         frames = pyramid[level]
         a = dfa_layer(frames[-1], frames[:-1], a, sd, f"dfa.{level}", heads, points)
     c, h, w = a.shape
-    mlp = {k: v.flatten(1) if v.dim() == 4 else v for k, v in sd.items() if k.startswith("mlp.")}   # 1x1 convs
+    mlp = {k: v.flatten(1) if v.dim() == 4 else v for k, v in sd.items() if k.startswith("mlp.")}  # 1x1 convs
     hidden = torch.relu(_linear(a.reshape(c, h * w).T, mlp, "mlp.0"))
-    out = _linear(hidden, mlp, "mlp.2")                                        # [HW, D]
+    out = _linear(hidden, mlp, "mlp.2")  # [HW, D]
     p = sd["gem.p"]
     return out.clamp(min=gem_eps).pow(p).mean(0).pow(1.0 / p)

@@ -47,13 +47,13 @@ _NEIGHBOUR_OF = {"car": "van", "pedestrian": "person_sitting"}
 
 MIN_BOX_HEIGHT_PX = 40.0
 MAX_OCCLUSION = 4
-CORRIDOR_HALF_WIDTH_M = 4.0      # camera x must lie in [-4, 4]
-CORRIDOR_MAX_DEPTH_M = 25.0      # camera z must not exceed 25
+CORRIDOR_HALF_WIDTH_M = 4.0  # camera x must lie in [-4, 4]
+CORRIDOR_MAX_DEPTH_M = 25.0  # camera z must not exceed 25
 N_RECALL_POINTS = 41
 
 # Per-box flags produced by the cleaning step (same integer codes as the devkit uses).
-COUNTED = 0    # belongs to the evaluated class and is scored
-NEUTRAL = 1    # may absorb a match but never counts as TP / FP / FN
+COUNTED = 0  # belongs to the evaluated class and is scored
+NEUTRAL = 1  # may absorb a match but never counts as TP / FP / FN
 UNRELATED = -1  # another class: skipped entirely
 
 _NO_MATCH = -10000000  # sentinel "no candidate yet" value
@@ -64,6 +64,7 @@ METRIC_IMAGE, METRIC_BEV, METRIC_3D = 0, 1, 2
 # --------------------------------------------------------------------------------------------
 # label files
 # --------------------------------------------------------------------------------------------
+
 
 def read_label_file(path) -> dict:
     """Parse one KITTI label text file into the devkit's annotation dict.
@@ -110,8 +111,8 @@ def _frame(anno: dict) -> dict:
         "occluded": column("occluded"),
         "alpha": column("alpha"),
         "bbox": column("bbox", 4),
-        "dimensions": column("dimensions", 3),   # (l, h, w)
-        "location": column("location", 3),       # camera frame, bottom centre
+        "dimensions": column("dimensions", 3),  # (l, h, w)
+        "location": column("location", 3),  # camera frame, bottom centre
         "rotation_y": column("rotation_y"),
         "score": column("score"),
     }
@@ -120,6 +121,7 @@ def _frame(anno: dict) -> dict:
 # --------------------------------------------------------------------------------------------
 # which boxes take part (devkit: clean_data, difficulty 0)
 # --------------------------------------------------------------------------------------------
+
 
 def _outside_corridor(location) -> bool:
     x, _, z = location
@@ -152,7 +154,7 @@ def _flag_boxes(gt: dict, dt: dict, wanted: str, corridor: bool):
             gt_flags.append(NEUTRAL)
         else:
             gt_flags.append(UNRELATED)
-        if name == "DontCare":   # exact spelling, case sensitive
+        if name == "DontCare":  # exact spelling, case sensitive
             dontcare.append(list(gt["bbox"][k]))
 
     dt_flags = []
@@ -173,6 +175,7 @@ def _flag_boxes(gt: dict, dt: dict, wanted: str, corridor: bool):
 # --------------------------------------------------------------------------------------------
 # overlaps
 # --------------------------------------------------------------------------------------------
+
 
 def _ratio(num, den) -> float:
     """num / den with numpy float64 semantics (nan / inf instead of an exception)."""
@@ -219,8 +222,12 @@ def _inside(point, quad) -> bool:
     rel = (point[0] - ox, point[1] - oy)
     along1 = e1[0] * rel[0] + e1[1] * rel[1]
     along2 = e2[0] * rel[0] + e2[1] * rel[1]
-    return (e1[0] * e1[0] + e1[1] * e1[1] >= along1 and along1 >= 0
-            and e2[0] * e2[0] + e2[1] * e2[1] >= along2 and along2 >= 0)
+    return (
+        e1[0] * e1[0] + e1[1] * e1[1] >= along1
+        and along1 >= 0
+        and e2[0] * e2[0] + e2[1] * e2[1] >= along2
+        and along2 >= 0
+    )
 
 
 def _crossing(p, q, r, s):
@@ -241,8 +248,7 @@ def _crossing(p, q, r, s):
     denom = dqp[1] * dsr[0] - dqp[0] * dsr[1]
     if denom == 0:
         return None
-    return ((cross_pq * dsr[0] - dqp[0] * cross_rs) / denom,
-            (cross_pq * dsr[1] - dqp[1] * cross_rs) / denom)
+    return ((cross_pq * dsr[0] - dqp[0] * cross_rs) / denom, (cross_pq * dsr[1] - dqp[1] * cross_rs) / denom)
 
 
 def _sorted_around_centre(points):
@@ -337,8 +343,10 @@ def _overlap_table(gt: dict, dt: dict, metric: int):
 # matching one frame (devkit: compute_statistics_jit)
 # --------------------------------------------------------------------------------------------
 
-def _match_frame(table, gt, dt, gt_flags, dt_flags, dontcare, metric, min_overlap,
-                 score_floor=0.0, count_fp=False, with_aos=False):
+
+def _match_frame(
+    table, gt, dt, gt_flags, dt_flags, dontcare, metric, min_overlap, score_floor=0.0, count_fp=False, with_aos=False
+):
     """Greedy gt-by-gt matching of one frame.
 
     count_fp=False: each gt takes the highest-scoring free detection above min_overlap (any
@@ -359,7 +367,7 @@ def _match_frame(table, gt, dt, gt_flags, dt_flags, dontcare, metric, min_overla
         if g_flag == UNRELATED:
             continue
         chosen = -1
-        chosen_value = _NO_MATCH     # score (threshold mode) or 1 (fp mode) once something found
+        chosen_value = _NO_MATCH  # score (threshold mode) or 1 (fp mode) once something found
         best_overlap = 0.0
         chosen_is_neutral = False
         for j in range(n_dt):
@@ -383,7 +391,7 @@ def _match_frame(table, gt, dt, gt_flags, dt_flags, dontcare, metric, min_overla
             if g_flag == COUNTED:
                 fn += 1
         elif g_flag == NEUTRAL or dt_flags[chosen] == NEUTRAL:
-            taken[chosen] = True          # absorbed: neither TP nor FP
+            taken[chosen] = True  # absorbed: neither TP nor FP
         else:
             tp += 1
             tp_scores.append(scores[chosen])
@@ -437,8 +445,8 @@ def _recall_thresholds(tp_scores, n_counted, n_points=N_RECALL_POINTS):
 # curves and AP
 # --------------------------------------------------------------------------------------------
 
-def class_curves(gt_frames, dt_frames, tables, wanted, corridor, metric, min_overlap,
-                 with_aos=False):
+
+def class_curves(gt_frames, dt_frames, tables, wanted, corridor, metric, min_overlap, with_aos=False):
     """Precision / recall / orientation-similarity arrays (41 each) for one class and metric."""
     flagged = [_flag_boxes(g, d, wanted, corridor) for g, d in zip(gt_frames, dt_frames)]
     n_counted = sum(f[0] for f in flagged)
@@ -448,12 +456,22 @@ def class_curves(gt_frames, dt_frames, tables, wanted, corridor, metric, min_ove
         collected += _match_frame(table, g, d, g_flags, d_flags, dc, metric, min_overlap)[4]
     thresholds = _recall_thresholds(collected, n_counted)
 
-    tally = np.zeros([len(thresholds), 4])   # tp, fp, fn, similarity
+    tally = np.zeros([len(thresholds), 4])  # tp, fp, fn, similarity
     for g, d, table, (_, g_flags, d_flags, dc) in zip(gt_frames, dt_frames, tables, flagged):
         for t, floor in enumerate(thresholds):
-            tp, fp, fn, sim, _ = _match_frame(table, g, d, g_flags, d_flags, dc, metric,
-                                              min_overlap, score_floor=floor, count_fp=True,
-                                              with_aos=with_aos)
+            tp, fp, fn, sim, _ = _match_frame(
+                table,
+                g,
+                d,
+                g_flags,
+                d_flags,
+                dc,
+                metric,
+                min_overlap,
+                score_floor=floor,
+                count_fp=True,
+                with_aos=with_aos,
+            )
             tally[t, 0] += tp
             tally[t, 1] += fp
             tally[t, 2] += fn
@@ -476,8 +494,7 @@ def class_curves(gt_frames, dt_frames, tables, wanted, corridor, metric, min_ove
             recall[t] = np.max(recall[t:])
             if with_aos:
                 orientation[t] = np.max(orientation[t:])
-    return {"precision": precision, "recall": recall, "orientation": orientation,
-            "thresholds": np.array(thresholds)}
+    return {"precision": precision, "recall": recall, "orientation": orientation, "thresholds": np.array(thresholds)}
 
 
 def ap_11(curve) -> float:
@@ -507,8 +524,10 @@ def evaluate(gt_annos, dt_annos, classes, corridor) -> dict:
         raise ValueError("gt_annos and dt_annos must have one entry per frame each")
     gt_frames = [_frame(a) for a in gt_annos]
     dt_frames = [_frame(a) for a in dt_annos]
-    tables = {m: [_overlap_table(g, d, m) for g, d in zip(gt_frames, dt_frames)]
-              for m in (METRIC_IMAGE, METRIC_BEV, METRIC_3D)}
+    tables = {
+        m: [_overlap_table(g, d, m) for g, d in zip(gt_frames, dt_frames)]
+        for m in (METRIC_IMAGE, METRIC_BEV, METRIC_3D)
+    }
 
     results = {}
     for name in classes:
@@ -516,12 +535,11 @@ def evaluate(gt_annos, dt_annos, classes, corridor) -> dict:
         if wanted not in _CLASS_SLOTS:
             raise KeyError("class %r is not evaluated by the devkit" % name)
         overlaps = CLASSES[name]
-        image = class_curves(gt_frames, dt_frames, tables[METRIC_IMAGE], wanted, corridor,
-                             METRIC_IMAGE, overlaps["image"], with_aos=True)
-        bev = class_curves(gt_frames, dt_frames, tables[METRIC_BEV], wanted, corridor,
-                           METRIC_BEV, overlaps["bev"])
-        box3d = class_curves(gt_frames, dt_frames, tables[METRIC_3D], wanted, corridor,
-                             METRIC_3D, overlaps["3d"])
+        image = class_curves(
+            gt_frames, dt_frames, tables[METRIC_IMAGE], wanted, corridor, METRIC_IMAGE, overlaps["image"], with_aos=True
+        )
+        bev = class_curves(gt_frames, dt_frames, tables[METRIC_BEV], wanted, corridor, METRIC_BEV, overlaps["bev"])
+        box3d = class_curves(gt_frames, dt_frames, tables[METRIC_3D], wanted, corridor, METRIC_3D, overlaps["3d"])
         results[name] = {
             "3d": ap_11(box3d["precision"]),
             "bev": ap_11(bev["precision"]),

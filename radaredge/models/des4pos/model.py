@@ -51,11 +51,17 @@ import torch.nn.functional as F
 from torch import nn
 
 from ...cards import ModelCard
+from ...cards.des4pos import CellConfig, TextConfig
 from ...config import card_ranges, positive
 from ...errors import ConfigError
-from ...ops.point_sampling import (ball_query_masked, ball_query_masked_reference, farthest_point_sample,
-                                  farthest_point_sample_reference, group_points, group_points_reference)
-from ...cards.des4pos import CellConfig, TextConfig
+from ...ops.point_sampling import (
+    ball_query_masked,
+    ball_query_masked_reference,
+    farthest_point_sample,
+    farthest_point_sample_reference,
+    group_points,
+    group_points_reference,
+)
 from .minilm import NEG, _attend, load_backbone
 
 POINT_COLUMNS = ("x", "y", "z", "r", "g", "b")
@@ -66,17 +72,49 @@ POINT_COLUMNS = ("x", "y", "z", "r", "g", "b")
 
 # Text2Pos's object classes (datapreparation/kitti360pose/utils.py CLASS_TO_INDEX, "pad" included):
 # the class head of its pretrained PointNet++ has one output each.
-TEXT2POS_CLASSES = ("building", "pole", "traffic light", "traffic sign", "garage", "stop", "smallpole", "lamp",
-                    "trash bin", "vending machine", "box", "road", "sidewalk", "parking", "wall", "fence",
-                    "guard rail", "bridge", "tunnel", "vegetation", "terrain", "pad")
+TEXT2POS_CLASSES = (
+    "building",
+    "pole",
+    "traffic light",
+    "traffic sign",
+    "garage",
+    "stop",
+    "smallpole",
+    "lamp",
+    "trash bin",
+    "vending machine",
+    "box",
+    "road",
+    "sidewalk",
+    "parking",
+    "wall",
+    "fence",
+    "guard rail",
+    "bridge",
+    "tunnel",
+    "vegetation",
+    "terrain",
+    "pad",
+)
 OBJECT_FRAMES = ("cell", "unit_sphere")
 MFAM_FORMS = ("residual", "paper")
 DOWNSAMPLES = ("channels", "objects")
 
 
-@card_ranges(embed_dim=(1, 4096), sa_npoint=(1, 65_536), sa_radius=positive(100.0), sa_nsample=(1, 1024),
-             sa_mlp=(1, 4096), global_mlp=(1, 4096), head_mlp=(1, 4096), object_colors=(1, 1024),
-             encoder_hidden=(1, 4096), heads=(1, 64), lstm_hidden=(1, 4096), downsample_stride=(1, 64))
+@card_ranges(
+    embed_dim=(1, 4096),
+    sa_npoint=(1, 65_536),
+    sa_radius=positive(100.0),
+    sa_nsample=(1, 1024),
+    sa_mlp=(1, 4096),
+    global_mlp=(1, 4096),
+    head_mlp=(1, 4096),
+    object_colors=(1, 1024),
+    encoder_hidden=(1, 4096),
+    heads=(1, 64),
+    lstm_hidden=(1, 4096),
+    downsample_stride=(1, 64),
+)
 @dataclass(frozen=True)
 class SubmapConfig:
     """Card section ``submap``. The object encoder is Text2Pos's (which Text2Loc and upstream
@@ -86,22 +124,22 @@ class SubmapConfig:
     Text2Pos's published weights)."""
 
     embed_dim: int = 256
-    object_frame: str = "cell"          # "cell": xyz as stored, normalised to the cell (Text2Loc's --no_pc_augment);
-                                        # "unit_sphere": centred and scaled (Text2Pos's NormalizeScale)
-    sa_npoint: tuple = (128, 64, 32)    # Text2Pos: FPS ratio 0.5 per level from 256 points
+    object_frame: str = "cell"  # "cell": xyz as stored, normalised to the cell (Text2Loc's --no_pc_augment);
+    # "unit_sphere": centred and scaled (Text2Pos's NormalizeScale)
+    sa_npoint: tuple = (128, 64, 32)  # Text2Pos: FPS ratio 0.5 per level from 256 points
     sa_radius: tuple = (0.2, 0.3, 0.4)
-    sa_nsample: tuple = (32, 32, 32)    # PyG radius(): at most 32 neighbours, the first in point order
+    sa_nsample: tuple = (32, 32, 32)  # PyG radius(): at most 32 neighbours, the first in point order
     sa_mlp: tuple = ((32, 64), (128, 128), (256, 256))
     global_mlp: tuple = (512, 1024)
-    head_mlp: tuple = (512, 256)        # lin1, lin2 -> the 256-d geometry feature (Text2Pos features2)
+    head_mlp: tuple = (512, 256)  # lin1, lin2 -> the 256-d geometry feature (Text2Pos features2)
     object_classes: tuple = TEXT2POS_CLASSES
-    object_colors: int = 8              # Text2Pos's colour head (never trained upstream)
-    encoder_hidden: int = 64            # colour / position / count MLPs [3 or 1, 64, d] (Text2Loc)
-    heads: int = 4                      # MFAM self-attention heads
-    mfam: str = "residual"              # "residual": s + MFAM(s) (upstream's ConvBlock); "paper": eq. 4-5 as printed
-    lstm_hidden: int = 256              # per direction
-    downsample: str = "channels"        # eq. 7: every k-th channel of the BiLSTM state (upstream) or every k-th object
-    downsample_stride: int = 2          # eq. 7 step k
+    object_colors: int = 8  # Text2Pos's colour head (never trained upstream)
+    encoder_hidden: int = 64  # colour / position / count MLPs [3 or 1, 64, d] (Text2Loc)
+    heads: int = 4  # MFAM self-attention heads
+    mfam: str = "residual"  # "residual": s + MFAM(s) (upstream's ConvBlock); "paper": eq. 4-5 as printed
+    lstm_hidden: int = 256  # per direction
+    downsample: str = "channels"  # eq. 7: every k-th channel of the BiLSTM state (upstream) or every k-th object
+    downsample_stride: int = 2  # eq. 7 step k
 
     def __post_init__(self):
         for name, allowed in (("object_frame", OBJECT_FRAMES), ("mfam", MFAM_FORMS), ("downsample", DOWNSAMPLES)):
@@ -109,19 +147,23 @@ class SubmapConfig:
                 raise ValueError(f"{name} must be one of {list(allowed)}, got {getattr(self, name)!r}")
         levels = len(self.sa_npoint)
         if not levels or not len(self.sa_radius) == len(self.sa_nsample) == len(self.sa_mlp) == levels:
-            raise ValueError(f"sa_npoint, sa_radius, sa_nsample and sa_mlp need one entry per set-abstraction level; "
-                             f"got {len(self.sa_npoint)}, {len(self.sa_radius)}, {len(self.sa_nsample)}, "
-                             f"{len(self.sa_mlp)}")
+            raise ValueError(
+                f"sa_npoint, sa_radius, sa_nsample and sa_mlp need one entry per set-abstraction level; "
+                f"got {len(self.sa_npoint)}, {len(self.sa_radius)}, {len(self.sa_nsample)}, "
+                f"{len(self.sa_mlp)}"
+            )
         if any(not isinstance(m, tuple) or not m for m in self.sa_mlp):
             raise ValueError("sa_mlp needs a list of layer widths per level, e.g. [[32, 64], [128, 128]]")
         if not self.global_mlp or len(self.head_mlp) != 2:
-            raise ValueError(f"global_mlp needs one layer width or more and head_mlp two (Text2Pos's lin1, lin2); "
-                             f"got {list(self.global_mlp)} and {list(self.head_mlp)}")
+            raise ValueError(
+                f"global_mlp needs one layer width or more and head_mlp two (Text2Pos's lin1, lin2); "
+                f"got {list(self.global_mlp)} and {list(self.head_mlp)}"
+            )
         if not self.object_classes or not all(isinstance(c, str) and c for c in self.object_classes):
             raise ValueError("object_classes must be a list of class names")
         width = 2 * self.lstm_hidden // (self.downsample_stride if self.downsample == "channels" else 1)
         if width != self.embed_dim or (self.downsample == "channels" and 2 * self.lstm_hidden % self.downsample_stride):
-            rule = ("2 x lstm_hidden / downsample_stride" if self.downsample == "channels" else "2 x lstm_hidden")
+            rule = "2 x lstm_hidden / downsample_stride" if self.downsample == "channels" else "2 x lstm_hidden"
             raise ValueError(f"the cell descriptor is {rule} = {width} wide, but embed_dim is {self.embed_dim}")
 
 
@@ -157,12 +199,12 @@ class FineConfig:
     encoder's s_i (eq. 3) before MFAM.
     """
 
-    cra_layers: int = 4                # R1 .. Rn of eq. 10-12
+    cra_layers: int = 4  # R1 .. Rn of eq. 10-12
     heads: int = 4
     mlp_hidden: int = 128
-    objects: str = "coarse"            # "coarse" (the paper) or "encoder" (a fine-stage object encoder, Text2Loc)
-    pool: str = "last"                 # "last" (R_n, the paper) or "hints" (the last hint-stream state, Text2Loc)
-    object_state: str = "mfam"         # the coarse encoder's state read as n_i: "mfam", "lstm" or "objects"
+    objects: str = "coarse"  # "coarse" (the paper) or "encoder" (a fine-stage object encoder, Text2Loc)
+    pool: str = "last"  # "last" (R_n, the paper) or "hints" (the last hint-stream state, Text2Loc)
+    object_state: str = "mfam"  # the coarse encoder's state read as n_i: "mfam", "lstm" or "objects"
 
     def __post_init__(self):
         for name, allowed in (("objects", FINE_OBJECTS), ("pool", FINE_POOLS), ("object_state", OBJECT_STATES)):
@@ -187,8 +229,9 @@ class BatchNormMLP(nn.Sequential):
     last axis of any [..., C] tensor; keys ``<i>.0`` (Linear) and ``<i>.1`` (BatchNorm) as upstream."""
 
     def __init__(self, dims):
-        super().__init__(*[nn.Sequential(nn.Linear(a, b), nn.BatchNorm1d(b), nn.ReLU())
-                           for a, b in zip(dims[:-1], dims[1:])])
+        super().__init__(
+            *[nn.Sequential(nn.Linear(a, b), nn.BatchNorm1d(b), nn.ReLU()) for a, b in zip(dims[:-1], dims[1:])]
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         shape = x.shape
@@ -283,9 +326,10 @@ class PointNet2(nn.Module):
 
     def __init__(self, cfg: SubmapConfig):
         super().__init__()
-        cin = 3                                                     # rgb
-        for i, (npoint, radius, nsample, dims) in enumerate(zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample,
-                                                                 cfg.sa_mlp), 1):
+        cin = 3  # rgb
+        for i, (npoint, radius, nsample, dims) in enumerate(
+            zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample, cfg.sa_mlp), 1
+        ):
             setattr(self, f"sa{i}", SetAbstraction(cin, dims, npoint, radius, nsample))
             cin = dims[-1]
         self.levels = len(cfg.sa_npoint)
@@ -389,11 +433,11 @@ class MFAM(nn.Module):
     def forward(self, s: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """s [B, T, D]; ``mask`` [B, T] (real objects first) or None (reference: all real)."""
         keep = mask.unsqueeze(-1) if mask is not None else None
-        if keep is not None:                   # padding is zero, exactly like the convolution's border
-            s = torch.where(keep, s, torch.zeros_like(s))      # (a NaN in a padding slot stays out)
+        if keep is not None:  # padding is zero, exactly like the convolution's border
+            s = torch.where(keep, s, torch.zeros_like(s))  # (a NaN in a padding slot stays out)
         feats = []
         for conv, attn in zip(self.convs, self.self_attn):
-            x = torch.relu(conv(s.transpose(1, 2)).transpose(1, 2)) + s          # eq. 4
+            x = torch.relu(conv(s.transpose(1, 2)).transpose(1, 2)) + s  # eq. 4
             if keep is not None:
                 x = torch.where(keep, x, torch.zeros_like(x))
             feats.append(attn(x, x, mask))
@@ -405,8 +449,8 @@ class MFAM(nn.Module):
                 a = torch.where(mask.unsqueeze(1), a, torch.full_like(a, NEG))
             return torch.softmax(a, -1)
 
-        r3 = weights(self.q1(f3), self.k1(f1)) * weights(self.q5(f3), self.k5(f5))   # R3 = R1 * R2
-        out = self.o(r3 @ self.v(f3))                                                # eq. 5
+        r3 = weights(self.q1(f3), self.k1(f1)) * weights(self.q5(f3), self.k5(f5))  # R3 = R1 * R2
+        out = self.o(r3 @ self.v(f3))  # eq. 5
         return s + out if self.form == "residual" else out
 
 
@@ -469,7 +513,7 @@ class SubmapEncoder(nn.Module):
         slot (training with a frozen PointNet++ computes it once)."""
         b, t, p, _ = points.shape
         ar = torch.arange(t, dtype=torch.int64, device=points.device).unsqueeze(0)
-        order = torch.argsort(torch.where(object_mask, ar, ar + t), dim=1)        # real objects first
+        order = torch.argsort(torch.where(object_mask, ar, ar + t), dim=1)  # real objects first
         inverse = torch.argsort(order, dim=1)
         mask = torch.gather(object_mask, 1, order)
         pts = torch.gather(points, 1, order.view(b, t, 1, 1).expand(b, t, p, 6))
@@ -479,12 +523,17 @@ class SubmapEncoder(nn.Module):
         s = self._objects(pts.reshape(b * t, p, 6), cnt.reshape(b * t), mask.reshape(b * t), geometry).reshape(b, t, -1)
         d = self.mfam(s, mask)
         n = mask.sum(1, keepdim=True)
-        rev = torch.where(ar < n, n - 1 - ar, ar)                                  # prefix reversal
+        rev = torch.where(ar < n, n - 1 - ar, ar)  # prefix reversal
         lstm = self.lstm
         fwd = _lstm_unrolled(d, lstm.weight_ih_l0, lstm.weight_hh_l0, lstm.bias_ih_l0, lstm.bias_hh_l0)
         d_rev = torch.gather(d, 1, rev.unsqueeze(-1).expand_as(d))
-        bwd = _lstm_unrolled(d_rev, lstm.weight_ih_l0_reverse, lstm.weight_hh_l0_reverse,
-                             lstm.bias_ih_l0_reverse, lstm.bias_hh_l0_reverse)
+        bwd = _lstm_unrolled(
+            d_rev,
+            lstm.weight_ih_l0_reverse,
+            lstm.weight_hh_l0_reverse,
+            lstm.bias_ih_l0_reverse,
+            lstm.bias_hh_l0_reverse,
+        )
         bwd = torch.gather(bwd, 1, rev.unsqueeze(-1).expand_as(bwd))
         h = self._channels(torch.cat([fwd, bwd], -1)) * mask.unsqueeze(-1).to(d.dtype)
         desc = F.normalize(masked_max(h, mask & self._select(t, mask.device).unsqueeze(0), 1), dim=-1)
@@ -492,7 +541,7 @@ class SubmapEncoder(nn.Module):
             trace.update(objects=s, mfam=d, lstm=h)
         stream = stream or self.object_state
         state = {"lstm": h, "mfam": d, "objects": s}[stream]
-        if stream != "lstm":                                                        # h is zero at padding already
+        if stream != "lstm":  # h is zero at padding already
             state = torch.where(mask.unsqueeze(-1), state, torch.zeros_like(state))
         return desc, torch.gather(state, 1, inverse.unsqueeze(-1).expand_as(state))
 
@@ -503,7 +552,7 @@ class SubmapEncoder(nn.Module):
             raise ConfigError("a cell needs at least one object")
         s = torch.stack([self.objects.reference(o, c) for o, c in zip(points, num_points)])
         d = self.mfam(s[None])
-        h = self._channels(self.lstm(d)[0][0])                                     # packed: no padding at all
+        h = self._channels(self.lstm(d)[0][0])  # packed: no padding at all
         desc = F.normalize(h[self._select(len(h))].max(0).values, dim=-1)
         return desc, {"lstm": h, "mfam": d[0], "objects": s}[self.object_state]
 
@@ -564,8 +613,10 @@ class TextEncoder(nn.Module):
         """Reference: each hint's token ids (no padding) on its own."""
         if not hints:
             raise ConfigError("a description needs at least one hint")
-        outs = [self._hints(torch.as_tensor(h, dtype=torch.int64)[None], torch.ones(1, len(h), dtype=torch.int64))
-                for h in hints]
+        outs = [
+            self._hints(torch.as_tensor(h, dtype=torch.int64)[None], torch.ones(1, len(h), dtype=torch.int64))
+            for h in hints
+        ]
         coarse = torch.cat([o[0] for o in outs])
         return self._pool(coarse), torch.cat([o[1] for o in outs])
 
@@ -613,7 +664,7 @@ class FineStage(nn.Module):
         self.cfg = cfg
         self.attn = nn.ModuleList(Attention(d, cfg.heads) for _ in range(cfg.cra_layers))
         self.offset = mlp([d, cfg.mlp_hidden, 2])
-        if cfg.objects == "encoder":                      # made last: the other weights seed as without it
+        if cfg.objects == "encoder":  # made last: the other weights seed as without it
             self.objects = FineObjectEncoder(cell or CellConfig(), d, encoder_hidden)
 
     @property
@@ -629,12 +680,16 @@ class FineStage(nn.Module):
         if not self.needs_summaries:
             return objects
         if summaries is None:
-            raise ConfigError("fine.objects: encoder needs the candidate cells' object centres, colours and point "
-                              "counts (object_centres, object_colours, num_points)")
+            raise ConfigError(
+                "fine.objects: encoder needs the candidate cells' object centres, colours and point "
+                "counts (object_centres, object_colours, num_points)"
+            )
         parts = (objects, *summaries)
         if object_mask is not None:
-            parts = [torch.where(object_mask.view(*object_mask.shape, *([1] * (p.dim() - 2))), p, torch.zeros_like(p))
-                     for p in parts]
+            parts = [
+                torch.where(object_mask.view(*object_mask.shape, *([1] * (p.dim() - 2))), p, torch.zeros_like(p))
+                for p in parts
+            ]
         return self.objects(*parts)
 
     def offsets(self, objects, object_mask, hints, hint_mask=None, summaries=None):
@@ -642,10 +697,10 @@ class FineStage(nn.Module):
         ``objects: encoder`` ``summaries`` (:meth:`encode_objects`) -> offset [K, 2] (cell units from
         the cell centre)."""
         objects = self.encode_objects(objects, object_mask, summaries)
-        seq = [(hints, hint_mask), (objects, object_mask)]                        # R_-1 = T, R_0 = N
+        seq = [(hints, hint_mask), (objects, object_mask)]  # R_-1 = T, R_0 = N
         for attn in self.attn:
             (q, qmask), (kv, kvmask) = seq[-2], seq[-1]
-            seq.append((attn(q, kv, kvmask) + q, qmask))                           # Residual(Attention(...), query)
+            seq.append((attn(q, kv, kvmask) + q, qmask))  # Residual(Attention(...), query)
         # seq[i] belongs to the hint stream for even i: the last is R_n, the last even one the last hint state
         last, mask = seq[-1] if self.cfg.pool == "last" else seq[len(seq) - 1 - (len(seq) - 1) % 2]
         return self.offset(masked_max(last, mask, 1))
@@ -654,16 +709,26 @@ class FineStage(nn.Module):
     def place(offset, cell_origin, cell_size):
         return cell_origin + (0.5 + offset.to(torch.float64)) * cell_size.unsqueeze(-1)
 
-    def forward(self, object_features, object_mask, hint_features, cell_origin, cell_size, object_centres=None,
-                object_colours=None, num_points=None):
+    def forward(
+        self,
+        object_features,
+        object_mask,
+        hint_features,
+        cell_origin,
+        cell_size,
+        object_centres=None,
+        object_colours=None,
+        num_points=None,
+    ):
         """Export: object_features [K, T, D], object_mask [K, T] bool, hint_features [H, D],
         cell_origin [K, 2] float64 (m), cell_size [K] float64 (m); with ``objects: encoder`` also
         object_centres [K, T, 3] (cell units), object_colours [K, T, 3], num_points [K, T]
         -> offset [K, 2], position [K, 2]."""
         k = object_features.shape[0]
         summaries = None if object_centres is None else (object_centres, object_colours, num_points)
-        off = self.offsets(object_features, object_mask, hint_features.unsqueeze(0).expand(k, -1, -1),
-                           summaries=summaries)
+        off = self.offsets(
+            object_features, object_mask, hint_features.unsqueeze(0).expand(k, -1, -1), summaries=summaries
+        )
         return off, self.place(off, cell_origin, cell_size)
 
     def reference(self, objects: list[torch.Tensor], hints: torch.Tensor, cell_origin, cell_size, summaries=None):
@@ -671,11 +736,20 @@ class FineStage(nn.Module):
         ``summaries``: per candidate (centres [n_k, 3], colours [n_k, 3], counts [n_k]))."""
         if self.needs_summaries and summaries is None:
             raise ConfigError("fine.objects: encoder needs each candidate's object centres, colours and point counts")
-        off = torch.cat([self.offsets(o[None], None, hints[None],
-                                      summaries=None if summaries is None else tuple(x[None] for x in summaries[j]))
-                         for j, o in enumerate(objects)])
-        return off, self.place(off, torch.as_tensor(cell_origin, dtype=torch.float64),
-                               torch.as_tensor(cell_size, dtype=torch.float64))
+        off = torch.cat(
+            [
+                self.offsets(
+                    o[None],
+                    None,
+                    hints[None],
+                    summaries=None if summaries is None else tuple(x[None] for x in summaries[j]),
+                )
+                for j, o in enumerate(objects)
+            ]
+        )
+        return off, self.place(
+            off, torch.as_tensor(cell_origin, dtype=torch.float64), torch.as_tensor(cell_size, dtype=torch.float64)
+        )
 
 
 # ----------------------------------------------------------------------------- the model
@@ -694,10 +768,16 @@ class Des4Pos(nn.Module):
 
 def des4pos_configs(card: ModelCard):
     if tuple(card.features) != POINT_COLUMNS:
-        raise ConfigError(f"{card.where}: Des4Pos object points have the columns {list(POINT_COLUMNS)} "
-                          f"(x, y, z normalised to the cell, r, g, b in [0, 1]); card features are {card.features}")
-    return (card.section("cell", CellConfig), card.section("submap", SubmapConfig),
-            card.section("text", TextConfig), card.section("fine", FineConfig))
+        raise ConfigError(
+            f"{card.where}: Des4Pos object points have the columns {list(POINT_COLUMNS)} "
+            f"(x, y, z normalised to the cell, r, g, b in [0, 1]); card features are {card.features}"
+        )
+    return (
+        card.section("cell", CellConfig),
+        card.section("submap", SubmapConfig),
+        card.section("text", TextConfig),
+        card.section("fine", FineConfig),
+    )
 
 
 def build_des4pos(card: ModelCard) -> Des4Pos:

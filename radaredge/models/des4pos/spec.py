@@ -23,15 +23,15 @@ import numpy as np
 import torch
 
 from ...cards import ModelCard
+from ...cards.des4pos import CellConfig, TextConfig
 from ...data.text_city import make_city
 from ...runtime.text_tokens import encode_hints, load_tokenizer, split_hints
-from .model import FineConfig, build_des4pos
-from ...cards.des4pos import CellConfig, TextConfig
+from ..comparators import Dense, Descriptor
+from ..spec import GraphSpec, Int8Plan, ModelSpec
 from .bench import des4pos_tasks
 from .descriptions import descriptions
 from .minilm import backbone_dir
-from ..comparators import Dense, Descriptor
-from ..spec import GraphSpec, Int8Plan, ModelSpec
+from .model import FineConfig, build_des4pos
 
 
 def _cell(card) -> CellConfig:
@@ -75,9 +75,16 @@ def submap_cases(card: ModelCard, n: int, seed: int):
         if kind == "garbage-padding":
             pts[~mask] = rng.normal(0, 5, pts[~mask].shape)
             cnt[~mask] = rng.integers(1, 9999, int((~mask).sum()))
-        cases.append((f"{i:02d}-{kind}-{int(mask.sum())}obj",
-                      {"points": pts[None].astype(np.float32), "num_points": cnt[None].astype(np.float32),
-                       "object_mask": mask[None]}))
+        cases.append(
+            (
+                f"{i:02d}-{kind}-{int(mask.sum())}obj",
+                {
+                    "points": pts[None].astype(np.float32),
+                    "num_points": cnt[None].astype(np.float32),
+                    "object_mask": mask[None],
+                },
+            )
+        )
     return cases
 
 
@@ -94,8 +101,13 @@ def submap_reference(model, feeds, trace=None):
 
 
 def submap_export(model, feeds, trace=None):
-    d, h = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
-                   for k in ("points", "num_points", "object_mask")), trace=trace)
+    d, h = model(
+        *(
+            torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
+            for k in ("points", "num_points", "object_mask")
+        ),
+        trace=trace,
+    )
     return {"descriptor": d, "object_features": h}
 
 
@@ -106,9 +118,10 @@ SUBMAP_GRAPH = GraphSpec(
     input_names=lambda card: ["points", "num_points", "object_mask"],
     dynamic_axes=lambda card: {k: {0: "cells"} for k in ("points", "num_points", "object_mask")},
     output_names=lambda card: list(SUBMAP_OUTPUTS),
-    make_cases=submap_cases, run_reference=submap_reference, run_export=submap_export,
-    judges=lambda card: (Descriptor("descriptor", min_cosine=0.9999),
-                         Dense("object_features", atol=1e-4, rtol=1e-3)),
+    make_cases=submap_cases,
+    run_reference=submap_reference,
+    run_export=submap_export,
+    judges=lambda card: (Descriptor("descriptor", min_cosine=0.9999), Dense("object_features", atol=1e-4, rtol=1e-3)),
 )
 
 
@@ -133,8 +146,12 @@ def text_reference(model, feeds, trace=None):
 
 
 def text_export(model, feeds, trace=None):
-    d, h = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
-                   for k in ("input_ids", "attention_mask")))
+    d, h = model(
+        *(
+            torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
+            for k in ("input_ids", "attention_mask")
+        )
+    )
     return {"descriptor": d, "hint_features": h}
 
 
@@ -145,11 +162,15 @@ TEXT_GRAPH = GraphSpec(
     input_names=lambda card: ["input_ids", "attention_mask"],
     dynamic_axes=lambda card: {k: {0: "hints", 1: "tokens"} for k in ("input_ids", "attention_mask")},
     output_names=lambda card: list(TEXT_OUTPUTS),
-    make_cases=text_cases, run_reference=text_reference, run_export=text_export,
+    make_cases=text_cases,
+    run_reference=text_reference,
+    run_export=text_export,
     # int8 (the dynamically quantised copy): the sentence descriptor holds the descriptor budget;
     # the per-hint features the fine stage reads are reported, not judged
-    judges=lambda card: (Descriptor("descriptor", min_cosine=0.9999),
-                         Dense("hint_features", atol=1e-4, rtol=1e-3, quantized_info=True)),
+    judges=lambda card: (
+        Descriptor("descriptor", min_cosine=0.9999),
+        Dense("hint_features", atol=1e-4, rtol=1e-3, quantized_info=True),
+    ),
 )
 
 
@@ -176,19 +197,30 @@ def fine_cases(card: ModelCard, n: int, seed: int):
             real = rng.choice(cell.max_objects, int(rng.integers(1, cell.max_objects + 1)), replace=False)
             mask[j, real] = True
         objs = (rng.normal(0, 0.3, (k, cell.max_objects, d)) * mask[..., None]).astype(np.float32)
-        feeds = {"object_features": objs, "object_mask": mask,
-                 "hint_features": rng.normal(0, 1, (h, d)).astype(np.float32),
-                 "cell_origin": rng.uniform(-1e4, 1e4, (k, 2)), "cell_size": np.full(k, cell.size)}
+        feeds = {
+            "object_features": objs,
+            "object_mask": mask,
+            "hint_features": rng.normal(0, 1, (h, d)).astype(np.float32),
+            "cell_origin": rng.uniform(-1e4, 1e4, (k, 2)),
+            "cell_size": np.full(k, cell.size),
+        }
         if summaries:
+
             def garbage(shape):
                 return rng.normal(0, 1e3, shape)
-            centres = np.where(mask[..., None], rng.uniform(-0.1, 1.1, (k, cell.max_objects, 3)),
-                               garbage((k, cell.max_objects, 3)))
-            colours = np.where(mask[..., None], rng.uniform(0, 1, (k, cell.max_objects, 3)),
-                               garbage((k, cell.max_objects, 3)))
+
+            centres = np.where(
+                mask[..., None], rng.uniform(-0.1, 1.1, (k, cell.max_objects, 3)), garbage((k, cell.max_objects, 3))
+            )
+            colours = np.where(
+                mask[..., None], rng.uniform(0, 1, (k, cell.max_objects, 3)), garbage((k, cell.max_objects, 3))
+            )
             counts = np.where(mask, rng.integers(8, 5000, (k, cell.max_objects)), garbage((k, cell.max_objects)))
-            feeds.update(object_centres=centres.astype(np.float32), object_colours=colours.astype(np.float32),
-                         num_points=counts.astype(np.float32))
+            feeds.update(
+                object_centres=centres.astype(np.float32),
+                object_colours=colours.astype(np.float32),
+                num_points=counts.astype(np.float32),
+            )
         cases.append((f"{i:02d}-{k}cells-{h}hints", feeds))
     return cases
 
@@ -199,14 +231,18 @@ def fine_reference(model, feeds, trace=None):
     if "object_centres" in feeds:
         parts = [np.asarray(feeds[k]) for k in SUMMARY_INPUTS]
         summaries = [tuple(torch.from_numpy(p[j][mask[j]]) for p in parts) for j in range(len(objs))]
-    off, pos = model.reference([torch.from_numpy(objs[j][mask[j]]) for j in range(len(objs))],
-                               torch.as_tensor(np.asarray(feeds["hint_features"])),
-                               np.asarray(feeds["cell_origin"]), np.asarray(feeds["cell_size"]), summaries)
+    off, pos = model.reference(
+        [torch.from_numpy(objs[j][mask[j]]) for j in range(len(objs))],
+        torch.as_tensor(np.asarray(feeds["hint_features"])),
+        np.asarray(feeds["cell_origin"]),
+        np.asarray(feeds["cell_size"]),
+        summaries,
+    )
     return {"offset": off, "position": pos}
 
 
 FINE_INPUTS = ["object_features", "object_mask", "hint_features", "cell_origin", "cell_size"]
-SUMMARY_INPUTS = ["object_centres", "object_colours", "num_points"]     # fine.objects: encoder
+SUMMARY_INPUTS = ["object_centres", "object_colours", "num_points"]  # fine.objects: encoder
 
 
 def fine_inputs(card: ModelCard) -> list[str]:
@@ -217,8 +253,9 @@ def fine_inputs(card: ModelCard) -> list[str]:
 
 def fine_export(model, feeds, trace=None):
     names = FINE_INPUTS + [k for k in SUMMARY_INPUTS if k in feeds]
-    off, pos = model(*(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k]
-                       for k in names))
+    off, pos = model(
+        *(torch.as_tensor(np.asarray(feeds[k])) if not torch.is_tensor(feeds[k]) else feeds[k] for k in names)
+    )
     return {"offset": off, "position": pos}
 
 
@@ -227,10 +264,13 @@ FINE_GRAPH = GraphSpec(
     name="fine_stage",
     module=lambda model: model.fine,
     input_names=fine_inputs,
-    dynamic_axes=lambda card: {name: {0: "hints" if name == "hint_features" else "candidates"}
-                               for name in fine_inputs(card)},
+    dynamic_axes=lambda card: {
+        name: {0: "hints" if name == "hint_features" else "candidates"} for name in fine_inputs(card)
+    },
     output_names=lambda card: list(FINE_OUTPUTS),
-    make_cases=fine_cases, run_reference=fine_reference, run_export=fine_export,
+    make_cases=fine_cases,
+    run_reference=fine_reference,
+    run_export=fine_export,
     judges=lambda card: (Dense("offset", atol=1e-5, rtol=1e-4), Dense("position", unit="m", atol=1e-3, rtol=0.0)),
 )
 

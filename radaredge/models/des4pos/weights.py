@@ -41,8 +41,10 @@ class ObjectWeightsReport:
     unused: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
-        text = (f"loaded {self.loaded} tensors of the object encoder ({', '.join(self.parts)}) "
-                f"from {self.path} ({self.source})")
+        text = (
+            f"loaded {self.loaded} tensors of the object encoder ({', '.join(self.parts)}) "
+            f"from {self.path} ({self.source})"
+        )
         return text + (f"; left out {', '.join(self.unused)} (unused by the model)" if self.unused else "")
 
 
@@ -55,25 +57,38 @@ def load_object_weights(model: torch.nn.Module, path: str | Path) -> ObjectWeigh
     own = objects.state_dict()
     if any(k.startswith(T2L_PREFIX) for k in state):
         source = "Text2Loc/Des4Pos checkpoint"
-        picked = {k[len(T2L_PREFIX):]: v for k, v in state.items() if k.startswith(T2L_PREFIX)}
+        picked = {k[len(T2L_PREFIX) :]: v for k, v in state.items() if k.startswith(T2L_PREFIX)}
         unused = [T2L_PREFIX + k for k in T2L_UNUSED if k in picked]
         picked = {k: v for k, v in picked.items() if k not in T2L_UNUSED}
     elif any(k.startswith("sa1.") for k in state):
         source = "Text2Pos PointNet++"
         picked, unused = {"pointnet." + k: v for k, v in state.items()}, []
     else:
-        raise ConfigError(f"{path}: neither Text2Pos PointNet++ weights (keys sa1.*, ga.*, lin1.*) nor a Text2Loc / "
-                          f"Des4Pos checkpoint (keys object_encoder.*); first keys: {sorted(state)[:5]}")
+        raise ConfigError(
+            f"{path}: neither Text2Pos PointNet++ weights (keys sa1.*, ga.*, lin1.*) nor a Text2Loc / "
+            f"Des4Pos checkpoint (keys object_encoder.*); first keys: {sorted(state)[:5]}"
+        )
     unexpected = sorted(set(picked) - set(own))
-    shapes = sorted(f"{k} (file {tuple(picked[k].shape)}, card {tuple(own[k].shape)})"
-                    for k in set(picked) & set(own) if picked[k].shape != own[k].shape)
+    shapes = sorted(
+        f"{k} (file {tuple(picked[k].shape)}, card {tuple(own[k].shape)})"
+        for k in set(picked) & set(own)
+        if picked[k].shape != own[k].shape
+    )
     missing = sorted(k for k in own if k.startswith("pointnet.") and k not in picked)
-    problems = [f"{what} ({len(keys)}): {', '.join(keys[:8])}{' ...' if len(keys) > 8 else ''}"
-                for what, keys in (("keys the object encoder does not have", unexpected),
-                                   ("wrong shapes", shapes), ("PointNet++ keys missing", missing)) if keys]
+    problems = [
+        f"{what} ({len(keys)}): {', '.join(keys[:8])}{' ...' if len(keys) > 8 else ''}"
+        for what, keys in (
+            ("keys the object encoder does not have", unexpected),
+            ("wrong shapes", shapes),
+            ("PointNet++ keys missing", missing),
+        )
+        if keys
+    ]
     if problems:
-        raise ConfigError(f"{path} ({source}) does not fit the card's object encoder (submap.sa_*, global_mlp, "
-                          f"head_mlp, object_classes, object_colors, embed_dim): {'; '.join(problems)}")
+        raise ConfigError(
+            f"{path} ({source}) does not fit the card's object encoder (submap.sa_*, global_mlp, "
+            f"head_mlp, object_classes, object_colors, embed_dim): {'; '.join(problems)}"
+        )
     objects.load_state_dict({**own, **picked})
     parts = sorted({k.split(".")[0] for k in picked})
     return ObjectWeightsReport(str(path), source, len(picked), parts, unused)

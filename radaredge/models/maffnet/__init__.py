@@ -4,8 +4,22 @@ fuser of :mod:`.fuser`), stage two (:mod:`.rcnn`) and the spec (:mod:`.spec`), r
 
 from ...registry import ModelFamily, register_family
 
-register_family(ModelFamily(
-    "maffnet",
-    sections=("pillars", "spa", "cfa", "caf", "backbone_2d", "dense_head", "post_processing", "stage_two", "input",
-              "init", "vfe_features"),
-    spec=f"{__name__}.spec:spec_for"))
+register_family(
+    ModelFamily(
+        "maffnet",
+        sections=(
+            "pillars",
+            "spa",
+            "cfa",
+            "caf",
+            "backbone_2d",
+            "dense_head",
+            "post_processing",
+            "stage_two",
+            "input",
+            "init",
+            "vfe_features",
+        ),
+        spec=f"{__name__}.spec:spec_for",
+    )
+)

@@ -21,18 +21,24 @@ from ...config import card_ranges, positive
 from ...errors import ConfigError
 
 
-@card_ranges(pool_size=(1, 1024), heads=(1, 64), ffn_ratio=(1, 16), se_reduction=(1, 4096), out_channels=(1, 4096),
-             bn_eps=positive(1.0))
+@card_ranges(
+    pool_size=(1, 1024),
+    heads=(1, 64),
+    ffn_ratio=(1, 16),
+    se_reduction=(1, 4096),
+    out_channels=(1, 4096),
+    bn_eps=positive(1.0),
+)
 @dataclass(frozen=True)
 class CafConfig:
     """Card section ``caf``: upstream CQCA_caf's shape (TransformerFusionBlock defaults)."""
 
-    pool_size: int = 16           # vert_anchors = horz_anchors: tokens are a pool_size x pool_size grid
-    heads: int = 8                # h
-    ffn_ratio: int = 4            # block_exp of mlp_ir
-    se_reduction: int = 16        # SELayer reduction
-    out_channels: int = 64        # OUT_CHANNEL
-    bn_eps: float = 1e-5          # the fusion conv's BatchNorm2d (torch default; upstream sets none)
+    pool_size: int = 16  # vert_anchors = horz_anchors: tokens are a pool_size x pool_size grid
+    heads: int = 8  # h
+    ffn_ratio: int = 4  # block_exp of mlp_ir
+    se_reduction: int = 16  # SELayer reduction
+    out_channels: int = 64  # OUT_CHANNEL
+    bn_eps: float = 1e-5  # the fusion conv's BatchNorm2d (torch default; upstream sets none)
 
 
 class SELayer(nn.Module):
@@ -42,10 +48,13 @@ class SELayer(nn.Module):
         super().__init__()
         hidden = channels // reduction
         if hidden < 1:
-            raise ConfigError(f"caf.se_reduction {reduction} exceeds the {channels} channels (upstream's SE "
-                              "would have a zero-width hidden layer)")
-        self.fc = nn.Sequential(nn.Linear(channels, hidden, bias=False), nn.ReLU(),
-                                nn.Linear(hidden, channels, bias=False), nn.Sigmoid())
+            raise ConfigError(
+                f"caf.se_reduction {reduction} exceeds the {channels} channels (upstream's SE "
+                "would have a zero-width hidden layer)"
+            )
+        self.fc = nn.Sequential(
+            nn.Linear(channels, hidden, bias=False), nn.ReLU(), nn.Linear(hidden, channels, bias=False), nn.Sigmoid()
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x * self.fc(x.mean((2, 3))).unsqueeze(-1).unsqueeze(-1)
@@ -110,7 +119,7 @@ class ClusterQueryAttention(nn.Module):
         d = c // self.heads
 
         def heads(x):
-            return x.reshape(b, t, self.heads, d).transpose(1, 2)                      # [B, heads, T, d]
+            return x.reshape(b, t, self.heads, d).transpose(1, 2)  # [B, heads, T, d]
 
         q = heads(self.que_proj_vis(self.LN1(cfa_tokens)))
         kv = self.LN2(pillar_tokens)
@@ -126,8 +135,9 @@ class CrossTransformerLayer(nn.Module):
         super().__init__()
         self.crossatt = ClusterQueryAttention(channels, heads)
         self.LN2 = nn.LayerNorm(channels)
-        self.mlp_ir = nn.Sequential(nn.Linear(channels, ffn_ratio * channels), nn.GELU(),
-                                    nn.Linear(ffn_ratio * channels, channels))
+        self.mlp_ir = nn.Sequential(
+            nn.Linear(channels, ffn_ratio * channels), nn.GELU(), nn.Linear(ffn_ratio * channels, channels)
+        )
         self.coefficient3, self.coefficient4 = Scalar(), Scalar()
         self.coefficient7, self.coefficient8 = Scalar(), Scalar()
 
@@ -156,12 +166,14 @@ class TransformerFusion(nn.Module):
         b, c, h, w = x.shape
         (kh, sh), (kw, sw) = pool_window(h, self.pool_size), pool_window(w, self.pool_size)
         pooled = mix(F.avg_pool2d(x, (kh, kw), (sh, sw)), F.max_pool2d(x, (kh, kw), (sh, sw)))
-        return pooled.flatten(2).transpose(1, 2) + pos                                 # [B, s*s, C]
+        return pooled.flatten(2).transpose(1, 2) + pos  # [B, s*s, C]
 
     def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
         b, c, h, w = pillar.shape
-        tokens = self.crosstransformer[0](self._tokens(cfa, self.vis_coefficient, self.pos_emb_vis),
-                                          self._tokens(pillar, self.ir_coefficient, self.pos_emb_ir))
+        tokens = self.crosstransformer[0](
+            self._tokens(cfa, self.vis_coefficient, self.pos_emb_vis),
+            self._tokens(pillar, self.ir_coefficient, self.pos_emb_ir),
+        )
         s = self.pool_size
         grid = tokens.transpose(1, 2).reshape(b, c, s, s)
         return F.interpolate(grid, size=(h, w), mode="bilinear", align_corners=False) + pillar
@@ -178,13 +190,18 @@ class CrossAttentionFusion(nn.Module):
     def __init__(self, pillar_channels: int, cfa_channels: int, cfg: CafConfig):
         super().__init__()
         if cfa_channels != pillar_channels:
-            raise ConfigError(f"caf: the CFA map has {cfa_channels} channels, the pillar map {pillar_channels}; "
-                              "upstream's fusion needs equal widths (IN_CHANNEL_CROSS)")
+            raise ConfigError(
+                f"caf: the CFA map has {cfa_channels} channels, the pillar map {pillar_channels}; "
+                "upstream's fusion needs equal widths (IN_CHANNEL_CROSS)"
+            )
         c = pillar_channels
         self.crossfusion = TransformerFusion(c, cfg)
         self.se = SELayer(c, cfg.se_reduction)
-        self.conv = nn.Sequential(nn.Conv2d(2 * c, cfg.out_channels, 3, padding=1, bias=False),
-                                  nn.BatchNorm2d(cfg.out_channels, eps=cfg.bn_eps), nn.ReLU())
+        self.conv = nn.Sequential(
+            nn.Conv2d(2 * c, cfg.out_channels, 3, padding=1, bias=False),
+            nn.BatchNorm2d(cfg.out_channels, eps=cfg.bn_eps),
+            nn.ReLU(),
+        )
 
     def forward(self, pillar: torch.Tensor, cfa: torch.Tensor) -> torch.Tensor:
         return self.conv(torch.cat([pillar, self.se(self.crossfusion(pillar, cfa))], 1))

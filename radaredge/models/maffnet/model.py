@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,16 +45,27 @@ from ...config import Range, card_ranges, config_from_dict, positive
 from ...errors import CapacityError, ConfigError
 from ...ops.dbscan import DbscanConfig, cqca_cfa_map, cqca_cfa_map_reference
 from ...ops.grid_density import GridDensityBEV, GridDensityConfig, grid_density_bev_reference
+from ...ops.input_flags import (
+    column_bounds,
+    drop_implausible,
+    drop_implausible_reference,
+    frame_flags,
+    frame_flags_reference,
+)
 from ...ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_reference
 from ...ops.pillar_attention import SparsePillarAttention, sparse_pillar_attention_reference
-from ...ops.input_flags import (column_bounds, drop_implausible, drop_implausible_reference, frame_flags,
-                               frame_flags_reference)
-from ...ops.pillars import (PillarConfig, PillarFeatureNet, SlotMoments, outside_grid, pillar_canvas,
-                           pillar_features_reference, point_drops_reference, scatter_pillars_reference)
+from ...ops.pillars import (
+    PillarConfig,
+    PillarFeatureNet,
+    SlotMoments,
+    outside_grid,
+    pillar_canvas,
+    pillar_features_reference,
+    point_drops_reference,
+    scatter_pillars_reference,
+)
 from . import rcnn as two
 from .fuser import UNUSED_FUSER_KEYS, CafConfig, CrossAttentionFusion
-import time
-
 
 # ----------------------------------------------------------------------------- configuration
 
@@ -63,8 +75,8 @@ import time
 class SpaConfig:
     """Card section ``spa``. The capacity is a TopK's K in the graph, which TensorRT caps below 3840."""
 
-    enabled: bool = True          # upstream IS_SPA
-    capacity: int = 1024          # pillar slots of the exported attention; more pillars are reported
+    enabled: bool = True  # upstream IS_SPA
+    capacity: int = 1024  # pillar slots of the exported attention; more pillars are reported
 
 
 CFA_METHODS = ("grid_density", "dbscan")
@@ -75,10 +87,10 @@ class CfaConfig:
     """Card section ``cfa`` scalars; the method's own settings are ``cfa.grid`` (GridDensityConfig)
     or ``cfa.dbscan`` (DbscanConfig)."""
 
-    velocity_feature: str = "v_r_comp"   # card feature column used as the map's velocity (upstream DBSCAN_V)
-    method: str = "grid_density"         # "grid_density" (the fthbng77 fork) or "dbscan" (upstream CQCA_cfa)
-    not_converged: str = ""              # radaredge.runtime on cfa_converged False: "warn" or "error";
-                                         # "" = the method's ("warn" for grid_density, "error" for dbscan)
+    velocity_feature: str = "v_r_comp"  # card feature column used as the map's velocity (upstream DBSCAN_V)
+    method: str = "grid_density"  # "grid_density" (the fthbng77 fork) or "dbscan" (upstream CQCA_cfa)
+    not_converged: str = ""  # radaredge.runtime on cfa_converged False: "warn" or "error";
+    # "" = the method's ("warn" for grid_density, "error" for dbscan)
 
     def __post_init__(self):
         if self.method not in CFA_METHODS:
@@ -92,8 +104,8 @@ class CfaConfig:
 class InputConfig:
     """Card section ``input``: what one call of the graph expects (upstream's test-time input)."""
 
-    scans_accumulated: int = 1     # scans accumulated into one cloud (VoD radar_5frames: 5, time <= 0 s)
-    crop: str = "none"             # "camera_fov": points outside the camera's view removed beforehand
+    scans_accumulated: int = 1  # scans accumulated into one cloud (VoD radar_5frames: 5, time <= 0 s)
+    crop: str = "none"  # "camera_fov": points outside the camera's view removed beforehand
 
     def __post_init__(self):
         if not isinstance(self.scans_accumulated, int) or self.scans_accumulated < 1:
@@ -102,8 +114,13 @@ class InputConfig:
             raise ValueError(f"crop must be 'none' or 'camera_fov', got {self.crop!r}")
 
 
-@card_ranges(layer_nums=(0, 64), layer_strides=(1, 8), num_filters=(1, 4096), upsample_strides=positive(16.0),
-             num_upsample_filters=(1, 4096))
+@card_ranges(
+    layer_nums=(0, 64),
+    layer_strides=(1, 8),
+    num_filters=(1, 4096),
+    upsample_strides=positive(16.0),
+    num_upsample_filters=(1, 4096),
+)
 @dataclass(frozen=True)
 class BackboneConfig:
     """Card section ``backbone_2d`` (OpenPCDet BaseBEVBackbone)."""
@@ -115,31 +132,42 @@ class BackboneConfig:
     num_upsample_filters: tuple = (128, 128, 128)
 
     def __post_init__(self):
-        lengths = {f: len(getattr(self, f)) for f in ("layer_nums", "layer_strides", "num_filters",
-                                                        "upsample_strides", "num_upsample_filters")}
+        lengths = {
+            f: len(getattr(self, f))
+            for f in ("layer_nums", "layer_strides", "num_filters", "upsample_strides", "num_upsample_filters")
+        }
         if len(set(lengths.values())) != 1 or not lengths["layer_nums"]:
-            raise ValueError(f"the lists {', '.join(f'{k} ({v})' for k, v in lengths.items())} must have one "
-                             f"length, one entry per backbone block (at least one)")
+            raise ValueError(
+                f"the lists {', '.join(f'{k} ({v})' for k, v in lengths.items())} must have one "
+                f"length, one entry per backbone block (at least one)"
+            )
 
 
-@card_ranges(anchor_sizes=positive(1000.0), anchor_rotations=(-7.0, 7.0), anchor_bottom_heights=(-1000.0, 1000.0),
-             feature_map_stride=(1, 64), matched_threshold=(0.0, 1.0), unmatched_threshold=(0.0, 1.0))
+@card_ranges(
+    anchor_sizes=positive(1000.0),
+    anchor_rotations=(-7.0, 7.0),
+    anchor_bottom_heights=(-1000.0, 1000.0),
+    feature_map_stride=(1, 64),
+    matched_threshold=(0.0, 1.0),
+    unmatched_threshold=(0.0, 1.0),
+)
 @dataclass(frozen=True)
 class AnchorClass:
     """One entry of ``dense_head.anchors`` (OpenPCDet ANCHOR_GENERATOR_CONFIG)."""
 
     class_name: str
-    anchor_sizes: tuple            # ((dx, dy, dz),) metres
+    anchor_sizes: tuple  # ((dx, dy, dz),) metres
     anchor_rotations: tuple = (0.0, 1.57)
     anchor_bottom_heights: tuple = (0.0,)
     align_center: bool = False
     feature_map_stride: int = 2
-    matched_threshold: float | None = None      # training only (radaredge train's target assigner);
-    unmatched_threshold: float | None = None    # None: upstream's value for the class
+    matched_threshold: float | None = None  # training only (radaredge train's target assigner);
+    unmatched_threshold: float | None = None  # None: upstream's value for the class
 
 
-@card_ranges(dir_offset=(-7.0, 7.0), dir_limit_offset=(0.0, 1.0), num_dir_bins=(1, 64),
-             cls_prior=Range(0.0, 1.0, True, True))
+@card_ranges(
+    dir_offset=(-7.0, 7.0), dir_limit_offset=(0.0, 1.0), num_dir_bins=(1, 64), cls_prior=Range(0.0, 1.0, True, True)
+)
 @dataclass(frozen=True)
 class HeadConfig:
     """Card section ``dense_head`` scalars (the anchors are read separately)."""
@@ -147,15 +175,18 @@ class HeadConfig:
     dir_offset: float = 0.78539
     dir_limit_offset: float = 0.0
     num_dir_bins: int = 2
-    cls_prior: float = 0.01        # OpenPCDet AnchorHeadSingle.init_weights: bias = -log((1 - pi) / pi)
+    cls_prior: float = 0.01  # OpenPCDet AnchorHeadSingle.init_weights: bias = -log((1 - pi) / pi)
 
 
 # ----------------------------------------------------------------------------- modules
 
 
 def _conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1, padding: int = 1) -> list[nn.Module]:
-    return [nn.Conv2d(cin, cout, k, stride=stride, padding=padding, bias=False),
-            nn.BatchNorm2d(cout, eps=1e-3, momentum=0.01), nn.ReLU()]
+    return [
+        nn.Conv2d(cin, cout, k, stride=stride, padding=padding, bias=False),
+        nn.BatchNorm2d(cout, eps=1e-3, momentum=0.01),
+        nn.ReLU(),
+    ]
 
 
 class ClusteringFeatureAssist(nn.Module):
@@ -189,8 +220,9 @@ class ClusteringFeatureAssist(nn.Module):
     def reference(self, xyv: torch.Tensor, scan: torch.Tensor):
         """Reference formulation of :meth:`forward` (Python loops over points and cells)."""
         if self.grid_density is not None:
-            bev, mask, converged = grid_density_bev_reference(xyv.numpy(), np.ones(len(xyv), bool),
-                                                              self.grid_density.config)
+            bev, mask, converged = grid_density_bev_reference(
+                xyv.numpy(), np.ones(len(xyv), bool), self.grid_density.config
+            )
             return torch.from_numpy(bev), torch.from_numpy(mask), torch.tensor(converged)
         s = scan.numpy()
         order = np.concatenate([np.flatnonzero(s), np.flatnonzero(~s)])
@@ -221,12 +253,22 @@ class BaseBEVBackbone(nn.Module):
             self.blocks.append(nn.Sequential(*layers))
             up, uf = cfg.upsample_strides[i], cfg.num_upsample_filters[i]
             if up >= 1:
-                self.deblocks.append(nn.Sequential(nn.ConvTranspose2d(f, uf, up, stride=up, bias=False),
-                                                   nn.BatchNorm2d(uf, eps=1e-3, momentum=0.01), nn.ReLU()))
+                self.deblocks.append(
+                    nn.Sequential(
+                        nn.ConvTranspose2d(f, uf, up, stride=up, bias=False),
+                        nn.BatchNorm2d(uf, eps=1e-3, momentum=0.01),
+                        nn.ReLU(),
+                    )
+                )
             else:
                 k = round(1 / up)
-                self.deblocks.append(nn.Sequential(nn.Conv2d(f, uf, k, stride=k, bias=False),
-                                                   nn.BatchNorm2d(uf, eps=1e-3, momentum=0.01), nn.ReLU()))
+                self.deblocks.append(
+                    nn.Sequential(
+                        nn.Conv2d(f, uf, k, stride=k, bias=False),
+                        nn.BatchNorm2d(uf, eps=1e-3, momentum=0.01),
+                        nn.ReLU(),
+                    )
+                )
         self.num_bev_features = sum(cfg.num_upsample_filters)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -251,10 +293,15 @@ class AnchorHeadSingle(nn.Module):
 
     def forward(self, x: torch.Tensor):
         """x [1, C, H, W] -> (cls [A, classes] logits, box [A, 7] residuals, dir [A, bins]) per anchor."""
+
         def flat(t, k):
             return t[0].permute(1, 2, 0).reshape(-1, k)
-        return (flat(self.conv_cls(x), self.num_classes), flat(self.conv_box(x), 7),
-                flat(self.conv_dir_cls(x), self.num_dir_bins))
+
+        return (
+            flat(self.conv_cls(x), self.num_classes),
+            flat(self.conv_box(x), 7),
+            flat(self.conv_dir_cls(x), self.num_dir_bins),
+        )
 
 
 def generate_anchors(classes: list[AnchorClass], point_cloud_range, grid_xy: tuple[int, int]) -> torch.Tensor:
@@ -291,20 +338,31 @@ def generate_anchors(classes: list[AnchorClass], point_cloud_range, grid_xy: tup
     return torch.cat(per_class, 2).reshape(-1, 7)
 
 
-def decode_boxes(residuals: torch.Tensor, anchors: torch.Tensor, dir_logits: torch.Tensor,
-                 cfg: HeadConfig) -> torch.Tensor:
+def decode_boxes(
+    residuals: torch.Tensor, anchors: torch.Tensor, dir_logits: torch.Tensor, cfg: HeadConfig
+) -> torch.Tensor:
     """OpenPCDet ResidualCoder.decode_torch plus the direction-bin heading fix: boxes [A, 7]."""
     xa, ya, za, dxa, dya, dza, ra = anchors.unbind(-1)
     xt, yt, zt, dxt, dyt, dzt, rt = residuals.unbind(-1)
-    diagonal = torch.sqrt(dxa ** 2 + dya ** 2)
+    diagonal = torch.sqrt(dxa**2 + dya**2)
     heading = rt + ra
     period = 2 * math.pi / cfg.num_dir_bins
     dir_label = torch.argmax(dir_logits, -1).to(residuals.dtype)
     val = heading - cfg.dir_offset
     rot = val - torch.floor(val / period + cfg.dir_limit_offset) * period
     heading = rot + cfg.dir_offset + period * dir_label
-    return torch.stack([xt * diagonal + xa, yt * diagonal + ya, zt * dza + za,
-                        torch.exp(dxt) * dxa, torch.exp(dyt) * dya, torch.exp(dzt) * dza, heading], -1)
+    return torch.stack(
+        [
+            xt * diagonal + xa,
+            yt * diagonal + ya,
+            zt * dza + za,
+            torch.exp(dxt) * dxa,
+            torch.exp(dyt) * dya,
+            torch.exp(dzt) * dza,
+            heading,
+        ],
+        -1,
+    )
 
 
 # ----------------------------------------------------------------------------- the detector
@@ -313,18 +371,35 @@ def decode_boxes(residuals: torch.Tensor, anchors: torch.Tensor, dir_logits: tor
 class MAFFNet(nn.Module):
     """MAFF-Net stage one with both formulations. Build it with :func:`build_maffnet`."""
 
-    def __init__(self, features: list[str], classes: list[str], pillars: PillarConfig, spa: SpaConfig,
-                 cfa: CfaConfig, grid: GridDensityConfig | DbscanConfig, caf: CafConfig, backbone: BackboneConfig,
-                 head: HeadConfig, anchors: list[AnchorClass], nms: NmsConfig, stage_two=None,
-                 vfe_features: list[str] | None = None):
+    def __init__(
+        self,
+        features: list[str],
+        classes: list[str],
+        pillars: PillarConfig,
+        spa: SpaConfig,
+        cfa: CfaConfig,
+        grid: GridDensityConfig | DbscanConfig,
+        caf: CafConfig,
+        backbone: BackboneConfig,
+        head: HeadConfig,
+        anchors: list[AnchorClass],
+        nms: NmsConfig,
+        stage_two=None,
+        vfe_features: list[str] | None = None,
+    ):
         super().__init__()
         if features[:3] != ["x", "y", "z"]:
             raise ConfigError(f"features must start with x, y, z; got {features}")
         vfe_features = list(features if vfe_features is None else vfe_features)
-        if vfe_features[:3] != ["x", "y", "z"] or len(set(vfe_features)) != len(vfe_features) \
-                or not set(vfe_features) <= set(features):
-            raise ConfigError(f"vfe_features must start with x, y, z and name each of the card's features {features} "
-                              f"at most once; got {vfe_features}")
+        if (
+            vfe_features[:3] != ["x", "y", "z"]
+            or len(set(vfe_features)) != len(vfe_features)
+            or not set(vfe_features) <= set(features)
+        ):
+            raise ConfigError(
+                f"vfe_features must start with x, y, z and name each of the card's features {features} "
+                f"at most once; got {vfe_features}"
+            )
         if cfa.velocity_feature not in features:
             raise ConfigError(f"cfa.velocity_feature {cfa.velocity_feature!r} is not a card feature {features}")
         if [a.class_name for a in anchors] != list(classes):
@@ -340,22 +415,25 @@ class MAFFNet(nn.Module):
         self.velocity_index = features.index(cfa.velocity_feature)
         self.cfa_method = "dbscan" if isinstance(grid, DbscanConfig) else "grid_density"
         self.spa_config, self.head_config, self.nms_config = spa, head, nms
-        self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))   # build: the card's plausible
+        self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))  # build: the card's plausible
         # the VFE's input columns in its own order (upstream RadarPillarVFE_TJ reads SNR before v_r);
         # None: the card's columns as they come
-        self.vfe_columns = (None if vfe_features == list(features)
-                            else [list(features).index(f) for f in vfe_features])
+        self.vfe_columns = None if vfe_features == list(features) else [list(features).index(f) for f in vfe_features]
         self.vfe = PillarFeatureNet(len(vfe_features), pillars)
         self.map_to_bev_module = SparsePillarAttention(pillars.out_channels, spa.capacity) if spa.enabled else None
-        self.image_backbone = (ClusteringFeatureAssist(dbscan=grid) if isinstance(grid, DbscanConfig)
-                               else ClusteringFeatureAssist(grid=grid))
+        self.image_backbone = (
+            ClusteringFeatureAssist(dbscan=grid)
+            if isinstance(grid, DbscanConfig)
+            else ClusteringFeatureAssist(grid=grid)
+        )
         self.fuser = CrossAttentionFusion(pillars.out_channels, 64, caf)
         self.backbone_2d = BaseBEVBackbone(caf.out_channels, backbone)
         per_loc = sum(len(a.anchor_sizes) * len(a.anchor_rotations) for a in anchors)
         self.dense_head = AnchorHeadSingle(self.backbone_2d.num_bev_features, per_loc, len(classes), head)
-        self.register_buffer("anchors", generate_anchors(anchors, pillars.point_cloud_range, (nx, ny)),
-                             persistent=False)
-        self.stage_two_config = stage_two          # StageTwoConfig or None (stage one only)
+        self.register_buffer(
+            "anchors", generate_anchors(anchors, pillars.point_cloud_range, (nx, ny)), persistent=False
+        )
+        self.stage_two_config = stage_two  # StageTwoConfig or None (stage one only)
         if stage_two is not None:
             r, v = pillars.point_cloud_range, pillars.voxel_size
             two.build_stage_two(self, stage_two, len(features) - 3, caf.out_channels, (r[0], r[1]), (v[0], v[1]))
@@ -363,8 +441,10 @@ class MAFFNet(nn.Module):
     def checkpoint_drop_rules(self) -> list[tuple[str, tuple[str, ...], bool]]:
         """Upstream checkpoint keys this model drops on load: (rule, key prefixes, only zero-size
         tensors) per rule (see export.load_checkpoint)."""
-        rules = [("upstream fuser parameters with no effect at test time", UNUSED_FUSER_KEYS, False),
-                 ("upstream RadarPillarVFE_TJ's zero-width SE layer, never called", UNUSED_VFE_KEYS, True)]
+        rules = [
+            ("upstream fuser parameters with no effect at test time", UNUSED_FUSER_KEYS, False),
+            ("upstream RadarPillarVFE_TJ's zero-width SE layer, never called", UNUSED_VFE_KEYS, True),
+        ]
         if self.stage_two_config is None:
             rules.append(("stage-two modules on a stage-one card", STAGE_TWO_PREFIXES, False))
         return rules
@@ -393,8 +473,9 @@ class MAFFNet(nn.Module):
         if self.vfe_columns is not None:
             points = points[:, self.vfe_columns]
         if not reference:
-            canvas, occupied = self.vfe.scatter(points, torch.ones(points.shape[0], dtype=torch.bool,
-                                                                   device=points.device), drops)
+            canvas, occupied = self.vfe.scatter(
+                points, torch.ones(points.shape[0], dtype=torch.bool, device=points.device), drops
+            )
             if self.map_to_bev_module is None:
                 num = occupied.sum()
                 return canvas, num, torch.zeros((), dtype=torch.bool, device=points.device)
@@ -406,8 +487,9 @@ class MAFFNet(nn.Module):
         num = torch.tensor(len(coords), dtype=torch.int64)
         if self.map_to_bev_module is not None:
             if len(coords) > self.spa_config.capacity:
-                raise CapacityError(f"scan has {len(coords)} non-empty pillars; spa.capacity is "
-                                    f"{self.spa_config.capacity}")
+                raise CapacityError(
+                    f"scan has {len(coords)} non-empty pillars; spa.capacity is {self.spa_config.capacity}"
+                )
             occupied = torch.zeros(ny * nx, dtype=torch.bool)
             occupied[torch.from_numpy(coords[:, 1] * nx + coords[:, 0])] = True
             canvas = sparse_pillar_attention_reference(self.map_to_bev_module.pillar_attention_rope, canvas, occupied)
@@ -438,8 +520,15 @@ class MAFFNet(nn.Module):
         bev, mask, converged = cfa.reference(xyv, scan) if reference else cfa(xyv, scan)
         return self.image_backbone.conv(bev.unsqueeze(0)), bev, converged, mask
 
-    def input_flags(self, points: torch.Tensor, reference: bool, drops: dict, overflow: torch.Tensor,
-                    converged: torch.Tensor, implausible: torch.Tensor) -> torch.Tensor:
+    def input_flags(
+        self,
+        points: torch.Tensor,
+        reference: bool,
+        drops: dict,
+        overflow: torch.Tensor,
+        converged: torch.Tensor,
+        implausible: torch.Tensor,
+    ) -> torch.Tensor:
         """int32 [1]: :mod:`radaredge.runtime.flags` of the scan. A DBSCAN map that did not converge
         left points beyond its capacity out (``capacity``); a GridDensityBEV map stopped its
         components short (``not_converged``); ``implausible`` [N] marks the points
@@ -450,11 +539,19 @@ class MAFFNet(nn.Module):
         cfg = self.vfe.config
         if reference:
             outside, full = point_drops_reference(points.numpy(), cfg)
-            return frame_flags_reference([points.numpy()], None, [outside], [full], capacity.numpy(),
-                                         not_converged.numpy(), [implausible.numpy()])
+            return frame_flags_reference(
+                [points.numpy()],
+                None,
+                [outside],
+                [full],
+                capacity.numpy(),
+                not_converged.numpy(),
+                [implausible.numpy()],
+            )
         frame = torch.zeros(points.shape[0], dtype=torch.int64, device=points.device)
-        return frame_flags(points, frame, 1, None, outside_grid(points, cfg), drops["full"], capacity, not_converged,
-                           implausible)
+        return frame_flags(
+            points, frame, 1, None, outside_grid(points, cfg), drops["full"], capacity, not_converged, implausible
+        )
 
     def head_stage(self, fused: torch.Tensor):
         """Backbone + head + decoding: (class logits [A, classes], boxes [A, 7])."""
@@ -497,9 +594,14 @@ class MAFFNet(nn.Module):
         scores = torch.sigmoid(logits)
         if trace is not None:
             trace.update(pillar_bev=pillar, cfa_map=cfa_map, cfa_features=cfa, fused=fused, cluster_points=cluster)
-        out = {"anchor_scores": scores, "anchor_boxes": boxes, "num_pillars": num_pillars, "spa_overflow": overflow,
-               "cfa_converged": converged,
-               "input_flags": self.input_flags(points, reference, drops, overflow, converged, implausible)}
+        out = {
+            "anchor_scores": scores,
+            "anchor_boxes": boxes,
+            "num_pillars": num_pillars,
+            "spa_overflow": overflow,
+            "cfa_converged": converged,
+            "input_flags": self.input_flags(points, reference, drops, overflow, converged, implausible),
+        }
         if self.stage_two_config is None:
             out["boxes"], out["scores"], out["labels"] = self.postprocess(scores, boxes, reference)
         else:
@@ -537,8 +639,17 @@ def stage_times(model: MAFFNet, points: torch.Tensor, reference: bool) -> dict[s
     return out
 
 
-OUTPUT_NAMES = ("boxes", "scores", "labels", "anchor_scores", "anchor_boxes", "num_pillars", "spa_overflow",
-                "cfa_converged", "input_flags")
+OUTPUT_NAMES = (
+    "boxes",
+    "scores",
+    "labels",
+    "anchor_scores",
+    "anchor_boxes",
+    "num_pillars",
+    "spa_overflow",
+    "cfa_converged",
+    "input_flags",
+)
 
 
 def output_names(stage_two: bool) -> tuple[str, ...]:
@@ -576,9 +687,12 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
     torch.manual_seed(int(card.get("seed", 0)))
     head = dict(card.get("dense_head", {}) or {})
     head.pop("anchors", None)
-    cfa = config_from_dict(CfaConfig, {k: v for k, v in (card.get("cfa", {}) or {}).items()
-                                       if k not in ("grid", "dbscan")}, f"{card.where}: cfa")
-    card.section("input", InputConfig)             # validated here; docs/models/maffnet.md explains it
+    cfa = config_from_dict(
+        CfaConfig,
+        {k: v for k, v in (card.get("cfa", {}) or {}).items() if k not in ("grid", "dbscan")},
+        f"{card.where}: cfa",
+    )
+    card.section("input", InputConfig)  # validated here; docs/models/maffnet.md explains it
     unused = "grid" if cfa.method == "dbscan" else "dbscan"
     if card.get(f"cfa.{unused}") is not None:
         raise ConfigError(f"{card.where}: cfa.{unused} is set but cfa.method is {cfa.method!r}; remove one")
@@ -588,8 +702,11 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
         pillars=card.section("pillars", PillarConfig),
         spa=card.section("spa", SpaConfig),
         cfa=cfa,
-        grid=(card.section("cfa.dbscan", DbscanConfig) if cfa.method == "dbscan"
-              else card.section("cfa.grid", GridDensityConfig)),
+        grid=(
+            card.section("cfa.dbscan", DbscanConfig)
+            if cfa.method == "dbscan"
+            else card.section("cfa.grid", GridDensityConfig)
+        ),
         caf=card.section("caf", CafConfig),
         backbone=card.section("backbone_2d", BackboneConfig),
         head=config_from_dict(HeadConfig, head, f"{card.where}: dense_head"),
@@ -598,7 +715,7 @@ def build_maffnet(card: ModelCard) -> MAFFNet:
         stage_two=two.read_stage_two(card),
         vfe_features=read_vfe_features(card),
     )
-    model.point_bounds = column_bounds(card)      # plausible (low, high) per point column
+    model.point_bounds = column_bounds(card)  # plausible (low, high) per point column
     init = card.get("init", "torch")
     if init == "kaiming":
         model.init_kaiming()

@@ -49,7 +49,6 @@ from ...ops.nms import NmsConfig, class_agnostic_nms, class_agnostic_nms_eager, 
 from ...ops.point_sampling import farthest_point_sample_masked, farthest_point_sample_reference
 from ...ops.set_abstraction import SAModuleMSG
 
-
 # ----------------------------------------------------------------------------- configuration
 
 
@@ -58,35 +57,38 @@ from ...ops.set_abstraction import SAModuleMSG
 class ProposalConfig:
     """``stage_two.proposals`` (ROI_HEAD.NMS_CONFIG.TEST)."""
 
-    pre_max: int = 1024           # NMS_PRE_MAXSIZE
-    iou_thresh: float = 0.7       # NMS_THRESH
-    post_max: int = 100           # NMS_POST_MAXSIZE = number of roi slots
+    pre_max: int = 1024  # NMS_PRE_MAXSIZE
+    iou_thresh: float = 0.7  # NMS_THRESH
+    post_max: int = 100  # NMS_POST_MAXSIZE = number of roi slots
 
     def nms(self) -> NmsConfig:
         """No score threshold: every anchor competes (scores are logits, any sign)."""
-        return NmsConfig(score_thresh=-math.inf, iou_thresh=self.iou_thresh, pre_max=self.pre_max,
-                         post_max=self.post_max)
+        return NmsConfig(
+            score_thresh=-math.inf, iou_thresh=self.iou_thresh, pre_max=self.pre_max, post_max=self.post_max
+        )
 
 
-@card_ranges(num_keypoints=(1, 2**16), sample_radius_r=positive(1000.0), sample_radius_h=positive(1000.0),
-             num_sectors=(1, 64))
+@card_ranges(
+    num_keypoints=(1, 2**16), sample_radius_r=positive(1000.0), sample_radius_h=positive(1000.0), num_sectors=(1, 64)
+)
 @dataclass(frozen=True)
 class KeypointConfig:
     """``stage_two.keypoints`` (PFE NUM_KEYPOINTS, CDAM_SAMPLING)."""
 
-    num_keypoints: int = 1024     # NUM_KEYPOINTS: keypoints per scan, always filled to this count
+    num_keypoints: int = 1024  # NUM_KEYPOINTS: keypoints per scan, always filled to this count
     sample_radius_r: float = 2.5  # m, SAMPLE_RADIUS_R: cylinder radius = max(dx, dy) / 2 + this
     sample_radius_h: float = 3.0  # m, SAMPLE_RADIUS_H: cylinder height = dz + this, centred on the roi
-    num_sectors: int = 1          # NUM_SECTORS of the sector FPS (only 1 is supported)
+    num_sectors: int = 1  # NUM_SECTORS of the sector FPS (only 1 is supported)
     padded_rois: str = "upstream"  # "upstream": the zero rois of empty slots count (a cylinder of radius
-                                   # SAMPLE_RADIUS_R at the origin); "valid": only rois that NMS kept
+    # SAMPLE_RADIUS_R at the origin); "valid": only rois that NMS kept
 
     def __post_init__(self):
         if self.num_sectors != 1:
             raise ConfigError("stage_two.keypoints.num_sectors: only 1 sector is supported (upstream's configs)")
         if self.padded_rois not in ("upstream", "valid"):
-            raise ConfigError(f"stage_two.keypoints.padded_rois must be 'upstream' or 'valid', "
-                              f"got {self.padded_rois!r}")
+            raise ConfigError(
+                f"stage_two.keypoints.padded_rois must be 'upstream' or 'valid', got {self.padded_rois!r}"
+            )
 
 
 @card_ranges(radii=positive(100.0), nsample=(1, 1024), mlps=(1, 4096))
@@ -100,8 +102,10 @@ class SAConfig:
 
     def __post_init__(self):
         if not len(self.radii) == len(self.nsample) == len(self.mlps) >= 1:
-            raise ValueError(f"radii, nsample and mlps need one entry per scale (one scale or more), got "
-                             f"{len(self.radii)}, {len(self.nsample)} and {len(self.mlps)} entries")
+            raise ValueError(
+                f"radii, nsample and mlps need one entry per scale (one scale or more), got "
+                f"{len(self.radii)}, {len(self.nsample)} and {len(self.mlps)} entries"
+            )
         if not all(isinstance(m, tuple) and m for m in self.mlps):
             raise ValueError(f"mlps needs a list of widths per scale, got {list(self.mlps)}")
 
@@ -111,21 +115,22 @@ class SAConfig:
 class VsaConfig:
     """``stage_two.vsa`` scalars (the SA branch is ``stage_two.vsa.sa_clusterpoints``)."""
 
-    bev_stride: int = 1           # stride of the BEV source relative to the pillar grid
+    bev_stride: int = 1  # stride of the BEV source relative to the pillar grid
     num_output_features: int = 128  # NUM_OUTPUT_FEATURES
 
 
-@card_ranges(shared_fc=(1, 4096), cls_fc=(1, 4096), reg_fc=(1, 4096), dropout=Range(0.0, 1.0, high_open=True),
-             grid_size=(1, 32))
+@card_ranges(
+    shared_fc=(1, 4096), cls_fc=(1, 4096), reg_fc=(1, 4096), dropout=Range(0.0, 1.0, high_open=True), grid_size=(1, 32)
+)
 @dataclass(frozen=True)
 class RoiHeadConfig:
     """``stage_two.roi_head`` scalars (the pooling is ``stage_two.roi_head.roi_grid_pool``)."""
 
-    shared_fc: tuple = (256, 256)   # SHARED_FC
-    cls_fc: tuple = (256, 256)      # CLS_FC
-    reg_fc: tuple = (256, 256)      # REG_FC
-    dropout: float = 0.3            # DP_RATIO (identity at test time)
-    grid_size: int = 6              # ROI_GRID_POOL.GRID_SIZE
+    shared_fc: tuple = (256, 256)  # SHARED_FC
+    cls_fc: tuple = (256, 256)  # CLS_FC
+    reg_fc: tuple = (256, 256)  # REG_FC
+    dropout: float = 0.3  # DP_RATIO (identity at test time)
+    grid_size: int = 6  # ROI_GRID_POOL.GRID_SIZE
 
     def __post_init__(self):
         empty = [n for n in ("shared_fc", "cls_fc", "reg_fc") if not getattr(self, n)]
@@ -167,8 +172,9 @@ def read_stage_two(card: ModelCard) -> StageTwoConfig | None:
         vsa=config_from_dict(VsaConfig, {k: v for k, v in vsa.items() if k != "sa_clusterpoints"}, where + ".vsa"),
         sa_clusterpoints=card.section("stage_two.vsa.sa_clusterpoints", SAConfig),
         point_head_fc=_point_head_fc(card),
-        roi_head=config_from_dict(RoiHeadConfig, {k: v for k, v in roi.items() if k != "roi_grid_pool"},
-                                  where + ".roi_head"),
+        roi_head=config_from_dict(
+            RoiHeadConfig, {k: v for k, v in roi.items() if k != "roi_grid_pool"}, where + ".roi_head"
+        ),
         roi_grid_pool=card.section("stage_two.roi_head.roi_grid_pool", SAConfig),
         post_processing=card.section("stage_two.post_processing", NmsConfig),
     )
@@ -276,7 +282,7 @@ class CDAKeypointSampler(nn.Module):
         slots = torch.arange(k, device=xyz.device)
         # step 2: index order (first K kept points) or FPS when more than K are kept
         key = torch.where(kept, ar, ar + n).to(torch.float32)
-        pad = torch.arange(k, dtype=torch.float32, device=xyz.device) + 2 * n   # K keys above any point's: N < K works
+        pad = torch.arange(k, dtype=torch.float32, device=xyz.device) + 2 * n  # K keys above any point's: N < K works
         ordered = torch.topk(torch.cat([key, pad]), k, largest=False, sorted=True).values.to(torch.int64)
         over = count > k
         fps_kept = farthest_point_sample_masked(xyz, kept, k, torch.where(over, k, 0))
@@ -289,11 +295,12 @@ class CDAKeypointSampler(nn.Module):
         cyc = torch.remainder(slots - n1, torch.clamp(picks, min=1))
         idx = torch.where(slots < n1, first, torch.gather(fill, 0, cyc))
         valid = (slots < n1) | (n_scan > 0)
-        padded = torch.cat([xyz, xyz.new_zeros(1, 3)])                # an empty scan reads the zero row
+        padded = torch.cat([xyz, xyz.new_zeros(1, 3)])  # an empty scan reads the zero row
         return padded[torch.where(valid, idx, n)], valid
 
-    def reference(self, xyz: np.ndarray, cluster: np.ndarray, scan: np.ndarray, rois: np.ndarray,
-                  roi_valid: np.ndarray):
+    def reference(
+        self, xyz: np.ndarray, cluster: np.ndarray, scan: np.ndarray, rois: np.ndarray, roi_valid: np.ndarray
+    ):
         """Python loops over points and rois; FPS on the compacted sets; the fill as a list."""
         c, f32, k = self.cfg, np.float32, self.cfg.num_keypoints
         kept = []
@@ -306,8 +313,9 @@ class CDAKeypointSampler(nn.Module):
                 radius = max(roi[3], roi[4]) / f32(2) + f32(c.sample_radius_r)
                 height = roi[5] + f32(c.sample_radius_h)
                 dx, dy = p[0] - roi[0], p[1] - roi[1]
-                if (np.sqrt(dx * dx + dy * dy) <= radius and roi[2] - height / f32(2) <= p[2]
-                        <= roi[2] + height / f32(2)):
+                if np.sqrt(dx * dx + dy * dy) <= radius and roi[2] - height / f32(2) <= p[2] <= roi[2] + height / f32(
+                    2
+                ):
                     kept.append(i)
                     break
         if not kept:
@@ -321,8 +329,8 @@ class CDAKeypointSampler(nn.Module):
         if need > 0 and len(scan_idx):
             picks = scan_idx[farthest_point_sample_reference(xyz[scan_idx], min(need, len(scan_idx)))]
             idx += [picks[j % len(picks)] for j in range(need)]
-        keypoints = np.zeros((k, 3), np.float32)                   # slots without a point stay zero
-        keypoints[:len(idx)] = xyz[np.array(idx, np.int64)]
+        keypoints = np.zeros((k, 3), np.float32)  # slots without a point stay zero
+        keypoints[: len(idx)] = xyz[np.array(idx, np.int64)]
         return torch.from_numpy(keypoints), torch.from_numpy(np.arange(k) < len(idx))
 
 
@@ -346,20 +354,33 @@ class VoxelSetAbstractionCDA(nn.Module):
         self.num_before_fusion = bev_channels + self.SA_clusterpoints.out_channels
         self.vsa_point_feature_fusion = nn.Sequential(
             nn.Linear(self.num_before_fusion, vsa.num_output_features, bias=False),
-            nn.BatchNorm1d(vsa.num_output_features), nn.ReLU())
+            nn.BatchNorm1d(vsa.num_output_features),
+            nn.ReLU(),
+        )
 
     def forward(self, bev, keypoints, xyz, feats, scan):
         """Export formulation: bev [C, H, W], keypoints [K, 3], points xyz [N, 3], feats [N, F],
         scan [N] (the points SA may group) -> (before_fusion [K, C + SA], point_features [K, out])."""
-        before = torch.cat([bev_interpolate(bev, keypoints[:, :2], self.origin, self.cell, self.stride),
-                            self.SA_clusterpoints(xyz, scan, feats, keypoints)], 1)
+        before = torch.cat(
+            [
+                bev_interpolate(bev, keypoints[:, :2], self.origin, self.cell, self.stride),
+                self.SA_clusterpoints(xyz, scan, feats, keypoints),
+            ],
+            1,
+        )
         return before, self.vsa_point_feature_fusion(before)
 
     def reference(self, bev, keypoints, xyz, feats, scan):
         kp = keypoints.numpy()
-        before = torch.cat([torch.from_numpy(bev_interpolate_reference(bev.numpy(), kp[:, :2], self.origin,
-                                                                       self.cell, self.stride)),
-                            self.SA_clusterpoints.reference(xyz.numpy(), scan.numpy(), feats.numpy(), kp)], 1)
+        before = torch.cat(
+            [
+                torch.from_numpy(
+                    bev_interpolate_reference(bev.numpy(), kp[:, :2], self.origin, self.cell, self.stride)
+                ),
+                self.SA_clusterpoints.reference(xyz.numpy(), scan.numpy(), feats.numpy(), kp),
+            ],
+            1,
+        )
         return before, self.vsa_point_feature_fusion(before)
 
 
@@ -367,8 +388,11 @@ def _fc_stack(cin: int, widths, linear: bool, dropout: float | None = None) -> l
     """[Linear/Conv1d (no bias), BatchNorm1d, ReLU] per width; a Dropout after the first when given."""
     layers: list[nn.Module] = []
     for k, w in enumerate(widths):
-        layers += [nn.Linear(cin, w, bias=False) if linear else nn.Conv1d(cin, w, 1, bias=False),
-                   nn.BatchNorm1d(w), nn.ReLU()]
+        layers += [
+            nn.Linear(cin, w, bias=False) if linear else nn.Conv1d(cin, w, 1, bias=False),
+            nn.BatchNorm1d(w),
+            nn.ReLU(),
+        ]
         if dropout is not None and dropout >= 0 and k == 0:
             layers.append(nn.Dropout(dropout))
         cin = w
@@ -398,11 +422,21 @@ def decode_roi_residuals(reg: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
     centre rotated by the roi heading (x' = x cos - y sin, y' = x sin + y cos) plus the roi centre."""
     xt, yt, zt, dxt, dyt, dzt, rt = reg.unbind(-1)
     dxa, dya, dza, ra = rois[:, 3], rois[:, 4], rois[:, 5], rois[:, 6]
-    diag = torch.sqrt(dxa ** 2 + dya ** 2)
+    diag = torch.sqrt(dxa**2 + dya**2)
     x, y = xt * diag, yt * diag
     c, s = torch.cos(ra), torch.sin(ra)
-    return torch.stack([x * c - y * s + rois[:, 0], x * s + y * c + rois[:, 1], zt * dza + rois[:, 2],
-                        torch.exp(dxt) * dxa, torch.exp(dyt) * dya, torch.exp(dzt) * dza, rt + ra], -1)
+    return torch.stack(
+        [
+            x * c - y * s + rois[:, 0],
+            x * s + y * c + rois[:, 1],
+            zt * dza + rois[:, 2],
+            torch.exp(dxt) * dxa,
+            torch.exp(dyt) * dya,
+            torch.exp(dzt) * dza,
+            rt + ra,
+        ],
+        -1,
+    )
 
 
 class PVRCNNHead(nn.Module):
@@ -421,13 +455,13 @@ class PVRCNNHead(nn.Module):
         super().__init__()
         self.grid_size = cfg.grid_size
         self.roi_grid_pool_layer = SAModuleMSG(point_channels, pool.radii, pool.nsample, pool.mlps)
-        pre = cfg.grid_size ** 3 * self.roi_grid_pool_layer.out_channels
+        pre = cfg.grid_size**3 * self.roi_grid_pool_layer.out_channels
         self.shared_fc_layer = nn.Sequential(*_fc_stack(pre, cfg.shared_fc, False, cfg.dropout))
         c = cfg.shared_fc[-1]
         self.cls_layers = nn.Sequential(*_fc_stack(c, cfg.cls_fc, False, cfg.dropout), nn.Conv1d(cfg.cls_fc[-1], 1, 1))
         self.reg_layers = nn.Sequential(*_fc_stack(c, cfg.reg_fc, False, cfg.dropout), nn.Conv1d(cfg.reg_fc[-1], 7, 1))
         g = torch.arange(cfg.grid_size, dtype=torch.float32)
-        dense = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)   # [G^3, 3] (ix, iy, iz)
+        dense = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # [G^3, 3] (ix, iy, iz)
         self.register_buffer("dense_idx", dense, persistent=False)
 
     def init_upstream(self) -> None:
@@ -443,7 +477,7 @@ class PVRCNNHead(nn.Module):
         """Export formulation: grid points [R, G^3, 3] float32 of rois [R, 7] (float64 inside)."""
         r64 = rois.to(torch.float64)
         size = r64[:, None, 3:6]
-        local = (self.dense_idx.to(torch.float64) + 0.5) / self.grid_size * size - size / 2   # [R, G^3, 3]
+        local = (self.dense_idx.to(torch.float64) + 0.5) / self.grid_size * size - size / 2  # [R, G^3, 3]
         c, s = torch.cos(r64[:, 6:7]), torch.sin(r64[:, 6:7])
         lx, ly = local[..., 0], local[..., 1]
         grid = torch.stack([lx * c - ly * s, lx * s + ly * c, local[..., 2]], -1) + r64[:, None, :3]
@@ -453,16 +487,18 @@ class PVRCNNHead(nn.Module):
         """Reference: the grid of one roi at a time, grid point by grid point, in float64 rounded
         to float32 once."""
         n = self.grid_size
-        out = np.zeros((len(rois), n ** 3, 3), np.float32)
+        out = np.zeros((len(rois), n**3, 3), np.float32)
         for r, roi in enumerate(np.asarray(rois, np.float64)):
             cos, sin = np.cos(roi[6]), np.sin(roi[6])
             for ix in range(n):
                 for iy in range(n):
                     for iz in range(n):
                         local = [(i + 0.5) / n * roi[3 + a] - roi[3 + a] / 2 for a, i in enumerate((ix, iy, iz))]
-                        out[r, ix * n * n + iy * n + iz] = [local[0] * cos - local[1] * sin + roi[0],
-                                                            local[0] * sin + local[1] * cos + roi[1],
-                                                            local[2] + roi[2]]
+                        out[r, ix * n * n + iy * n + iz] = [
+                            local[0] * cos - local[1] * sin + roi[0],
+                            local[0] * sin + local[1] * cos + roi[1],
+                            local[2] + roi[2],
+                        ]
         return out
 
     def _head(self, pooled: torch.Tensor):
@@ -475,15 +511,16 @@ class PVRCNNHead(nn.Module):
         (point_features * point_cls_scores) -> (cls logit [R], residuals [R, 7])."""
         r = rois.shape[0]
         grid = self.grid_points(rois).reshape(-1, 3)
-        pooled = self.roi_grid_pool_layer(keypoints, keypoint_valid, features, grid)        # [R*G^3, C]
-        return self._head(pooled.reshape(r, self.grid_size ** 3, -1).transpose(1, 2).reshape(r, -1))
+        pooled = self.roi_grid_pool_layer(keypoints, keypoint_valid, features, grid)  # [R*G^3, C]
+        return self._head(pooled.reshape(r, self.grid_size**3, -1).transpose(1, 2).reshape(r, -1))
 
     def reference(self, rois, keypoints, keypoint_valid, features):
         grids = self.grid_points_reference(rois.numpy())
         pooled = []
-        for grid in grids:                                                                  # one roi at a time
-            p = self.roi_grid_pool_layer.reference(keypoints.numpy(), keypoint_valid.numpy(),
-                                                   features.numpy(), grid)                   # [G^3, C]
+        for grid in grids:  # one roi at a time
+            p = self.roi_grid_pool_layer.reference(
+                keypoints.numpy(), keypoint_valid.numpy(), features.numpy(), grid
+            )  # [G^3, C]
             pooled.append(p.t().reshape(-1))
         return self._head(torch.stack(pooled))
 
@@ -491,11 +528,12 @@ class PVRCNNHead(nn.Module):
 # ----------------------------------------------------------------------------- composition
 
 
-STAGE_TWO_MODULES = ("pfe", "point_head", "roi_head")      # stage two's weights (upstream's module names)
+STAGE_TWO_MODULES = ("pfe", "point_head", "roi_head")  # stage two's weights (upstream's module names)
 
 
-def build_stage_two(model: nn.Module, cfg: StageTwoConfig, num_point_features: int, bev_channels: int,
-                    origin, cell) -> None:
+def build_stage_two(
+    model: nn.Module, cfg: StageTwoConfig, num_point_features: int, bev_channels: int, origin, cell
+) -> None:
     """Attach stage two's modules to ``model`` under upstream's names (pfe, point_head, roi_head)
     plus our parameter-free proposal_layer and keypoint_sampler."""
     model.proposal_layer = ProposalLayer(cfg.proposals)
@@ -518,8 +556,9 @@ def scan_points(points: torch.Tensor, point_cloud_range) -> tuple[torch.Tensor, 
     return clean[:, :3], clean[:, 3:], scan
 
 
-def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, reference: bool,
-                            eager_nms: bool = False) -> dict:
+def proposals_and_keypoints(
+    model, cls_logits, boxes, xyz, cluster, scan, reference: bool, eager_nms: bool = False
+) -> dict:
     """Stage "proposals+CDA": rois, roi_labels, roi_valid, keypoints, keypoint_valid; ``eager_nms``:
     the export formulation with the training-time NMS (:meth:`ProposalLayer.eager`)."""
     if eager_nms:
@@ -527,8 +566,9 @@ def proposals_and_keypoints(model, cls_logits, boxes, xyz, cluster, scan, refere
         kp, kp_valid = model.keypoint_sampler(xyz, cluster, scan, rois, valid)
     elif reference:
         rois, labels, valid = model.proposal_layer.reference(cls_logits, boxes)
-        kp, kp_valid = model.keypoint_sampler.reference(xyz.numpy(), cluster.numpy(), scan.numpy(),
-                                                        rois.numpy(), valid.numpy())
+        kp, kp_valid = model.keypoint_sampler.reference(
+            xyz.numpy(), cluster.numpy(), scan.numpy(), rois.numpy(), valid.numpy()
+        )
     else:
         rois, labels, valid = model.proposal_layer(cls_logits, boxes)
         kp, kp_valid = model.keypoint_sampler(xyz, cluster, scan, rois, valid)
@@ -562,8 +602,18 @@ def final_nms(model, rcnn_boxes, rcnn_scores, roi_labels, roi_valid, reference: 
     return rcnn_boxes[sel], scores[sel], roi_labels[sel]
 
 
-def run_stage_two(model, points, fused_bev, cluster, cls_logits, boxes, reference: bool,
-                  trace: dict | None = None, lap=None, eager_nms: bool = False) -> dict:
+def run_stage_two(
+    model,
+    points,
+    fused_bev,
+    cluster,
+    cls_logits,
+    boxes,
+    reference: bool,
+    trace: dict | None = None,
+    lap=None,
+    eager_nms: bool = False,
+) -> dict:
     """Stages 1-6 of the module docstring -> the refined detections and the stage-two outputs;
     ``fused_bev`` [C, H, W] is the fuser's output. ``lap(stage)``, if given, is called as each
     bench stage ends (see maffnet.stage_times). ``eager_nms`` (training's validation): both NMS
@@ -577,13 +627,20 @@ def run_stage_two(model, points, fused_bev, cluster, cls_logits, boxes, referenc
     lap("VSA+point head")
     rcnn_scores, rcnn_boxes = refine(model, s, point_features, point_scores, reference)
     lap("ROI head")
-    out_boxes, out_scores, out_labels = final_nms(model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"],
-                                                  reference, eager_nms)
+    out_boxes, out_scores, out_labels = final_nms(
+        model, rcnn_boxes, rcnn_scores, s["roi_labels"], s["roi_valid"], reference, eager_nms
+    )
     lap("final NMS")
     if trace is not None:
         trace.update(point_features=point_features, point_cls_scores=point_scores)
-    return {"boxes": out_boxes, "scores": out_scores, "labels": out_labels, **s,
-            "rcnn_scores": rcnn_scores, "rcnn_boxes": rcnn_boxes}
+    return {
+        "boxes": out_boxes,
+        "scores": out_scores,
+        "labels": out_labels,
+        **s,
+        "rcnn_scores": rcnn_scores,
+        "rcnn_boxes": rcnn_boxes,
+    }
 
 
 STAGE_TWO_OUTPUTS = ("rois", "roi_labels", "roi_valid", "keypoints", "keypoint_valid", "rcnn_scores", "rcnn_boxes")

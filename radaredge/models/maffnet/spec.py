@@ -12,11 +12,11 @@ import torch
 from ...cards import ModelCard
 from ...data.synthetic import generate_scan, generate_sequence, tj4d_table, vod_accumulated_table, vod_table
 from ...errors import ConfigError
-from . import rcnn as two
-from .model import MAFFNet, build_maffnet, output_names, stage_times
 from ...runtime.metadata import OutputCheck
 from ..comparators import Boxes, Comparator, Dense, Exact, Proposals
 from ..spec import GraphSpec, ModelSpec
+from . import rcnn as two
+from .model import MAFFNet, build_maffnet, output_names, stage_times
 
 
 def input_names(card: ModelCard) -> list[str]:
@@ -28,7 +28,7 @@ def dynamic_axes(card: ModelCard) -> dict:
     return {"points": {0: "num_points"}}
 
 
-VOD_FEATURES = ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time")   # upstream's names of the VoD columns
+VOD_FEATURES = ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time")  # upstream's names of the VoD columns
 
 
 def synthetic_columns(scan) -> dict[str, np.ndarray]:
@@ -49,8 +49,9 @@ def _card_columns(cols: dict[str, np.ndarray], card: ModelCard) -> np.ndarray:
     """The card's feature columns of ``cols`` [N, F] float32, in card order."""
     missing = [f for f in card.features if f not in cols]
     if missing:
-        raise ConfigError(f"{card.where}: synthetic scans provide {sorted(cols)}; "
-                          f"card features {missing} are not among them")
+        raise ConfigError(
+            f"{card.where}: synthetic scans provide {sorted(cols)}; card features {missing} are not among them"
+        )
     return np.ascontiguousarray(np.stack([cols[f] for f in card.features], 1), np.float32)
 
 
@@ -65,7 +66,7 @@ def _out_of_range(rng: np.random.Generator, card: ModelCard, width: int, n: int 
 
 
 DENSE_TRAFFIC = {"num_cars": 10, "num_pedestrians": 8, "num_cyclists": 6, "static_points": 600}
-VOD_CAMERA_FOV_DEG = 32.9   # half the horizontal field of view of VoD's camera (FOV_POINTS_ONLY)
+VOD_CAMERA_FOV_DEG = 32.9  # half the horizontal field of view of VoD's camera (FOV_POINTS_ONLY)
 
 
 def five_frame_points(seed: int, card: ModelCard, dense: bool = True) -> np.ndarray:
@@ -119,8 +120,9 @@ def run_export(model: MAFFNet, feeds, trace=None):
 
 def postprocess_reference(model: MAFFNet, feeds, got: dict, ref: dict, trace: dict) -> dict:
     """The reference NMS on the graph's own per-anchor scores and boxes."""
-    boxes, scores, labels = model.postprocess(torch.as_tensor(got["anchor_scores"]),
-                                              torch.as_tensor(got["anchor_boxes"]), reference=True)
+    boxes, scores, labels = model.postprocess(
+        torch.as_tensor(got["anchor_scores"]), torch.as_tensor(got["anchor_boxes"]), reference=True
+    )
     return {"boxes": boxes, "scores": scores, "labels": labels}
 
 
@@ -133,24 +135,36 @@ def postprocess_reference_two(model: MAFFNet, feeds, got: dict, ref: dict, trace
     cluster points); VSA, point head and ROI head on the graph's rois and keypoints (with the
     reference's fused BEV map); the final NMS on the graph's refined boxes and scores. Where the
     graph's rois and keypoints equal the reference's, its ROI-head outputs are reused."""
-    g = {k: torch.as_tensor(got[k]) for k in ("anchor_logits", "anchor_boxes", *_ROI_STAGE, "rcnn_boxes",
-                                               "rcnn_scores")}
+    g = {
+        k: torch.as_tensor(got[k]) for k in ("anchor_logits", "anchor_boxes", *_ROI_STAGE, "rcnn_boxes", "rcnn_scores")
+    }
     rois, roi_labels, roi_valid = model.proposal_layer.reference(g["anchor_logits"], g["anchor_boxes"])
     xyz, feats, scan = two.scan_points(torch.as_tensor(feeds["points"]), model.vfe.config.point_cloud_range)
     cluster = trace["cluster_points"] & scan
-    keypoints, keypoint_valid = model.keypoint_sampler.reference(xyz.numpy(), cluster.numpy(), scan.numpy(),
-                                                                 got["rois"], got["roi_valid"])
+    keypoints, keypoint_valid = model.keypoint_sampler.reference(
+        xyz.numpy(), cluster.numpy(), scan.numpy(), got["rois"], got["roi_valid"]
+    )
     if all(np.array_equal(got[k], ref[k]) for k in _ROI_STAGE):
         rcnn_scores, rcnn_boxes = torch.as_tensor(ref["rcnn_scores"]), torch.as_tensor(ref["rcnn_boxes"])
     else:
         s = {k: g[k] for k in _ROI_STAGE}
         features, point_scores = two.keypoint_features(model, trace["fused"][0], s, xyz, feats, scan, reference=True)
         rcnn_scores, rcnn_boxes = two.refine(model, s, features, point_scores, reference=True)
-    boxes, scores, labels = two.final_nms(model, g["rcnn_boxes"], g["rcnn_scores"], g["roi_labels"], g["roi_valid"],
-                                          reference=True)
-    return {"rois": rois, "roi_labels": roi_labels, "roi_valid": roi_valid, "keypoints": keypoints,
-            "keypoint_valid": keypoint_valid, "rcnn_scores": rcnn_scores, "rcnn_boxes": rcnn_boxes,
-            "boxes": boxes, "scores": scores, "labels": labels}
+    boxes, scores, labels = two.final_nms(
+        model, g["rcnn_boxes"], g["rcnn_scores"], g["roi_labels"], g["roi_valid"], reference=True
+    )
+    return {
+        "rois": rois,
+        "roi_labels": roi_labels,
+        "roi_valid": roi_valid,
+        "keypoints": keypoints,
+        "keypoint_valid": keypoint_valid,
+        "rcnn_scores": rcnn_scores,
+        "rcnn_boxes": rcnn_boxes,
+        "boxes": boxes,
+        "scores": scores,
+        "labels": labels,
+    }
 
 
 def runtime_checks(card: ModelCard) -> list[OutputCheck]:
@@ -159,22 +173,30 @@ def runtime_checks(card: ModelCard) -> list[OutputCheck]:
     not the one its method defines; the card's ``cfa.not_converged`` says error or warning,
     default error for DBSCAN, whose points beyond its capacity were left out, and warning for
     GridDensityBEV, whose max-pool components stopped short)."""
-    spa = OutputCheck("spa_overflow", True, "error",
-                      f"the scan has {{num_pillars}} non-empty pillars but {card.name}'s sparse pillar attention "
-                      f"holds spa.capacity = {card.get('spa.capacity')}; export with a larger spa.capacity "
-                      f"(--config) or crop the scan")
+    spa = OutputCheck(
+        "spa_overflow",
+        True,
+        "error",
+        f"the scan has {{num_pillars}} non-empty pillars but {card.name}'s sparse pillar attention "
+        f"holds spa.capacity = {card.get('spa.capacity')}; export with a larger spa.capacity "
+        f"(--config) or crop the scan",
+    )
     cfa = card.get("cfa", {}) or {}
     method = cfa.get("method", "grid_density")
     policy = cfa.get("not_converged") or ("error" if method == "dbscan" else "warn")
     if method == "dbscan":
-        msg = (f"the scan has {{points_in_range}} points inside the range (x, y within pillars.point_cloud_range) "
-               f"but {card.name}'s DBSCAN clusters cfa.dbscan.capacity = {card.get('cfa.dbscan.capacity')}; the "
-               "points beyond it were left out of the clustering map; export with a larger capacity (--config) or "
-               "crop the scan")
+        msg = (
+            f"the scan has {{points_in_range}} points inside the range (x, y within pillars.point_cloud_range) "
+            f"but {card.name}'s DBSCAN clusters cfa.dbscan.capacity = {card.get('cfa.dbscan.capacity')}; the "
+            "points beyond it were left out of the clustering map; export with a larger capacity (--config) or "
+            "crop the scan"
+        )
     else:
-        msg = (f"{card.name}'s GridDensityBEV components did not converge in cfa.grid.cc_iterations = "
-               f"{card.get('cfa.grid.cc_iterations')} max-pool steps (the fork's partial labels); "
-               "cc_mode: exact gives true components")
+        msg = (
+            f"{card.name}'s GridDensityBEV components did not converge in cfa.grid.cc_iterations = "
+            f"{card.get('cfa.grid.cc_iterations')} max-pool steps (the fork's partial labels); "
+            "cc_mode: exact gives true components"
+        )
     return [spa, OutputCheck("cfa_converged", False, policy, msg)]
 
 
@@ -184,10 +206,9 @@ def judges(card: ModelCard) -> tuple[Comparator, ...]:
     graph's own rois and keypoints (``conditioned``; see the spec's ``postprocess_reference``)."""
     stage_two = card.get("stage_two") is not None
     angle = dict(angle_column=6, angle_period=math.pi)
-    proposals = (two.read_stage_two(card).proposals if stage_two
-                 else two.ProposalConfig())
+    proposals = two.read_stage_two(card).proposals if stage_two else two.ProposalConfig()
     judges = {
-        "boxes": Boxes("boxes", unit="m, rad"),               # with its scores and labels outputs
+        "boxes": Boxes("boxes", unit="m, rad"),  # with its scores and labels outputs
         "anchor_scores": Dense("anchor_scores", atol=1e-4, rtol=1e-3, quantized_info=True),
         # heading compared modulo pi: a direction-bin logit pair within float noise may pick the other bin
         "anchor_boxes": Dense("anchor_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, **angle),
@@ -198,16 +219,23 @@ def judges(card: ModelCard) -> tuple[Comparator, ...]:
         # stage two (cards with ``stage_two``): the logits the proposal layer ranks, then the
         # proposals with their labels and slots (one comparator) and what follows them
         "anchor_logits": Dense("anchor_logits", atol=1e-4, rtol=1e-3, quantized_info=True),
-        "rois": Proposals("rois", unit="m, rad", iou_thresh=proposals.iou_thresh, pre_max=proposals.pre_max,
-                          post_max=proposals.post_max, score_tol=(1e-4, 1e-3)),
+        "rois": Proposals(
+            "rois",
+            unit="m, rad",
+            iou_thresh=proposals.iou_thresh,
+            pre_max=proposals.pre_max,
+            post_max=proposals.post_max,
+            score_tol=(1e-4, 1e-3),
+        ),
         "keypoints": Dense("keypoints", unit="m", atol=1e-6, rtol=0.0, conditioned=True),
         "keypoint_valid": Exact("keypoint_valid", conditioned=True),
         # a probability after the ROI head's 27,648-wide FC stack: its logit carries float32 noise
         # of a few 1e-4 relative, which moves the probability by up to a quarter of that times
         # |logit| (9e-4 seen with trained-scale weights); judged absolutely, as a probability
         "rcnn_scores": Dense("rcnn_scores", atol=2e-3, rtol=0.0, quantized_info=True, conditioned=True),
-        "rcnn_boxes": Dense("rcnn_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, conditioned=True,
-                            **angle),
+        "rcnn_boxes": Dense(
+            "rcnn_boxes", unit="m, rad", atol=1e-3, rtol=1e-3, quantized_info=True, conditioned=True, **angle
+        ),
     }
     return tuple(judges[n] for n in output_names(stage_two) if n in judges)
 
@@ -225,8 +253,13 @@ STAGE_ONE_GRAPH = GraphSpec(
     judges=judges,
     postprocess_reference=postprocess_reference,
     stage_times=lambda model, feeds, reference: stage_times(model, torch.as_tensor(feeds["points"]), reference),
-    onnx_stages=(("VFE+SPA", ("vfe", "map_to_bev_module")), ("CFA", ("image_backbone",)), ("CAF", ("fuser",)),
-                 ("backbone+head", ("backbone_2d", "dense_head")), ("NMS", ())),
+    onnx_stages=(
+        ("VFE+SPA", ("vfe", "map_to_bev_module")),
+        ("CFA", ("image_backbone",)),
+        ("CAF", ("fuser",)),
+        ("backbone+head", ("backbone_2d", "dense_head")),
+        ("NMS", ()),
+    ),
     onnx_post_outputs=("anchor_scores", "anchor_boxes"),
 )
 
@@ -236,13 +269,23 @@ TWO_STAGE_GRAPH = replace(
     STAGE_ONE_GRAPH,
     output_names=lambda card: list(output_names(True)),
     postprocess_reference=postprocess_reference_two,
-    onnx_stages=(*STAGE_ONE_GRAPH.onnx_stages[:4], ("proposals+CDA", ("proposal_layer", "keypoint_sampler")),
-                 ("VSA+point head", ("pfe", "point_head")), ("ROI head", ("roi_head",)), ("final NMS", ())),
+    onnx_stages=(
+        *STAGE_ONE_GRAPH.onnx_stages[:4],
+        ("proposals+CDA", ("proposal_layer", "keypoint_sampler")),
+        ("VSA+point head", ("pfe", "point_head")),
+        ("ROI head", ("roi_head",)),
+        ("final NMS", ()),
+    ),
     onnx_post_outputs=("rcnn_scores", "rcnn_boxes"),
 )
 
-MAFFNET_SPEC = ModelSpec(build=build_maffnet, graphs=(STAGE_ONE_GRAPH,), runtime_checks=runtime_checks,
-                         evaluation="detection", recipe="openpcdet-detection")
+MAFFNET_SPEC = ModelSpec(
+    build=build_maffnet,
+    graphs=(STAGE_ONE_GRAPH,),
+    runtime_checks=runtime_checks,
+    evaluation="detection",
+    recipe="openpcdet-detection",
+)
 MAFFNET_FULL_SPEC = replace(MAFFNET_SPEC, graphs=(TWO_STAGE_GRAPH,))
 
 

@@ -40,35 +40,47 @@ from ...ops.alignment import BevGrid, align_bev, align_bev_reference, grid_displ
 from ...ops.deform_attn import MSDeformAttn
 from ...ops.ego_velocity import EgoVelocityRansac, RansacConfig, estimate_ego_velocity_reference
 from ...ops.gem import GeM
-from ...ops.input_flags import (column_bounds, drop_implausible, drop_implausible_reference, frame_flags,
-                               frame_flags_reference)
+from ...ops.input_flags import (
+    column_bounds,
+    drop_implausible,
+    drop_implausible_reference,
+    frame_flags,
+    frame_flags_reference,
+)
 from ...ops.pillars import PillarConfig, PillarFeatureNet, outside_grid, pillar_scatter_reference, point_drops_reference
 from ...ops.scan_batch import concat_scans
-
 
 AGGREGATIONS = ("deformable", "sum")
 
 
-@card_ranges(pyramid_stages=(1, 6), heads=(1, 64), points=(1, 64), ffn_ratio=(1, 16),
-             dropout=Range(0.0, 1.0, high_open=True), descriptor_dim=(1, 4096), mlp_hidden=(0, 4096),
-             gem_p=positive(100.0), gem_eps=positive(1.0))
+@card_ranges(
+    pyramid_stages=(1, 6),
+    heads=(1, 64),
+    points=(1, 64),
+    ffn_ratio=(1, 16),
+    dropout=Range(0.0, 1.0, high_open=True),
+    descriptor_dim=(1, 4096),
+    mlp_hidden=(0, 4096),
+    gem_p=positive(100.0),
+    gem_eps=positive(1.0),
+)
 @dataclass(frozen=True)
 class TDFANetConfig:
     """Model-card section ``network``. Values the paper leaves open are justified in the card."""
 
-    pyramid_stages: int = 3       # stride-2 residual stages -> levels 0..3 (paper: 3)
-    heads: int = 8                # deformable attention heads (Deformable DETR: 8)
-    points: int = 4               # sampling points per head (Deformable DETR: 4)
-    ffn_ratio: int = 4            # FFN hidden width = ffn_ratio * level channels (Transformer: 4)
-    dropout: float = 0.1          # eq. 9 dropout (identity at inference)
-    descriptor_dim: int = 256     # paper: 256-d descriptor
-    mlp_hidden: int = 0           # hidden width of the channel MLP to 256; 0 = descriptor_dim
-    gem_p: float = 3.0            # GeM initial p (Radenovic et al.: 3)
+    pyramid_stages: int = 3  # stride-2 residual stages -> levels 0..3 (paper: 3)
+    heads: int = 8  # deformable attention heads (Deformable DETR: 8)
+    points: int = 4  # sampling points per head (Deformable DETR: 4)
+    ffn_ratio: int = 4  # FFN hidden width = ffn_ratio * level channels (Transformer: 4)
+    dropout: float = 0.1  # eq. 9 dropout (identity at inference)
+    descriptor_dim: int = 256  # paper: 256-d descriptor
+    mlp_hidden: int = 0  # hidden width of the channel MLP to 256; 0 = descriptor_dim
+    gem_p: float = 3.0  # GeM initial p (Radenovic et al.: 3)
     gem_eps: float = 1e-6
-    remove_dynamic: bool = True   # Table II DPR: RANSAC outliers (moving points) stay out of the BEV maps
-    align: bool = True            # Table II FA: past maps are warped along the ego-velocity trajectory
-    aggregation: str = "deformable"   # "deformable": pyramid + DFA layers (TSP + DA); "sum": the plain
-                                      # TDFANet of Table II, the K BEV maps summed
+    remove_dynamic: bool = True  # Table II DPR: RANSAC outliers (moving points) stay out of the BEV maps
+    align: bool = True  # Table II FA: past maps are warped along the ego-velocity trajectory
+    aggregation: str = "deformable"  # "deformable": pyramid + DFA layers (TSP + DA); "sum": the plain
+    # TDFANet of Table II, the K BEV maps summed
 
     def __post_init__(self):
         if self.pyramid_stages < 1:
@@ -96,8 +108,20 @@ class PreparedWindow:
     implausible: torch.Tensor
 
     def to(self, device) -> "PreparedWindow":
-        return PreparedWindow(*(t.to(device) for t in (self.points, self.frame, self.keep, self.cells,
-                                                        self.ego_velocity, self.ego_valid, self.implausible)))
+        return PreparedWindow(
+            *(
+                t.to(device)
+                for t in (
+                    self.points,
+                    self.frame,
+                    self.keep,
+                    self.cells,
+                    self.ego_velocity,
+                    self.ego_valid,
+                    self.implausible,
+                )
+            )
+        )
 
 
 class ResidualStage(nn.Module):
@@ -121,31 +145,33 @@ class DeformableAggregationLayer(nn.Module):
 
     def __init__(self, d: int, d_coarser: int | None, heads: int, points: int, ffn_ratio: int, dropout: float):
         super().__init__()
-        self.query_fuse = nn.Linear(d + d_coarser, d) if d_coarser else None      # eq. 6
-        self.advanced_query = nn.Linear(2 * d, d)                                 # eq. 7
-        self.attn = MSDeformAttn(d, n_levels=1, n_heads=heads, n_points=points)   # eq. 8
+        self.query_fuse = nn.Linear(d + d_coarser, d) if d_coarser else None  # eq. 6
+        self.advanced_query = nn.Linear(2 * d, d)  # eq. 7
+        self.attn = MSDeformAttn(d, n_levels=1, n_heads=heads, n_points=points)  # eq. 8
         self.dropout = nn.Dropout(dropout)
         self.norm = nn.LayerNorm(d)
-        self.ffn = nn.Sequential(nn.Linear(d, ffn_ratio * d), nn.ReLU(), nn.Dropout(dropout),
-                                 nn.Linear(ffn_ratio * d, d))
+        self.ffn = nn.Sequential(
+            nn.Linear(d, ffn_ratio * d), nn.ReLU(), nn.Dropout(dropout), nn.Linear(ffn_ratio * d, d)
+        )
 
-    def forward(self, current: torch.Tensor, past: torch.Tensor, coarser: torch.Tensor | None,
-                reference: bool = False) -> torch.Tensor:
+    def forward(
+        self, current: torch.Tensor, past: torch.Tensor, coarser: torch.Tensor | None, reference: bool = False
+    ) -> torch.Tensor:
         """current F_t,l [B, d, H, W], past F^a_t-k,l [B, K-1, d, H, W], coarser A_l+1 [B, d', H', W']
         (None at the top level) -> A_l [B, d, H, W]; B windows at once."""
         b, d, h, w = current.shape
         kp = past.shape[1]
-        q = current.flatten(2).transpose(1, 2)                                     # [B, HW, d]
+        q = current.flatten(2).transpose(1, 2)  # [B, HW, d]
         if self.query_fuse is not None:
             up = F.interpolate(coarser, size=(h, w), mode="bilinear", align_corners=False)
             q = self.query_fuse(torch.cat([q, up.flatten(2).transpose(1, 2)], -1))
-        value = past.flatten(3).transpose(2, 3).reshape(b * kp, h * w, d)          # [B(K-1), HW, d]
+        value = past.flatten(3).transpose(2, 3).reshape(b * kp, h * w, d)  # [B(K-1), HW, d]
         per_past = q.unsqueeze(1).expand(b, kp, h * w, d).reshape(b * kp, h * w, d)
-        adv = self.advanced_query(torch.cat([per_past, value], -1))                # [B(K-1), HW, d]
-        ref = _pixel_centres(h, w, q.device).expand(b * kp, -1, -1, -1)            # [B(K-1), HW, 1, 2]
+        adv = self.advanced_query(torch.cat([per_past, value], -1))  # [B(K-1), HW, d]
+        ref = _pixel_centres(h, w, q.device).expand(b * kp, -1, -1, -1)  # [B(K-1), HW, 1, 2]
         m = self.attn(adv, ref, value, [(h, w)], reference=reference).reshape(b, kp, h * w, d).sum(1)
         x = self.norm(self.dropout(m) + q)
-        a = x + self.ffn(x)                                                        # Transformer FFN sublayer
+        a = x + self.ffn(x)  # Transformer FFN sublayer
         return a.transpose(1, 2).reshape(b, d, h, w)
 
 
@@ -160,18 +186,27 @@ def _pixel_centres(h: int, w: int, device=None) -> torch.Tensor:
 class TDFANet(nn.Module):
     """TDFANet with both formulations. Build it with :func:`build_tdfanet` from a model card."""
 
-    def __init__(self, features: Sequence[str], frames: int, frame_rate: float, ransac: RansacConfig,
-                 pillars: PillarConfig, net: TDFANetConfig):
+    def __init__(
+        self,
+        features: Sequence[str],
+        frames: int,
+        frame_rate: float,
+        ransac: RansacConfig,
+        pillars: PillarConfig,
+        net: TDFANetConfig,
+    ):
         super().__init__()
         features = list(features)
         if frames < 2:
             raise ConfigError("TDFANet needs frames >= 2 (the paper uses K = 3)")
         if features[:3] != ["x", "y", "z"] or "v_r" not in features:
-            raise ConfigError(f"TDFANet's features must start with x, y, z and include v_r (the radial velocity "
-                              f"the RANSAC reads, m/s); got {features}")
+            raise ConfigError(
+                f"TDFANet's features must start with x, y, z and include v_r (the radial velocity "
+                f"the RANSAC reads, m/s); got {features}"
+            )
         self.features = features
         self.v_column = features.index("v_r")
-        self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))   # build: the card's plausible
+        self.point_bounds = ([-math.inf] * len(features), [math.inf] * len(features))  # build: the card's plausible
         self.frames, self.frame_rate, self.net_config = frames, frame_rate, net
         self.ransac = EgoVelocityRansac(ransac)
         self.vfe = PillarFeatureNet(len(features), pillars)
@@ -183,9 +218,16 @@ class TDFANet(nn.Module):
             chans = [c * 2**i for i in range(net.pyramid_stages + 1)]
             self.pyramid = nn.ModuleList(ResidualStage(chans[i], chans[i + 1]) for i in range(net.pyramid_stages))
             self.dfa = nn.ModuleList(
-                DeformableAggregationLayer(chans[l], chans[l + 1] if l < net.pyramid_stages else None,
-                                           net.heads, net.points, net.ffn_ratio, net.dropout)
-                for l in range(net.pyramid_stages + 1))
+                DeformableAggregationLayer(
+                    chans[l],
+                    chans[l + 1] if l < net.pyramid_stages else None,
+                    net.heads,
+                    net.points,
+                    net.ffn_ratio,
+                    net.dropout,
+                )
+                for l in range(net.pyramid_stages + 1)
+            )
         hidden = net.mlp_hidden or net.descriptor_dim
         self.mlp = nn.Sequential(nn.Conv2d(c, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, net.descriptor_dim, 1))
         self.gem = GeM(p=net.gem_p, eps=net.gem_eps)
@@ -196,12 +238,13 @@ class TDFANet(nn.Module):
         each scan to its window's current one (eq. 5) -> descriptors [B, D] (before L2 normalisation)."""
         k = self.frames
         b = bev.shape[0] // k
-        maps = bev.unflatten(0, (b, k))                                            # [B, K, C, H, W]
+        maps = bev.unflatten(0, (b, k))  # [B, K, C, H, W]
         if self.net_config.align:
             align = align_bev_reference if reference else align_bev
-            past = align(maps[:, : k - 1].flatten(0, 1), cells.unflatten(0, (b, k))[:, : k - 1].flatten(0, 1),
-                         grid=self.grid)
-            maps = torch.cat([past.unflatten(0, (b, k - 1)), maps[:, k - 1:]], 1)
+            past = align(
+                maps[:, : k - 1].flatten(0, 1), cells.unflatten(0, (b, k))[:, : k - 1].flatten(0, 1), grid=self.grid
+            )
+            maps = torch.cat([past.unflatten(0, (b, k - 1)), maps[:, k - 1 :]], 1)
         else:
             # a copy of the scatter's canvas: without it, backward through the pyramid straight
             # into the canvas corrupted memory in torch 2.13's CPU autograd (a segfault or a
@@ -238,8 +281,9 @@ class TDFANet(nn.Module):
             cells = torch.zeros_like(cells)
         return PreparedWindow(pts, frame, keep, cells, v_ego, ok, implausible)
 
-    def describe(self, windows: Sequence[PreparedWindow], trace: dict | None = None,
-                 drops: dict | None = None) -> torch.Tensor:
+    def describe(
+        self, windows: Sequence[PreparedWindow], trace: dict | None = None, drops: dict | None = None
+    ) -> torch.Tensor:
         """Descriptors [B, D] (before L2 normalisation) of B prepared windows in one batched pass:
         one pillar scatter over their B*K scans, then the aggregation. In train mode BatchNorm
         takes its statistics over the whole batch, as a batch of tuples trains. ``drops`` receives
@@ -263,11 +307,17 @@ class TDFANet(nn.Module):
         (descriptor [D], descriptor_normalized [D], ego_velocity [K, 3] m/s, ego_valid [K] bool,
         input_flags [K] int32, :mod:`radaredge.ops.input_flags`)."""
         out = self.run(list(inputs[: self.frames]), inputs[self.frames])
-        return (out["descriptor"], out["descriptor_normalized"], out["ego_velocity"], out["ego_valid"],
-                out["input_flags"])
+        return (
+            out["descriptor"],
+            out["descriptor_normalized"],
+            out["ego_velocity"],
+            out["ego_valid"],
+            out["input_flags"],
+        )
 
-    def run(self, frames: list[torch.Tensor], timestamps: torch.Tensor, reference: bool = False,
-            trace: dict | None = None) -> dict[str, torch.Tensor]:
+    def run(
+        self, frames: list[torch.Tensor], timestamps: torch.Tensor, reference: bool = False, trace: dict | None = None
+    ) -> dict[str, torch.Tensor]:
         """Both formulations: ``reference=True`` uses the reference ops. Returns named outputs;
         ``trace`` (a dict) receives intermediate tensors for divergence reports. Points with a
         value outside the card's plausible range become NaN rows first, which every stage leaves
@@ -279,8 +329,9 @@ class TDFANet(nn.Module):
                 cleaned, bad = drop_implausible_reference(raw.numpy(), *self.point_bounds)
                 pts = torch.from_numpy(cleaned)
                 implausible.append(bad)
-                v, static, ok = estimate_ego_velocity_reference(pts[:, :3].numpy(), pts[:, self.v_column].numpy(),
-                                                                self.ransac.config)
+                v, static, ok = estimate_ego_velocity_reference(
+                    pts[:, :3].numpy(), pts[:, self.v_column].numpy(), self.ransac.config
+                )
                 vels.append(torch.tensor(v, dtype=torch.float32))
                 valids.append(torch.tensor(ok))
                 keep = static if self.net_config.remove_dynamic else None
@@ -292,15 +343,23 @@ class TDFANet(nn.Module):
             if trace is not None:
                 trace["bev"] = bev
             desc = self.aggregate(bev, cells, True, trace)[0]
-            flags = frame_flags_reference([f.numpy() for f in frames], timestamps.numpy(), outside, full,
-                                          implausible=implausible)
+            flags = frame_flags_reference(
+                [f.numpy() for f in frames], timestamps.numpy(), outside, full, implausible=implausible
+            )
         else:
             prepared = self.prepare(frames, timestamps)
             v_ego, ok = prepared.ego_velocity, prepared.ego_valid
             drops: dict = {}
             desc = self.describe([prepared], trace, drops)[0]
-            flags = frame_flags(prepared.points, prepared.frame, len(frames), timestamps,
-                                outside_grid(prepared.points, cfg), drops["full"], implausible=prepared.implausible)
+            flags = frame_flags(
+                prepared.points,
+                prepared.frame,
+                len(frames),
+                timestamps,
+                outside_grid(prepared.points, cfg),
+                drops["full"],
+                implausible=prepared.implausible,
+            )
         if trace is not None:
             trace["ego_velocity"] = v_ego
         return {
@@ -323,5 +382,5 @@ def build_tdfanet(card: ModelCard) -> TDFANet:
         pillars=card.section("pillars", PillarConfig),
         net=card.section("network", TDFANetConfig),
     )
-    model.point_bounds = column_bounds(card)      # plausible (low, high) per point column
+    model.point_bounds = column_bounds(card)  # plausible (low, high) per point column
     return model.eval()

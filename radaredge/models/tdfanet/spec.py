@@ -29,8 +29,9 @@ def _select(points: np.ndarray, card: ModelCard) -> np.ndarray:
     try:
         idx = [cols.index(f) for f in card.features]
     except ValueError:
-        raise ConfigError(f"{card.where}: synthetic scans provide {cols}; card features {card.features} "
-                          f"name a column they lack") from None
+        raise ConfigError(
+            f"{card.where}: synthetic scans provide {cols}; card features {card.features} name a column they lack"
+        ) from None
     return np.ascontiguousarray(points[:, idx], np.float32)
 
 
@@ -43,8 +44,14 @@ def _out_of_range(rng: np.random.Generator, card: ModelCard, n: int = 40) -> np.
     pts[:, 2] = rng.choice([r[2] - 2.0, r[5] + 2.0, 0.0], n)
     pts[:, 3] = rng.normal(0, 3, n)
     pts[:, 4] = rng.normal(5, 5, n)
-    keep = (pts[:, 0] < r[0]) | (pts[:, 0] >= r[3]) | (pts[:, 1] < r[1]) | (pts[:, 1] >= r[4]) | \
-           (pts[:, 2] < r[2]) | (pts[:, 2] >= r[5])
+    keep = (
+        (pts[:, 0] < r[0])
+        | (pts[:, 0] >= r[3])
+        | (pts[:, 1] < r[1])
+        | (pts[:, 1] >= r[4])
+        | (pts[:, 2] < r[2])
+        | (pts[:, 2] >= r[5])
+    )
     return pts[keep]
 
 
@@ -110,19 +117,21 @@ JUDGES = (
 
 TDFANET_SPEC = ModelSpec(
     build=build_tdfanet,
-    graphs=(GraphSpec(
-        name="tdfanet",
-        input_names=input_names,
-        dynamic_axes=dynamic_axes,
-        frame_inputs=lambda card: input_names(card)[:-1],
-        timestamps_input="timestamps",
-        output_names=lambda card: list(OUTPUT_NAMES),
-        make_cases=make_cases,
-        run_reference=run_reference,
-        run_export=run_export,
-        trace_order=trace_order,
-        judges=lambda card: JUDGES,
-    ),),
+    graphs=(
+        GraphSpec(
+            name="tdfanet",
+            input_names=input_names,
+            dynamic_axes=dynamic_axes,
+            frame_inputs=lambda card: input_names(card)[:-1],
+            timestamps_input="timestamps",
+            output_names=lambda card: list(OUTPUT_NAMES),
+            make_cases=make_cases,
+            run_reference=run_reference,
+            run_export=run_export,
+            trace_order=trace_order,
+            judges=lambda card: JUDGES,
+        ),
+    ),
     evaluation="place recognition",
     recipe="places",
 )
