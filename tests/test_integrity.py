@@ -358,6 +358,7 @@ def test_int8_copies_record_their_own_content_hash(tmp_path):
 def test_a_bundle_manifest_records_each_parts_content_hash(tiny_export, tmp_path):
     """A bundle of two graphs (the tiny graph and its debug copy as parts; a real multi-graph
     export writes its manifest with the same :func:`write_manifest`)."""
+    from radaredge import artifacts
     from radaredge.exporting.graphs import GraphExport, write_manifest
     from radaredge.models import model_spec
     from radaredge.runtime.bundle import read_manifest
@@ -370,7 +371,7 @@ def test_a_bundle_manifest_records_each_parts_content_hash(tiny_export, tmp_path
         dst = bundle / f"{name}.onnx"
         shutil.copyfile(src, dst)
         graphs[name] = GraphExport(dst, dst.with_suffix(".json"), dst.stat().st_size, {}, runtime.load(dst).info)
-    write_manifest(card, model_spec(card), bundle, graphs, 18, "0" * 64)
+    write_manifest(card, model_spec(card), artifacts.Bundle(bundle, tuple(graphs)), graphs, 18, "0" * 64)
     manifest = json.loads((bundle / "bundle.json").read_text())
     for part, entry in manifest["parts"].items():
         assert entry["content_sha256"] == _props(bundle / entry["onnx"])[CONTENT_SHA256], part
