@@ -55,6 +55,7 @@ __all__ = [
 
 
 MAX_CASES = 10_000  # parity cases are built before the first run: bound them
+MAX_BENCH_RUNS = 100_000  # timed and warm-up runs per backend
 MIN_OPSET = 7  # the oldest opset onnx's version converter writes
 
 
@@ -410,32 +411,34 @@ def bench(
 ):
     """Time every backend of the card's model on ``threads`` pinned cores, ``runs`` timed runs
     after ``warmup``, backends alternating every run; returns a
-    :class:`radaredge.benchmarking.harness.BenchReport`, a row per backend
-    (:func:`radaredge.benchmarking.harness.bench` says what each option does). ``save``: the
-    report is also written there as JSON (checked before the runs, never over an input)."""
-    from .benchmarking.harness import bench as time_backends
+    :class:`radaredge.benchmarking.harness.BenchReport`, a row per backend. The model is built
+    from ``checkpoint`` unless given. ``onnx`` (the bundle, default the export path) is exported
+    first when missing. Each graph's int8 copy beside it is timed too when it exists;
+    ``int8=True`` writes the copies first when missing (the model's int8 policy), and a path
+    names one graph's int8 copy. ``reference``: time the torch reference formulation too;
+    ``openvino``: add OpenVINO rows (None: when installed); ``profile`` adds onnxruntime's top
+    ops. ``save``: the report is also written there as JSON (checked before the runs, never
+    over an input)."""
+    from .benchmarking.harness import BenchOptions, time_model
+    from .models.factory import create_model
+    from .runtime.session import checked_threads
 
+    checked_threads(threads)
+    check_count("runs", runs, 1, MAX_BENCH_RUNS)
+    check_count("warmup", warmup, 0, MAX_BENCH_RUNS)
     card = resolve_card(card)
+    spec = model_spec(card)
+    if int8 not in (None, True, False) and not Path(int8).is_file():
+        raise InputError(f"--int8 {int8} does not exist; write it with `radaredge export --quantize int8`")
     if save is not None:
         check_writable_dir(Path(save).parent, "--save")  # before the runs, not after them
         refuse_overwriting_inputs({"--save": save}, {"--onnx": onnx, "--config": card.path, "--checkpoint": checkpoint})
-    report = time_backends(
-        card,
-        onnx,
-        checkpoint=checkpoint,
-        model=model,
-        threads=threads,
-        runs=runs,
-        warmup=warmup,
-        reference=reference,
-        int8=int8,
-        profile=profile,
-        openvino=openvino,
-        progress=progress,
-        log=log,
-    )
+    say = log or (lambda line: None)
+    options = BenchOptions(threads, runs, warmup, reference, openvino, log=say)
+    model = create_model(card, checkpoint, spec) if model is None else model
+    report = time_model(card, spec, model, onnx, options, int8, profile, progress)
     if save is not None:
-        (log or (lambda line: None))(f"wrote {report.save(save)}")
+        say(f"wrote {report.save(save)}")
     return report
 
 

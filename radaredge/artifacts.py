@@ -107,6 +107,11 @@ def manifest_path(bundle: str | Path) -> Path:
     return Path(bundle) / ARTIFACTS[MANIFEST].suffix
 
 
+def part_path(bundle: str | Path, graph: str) -> Path:
+    """The ``.onnx`` of the part ``graph`` inside the bundle directory ``bundle``."""
+    return Path(bundle) / f"{graph}{ARTIFACTS[GRAPH].suffix}"
+
+
 @dataclass(frozen=True)
 class Bundle:
     """The export of a model's named ``graphs`` at ``path``: the ``.onnx`` for one graph, the
@@ -182,7 +187,7 @@ class Bundle:
         """graph name -> its ``.onnx``."""
         if not self.multi:
             return {self.graphs[0]: self.path}
-        return {g: self.path / f"{g}{ARTIFACTS[GRAPH].suffix}" for g in self.graphs}
+        return {g: part_path(self.path, g) for g in self.graphs}
 
     def files(self) -> list[Path]:
         """Every path an export of this bundle may write: each graph with its sidecar, int8 and

@@ -14,7 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import shutil
 import statistics
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -23,17 +23,13 @@ import torch
 
 from .. import artifacts, atomic
 from .. import runtime as rt
-from ..cards import ModelCard, resolve_card
-from ..config import check_count
-from ..errors import ConfigError, InputError
+from ..cards import ModelCard
+from ..errors import ConfigError
 from ..exporting.graphs import write_export
 from ..exporting.quantize import Int8Options, make_int8_copies
-from ..models.factory import create_model
 from ..models.spec import BenchTask
-from ..registry import model_spec
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import lazy_runner
-from ..runtime.session import checked_threads
 from .profiling import onnxruntime_peak_rss_mb, profile_runs, stage_times_from_profile, top_ops
 from .timing import BackendResult, benchmark, cpu_name, format_differences, output_differences, pinned, results_table
 
@@ -198,7 +194,6 @@ class BenchReport:
         return out
 
 
-MAX_RUNS = 100_000
 BENCH_CASES, BENCH_SEED = 4, 1  # the inputs every backend is timed on: 4 synthetic cases, seed 1
 
 
@@ -280,54 +275,73 @@ def _stage_ms(graph, module, cases, n: int, reference: bool, onnx_path, profile)
     return out
 
 
-def bench(
-    card: ModelCard | str | Path,
-    onnx: str | Path | None = None,
-    *,
-    checkpoint: str | Path | None = None,
-    model=None,
-    threads: int = 2,
-    runs: int = 20,
-    warmup: int = 3,
-    reference: bool = True,
+def time_model(
+    card: ModelCard,
+    spec,
+    model,
+    onnx: str | Path | None,
+    options: BenchOptions,
     int8: str | Path | bool | None = None,
     profile: bool = False,
-    openvino: bool | None = None,
     progress: Callable[[str], Callable] | None = None,
-    log: Callable[[str], None] | None = None,
 ) -> BenchReport:
-    """Time every backend of the card's model on ``threads`` pinned cores, ``runs`` timed runs
-    after ``warmup``, backends alternating every run. ``onnx`` (the bundle, default the export
-    path) is exported first when missing. Each graph's int8 copy beside it is timed too when it
-    exists; ``int8=True`` writes the copies first when missing (the model's int8 policy), and a
-    path names one graph's int8 copy. ``profile`` adds onnxruntime's top ops; the per-stage
-    split is added for graphs that name their stages. The process is pinned to ``threads``
-    cores while it runs and restored afterwards."""
-    checked_threads(threads)
-    check_count("runs", runs, 1, MAX_RUNS)
-    check_count("warmup", warmup, 0, MAX_RUNS)
-    card = resolve_card(card)
-    spec = model_spec(card)
-    if int8 not in (None, True, False) and not Path(int8).is_file():
-        raise InputError(f"--int8 {int8} does not exist; write it with `radaredge export --quantize int8`")
-    with pinned(threads) as cores:
-        return _bench(
-            card,
-            spec,
-            onnx,
-            checkpoint,
-            model,
-            threads,
-            runs,
-            warmup,
-            reference,
-            int8,
-            profile,
-            openvino,
-            progress,
-            log,
-            cores,
+    """Time every backend of ``card``'s ``model`` (built from ``spec``) with ``options``: the
+    process pinned to ``options.threads`` cores while it runs (restored afterwards), backends
+    alternating every run. ``onnx`` (the bundle, default the export path) is exported first when
+    missing. Each graph's int8 copy beside it is timed too when it exists; ``int8=True`` writes
+    the copies first when missing (the model's int8 policy), and a path names one graph's int8
+    copy (:func:`int8_copies`). ``profile`` adds onnxruntime's top ops; the per-stage split is
+    added for graphs that name their stages. The arguments are checked by
+    :func:`radaredge.api.bench`, the verb that calls this."""
+    say = options.log
+    names = tuple(g.name for g in spec.graphs)
+    bundle = artifacts.Bundle(Path(onnx), names) if onnx is not None else artifacts.Bundle.default(card.name, names)
+    paths = bundle.graph_files()
+    if not all(p.exists() for p in paths.values()):
+        say(f"{bundle.path} missing: exporting it first")
+        write_export(card, spec, model, bundle)
+    for p in paths.values():  # a file that is no export of this card is bad input, not a failed backend
+        exported = rt.load(p, threads=1)
+        if exported.card.name != card.name:
+            raise ConfigError(
+                f"{p} is an export of card {exported.card.name!r}, not {card.name!r}; pass the "
+                f"--model/--config it was exported with"
+            )
+    options = replace(options, int8=int8_copies(card, spec, paths, int8, say))
+    with pinned(options.threads) as cores:
+        return _timed_report(card, spec, model, paths, options, profile, progress, cores)
+
+
+def _timed_report(card, spec, model, paths, options: BenchOptions, profile, progress, cores) -> BenchReport:
+    tasks = (
+        spec.bench_tasks(card, model, paths, options)
+        if spec.bench_tasks is not None
+        else default_tasks(card, spec, model, paths, options)
+    )
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    report = BenchReport(card.name, options.threads, cores, cpu_name(), options.runs, stamp)
+    for t in tasks:
+        rows = benchmark(
+            t.backends, t.cases, t.runs, t.warmup, progress=progress(f"bench {t.name}") if progress else None
         )
+        report.tasks[t.name] = TaskResult(t.name, t.title, rows, t.baseline, t.items_per_case, t.item_unit, t.facts)
+    n_profiled = max(3, min(options.runs, 10))
+    for g in spec.graphs:
+        task = next((t for t in tasks if t.name == g.name), None)  # the graph's own pipeline task
+        cases = task.cases if task is not None else [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
+        extras = GraphExtras(profiled_runs=n_profiled)
+        rows = report.tasks[g.name].rows if g.name in report.tasks else []
+        if sum(1 for r in rows if r and r.backend in ("openvino", "onnxruntime")) == 2:
+            extras.openvino_max_abs = output_differences(task.backends["openvino"], task.backends["onnxruntime"], cases)
+        # one profiled session serves the stage split and --profile: runs of its own, never timed
+        wants = profile or (g.stage_times is not None and bool(g.onnx_stages))
+        events = profile_runs(paths[g.name], cases, options.threads, n_profiled) if wants else None
+        extras.stage_ms = _stage_ms(g, g.module(model), cases, n_profiled, options.reference, paths[g.name], events)
+        extras.peak_rss_mib = onnxruntime_peak_rss_mb(paths[g.name], cases, options.threads)
+        if profile:
+            extras.top_ops = top_ops(events, runs=n_profiled)
+        report.graphs[g.name] = extras
+    return report
 
 
 def require_int8_copy(int8_path: Path, fp32) -> None:
@@ -346,58 +360,6 @@ def require_int8_copy(int8_path: Path, fp32) -> None:
             f"{q.weights_sha256[:12]}) than {fp32.path} ({fp32.card.name}, weights "
             f"{fp32.weights_sha256[:12]}); export both from the same card and checkpoint"
         )
-
-
-def _bench(
-    card, spec, onnx, checkpoint, model, threads, runs, warmup, reference, int8, profile, openvino, progress, log, cores
-) -> BenchReport:
-    say = log or (lambda line: None)
-    if model is None:
-        model = create_model(card, checkpoint, spec)
-    names = tuple(g.name for g in spec.graphs)
-    bundle = artifacts.Bundle(Path(onnx), names) if onnx is not None else artifacts.Bundle.default(card.name, names)
-    paths = bundle.graph_files()
-    if not all(p.exists() for p in paths.values()):
-        say(f"{bundle.path} missing: exporting it first")
-        write_export(card, spec, model, bundle)
-    for p in paths.values():  # a file that is no export of this card is bad input, not a failed backend
-        exported = rt.load(p, threads=1)
-        if exported.card.name != card.name:
-            raise ConfigError(
-                f"{p} is an export of card {exported.card.name!r}, not {card.name!r}; pass the "
-                f"--model/--config it was exported with"
-            )
-    int8_paths = int8_copies(card, spec, paths, int8, say)
-    options = BenchOptions(threads, runs, warmup, reference, openvino, int8_paths, say)
-    tasks = (
-        spec.bench_tasks(card, model, paths, options)
-        if spec.bench_tasks is not None
-        else default_tasks(card, spec, model, paths, options)
-    )
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    report = BenchReport(card.name, threads, cores, cpu_name(), runs, stamp)
-    for t in tasks:
-        rows = benchmark(
-            t.backends, t.cases, t.runs, t.warmup, progress=progress(f"bench {t.name}") if progress else None
-        )
-        report.tasks[t.name] = TaskResult(t.name, t.title, rows, t.baseline, t.items_per_case, t.item_unit, t.facts)
-    n_profiled = max(3, min(runs, 10))
-    for g in spec.graphs:
-        task = next((t for t in tasks if t.name == g.name), None)  # the graph's own pipeline task
-        cases = task.cases if task is not None else [feeds for _, feeds in g.make_cases(card, BENCH_CASES, BENCH_SEED)]
-        extras = GraphExtras(profiled_runs=n_profiled)
-        rows = report.tasks[g.name].rows if g.name in report.tasks else []
-        if sum(1 for r in rows if r and r.backend in ("openvino", "onnxruntime")) == 2:
-            extras.openvino_max_abs = output_differences(task.backends["openvino"], task.backends["onnxruntime"], cases)
-        # one profiled session serves the stage split and --profile: runs of its own, never timed
-        wants = profile or (g.stage_times is not None and bool(g.onnx_stages))
-        events = profile_runs(paths[g.name], cases, threads, n_profiled) if wants else None
-        extras.stage_ms = _stage_ms(g, g.module(model), cases, n_profiled, reference, paths[g.name], events)
-        extras.peak_rss_mib = onnxruntime_peak_rss_mb(paths[g.name], cases, threads)
-        if profile:
-            extras.top_ops = top_ops(events, runs=n_profiled)
-        report.graphs[g.name] = extras
-    return report
 
 
 def int8_copies(card: ModelCard, spec, paths: dict[str, Path], int8, say) -> dict[str, Path]:

@@ -38,9 +38,12 @@ def read_manifest(path: Path, check_parts: bool = True) -> dict:
             f"file); re-export the bundle"
         )
     for name, info in parts.items():
-        onnx_name = info.get("onnx") if isinstance(info, dict) else None
-        if not isinstance(onnx_name, str) or Path(onnx_name).name != onnx_name or not onnx_name.endswith(".onnx"):
-            raise InputError(f"{path}: parts.{name}.onnx must name an .onnx file inside the bundle, got {onnx_name!r}")
+        onnx_name, expected = info.get("onnx") if isinstance(info, dict) else None, artifacts.part_path(".", name)
+        if onnx_name != expected.name or expected.parent != Path("."):
+            raise InputError(
+                f"{path}: parts.{name}.onnx must be {expected.name} (the part's graph inside the "
+                f"bundle), got {onnx_name!r}"
+            )
         recorded = info.get("content_sha256")
         if recorded is not None and not (isinstance(recorded, str) and _SHA256.fullmatch(recorded)):
             raise InputError(
@@ -56,7 +59,7 @@ def read_manifest(path: Path, check_parts: bool = True) -> dict:
 def _part_mismatches(directory: Path, parts: dict) -> dict[str, str]:
     found = {}
     for name, info in parts.items():
-        recorded, file = info.get("content_sha256"), directory / info["onnx"]
+        recorded, file = info.get("content_sha256"), artifacts.part_path(directory, name)
         if recorded is None or not file.is_file():  # an older manifest; a missing file is named by its loader
             continue
         computed = content_hash(file).computed
@@ -90,4 +93,4 @@ def bundle_graphs(path: str | Path, check_parts: bool = True) -> dict[str | None
         raise InputError(
             f"{path} is a directory without {manifest.name}; pass an .onnx or a multi-graph export directory"
         )
-    return {name: path / info["onnx"] for name, info in read_manifest(manifest, check_parts)["parts"].items()}
+    return {name: artifacts.part_path(path, name) for name in read_manifest(manifest, check_parts)["parts"]}

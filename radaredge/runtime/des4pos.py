@@ -60,7 +60,7 @@ class Des4PosBundle:
             info = self.manifest["parts"].get(part)
             if info is None:
                 raise InputError(f"{manifest} lists no {part} graph")
-            path = Path(text_encoder) if (part == "text_encoder" and text_encoder) else d / info["onnx"]
+            path = Path(text_encoder) if (part == "text_encoder" and text_encoder) else artifacts.part_path(d, part)
             g = load_graph(path, threads=threads)
             if g.info.bundle_weights_sha256 != self.manifest["weights_sha256"]:
                 raise InputError(
@@ -370,11 +370,8 @@ def locate_description(
         raise InputError(
             '--text: the description is empty; give one or more sentences, e.g. "The pose is north of a red box."'
         )
-    bundle = Des4PosBundle(
-        directory,
-        threads=threads,
-        text_encoder=artifacts.copy_path(Path(directory) / "text_encoder.onnx", artifacts.INT8) if int8_text else None,
-    )
+    int8_text_encoder = artifacts.copy_path(artifacts.part_path(directory, "text_encoder"), artifacts.INT8)
+    bundle = Des4PosBundle(directory, threads=threads, text_encoder=int8_text_encoder if int8_text else None)
     if bundle.card.model != "des4pos" or (model not in (None, "des4pos", bundle.card.name)):
         raise ConfigError(f"{directory} holds {bundle.card.name}, not {model}")
     t0 = time.perf_counter()
