@@ -86,6 +86,8 @@ def _kind(stem: str, data) -> str:
         return "fleet"
     if stem.startswith("maffnet-trained-"):
         return "trained"
+    if stem.startswith("detection-seeds-"):
+        return "seeds"
     if stem.startswith("place-recognition-"):
         return "places"
     if stem.startswith("tdfanet-variants-"):
@@ -1232,6 +1234,60 @@ def trained_section(results: list[Result], trainings: list[Result], results_dir:
     return out
 
 
+def _spread_cell(v: dict) -> str:
+    """``mean ± std [low, high]`` of a :func:`detection_seeds.seed_summary` (just the mean for one seed)."""
+    if v["std"] is None:
+        return f"{v['mean']:.1f} (1 seed)"
+    low, high = v["interval"]
+    return f"{v['mean']:.1f} ± {v['std']:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def seeds_section(results: list[Result], results_dir: Path) -> list[str]:
+    """A detector's test 3D AP and speed over several training seeds (benchmarks/detection_seeds.py):
+    mean ± standard deviation over seeds with the 95 % t-interval of the mean, then each seed with
+    its checkpoint's sha256, its bootstrap intervals and its speed."""
+    out = []
+    for r in results:
+        d, summary = r.data, r.data["summary"]
+        classes = ("Car", "Pedestrian", "Cyclist", "mAP")
+        out += [
+            f"## MAFF-Net across training seeds: {d['card']}",
+            "",
+            f"{r.when}: {d['machine'].get('cpu')}, onnxruntime on {d['timing']['threads']} threads. "
+            f"{len(d['seeds'])} runs of `{d['command']}` (SEED: the seed), scored on the `{d['split']}` "
+            f"split of `{d['data']}` ({d['seeds'][0]['frames']} frames; 3D AP, VoD's protocol, entire area). "
+            f"Made by `{d['score_command']}`; JSON: {_link(r, results_dir)}.",
+            "",
+            "Over the seeds: mean ± sample standard deviation [95 % t-interval of the mean]; median ms per frame "
+            f"on {d['timing']['frames']} test frames, {d['timing']['passes']} passes:",
+            "",
+        ]
+        rows = [
+            [graph] + [_spread_cell(summary[graph][c]) for c in classes] + [_spread_cell(summary["p50_ms"][graph])]
+            for graph in ("fp32", "int8")
+        ]
+        rows.append(["int8 - fp32"] + [_spread_cell(summary["int8 - fp32"][c]) for c in classes] + ["-"])
+        out += _table(["graph", *classes, "ms"], rows)
+        out += ["", "Each seed (95 % bootstrap intervals over frames; int8 - fp32 paired):", ""]
+        rows = [
+            [
+                str(s["seed"]),
+                f"`{s['checkpoint_sha256'][:12]}`",
+                str(s["epoch"]),
+                _ap_cell(s["scores"]["onnxruntime"]["mAP"]),
+                _ap_cell(s["scores"]["onnxruntime int8"]["mAP"]),
+                _ap_cell(s["int8_minus_fp32"]["mAP"]),
+                f"{s['speed']['fp32']['p50_ms']:.1f} / {s['speed']['int8']['p50_ms']:.1f}",
+            ]
+            for s in d["seeds"]
+        ]
+        out += _table(
+            ["seed", "checkpoint sha256", "epoch", "fp32 mAP", "int8 mAP", "int8 - fp32", "ms fp32 / int8"], rows
+        )
+        out += [""]
+    return out
+
+
 def _ap_cell(v: dict | None) -> str:
     if v is None:
         return "-"
@@ -1330,6 +1386,7 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     fleet = (newest_by_key(results, "fleet") or [None])[-1]
     trainings = newest_by_key(results, "training")
     trained = newest_by_key(results, "trained")
+    seeds = newest_by_key(results, "seeds")
     places = newest_by_key(results, "places")
     variants = newest_by_key(results, "variants")
     real = (newest_by_key(results, "real") or [None])[-1]
@@ -1352,12 +1409,13 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     out += real_data_section(real, results_dir)
     out += fleet_section(fleet, results_dir)
     out += zoo_section(zoo_dir)
+    out += seeds_section(seeds, results_dir)
     out += trained_section(trained, trainings, results_dir)
     out += places_section(places, results_dir)
     out += variants_section(variants, results_dir)
     out += training_section(trainings, results_dir)
     out += train_step_section(train_step, results_dir)
-    rendered = {r.path for r in suites + benches + compares + trainings + trained + places + variants} | {
+    rendered = {r.path for r in suites + benches + compares + trainings + trained + seeds + places + variants} | {
         r.path for r in (capacity, cfa, real, fleet, train_step) if r is not None
     }
     out += history_section(results, rendered, results_dir)
