@@ -25,9 +25,7 @@ maffnet-vod-edge --data set --epochs 12 --seed SEED --set val_frames=40 --output
 from __future__ import annotations
 
 import argparse
-import math
 import shlex
-import statistics
 import sys
 import tempfile
 from pathlib import Path
@@ -36,6 +34,7 @@ import torch
 import training_run
 from maffnet_trained import frame_points
 from result_file import RESULTS, save_result, sha256_of
+from seed_stats import seed_summary
 
 import radaredge
 from radaredge import runtime
@@ -48,22 +47,6 @@ from zoo import AREA, detection_scores
 
 CLASSES = ("Car", "Pedestrian", "Cyclist", "mAP")
 BACKENDS = {ORT: "fp32", ORT_INT8: "int8"}
-# Student's t quantile t(0.975, df) for df = 1..10; the normal quantile's 1.96 is too narrow for few seeds
-T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228)
-
-
-def seed_summary(values: list[float]) -> dict:
-    """Mean, sample standard deviation, min, max and the 95 % t-interval of the mean of one
-    figure measured once per seed (no spread or interval from a single seed)."""
-    n, mean = len(values), statistics.fmean(values)
-    out = {"n": n, "mean": mean, "min": min(values), "max": max(values), "std": None, "interval": None}
-    if n > 1:
-        if n - 1 > len(T975):
-            raise ValueError(f"{n} seeds: the t table covers up to {len(T975) + 1}")
-        std = statistics.stdev(values)
-        half = T975[n - 2] * std / math.sqrt(n)
-        out.update(std=std, interval=[mean - half, mean + half])
-    return out
 
 
 def parse_weights(items: list[str]) -> dict[int, Path]:

@@ -1,5 +1,6 @@
-"""benchmarks/detection_seeds.py: a detector's test AP over training seeds, summarised as mean,
-spread and the t-interval of the mean, and rendered by benchmarks/render.py."""
+"""The studies over training seeds: benchmarks/detection_seeds.py (a detector's test AP) and
+benchmarks/tdfanet_variants.py --seeds (TDFANet's ablations), summarised as mean, spread and the
+t-interval of the mean (benchmarks/seed_stats.py) and rendered by benchmarks/render.py."""
 
 from __future__ import annotations
 
@@ -30,13 +31,15 @@ def _module(name: str):
 
 
 def test_seed_summary_is_the_mean_with_its_student_t_interval():
-    seeds = _module("detection_seeds")
-    s = seeds.seed_summary([1.0, 2.0, 3.0])
+    stats = _module("seed_stats")
+    s = stats.seed_summary([1.0, 2.0, 3.0])
     half = 4.303 / math.sqrt(3)  # t(0.975, 2 df) * std 1 / sqrt(3)
     assert (s["n"], s["mean"], s["std"], s["min"], s["max"]) == (3, 2.0, 1.0, 1.0, 3.0)
     assert s["interval"] == pytest.approx([2.0 - half, 2.0 + half])
-    one = seeds.seed_summary([5.0])
+    one = stats.seed_summary([5.0])
     assert one["std"] is None and one["interval"] is None and one["mean"] == 5.0
+    assert stats.ranking([3.0, 4.0, 5.0]) == "a" and stats.ranking([-3.0, -4.0, -5.0]) == "b"
+    assert stats.ranking([-1.0, 4.0, 0.5]) == "not resolved" and stats.ranking([3.0]) == "not resolved"
 
 
 def test_weights_arguments_name_what_is_wrong(tmp_path):
@@ -82,3 +85,61 @@ def test_two_seeds_are_scored_timed_summarised_and_rendered(tmp_path):
     text = render.render(results, tmp_path / "no-zoo")
     assert "## MAFF-Net across training seeds: maffnet-tiny" in text
     assert "| seed | checkpoint sha256 | epoch |" in text and f"`{doc['seeds'][1]['checkpoint_sha256'][:12]}`" in text
+
+
+def _variant_row(val: float, test: float | None, seed: int) -> dict:
+    epoch = {"epoch": 2, "val_R@1": val, "val_R@5": val, "val_R@10": val, "val_queries": 50}
+    row = {"options": {"seed": seed}, "score_epoch": "last", "best": epoch, "last": epoch, "train_seconds": 60.0}
+    if test is not None:
+        recall = {"recall": {"1": test, "5": test + 5, "10": test + 8}}
+        row["test"] = {"5": recall, "25": recall}
+    return row
+
+
+def test_tdfanet_ablations_over_seeds_say_whether_the_papers_ranking_holds(tmp_path):
+    """Per ablation, the full model's test Recall@1 minus the ablation's is paired by seed: a
+    difference above 0 on every seed with a narrow spread holds the paper's ranking, one below 0
+    reverses it, one that changes sign is not resolved; render.py shows all three."""
+    variants = _module("tdfanet_variants")
+    render = _module("render")
+    full, worse, better, mixed = [50.0, 52.0, 54.0], [40.0, 41.0, 43.0], [60.0, 63.0, 64.0], [45.0, 58.0, 52.0]
+    rows = {
+        "frozen": {str(s): _variant_row(60.0 + s, full[s], s) for s in range(3)},
+        "no-dpr": {str(s): _variant_row(55.0, worse[s], s) for s in range(3)},
+        "no-fa": {str(s): _variant_row(55.0, better[s], s) for s in range(3)},
+        "sum": {str(s): _variant_row(55.0, mixed[s], s) for s in range(3)},
+        "window": {str(s): _variant_row(50.0 + 2 * s, None, s) for s in range(3)},
+    }
+    summary, ranking = variants.seeds_summary(rows)
+    assert summary["frozen"]["R@1 at 5 m"]["mean"] == pytest.approx(52.0)
+    assert summary["window"]["val R@1"]["mean"] == pytest.approx(52.0) and "R@1 at 5 m" not in summary["window"]
+    assert {k: v["paper_ranking"] for k, v in ranking.items()} == {
+        "no-dpr": "holds",
+        "no-fa": "reversed",
+        "sum": "not resolved",
+    }
+    assert ranking["no-dpr"]["full_minus"]["mean"] == pytest.approx(32.0 / 3)
+    results = tmp_path / "results"
+    results.mkdir()
+    doc = {
+        "date": "2030-01-01 00:00",
+        "card": "m",
+        "machine": {"cpu": "cpu", "threads": 2},
+        "command": "python benchmarks/tdfanet_variants.py --card m --seeds 0 1 2",
+        "recipe": {"epochs": 2, "tuples_per_epoch": 8},
+        "score_epoch": "last",
+        "towns": {"design": {"seeds": [1]}, "test": {"seeds": [9]}},
+        "choices": list(variants.CHOICES),
+        "ablations": variants.ABLATIONS,
+        "seeds": [0, 1, 2],
+        "variants": rows,
+        "summary": summary,
+        "ranking": ranking,
+    }
+    (results / "tdfanet-variants-m-seeds-2030-01-01.json").write_text(json.dumps(doc))
+    text = render.render(results, tmp_path / "no-zoo")
+    assert "## TDFANet training choices and ablations over seeds: m, 2 epochs of 8 tuples" in text
+    assert "| no-dpr | 3 | 10.7 ± 0.6 [9.2, 12.1] | holds |" in text
+    assert "| no-fa | 3 | -10.3 ± 0.6 [-11.8, -8.9] | reversed |" in text
+    assert "| full | yes | yes | yes | 3 | 52.0 ± 2.0 [47.0, 57.0] |" in text
+    assert "| window | each window's own batch statistics while training | 3 | 52.0 ± 2.0 [47.0, 57.0] |" in text
