@@ -207,7 +207,7 @@ def export(
     from .runtime.model import FrameFeeds
 
     card = resolve_card(card)
-    spec = model_spec(card)
+    name, spec = card.name, model_spec(card)
     say = log or (lambda line: None)
     if opset is not None:
         check_count("--opset", opset, MIN_OPSET, onnx.defs.onnx_opset_version())
@@ -231,24 +231,24 @@ def export(
         )
     if model is None:
         model = create_model(card, checkpoint, spec)  # card and checkpoint errors first, then the output's
-    named, bundle = output, artifacts.Bundle.for_output(card.name, _graph_names(spec), output)
-    output = bundle.path
+    graph_names = _graph_names(spec)
+    bundle = artifacts.Bundle.for_output(name, graph_names, output)
+    root, written, manifest = bundle.root, bundle.files(), bundle.manifest
     # before a long export
-    check_writable_dir(bundle.root, "--output")
+    check_writable_dir(root, "--output")
     refuse_overwriting_inputs(
-        {"--output": [named, *bundle.files()]},
+        {"--output": [output, *written]},
         {"--config": card.path, "--checkpoint": checkpoint, "--calibration": calibration},
     )
     report = getattr(model, "checkpoint_report", None)
     if report is not None:
         say(report.summary())
-    names = ", ".join(g.name for g in spec.graphs)
-    say(f"exporting {card.name}" + (f" ({names}) to {output}/" if spec.multi_graph else "") + " ...")
+    say(f"exporting {name}" + (f" ({', '.join(graph_names)}) to {bundle.path}/" if manifest else "") + " ...")
     int8 = None
     if quantize:
 
         def int8(paths):
-            say(f"quantising {card.name} to int8 ...")
+            say(f"quantising {name} to int8 ...")
             return make_int8_copies(
                 card, spec, paths, Int8Options(calibration_windows, calibration, calibration_format)
             )
@@ -256,7 +256,7 @@ def export(
     graphs, int8_paths = write_export(
         card, spec, model, bundle, DEFAULT_OPSET if opset is None else opset, debug=debug, int8=int8, progress=progress
     )
-    result = ExportResult(card.name, output, graphs, checkpoint=report, int8=int8_paths, manifest=bundle.manifest)
+    result = ExportResult(name, bundle.path, graphs, checkpoint=report, int8=int8_paths, manifest=manifest)
     result.debug = {n: artifacts.copy_path(g.path, artifacts.DEBUG) for n, g in graphs.items()} if debug else {}
     return result
 

@@ -309,14 +309,15 @@ def write_export(
     files of ``bundle`` as they were and no partial file. Returns the graphs and int8 copies at
     their final paths."""
     check_finite_outputs(card, spec, model)
-    with Staging(bundle.root) as stage:
+    root = bundle.root
+    with Staging(root) as stage:
         staged = bundle.moved(stage.dir)
         graphs = export_graphs(card, spec, model, staged, opset, debug, progress)
         int8_paths = int8(staged.graph_files()) if int8 is not None else {}
         stage.commit()
     for g in graphs.values():
-        g.path, g.sidecar = _moved(g.path, stage, bundle.root), _moved(g.sidecar, stage, bundle.root)
-    return graphs, {n: _moved(p, stage, bundle.root) for n, p in int8_paths.items()}
+        g.path, g.sidecar = _moved(g.path, stage, root), _moved(g.sidecar, stage, root)
+    return graphs, {n: _moved(p, stage, root) for n, p in int8_paths.items()}
 
 
 def write_manifest(
