@@ -143,3 +143,48 @@ def test_tdfanet_ablations_over_seeds_say_whether_the_papers_ranking_holds(tmp_p
     assert "| no-fa | 3 | -10.3 ± 0.6 [-11.8, -8.9] | reversed |" in text
     assert "| full | yes | yes | yes | 3 | 52.0 ± 2.0 [47.0, 57.0] |" in text
     assert "| window | each window's own batch statistics while training | 3 | 52.0 ± 2.0 [47.0, 57.0] |" in text
+
+
+def test_tdfanet_seed_runs_train_apart_score_the_last_epoch_and_are_reused(tmp_path, monkeypatch):
+    """With seeds, each (variant, seed) trains in its own run directory with the seed among its
+    options, the ablation is exported from last.pth (the last epoch), and a second call with
+    the same recipe reuses the kept row instead of training again."""
+    variants = _module("tdfanet_variants")
+    trained, exported = [], []
+
+    class Report:
+        def __init__(self, options):
+            n = options["epochs"]
+            val = {"val_R@1": 40.0 + options["seed"], "val_R@5": 50.0, "val_R@10": 60.0, "val_queries": 10}
+            self.doc = {
+                "epochs": [{"epoch": e, "loss": 1.0, "seconds": 1.0, **val} for e in range(n + 1)],
+                "best_epoch": 1,
+                "seconds": 2.0,
+            }
+
+        def to_dict(self):
+            return self.doc
+
+    def train(card, design, run, options, overwrite, log):
+        trained.append((card.name, run.name, options["seed"]))
+        run.mkdir(parents=True, exist_ok=True)
+        return Report(options)
+
+    def score(describe, towns, k):
+        recall = {"recall": {"1": 30.0, "5": 40.0, "10": 50.0}}
+        return {"5": recall, "25": recall}
+
+    monkeypatch.setattr(variants.radaredge, "train", train)
+    monkeypatch.setattr(variants.radaredge, "export", lambda card, graph, checkpoint: exported.append(checkpoint.name))
+    monkeypatch.setattr(variants.place_recognition, "graph_descriptors", lambda graph, described: None)
+    monkeypatch.setattr(variants.place_recognition, "score", score)
+    card = load_card(ROOT / "tests" / "cards" / "tdfanet-tiny.yaml")
+    options = {"epochs": 2, "tuples_per_epoch": 4}
+    for seed in (0, 1):
+        row = variants.measure_variant(card, "sum", tmp_path, options, [], 3, seed, "last")
+        assert row["options"]["seed"] == seed and row["score_epoch"] == "last" and row["last"]["epoch"] == 2
+    assert trained == [("tdfanet-tiny-sum", "sum-seed0", 0), ("tdfanet-tiny-sum", "sum-seed1", 1)]
+    assert exported == ["last.pth", "last.pth"]
+    variants.measure_variant(card, "sum", tmp_path, options, [], 3, 1, "last")  # kept: not trained again
+    assert len(trained) == 2 and set(variants.measured(tmp_path, options, 1, "last")) == {"sum"}
+    assert variants.measured(tmp_path, options, 1, "best") == {}  # another scoring rule is another study
