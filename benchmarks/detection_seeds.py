@@ -109,6 +109,16 @@ def time_seeds(card, graphs: dict[int, Path], data: Path, frames: int, passes: i
     }
 
 
+def configuration(card) -> dict:
+    """What sets the card's point on the trade-off curve: pillar size (m) and the BEV backbone's
+    blocks per stage and channels per stage."""
+    return {
+        "voxel_size_m": card.get("pillars.voxel_size")[0],
+        "layer_nums": card.get("backbone_2d.layer_nums"),
+        "num_filters": card.get("backbone_2d.num_filters"),
+    }
+
+
 def summarise(seeds: list[dict]) -> dict:
     """backend -> class -> :func:`seed_summary` of its 3D AP; speed -> graph -> of its median ms;
     and int8's 3D AP difference from fp32 per class."""
@@ -145,6 +155,7 @@ def main(argv=None) -> int:
             row["speed"] = speed
     doc = {
         "card": card.name,
+        "configuration": configuration(card),
         "data": str(args.data),
         "split": "test",
         "area": AREA,

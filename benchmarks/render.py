@@ -14,12 +14,17 @@ Files it knows, by name (``<kind>-<YYYY-MM-DD>.json``):
 - ``cfa-speedup-<date>.json``: ``benchmarks/cfa_speedup.py``;
 - ``place-recognition-<card>-<date>.json``: ``benchmarks/place_recognition.py``;
 - ``tdfanet-variants-<card>-<date>.json``: ``benchmarks/tdfanet_variants.py``;
+- ``detection-seeds-<card>-<date>.json``: ``benchmarks/detection_seeds.py``, a card over training seeds;
+- ``detection-tradeoff-<date>.json``: ``benchmarks/detection_tradeoff.py``, those cards side by side, also
+  written into docs/models/maffnet.md (:data:`GENERATED`);
+- ``int8-methods-<card>-<split>-<date>.json``: ``benchmarks/int8_methods.py``, int8 calibration methods on
+  trained weights, also written into docs/quantization.md;
 - ``<card>-training-<date>.json``: ``benchmarks/tdfanet_training.py`` or
   ``benchmarks/des4pos_training.py``, a training run and its held-out recall.
 
 The newest file of each kind is rendered in full; older ones are listed under "History".
 
-    python benchmarks/render.py            # rewrites benchmarks/README.md
+    python benchmarks/render.py            # rewrites benchmarks/README.md and the GENERATED blocks
 """
 
 from __future__ import annotations
@@ -29,11 +34,13 @@ import json
 import re
 import sys
 from pathlib import Path
+from typing import Callable
 
 HERE = Path(__file__).resolve().parent
 RESULTS_DIR = HERE / "results"
 ZOO_DIR = HERE.parent / "zoo"
 README = HERE / "README.md"
+DOCS = HERE.parent / "docs"
 
 # What the int8 export quantises when a suite file does not record it (radaredge's quantiser).
 DEFAULT_QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
@@ -88,6 +95,10 @@ def _kind(stem: str, data) -> str:
         return "trained"
     if stem.startswith("detection-seeds-"):
         return "seeds"
+    if stem == "detection-tradeoff":
+        return "tradeoff"
+    if stem.startswith("int8-methods-"):
+        return "int8-methods"
     if stem.startswith("place-recognition-"):
         return "places"
     if stem.startswith("tdfanet-variants-"):
@@ -1341,6 +1352,181 @@ def seeds_section(results: list[Result], results_dir: Path) -> list[str]:
     return out
 
 
+def _ms_cell(v: dict) -> str:
+    """``ms ± std (FPS)`` of a seed summary of median ms per frame."""
+    spread = "" if v["std"] is None else f" ± {v['std']:.1f}"
+    return f"{v['mean']:.1f}{spread} ms ({1000 / v['mean']:.1f} FPS)"
+
+
+def _configuration_cell(c: dict | None) -> str:
+    if not c:
+        return "-"
+    return f"{c['voxel_size_m']} m pillars, {c['layer_nums']} x {c['num_filters']}"
+
+
+def _versus_sentence(v: dict) -> str:
+    """One card against the reference, in words, from the trade-off file's comparison."""
+    diff = v["fp32_mAP_difference"]
+    if diff["interval"] is None:
+        verdict = "with fewer than 2 seeds on a side there is no interval, so the sign is not resolved"
+    else:
+        low, high = diff["interval"]
+        where = "below" if high < 0 else "above" if low > 0 else "not resolved from"
+        verdict = f"95 % Welch interval [{low:.1f}, {high:.1f}]: {where} the reference's"
+    share = "" if v["mAP_share"] is None else f", {100 * v['mAP_share']:.0f} % of its mean"
+    return (
+        f"- `{v['card']}` against `{v['reference']}`: fp32 test mAP {diff['mean']:+.1f} points{share} "
+        f"({verdict}), at {v['fp32_speedup']:.1f}x its fp32 speed."
+    )
+
+
+def tradeoff_lines(r: Result) -> list[str]:
+    """The trade-off table (benchmarks/detection_tradeoff.py): one row per card over its seeds,
+    then every card against the reference card; shared by benchmarks/README.md and
+    docs/models/maffnet.md."""
+    d = r.data
+    out = [
+        f"{r.when}: test split of `{d['data']}` (3D AP, VoD's protocol, entire area), onnxruntime on "
+        f"{d['timing']['threads']} threads of an {d['machine'].get('cpu')}, median ms per frame on "
+        f"{d['timing']['frames']} test frames. Over each card's training seeds: mean ± sample standard "
+        "deviation [95 % t-interval of the mean]; int8 - fp32 is paired by seed.",
+        "",
+    ]
+    rows = [
+        [
+            f"`{row['card']}`",
+            _configuration_cell(row["configuration"]),
+            str(len(row["seeds"])),
+            _spread_cell(row["fp32_mAP"]),
+            _spread_cell(row["int8_mAP"]),
+            _spread_cell(row["int8_minus_fp32_mAP"]),
+            _ms_cell(row["fp32_ms"]),
+            _ms_cell(row["int8_ms"]),
+        ]
+        for row in d["rows"]
+    ]
+    out += _table(
+        [
+            "card",
+            "pillars, backbone (blocks x channels)",
+            "seeds",
+            "fp32 mAP",
+            "int8 mAP",
+            "int8 - fp32",
+            "fp32",
+            "int8",
+        ],
+        rows,
+        ["---", "---"] + ["---:"] * 6,
+    )
+    out += [""]
+    if d["versus_reference"]:
+        out += [_versus_sentence(v) for v in d["versus_reference"]]
+    else:
+        out += [f"`{d['reference']}` has no seed study on this set yet, so no card is compared to it."]
+    out += ["", "Each row's commands (SEED: the seed; its checkpoints' sha256 are in the source file):", ""]
+    out += [
+        f"- `{row['card']}` ({', '.join(map(str, row['seeds']))}; {row['source']}): `{row['command']}`, "
+        f"scored by `{row['score_command']}`"
+        for row in d["rows"]
+    ]
+    return out
+
+
+def tradeoff_section(r: Result | None, results_dir: Path) -> list[str]:
+    """benchmarks/README.md's trade-off section, when a trade-off file exists."""
+    if r is None:
+        return []
+    return [
+        "## MAFF-Net trade-off over training seeds",
+        "",
+        *tradeoff_lines(r),
+        "",
+        f"Made by `python benchmarks/detection_tradeoff.py`; JSON: {_link(r, results_dir)}.",
+        "",
+    ]
+
+
+def _difference_cell(d: dict) -> str:
+    low, high = d["3d_interval"]
+    return f"{d['3d']:+.2f} [{low:+.2f}, {high:+.2f}]"
+
+
+def int8_methods_lines(r: Result) -> list[str]:
+    """One int8-methods file (benchmarks/int8_methods.py): the fp32 graph's AP, then every
+    calibration method's int8 - fp32 3D AP per class (paired 95 % interval) and verdict."""
+    d = r.data
+    methods = d["methods"]
+    fp32 = next(iter(methods.values()))["fp32"]
+    classes = [c for c in ("Car", "Pedestrian", "Cyclist", "mAP") if c in fp32]
+    out = [
+        f"`{d['card']}`, weights `{d['checkpoint_sha256'][:12]}`, {d['split']} split of `{d['data']}` "
+        f"({next(iter(methods.values()))['frames']} frames; {r.when}). fp32 3D AP: "
+        + ", ".join(f"{c} {_ap_cell(fp32[c])}" for c in classes)
+        + f". int8 - fp32 in 3D AP points, paired over frames [95 % interval]; budget -{d['budget_ap_points']:g} "
+        "per class (within: every class above it; meets: no class's interval wholly below it):",
+        "",
+    ]
+    rows = [
+        [f"`{m}`"]
+        + [_difference_cell(v["int8_minus_fp32"][c]) for c in classes]
+        + [v["verdict"], f"`{v['export_command']}`"]
+        for m, v in methods.items()
+    ]
+    out += _table(["method", *classes, "verdict", "command"], rows, ["---"] + ["---:"] * len(classes) + ["---", "---"])
+    out += ["", f"Made by `{d['command']}`.", ""]
+    return out
+
+
+def int8_methods_section(results: list[Result], results_dir: Path) -> list[str]:
+    """benchmarks/README.md's calibration-method comparisons, one per card and split."""
+    if not results:
+        return []
+    out = ["## int8 calibration methods on trained weights", ""]
+    for r in results:
+        out += int8_methods_lines(r)[:-1] + [f"JSON: {_link(r, results_dir)}.", ""]
+    return out
+
+
+class GeneratedBlock:
+    """A table that render.py writes into a hand-written page of docs/, between two marker lines
+    (``<!-- NAME: generated by benchmarks/render.py -->`` and ``<!-- end of the generated NAME -->``),
+    from the newest results of one kind; main() rewrites it, tests/test_docs.py checks it."""
+
+    def __init__(self, page: str, name: str, kind: str, lines: Callable[[list[Result]], list[str]]):
+        self.page = page  # under docs/
+        self.name = name
+        self.kind = kind  # the results it is made of (:func:`_kind`)
+        self.lines = lines  # the newest result of each key, oldest key first -> the block's lines
+
+    @property
+    def begin(self) -> str:
+        return f"<!-- {self.name}: generated by benchmarks/render.py -->"
+
+    @property
+    def end(self) -> str:
+        return f"<!-- end of the generated {self.name} -->"
+
+    def fill(self, text: str, results: list[Result]) -> str:
+        """``text`` with the block between the markers made from ``results`` (unchanged when there
+        are none of this kind). ValueError when the markers are missing or out of order."""
+        newest = newest_by_key(results, self.kind)
+        if not newest:
+            return text
+        begin, end = text.find(self.begin), text.find(self.end)
+        if begin < 0 or end < begin:
+            raise ValueError(f"docs/{self.page}: expected the lines {self.begin!r} and {self.end!r}")
+        return text[: begin + len(self.begin)] + "\n" + "\n".join(self.lines(newest)) + "\n" + text[end:]
+
+
+GENERATED = (
+    GeneratedBlock("models/maffnet.md", "trade-off", "tradeoff", lambda rs: tradeoff_lines(rs[-1])),
+    GeneratedBlock(
+        "quantization.md", "int8 methods", "int8-methods", lambda rs: [x for r in rs for x in int8_methods_lines(r)]
+    ),
+)
+
+
 def _ap_cell(v: dict | None) -> str:
     if v is None:
         return "-"
@@ -1440,6 +1626,8 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     trainings = newest_by_key(results, "training")
     trained = newest_by_key(results, "trained")
     seeds = newest_by_key(results, "seeds")
+    tradeoff = (newest_by_key(results, "tradeoff") or [None])[-1]
+    int8_methods = newest_by_key(results, "int8-methods")
     places = newest_by_key(results, "places")
     variants = newest_by_key(results, "variants")
     real = (newest_by_key(results, "real") or [None])[-1]
@@ -1462,14 +1650,17 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     out += real_data_section(real, results_dir)
     out += fleet_section(fleet, results_dir)
     out += zoo_section(zoo_dir)
+    out += tradeoff_section(tradeoff, results_dir)
+    out += int8_methods_section(int8_methods, results_dir)
     out += seeds_section(seeds, results_dir)
     out += trained_section(trained, trainings, results_dir)
     out += places_section(places, results_dir)
     out += variants_section(variants, results_dir)
     out += training_section(trainings, results_dir)
     out += train_step_section(train_step, results_dir)
-    rendered = {r.path for r in suites + benches + compares + trainings + trained + seeds + places + variants} | {
-        r.path for r in (capacity, cfa, real, fleet, train_step) if r is not None
+    shown = suites + benches + compares + trainings + trained + seeds + places + variants + int8_methods
+    rendered = {r.path for r in shown} | {
+        r.path for r in (capacity, cfa, real, fleet, train_step, tradeoff) if r is not None
     }
     out += history_section(results, rendered, results_dir)
     others = [r for r in results if r.kind == "other"]
@@ -1481,6 +1672,11 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
 def main(argv: list[str] | None = None) -> int:
     README.write_text(render(RESULTS_DIR))
     print(f"wrote {README}")
+    results = load(RESULTS_DIR)
+    for block in GENERATED:
+        page = DOCS / block.page
+        page.write_text(block.fill(page.read_text(), results))
+        print(f"wrote {page}")
     return 0
 
 

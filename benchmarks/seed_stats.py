@@ -33,3 +33,21 @@ def ranking(differences: list[float]) -> str:
     if s["interval"] is None or s["interval"][0] <= 0 <= s["interval"][1]:
         return "not resolved"
     return "a" if s["interval"][0] > 0 else "b"
+
+
+def difference_of_means(a: list[float], b: list[float]) -> dict:
+    """mean(a) - mean(b) of one figure measured once per seed on two unpaired sets of runs (two
+    cards trained with the same command), with its 95 % Welch interval: Student's t at the
+    Welch-Satterthwaite degrees of freedom, rounded down and capped at 10 (both widen it). No interval
+    unless both sides have at least 2 seeds."""
+    sa, sb = seed_summary(a), seed_summary(b)
+    out = {"mean": sa["mean"] - sb["mean"], "interval": None, "df": None}
+    if sa["std"] is None or sb["std"] is None:
+        return out
+    va, vb = sa["std"] ** 2 / len(a), sb["std"] ** 2 / len(b)
+    if va + vb == 0:
+        return {**out, "interval": [out["mean"], out["mean"]], "df": len(a) + len(b) - 2}
+    df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
+    whole = min(max(int(df), 1), len(T975))
+    half = T975[whole - 1] * math.sqrt(va + vb)
+    return {**out, "interval": [out["mean"] - half, out["mean"] + half], "df": df}

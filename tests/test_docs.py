@@ -90,6 +90,20 @@ def test_benchmarks_readme_is_generated_from_results():
     )
 
 
+def test_generated_tables_in_docs_are_the_results_rendering():
+    """docs/models/maffnet.md's trade-off and docs/quantization.md's int8 methods are what
+    benchmarks/render.py makes of the newest committed results between the page's markers."""
+    render = _render_module()
+    results = render.load(ROOT / "benchmarks" / "results")
+    for block in render.GENERATED:
+        committed = (ROOT / "docs" / block.page).read_text()
+        assert block.begin in committed and block.end in committed, block.page
+        assert committed == block.fill(committed, results), (
+            f"docs/{block.page}: {block.name} differs from the committed JSON's rendering; "
+            "run `python benchmarks/render.py`"
+        )
+
+
 def test_render_handles_every_result_kind(tmp_path):
     """A minimal file of each kind renders, the newest of a kind is the one shown, older ones go
     to the history, and a failed backend row (status, no timing) does not break the table."""

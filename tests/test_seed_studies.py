@@ -42,6 +42,83 @@ def test_seed_summary_is_the_mean_with_its_student_t_interval():
     assert stats.ranking([-1.0, 4.0, 0.5]) == "not resolved" and stats.ranking([3.0]) == "not resolved"
 
 
+def test_difference_of_two_cards_means_has_a_welch_interval():
+    stats = _module("seed_stats")
+    d = stats.difference_of_means([10.0, 12.0, 14.0], [4.0, 6.0])
+    va, vb = 4.0 / 3, 2.0 / 2  # sample variances 4 and 2 over 3 and 2 seeds
+    df = (va + vb) ** 2 / (va**2 / 2 + vb**2 / 1)  # Welch-Satterthwaite: 2.9, rounded down to 2
+    assert d["mean"] == pytest.approx(7.0) and d["df"] == pytest.approx(df)
+    assert d["interval"] == pytest.approx([7.0 - 4.303 * math.sqrt(va + vb), 7.0 + 4.303 * math.sqrt(va + vb)])
+    assert stats.difference_of_means([10.0, 12.0], [4.0])["interval"] is None  # one seed: no interval
+
+
+def _seed_doc(card: str, maps: list[float], ms: float, cpu: str = "AMD EPYC") -> dict:
+    """A detection-seeds result as detection_seeds.py writes it, with these per-seed fp32 mAPs."""
+    stats = _module("seed_stats")
+    seeds = [
+        {
+            "seed": i,
+            "checkpoint_sha256": f"{i:064x}",
+            "scores": {"onnxruntime": {"mAP": {"3d": m}}, "onnxruntime int8": {"mAP": {"3d": m - 1}}},
+            "speed": {"fp32": {"p50_ms": ms}, "int8": {"p50_ms": ms / 2}},
+        }
+        for i, m in enumerate(maps)
+    ]
+    return {
+        "card": card,
+        "configuration": {"voxel_size_m": 0.32, "layer_nums": [1, 2], "num_filters": [8, 16]},
+        "data": "set",
+        "split": "test",
+        "area": "entire",
+        "machine": {"cpu": cpu},
+        "timing": {"frames": 40, "passes": 3, "threads": 2},
+        "command": f"radaredge train --model {card} --seed SEED",
+        "score_command": f"python benchmarks/detection_seeds.py --card {card}",
+        "seeds": seeds,
+        "summary": {
+            "fp32": {"mAP": stats.seed_summary(maps)},
+            "int8": {"mAP": stats.seed_summary([m - 1 for m in maps])},
+            "int8 - fp32": {"mAP": stats.seed_summary([-1.0] * len(maps))},
+            "p50_ms": {"fp32": stats.seed_summary([ms] * len(maps)), "int8": stats.seed_summary([ms / 2] * len(maps))},
+        },
+    }
+
+
+def test_tradeoff_table_compares_every_card_with_the_reference_and_fills_the_model_doc(tmp_path):
+    """The newest seed study per card becomes one row, slowest first; each card gets its mAP
+    difference from the reference with a Welch interval; render writes the table into the doc."""
+    tradeoff, render = _module("detection_tradeoff"), _module("render")
+    results = tmp_path / "results"
+    results.mkdir()
+    for name, doc in [
+        ("detection-seeds-big-2030-01-01.json", _seed_doc("big", [40.0, 42.0], 500.0)),
+        ("detection-seeds-edge-2030-01-01.json", _seed_doc("edge", [10.0, 11.0, 12.0], 50.0)),
+        ("detection-seeds-edge-2030-01-02.json", _seed_doc("edge", [30.0, 32.0, 34.0], 50.0)),
+    ]:
+        (results / name).write_text(json.dumps(doc))
+    assert tradeoff.main(["--results", str(results), "--reference", "big"]) == 0
+    (written,) = results.glob("detection-tradeoff-*.json")
+    doc = json.loads(written.read_text())
+    assert [r["card"] for r in doc["rows"]] == ["big", "edge"]  # slowest first
+    assert doc["rows"][1]["source"] == "detection-seeds-edge-2030-01-02.json"  # the newest study
+    (versus,) = doc["versus_reference"]
+    assert versus["fp32_mAP_difference"]["mean"] == pytest.approx(32.0 - 41.0)
+    assert versus["fp32_mAP_difference"]["interval"][1] < 0 and versus["fp32_speedup"] == pytest.approx(10.0)
+    lines = "\n".join(render.tradeoff_lines(render.Result(written)))
+    assert "| `edge` | 0.32 m pillars, [1, 2] x [8, 16] | 3 | 32.0 ± 2.0 [27.0, 37.0] |" in lines
+    assert "`edge` against `big`: fp32 test mAP -9.0 points, 78 % of its mean" in lines and "below" in lines
+    block = render.GENERATED[0]
+    page = f"intro\n{block.begin}\nold table\n{block.end}\nafter\n"
+    filled = block.fill(page, render.load(results))
+    assert "old table" not in filled and lines in filled and filled.endswith(f"{block.end}\nafter\n")
+    with pytest.raises(ValueError, match="expected the lines"):
+        block.fill("no markers", render.load(results))
+    # a study on another CPU does not join the table
+    (results / "detection-seeds-other-2030-01-01.json").write_text(json.dumps(_seed_doc("other", [1.0], 5.0, "Xeon")))
+    with pytest.raises(SystemExit, match="detection-seeds-other-2030-01-01.json: machine.cpu"):
+        tradeoff.tradeoff(results, "big")
+
+
 def test_weights_arguments_name_what_is_wrong(tmp_path):
     seeds = _module("detection_seeds")
     ckpt = tmp_path / "best.pth"
