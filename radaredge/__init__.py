@@ -7,6 +7,7 @@ The verbs (:mod:`radaredge.api`)::
     report = radaredge.parity("tdfanet")              # bool(report) is the verdict
     radaredge.bench("tdfanet", threads=2)             # -> BenchReport
     radaredge.evaluate("tdfanet", onnx, database, queries)
+    radaredge.quantize("maffnet-vod-edge", onnx, data="set", search=True)   # int8 judged by AP on val
     radaredge.train("tdfanet-edge", "train-towns")     # -> TrainReport; runs/tdfanet-edge/best.pth
     radaredge.card_from_openpcdet("MAFF-Net_vod.yaml", "models/my.yaml")   # `radaredge card from-openpcdet`
 
@@ -19,9 +20,9 @@ onnxruntime.
 from . import models  # noqa: F401  (registers the model families; imports no torch)
 from .version import __version__
 
-__all__ = ["__version__", "export", "parity", "bench", "evaluate", "train", "card_from_openpcdet"]
+__all__ = ["__version__", "export", "parity", "bench", "evaluate", "quantize", "train", "card_from_openpcdet"]
 
-_VERBS = ("export", "parity", "bench", "evaluate", "train", "card_from_openpcdet")
+_VERBS = ("export", "parity", "bench", "evaluate", "quantize", "train", "card_from_openpcdet")
 
 
 def __getattr__(name):

@@ -83,6 +83,13 @@ EXPORT_OPTIONS = (
         "its int8 copy is quantised dynamically (weights only, no calibration)",
     ),
     (
+        "--calibration-method",
+        "--quantize",
+        "int8 calibration options need --quantize int8",
+        _calibrated,
+        "its int8 copy is quantised dynamically (weights only, no calibration)",
+    ),
+    (
         "--calibration-format",
         "--calibration",
         "the format of a --calibration recording; add --calibration DIR",
@@ -188,6 +195,7 @@ def export(
     calibration: str | Path | None = None,
     calibration_format: str | None = None,
     calibration_windows: int | None = None,
+    calibration_method: str | None = None,
     progress: Callable | None = None,
     log: Callable[[str], None] | None = None,
 ) -> ExportResult:
@@ -195,14 +203,15 @@ def export(
     default ``export/<card>.onnx``; a multi-graph model's directory, default ``export/<card>/``)
     with a JSON sidecar each; ``debug`` adds each graph's debug copy, ``quantize="int8"`` the
     model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
-    synthetic scenes; ``calibration_windows`` windows). ``model`` reuses a built model (its
+    synthetic scenes; ``calibration_windows`` windows; activation ranges by ``calibration_method``,
+    default the card's ``quantization.calibration``). ``model`` reuses a built model (its
     weights must be the checkpoint's). ``log`` receives progress lines."""
     import onnx
 
     from .exporting.calibration import DEFAULT_WINDOWS, recorded_feeds
     from .exporting.graphs import write_export
     from .exporting.onnx_call import DEFAULT_OPSET
-    from .exporting.quantize import Int8Options, make_int8_copies
+    from .exporting.quantize import Int8Options, calibration_method_of, make_int8_copies
     from .models.factory import create_model
     from .runtime.model import FrameFeeds
 
@@ -219,8 +228,11 @@ def export(
             "--calibration": calibration,
             "--calibration-format": calibration_format,
             "--calibration-windows": calibration_windows,
+            "--calibration-method": calibration_method,
         },
     )
+    if quantize and spec.int8.calibrated:
+        calibration_method_of(card, calibration_method)  # an unknown method fails before the export
     if calibration is not None:  # a wrong recording fails before the export, not after it
         graph = spec.graph()
         recorded_feeds(
@@ -250,7 +262,10 @@ def export(
         def int8(paths):
             say(f"quantising {name} to int8 ...")
             return make_int8_copies(
-                card, spec, paths, Int8Options(calibration_windows, calibration, calibration_format)
+                card,
+                spec,
+                paths,
+                Int8Options(calibration_windows, calibration, calibration_format, calibration_method),
             )
 
     graphs, int8_paths = write_export(
@@ -551,6 +566,64 @@ def evaluate(
     report = task(card, onnx, inputs)
     report.written = write.write(report, files)
     return report
+
+
+@checked_arguments
+def quantize(
+    card: ModelCard | str | Path,
+    onnx: str | Path,
+    *,
+    data: str | Path | None = None,
+    split: str = "val",
+    dataset: str | None = None,
+    database: str | Path | None = None,
+    queries: str | Path | None = None,
+    radius: float = 5.0,
+    method: str | None = None,
+    budget: float | None = None,
+    search: bool = False,
+    log: Callable[[str], None] | None = None,
+):
+    """Write the int8 copy of the fp32 graph at ``onnx`` beside it (``<name>.int8.onnx``), judged
+    by the model's task metric on labelled data that is not the test split: a detector's 3D AP per
+    class on the ``split`` of ``data``, a place recogniser's Recall@1 over ``queries`` drives
+    against ``database`` drives (true positives within ``radius`` m). Activation ranges by
+    ``method`` (default the card's ``quantization.calibration``); the card's ``keep_fp32``, or
+    with ``search`` the fewest groups kept in fp32 that bring every metric's loss within
+    ``budget`` points (default 1.0; :mod:`radaredge.quantizing.search`). Returns the
+    :class:`radaredge.quantizing.search.QuantizeReport`, true when the written copy is within."""
+    from .eval.tasks import EvalInputs
+    from .exporting.quantize import calibration_method_of
+    from .quantizing.search import DEFAULT_BUDGET, quantize_judged
+
+    card = resolve_card(card)
+    spec = model_spec(card)
+    if not spec.int8.calibrated:
+        raise ConfigError(f"{card.name}: its int8 copy is quantised dynamically (weights only); nothing to calibrate")
+    if method is not None:
+        calibration_method_of(card, method)
+    budget = DEFAULT_BUDGET if budget is None else budget
+    if not budget > 0:
+        raise ConfigError(f"--budget {budget}: expected a positive number of metric points")
+    graph = Path(onnx)
+    if not graph.is_file() or graph.suffix != artifacts.ARTIFACTS[artifacts.GRAPH].suffix:
+        raise InputError(f"--onnx {graph}: expected an exported fp32 .onnx file (`radaredge export --checkpoint ...`)")
+    if artifacts.graph_of_copy(graph) != graph:
+        raise InputError(f"--onnx {graph} is a copy of {artifacts.graph_of_copy(graph)}; give the fp32 graph")
+    exported = rt.load(graph, threads=1)
+    if exported.card.name != card.name:
+        raise ConfigError(f"{graph} is an export of card {exported.card.name!r}, not {card.name!r}")
+    out = artifacts.copy_path(graph, artifacts.INT8)
+    check_writable_dir(out.parent, "--onnx")
+    inputs = EvalInputs(
+        database=str(database) if database else None,
+        queries=str(queries) if queries else None,
+        data=str(data) if data else None,
+        split=split,
+        dataset=dataset,
+        radius=radius,
+    )
+    return quantize_judged(card, graph, inputs, method, budget, search, log or (lambda line: None))
 
 
 @dataclass(frozen=True)

@@ -106,6 +106,48 @@ def _card(model: str, config: str | None):
     return load_card(config or model)
 
 
+def _labelled_data_options(fn):
+    """The labelled data ``eval`` and ``quantize`` score on: drives for place recognition
+    (--database, --queries, --radius) and a labelled set for detection (--data, --split, --dataset)."""
+    options = [
+        click.option(
+            "--database",
+            type=click.Path(file_okay=False),
+            help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.",
+        ),
+        click.option(
+            "--queries",
+            type=click.Path(file_okay=False),
+            help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.",
+        ),
+        click.option(
+            "--radius",
+            default=5.0,
+            show_default=True,
+            type=float,
+            help="m; a retrieved window this close to the query is a true positive (TransLoc4D's evaluation: 25 m).",
+        ),
+        click.option(
+            "--data",
+            "data_root",
+            type=click.Path(file_okay=False),
+            help="Detection (maffnet): a labelled set in the KITTI layout (View-of-Delft radar/ or "
+            "radar_5frames/, TJ4DRadSet, `radaredge make-benchmark --task detection`).",
+        ),
+        click.option(
+            "--split", default="val", show_default=True, help="Detection: the ImageSets/<split>.txt to evaluate."
+        ),
+        click.option(
+            "--dataset",
+            type=click.Choice(["vod", "tj4d"]),
+            help="Detection: the dataset's protocol and scan format (default: from the card's features).",
+        ),
+    ]
+    for option in reversed(options):
+        fn = option(fn)
+    return fn
+
+
 class OneLineUsageErrors(click.Group):
     """click's group, with a usage error (unknown option, bad value, missing option) reported as
     one ``error:`` line and exit code 2, like radaredge's own errors, instead of click's usage block."""
@@ -269,6 +311,12 @@ def card_from_openpcdet(config, dataset_config, out, name, stage_one, cfa, as_js
     help="With --quantize int8: calibration windows, spread evenly over the recording, or synthetic "
     "scenes  [default: 16]",
 )
+@click.option(
+    "--calibration-method",
+    type=click.Choice(["minmax", "percentile", "entropy"]),
+    help="With --quantize int8: how activation ranges are set from the windows (default: the card's "
+    "quantization.calibration, else minmax).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout.")
 @_friendly_errors
 def export(
@@ -282,6 +330,7 @@ def export(
     calibration_dir,
     calibration_format,
     calibration_windows,
+    calibration_method,
     as_json,
 ):
     """Export the whole pipeline (raw points in, result out) to one .onnx per graph with a JSON sidecar."""
@@ -295,6 +344,7 @@ def export(
         calibration=calibration_dir,
         calibration_format=calibration_format,
         calibration_windows=calibration_windows,
+        calibration_method=calibration_method,
         progress=_progress("export"),
         log=_log,
     )
@@ -557,6 +607,56 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, 
     _emit(as_json, result)
 
 
+@main.command("quantize")
+@click.option("--model", required=True, help="Model card name (see `radaredge list`).")
+@click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
+@click.option(
+    "--onnx",
+    "onnx_path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="The fp32 graph, exported with the trained --checkpoint; its int8 copy is written beside it.",
+)
+@_labelled_data_options
+@click.option(
+    "--method",
+    type=click.Choice(["minmax", "percentile", "entropy"]),
+    help="Calibration method (default: the card's quantization.calibration, else minmax).",
+)
+@click.option(
+    "--budget",
+    type=float,
+    help="Points of the task metric (AP, Recall@1 in %) int8 may lose per metric  [default: 1.0]",
+)
+@click.option(
+    "--search",
+    is_flag=True,
+    help="Find the fewest layer groups to keep in fp32 (on top of the card's keep_fp32) that meet the budget.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the whole report as JSON.")
+@_friendly_errors
+def quantize(
+    model, config, onnx_path, data_root, split, dataset, database, queries, radius, method, budget, search, as_json
+):
+    """Write an int8 copy judged by the task metric on labelled data; --search chooses keep_fp32."""
+    report = api.quantize(
+        _card(model, config),
+        onnx_path,
+        data=data_root,
+        split=split,
+        dataset=dataset,
+        database=database,
+        queries=queries,
+        radius=radius,
+        method=method,
+        budget=budget,
+        search=search,
+        log=_log,
+    )
+    _emit(as_json, report)
+    sys.exit(0 if report else 1)
+
+
 @main.command("eval")
 @click.option("--model", required=True, help="Model card name (see `radaredge list`).")
 @click.option(
@@ -566,16 +666,7 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, 
     type=click.Path(),
     help="The .onnx; for a multi-graph model (des4pos) the export directory.",
 )
-@click.option(
-    "--database",
-    type=click.Path(file_okay=False),
-    help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.",
-)
-@click.option(
-    "--queries",
-    type=click.Path(file_okay=False),
-    help="Place recognition: a drive (scans/ + gps.csv) or a directory of drives.",
-)
+@_labelled_data_options
 @click.option(
     "--map",
     "map_path",
@@ -584,28 +675,8 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, 
     "directory of maps (one database of all their cells, every described pose a query). Place "
     "recognition: a place map (`radaredge map build`) as the database, with --no-reference.",
 )
-@click.option(
-    "--data",
-    "data_root",
-    type=click.Path(file_okay=False),
-    help="Detection (maffnet): a labelled set in the KITTI layout (View-of-Delft radar/ or "
-    "radar_5frames/, TJ4DRadSet, `radaredge make-benchmark --task detection`).",
-)
-@click.option("--split", default="val", show_default=True, help="Detection: the ImageSets/<split>.txt to evaluate.")
-@click.option(
-    "--dataset",
-    type=click.Choice(["vod", "tj4d"]),
-    help="Detection: the dataset's protocol and scan format (default: from the card's features).",
-)
 @click.option("--config", type=click.Path(dir_okay=False), help="Card YAML to use instead of the shipped card.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="Must be the weights the .onnx was exported with.")
-@click.option(
-    "--radius",
-    default=5.0,
-    show_default=True,
-    type=float,
-    help="m; a retrieved window this close to the query is a true positive (TransLoc4D's evaluation: 25 m).",
-)
 @click.option("--no-reference", is_flag=True, help="Skip the torch reference formulation.")
 @click.option(
     "--report",

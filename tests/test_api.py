@@ -71,6 +71,7 @@ class _Result:
         ("bench", "bench", ()),
         ("eval", "evaluate", ("--onnx", "x.onnx", "--database", ".", "--queries", ".")),
         ("train", "train", ("--data", ".")),
+        ("quantize", "quantize", ("--onnx", "x.onnx", "--data", ".")),
     ],
 )
 def test_the_cli_calls_the_library_verbs(monkeypatch, command, verb, extra):

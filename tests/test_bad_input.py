@@ -2003,6 +2003,7 @@ def _api_cases():
         "parity",
         "bench",
         "evaluate",
+        "quantize",
         "train",
         "card_from_openpcdet",
         "run",

@@ -131,6 +131,8 @@ def test_quantise_on_a_recording(tiny_export, tmp_path):
     [
         (["--calibration", "REC"], "--calibration: int8 calibration options need --quantize int8"),
         (["--calibration-windows", "4"], "--calibration-windows: int8 calibration options need --quantize int8"),
+        (["--calibration-method", "entropy"], "--calibration-method: int8 calibration options need --quantize int8"),
+        (["--quantize", "int8", "--calibration-method", "kl"], "'kl' is not one of"),
         (["--quantize", "int8", "--calibration-format", "vod"], "add --calibration DIR"),
         (["--quantize", "int8", "--calibration", "MISSING"], "MISSING is not a directory"),
         (["--quantize", "int8", "--calibration", "REC", "--calibration-format", "vod"], "no .bin scan files"),

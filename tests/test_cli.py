@@ -7,6 +7,7 @@ import pytest
 from click.testing import CliRunner
 from conftest import TINY_CARD, assert_parses_in_tensorrt, summary_of
 
+from radaredge import runtime
 from radaredge.cli import main
 
 TINY = str(TINY_CARD)
@@ -161,9 +162,13 @@ def test_bench_profile_comes_from_its_own_session(tmp_path, monkeypatch, tiny_ex
 def test_quantize_export_parity_and_bench(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     onnx = tmp_path / "tiny.onnx"
-    res = invoke("export", "--model", "tdfanet-tiny", "--config", TINY, "--output", str(onnx), "--quantize", "int8")
+    res = invoke(
+        "export", "--model", "tdfanet-tiny", "--config", TINY, "--output", str(onnx), "--quantize", "int8",
+        "--calibration-method", "percentile",
+    )  # fmt: skip
     assert res.exit_code == 0 and "int8 graph" in res.output
     int8 = tmp_path / "tiny.int8.onnx"
+    assert json.loads(runtime.load(int8).metadata["radaredge.quantization"])["calibration"]["method"] == "percentile"
     res = invoke(
         "parity-check", "--model", "tdfanet-tiny", "--config", TINY, "--onnx", str(int8), "--cases", "4", "--quantized"
     )

@@ -151,6 +151,46 @@ def test_keep_fp32_rejects_bad_patterns(tiny_export, tmp_path, patterns, message
         quantize_int8(bad, fp32, tmp_path / "bad.onnx", calibration_cases=2)
 
 
+def _activation_scales(path) -> dict[str, float]:
+    """Activation tensor name -> the int8 graph's scale for it (weights and biases left out)."""
+    graph = onnx.load(str(path)).graph
+    inits = {i.name: onnx.numpy_helper.to_array(i) for i in graph.initializer}
+    return {
+        n.input[0]: float(inits[n.input[1]])
+        for n in graph.node
+        if n.op_type == "QuantizeLinear" and n.input[0] not in inits and inits[n.input[1]].size == 1
+    }
+
+
+def test_calibration_methods_set_the_ranges_and_are_recorded(int8, tiny_export, tmp_path):
+    """percentile (the card's share of values kept) cuts the tails, so no activation range is
+    wider than min/max's and some are narrower; entropy sets other ranges again; each graph's
+    metadata names its method. An unknown method or share is a ConfigError naming the field."""
+    card, _, fp32, minmax_path = int8
+    minmax = _activation_scales(minmax_path)
+    pct_card = parse_card({**card.data, "quantization": {"calibration": "percentile", "percentile": 99.9}})
+    pct_path = quantize_int8(pct_card, fp32, tmp_path / "pct.onnx", calibration_cases=6)
+    pct = _activation_scales(pct_path)
+    assert pct.keys() == minmax.keys()
+    assert all(pct[k] <= minmax[k] * (1 + 1e-6) for k in pct) and any(pct[k] < 0.9 * minmax[k] for k in pct)
+    calibration = json.loads(runtime.load(pct_path).metadata["radaredge.quantization"])["calibration"]
+    assert (calibration["method"], calibration["percentile"]) == ("percentile", 99.9)
+    entropy_path = quantize_int8(card, fp32, tmp_path / "entropy.onnx", calibration_cases=2, method="entropy")
+    assert _activation_scales(entropy_path) != minmax
+    assert json.loads(runtime.load(entropy_path).metadata["radaredge.quantization"])["calibration"]["method"] == (
+        "entropy"
+    )
+    assert json.loads(runtime.load(minmax_path).metadata["radaredge.quantization"])["calibration"]["method"] == (
+        "minmax"
+    )
+    for section, message in [
+        ({"calibration": "kl"}, "quantization.calibration is 'kl'; expected one of"),
+        ({"calibration": "percentile", "percentile": 40}, "quantization.percentile must be a number in"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            quantize_int8(parse_card({**card.data, "quantization": section}), fp32, tmp_path / "bad.onnx")
+
+
 def test_quantised_parity_budget(int8):
     card, model, _, path = int8
     report = radaredge.parity(card, path, model=model, cases=8, seed=4, quantized=True)

@@ -24,7 +24,9 @@ and get full 8-bit weights. Measurements: benchmarks/README.md.
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
+import io
 import json
 import tempfile
 from dataclasses import dataclass
@@ -34,6 +36,7 @@ from typing import Callable
 import onnx
 import onnxruntime as ort
 from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_dynamic, quantize_static
+from onnxruntime.quantization.calibrate import TensorsData, create_calibrator, save_tensors_data
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from ..artifacts import INT8, copy_path
@@ -48,6 +51,14 @@ from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_fe
 from .graphs import save_stamped
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
+# ``quantization.calibration`` / ``--calibration-method``: how activation ranges are set from the
+# calibration windows (onnxruntime's calibrators).
+CALIBRATION_METHODS = {
+    "minmax": CalibrationMethod.MinMax,  # the lowest and highest value seen
+    "percentile": CalibrationMethod.Percentile,  # both tails cut at quantization.percentile
+    "entropy": CalibrationMethod.Entropy,  # the range whose int8 histogram keeps the most information (KL)
+}
+DEFAULT_PERCENTILE = 99.999
 
 
 def carry_metadata(fp32_path: str | Path, out_path: str | Path, quantization: dict) -> None:
@@ -141,6 +152,48 @@ def optimise_without_folding(fp32_path: str | Path, out_path: str | Path) -> Pat
     return Path(out_path)
 
 
+def calibration_method_of(card: ModelCard, override: str | None = None) -> str:
+    """``override`` (``--calibration-method``) or the card's ``quantization.calibration``
+    (default minmax); ConfigError naming the card or option for an unknown method, or for the
+    percentile method with an invalid ``quantization.percentile``."""
+    where = "--calibration-method" if override is not None else f"card {card.name!r}: quantization.calibration"
+    value = override if override is not None else card.get("quantization.calibration", "minmax")
+    if value not in CALIBRATION_METHODS:
+        raise ConfigError(f"{where} is {value!r}; expected one of {sorted(CALIBRATION_METHODS)}")
+    if value == "percentile":
+        percentile(card)  # its share is checked with it, before any export
+    return value
+
+
+def percentile(card: ModelCard) -> float:
+    """The card's ``quantization.percentile`` (default 99.999): the share of an activation's values,
+    in percent, that the percentile method's range keeps."""
+    value = card.get("quantization.percentile", DEFAULT_PERCENTILE)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 50 < value <= 100:
+        raise ConfigError(f"card {card.name!r}: quantization.percentile must be a number in (50, 100], got {value!r}")
+    return float(value)
+
+
+def activation_ranges(pre: Path, feeds: list, method: str, kept_percentile: float, work: Path) -> TensorsData:
+    """The activation range of every tensor onnxruntime quantises in the graph at ``pre``, from
+    ``feeds`` by ``method`` (:data:`CALIBRATION_METHODS`). Windows are collected one at a time:
+    a radar graph's point-count dependent tensors change shape from window to window, which
+    onnxruntime's histogram calibrators cannot stack. Percentile keeps ``kept_percentile`` % of
+    the values of both signs (asymmetric, as the uint8 activations are)."""
+    options = {"symmetric": False, "percentile": kept_percentile}
+    calibrator = create_calibrator(
+        pre,
+        list(QUANTIZED_OPS),
+        augmented_model_path=str(work / "augmented.onnx"),
+        calibrate_method=CALIBRATION_METHODS[method],
+        extra_options=options,
+    )
+    with contextlib.redirect_stdout(io.StringIO()):  # the histogram calibrators print their progress
+        for feed in feeds:
+            calibrator.collect_data(FeedList([feed]))
+        return calibrator.compute_data()
+
+
 def reduce_range(card: ModelCard) -> bool:
     """The card's ``quantization.reduce_range``: quantise weights to 7 bits (default true)."""
     value = card.get("quantization.reduce_range", True)
@@ -158,6 +211,7 @@ def quantize_int8(
     calibration_dir: str | Path | None = None,
     calibration_format: str | None = None,
     graph: GraphSpec | None = None,
+    method: str | None = None,
 ) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
@@ -165,14 +219,16 @@ def quantize_int8(
     drawn with ``seed``, or with ``calibration_dir`` windows of that recording
     (:mod:`radaredge.exporting.calibration`; its scan format ``calibration_format`` or inferred). The seed
     differs from the parity and bench seeds, so parity is checked on data the calibration did
-    not see. Activation ranges are min/max calibrated: percentile and entropy ranges (collected
-    one window at a time, since the point-count dependent tensors differ in shape between
-    windows) were less accurate on both TDFANet and MAFF-Net. The layers of the card's
+    not see. Activation ranges come from ``method`` (default the card's
+    ``quantization.calibration``, min/max unless it says otherwise; :func:`activation_ranges`),
+    which the int8 graph's metadata records. The layers of the card's
     ``quantization.keep_fp32`` modules stay fp32; ``quantization.reduce_range`` is the module
     docstring's weight range. ``graph`` is the graph's spec (default: the card's only graph).
     """
     fp32_path, out_path = Path(fp32_path), Path(out_path)
     patterns, seven_bit = keep_fp32_patterns(card), reduce_range(card)
+    method = calibration_method_of(card, method)
+    kept = percentile(card)
     keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
     calibration_cases = DEFAULT_WINDOWS if calibration_cases is None else calibration_cases
     if calibration_dir is None:
@@ -188,17 +244,20 @@ def quantize_int8(
         try:
             optimise_without_folding(fp32_path, pre)
             excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
+            ranges = Path(tmp) / "ranges.json"
+            save_tensors_data(activation_ranges(pre, feeds, method, kept, Path(tmp)), ranges)
             quantize_static(
                 str(pre),
                 str(out_path),
-                FeedList(feeds),
+                None,
+                calibration_cache_path=ranges,
                 quant_format=QuantFormat.QDQ,
                 per_channel=True,
                 op_types_to_quantize=list(QUANTIZED_OPS),
                 weight_type=QuantType.QInt8,
                 activation_type=QuantType.QUInt8,
                 reduce_range=seven_bit,
-                calibrate_method=CalibrationMethod.MinMax,
+                calibrate_method=CALIBRATION_METHODS[method],
                 nodes_to_exclude=excluded,
             )
         except Exception as exc:
@@ -212,7 +271,7 @@ def quantize_int8(
             "activations": "uint8",
             "ops": list(QUANTIZED_OPS),
             "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
-            "calibration": {**source, "method": "minmax"},
+            "calibration": {**source, "method": method, **({"percentile": kept} if method == "percentile" else {})},
         },
     )
     return out_path
@@ -260,12 +319,14 @@ def quantize_dynamic_int8(fp32_path: str | Path, out_path: str | Path, seven_bit
 
 @dataclass(frozen=True)
 class Int8Options:
-    """``export --quantize int8`` settings: calibration windows (default ``DEFAULT_WINDOWS``)
-    and, to calibrate on a recording instead of synthetic scenes, its directory and format."""
+    """``export --quantize int8`` settings: calibration windows (default ``DEFAULT_WINDOWS``),
+    to calibrate on a recording instead of synthetic scenes its directory and format, and the
+    calibration method (default the card's, :func:`calibration_method_of`)."""
 
     windows: int | None = None
     calibration_dir: str | Path | None = None
     calibration_format: str | None = None
+    method: str | None = None
 
 
 def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
@@ -280,6 +341,7 @@ def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], option
             calibration_dir=options.calibration_dir,
             calibration_format=options.calibration_format,
             graph=g,
+            method=options.method,
         )
         for g in spec.graphs
         if spec.int8.quantises(g.name)
