@@ -18,9 +18,10 @@ from radaredge import atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
-# An absolute path under one of the roots a machine keeps work in (not "m/s", not a URL).
+# An absolute path under one of the roots a machine keeps work in (not "m/s", not a URL, not a
+# path this module already shortened to "…/scratch/set").
 MACHINE_PATH = re.compile(
-    r"(?<![\w.~/-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/"
+    r"(?<![\w.~/…-])/(?:tmp|work|root|home|mnt|var|opt|scratch|Users|private)/"
     r"[^\s\"'`,;()\[\]{}<>|]*"
 )
 
