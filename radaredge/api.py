@@ -432,8 +432,8 @@ def bench(
     ``int8=True`` writes the copies first when missing (the model's int8 policy), and a path
     names one graph's int8 copy. ``reference``: time the torch reference formulation too;
     ``openvino``: add OpenVINO rows (None: when installed); ``profile`` adds onnxruntime's top
-    ops. ``save``: the report is also written there as JSON (checked before the runs, never
-    over an input)."""
+    ops and heaviest nodes, of the int8 copies too. ``save``: the report is also written there as
+    JSON (checked before the runs, never over an input)."""
     from .benchmarking.harness import BenchOptions, time_model
     from .models.factory import create_model
     from .runtime.session import checked_threads

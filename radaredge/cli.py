@@ -467,7 +467,9 @@ def parity_check(
     help=f"Time the int8 copies too, writing them first when missing; with PATH, that int8 graph "
     f"(default: each {artifacts.describe(artifacts.INT8)} that exists).",
 )
-@click.option("--profile", is_flag=True, help="Print onnxruntime's top ops by time.")
+@click.option(
+    "--profile", is_flag=True, help="Print onnxruntime's top ops and heaviest nodes by time, of the int8 copy too."
+)
 @click.option(
     "--openvino/--no-openvino",
     default=None,

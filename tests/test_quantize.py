@@ -285,3 +285,38 @@ def test_keep_fp32_covers_a_module_traced_without_its_parents_scope(maffnet_tiny
     assert not any("vfe" in module_names(n) for n in nodes if n.name in under["vfe"])  # no scope of its own
     for pattern, names in under.items():
         assert fp32_node_names(model, [pattern]) == names
+
+
+def test_a_relu_after_a_quantised_layer_is_folded_into_it(maffnet_tiny_export):
+    """No DequantizeLinear -> Relu -> QuantizeLinear between two quantised layers: the Relu is folded
+    into the layer before it, so onnxruntime chains the layers in uint8; the metadata says so."""
+    card, onnx_path = maffnet_tiny_export
+    int8_path = onnx_path.with_name("maffnet-tiny.int8.onnx")
+    graph = onnx.load(str(int8_path)).graph
+    producers = {o: n for n in graph.node for o in n.output}
+    fp32_relus = sum(n.op_type == "Relu" for n in onnx.load(str(onnx_path), load_external_data=False).graph.node)
+    relus = [n for n in graph.node if n.op_type == "Relu"]
+    assert len(relus) < fp32_relus  # some were folded
+    for relu in relus:  # those left read an fp32 tensor, not a dequantised one
+        assert producers[relu.input[0]].op_type != "DequantizeLinear", relu.name
+    quantization = runtime.load(int8_path, threads=1).info.quantization
+    assert quantization["fused_activations"] == ["Relu"]
+
+
+def test_bench_profiles_the_int8_copy_too(maffnet_tiny_export):
+    """bench --profile: the int8 copy's top ops and heaviest nodes beside the fp32 graph's, where
+    int8's speed is won or lost."""
+    from conftest import invoke
+
+    card, onnx_path = maffnet_tiny_export
+    res = invoke(
+        "bench", "--model", "maffnet-tiny", "--config", card, "--onnx", onnx_path,
+        "--runs", "3", "--warmup", "1", "--no-reference", "--no-openvino", "--profile", "--json",
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    graph = json.loads(res.stdout)["graphs"]["maffnet"]
+    assert "QLinearConv" in {op for op, _ in graph["int8_top_ops"]}
+    assert "QLinearConv" not in {op for op, _ in graph["top_ops"]}
+    for nodes in (graph["top_nodes"], graph["int8_top_nodes"]):
+        assert len(nodes) == 5 and all(ms > 0 for _, _, ms in nodes)
+        assert [ms for _, _, ms in nodes] == sorted((ms for _, _, ms in nodes), reverse=True)

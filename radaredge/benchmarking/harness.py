@@ -30,7 +30,7 @@ from ..exporting.quantize import Int8Options, make_int8_copies
 from ..models.spec import BenchTask
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import lazy_runner
-from .profiling import onnxruntime_peak_rss_mb, profile_runs, stage_times_from_profile, top_ops
+from .profiling import onnxruntime_peak_rss_mb, profile_runs, stage_times_from_profile, top_nodes, top_ops
 from .timing import BackendResult, benchmark, cpu_name, format_differences, output_differences, pinned, results_table
 
 
@@ -95,11 +95,15 @@ class TaskResult:
 
 @dataclass
 class GraphExtras:
-    """Per graph: stage split (ms), top onnxruntime ops (ms per run), peak RSS (MiB) of an
-    onnxruntime-only process, OpenVINO's largest output difference from onnxruntime."""
+    """Per graph: stage split (ms), top onnxruntime ops and nodes (kernel ms per run) of the graph
+    and of its int8 copy when one is timed, peak RSS (MiB) of an onnxruntime-only process,
+    OpenVINO's largest output difference from onnxruntime."""
 
     stage_ms: dict | None = None
     top_ops: list | None = None
+    top_nodes: list | None = None
+    int8_top_ops: list | None = None
+    int8_top_nodes: list | None = None
     peak_rss_mib: float | None = None
     openvino_max_abs: dict | None = None
     profiled_runs: int = 0
@@ -138,6 +142,9 @@ class BenchReport:
                 n: {
                     "stage_ms": g.stage_ms,
                     "top_ops": g.top_ops,
+                    "top_nodes": g.top_nodes,
+                    "int8_top_ops": g.int8_top_ops,
+                    "int8_top_nodes": g.int8_top_nodes,
                     "onnxruntime_peak_rss_mib": g.peak_rss_mib,
                     "openvino_vs_onnxruntime_max_abs": g.openvino_max_abs,
                 }
@@ -185,12 +192,16 @@ class BenchReport:
                     f"{label}onnxruntime peak RSS: {g.peak_rss_mib:.0f} MiB (a separate numpy + onnxruntime "
                     f"process running the bench inputs once)"
                 )
-            if g.top_ops:
-                out.append(
-                    f"{label}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a "
-                    "separately profiled session; the profiler slows small ops):"
-                )
-                out += [f"  {op:<24}{ms:10.1f}" for op, ms in g.top_ops]
+            for kind, ops, nodes in (("", g.top_ops, g.top_nodes), ("int8 copy ", g.int8_top_ops, g.int8_top_nodes)):
+                if ops:
+                    out.append(
+                        f"{label}{kind}onnxruntime top ops (kernel ms per run, from {g.profiled_runs} runs in a "
+                        "separately profiled session; the profiler slows small ops):"
+                    )
+                    out += [f"  {op:<24}{ms:10.1f}" for op, ms in ops]
+                if nodes:
+                    out.append(f"{label}{kind}heaviest nodes (kernel ms per run):")
+                    out += [f"  {node[:48]:<50}{op:<16}{ms:8.1f}" for node, op, ms in nodes]
         return out
 
 
@@ -290,7 +301,8 @@ def time_model(
     alternating every run. ``onnx`` (the bundle, default the export path) is exported first when
     missing. Each graph's int8 copy beside it is timed too when it exists; ``int8=True`` writes
     the copies first when missing (the model's int8 policy), and a path names one graph's int8
-    copy (:func:`int8_copies`). ``profile`` adds onnxruntime's top ops; the per-stage split is
+    copy (:func:`int8_copies`). ``profile`` adds onnxruntime's top ops and heaviest nodes, of the
+    int8 copies too; the per-stage split is
     added for graphs that name their stages. The arguments are checked by
     :func:`radaredge.api.bench`, the verb that calls this."""
     say = options.log
@@ -339,7 +351,11 @@ def _timed_report(card, spec, model, paths, options: BenchOptions, profile, prog
         extras.stage_ms = _stage_ms(g, g.module(model), cases, n_profiled, options.reference, paths[g.name], events)
         extras.peak_rss_mib = onnxruntime_peak_rss_mb(paths[g.name], cases, options.threads)
         if profile:
-            extras.top_ops = top_ops(events, runs=n_profiled)
+            extras.top_ops, extras.top_nodes = top_ops(events, runs=n_profiled), top_nodes(events, runs=n_profiled)
+            if g.name in (options.int8 or {}):
+                int8_events = profile_runs(options.int8[g.name], cases, options.threads, n_profiled)
+                extras.int8_top_ops = top_ops(int8_events, runs=n_profiled)
+                extras.int8_top_nodes = top_nodes(int8_events, runs=n_profiled)
         report.graphs[g.name] = extras
     return report
 

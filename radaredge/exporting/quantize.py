@@ -1,11 +1,12 @@
 """INT8 post-training quantisation of exported graphs: onnxruntime static QDQ (the default for
 every graph of a model) and dynamic int8 (weights only, for a model that asks for it).
 
-Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm, with per-channel int8
-weights and uint8 activations calibrated on synthetic radar windows or on a recording of the
-user's sensor (:mod:`radaredge.exporting.calibration`). Everything else stays
-fp32. That covers preprocessing (range crop, pillar scatter indices), the ego-velocity RANSAC
-(float64 in the graph, never touched), alignment and deformable-attention sampling
+Only the network's heavy linear ops are quantised, Conv, MatMul and Gemm (a Relu after one folded
+into it, :data:`FUSED_ACTIVATIONS`), with per-channel int8 weights and uint8 activations
+calibrated on synthetic radar windows or on a recording of the user's sensor
+(:mod:`radaredge.exporting.calibration`). Everything else stays fp32. That covers preprocessing
+(range crop, pillar scatter indices), the ego-velocity RANSAC (float64 in the graph, never
+touched), alignment and deformable-attention sampling
 (GridSample) and the index math. A card can keep more in fp32: the Conv/MatMul/Gemm layers of
 the modules it lists under ``quantization.keep_fp32`` (module names as in the state dict, ``*``
 matching any run of characters, submodules included), for layers whose int8 error the model
@@ -51,6 +52,12 @@ from .calibration import DEFAULT_WINDOWS, FeedList, recorded_feeds, synthetic_fe
 from .graphs import save_stamped
 
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
+# A Relu on a quantised layer's output is folded into that layer (its uint8 output range starts
+# at 0): the layers then chain in uint8 and onnxruntime runs consecutive QLinearConvs in NHWC
+# without a DequantizeLinear -> Relu -> QuantizeLinear between them. A Relu whose input stays
+# fp32 (a keep_fp32 layer's) is left as it is.
+FUSED_ACTIVATIONS = ("Relu",)
+QUANTIZED_OP_TYPES = QUANTIZED_OPS + FUSED_ACTIVATIONS
 # ``quantization.calibration`` / ``--calibration-method``: how activation ranges are set from the
 # calibration windows (onnxruntime's calibrators).
 CALIBRATION_METHODS = {
@@ -183,7 +190,7 @@ def activation_ranges(pre: Path, feeds: list, method: str, kept_percentile: floa
     options = {"symmetric": False, "percentile": kept_percentile}
     calibrator = create_calibrator(
         pre,
-        list(QUANTIZED_OPS),
+        list(QUANTIZED_OP_TYPES),
         augmented_model_path=str(work / "augmented.onnx"),
         calibrate_method=CALIBRATION_METHODS[method],
         extra_options=options,
@@ -253,7 +260,7 @@ def quantize_int8(
                 calibration_cache_path=ranges,
                 quant_format=QuantFormat.QDQ,
                 per_channel=True,
-                op_types_to_quantize=list(QUANTIZED_OPS),
+                op_types_to_quantize=list(QUANTIZED_OP_TYPES),
                 weight_type=QuantType.QInt8,
                 activation_type=QuantType.QUInt8,
                 reduce_range=seven_bit,
@@ -270,6 +277,7 @@ def quantize_int8(
             "weights": "int8 per-channel, 7-bit range" if seven_bit else "int8 per-channel",
             "activations": "uint8",
             "ops": list(QUANTIZED_OPS),
+            "fused_activations": list(FUSED_ACTIVATIONS),
             "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
             "calibration": {**source, "method": method, **({"percentile": kept} if method == "percentile" else {})},
         },
