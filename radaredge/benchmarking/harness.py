@@ -302,8 +302,8 @@ def time_model(
     missing. Each graph's int8 copy beside it is timed too when it exists; ``int8=True`` writes
     the copies first when missing (the model's int8 policy), and a path names one graph's int8
     copy (:func:`int8_copies`). ``profile`` adds onnxruntime's top ops and heaviest nodes, of the
-    int8 copies too; the per-stage split is
-    added for graphs that name their stages. The arguments are checked by
+    int8 copies too; the per-stage split is added for graphs that name their stages. The
+    arguments are checked by
     :func:`radaredge.api.bench`, the verb that calls this."""
     say = options.log
     names = tuple(g.name for g in spec.graphs)

@@ -195,24 +195,28 @@ def onnxruntime_peak_rss_mb(onnx_path, cases: list[dict], threads: int) -> float
     return int(done.stdout.split()[-1]) / 1024.0  # VmHWM and Linux ru_maxrss are in KiB
 
 
-def top_nodes(events: list[dict], k: int = 5, runs: int = 1) -> list[tuple[str, str, float]]:
-    """The ``k`` nodes with the most kernel time in the onnxruntime profile events of ``runs`` runs
-    (:func:`profile_runs`): (node name, op type, ms per run), the heaviest first. The layer that
-    dominates a graph is where an int8 copy gains or loses its speed."""
+def node_kernel_ms(events: list[dict], runs: int = 1) -> dict[tuple[str, str], float]:
+    """(node name, op type) -> kernel ms per run, from the onnxruntime profile events of ``runs``
+    runs (:func:`profile_runs`)."""
     tot: dict[tuple[str, str], float] = {}
     for e in events:
         if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
             key = (e["name"][: -len("_kernel_time")], e.get("args", {}).get("op_name", "?"))
             tot[key] = tot.get(key, 0.0) + e.get("dur", 0) / 1e3 / runs
-    return [(node, op, ms) for (node, op), ms in sorted(tot.items(), key=lambda kv: -kv[1])[:k]]
+    return tot
+
+
+def top_nodes(events: list[dict], k: int = 5, runs: int = 1) -> list[tuple[str, str, float]]:
+    """The ``k`` nodes with the most kernel time (:func:`node_kernel_ms`): (node name, op type, ms
+    per run), the heaviest first. The layer that dominates a graph is where an int8 copy gains or
+    loses its speed."""
+    ranked = sorted(node_kernel_ms(events, runs).items(), key=lambda kv: -kv[1])[:k]
+    return [(node, op, ms) for (node, op), ms in ranked]
 
 
 def top_ops(events: list[dict], k: int = 10, runs: int = 1) -> list[tuple[str, float]]:
-    """Top ``k`` op types by kernel time from the onnxruntime profile events of ``runs`` runs
-    (:func:`profile_runs`), in ms per run."""
+    """Top ``k`` op types by kernel time (:func:`node_kernel_ms`), in ms per run."""
     tot: dict[str, float] = {}
-    for e in events:
-        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
-            op = e.get("args", {}).get("op_name", "?")
-            tot[op] = tot.get(op, 0.0) + e.get("dur", 0) / 1e3 / runs
+    for (_, op), ms in node_kernel_ms(events, runs).items():
+        tot[op] = tot.get(op, 0.0) + ms
     return sorted(tot.items(), key=lambda kv: -kv[1])[:k]
