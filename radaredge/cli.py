@@ -102,6 +102,13 @@ def _emit(as_json: bool, result) -> None:
             click.echo(line)
 
 
+def _emit_and_exit(as_json: bool, report) -> None:
+    """:func:`_emit` the report, then exit 0 when it holds (its truth: every backend ran, every
+    output passed, within budget), else 1."""
+    _emit(as_json, report)
+    sys.exit(0 if report else 1)
+
+
 def _card(model: str, config: str | None):
     return load_card(config or model)
 
@@ -439,8 +446,7 @@ def parity_check(
         data_format=data_format,
         progress=_progress,
     )
-    _emit(as_json, report)
-    sys.exit(0 if report else 1)
+    _emit_and_exit(as_json, report)
 
 
 @main.command()
@@ -515,8 +521,7 @@ def bench(
         progress=_progress,
         log=_log,
     )
-    _emit(as_json, report)
-    sys.exit(0 if report else 1)
+    _emit_and_exit(as_json, report)
 
 
 @main.command("make-benchmark")
@@ -655,8 +660,7 @@ def quantize(
         search=search,
         log=_log,
     )
-    _emit(as_json, report)
-    sys.exit(0 if report else 1)
+    _emit_and_exit(as_json, report)
 
 
 @main.command("eval")
