@@ -1456,6 +1456,14 @@ def _difference_cell(d: dict) -> str:
     return f"{d['3d']:+.2f} [{low:+.2f}, {high:+.2f}]"
 
 
+def _method_label(method: str, row: dict) -> str:
+    """A calibration method's name; a ``--qat`` fine-tune's row names its weights and says that
+    its int8 graph is compared with the original weights' fp32 graph."""
+    if "qat_fp32" not in row:
+        return f"`{method}`"
+    return f"`train --qat` (weights `{row['checkpoint_sha256'][:12]}`; int8 vs the original fp32)"
+
+
 def int8_methods_lines(r: Result) -> list[str]:
     """One int8-methods file (benchmarks/int8_methods.py): the fp32 graph's AP, then every
     calibration method's int8 - fp32 3D AP per class (paired 95 % interval) and verdict."""
@@ -1472,7 +1480,7 @@ def int8_methods_lines(r: Result) -> list[str]:
         "",
     ]
     rows = [
-        [f"`{m}`"]
+        [_method_label(m, v)]
         + [_difference_cell(v["int8_minus_fp32"][c]) for c in classes]
         + [v["verdict"], f"`{v['export_command']}`"]
         for m, v in methods.items()

@@ -204,14 +204,16 @@ def export(
     with a JSON sidecar each; ``debug`` adds each graph's debug copy, ``quantize="int8"`` the
     model's int8 copies (calibrated on ``calibration``, a recording of the user's sensor, or on
     synthetic scenes; ``calibration_windows`` windows; activation ranges by ``calibration_method``,
-    default the card's ``quantization.calibration``). ``model`` reuses a built model (its
+    default the card's ``quantization.calibration``, except those a ``radaredge train --qat``
+    checkpoint learned). ``model`` reuses a built model (its
     weights must be the checkpoint's). ``log`` receives progress lines."""
     import onnx
 
     from .exporting.calibration import DEFAULT_WINDOWS, recorded_feeds
     from .exporting.graphs import write_export
     from .exporting.onnx_call import DEFAULT_OPSET
-    from .exporting.quantize import Int8Options, calibration_method_of, make_int8_copies
+    from .exporting.quantize import Int8Options, calibration_method_of, check_qat_settings, make_int8_copies
+    from .models.checkpoints import read_qat_entry
     from .models.factory import create_model
     from .runtime.model import FrameFeeds
 
@@ -243,6 +245,9 @@ def export(
         )
     if model is None:
         model = create_model(card, checkpoint, spec)  # card and checkpoint errors first, then the output's
+    qat = read_qat_entry(checkpoint) if quantize and spec.int8.calibrated and checkpoint is not None else None
+    if qat is not None:
+        check_qat_settings(card, qat, str(checkpoint))
     graph_names = _graph_names(spec)
     bundle = artifacts.Bundle.for_output(name, graph_names, output)
     root, written, manifest = bundle.root, bundle.files(), bundle.manifest
@@ -265,7 +270,7 @@ def export(
                 card,
                 spec,
                 paths,
-                Int8Options(calibration_windows, calibration, calibration_format, calibration_method),
+                Int8Options(calibration_windows, calibration, calibration_format, calibration_method, qat),
             )
 
     graphs, int8_paths = write_export(

@@ -817,6 +817,12 @@ def eval_cmd(
     help="ROS bag drives: -1 when the sensor's Doppler is positive approaching.",
 )
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+@click.option(
+    "--qat",
+    is_flag=True,
+    help="MAFF-Net, TDFANet: quantisation-aware fine-tuning of --checkpoint with the int8 export's fake "
+    "quantisation; `export --quantize int8 --checkpoint` then takes the learned ranges.",
+)
 @click.option("--resume", is_flag=True, help="Continue the run in --output after its last finished epoch.")
 @click.option(
     "--overwrite",
@@ -845,6 +851,7 @@ def train(
     field_map,
     doppler_sign,
     device,
+    qat,
     resume,
     overwrite,
     as_json,
@@ -862,6 +869,7 @@ def train(
                 ("lr", lr),
                 ("seed", seed),
                 ("freeze", ",".join(freeze) or None),
+                ("qat", qat or None),
             )
             if v is not None
         }

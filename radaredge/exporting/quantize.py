@@ -30,14 +30,16 @@ import fnmatch
 import io
 import json
 import tempfile
+from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import onnx
 import onnxruntime as ort
 from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_dynamic, quantize_static
-from onnxruntime.quantization.calibrate import TensorsData, create_calibrator, save_tensors_data
+from onnxruntime.quantization.calibrate import TensorData, TensorsData, create_calibrator, save_tensors_data
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from ..artifacts import INT8, copy_path
@@ -201,6 +203,59 @@ def activation_ranges(pre: Path, feeds: list, method: str, kept_percentile: floa
         return calibrator.compute_data()
 
 
+def check_qat_settings(card: ModelCard, qat: dict, checkpoint: str) -> None:
+    """ConfigError when ``card``'s int8 settings (weight range, fp32 layers) are not those the
+    ``--qat`` checkpoint ``checkpoint`` was fine-tuned for (:func:`radaredge.models.checkpoints.read_qat_entry`)."""
+    mine = {"reduce_range": reduce_range(card), "keep_fp32": keep_fp32_patterns(card)}
+    differ = [k for k, v in mine.items() if qat[k] != v]
+    if differ:
+        raise ConfigError(
+            f"--checkpoint {checkpoint} was fine-tuned with fake quantisation for "
+            + ", ".join(f"quantization.{k} = {qat[k]!r}" for k in differ)
+            + f"; card {card.name!r} says "
+            + ", ".join(f"{mine[k]!r}" for k in differ)
+            + ": export with the card it was trained with, or fine-tune again"
+        )
+
+
+def learned_tensor_ranges(pre: onnx.ModelProto, fp32: onnx.ModelProto, learned: dict) -> dict[str, list[float]]:
+    """The activation ranges a ``--qat`` checkpoint learned (``learned``: layer name -> "input" /
+    "output" [min, max], :mod:`radaredge.training.qat`) as tensor name -> [min, max] of the
+    pre-processed graph ``pre``: a quantised node made from an exported node traced inside a
+    learned layer (``fp32``'s module scopes) takes the layer's input range for its first input,
+    and a Conv its output range for its output and for the output of a Relu that follows it (the
+    tensor whose range the folded Relu quantises with)."""
+    scopes = {n.name: module_names(n) for n in fp32.graph.node if n.op_type in QUANTIZED_OPS}
+    consumers = defaultdict(list)
+    for node in pre.graph.node:
+        for name in node.input:
+            consumers[name].append(node)
+    out: dict[str, list[float]] = {}
+    for node in pre.graph.node:
+        if node.op_type not in QUANTIZED_OPS:
+            continue
+        layer = next((n for n in reversed(scopes.get(fused_from(node.name), [])) if n in learned), None)
+        if layer is None:
+            continue
+        ranges = learned[layer]
+        if "input" in ranges:
+            out[node.input[0]] = ranges["input"]
+        if "output" in ranges and node.op_type == "Conv":
+            out[node.output[0]] = ranges["output"]
+            out.update({c.output[0]: ranges["output"] for c in consumers[node.output[0]] if c.op_type == "Relu"})
+    return out
+
+
+def override_ranges(data: TensorsData, learned: dict[str, list[float]]) -> int:
+    """Replace the calibrated ranges of ``data`` by the ``learned`` ones (tensor name -> [min,
+    max]) for the tensors it holds; the number replaced."""
+    hits = [name for name in learned if name in data]
+    for name in hits:
+        lo, hi = learned[name]
+        data.data[name] = TensorData(lowest=np.float32(lo), highest=np.float32(hi))
+    return len(hits)
+
+
 def reduce_range(card: ModelCard) -> bool:
     """The card's ``quantization.reduce_range``: quantise weights to 7 bits (default true)."""
     value = card.get("quantization.reduce_range", True)
@@ -219,6 +274,7 @@ def quantize_int8(
     calibration_format: str | None = None,
     graph: GraphSpec | None = None,
     method: str | None = None,
+    qat: dict | None = None,
 ) -> Path:
     """Write an int8 QDQ copy of ``fp32_path`` to ``out_path``.
 
@@ -231,12 +287,16 @@ def quantize_int8(
     which the int8 graph's metadata records. The layers of the card's
     ``quantization.keep_fp32`` modules stay fp32; ``quantization.reduce_range`` is the module
     docstring's weight range. ``graph`` is the graph's spec (default: the card's only graph).
+    ``qat``, a ``--qat`` checkpoint's entry (:func:`radaredge.models.checkpoints.read_qat_entry`),
+    gives the ranges fake-quantised training learned, which replace the calibrated ones of
+    their tensors (:func:`learned_tensor_ranges`); the metadata says how many.
     """
     fp32_path, out_path = Path(fp32_path), Path(out_path)
     patterns, seven_bit = keep_fp32_patterns(card), reduce_range(card)
     method = calibration_method_of(card, method)
     kept = percentile(card)
-    keep = fp32_node_names(onnx.load(str(fp32_path), load_external_data=False), patterns, card.name)
+    fp32_model = onnx.load(str(fp32_path), load_external_data=False)
+    keep = fp32_node_names(fp32_model, patterns, card.name)
     calibration_cases = DEFAULT_WINDOWS if calibration_cases is None else calibration_cases
     if calibration_dir is None:
         feeds = synthetic_feeds(card, calibration_cases, seed, graph)
@@ -250,9 +310,13 @@ def quantize_int8(
         pre = Path(tmp) / "pre.onnx"
         try:
             optimise_without_folding(fp32_path, pre)
-            excluded = _optimised_names(onnx.load(str(pre), load_external_data=False), keep)
+            pre_model = onnx.load(str(pre), load_external_data=False)
+            excluded = _optimised_names(pre_model, keep)
             ranges = Path(tmp) / "ranges.json"
-            save_tensors_data(activation_ranges(pre, feeds, method, kept, Path(tmp)), ranges)
+            data = activation_ranges(pre, feeds, method, kept, Path(tmp))
+            learned = override_ranges(data, learned_tensor_ranges(pre_model, fp32_model, qat["ranges"])) if qat else 0
+            calibrated = len(data.data) - learned
+            save_tensors_data(data, ranges)
             quantize_static(
                 str(pre),
                 str(out_path),
@@ -280,6 +344,7 @@ def quantize_int8(
             "fused_activations": list(FUSED_ACTIVATIONS),
             "keep_fp32": {"modules": patterns, "nodes": len(excluded)},
             "calibration": {**source, "method": method, **({"percentile": kept} if method == "percentile" else {})},
+            **({"qat": {"layers": len(qat["ranges"]), "tensors": learned, "calibrated": calibrated}} if qat else {}),
         },
     )
     return out_path
@@ -328,13 +393,15 @@ def quantize_dynamic_int8(fp32_path: str | Path, out_path: str | Path, seven_bit
 @dataclass(frozen=True)
 class Int8Options:
     """``export --quantize int8`` settings: calibration windows (default ``DEFAULT_WINDOWS``),
-    to calibrate on a recording instead of synthetic scenes its directory and format, and the
-    calibration method (default the card's, :func:`calibration_method_of`)."""
+    to calibrate on a recording instead of synthetic scenes its directory and format, the
+    calibration method (default the card's, :func:`calibration_method_of`) and a ``--qat``
+    checkpoint's learned ranges."""
 
     windows: int | None = None
     calibration_dir: str | Path | None = None
     calibration_format: str | None = None
     method: str | None = None
+    qat: dict | None = None  # a --qat checkpoint's entry: its learned ranges replace calibrated ones
 
 
 def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], options: Int8Options) -> dict[str, Path]:
@@ -350,6 +417,7 @@ def static_int8(card: ModelCard, spec: ModelSpec, paths: dict[str, Path], option
             calibration_format=options.calibration_format,
             graph=g,
             method=options.method,
+            qat=options.qat,
         )
         for g in spec.graphs
         if spec.int8.quantises(g.name)

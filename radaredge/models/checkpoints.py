@@ -11,6 +11,7 @@ of the models.
 
 from __future__ import annotations
 
+import math
 import pickletools
 import warnings
 import zipfile
@@ -79,10 +80,9 @@ def read_state_dict(path: str | Path) -> dict:
     return read_checkpoint(path)[0]
 
 
-def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
-    """(the state_dict of :func:`read_state_dict`, the point feature columns the weights were
-    trained with when the file records them: radaredge's training checkpoints carry their card,
-    whose ``features`` give the column order the first layer's weights expect; None otherwise)."""
+def _load_checkpoint(path: str | Path):
+    """The object torch.save wrote to ``path``, loaded without running pickled code; ConfigError
+    naming the file and why otherwise."""
     check_checkpoint_file(path)
     try:
         with warnings.catch_warnings():  # torch warns about pickle protocols before refusing
@@ -100,6 +100,14 @@ def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
         else:
             why = f"damaged ({type(exc).__name__})"
         raise ConfigError(f"checkpoint {path} is not a readable torch checkpoint: {why}") from None
+    return obj
+
+
+def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
+    """(the state_dict of :func:`read_state_dict`, the point feature columns the weights were
+    trained with when the file records them: radaredge's training checkpoints carry their card,
+    whose ``features`` give the column order the first layer's weights expect; None otherwise)."""
+    obj = _load_checkpoint(path)
     features = None
     if isinstance(obj, dict) and isinstance(obj.get("card"), dict) and isinstance(obj["card"].get("features"), list):
         features = [str(f) for f in obj["card"]["features"]]
@@ -122,3 +130,40 @@ def read_checkpoint(path: str | Path) -> tuple[dict, list[str] | None]:
             f"a diverged training run writes such weights"
         )
     return obj, features
+
+
+def read_qat_entry(path: str | Path) -> dict | None:
+    """The ``qat`` entry of a radaredge training checkpoint made by ``radaredge train --qat``
+    (:meth:`radaredge.training.qat.FakeQuantizedLayers.checkpoint_entry`): the int8 settings it
+    was fine-tuned for and its learned activation ranges, layer name -> {"input" / "output":
+    [min, max]}; None for a checkpoint without one. ConfigError naming the file when the entry is
+    malformed."""
+    obj = _load_checkpoint(path)
+    entry = obj.get("qat") if isinstance(obj, dict) else None
+    if entry is None:
+        return None
+    ranges = entry.get("ranges") if isinstance(entry, dict) else None
+    ok = (
+        isinstance(ranges, dict)
+        and isinstance(entry.get("reduce_range"), bool)
+        and isinstance(entry.get("keep_fp32"), list)
+        and all(
+            isinstance(name, str)
+            and isinstance(r, dict)
+            and set(r) <= {"input", "output"}
+            and all(
+                isinstance(v, (list, tuple))
+                and len(v) == 2
+                and all(isinstance(x, float) and math.isfinite(x) for x in v)
+                and v[0] <= v[1]
+                for v in r.values()
+            )
+            for name, r in ranges.items()
+        )
+    )
+    if not ok:
+        raise ConfigError(
+            f"checkpoint {path}: its 'qat' entry is not what `radaredge train --qat` writes (reduce_range, "
+            f"keep_fp32, and ranges: layer -> {{input/output: [min, max]}} with finite min <= max)"
+        )
+    return entry

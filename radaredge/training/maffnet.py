@@ -89,6 +89,7 @@ from ..ops.input_flags import drop_implausible
 from ..ops.nms import class_agnostic_nms_eager
 from ..progress import no_progress
 from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
+from .qat import start_qat
 from .roi_targets import (
     RoiSampling,
     box_corners,
@@ -127,6 +128,7 @@ PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}  # recipe.precision -> autoc
     train_proposals=(1, 2**16),
     train_proposals_pre=(1, 2**20),
     seed=(0, 2**32 - 1),
+    qat_scans=(1, 10**6),
 )
 @dataclass(frozen=True)
 class DetectionRecipe:
@@ -160,6 +162,8 @@ class DetectionRecipe:
     train_proposals_pre: int = 9000  # ROI_HEAD.NMS_CONFIG.TRAIN.NMS_PRE_MAXSIZE
     seed: int = 0
     precision: str = "fp32"  # "bf16": mixed precision (module docstring); upstream trains in fp32
+    qat: bool = False  # quantisation-aware fine-tuning of --checkpoint (radaredge.training.qat)
+    qat_scans: int = 32  # ours: training scans a --qat run's first activation ranges are observed on
 
     def __post_init__(self):
         if self.precision not in PRECISIONS:
@@ -603,6 +607,7 @@ def train_detector(
     # convolutions then run without converting layouts back and forth (measured on maffnet-vod,
     # bf16: 0.70 against 1.0 s a training scan)
     model.to(dev, memory_format=torch.channels_last)
+    fake_quant = start_qat(model, card, recipe.precision, bool(checkpoint) or resume) if recipe.qat else None
     setup = LossSetup(
         anchor_classes(card, len(model.anchors)).to(dev),
         thresholds,
@@ -623,9 +628,14 @@ def train_detector(
         state, clock = saved.resume(recipe.epochs, schedule=True)
         best = report.best["mAP3d"] if report.best is not None else None
         start = state["epoch"] + 1
+        if fake_quant is not None:
+            fake_quant.load_state_dict(state["qat"])
         log(f"resuming after epoch {state['epoch']} from {run.last}")
     else:
         clock = Stopwatch()
+        if fake_quant is not None:  # the first activation ranges, on training scans
+            with fake_quant.observing():
+                validation_ap(model, [train[i] for i in evenly(len(train), recipe.qat_scans)], card, data_format, dev)
         metrics = validation_ap(model, val, card, data_format, dev, progress)
         report.epochs.append({"epoch": 0, "loss": float("nan"), **metrics, "seconds": round(clock(), 1)})
         log(_epoch_line(report.epochs[-1], card.get("classes")) + "  (initial weights)")
@@ -699,14 +709,21 @@ def train_detector(
             row.update(validation_ap(model, val, card, data_format, dev, progress))
             if best is None or row["mAP3d"] > best:
                 best, report.best_epoch = row["mAP3d"], epoch
-                run.save_best(model, epoch, {k: v for k, v in row.items() if k.startswith(("AP", "mAP"))})
+                run.save_best(
+                    model,
+                    epoch,
+                    {k: v for k, v in row.items() if k.startswith(("AP", "mAP"))},
+                    **({"qat": fake_quant.checkpoint_entry()} if fake_quant else {}),
+                )
         row["seconds"] = round(clock(), 1)
         report.epochs.append(row)
         report.seconds = clock()
-        saved.save(epoch, clock, epochs=recipe.epochs)
+        saved.save(epoch, clock, epochs=recipe.epochs, **({"qat": fake_quant.state_dict()} if fake_quant else {}))
         run.write_log(report.to_dict())
         log(_epoch_line(row, card.get("classes")) + ("  (best)" if report.best_epoch == epoch else ""))
     report.seconds = clock()
     run.write_log(report.to_dict())
+    if fake_quant is not None:
+        fake_quant.remove()
     model.eval()
     return report

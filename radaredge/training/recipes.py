@@ -56,6 +56,7 @@ def train_places(card: ModelCard, model, data, inputs: TrainInputs):
         inputs.progress or no_progress,
         inputs.log or (lambda line: None),
         bag,
+        inputs.checkpoint,
     )
 
 

@@ -191,9 +191,12 @@ class RunDir:
     def log(self) -> Path:
         return self.path / LOG
 
-    def save_best(self, model: torch.nn.Module, epoch: int, metrics: dict) -> Path:
+    def save_best(self, model: torch.nn.Module, epoch: int, metrics: dict, **extra) -> Path:
+        """best.pth: the weights, the card, the epoch and its metrics, and a recipe's ``extra``
+        entries (``qat``: a --qat run's learned ranges)."""
         return _atomic_save(
-            {"model_state": model.state_dict(), "card": self.card.data, "epoch": epoch, "metrics": metrics}, self.best
+            {"model_state": model.state_dict(), "card": self.card.data, "epoch": epoch, "metrics": metrics, **extra},
+            self.best,
         )
 
     def save_last(self, state: dict) -> Path:

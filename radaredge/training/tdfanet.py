@@ -64,6 +64,7 @@ from ..eval.places import RECALL_NS, recall_at_n
 from ..progress import no_progress
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
 from .places import OTHER_NEGATIVES, PlaceWindows, TupleMiner, load_place_windows
+from .qat import start_qat
 from .run import (
     RunDir,
     Stopwatch,
@@ -126,6 +127,7 @@ class PlaceRecipe:
     negative_radius: float = 10.0  # m (paper)
     seed: int = 0
     save_minutes: float = 10.0  # ours: minutes of training between saves of last.pth within an epoch
+    qat: bool = False  # quantisation-aware fine-tuning of --checkpoint (radaredge.training.qat)
 
     def __post_init__(self):
         if self.second_term not in SECOND_TERMS:
@@ -361,12 +363,14 @@ def train_places(
     progress=no_progress,
     log: Callable[[str], None] = lambda line: None,
     bag: BagSource | None = None,
+    checkpoint: str | None = None,
 ) -> TrainReport:
     """Train ``model`` (a TDFANet of ``card``) on the drives under ``data_root`` with ``recipe``;
     write the run directory ``output`` (:mod:`.run`) and return the report. ``validation`` names
     the held-out drives (paths relative to ``data_root``; default one per directory of drives),
     ``data_format`` the scan format of every drive (default inferred), ``bag`` where ROS bag
-    drives keep their scans and GNSS fixes."""
+    drives keep their scans and GNSS fixes; ``checkpoint`` the initial weights' file (a ``qat``
+    run fine-tunes them, :mod:`.qat`)."""
     dev = pick_device(device)
     run = RunDir(output, card)
     if resume:
@@ -399,6 +403,7 @@ def train_places(
         f"{summary['queries_per_epoch']} training queries per epoch"
     )
     model.to(dev)
+    fake_quant = start_qat(model, card, "fp32", bool(checkpoint) or resume) if recipe.qat else None
     prepared = prepare_windows(model, data, dev, progress)
     for line in ego_motion_summary(data, prepared):
         log(line)
@@ -422,10 +427,15 @@ def train_places(
         start, partial = state["epoch"] + 1, state.get("partial")
         best_rank = _rank(report.best) if report.best is not None else None
         descriptors = state["descriptors"].numpy()
+        if fake_quant is not None:
+            fake_quant.load_state_dict(state["qat"])
         where = f"{partial['done']} of epoch {start}'s tuples" if partial else f"epoch {state['epoch']}"
         log(f"resuming after {where} from {run.last}")
     else:
         clock = Stopwatch()
+        if fake_quant is not None:  # the first activation ranges, on training windows
+            with fake_quant.observing():
+                describe_all(model, [prepared[i] for i in norm_rows])
         if recipe.batch_norm in FIXED_NORMS:
             estimate_norm_statistics(model, prepared, norm_rows)
         descriptors = describe_all(model, prepared, progress, "epoch 0: describe windows")
@@ -439,7 +449,11 @@ def train_places(
     def save_last(epoch: int, partial: dict | None = None) -> None:
         """last.pth after ``epoch``, or within the next epoch (``partial``)."""
         saved_state.save(
-            epoch, clock, descriptors=torch.from_numpy(descriptors), **({"partial": partial} if partial else {})
+            epoch,
+            clock,
+            descriptors=torch.from_numpy(descriptors),
+            **({"partial": partial} if partial else {}),
+            **({"qat": fake_quant.state_dict()} if fake_quant else {}),
         )
 
     if not resume:
@@ -487,13 +501,15 @@ def train_places(
         report.epochs.append({"epoch": epoch, "loss": loss_mean, "lr": lr, **metrics, "seconds": round(clock(), 1)})
         if best_rank is None or _rank(metrics) > best_rank:
             best_rank, report.best_epoch = _rank(metrics), epoch
-            run.save_best(model, epoch, metrics)
+            run.save_best(model, epoch, metrics, **({"qat": fake_quant.checkpoint_entry()} if fake_quant else {}))
         report.seconds = clock()
         save_last(epoch)
         run.write_log(report.to_dict())
         log(_epoch_line(report.epochs[-1]) + ("  (best)" if report.best_epoch == epoch else ""))
     report.seconds = clock()
     run.write_log(report.to_dict())
+    if fake_quant is not None:
+        fake_quant.remove()
     model.eval()
     return report
 
