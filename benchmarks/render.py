@@ -1647,12 +1647,12 @@ def zoo_section(zoo_dir: Path) -> list[str]:
             "",
         ]
         rows = [
-            [e["card"], f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend]
+            [e.get("name", e["card"]), f"`{e['weights_sha256'][:12]}`", str(e["epoch"]), backend]
             + [_ap_cell(row.get(c)) for c in ("Car", "Pedestrian", "Cyclist", "mAP")]
             for e in detectors
             for backend, row in _with_seeded(e).items()
         ]
-        out += _table(["card", "weights sha256", "epoch", "backend", "Car", "Pedestrian", "Cyclist", "mAP"], rows)
+        out += _table(["entry", "weights sha256", "epoch", "backend", "Car", "Pedestrian", "Cyclist", "mAP"], rows)
         out += [""]
     if places:
         out += [
@@ -1682,7 +1682,7 @@ def zoo_section(zoo_dir: Path) -> list[str]:
                 f"fp32 R@1 {_recall_cells(reg['scores'])[0]}"
             )
         out += [
-            f"- {e['card']}: `{e['command']}` (training seed {e['training_seed']}; scored on {where}). "
+            f"- {e.get('name', e['card'])}: `{e['command']}` (training seed {e['training_seed']}; scored on {where}). "
             f"Regression set: {regression}."
         ]
     return out + [""]

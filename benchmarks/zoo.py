@@ -14,6 +14,10 @@ Given the run directory of ``radaredge train`` and the data it trained on, this 
 
     python benchmarks/zoo.py --card maffnet-vod-edge --run runs/maffnet-vod-edge --data set --seed 0 \
         --command "radaredge make-benchmark --task detection --out set; radaredge train ..."
+
+``--name`` files a second entry of a card under another directory (zoo/maffnet-vod-edge-qat/ for
+a ``radaredge train --qat`` fine-tune of zoo/maffnet-vod-edge/; its int8 graph is exported with
+the ranges the fine-tune learned, and the entry says ``qat``).
 """
 
 from __future__ import annotations
@@ -122,10 +126,11 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, help="MAFF-Net: the labelled set it trained on (its test split scores)")
     ap.add_argument("--command", required=True, help="the commands that made the set and the run")
     ap.add_argument("--seed", type=int, required=True, help="the training seed (`radaredge train --seed`)")
+    ap.add_argument("--name", help="the entry's directory under zoo/ (default: the card's name)")
     args = ap.parse_args(argv)
     torch.set_num_threads(training_run.THREADS)
     card = load_card(args.card)
-    home = ZOO / card.name
+    home = ZOO / (args.name or card.name)
     home.mkdir(parents=True, exist_ok=True)
     weights, card_path = home / "weights.pth", home / "card.yaml"
     shutil.copyfile(args.run / "best.pth", weights)
@@ -138,6 +143,7 @@ def main(argv=None) -> int:
         else:
             test, regression = score_places(trained, weights, Path(tmp))
     entry = {
+        "name": home.name,
         "card": card.name,
         "weights": "weights.pth",
         "weights_sha256": sha256_of(weights),
@@ -148,7 +154,9 @@ def main(argv=None) -> int:
         "training_seed": args.seed,
         "command": args.command,
         "score_command": f"python benchmarks/zoo.py --card {card.name} --run RUN --data set --seed {args.seed} "
-        "--command ...",
+        + (f"--name {args.name} " if args.name else "")
+        + "--command ...",
+        "qat": "qat" in log,
         "machine": training_run.machine(),
         "test": test,
         "regression": regression,
