@@ -57,6 +57,11 @@ training scan takes about half of fp32's time (benchmarks/maffnet_train_step.py)
 at cosine 0.998 to fp32's; on a CPU without them, bf16 is emulated and slower, hence fp32 by
 default.
 
+Quantisation-aware fine-tuning (``qat``, ``radaredge train --qat``; ours): the network runs with
+the int8 graph's fake quantisation (:mod:`.qat`) from ``--checkpoint``'s weights; its first
+activation ranges are observed on ``qat_scans`` training scans before the initial validation,
+and best.pth keeps the learned ranges for the export.
+
 Layout: the pillar stage runs in its training formulation (:func:`fused_map` with ``training``;
 the export formulation's values and gradients, over the non-empty pillars only) and the network
 is kept channels last, the layout oneDNN's convolutions prefer.

@@ -42,6 +42,9 @@ What the paper leaves open, and how this recipe reads it (each an option, record
   an epoch every ``save_minutes`` of training (0: after every step), so an interrupted run of a
   large card loses at most that much; ``--resume`` continues at the next step as the run that
   never stopped would.
+- ``qat`` (``radaredge train --qat``, ours) fine-tunes ``--checkpoint``'s weights with the int8
+  graph's fake quantisation (:mod:`.qat`); the first activation ranges are observed on the
+  ``norm_windows`` training windows before epoch 0, and best.pth keeps the learned ranges.
 """
 
 from __future__ import annotations
