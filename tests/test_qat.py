@@ -23,7 +23,7 @@ from radaredge.errors import ConfigError
 from radaredge.exporting.quantize import quantize_int8
 from radaredge.models import create_model, model_spec
 from radaredge.models.factory import save_checkpoint
-from radaredge.training.qat import FakeQuantizedLayers, fake_quantize_weight
+from radaredge.training.qat import FakeQuantizedLayers, fake_quantize_weight, resume_signature
 
 
 @pytest.mark.parametrize("seven_bit", [True, False])
@@ -212,3 +212,10 @@ def test_qat_fine_tunes_maffnet_and_an_export_with_another_weight_range_is_refus
     full_range.write_text(text + "\nquantization:\n  reduce_range: false\n")
     with pytest.raises(ConfigError, match="fine-tuned with fake quantisation for quantization.reduce_range = True"):
         radaredge.export(full_range, tmp_path / "x.onnx", checkpoint=tmp_path / "run" / "best.pth", quantize="int8")
+
+
+def test_a_run_from_before_the_qat_options_still_resumes():
+    """The resume signature leaves the qat options out while qat is off (a last.pth written before
+    they existed matches), and keeps them when it is on."""
+    assert resume_signature({"lr": 0.01, "qat": False, "qat_scans": 32}) == {"lr": 0.01}
+    assert resume_signature({"lr": 0.01, "qat": True, "qat_scans": 8}) == {"lr": 0.01, "qat": True, "qat_scans": 8}

@@ -94,7 +94,7 @@ from ..ops.input_flags import drop_implausible
 from ..ops.nms import class_agnostic_nms_eager
 from ..progress import no_progress
 from .anchor_targets import anchor_classes, assign_targets, class_thresholds, head_loss
-from .qat import start_qat
+from .qat import resume_signature, start_qat
 from .roi_targets import (
     RoiSampling,
     box_corners,
@@ -526,7 +526,7 @@ def require_labelled_objects(card: ModelCard, root, data_format: str | None, tra
 
 def _signature(card: ModelCard, root, recipe: DetectionRecipe, validation: str, train: list, val: list) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
-    keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "val_every")}
+    keep = resume_signature({k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "val_every")})
     return {
         "card": card.data,
         "data": str(Path(root).resolve()),

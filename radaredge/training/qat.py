@@ -216,6 +216,12 @@ class FakeQuantizedLayers:
         }
 
 
+def resume_signature(recipe: dict) -> dict:
+    """A recipe's options (``dataclasses.asdict``) as a resume signature holds them: without the
+    ``qat`` options when ``qat`` is off, so that a run written before they existed resumes."""
+    return recipe if recipe.get("qat") else {k: v for k, v in recipe.items() if not k.startswith("qat")}
+
+
 def start_qat(model: nn.Module, card: ModelCard, precision: str, fine_tunes: bool) -> FakeQuantizedLayers:
     """:class:`FakeQuantizedLayers` on ``model`` for a ``--qat`` run: ConfigError unless the run
     fine-tunes trained weights (``--checkpoint`` or ``--resume``) in fp32."""

@@ -67,7 +67,7 @@ from ..eval.places import RECALL_NS, recall_at_n
 from ..progress import no_progress
 from .losses import SECOND_TERMS, lazy_quadruplet_loss
 from .places import OTHER_NEGATIVES, PlaceWindows, TupleMiner, load_place_windows
-from .qat import start_qat
+from .qat import resume_signature, start_qat
 from .run import (
     RunDir,
     Stopwatch,
@@ -339,7 +339,8 @@ def tuple_loss(model, prepared: Sequence, tup, recipe: PlaceRecipe) -> tuple[tor
 
 def _signature(card: ModelCard, data: PlaceWindows, recipe: PlaceRecipe) -> dict:
     """What a resumed run must share with the one that wrote ``last.pth``."""
-    keep = {k: v for k, v in dataclasses.asdict(recipe).items() if k not in ("epochs", "save_minutes")}
+    options = dataclasses.asdict(recipe)
+    keep = resume_signature({k: v for k, v in options.items() if k not in ("epochs", "save_minutes")})
     return {
         "card": card.data,
         "data": str(Path(data.path).resolve()),
