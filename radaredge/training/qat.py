@@ -98,7 +98,6 @@ class _Layer:
     module: nn.Module
     input: FakeQuantize
     output: FakeQuantize | None
-    output_at: str | None
 
 
 class FakeQuantizedLayers:
@@ -116,7 +115,7 @@ class FakeQuantizedLayers:
             if type(module) not in QUANTISED_LAYERS or self._kept(name):
                 continue
             end = _chain_end(model, name) if isinstance(module, (nn.Conv1d, nn.Conv2d)) else None
-            layer = _Layer(module, activation_fake_quant(device), activation_fake_quant(device) if end else None, end)
+            layer = _Layer(module, activation_fake_quant(device), activation_fake_quant(device) if end else None)
             self.layers[name] = layer
             module.forward = self._quantised_forward(layer)  # the instance's, over its class's
             if end is not None:
