@@ -15,7 +15,10 @@ benchmarks/README.md and in docs/quantization.md.
 ``--qat-weights`` adds a row for a ``radaredge train --qat`` fine-tune of the same weights: its
 int8 graph (the learned ranges, ``export --quantize int8 --checkpoint``) against the *original*
 weights' fp32 graph, paired over the same frames, so the row says what a user deploying the
-fine-tuned int8 graph gives up against the fp32 model they started from.
+fine-tuned int8 graph gives up against the fp32 model they started from. ``--control-weights``
+(with ``--qat-weights``) names an fp32 fine-tune of the same weights on the same schedule without
+``--qat``: its fp32 graph against the original's, and the QAT int8 graph against it, both paired,
+separate what the extra epochs gain from what the fake quantisation keeps.
 
     python benchmarks/int8_methods.py --card zoo/maffnet-vod-edge/card.yaml \\
         --weights zoo/maffnet-vod-edge/weights.pth --data set [--qat-weights runs/qat/best.pth]
@@ -54,11 +57,17 @@ def verdict(differences: dict) -> str:
     return "fails"
 
 
-def _row(report, fp32_scores: dict, int8_scores: dict, delta_intervals: dict, command: str) -> dict:
-    differences = {
-        c: {"3d": int8_scores[c]["3d"] - fp32_scores[c]["3d"], "3d_interval": delta_intervals[AREA][c]["3d"]}
+def _differences(minuend: dict, subtrahend: dict, delta_intervals: dict) -> dict:
+    """class -> {3d: minuend - subtrahend 3D AP, 3d_interval: the paired interval of that
+    difference from ``delta_intervals`` ([area][class][metric])}."""
+    return {
+        c: {"3d": minuend[c]["3d"] - subtrahend[c]["3d"], "3d_interval": delta_intervals[AREA][c]["3d"]}
         for c in CLASSES
     }
+
+
+def _row(report, fp32_scores: dict, int8_scores: dict, delta_intervals: dict, command: str) -> dict:
+    differences = _differences(int8_scores, fp32_scores, delta_intervals)
     return {
         "frames": len(report.frames),
         "fp32": fp32_scores,
@@ -83,28 +92,54 @@ def score_method(card, fp32: Path, method: str, data: Path, split: str, work: Pa
     return _row(report, scores[ORT], scores[ORT_INT8], report.delta_intervals[ORT_INT8], command), report
 
 
-def score_qat(card, weights: Path, baseline, data: Path, split: str, work: Path) -> dict:
-    """The int8 graph of a --qat checkpoint (its learned ranges) against the original weights' fp32
-    graph (``baseline``'s, an evaluation of the same frames), paired over the frames; its own fp32
-    AP beside it."""
-    home = work / "qat"
+def _evaluate_export(card, weights: Path, baseline, data: Path, split: str, home: Path, quantize=None):
+    """Exports ``weights`` (int8 too with ``quantize``) into ``home`` and evaluates it on the frames
+    ``baseline`` (an evaluation of the original weights' graph) saw."""
     home.mkdir()
     graph = home / f"{card.name}.onnx"
-    radaredge.export(card, graph, checkpoint=weights, quantize="int8")
+    radaredge.export(card, graph, checkpoint=weights, quantize=quantize)
     report = evaluate_detection(card, graph, data, split, reference=False, openvino=False)
     if [f.frame_id for f in report.frames] != [f.frame_id for f in baseline.frames]:
-        raise SystemExit("the --qat-weights evaluation saw other frames than the baseline's")
+        raise SystemExit(f"the evaluation of {weights} saw other frames than the baseline's")
+    return report
+
+
+def score_qat(card, weights: Path, baseline, data: Path, split: str, work: Path, control: Path | None = None) -> dict:
+    """The int8 graph of a --qat checkpoint (its learned ranges) against the original weights' fp32
+    graph (``baseline``'s, an evaluation of the same frames), paired over the frames; its own fp32
+    AP beside it. With ``control`` (an fp32 fine-tune on the same schedule without --qat), also
+    the control's fp32 - the original fp32 and the QAT int8 - the control's fp32, paired."""
+    report = _evaluate_export(card, weights, baseline, data, split, work / "qat", quantize="int8")
     curves = {ORT: baseline.curves[ORT], ORT_INT8: report.curves[ORT_INT8]}
     _, deltas = ap_intervals(curves, baseline.classes, baseline.areas, ORT)
     scores = detection_scores(report, [ORT, ORT_INT8])
+    original = detection_scores(baseline, [ORT])[ORT]
     row = _row(
         report,
-        detection_scores(baseline, [ORT])[ORT],
+        original,
         scores[ORT_INT8],
         deltas[ORT_INT8],
         f"radaredge export --model {card.name} --checkpoint QAT_WEIGHTS --quantize int8",
     )
-    return {**row, "qat_fp32": scores[ORT], "checkpoint": str(weights), "checkpoint_sha256": sha256_of(weights)}
+    row = {**row, "qat_fp32": scores[ORT], "checkpoint": str(weights), "checkpoint_sha256": sha256_of(weights)}
+    if control is None:
+        return row
+    print(f"control: exporting {control} (fp32) and scoring ...", flush=True)
+    held = _evaluate_export(card, control, baseline, data, split, work / "control")
+    control_scores = detection_scores(held, [ORT])[ORT]
+    curves = {"original": baseline.curves[ORT], "control": held.curves[ORT], "qat": report.curves[ORT_INT8]}
+    _, versus_original = ap_intervals(curves, baseline.classes, baseline.areas, "original")
+    _, versus_control = ap_intervals(curves, baseline.classes, baseline.areas, "control")
+    int8_minus_control = _differences(scores[ORT_INT8], control_scores, versus_control["qat"])
+    row["control"] = {
+        "checkpoint": str(control),
+        "checkpoint_sha256": sha256_of(control),
+        "fp32": control_scores,
+        "fp32_minus_original_fp32": _differences(control_scores, original, versus_original["control"]),
+        "qat_int8_minus_control_fp32": int8_minus_control,
+        "verdict": verdict({c: d for c, d in int8_minus_control.items() if c != "mAP"}),
+    }
+    return row
 
 
 def main(argv=None) -> int:
@@ -115,8 +150,15 @@ def main(argv=None) -> int:
     ap.add_argument("--split", default="test", help="the split scored (default test)")
     ap.add_argument("--methods", nargs="+", default=list(CALIBRATION_METHODS), choices=list(CALIBRATION_METHODS))
     ap.add_argument("--qat-weights", type=Path, help="a `radaredge train --qat` fine-tune of --weights (best.pth)")
+    ap.add_argument(
+        "--control-weights",
+        type=Path,
+        help="an fp32 fine-tune of --weights on the --qat-weights schedule without --qat (best.pth)",
+    )
     ap.add_argument("--results", type=Path, default=training_run.ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
+    if args.control_weights and not args.qat_weights:
+        ap.error("--control-weights is the control of a --qat-weights fine-tune; pass both")
     torch.set_num_threads(training_run.THREADS)
     card = load_card(args.card)
     rows = {}
@@ -128,7 +170,9 @@ def main(argv=None) -> int:
             rows[method], baseline = score_method(card, fp32, method, args.data, args.split, Path(tmp))
         if args.qat_weights:
             print(f"qat: exporting {args.qat_weights} with its learned ranges and scoring ...", flush=True)
-            rows["qat"] = score_qat(card, args.qat_weights, baseline, args.data, args.split, Path(tmp))
+            rows["qat"] = score_qat(
+                card, args.qat_weights, baseline, args.data, args.split, Path(tmp), args.control_weights
+            )
     doc = {
         "date": utc_stamp(),
         "card": card.name,

@@ -1464,6 +1464,10 @@ def _method_label(method: str, row: dict) -> str:
     return f"`train --qat` (weights `{row['checkpoint_sha256'][:12]}`; int8 vs the original fp32)"
 
 
+def _method_row(label: str, differences: dict, classes: list[str], verdict: str, command: str) -> list[str]:
+    return [label] + [_difference_cell(differences[c]) for c in classes] + [verdict, f"`{command}`"]
+
+
 def int8_methods_lines(r: Result) -> list[str]:
     """One int8-methods file (benchmarks/int8_methods.py): the fp32 graph's AP, then every
     calibration method's int8 - fp32 3D AP per class (paired 95 % interval) and verdict."""
@@ -1479,12 +1483,30 @@ def int8_methods_lines(r: Result) -> list[str]:
         "per class (within: every class above it; meets: no class's interval wholly below it):",
         "",
     ]
-    rows = [
-        [_method_label(m, v)]
-        + [_difference_cell(v["int8_minus_fp32"][c]) for c in classes]
-        + [v["verdict"], f"`{v['export_command']}`"]
-        for m, v in methods.items()
-    ]
+    rows = []
+    for m, v in methods.items():
+        rows.append(_method_row(_method_label(m, v), v["int8_minus_fp32"], classes, v["verdict"], v["export_command"]))
+        if "control" in v:
+            c = v["control"]
+            sha = c["checkpoint_sha256"][:12]
+            rows.append(
+                _method_row(
+                    f"control: fp32 fine-tune without `--qat` (weights `{sha}`; fp32 vs the original fp32)",
+                    c["fp32_minus_original_fp32"],
+                    classes,
+                    "(fp32)",
+                    f"radaredge export --model {d['card']} --checkpoint CONTROL_WEIGHTS",
+                )
+            )
+            rows.append(
+                _method_row(
+                    "`train --qat` int8 vs the control's fp32",
+                    c["qat_int8_minus_control_fp32"],
+                    classes,
+                    c["verdict"],
+                    v["export_command"],
+                )
+            )
     out += _table(["method", *classes, "verdict", "command"], rows, ["---"] + ["---:"] * len(classes) + ["---", "---"])
     out += ["", f"Made by `{d['command']}`.", ""]
     return out

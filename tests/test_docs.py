@@ -587,3 +587,36 @@ def test_results_are_written_portable(tmp_path):
     }
     rewritten = json.loads(module.write_result(tmp_path / "again.json", written).read_text())
     assert rewritten == written  # a path already shortened is left as it is
+
+
+def test_int8_methods_render_the_qat_control_rows(tmp_path):
+    """A --qat row with a --control-weights fine-tune renders two more rows: the control's fp32
+    against the original fp32, and the QAT int8 graph against the control's fp32, each with its
+    paired interval and, for the int8 one, its verdict."""
+    render = _render_module()
+    name = "int8-methods-maffnet-vod-edge-test-2026-12-07.json"
+    doc = json.loads((ROOT / "benchmarks" / "results" / name).read_text())
+    qat = doc["methods"]["qat"]
+
+    def shifted(by: float) -> dict:
+        return {
+            c: {"3d": d["3d"] + by, "3d_interval": [bound + by for bound in d["3d_interval"]]}
+            for c, d in qat["int8_minus_fp32"].items()
+        }
+
+    qat["control"] = {
+        "checkpoint": "runs/fp32/best.pth",
+        "checkpoint_sha256": "c" * 64,
+        "fp32": qat["qat_fp32"],
+        "fp32_minus_original_fp32": shifted(0.25),
+        "qat_int8_minus_control_fp32": shifted(-3.0),
+        "verdict": "fails",
+    }
+    (tmp_path / name).write_text(json.dumps(doc))
+    lines = render.int8_methods_lines(render.Result(tmp_path / name))
+    control = next(line for line in lines if line.startswith("| control: fp32 fine-tune"))
+    assert "`cccccccccccc`" in control and "| (fp32) |" in control
+    assert f"{qat['int8_minus_fp32']['Car']['3d'] + 0.25:+.2f}" in control
+    versus = next(line for line in lines if line.startswith("| `train --qat` int8 vs the control's fp32"))
+    assert f"{qat['int8_minus_fp32']['mAP']['3d'] - 3.0:+.2f}" in versus and "| fails |" in versus
+    assert lines.index(versus) == lines.index(control) + 1
