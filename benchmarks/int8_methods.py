@@ -1,27 +1,37 @@
-"""int8 calibration methods side by side on trained weights: how much task accuracy each keeps.
+"""int8 calibration methods side by side on trained weights: how much of the task each keeps.
 
-For a MAFF-Net card and a checkpoint (the zoo's, or any ``radaredge train`` best.pth), this
-exports the fp32 graph once, then one int8 copy per calibration method (``radaredge export
---quantize int8 --calibration-method M``: min/max, percentile, entropy; the card's keep_fp32
-and reduce_range, synthetic calibration windows), and scores every copy against the fp32 graph
-on the ``--split`` of the labelled set: per class 3D AP with its 95 % bootstrap interval over
-frames, and int8's paired difference from fp32 with its interval (the same frames, so the
-interval is far narrower than either AP's). A method meets the budget of
-docs/quantization.md when no class's difference interval lies wholly below -1.0 point, and it is
-*within* the budget when every class's difference is above -1.0. Writes
-``benchmarks/results/int8-methods-<card>-<split>-<date>.json``; benchmarks/render.py renders it in
-benchmarks/README.md and in docs/quantization.md.
+For a card and a checkpoint (the zoo's, or any ``radaredge train`` best.pth), this exports the
+fp32 graph once, then one int8 copy per calibration method (``radaredge export --quantize int8
+--calibration-method M``: min/max, percentile, entropy; the card's keep_fp32 and reduce_range,
+synthetic calibration windows), and scores every copy against the fp32 graph on labelled data:
+
+- a MAFF-Net card on the ``--split`` of the labelled set ``--data``: per class 3D AP with its 95 %
+  bootstrap interval over frames, and int8's paired difference from fp32 with its interval (the
+  same frames, so the interval is far narrower than either AP's);
+- a TDFANet card over the ``--queries`` drives against the ``--database`` drives (a street-network
+  test town of ``radaredge make-benchmark --layout network``): Recall@1/5/10 with intervals
+  over queries, and int8's paired Recall@N difference from fp32 over the same queries.
+
+A method meets the budget of docs/quantization.md (1 point per class of AP, or of Recall@1 in %)
+when no class's difference interval lies wholly below -1.0 point, and it is *within* the budget
+when every class's difference is above -1.0. Writes
+``benchmarks/results/int8-methods-<card>-<split or town>-<date>.json``; benchmarks/render.py
+renders it in benchmarks/README.md and in docs/quantization.md.
 
 ``--qat-weights`` adds a row for a ``radaredge train --qat`` fine-tune of the same weights: its
 int8 graph (the learned ranges, ``export --quantize int8 --checkpoint``) against the *original*
-weights' fp32 graph, paired over the same frames, so the row says what a user deploying the
-fine-tuned int8 graph gives up against the fp32 model they started from. ``--control-weights``
-(with ``--qat-weights``) names an fp32 fine-tune of the same weights on the same schedule without
-``--qat``: its fp32 graph against the original's, and the QAT int8 graph against it, both paired,
-separate what the extra epochs gain from what the fake quantisation keeps.
+weights' fp32 graph, paired over the same frames or queries, so the row says what a user
+deploying the fine-tuned int8 graph gives up against the fp32 model they started from.
+``--control-weights`` (with ``--qat-weights``) names an fp32 fine-tune of the same weights on the
+same schedule without ``--qat``: its fp32 graph against the original's, and the QAT int8 graph
+against it, both paired, separate what the extra epochs gain from what the fake quantisation
+keeps.
 
     python benchmarks/int8_methods.py --card zoo/maffnet-vod-edge/card.yaml \\
-        --weights zoo/maffnet-vod-edge/weights.pth --data set [--qat-weights runs/qat/best.pth]
+        --weights zoo/maffnet-vod-edge/weights.pth --data set [--qat-weights runs/qat/best.pth \\
+        [--control-weights runs/fp32/best.pth]]
+    python benchmarks/int8_methods.py --card zoo/tdfanet-edge/card.yaml \\
+        --weights zoo/tdfanet-edge/weights.pth --database town/database --queries town/queries
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import torch
 import training_run
 from result_file import save_result, sha256_of, utc_stamp
@@ -41,10 +52,16 @@ import radaredge
 from radaredge.artifacts import INT8, copy_path
 from radaredge.cards import load_card
 from radaredge.eval.detection import INT8_AP_BUDGET, ORT, ORT_INT8, ap_intervals, evaluate_detection
+from radaredge.eval.places import BASELINE, ONNX
+from radaredge.eval.places import evaluate as evaluate_places
+from radaredge.eval.recall_stats import bootstrap_interval
 from radaredge.exporting.quantize import CALIBRATION_METHODS, quantize_int8
-from zoo import AREA, detection_scores
+from radaredge.quantizing.search import DEFAULT_BUDGET as RECALL_BUDGET
+from radaredge.registry import model_spec
+from zoo import AREA, detection_scores, place_scores
 
 CLASSES = ("Car", "Pedestrian", "Cyclist", "mAP")
+RECALL_NS = (1, 5, 10)
 
 
 def verdict(differences: dict) -> str:
@@ -78,6 +95,11 @@ def _row(report, fp32_scores: dict, int8_scores: dict, delta_intervals: dict, co
     }
 
 
+def method_command(card, method: str) -> str:
+    """The export command that writes ``method``'s int8 copy of the trained weights."""
+    return f"radaredge export --model {card.name} --checkpoint WEIGHTS --quantize int8 --calibration-method {method}"
+
+
 def score_method(card, fp32: Path, method: str, data: Path, split: str, work: Path) -> tuple[dict, object]:
     """One method's int8 copy of ``fp32`` scored beside it: fp32 and int8 AP, and int8 - fp32
     per class with the paired interval; and the evaluation report."""
@@ -88,7 +110,7 @@ def score_method(card, fp32: Path, method: str, data: Path, split: str, work: Pa
     quantize_int8(card, graph, copy_path(graph, INT8), method=method)
     report = evaluate_detection(card, graph, data, split, reference=False, openvino=False)
     scores = detection_scores(report, [ORT, ORT_INT8])
-    command = f"radaredge export --model {card.name} --checkpoint WEIGHTS --quantize int8 --calibration-method {method}"
+    command = method_command(card, method)
     return _row(report, scores[ORT], scores[ORT_INT8], report.delta_intervals[ORT_INT8], command), report
 
 
@@ -142,12 +164,126 @@ def score_qat(card, weights: Path, baseline, data: Path, split: str, work: Path,
     return row
 
 
+def recall_verdict(difference: dict) -> str:
+    """The budget's verdict on an int8 - fp32 Recall@1 difference ({value, interval}, points)."""
+    if difference["value"] > -RECALL_BUDGET:
+        return "within"
+    return "meets" if difference["interval"][1] >= -RECALL_BUDGET else "fails"
+
+
+def _recall_differences(report, baseline) -> dict:
+    """N -> {value, interval}: ``report``'s Recall@N minus ``baseline``'s (onnxruntime each, the
+    same query windows) in points, with the paired 95 % bootstrap interval over the queries."""
+    mine, theirs = report.results[ONNX], baseline.results[ONNX]
+    if not np.array_equal(mine["evaluated_mask"], theirs["evaluated_mask"]):
+        raise SystemExit(f"{report.onnx} was scored on other queries than {baseline.onnx}")
+    out = {}
+    for n in RECALL_NS:
+        paired = mine["hits"][:, n - 1].astype(np.float64) - theirs["hits"][:, n - 1].astype(np.float64)
+        out[str(n)] = {"value": 100.0 * float(paired.mean()), "interval": list(bootstrap_interval(paired))}
+    return out
+
+
+def _places_row(report, baseline, command: str) -> dict:
+    """A method's row: fp32 (``baseline``) and int8 (``report``) Recall@N, int8 - fp32 paired, verdict."""
+    differences = _recall_differences(report, baseline)
+    return {
+        "queries": report.evaluated,
+        "fp32": place_scores(baseline, [ONNX])[ONNX],
+        "int8": place_scores(report, [ONNX])[ONNX],
+        "int8_minus_fp32": differences,
+        "verdict": recall_verdict(differences["1"]),
+        "export_command": command,
+    }
+
+
+def score_places(card, args, work: Path) -> tuple[dict, dict]:
+    """(rows per method, and qat / control rows; the setup fields of the result file) of a place
+    recogniser over ``args.queries`` against ``args.database``."""
+
+    def evaluate(graph: Path):
+        return evaluate_places(card, graph, args.database, args.queries, radius=args.radius, reference=False)
+
+    fp32 = work / f"{card.name}.onnx"
+    radaredge.export(card, fp32, checkpoint=args.weights)
+    print("fp32: scoring ...", flush=True)
+    baseline = evaluate(fp32)
+    rows = {}
+    for method in args.methods:
+        print(f"{method}: quantising and scoring ...", flush=True)
+        int8 = copy_path(fp32, INT8)
+        quantize_int8(card, fp32, int8, method=method)
+        rows[method] = _places_row(evaluate(int8), baseline, method_command(card, method))
+    if args.qat_weights:
+        print(f"qat: exporting {args.qat_weights} with its learned ranges and scoring ...", flush=True)
+        home = work / "qat"
+        home.mkdir()
+        exported = radaredge.export(card, home / fp32.name, checkpoint=args.qat_weights, quantize="int8")
+        qat_int8 = evaluate(next(iter(exported.int8.values())))
+        command = f"radaredge export --model {card.name} --checkpoint QAT_WEIGHTS --quantize int8"
+        rows["qat"] = {
+            **_places_row(qat_int8, baseline, command),
+            "qat_fp32": place_scores(evaluate(home / fp32.name), [ONNX])[ONNX],
+            "checkpoint": str(args.qat_weights),
+            "checkpoint_sha256": sha256_of(args.qat_weights),
+        }
+        if args.control_weights:
+            print(f"control: exporting {args.control_weights} (fp32) and scoring ...", flush=True)
+            (work / "control").mkdir()
+            held = work / "control" / fp32.name
+            radaredge.export(card, held, checkpoint=args.control_weights)
+            control = evaluate(held)
+            versus_control = _recall_differences(qat_int8, control)
+            rows["qat"]["control"] = {
+                "checkpoint": str(args.control_weights),
+                "checkpoint_sha256": sha256_of(args.control_weights),
+                "fp32": place_scores(control, [ONNX])[ONNX],
+                "fp32_minus_original_fp32": _recall_differences(control, baseline),
+                "qat_int8_minus_control_fp32": versus_control,
+                "verdict": recall_verdict(versus_control["1"]),
+            }
+    setup = {
+        "task": "place recognition",
+        "database": str(args.database),
+        "queries": str(args.queries),
+        "radius_m": args.radius,
+        "no_learning": place_scores(baseline, [BASELINE])[BASELINE],
+        "budget_recall_points": RECALL_BUDGET,
+    }
+    return rows, setup
+
+
+def score_detection(card, args, work: Path) -> tuple[dict, dict]:
+    """(rows per method, and the qat row; the setup fields of the result file) of a detector on
+    ``args.split`` of ``args.data``."""
+    fp32 = work / f"{card.name}.onnx"
+    radaredge.export(card, fp32, checkpoint=args.weights)
+    rows = {}
+    for method in args.methods:
+        print(f"{method}: quantising and scoring on the {args.split} split ...", flush=True)
+        rows[method], baseline = score_method(card, fp32, method, args.data, args.split, work)
+    if args.qat_weights:
+        print(f"qat: exporting {args.qat_weights} with its learned ranges and scoring ...", flush=True)
+        rows["qat"] = score_qat(card, args.qat_weights, baseline, args.data, args.split, work, args.control_weights)
+    setup = {
+        "task": "detection",
+        "data": str(args.data),
+        "split": args.split,
+        "area": AREA,
+        "budget_ap_points": INT8_AP_BUDGET,
+    }
+    return rows, setup
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python benchmarks/int8_methods.py", description=__doc__.splitlines()[0])
     ap.add_argument("--card", required=True, help="a card name or file (the zoo's card.yaml for its weights)")
     ap.add_argument("--weights", type=Path, required=True, help="the trained checkpoint")
-    ap.add_argument("--data", type=Path, required=True, help="the labelled set (its --split is scored)")
-    ap.add_argument("--split", default="test", help="the split scored (default test)")
+    ap.add_argument("--data", type=Path, help="detection: the labelled set (its --split is scored)")
+    ap.add_argument("--split", default="test", help="detection: the split scored (default test)")
+    ap.add_argument("--database", type=Path, help="place recognition: the database drive(s)")
+    ap.add_argument("--queries", type=Path, help="place recognition: the query drive(s)")
+    ap.add_argument("--radius", type=float, default=5.0, help="place recognition: true-positive radius, m")
     ap.add_argument("--methods", nargs="+", default=list(CALIBRATION_METHODS), choices=list(CALIBRATION_METHODS))
     ap.add_argument("--qat-weights", type=Path, help="a `radaredge train --qat` fine-tune of --weights (best.pth)")
     ap.add_argument(
@@ -159,34 +295,26 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.control_weights and not args.qat_weights:
         ap.error("--control-weights is the control of a --qat-weights fine-tune; pass both")
-    torch.set_num_threads(training_run.THREADS)
     card = load_card(args.card)
-    rows = {}
+    places = model_spec(card).evaluation == "place recognition"
+    needed = ("database", "queries") if places else ("data",)
+    if missing := [f"--{name}" for name in needed if getattr(args, name) is None]:
+        ap.error(f"{card.name} is scored by {model_spec(card).evaluation}, which needs {' and '.join(missing)}")
+    torch.set_num_threads(training_run.THREADS)
     with tempfile.TemporaryDirectory(prefix="radaredge-int8-methods-") as tmp:
-        fp32 = Path(tmp) / f"{card.name}.onnx"
-        radaredge.export(card, fp32, checkpoint=args.weights)
-        for method in args.methods:
-            print(f"{method}: quantising and scoring on the {args.split} split ...", flush=True)
-            rows[method], baseline = score_method(card, fp32, method, args.data, args.split, Path(tmp))
-        if args.qat_weights:
-            print(f"qat: exporting {args.qat_weights} with its learned ranges and scoring ...", flush=True)
-            rows["qat"] = score_qat(
-                card, args.qat_weights, baseline, args.data, args.split, Path(tmp), args.control_weights
-            )
+        rows, setup = (score_places if places else score_detection)(card, args, Path(tmp))
     doc = {
         "date": utc_stamp(),
         "card": card.name,
         "checkpoint": str(args.weights),
         "checkpoint_sha256": sha256_of(args.weights),
-        "data": str(args.data),
-        "split": args.split,
-        "area": AREA,
-        "budget_ap_points": INT8_AP_BUDGET,
+        **setup,
         "command": "python benchmarks/int8_methods.py " + shlex.join(sys.argv[1:] if argv is None else argv),
         "machine": training_run.machine(),
         "methods": rows,
     }
-    save_result(f"int8-methods-{card.name}-{args.split}", doc, args.results, keep_same_day=True)
+    where = args.queries.parent.name if places else args.split
+    save_result(f"int8-methods-{card.name}-{where}", doc, args.results, keep_same_day=True)
     return 0
 
 

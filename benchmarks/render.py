@@ -1452,8 +1452,10 @@ def tradeoff_section(r: Result | None, results_dir: Path) -> list[str]:
 
 
 def _difference_cell(d: dict) -> str:
-    low, high = d["3d_interval"]
-    return f"{d['3d']:+.2f} [{low:+.2f}, {high:+.2f}]"
+    """An int8 - fp32 difference with its paired interval: a class's 3D AP ({3d, 3d_interval})
+    or a Recall@N ({value, interval})."""
+    value, (low, high) = (d["3d"], d["3d_interval"]) if "3d" in d else (d["value"], d["interval"])
+    return f"{value:+.2f} [{low:+.2f}, {high:+.2f}]"
 
 
 def _method_label(method: str, row: dict) -> str:
@@ -1464,14 +1466,82 @@ def _method_label(method: str, row: dict) -> str:
     return f"`train --qat` (weights `{row['checkpoint_sha256'][:12]}`; int8 vs the original fp32)"
 
 
-def _method_row(label: str, differences: dict, classes: list[str], verdict: str, command: str) -> list[str]:
-    return [label] + [_difference_cell(differences[c]) for c in classes] + [verdict, f"`{command}`"]
+def _method_rows(card: str, methods: dict, columns: list[str]) -> list[list[str]]:
+    """A row per calibration method (int8 - fp32 per column, verdict, command); a --qat row is
+    followed by its control's two rows when it has one."""
+
+    def row(label: str, differences: dict, verdict: str, command: str) -> list[str]:
+        return [label] + [_difference_cell(differences[c]) for c in columns] + [verdict, f"`{command}`"]
+
+    rows = []
+    for m, v in methods.items():
+        rows.append(row(_method_label(m, v), v["int8_minus_fp32"], v["verdict"], v["export_command"]))
+        if "control" in v:
+            c = v["control"]
+            sha = c["checkpoint_sha256"][:12]
+            label = f"control: fp32 fine-tune without `--qat` (weights `{sha}`; fp32 vs the original fp32)"
+            command = f"radaredge export --model {card} --checkpoint CONTROL_WEIGHTS"
+            rows.append(row(label, c["fp32_minus_original_fp32"], "(fp32)", command))
+            label = "`train --qat` int8 vs the control's fp32"
+            rows.append(row(label, c["qat_int8_minus_control_fp32"], c["verdict"], v["export_command"]))
+    return rows
+
+
+def _recall_score_cell(scores: dict, n: str) -> str:
+    """Recall@``n`` [95 % interval] of a place_scores entry ({recall, recall_interval})."""
+    low, high = scores["recall_interval"][n]
+    return f"{scores['recall'][n]:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def _int8_places_lines(r: Result) -> list[str]:
+    """An int8-methods file of a place recogniser: fp32 and no-learning Recall@N, then every
+    method's int8 - fp32 Recall@N (paired 95 % interval over queries) and verdict."""
+    d = r.data
+    methods = d["methods"]
+    first = next(iter(methods.values()))
+    ns = list(first["fp32"]["recall"])
+    out = [
+        f"`{d['card']}`, weights `{d['checkpoint_sha256'][:12]}`, queries `{d['queries']}` against the database "
+        f"`{d['database']}` ({first['queries']} evaluated queries, a true positive within {d['radius_m']:g} m; "
+        f"{r.when}). fp32 Recall@N: "
+        + ", ".join(f"@{n} {_recall_score_cell(first['fp32'], n)}" for n in ns)
+        + f"; no learning (polar occupancy) @1 {_recall_score_cell(d['no_learning'], ns[0])}. int8 - fp32 in Recall@N "
+        f"points, paired over queries [95 % interval]; budget -{d['budget_recall_points']:g} on Recall@1 (within: "
+        "above it; meets: its interval not wholly below it):",
+        "",
+    ]
+    columns = [f"R@{n}" for n in ns]
+    renamed = {m: _renamed_recall_keys(v) for m, v in methods.items()}
+    rows = _method_rows(d["card"], renamed, columns)
+    out += _table(["method", *columns, "verdict", "command"], rows, ["---"] + ["---:"] * len(ns) + ["---", "---"])
+    out += ["", f"Made by `{d['command']}`.", ""]
+    return out
+
+
+def _renamed_recall_keys(row: dict) -> dict:
+    """``row`` with its Recall@N differences keyed R@N (the table's columns), its control's too."""
+
+    def keyed(differences: dict) -> dict:
+        return {f"R@{n}": v for n, v in differences.items()}
+
+    out = {**row, "int8_minus_fp32": keyed(row["int8_minus_fp32"])}
+    if "control" in row:
+        c = row["control"]
+        out["control"] = {
+            **c,
+            "fp32_minus_original_fp32": keyed(c["fp32_minus_original_fp32"]),
+            "qat_int8_minus_control_fp32": keyed(c["qat_int8_minus_control_fp32"]),
+        }
+    return out
 
 
 def int8_methods_lines(r: Result) -> list[str]:
     """One int8-methods file (benchmarks/int8_methods.py): the fp32 graph's AP, then every
-    calibration method's int8 - fp32 3D AP per class (paired 95 % interval) and verdict."""
+    calibration method's int8 - fp32 3D AP per class (paired 95 % interval) and verdict; a place
+    recogniser's file in Recall@N (:func:`_int8_places_lines`)."""
     d = r.data
+    if d.get("task") == "place recognition":
+        return _int8_places_lines(r)
     methods = d["methods"]
     fp32 = next(iter(methods.values()))["fp32"]
     classes = [c for c in ("Car", "Pedestrian", "Cyclist", "mAP") if c in fp32]
@@ -1483,30 +1553,7 @@ def int8_methods_lines(r: Result) -> list[str]:
         "per class (within: every class above it; meets: no class's interval wholly below it):",
         "",
     ]
-    rows = []
-    for m, v in methods.items():
-        rows.append(_method_row(_method_label(m, v), v["int8_minus_fp32"], classes, v["verdict"], v["export_command"]))
-        if "control" in v:
-            c = v["control"]
-            sha = c["checkpoint_sha256"][:12]
-            rows.append(
-                _method_row(
-                    f"control: fp32 fine-tune without `--qat` (weights `{sha}`; fp32 vs the original fp32)",
-                    c["fp32_minus_original_fp32"],
-                    classes,
-                    "(fp32)",
-                    f"radaredge export --model {d['card']} --checkpoint CONTROL_WEIGHTS",
-                )
-            )
-            rows.append(
-                _method_row(
-                    "`train --qat` int8 vs the control's fp32",
-                    c["qat_int8_minus_control_fp32"],
-                    classes,
-                    c["verdict"],
-                    v["export_command"],
-                )
-            )
+    rows = _method_rows(d["card"], methods, classes)
     out += _table(["method", *classes, "verdict", "command"], rows, ["---"] + ["---:"] * len(classes) + ["---", "---"])
     out += ["", f"Made by `{d['command']}`.", ""]
     return out

@@ -1,0 +1,119 @@
+"""benchmarks/int8_methods.py on a place recogniser: every calibration method's int8 graph, a
+--qat fine-tune's and its fp32 control's, scored against the fp32 graph over the same queries,
+with paired Recall@N differences, written to a result file that benchmarks/render.py renders."""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import TINY_CARD
+
+from radaredge.cards import load_card
+from radaredge.data.pr_benchmark import make_pr_benchmark
+from radaredge.models import create_model, model_spec
+from radaredge.models.factory import save_checkpoint
+from radaredge.training.qat import FakeQuantizedLayers
+
+ROOT = Path(__file__).resolve().parent.parent
+BENCHMARKS = ROOT / "benchmarks"
+
+
+def _module(name: str):
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))  # the scripts import their neighbours by name
+    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _qat_checkpoint(card, model, path: Path) -> Path:
+    """A best.pth as `radaredge train --qat` writes it: ``model``'s weights and the ranges its
+    fake-quantised layers observed on a few synthetic windows."""
+    fq = FakeQuantizedLayers(model, card)
+    with torch.no_grad(), fq.observing():
+        for _, feeds in model_spec(card).graph().make_cases(card, 4, 11):
+            model(*(torch.from_numpy(v) for v in feeds.values()))
+    torch.save({"model_state": model.state_dict(), "qat": fq.checkpoint_entry()}, path)
+    fq.remove()
+    return path
+
+
+@pytest.fixture(scope="module")
+def scored(tmp_path_factory):
+    root = tmp_path_factory.mktemp("int8-methods")
+    town = root / "town-7"
+    make_pr_benchmark(town, drives=3, frames_per_drive=20, seed=7)
+    card = load_card(TINY_CARD)
+    model = create_model(card)
+    weights = save_checkpoint(model, root / "weights.pth")
+    control = copy.deepcopy(model)
+    with torch.no_grad():
+        for p in control.parameters():
+            p.mul_(1.01)
+    control_weights = save_checkpoint(control, root / "control.pth")
+    qat = _qat_checkpoint(card, copy.deepcopy(model).eval(), root / "qat.pth")
+    methods = _module("int8_methods")
+    argv = [
+        "--card",
+        str(TINY_CARD),
+        "--weights",
+        str(weights),
+        "--database",
+        str(town / "database"),
+        "--queries",
+        str(town / "queries"),
+        "--methods",
+        "minmax",
+        "--qat-weights",
+        str(qat),
+        "--control-weights",
+        str(control_weights),
+        "--results",
+        str(root / "results"),
+    ]
+    assert methods.main(argv) == 0
+    (path,) = (root / "results").glob("int8-methods-tdfanet-tiny-town-7-*.json")
+    return path, json.loads(path.read_text())
+
+
+def test_each_row_pairs_int8_with_fp32_over_the_same_queries(scored):
+    _, doc = scored
+    assert doc["task"] == "place recognition" and doc["budget_recall_points"] == 1.0
+    minmax, qat = doc["methods"]["minmax"], doc["methods"]["qat"]
+    for row in (minmax, qat):
+        assert row["queries"] > 0 and row["fp32"] == minmax["fp32"]  # the original weights' fp32 graph
+        for n, d in row["int8_minus_fp32"].items():
+            assert d["value"] == pytest.approx(row["int8"]["recall"][n] - row["fp32"]["recall"][n])
+            low, high = d["interval"]
+            assert low <= d["value"] + 1e-9 and d["value"] <= high + 1e-9
+        worst = row["int8_minus_fp32"]["1"]
+        assert row["verdict"] == (
+            "within" if worst["value"] > -1.0 else "meets" if worst["interval"][1] >= -1.0 else "fails"
+        )
+    control = qat["control"]
+    versus = control["qat_int8_minus_control_fp32"]["1"]
+    assert versus["value"] == pytest.approx(qat["int8"]["recall"]["1"] - control["fp32"]["recall"]["1"])
+    gained = control["fp32_minus_original_fp32"]["1"]["value"]
+    assert gained == pytest.approx(control["fp32"]["recall"]["1"] - minmax["fp32"]["recall"]["1"])
+    assert np.isfinite(doc["no_learning"]["recall"]["1"])
+
+
+def test_the_place_rows_render_as_recall_differences(scored):
+    path, doc = scored
+    render = _module("render")
+    lines = render.int8_methods_lines(render.Result(path))
+    assert lines[0].startswith("`tdfanet-tiny`, weights") and "no learning (polar occupancy) @1" in lines[0]
+    header = next(line for line in lines if line.startswith("| method |"))
+    assert header.startswith("| method | R@1 | R@5 | R@10 | verdict | command |")
+    minmax = next(line for line in lines if line.startswith("| `minmax` |"))
+    assert f"{doc['methods']['minmax']['int8_minus_fp32']['1']['value']:+.2f}" in minmax
+    assert any(line.startswith("| control: fp32 fine-tune") and "| (fp32) |" in line for line in lines)
+    assert any(line.startswith("| `train --qat` int8 vs the control's fp32") for line in lines)
