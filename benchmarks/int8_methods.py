@@ -201,13 +201,15 @@ def score_places(card, args, work: Path) -> tuple[dict, dict]:
     """(rows per method, and qat / control rows; the setup fields of the result file) of a place
     recogniser over ``args.queries`` against ``args.database``."""
 
-    def evaluate(graph: Path):
-        return evaluate_places(card, graph, args.database, args.queries, radius=args.radius, reference=False)
+    def evaluate(graph: Path, no_learning: bool = False):
+        return evaluate_places(
+            card, graph, args.database, args.queries, radius=args.radius, reference=False, baseline=no_learning
+        )
 
     fp32 = work / f"{card.name}.onnx"
     radaredge.export(card, fp32, checkpoint=args.weights)
-    print("fp32: scoring ...", flush=True)
-    baseline = evaluate(fp32)
+    print("fp32: scoring (and the no-learning descriptor) ...", flush=True)
+    baseline = evaluate(fp32, no_learning=True)
     rows = {}
     for method in args.methods:
         print(f"{method}: quantising and scoring ...", flush=True)

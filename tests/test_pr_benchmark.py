@@ -7,11 +7,13 @@ import pytest
 from click.testing import CliRunner
 from conftest import TINY_CARD
 
+from radaredge.cards import load_card
 from radaredge.cli import main
 from radaredge.data.pr_benchmark import DAY_S, make_pr_benchmark, plan_drives
 from radaredge.data.sequences import load_sequence
 from radaredge.data.synthetic import SceneConfig
 from radaredge.errors import ConfigError
+from radaredge.eval.places import evaluate
 
 
 def world_points(scan, mask):
@@ -164,6 +166,11 @@ def test_eval_json_without_reference(tiny_export, small_benchmark):
     assert set(report["recall"]) == {"onnxruntime", "polar_occupancy"} and report["top1_agreement"] is None
     assert report["top1_place_agreement"] is None
     assert report["queries"]["drives"] == {"drive-02": 18}
+    card = load_card(TINY_CARD)
+    database, queries = small_benchmark / "database/drive-00", small_benchmark / "queries/drive-02"
+    alone = evaluate(card, onnx, database, queries, reference=False, baseline=False)
+    assert set(alone.results) == {"onnxruntime"}  # the no-learning descriptor left out
+    assert alone.recall("onnxruntime") == {int(n): r for n, r in report["recall"]["onnxruntime"].items()}
 
 
 def test_eval_errors_are_one_clear_line(tiny_export, small_benchmark, tmp_path):

@@ -606,6 +606,7 @@ def evaluate(
     reference: bool = True,
     progress: Callable[[str], Callable] | None = None,
     map_dir: str | os.PathLike | None = None,
+    baseline: bool = True,
 ) -> EvalReport:
     """Recall@N of the exported ``onnx_path`` (onnxruntime), with ``reference`` of the card's
     torch reference formulation (``checkpoint`` or the seeded initialisation), and of the
@@ -614,7 +615,9 @@ def evaluate(
     drive(s), each searched in an exact-L2 FAISS index; plus the top-1 agreement of the graph
     and the reference, by window and by place
     (top-1 windows within ``radius`` m of each other). ``progress(desc)`` returns
-    a wrapper for the window loops (a progress bar).
+    a wrapper for the window loops (a progress bar). ``baseline=False`` leaves the no-learning
+    descriptor out (a caller that scores many graphs of one model on the same windows needs it
+    once).
 
     ``map_dir`` instead of ``database``: the windows of a place map (``radaredge map build``) with
     the descriptors it holds, searched exactly; the map's graph must be ``onnx_path``'s weights,
@@ -643,7 +646,7 @@ def evaluate(
         net = create_model(card, checkpoint)
         require_same_weights(exported, net, checkpoint)
         backends[REFERENCE] = reference_backend(net)
-    if map_dir is None:
+    if map_dir is None and baseline:
         backends[BASELINE] = baseline_backend(exported.features)
     wrap = progress or (lambda desc: iter)
     results = {}

@@ -106,7 +106,9 @@ def places_judge(card: ModelCard, inputs: EvalInputs) -> Judge:
     inputs.require("place recognition", ("database", "queries"), card.name, ("radius",))
 
     def judge(graph: Path) -> dict:
-        report = evaluate_places(card, graph, inputs.database, inputs.queries, radius=inputs.radius, reference=False)
+        report = evaluate_places(
+            card, graph, inputs.database, inputs.queries, radius=inputs.radius, reference=False, baseline=False
+        )
         return {"Recall@1": float(report.recall(ONNX, (1,))[1])}
 
     return judge
