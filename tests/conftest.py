@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # Before torch loads OpenMP: a test that asks for two torch threads shares the two cores with
@@ -169,3 +171,17 @@ def assert_parses_in_tensorrt(path: Path) -> None:
     info = json.loads(res.stdout)
     refused = [f for g in info["graphs"] for f in g["targets"]["tensorrt"] if f["level"] == "unsupported"]
     assert res.exit_code == 0 and not refused, refused
+
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def benchmark_module(name: str):
+    """benchmarks/<name>.py loaded as a module (the scripts import their neighbours by name, so
+    benchmarks/ goes on sys.path)."""
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))
+    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

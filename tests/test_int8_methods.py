@@ -5,33 +5,19 @@ with paired Recall@N differences, written to a result file that benchmarks/rende
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import TINY_CARD
+from conftest import TINY_CARD, benchmark_module
 
 from radaredge.cards import load_card
 from radaredge.data.pr_benchmark import make_pr_benchmark
 from radaredge.models import create_model, model_spec
 from radaredge.models.factory import save_checkpoint
 from radaredge.training.qat import FakeQuantizedLayers
-
-ROOT = Path(__file__).resolve().parent.parent
-BENCHMARKS = ROOT / "benchmarks"
-
-
-def _module(name: str):
-    if str(BENCHMARKS) not in sys.path:
-        sys.path.insert(0, str(BENCHMARKS))  # the scripts import their neighbours by name
-    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _qat_checkpoint(card, model, path: Path) -> Path:
@@ -60,7 +46,7 @@ def scored(tmp_path_factory):
             p.mul_(1.01)
     control_weights = save_checkpoint(control, root / "control.pth")
     qat = _qat_checkpoint(card, copy.deepcopy(model).eval(), root / "qat.pth")
-    methods = _module("int8_methods")
+    methods = benchmark_module("int8_methods")
     argv = [
         "--card",
         str(TINY_CARD),
@@ -108,7 +94,7 @@ def test_each_row_pairs_int8_with_fp32_over_the_same_queries(scored):
 
 def test_the_place_rows_render_as_recall_differences(scored):
     path, doc = scored
-    render = _module("render")
+    render = benchmark_module("render")
     lines = render.int8_methods_lines(render.Result(path))
     assert lines[0].startswith("`tdfanet-tiny`, weights") and "no learning (polar occupancy) @1" in lines[0]
     header = next(line for line in lines if line.startswith("| method |"))

@@ -4,34 +4,23 @@ t-interval of the mean (benchmarks/seed_stats.py) and rendered by benchmarks/ren
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from conftest import benchmark_module
 
 from radaredge.cards import load_card
 from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.models import create_model
 
 ROOT = Path(__file__).resolve().parent.parent
-BENCHMARKS = ROOT / "benchmarks"
-
-
-def _module(name: str):
-    if str(BENCHMARKS) not in sys.path:
-        sys.path.insert(0, str(BENCHMARKS))  # the scripts import their neighbours by name
-    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_seed_summary_is_the_mean_with_its_student_t_interval():
-    stats = _module("seed_stats")
+    stats = benchmark_module("seed_stats")
     s = stats.seed_summary([1.0, 2.0, 3.0])
     half = 4.303 / math.sqrt(3)  # t(0.975, 2 df) * std 1 / sqrt(3)
     assert (s["n"], s["mean"], s["std"], s["min"], s["max"]) == (3, 2.0, 1.0, 1.0, 3.0)
@@ -43,7 +32,7 @@ def test_seed_summary_is_the_mean_with_its_student_t_interval():
 
 
 def test_difference_of_two_cards_means_has_a_welch_interval():
-    stats = _module("seed_stats")
+    stats = benchmark_module("seed_stats")
     d = stats.difference_of_means([10.0, 12.0, 14.0], [4.0, 6.0])
     va, vb = 4.0 / 3, 2.0 / 2  # sample variances 4 and 2 over 3 and 2 seeds
     df = (va + vb) ** 2 / (va**2 / 2 + vb**2 / 1)  # Welch-Satterthwaite: 2.9, rounded down to 2
@@ -54,7 +43,7 @@ def test_difference_of_two_cards_means_has_a_welch_interval():
 
 def _seed_doc(card: str, maps: list[float], ms: float, cpu: str = "AMD EPYC") -> dict:
     """A detection-seeds result as detection_seeds.py writes it, with these per-seed fp32 mAPs."""
-    stats = _module("seed_stats")
+    stats = benchmark_module("seed_stats")
     seeds = [
         {
             "seed": i,
@@ -87,7 +76,7 @@ def _seed_doc(card: str, maps: list[float], ms: float, cpu: str = "AMD EPYC") ->
 def test_tradeoff_table_compares_every_card_with_the_reference_and_fills_the_model_doc(tmp_path):
     """The newest seed study per card becomes one row, slowest first; each card gets its mAP
     difference from the reference with a Welch interval; render writes the table into the doc."""
-    tradeoff, render = _module("detection_tradeoff"), _module("render")
+    tradeoff, render = benchmark_module("detection_tradeoff"), benchmark_module("render")
     results = tmp_path / "results"
     results.mkdir()
     for name, doc in [
@@ -120,7 +109,7 @@ def test_tradeoff_table_compares_every_card_with_the_reference_and_fills_the_mod
 
 
 def test_weights_arguments_name_what_is_wrong(tmp_path):
-    seeds = _module("detection_seeds")
+    seeds = benchmark_module("detection_seeds")
     ckpt = tmp_path / "best.pth"
     ckpt.write_bytes(b"x")
     assert seeds.parse_weights([f"0={ckpt}", f"3={ckpt}"]) == {0: ckpt, 3: ckpt}
@@ -134,8 +123,8 @@ def test_two_seeds_are_scored_timed_summarised_and_rendered(tmp_path):
     """Two checkpoints of the tiny card (seeded with different card seeds, standing in for two
     training seeds) on a small labelled set: every seed's scores and checkpoint hash are in the
     JSON, the summary is their mean, and render.py shows the table."""
-    seeds = _module("detection_seeds")
-    render = _module("render")
+    seeds = benchmark_module("detection_seeds")
+    render = benchmark_module("render")
     card = load_card(ROOT / "tests" / "cards" / "maffnet-tiny.yaml")
     data = tmp_path / "set"
     make_detection_benchmark(data, drives=8, frames=1, seed=0)  # the test split: a few drives
@@ -177,8 +166,8 @@ def test_tdfanet_ablations_over_seeds_say_whether_the_papers_ranking_holds(tmp_p
     """Per ablation, the full model's test Recall@1 minus the ablation's is paired by seed: a
     difference above 0 on every seed with a narrow spread holds the paper's ranking, one below 0
     reverses it, one that changes sign is not resolved; render.py shows all three."""
-    variants = _module("tdfanet_variants")
-    render = _module("render")
+    variants = benchmark_module("tdfanet_variants")
+    render = benchmark_module("render")
     full, worse, better, mixed = [50.0, 52.0, 54.0], [40.0, 41.0, 43.0], [60.0, 63.0, 64.0], [45.0, 58.0, 52.0]
     rows = {
         "frozen": {str(s): _variant_row(60.0 + s, full[s], s) for s in range(3)},
@@ -226,7 +215,7 @@ def test_tdfanet_seed_runs_train_apart_score_the_last_epoch_and_are_reused(tmp_p
     """With seeds, each (variant, seed) trains in its own run directory with the seed among its
     options, the ablation is exported from last.pth (the last epoch), and a second call with
     the same recipe reuses the kept row instead of training again."""
-    variants = _module("tdfanet_variants")
+    variants = benchmark_module("tdfanet_variants")
     trained, exported = [], []
 
     class Report:
