@@ -1686,6 +1686,16 @@ def _recall_cells(v: dict) -> list[str]:
     ]
 
 
+def _places_town(test: dict) -> str:
+    """The make-benchmark command of a TDFANet zoo entry's test town, its queries and chance Recall@1."""
+    if test.get("layout") == "network":
+        town = f"`make-benchmark --layout network --route-km {test['route_km']:g} --seed {test['seed']}`"
+    else:
+        town = f"`make-benchmark --drives {test['drives']} --frames {test['frames']} --seed {test['seed']}`"
+    chance = f", chance R@1 {test['chance_recall_1']:.2f} %" if "chance_recall_1" in test else ""
+    return f"{town} ({test['queries']} queries{chance})"
+
+
 def _with_seeded(entry: dict) -> dict:
     """An entry's test scores per backend, then the seeded (untrained) network's where recorded."""
     seeded = {"seeded weights, onnxruntime": entry["test"]["seeded"]} if entry["test"].get("seeded") else {}
@@ -1725,8 +1735,8 @@ def zoo_section(zoo_dir: Path) -> list[str]:
         out += [""]
     if places:
         out += [
-            "Recall@N (%, 5 m) on the held-out street town (`make-benchmark --seed 0`, over queries). The town "
-            "is easy (the no-learning polar_occupancy row): a regression net, not a benchmark figure.",
+            "Recall@N (%, 5 m, over queries) on each entry's held-out test town, beside the no-learning "
+            "polar_occupancy descriptor and the seeded (untrained) network:",
             "",
         ]
         rows = [
@@ -1750,6 +1760,7 @@ def zoo_section(zoo_dir: Path) -> list[str]:
                 f"`make-benchmark --drives {reg['drives']} --frames {reg['frames']} --seed {reg['seed']}`, "
                 f"fp32 R@1 {_recall_cells(reg['scores'])[0]}"
             )
+            regression = f"{regression}. Test town: {_places_town(e['test'])}"
         out += [
             f"- {e.get('name', e['card'])}: `{e['command']}` (training seed {e['training_seed']}; scored on {where}). "
             f"Regression set: {regression}."
