@@ -6,7 +6,8 @@ For every card named (default: every card in ``zoo/``) this exports the fp32 gra
 weights and its int8 copy (``radaredge export --quantize int8``: the card's calibration method,
 keep_fp32 and reduce_range), then runs ``radaredge bench --int8 --profile`` on them: the backends
 alternate every run on the same pinned cores, so the int8/fp32 ratio is one run's. Writes
-``benchmarks/results/int8-speed-<date>.json``; benchmarks/render.py renders it in docs/quantization.md.
+``benchmarks/results/int8-speed[-<first int8 dot-product set>]-<date>.json``; benchmarks/render.py
+renders it in docs/quantization.md.
 
     python benchmarks/int8_speed.py [--card maffnet-vod-edge] [--runs 30]
 """
@@ -14,6 +15,7 @@ alternate every run on the same pinned cores, so the int8/fp32 ratio is one run'
 from __future__ import annotations
 
 import argparse
+import re
 import shlex
 import sys
 import tempfile
@@ -83,7 +85,9 @@ def main(argv=None) -> int:
         "runs": args.runs,
         "cards": cards,
     }
-    save_result("int8-speed", doc, args.results, keep_same_day=True)
+    isa = doc["machine"]["int8_dot_product"]
+    kind = "int8-speed" + (f"-{re.sub('[^a-z0-9]+', '-', isa[0].lower())}" if isa else "")
+    save_result(kind, doc, args.results, keep_same_day=True)
     return 0
 
 

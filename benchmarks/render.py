@@ -19,8 +19,9 @@ Files it knows, by name (``<kind>-<YYYY-MM-DD>.json``):
   written into docs/models/maffnet.md (:data:`GENERATED`);
 - ``int8-methods-<card>-<split>-<date>.json``: ``benchmarks/int8_methods.py``, int8 calibration methods on
   trained weights, also written into docs/quantization.md;
-- ``int8-speed-<date>.json``: ``benchmarks/int8_speed.py``, int8 against fp32 speed on the zoo's weights with
-  onnxruntime's profile of both, also written into docs/quantization.md;
+- ``int8-speed[-<int8 dot-product set>]-<date>.json``: ``benchmarks/int8_speed.py``, int8 against fp32 speed
+  on the zoo's weights with onnxruntime's profile of both, one study per kind of CPU, also written into
+  docs/quantization.md;
 - ``<card>-training-<date>.json``: ``benchmarks/tdfanet_training.py`` or
   ``benchmarks/des4pos_training.py``, a training run and its held-out recall.
 
@@ -101,8 +102,8 @@ def _kind(stem: str, data) -> str:
         return "tradeoff"
     if stem.startswith("int8-methods-"):
         return "int8-methods"
-    if stem == "int8-speed":
-        return "int8-speed"
+    if stem == "int8-speed" or stem.startswith("int8-speed-"):
+        return "int8-speed"  # one study per kind of CPU: -<int8 dot-product set> when it has one
     if stem.startswith("place-recognition-"):
         return "places"
     if stem.startswith("tdfanet-variants-"):
@@ -154,7 +155,8 @@ def _machine(d: dict) -> str:
     """``AMD EPYC, 2 threads pinned to cores [0, 1], 20 timed runs`` from whatever the file records."""
     parts = []
     if d.get("cpu"):
-        parts.append(str(d["cpu"]))
+        isa = d.get("int8_dot_product")
+        parts.append(str(d["cpu"]) + ("" if isa is None else f" ({_int8_dot_product_text(isa)})"))
     if d.get("threads") is not None:
         cores = f" pinned to cores {d['cores']}" if d.get("cores") is not None else ""
         parts.append(f"{d['threads']} threads{cores}")
@@ -1580,7 +1582,8 @@ def int8_speed_lines(r: Result) -> list[str]:
     d = r.data
     m = d["machine"]
     out = [
-        f"{r.when}: {m['cpu']}, {m['threads']} threads, median of {d['runs']} runs per backend (backends "
+        f"{r.when}: {m['cpu']} ({_int8_dot_product_text(m['int8_dot_product'])}), {m['threads']} threads, "
+        f"median of {d['runs']} runs per backend (backends "
         "alternating, one run); the zoo's weights; kernel ms per run from onnxruntime's profiler.",
         "",
     ]
@@ -1625,11 +1628,19 @@ def int8_speed_lines(r: Result) -> list[str]:
     return out
 
 
-def int8_speed_section(r: Result | None, results_dir: Path) -> list[str]:
-    """benchmarks/README.md's int8 speed on the zoo's weights."""
-    if r is None:
+def int8_speed_section(rs: list[Result], results_dir: Path) -> list[str]:
+    """benchmarks/README.md's int8 speed on the zoo's weights: the newest study of each kind of CPU."""
+    if not rs:
         return []
-    return ["## int8 speed on the zoo's weights", "", *int8_speed_lines(r)[:-1], f"JSON: {_link(r, results_dir)}.", ""]
+    out = ["## int8 speed on the zoo's weights", ""]
+    for r in rs:
+        out += [*int8_speed_lines(r)[:-1], f"JSON: {_link(r, results_dir)}.", ""]
+    return out
+
+
+def _int8_dot_product_text(names: list[str]) -> str:
+    """A CPU's int8 dot-product instruction sets (radaredge.benchmarking.timing.int8_dot_product)."""
+    return f"int8 dot product: {', '.join(names)}" if names else "no int8 dot-product instructions"
 
 
 class GeneratedBlock:
@@ -1668,7 +1679,9 @@ GENERATED = (
     GeneratedBlock(
         "quantization.md", "int8 methods", "int8-methods", lambda rs: [x for r in rs for x in int8_methods_lines(r)]
     ),
-    GeneratedBlock("quantization.md", "int8 speed", "int8-speed", lambda rs: int8_speed_lines(rs[-1])),
+    GeneratedBlock(
+        "quantization.md", "int8 speed", "int8-speed", lambda rs: [x for r in rs for x in int8_speed_lines(r)]
+    ),
 )
 
 
@@ -1787,7 +1800,7 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     places = newest_by_key(results, "places")
     variants = newest_by_key(results, "variants")
     real = (newest_by_key(results, "real") or [None])[-1]
-    int8_speed = (newest_by_key(results, "int8-speed") or [None])[-1]
+    int8_speeds = newest_by_key(results, "int8-speed")
     out = [
         "# Benchmarks",
         "",
@@ -1809,16 +1822,16 @@ def render(results_dir: Path = RESULTS_DIR, zoo_dir: Path = ZOO_DIR) -> str:
     out += zoo_section(zoo_dir)
     out += tradeoff_section(tradeoff, results_dir)
     out += int8_methods_section(int8_methods, results_dir)
-    out += int8_speed_section(int8_speed, results_dir)
+    out += int8_speed_section(int8_speeds, results_dir)
     out += seeds_section(seeds, results_dir)
     out += trained_section(trained, trainings, results_dir)
     out += places_section(places, results_dir)
     out += variants_section(variants, results_dir)
     out += training_section(trainings, results_dir)
     out += train_step_section(train_step, results_dir)
-    shown = suites + benches + compares + trainings + trained + seeds + places + variants + int8_methods
+    shown = suites + benches + compares + trainings + trained + seeds + places + variants + int8_methods + int8_speeds
     rendered = {r.path for r in shown} | {
-        r.path for r in (capacity, cfa, real, fleet, train_step, tradeoff, int8_speed) if r is not None
+        r.path for r in (capacity, cfa, real, fleet, train_step, tradeoff) if r is not None
     }
     out += history_section(results, rendered, results_dir)
     others = [r for r in results if r.kind == "other"]

@@ -27,7 +27,14 @@ from radaredge.artifacts import INT8, copy_path
 from radaredge.benchmarking.harness import BenchOptions, pipeline_backends
 from radaredge.benchmarking.macs import count_macs, gemm_peak_gflops
 from radaredge.benchmarking.profiling import profile_runs, top_ops
-from radaredge.benchmarking.timing import benchmark, cpu_name, output_differences, pin_threads, require_ok
+from radaredge.benchmarking.timing import (
+    benchmark,
+    cpu_name,
+    int8_dot_product,
+    output_differences,
+    pin_threads,
+    require_ok,
+)
 from radaredge.cards import load_card
 from radaredge.exporting.quantize import QUANTIZED_OPS
 from radaredge.models import create_model, model_spec
@@ -166,6 +173,7 @@ def main(argv=None) -> int:
     suite = {
         "date": date,
         "cpu": cpu_name(),
+        "int8_dot_product": int8_dot_product(),
         "threads": args.threads,
         "cores": cores,
         "runs": args.runs,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from radaredge.benchmarking.timing import cpu_name
+from radaredge.benchmarking.timing import cpu_name, int8_dot_product
 from radaredge.cards import ModelCard, load_card
 from radaredge.config import parse_settings
 
@@ -50,6 +50,7 @@ def start(args) -> tuple[ModelCard, Path, dict, str]:
 def machine() -> dict:
     return {
         "cpu": cpu_name(),
+        "int8_dot_product": int8_dot_product(),
         "threads": THREADS,
         "python": platform.python_version(),
         "torch": torch.__version__,

@@ -74,3 +74,12 @@ def test_every_timed_run_starts_after_the_settle_pause(monkeypatch):
     assert bench.SETTLE_S > 0
     # warm-up a, b without pauses; then run 0 (a, b) and run 1 (b first: rotation), each paused
     assert events == ["a", "b", pause, "a", pause, "b", pause, "b", pause, "a"]
+
+
+def test_int8_dot_product_instructions_are_read_from_cpuinfo():
+    """The int8 dot-product sets that decide whether int8 pays, from x86 flags and Arm features."""
+    x86 = "processor\t: 0\nmodel name\t: cpu\nflags\t\t: fpu avx2 avx512f avx512_vnni avx_vnni\n"
+    assert bench.int8_dot_product(x86) == ["AVX-512 VNNI", "AVX-VNNI"]
+    assert bench.int8_dot_product("flags\t\t: fpu avx2 fma\n") == []
+    assert bench.int8_dot_product("Features\t: fp asimd asimddp\n") == ["Arm dot product"]
+    assert bench.int8_dot_product_text([]) == "no int8 dot-product instructions"

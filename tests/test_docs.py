@@ -620,3 +620,46 @@ def test_int8_methods_render_the_qat_control_rows(tmp_path):
     versus = next(line for line in lines if line.startswith("| `train --qat` int8 vs the control's fp32"))
     assert f"{qat['int8_minus_fp32']['mAP']['3d'] - 3.0:+.2f}" in versus and "| fails |" in versus
     assert lines.index(versus) == lines.index(control) + 1
+
+
+def test_int8_speed_renders_one_study_per_kind_of_cpu(tmp_path):
+    """int8 speed depends on the CPU's int8 dot-product instructions, so a study on a CPU with
+    them (int8-speed-avx-512-vnni-*) is shown beside the one without, each naming its CPU's; a
+    newer run of one study replaces that study only."""
+    import json
+
+    render = _render_module()
+    card = {
+        "checkpoint": "zoo/m/weights.pth",
+        "checkpoint_sha256": "ab" * 32,
+        "median_ms": {"onnxruntime": 100.0, "onnxruntime int8": 80.0},
+        "int8_vs_fp32": 1.25,
+        "fp32_ops_ms": {"Conv": 60.0, "Transpose": 5.0},
+        "int8_ops_ms": {"QLinearConv": 40.0, "DequantizeLinear": 2.0},
+        "fp32_heaviest_nodes": [["conv_1", "Conv", 25.0]],
+        "int8_heaviest_nodes": [["qconv_1", "QLinearConv", 15.0]],
+    }
+
+    def study(name, date, isa, int8_ms):
+        doc = {
+            "date": f"{date} 10:00 UTC",
+            "command": "python benchmarks/int8_speed.py",
+            "machine": {"cpu": "cpu", "int8_dot_product": isa, "threads": 2},
+            "runs": 30,
+            "cards": {"m": {**card, "median_ms": {"onnxruntime": 100.0, "onnxruntime int8": int8_ms}}},
+        }
+        (tmp_path / f"{name}-{date}.json").write_text(json.dumps(doc))
+
+    study("int8-speed", "2030-01-01", [], 110.0)
+    study("int8-speed-avx-512-vnni", "2030-01-01", ["AVX-512 VNNI", "AVX-VNNI"], 90.0)
+    study("int8-speed-avx-512-vnni", "2030-01-02", ["AVX-512 VNNI", "AVX-VNNI"], 70.0)
+    results = render.load(tmp_path)
+    block = next(b for b in render.GENERATED if b.name == "int8 speed")
+    text = block.fill(f"{block.begin}\n{block.end}\n", results)
+    assert "cpu (no int8 dot-product instructions), 2 threads" in text
+    assert "cpu (int8 dot product: AVX-512 VNNI, AVX-VNNI), 2 threads" in text
+    assert "| 100.0 | 110.0 |" in text and "| 100.0 | 70.0 |" in text and "| 100.0 | 90.0 |" not in text
+    readme = render.render(tmp_path)
+    current, history = readme.split("## History")
+    assert "int8-speed-2030-01-01.json" in current and "int8-speed-avx-512-vnni-2030-01-02.json" in current
+    assert "int8-speed-avx-512-vnni-2030-01-01.json" in history

@@ -31,7 +31,17 @@ from ..models.spec import BenchTask
 from ..runtime.openvino import openvino_installed
 from ..runtime.runners import lazy_runner
 from .profiling import onnxruntime_peak_rss_mb, profile_runs, stage_times_from_profile, top_nodes, top_ops
-from .timing import BackendResult, benchmark, cpu_name, format_differences, output_differences, pinned, results_table
+from .timing import (
+    BackendResult,
+    benchmark,
+    cpu_name,
+    format_differences,
+    int8_dot_product,
+    int8_dot_product_text,
+    output_differences,
+    pinned,
+    results_table,
+)
 
 
 @dataclass(frozen=True)
@@ -121,6 +131,7 @@ class BenchReport:
     date: str
     tasks: dict[str, TaskResult] = field(default_factory=dict)
     graphs: dict[str, GraphExtras] = field(default_factory=dict)
+    int8_dot_product: list[str] = field(default_factory=list)  # the CPU's (timing.int8_dot_product)
 
     def __bool__(self) -> bool:
         return all(r for t in self.tasks.values() for r in t.rows)
@@ -135,6 +146,7 @@ class BenchReport:
             "threads": self.threads,
             "cores": self.cores,
             "cpu": self.cpu,
+            "int8_dot_product": self.int8_dot_product,
             "runs": self.runs,
             "date": self.date,
             "tasks": {n: t.to_dict() for n, t in self.tasks.items()},
@@ -154,7 +166,8 @@ class BenchReport:
 
     def lines(self) -> list[str]:
         out = [
-            f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu}, {self.runs} runs, {self.date}"
+            f"{self.model} on {self.threads} thread(s), cores {self.cores}, {self.cpu} "
+            f"({int8_dot_product_text(self.int8_dot_product)}), {self.runs} runs, {self.date}"
         ]
         for t in self.tasks.values():
             if t.title:
@@ -331,7 +344,9 @@ def _timed_report(card, spec, model, paths, options: BenchOptions, profile, prog
         else default_tasks(card, spec, model, paths, options)
     )
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    report = BenchReport(card.name, options.threads, cores, cpu_name(), options.runs, stamp)
+    report = BenchReport(
+        card.name, options.threads, cores, cpu_name(), options.runs, stamp, int8_dot_product=int8_dot_product()
+    )
     for t in tasks:
         rows = benchmark(
             t.backends, t.cases, t.runs, t.warmup, progress=progress(f"bench {t.name}") if progress else None

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import contextlib
 import os
-import platform
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from ..runtime.backends import cpu_model
 
 
 @dataclass
@@ -84,13 +86,40 @@ def pinned(threads: int):
 
 def cpu_name() -> str:
     """The CPU model string (Linux /proc/cpuinfo, else platform)."""
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    return cpu_model()
+
+
+# /proc/cpuinfo flags (x86 "flags", Arm "Features") of int8 dot-product instructions, by name: where
+# one is present onnxruntime's int8 kernels multiply four uint8 x int8 pairs per lane in one
+# instruction; without, they widen through 16-bit products and int8 gains little over fp32.
+INT8_DOT_PRODUCT_FLAGS = {
+    "avx512_vnni": "AVX-512 VNNI",
+    "avx_vnni": "AVX-VNNI",
+    "amx_int8": "AMX-INT8",
+    "asimddp": "Arm dot product",
+}
+
+
+def int8_dot_product(cpuinfo: str | None = None) -> list[str]:
+    """The int8 dot-product instruction sets the CPU offers (names of
+    :data:`INT8_DOT_PRODUCT_FLAGS`, in its order), read from ``cpuinfo`` (the text of Linux's
+    /proc/cpuinfo; read from there when None). Empty when it offers none or is not Linux."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return []
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() in ("flags", "Features"):
+            flags.update(value.split())
+    return [name for flag, name in INT8_DOT_PRODUCT_FLAGS.items() if flag in flags]
+
+
+def int8_dot_product_text(names: list[str]) -> str:
+    """``names`` of :func:`int8_dot_product` as a report says them."""
+    return f"int8 dot product: {', '.join(names)}" if names else "no int8 dot-product instructions"
 
 
 def summarise(name: str, times_s: list[float]) -> BackendResult:
