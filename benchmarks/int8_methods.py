@@ -27,6 +27,11 @@ same schedule without ``--qat``: its fp32 graph against the original's, and the 
 against it, both paired, separate what the extra epochs gain from what the fake quantisation
 keeps.
 
+``--into FILE`` adds this run's methods to an earlier result of the same card, weights and data
+(a method measured later, such as the slow entropy calibration): the fp32 graph must score what
+the file recorded for it, so every row is paired with the same fp32 graph on the same frames or
+queries; the merged file is written anew, dated now, with the run listed under ``added``.
+
     python benchmarks/int8_methods.py --card zoo/maffnet-vod-edge/card.yaml \\
         --weights zoo/maffnet-vod-edge/weights.pth --data set [--qat-weights runs/qat/best.pth \\
         [--control-weights runs/fp32/best.pth]]
@@ -37,6 +42,7 @@ keeps.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shlex
 import sys
@@ -277,6 +283,66 @@ def score_detection(card, args, work: Path) -> tuple[dict, dict]:
     return rows, setup
 
 
+# How far the fp32 scores of a run merged with --into may lie from the file's (AP or Recall points):
+# the same graph on the same data scores the same, up to the CPU's float summation order.
+FP32_TOLERANCE = 1e-6
+
+
+def _max_abs_difference(a, b, where: str = "fp32") -> float:
+    """The largest absolute difference between the numbers of two score trees of the same shape
+    (dicts, lists, numbers); ValueError naming the first place where their shapes differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            raise ValueError(f"{where} has the keys {sorted(b)} in the file, {sorted(a)} here")
+        return max((_max_abs_difference(a[k], b[k], f"{where}.{k}") for k in a), default=0.0)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and len(a) == len(b):  # JSON: tuples -> lists
+        return max((_max_abs_difference(x, y, f"{where}[{i}]") for i, (x, y) in enumerate(zip(a, b))), default=0.0)
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return abs(float(a) - float(b))
+    raise ValueError(f"{where} is {b!r} in the file, {a!r} here")
+
+
+def _refuse_into(earlier: dict, path: Path, doc: dict) -> None:
+    """SystemExit when the result ``earlier`` (read from ``path``) is not of ``doc``'s card,
+    weights and data, or already has one of ``doc``'s methods."""
+    for key in ("card", "checkpoint_sha256", "task", "split", "area", "radius_m"):
+        if earlier.get(key) != doc.get(key):
+            raise SystemExit(
+                f"{path}: {key} is {earlier.get(key)!r}, this run's {doc.get(key)!r}; "
+                "--into adds methods to a result of the same card, weights and data"
+            )
+    if both := sorted(set(earlier["methods"]) & set(doc["methods"])):
+        raise SystemExit(f"{path}: already has the rows {both}; --into adds methods it lacks")
+
+
+def merge_into(path: Path, doc: dict) -> dict:
+    """``doc`` (this run's result) merged into the earlier result at ``path``: its method rows
+    join the file's, the run is listed under ``added`` (command, date, machine, methods) and the
+    merged result is dated now. SystemExit when the card, the weights or the data differ, when a
+    method is in both, or when this run's fp32 graph scores otherwise than the file's did (its
+    rows would then not be paired with the same fp32 graph on the same frames or queries)."""
+    earlier = json.loads(Path(path).read_text())
+    _refuse_into(earlier, path, doc)
+    recorded = next(iter(earlier["methods"].values()))["fp32"]
+    for method, row in doc["methods"].items():
+        try:
+            shift = _max_abs_difference(row["fp32"], recorded)
+        except ValueError as err:
+            raise SystemExit(f"{path}: {err}") from None
+        if shift > FP32_TOLERANCE:
+            raise SystemExit(
+                f"{path}: the fp32 graph scores up to {shift:.3g} points away from the file's here ({method}); "
+                "not the same graph on the same data, so its rows would not pair with the file's"
+            )
+    added = {key: doc[key] for key in ("command", "date", "machine")}
+    return {
+        **earlier,
+        "date": doc["date"],
+        "methods": {**earlier["methods"], **doc["methods"]},
+        "added": [*earlier.get("added", []), {**added, "methods": list(doc["methods"])}],
+    }
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python benchmarks/int8_methods.py", description=__doc__.splitlines()[0])
     ap.add_argument("--card", required=True, help="a card name or file (the zoo's card.yaml for its weights)")
@@ -293,6 +359,7 @@ def main(argv=None) -> int:
         type=Path,
         help="an fp32 fine-tune of --weights on the --qat-weights schedule without --qat (best.pth)",
     )
+    ap.add_argument("--into", type=Path, help="an earlier result of the same card, weights and data to add rows to")
     ap.add_argument("--results", type=Path, default=training_run.ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
     if args.control_weights and not args.qat_weights:
@@ -302,6 +369,11 @@ def main(argv=None) -> int:
     needed = ("database", "queries") if places else ("data",)
     if missing := [f"--{name}" for name in needed if getattr(args, name) is None]:
         ap.error(f"{card.name} is scored by {model_spec(card).evaluation}, which needs {' and '.join(missing)}")
+    if args.into:  # before the long scoring: the file must be of these weights and lack these methods
+        planned = args.methods + (["qat"] if args.qat_weights else [])
+        earlier = json.loads(args.into.read_text())
+        mine = {"card": card.name, "checkpoint_sha256": sha256_of(args.weights), "methods": dict.fromkeys(planned)}
+        _refuse_into(earlier, args.into, {**earlier, **mine})
     torch.set_num_threads(training_run.THREADS)
     with tempfile.TemporaryDirectory(prefix="radaredge-int8-methods-") as tmp:
         rows, setup = (score_places if places else score_detection)(card, args, Path(tmp))
@@ -315,6 +387,8 @@ def main(argv=None) -> int:
         "machine": training_run.machine(),
         "methods": rows,
     }
+    if args.into:
+        doc = merge_into(args.into, doc)
     where = args.queries.parent.name if places else args.split
     save_result(f"int8-methods-{card.name}-{where}", doc, args.results, keep_same_day=True)
     return 0

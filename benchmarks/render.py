@@ -1516,7 +1516,7 @@ def _int8_places_lines(r: Result) -> list[str]:
     renamed = {m: _renamed_recall_keys(v) for m, v in methods.items()}
     rows = _method_rows(d["card"], renamed, columns)
     out += _table(["method", *columns, "verdict", "command"], rows, ["---"] + ["---:"] * len(ns) + ["---", "---"])
-    out += ["", f"Made by `{d['command']}`.", ""]
+    out += ["", *_int8_methods_made_by(d), ""]
     return out
 
 
@@ -1534,6 +1534,20 @@ def _renamed_recall_keys(row: dict) -> dict:
             "fp32_minus_original_fp32": keyed(c["fp32_minus_original_fp32"]),
             "qat_int8_minus_control_fp32": keyed(c["qat_int8_minus_control_fp32"]),
         }
+    return out
+
+
+def _int8_methods_made_by(d: dict) -> list[str]:
+    """The commands behind an int8-methods file: the run that made it and each run added to it
+    with ``--into`` (its rows, date and CPU)."""
+    out = [f"Made by `{d['command']}`."]
+    for run in d.get("added", []):
+        rows = ", ".join(f"`{m}`" for m in run["methods"])
+        machine = run["machine"]
+        isa = machine.get("int8_dot_product")
+        cpu = machine["cpu"] + ("" if isa is None else f" ({_int8_dot_product_text(isa)})")
+        plural = "s" if len(run["methods"]) > 1 else ""
+        out.append(f"The {rows} row{plural} added by `{run['command']}` ({run['date']}, {cpu}).")
     return out
 
 
@@ -1557,7 +1571,7 @@ def int8_methods_lines(r: Result) -> list[str]:
     ]
     rows = _method_rows(d["card"], methods, classes)
     out += _table(["method", *classes, "verdict", "command"], rows, ["---"] + ["---:"] * len(classes) + ["---", "---"])
-    out += ["", f"Made by `{d['command']}`.", ""]
+    out += ["", *_int8_methods_made_by(d), ""]
     return out
 
 

@@ -103,3 +103,49 @@ def test_the_place_rows_render_as_recall_differences(scored):
     assert f"{doc['methods']['minmax']['int8_minus_fp32']['1']['value']:+.2f}" in minmax
     assert any(line.startswith("| control: fp32 fine-tune") and "| (fp32) |" in line for line in lines)
     assert any(line.startswith("| `train --qat` int8 vs the control's fp32") for line in lines)
+
+
+def test_a_method_measured_later_joins_the_file_only_over_the_same_fp32_graph(scored, tmp_path):
+    """--into adds a run's rows to an earlier result of the same weights and data, paired with the
+    same fp32 scores, and lists the run; other weights, a row it has, or an fp32 graph that scores
+    otherwise are refused."""
+    path, doc = scored
+    methods = benchmark_module("int8_methods")
+    root = path.parent.parent
+    town = root / "town-7"
+    base = ["--card", str(TINY_CARD), "--database", str(town / "database"), "--queries", str(town / "queries")]
+    out = ["--results", str(tmp_path)]
+    with pytest.raises(SystemExit, match="checkpoint_sha256"):
+        methods.main(
+            [*base, "--weights", str(root / "control.pth"), "--methods", "percentile", "--into", str(path), *out]
+        )
+    with pytest.raises(SystemExit, match=r"already has the rows \['minmax'\]"):
+        methods.main([*base, "--weights", str(root / "weights.pth"), "--methods", "minmax", "--into", str(path), *out])
+    assert not list(tmp_path.iterdir())  # both refused before scoring anything
+    assert (
+        methods.main(
+            [*base, "--weights", str(root / "weights.pth"), "--methods", "percentile", "--into", str(path), *out]
+        )
+        == 0
+    )
+    (merged,) = tmp_path.glob("int8-methods-tdfanet-tiny-town-7-*.json")
+    both = json.loads(merged.read_text())
+    assert list(both["methods"]) == ["minmax", "qat", "percentile"]
+    assert both["methods"]["percentile"]["fp32"] == doc["methods"]["minmax"]["fp32"]
+    assert [run["methods"] for run in both["added"]] == [["percentile"]] and both["command"] == doc["command"]
+    render = benchmark_module("render")
+    lines = render.int8_methods_lines(render.Result(merged))
+    assert any(line.startswith("The `percentile` row added by `python benchmarks/int8_methods.py") for line in lines)
+    shifted = copy.deepcopy(doc)
+    for row in shifted["methods"].values():
+        row["fp32"]["recall"]["1"] += 0.5
+    other = tmp_path / "shifted.json"
+    other.write_text(json.dumps(shifted))
+    # a run's scores hold tuples where the file, read back from JSON, holds lists
+    assert (
+        methods._max_abs_difference({"Car": {"3d_interval": (1.0, 2.0)}}, {"Car": {"3d_interval": [1.0, 2.5]}}) == 0.5
+    )
+    with pytest.raises(SystemExit, match="fp32 graph scores up to 0.5 points away"):
+        methods.main(
+            [*base, "--weights", str(root / "weights.pth"), "--methods", "entropy", "--into", str(other), *out]
+        )
