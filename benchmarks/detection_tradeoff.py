@@ -41,12 +41,20 @@ def newest_seed_files(results: Path) -> dict[str, Path]:
 
 
 def check_comparable(docs: dict[str, dict], files: dict[str, Path]) -> None:
-    """SystemExit naming the first file whose data, split, area, CPU or timing protocol differs
+    """SystemExit naming the first file whose data, split, area, CPU (model string and int8
+    dot-product instructions) or timing protocol differs
     from the first card's: such rows do not compare like with like."""
     first = next(iter(docs))
     for card, doc in docs.items():
         for key, a, b in [(k, doc[k], docs[first][k]) for k in SHARED] + [
             ("machine.cpu", doc["machine"]["cpu"], docs[first]["machine"]["cpu"]),
+            # one model string ("AMD EPYC") covers CPUs with and without int8 dot products; a
+            # study that does not record them is not known to share the others' CPU
+            (
+                "machine.int8_dot_product",
+                doc["machine"].get("int8_dot_product"),
+                docs[first]["machine"].get("int8_dot_product"),
+            ),
             ("timing", doc["timing"], docs[first]["timing"]),
         ]:
             if a != b:

@@ -106,6 +106,12 @@ def test_tradeoff_table_compares_every_card_with_the_reference_and_fills_the_mod
     (results / "detection-seeds-other-2030-01-01.json").write_text(json.dumps(_seed_doc("other", [1.0], 5.0, "Xeon")))
     with pytest.raises(SystemExit, match="detection-seeds-other-2030-01-01.json: machine.cpu"):
         tradeoff.tradeoff(results, "big")
+    # nor one on a CPU of the same model string with int8 dot products
+    vnni = _seed_doc("other", [1.0], 5.0)
+    vnni["machine"]["int8_dot_product"] = ["AVX-512 VNNI"]
+    (results / "detection-seeds-other-2030-01-01.json").write_text(json.dumps(vnni))
+    with pytest.raises(SystemExit, match="detection-seeds-other-2030-01-01.json: machine.int8_dot_product"):
+        tradeoff.tradeoff(results, "big")
 
 
 def test_weights_arguments_name_what_is_wrong(tmp_path):
