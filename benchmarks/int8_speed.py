@@ -86,8 +86,11 @@ def main(argv=None) -> int:
         "cards": cards,
     }
     isa = doc["machine"]["int8_dot_product"]
-    kind = "int8-speed" + (f"-{re.sub('[^a-z0-9]+', '-', isa[0].lower())}" if isa else "")
-    save_result(kind, doc, args.results, keep_same_day=True)
+    if isa is None:  # no /proc/cpuinfo to tell: a study of its own
+        suffix = "-unknown-cpu"
+    else:
+        suffix = f"-{re.sub('[^a-z0-9]+', '-', isa[0].lower())}" if isa else ""
+    save_result(f"int8-speed{suffix}", doc, args.results, keep_same_day=True)
     return 0
 
 

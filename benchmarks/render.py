@@ -1596,7 +1596,7 @@ def int8_speed_lines(r: Result) -> list[str]:
     d = r.data
     m = d["machine"]
     out = [
-        f"{r.when}: {m['cpu']} ({_int8_dot_product_text(m['int8_dot_product'])}), {m['threads']} threads, "
+        f"{r.when}: {m['cpu']} ({_int8_dot_product_text(m.get('int8_dot_product'))}), {m['threads']} threads, "
         f"median of {d['runs']} runs per backend (backends "
         "alternating, one run); the zoo's weights; kernel ms per run from onnxruntime's profiler.",
         "",
@@ -1652,8 +1652,10 @@ def int8_speed_section(rs: list[Result], results_dir: Path) -> list[str]:
     return out
 
 
-def _int8_dot_product_text(names: list[str]) -> str:
+def _int8_dot_product_text(names: list[str] | None) -> str:
     """A CPU's int8 dot-product instruction sets (radaredge.benchmarking.timing.int8_dot_product)."""
+    if names is None:
+        return "int8 dot-product instructions not known"
     return f"int8 dot product: {', '.join(names)}" if names else "no int8 dot-product instructions"
 
 

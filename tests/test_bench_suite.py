@@ -83,3 +83,4 @@ def test_int8_dot_product_instructions_are_read_from_cpuinfo():
     assert bench.int8_dot_product("flags\t\t: fpu avx2 fma\n") == []
     assert bench.int8_dot_product("Features\t: fp asimd asimddp\n") == ["Arm dot product"]
     assert bench.int8_dot_product_text([]) == "no int8 dot-product instructions"
+    assert bench.int8_dot_product_text(None) == "int8 dot-product instructions not known"  # no /proc/cpuinfo

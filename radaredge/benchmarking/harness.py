@@ -131,7 +131,7 @@ class BenchReport:
     date: str
     tasks: dict[str, TaskResult] = field(default_factory=dict)
     graphs: dict[str, GraphExtras] = field(default_factory=dict)
-    int8_dot_product: list[str] = field(default_factory=list)  # the CPU's (timing.int8_dot_product)
+    int8_dot_product: list[str] | None = None  # the CPU's (timing.int8_dot_product; None: not known)
 
     def __bool__(self) -> bool:
         return all(r for t in self.tasks.values() for r in t.rows)

@@ -100,15 +100,16 @@ INT8_DOT_PRODUCT_FLAGS = {
 }
 
 
-def int8_dot_product(cpuinfo: str | None = None) -> list[str]:
+def int8_dot_product(cpuinfo: str | None = None) -> list[str] | None:
     """The int8 dot-product instruction sets the CPU offers (names of
     :data:`INT8_DOT_PRODUCT_FLAGS`, in its order), read from ``cpuinfo`` (the text of Linux's
-    /proc/cpuinfo; read from there when None). Empty when it offers none or is not Linux."""
+    /proc/cpuinfo; read from there when None): empty when it offers none, None when there is no
+    /proc/cpuinfo to tell (not Linux)."""
     if cpuinfo is None:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text()
         except OSError:
-            return []
+            return None
     flags: set[str] = set()
     for line in cpuinfo.splitlines():
         key, _, value = line.partition(":")
@@ -117,8 +118,10 @@ def int8_dot_product(cpuinfo: str | None = None) -> list[str]:
     return [name for flag, name in INT8_DOT_PRODUCT_FLAGS.items() if flag in flags]
 
 
-def int8_dot_product_text(names: list[str]) -> str:
+def int8_dot_product_text(names: list[str] | None) -> str:
     """``names`` of :func:`int8_dot_product` as a report says them."""
+    if names is None:
+        return "int8 dot-product instructions not known"
     return f"int8 dot product: {', '.join(names)}" if names else "no int8 dot-product instructions"
 
 
