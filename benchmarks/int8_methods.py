@@ -27,6 +27,13 @@ same schedule without ``--qat``: its fp32 graph against the original's, and the 
 against it, both paired, separate what the extra epochs gain from what the fake quantisation
 keeps.
 
+``--search`` adds the row of ``radaredge quantize --keep-fp32 none --search``: the sensitivity
+search for the layers to keep in fp32, started from every layer int8 (not from the card's own
+list) and run on held-out data that is not the data scored (a detector's ``--search-split``,
+default val; a place recogniser's ``--search-database`` and ``--search-queries`` drives, such as
+another town); the int8 graph it chooses is then scored like the other rows, paired with the fp32
+graph, and the row records the chosen list and every copy the search scored.
+
 ``--into FILE`` adds this run's methods to an earlier result of the same card, weights and data
 (a method measured later, such as the slow entropy calibration): the fp32 graph must score what
 the file recorded for it, so every row is paired with the same fp32 graph on the same frames or
@@ -36,7 +43,8 @@ queries; the merged file is written anew, dated now, with the run listed under `
         --weights zoo/maffnet-vod-edge/weights.pth --data set [--qat-weights runs/qat/best.pth \\
         [--control-weights runs/fp32/best.pth]]
     python benchmarks/int8_methods.py --card zoo/tdfanet-edge/card.yaml \\
-        --weights zoo/tdfanet-edge/weights.pth --database town/database --queries town/queries
+        --weights zoo/tdfanet-edge/weights.pth --database town/database --queries town/queries \\
+        [--search --search-database town-2/database --search-queries town-2/queries]
 """
 
 from __future__ import annotations
@@ -118,6 +126,25 @@ def score_method(card, fp32: Path, method: str, data: Path, split: str, work: Pa
     scores = detection_scores(report, [ORT, ORT_INT8])
     command = method_command(card, method)
     return _row(report, scores[ORT], scores[ORT_INT8], report.delta_intervals[ORT_INT8], command), report
+
+
+def search_command(card, held_out: str) -> str:
+    """The command that chooses the search row's keep_fp32 on ``held_out`` (its data options)."""
+    return f"radaredge quantize --model {card.name} --onnx GRAPH {held_out} --keep-fp32 none --search"
+
+
+def searched_int8(card, fp32: Path, work: Path, **held_out) -> tuple[Path, dict]:
+    """``fp32`` linked alone into ``work``/search with the int8 copy beside it that ``radaredge
+    quantize --keep-fp32 none --search`` chooses on ``held_out`` (api.quantize's data options);
+    (that graph's path, the search's report without the temporary int8 path)."""
+    home = work / "search"
+    home.mkdir()
+    graph = home / fp32.name
+    os.link(fp32, graph)
+    report = radaredge.quantize(card, graph, keep_fp32="none", search=True, log=print, **held_out)
+    searched = report.to_dict()
+    searched.pop("int8")
+    return graph, searched
 
 
 def _evaluate_export(card, weights: Path, baseline, data: Path, split: str, home: Path, quantize=None):
@@ -250,6 +277,13 @@ def score_places(card, args, work: Path) -> tuple[dict, dict]:
                 "qat_int8_minus_control_fp32": versus_control,
                 "verdict": recall_verdict(versus_control["1"]),
             }
+    if args.search:
+        print("search: choosing keep_fp32 on the held-out drives, from every layer int8 ...", flush=True)
+        held_out = {"database": args.search_database, "queries": args.search_queries, "radius": args.radius}
+        graph, searched = searched_int8(card, fp32, work, **held_out)
+        options = f"--database {args.search_database} --queries {args.search_queries} --radius {args.radius:g}"
+        row = _places_row(evaluate(copy_path(graph, INT8)), baseline, search_command(card, options))
+        rows["search"] = {**row, "keep_fp32": searched["keep_fp32"], "search": searched}
     setup = {
         "task": "place recognition",
         "database": str(args.database),
@@ -273,6 +307,14 @@ def score_detection(card, args, work: Path) -> tuple[dict, dict]:
     if args.qat_weights:
         print(f"qat: exporting {args.qat_weights} with its learned ranges and scoring ...", flush=True)
         rows["qat"] = score_qat(card, args.qat_weights, baseline, args.data, args.split, work, args.control_weights)
+    if args.search:
+        print(f"search: choosing keep_fp32 on the {args.search_split} split, from every layer int8 ...", flush=True)
+        graph, searched = searched_int8(card, fp32, work, data=args.data, split=args.search_split)
+        report = evaluate_detection(card, graph, args.data, args.split, reference=False, openvino=False)
+        scores = detection_scores(report, [ORT, ORT_INT8])
+        command = search_command(card, f"--data {args.data} --split {args.search_split}")
+        row = _row(report, scores[ORT], scores[ORT_INT8], report.delta_intervals[ORT_INT8], command)
+        rows["search"] = {**row, "keep_fp32": searched["keep_fp32"], "search": searched}
     setup = {
         "task": "detection",
         "data": str(args.data),
@@ -343,6 +385,19 @@ def merge_into(path: Path, doc: dict) -> dict:
     }
 
 
+def _require_held_out(ap: argparse.ArgumentParser, args, places: bool) -> None:
+    """argparse error unless --search has held-out data apart from the data scored."""
+    if not places:
+        if args.search_split == args.split:
+            ap.error(f"--search-split {args.search_split} is the split scored; search on held-out data")
+        return
+    if args.search_database is None or args.search_queries is None:
+        ap.error("--search on a place recogniser needs --search-database and --search-queries (another town)")
+    scored = {args.database.resolve(), args.queries.resolve()}
+    if {args.search_database.resolve(), args.search_queries.resolve()} & scored:
+        ap.error("--search-database and --search-queries must be other drives than --database and --queries")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python benchmarks/int8_methods.py", description=__doc__.splitlines()[0])
     ap.add_argument("--card", required=True, help="a card name or file (the zoo's card.yaml for its weights)")
@@ -352,25 +407,45 @@ def main(argv=None) -> int:
     ap.add_argument("--database", type=Path, help="place recognition: the database drive(s)")
     ap.add_argument("--queries", type=Path, help="place recognition: the query drive(s)")
     ap.add_argument("--radius", type=float, default=5.0, help="place recognition: true-positive radius, m")
-    ap.add_argument("--methods", nargs="+", default=list(CALIBRATION_METHODS), choices=list(CALIBRATION_METHODS))
+    ap.add_argument(
+        "--methods",
+        nargs="*",
+        default=list(CALIBRATION_METHODS),
+        choices=list(CALIBRATION_METHODS),
+        help="calibration methods to score (default all; none with --search or --qat-weights for those rows alone)",
+    )
     ap.add_argument("--qat-weights", type=Path, help="a `radaredge train --qat` fine-tune of --weights (best.pth)")
     ap.add_argument(
         "--control-weights",
         type=Path,
         help="an fp32 fine-tune of --weights on the --qat-weights schedule without --qat (best.pth)",
     )
+    ap.add_argument(
+        "--search",
+        action="store_true",
+        help="add the row of `radaredge quantize --keep-fp32 none --search` run on held-out data",
+    )
+    ap.add_argument("--search-split", default="val", help="detection: the split --search chooses on (default val)")
+    ap.add_argument("--search-database", type=Path, help="place recognition: --search's database drive(s)")
+    ap.add_argument("--search-queries", type=Path, help="place recognition: --search's query drive(s)")
     ap.add_argument("--into", type=Path, help="an earlier result of the same card, weights and data to add rows to")
     ap.add_argument("--results", type=Path, default=training_run.ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
     if args.control_weights and not args.qat_weights:
         ap.error("--control-weights is the control of a --qat-weights fine-tune; pass both")
+    if not (args.methods or args.search or args.qat_weights):
+        ap.error("nothing to score: give --methods, --search or --qat-weights")
     card = load_card(args.card)
     places = model_spec(card).evaluation == "place recognition"
     needed = ("database", "queries") if places else ("data",)
     if missing := [f"--{name}" for name in needed if getattr(args, name) is None]:
         ap.error(f"{card.name} is scored by {model_spec(card).evaluation}, which needs {' and '.join(missing)}")
+    if args.qat_weights and not (places or args.methods):
+        ap.error("a detector's --qat-weights row pairs with a calibration method's frames; give --methods too")
+    if args.search:
+        _require_held_out(ap, args, places)
     if args.into:  # before the long scoring: the file must be of these weights and lack these methods
-        planned = args.methods + (["qat"] if args.qat_weights else [])
+        planned = args.methods + (["qat"] if args.qat_weights else []) + (["search"] if args.search else [])
         earlier = json.loads(args.into.read_text())
         mine = {"card": card.name, "checkpoint_sha256": sha256_of(args.weights), "methods": dict.fromkeys(planned)}
         _refuse_into(earlier, args.into, {**earlier, **mine})

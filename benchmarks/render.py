@@ -1462,7 +1462,11 @@ def _difference_cell(d: dict) -> str:
 
 def _method_label(method: str, row: dict) -> str:
     """A calibration method's name; a ``--qat`` fine-tune's row names its weights and says that
-    its int8 graph is compared with the original weights' fp32 graph."""
+    its int8 graph is compared with the original weights' fp32 graph; the search's row names the
+    layers it kept in fp32 and the data it chose them on."""
+    if "search" in row:
+        kept = ", ".join(f"`{m}`" for m in row["keep_fp32"]) or "none"
+        return f"`quantize --search` from every layer int8 (kept fp32: {kept}; chosen on {row['search']['data']})"
     if "qat_fp32" not in row:
         return f"`{method}`"
     return f"`train --qat` (weights `{row['checkpoint_sha256'][:12]}`; int8 vs the original fp32)"

@@ -56,6 +56,7 @@ __all__ = [
 
 MAX_CASES = 10_000  # parity cases are built before the first run: bound them
 MAX_BENCH_RUNS = 100_000  # timed and warm-up runs per backend
+KEEP_FP32_STARTS = ("card", "none")  # quantize: the card's keep_fp32, or every layer int8
 MIN_OPSET = 7  # the oldest opset onnx's version converter writes
 
 
@@ -587,15 +588,17 @@ def quantize(
     method: str | None = None,
     budget: float | None = None,
     search: bool = False,
+    keep_fp32: str = "card",
     log: Callable[[str], None] | None = None,
 ):
     """Write the int8 copy of the fp32 graph at ``onnx`` beside it (``<name>.int8.onnx``), judged
     by the model's task metric on labelled data that is not the test split: a detector's 3D AP per
     class on the ``split`` of ``data``, a place recogniser's Recall@1 over ``queries`` drives
     against ``database`` drives (true positives within ``radius`` m). Activation ranges by
-    ``method`` (default the card's ``quantization.calibration``); the card's ``keep_fp32``, or
-    with ``search`` the fewest groups kept in fp32 that bring every metric's loss within
-    ``budget`` points (default 1.0; :mod:`radaredge.quantizing.search`). Returns the
+    ``method`` (default the card's ``quantization.calibration``); the layers in fp32 are those
+    ``keep_fp32`` names ("card": the card's ``quantization.keep_fp32``; "none": every layer
+    int8), or with ``search`` the fewest groups added to those that bring every metric's loss
+    within ``budget`` points (default 1.0; :mod:`radaredge.quantizing.search`). Returns the
     :class:`radaredge.quantizing.search.QuantizeReport`, true when the written copy is within."""
     from .eval.tasks import EvalInputs
     from .exporting.quantize import calibration_method_of
@@ -610,6 +613,8 @@ def quantize(
     budget = DEFAULT_BUDGET if budget is None else budget
     if not budget > 0:
         raise ConfigError(f"--budget {budget}: expected a positive number of metric points")
+    if keep_fp32 not in KEEP_FP32_STARTS:
+        raise ConfigError(f"--keep-fp32 {keep_fp32}: expected one of {', '.join(KEEP_FP32_STARTS)}")
     graph = Path(onnx)
     if not graph.is_file() or graph.suffix != artifacts.ARTIFACTS[artifacts.GRAPH].suffix:
         raise InputError(f"--onnx {graph}: expected an exported fp32 .onnx file (`radaredge export --checkpoint ...`)")
@@ -628,7 +633,8 @@ def quantize(
         dataset=dataset,
         radius=radius,
     )
-    return quantize_judged(card, graph, inputs, method, budget, search, log or (lambda line: None))
+    keep = None if keep_fp32 == "card" else []
+    return quantize_judged(card, graph, inputs, method, budget, search, log or (lambda line: None), keep)
 
 
 @dataclass(frozen=True)

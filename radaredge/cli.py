@@ -638,12 +638,32 @@ def make_benchmark(out_dir, task, drives, frames, seed, towns, dataset, layout, 
 @click.option(
     "--search",
     is_flag=True,
-    help="Find the fewest layer groups to keep in fp32 (on top of the card's keep_fp32) that meet the budget.",
+    help="Find the fewest layer groups to keep in fp32 (on top of --keep-fp32) that meet the budget.",
+)
+@click.option(
+    "--keep-fp32",
+    type=click.Choice(api.KEEP_FP32_STARTS),
+    default="card",
+    show_default=True,
+    help="Layers in fp32 before any search: the card's quantization.keep_fp32, or none (every layer int8).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the whole report as JSON.")
 @_friendly_errors
 def quantize(
-    model, config, onnx_path, data_root, split, dataset, database, queries, radius, method, budget, search, as_json
+    model,
+    config,
+    onnx_path,
+    data_root,
+    split,
+    dataset,
+    database,
+    queries,
+    radius,
+    method,
+    budget,
+    search,
+    keep_fp32,
+    as_json,
 ):
     """Write an int8 copy judged by the task metric on labelled data; --search chooses keep_fp32."""
     report = api.quantize(
@@ -658,6 +678,7 @@ def quantize(
         method=method,
         budget=budget,
         search=search,
+        keep_fp32=keep_fp32,
         log=_log,
     )
     _emit_and_exit(as_json, report)

@@ -1,6 +1,7 @@
 """benchmarks/int8_methods.py on a place recogniser: every calibration method's int8 graph, a
---qat fine-tune's and its fp32 control's, scored against the fp32 graph over the same queries,
-with paired Recall@N differences, written to a result file that benchmarks/render.py renders."""
+--qat fine-tune's and its fp32 control's, and the one quantize --search chooses on another town,
+scored against the fp32 graph over the same queries, with paired Recall@N differences, written to
+a result file that benchmarks/render.py renders."""
 
 from __future__ import annotations
 
@@ -37,6 +38,8 @@ def scored(tmp_path_factory):
     root = tmp_path_factory.mktemp("int8-methods")
     town = root / "town-7"
     make_pr_benchmark(town, drives=3, frames_per_drive=20, seed=7)
+    held_out = root / "town-8"
+    make_pr_benchmark(held_out, drives=3, frames_per_drive=20, seed=8)
     card = load_card(TINY_CARD)
     model = create_model(card)
     weights = save_checkpoint(model, root / "weights.pth")
@@ -62,6 +65,11 @@ def scored(tmp_path_factory):
         str(qat),
         "--control-weights",
         str(control_weights),
+        "--search",
+        "--search-database",
+        str(held_out / "database"),
+        "--search-queries",
+        str(held_out / "queries"),
         "--results",
         str(root / "results"),
     ]
@@ -73,8 +81,8 @@ def scored(tmp_path_factory):
 def test_each_row_pairs_int8_with_fp32_over_the_same_queries(scored):
     _, doc = scored
     assert doc["task"] == "place recognition" and doc["budget_recall_points"] == 1.0
-    minmax, qat = doc["methods"]["minmax"], doc["methods"]["qat"]
-    for row in (minmax, qat):
+    minmax, qat, searched = doc["methods"]["minmax"], doc["methods"]["qat"], doc["methods"]["search"]
+    for row in (minmax, qat, searched):
         assert row["queries"] > 0 and row["fp32"] == minmax["fp32"]  # the original weights' fp32 graph
         for n, d in row["int8_minus_fp32"].items():
             assert d["value"] == pytest.approx(row["int8"]["recall"][n] - row["fp32"]["recall"][n])
@@ -90,6 +98,23 @@ def test_each_row_pairs_int8_with_fp32_over_the_same_queries(scored):
     gained = control["fp32_minus_original_fp32"]["1"]["value"]
     assert gained == pytest.approx(control["fp32"]["recall"]["1"] - minmax["fp32"]["recall"]["1"])
     assert np.isfinite(doc["no_learning"]["recall"]["1"])
+    # the search chose on the other town, from every layer int8, and the row scores what it chose
+    assert "town-8" in searched["search"]["data"] and searched["search"]["start_keep_fp32"]["keep_fp32"] == []
+    assert searched["keep_fp32"] == searched["search"]["keep_fp32"]
+    assert "--keep-fp32 none --search" in searched["export_command"]
+
+
+def test_the_search_must_choose_on_other_data_than_it_is_scored_on(scored, tmp_path):
+    path, _ = scored
+    town = path.parent.parent / "town-7"
+    argv = ["--card", str(TINY_CARD), "--weights", "w.pth", "--database", str(town / "database")]
+    argv += ["--queries", str(town / "queries"), "--search", "--results", str(tmp_path)]
+    methods = benchmark_module("int8_methods")
+    with pytest.raises(SystemExit):
+        methods.main(argv)  # no held-out drives
+    with pytest.raises(SystemExit):
+        methods.main([*argv, "--search-database", str(town / "database"), "--search-queries", str(town / "queries")])
+    assert not list(tmp_path.iterdir())
 
 
 def test_the_place_rows_render_as_recall_differences(scored):
@@ -103,6 +128,7 @@ def test_the_place_rows_render_as_recall_differences(scored):
     assert f"{doc['methods']['minmax']['int8_minus_fp32']['1']['value']:+.2f}" in minmax
     assert any(line.startswith("| control: fp32 fine-tune") and "| (fp32) |" in line for line in lines)
     assert any(line.startswith("| `train --qat` int8 vs the control's fp32") for line in lines)
+    assert any(line.startswith("| `quantize --search` from every layer int8 (kept fp32: ") for line in lines)
 
 
 def test_a_method_measured_later_joins_the_file_only_over_the_same_fp32_graph(scored, tmp_path):
@@ -130,7 +156,7 @@ def test_a_method_measured_later_joins_the_file_only_over_the_same_fp32_graph(sc
     )
     (merged,) = tmp_path.glob("int8-methods-tdfanet-tiny-town-7-*.json")
     both = json.loads(merged.read_text())
-    assert list(both["methods"]) == ["minmax", "qat", "percentile"]
+    assert list(both["methods"]) == ["minmax", "qat", "search", "percentile"]
     assert both["methods"]["percentile"]["fp32"] == doc["methods"]["minmax"]["fp32"]
     assert [run["methods"] for run in both["added"]] == [["percentile"]] and both["command"] == doc["command"]
     render = benchmark_module("render")

@@ -11,6 +11,7 @@ import pytest
 from conftest import invoke
 
 from radaredge import runtime
+from radaredge.cards import load_card
 from radaredge.data.detection_benchmark import make_detection_benchmark
 from radaredge.node_scopes import module_names
 from radaredge.quantizing import search
@@ -73,17 +74,54 @@ def test_search_keeps_the_most_sensitive_groups_until_the_copy_is_within_budget(
     from radaredge import api
 
     report = api.quantize(card_path, fp32, data="unused", search=True)
-    assert report.card_step.worst == pytest.approx(sum(costs.values()) + 0.2)
+    assert report.start_step.worst == pytest.approx(sum(costs.values()) + 0.2)
     assert set(report.sensitivity) == set(groups)
     assert [s.keep_fp32 for s in report.steps] == [["fuser.crossfusion"], ["fuser.crossfusion", "backbone_2d"]]
     assert report and report.chosen.worst == pytest.approx(0.1 * (len(groups) - 2) + 0.2)
     assert _kept(tmp_path / "maffnet-tiny.int8.onnx") == ["fuser.crossfusion", "backbone_2d"]
-    assert len(judged) == 1 + 1 + len(groups) + 2  # fp32, the card's copy, every group alone, two steps
+    assert len(judged) == 1 + 1 + len(groups) + len(groups) - 1  # fp32, the card's copy, two rounds
     assert "chosen keep_fp32: ['fuser.crossfusion', 'backbone_2d'] (within the budget)" in "\n".join(report.lines())
     # a budget the search cannot meet: every recovering group joins, and the report says so
     costs["vfe"] = 5.0
     report = api.quantize(card_path, fp32, data="unused", search=True, budget=0.05)
     assert not report and len(report.steps) == len(groups)
+    assert [len(r) for r in report.rounds] == list(range(len(groups), 0, -1))
+    # started from every layer int8, a card's own keep_fp32 is a group like any other
+    card = search.with_keep(load_card(card_path), ["backbone_2d"])
+    report = api.quantize(card, fp32, data="unused", search=True, keep_fp32="none")
+    assert report.start_step.keep_fp32 == [] and "backbone_2d" in report.sensitivity
+    assert report.chosen.keep_fp32 == ["vfe", "fuser.crossfusion", "backbone_2d"]
+    report = api.quantize(card, fp32, data="unused", search=True)
+    assert report.start_step.keep_fp32 == ["backbone_2d"] and "backbone_2d" not in report.sensitivity
+    assert report.chosen.keep_fp32 == ["backbone_2d", "vfe", "fuser.crossfusion"]
+
+
+def test_each_round_rescores_the_groups_on_top_of_those_kept(maffnet_tiny_export, tmp_path, monkeypatch):
+    """Groups interact: here ``vfe`` in fp32 recovers nothing while ``backbone_2d`` is int8 (its
+    error dominates) but everything once it is fp32, and ``fuser.crossfusion`` recovers a little
+    either way. Ranking by sensitivity alone would keep it before ``vfe``; re-scoring each round
+    keeps ``backbone_2d`` and then ``vfe``."""
+    card_path, exported = maffnet_tiny_export
+    fp32 = tmp_path / exported.name
+    shutil.copyfile(exported, fp32)
+
+    def loss(kept: list[str]) -> float:
+        if "backbone_2d" not in kept:
+            return 9.0 if "fuser.crossfusion" in kept else 10.0
+        return 0.1 if "vfe" in kept else 2.0 if "fuser.crossfusion" not in kept else 1.9
+
+    def fake_judge(card, inputs):
+        return lambda graph: {"Car": 50.0 - (loss(_kept(graph)) if "int8" in graph.name else 0.0)}
+
+    monkeypatch.setitem(search.JUDGES, "detection", fake_judge)
+    monkeypatch.setattr(search, "quantize_int8", _labelled_copy)
+    from radaredge import api
+
+    report = api.quantize(card_path, fp32, data="unused", search=True)
+    assert report.sensitivity["vfe"].worst == pytest.approx(10.0)
+    assert report.sensitivity["fuser.crossfusion"].worst < report.sensitivity["vfe"].worst
+    assert report and report.chosen.keep_fp32 == ["backbone_2d", "vfe"]
+    assert report.rounds[1]["vfe"].worst == pytest.approx(0.1)
 
 
 def test_quantize_judges_int8_by_ap_on_a_labelled_split(maffnet_tiny_export, tmp_path):
@@ -115,7 +153,7 @@ def test_quantize_judges_a_place_recogniser_by_recall_at_1(tiny_export, tmp_path
     shutil.copyfile(exported, fp32)
     make_pr_benchmark(tmp_path / "town", 2, 12, 0)
     report = api.quantize(card, fp32, database=tmp_path / "town" / "database", queries=tmp_path / "town" / "queries")
-    assert set(report.fp32) == {"Recall@1"} and 0 <= report.card_step.int8["Recall@1"] <= 100
+    assert set(report.fp32) == {"Recall@1"} and 0 <= report.start_step.int8["Recall@1"] <= 100
     assert (tmp_path / "tdfanet-tiny.int8.onnx").is_file() and "Recall@1" in "\n".join(report.lines())
 
 

@@ -6,18 +6,24 @@ place-recognition Recall@1 over query drives against database drives. The budget
 points (default 1.0): the copy is within it when no metric drops by more than the budget.
 
 The search (``radaredge quantize --search``) finds a small ``quantization.keep_fp32`` that meets
-the budget:
+the budget, starting from the card's own list or, with ``--keep-fp32 none``, from every layer
+quantised:
 
 1. Groups: the modules that hold the quantised layers (Conv / MatMul / Gemm nodes, by the
    exporter's module scopes), top-level modules first, and a module that holds more than a third
    of those layers split into its children (MAFF-Net's BEV backbone into its blocks), again
    while that holds.
-2. Sensitivity: for every group, an int8 copy in which that group alone stays fp32 (on top of
-   the card's own ``keep_fp32``); the group's sensitivity is the worst-metric loss it recovers.
-3. Greedy: starting from the card's own list, the groups join in order of sensitivity (only those
-   that recover anything), each step scored, until the copy is within the budget.
+2. Forward selection: each round scores, for every group not yet kept, the int8 copy with that
+   group added to the kept list (the first round, on top of the starting list alone, is each
+   group's sensitivity), and keeps the group whose copy has the smallest worst-metric loss; the
+   rounds go on until the copy is within the budget or every group is kept.
 
-Every step is recorded in the report; the int8 graph written last is the chosen one, and its
+A group's effect depends on the others (a layer whose error another layer's drowns recovers
+nothing alone, yet may be the one that brings the copy within budget once that other layer is
+fp32), so each round scores the groups again instead of ranking them once by sensitivity
+(docs/quantization.md shows both on trained weights).
+
+Every copy scored is recorded in the report; the int8 graph written last is the chosen one, and its
 ``radaredge.quantization`` metadata names the kept modules.
 """
 
@@ -151,22 +157,28 @@ class Step:
 @dataclass
 class QuantizeReport:
     """What ``radaredge quantize`` measured: the fp32 graph's metrics, the int8 copies scored
-    (the card's own first; with ``--search`` every group alone, then each greedy step) and the
-    int8 graph it wrote (the last step's ``keep_fp32``). True when that copy is within budget."""
+    (the starting keep_fp32's first: the card's own, or none; with ``--search`` every round of
+    the forward selection, group -> the copy with that group added) and the int8 graph it wrote
+    (the last step's ``keep_fp32``). True when that copy is within budget."""
 
     card: str
     method: str
     budget: float
     data: str
     fp32: dict
-    card_step: Step
-    sensitivity: dict[str, Step] = field(default_factory=dict)
+    start_step: Step
+    rounds: list[dict[str, Step]] = field(default_factory=list)
     steps: list[Step] = field(default_factory=list)
     int8_path: str = ""
 
     @property
+    def sensitivity(self) -> dict[str, Step]:
+        """Group -> the copy with only that group kept in fp32 on top of the start (round one)."""
+        return self.rounds[0] if self.rounds else {}
+
+    @property
     def chosen(self) -> Step:
-        return self.steps[-1] if self.steps else self.card_step
+        return self.steps[-1] if self.steps else self.start_step
 
     def __bool__(self) -> bool:
         return self.chosen.worst <= self.budget
@@ -178,8 +190,8 @@ class QuantizeReport:
             "budget_points": self.budget,
             "data": self.data,
             "fp32": self.fp32,
-            "card_keep_fp32": self.card_step.to_dict(),
-            "sensitivity": {g: s.to_dict() for g, s in self.sensitivity.items()},
+            "start_keep_fp32": self.start_step.to_dict(),
+            "rounds": [{g: s.to_dict() for g, s in r.items()} for r in self.rounds],
             "steps": [s.to_dict() for s in self.steps],
             "keep_fp32": self.chosen.keep_fp32,
             "within_budget": bool(self),
@@ -193,12 +205,12 @@ class QuantizeReport:
         out = [
             f"{self.card}: int8 ({self.method} calibration) judged on {self.data}; budget {self.budget:g} point(s)",
             "  fp32: " + ", ".join(f"{m} {v:.2f}" for m, v in self.fp32.items()),
-            f"  int8, the card's keep_fp32 {self.card_step.keep_fp32}: {losses(self.card_step)}",
+            f"  int8, keep_fp32 {self.start_step.keep_fp32} (the start): {losses(self.start_step)}",
         ]
-        if self.sensitivity:
-            out.append("  sensitivity (worst loss with only this group kept in fp32):")
-            out += [f"    {g:<28} {s.worst:+.2f}" for g, s in self.sensitivity.items()]
-        out += [f"  int8, keep_fp32 {s.keep_fp32}: {losses(s)}" for s in self.steps]
+        for i, (candidates, step) in enumerate(zip(self.rounds, self.steps), 1):
+            out.append(f"  round {i}, worst loss with each group added to {step.keep_fp32[:-1]}:")
+            out += [f"    {g:<28} {s.worst:+.2f}" for g, s in candidates.items()]
+            out.append(f"  int8, keep_fp32 {step.keep_fp32}: {losses(step)}")
         verdict = "within the budget" if self else "NOT within the budget"
         out.append(f"  chosen keep_fp32: {self.chosen.keep_fp32} ({verdict}); int8 graph: {self.int8_path}")
         return out
@@ -226,12 +238,13 @@ def quantize_judged(
     budget: float = DEFAULT_BUDGET,
     search: bool = False,
     log: Callable[[str], None] = lambda line: None,
+    keep: list[str] | None = None,
 ) -> QuantizeReport:
     """Write the int8 copy of the fp32 graph ``fp32`` beside it, judged by the task on
-    ``inputs``: with the card's ``keep_fp32``, or with ``search`` the list the module docstring's
-    search chooses."""
+    ``inputs``: with ``keep`` in fp32 (default the card's ``keep_fp32``), or with ``search`` the
+    list the module docstring's search chooses, starting from ``keep``."""
     judge = task_judge(card, inputs)
-    own = keep_fp32_patterns(card)
+    own = keep_fp32_patterns(card if keep is None else with_keep(card, keep))
     with tempfile.TemporaryDirectory(prefix="radaredge-quantize-") as tmp:
         work = Path(tmp)
         log(f"scoring the fp32 graph on {_described(inputs)} ...")
@@ -246,31 +259,27 @@ def quantize_judged(
             log(f"keep_fp32 {keep}: worst loss {s.worst:+.2f}")
             return s, path
 
-        card_step, card_path = step(own)
+        start_step, start_path = step(own)
         report = QuantizeReport(
             card.name,
             calibration_method_of(card, method),
             budget,
             _described(inputs),
             fp32_scores,
-            card_step,
+            start_step,
         )
-        chosen_path = card_path
-        if search and card_step.worst > budget:
+        chosen_path = start_path
+        if search:
             groups = [g for g in layer_groups(onnx.load(str(fp32), load_external_data=False)) if g not in own]
-            for g in groups:
-                report.sensitivity[g], _ = step(own + [g])
-            recovered = sorted(
-                (g for g in groups if report.sensitivity[g].worst < card_step.worst),
-                key=lambda g: report.sensitivity[g].worst,
-            )
-            keep = list(own)
-            for g in recovered:
-                keep.append(g)
-                s, chosen_path = step(keep)
-                report.steps.append(s)
-                if s.worst <= budget:
-                    break
+            keep, current = list(own), start_step
+            while groups and current.worst > budget:
+                scored = {g: step(keep + [g]) for g in groups}
+                report.rounds.append({g: s for g, (s, _) in scored.items()})
+                best = min(groups, key=lambda g: scored[g][0].worst)  # ties: the earlier group in the graph
+                current, chosen_path = scored[best]
+                report.steps.append(current)
+                keep.append(best)
+                groups.remove(best)
         out = copy_path(fp32, INT8)
         shutil.copyfile(chosen_path, out)
     report.int8_path = str(out)
