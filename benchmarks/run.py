@@ -7,6 +7,11 @@ code. Writes benchmarks/results/suite-<date>.json, the Markdown table in benchma
 a bar chart benchmarks/suite.png (log scale). Run it with ``make bench`` (or
 ``python benchmarks/run.py --help``).
 
+A card the repository's zoo holds (``zoo/<card>/``: maffnet-vod-edge, tdfanet-edge) is timed
+with its trained weights and the card file they were trained with, since NMS and proposals take
+work that depends on the scores; every other card with its seeded weights. Each card's entry says
+which (``weights``, with the checkpoint's sha256).
+
 Per row: median latency, FPS (1000 / median), GMACs per inference (radaredge.benchmarking.macs: matrix,
 convolution, bilinear sampling and scatter work) and the achieved share of the machine's fp32
 GEMM peak on the same threads, measured by this script. The int8 speed-up over fp32 is reported
@@ -41,9 +46,10 @@ from radaredge.models import create_model, model_spec
 from radaredge.runtime.openvino import openvino_installed
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling modules, also when loaded by path (tests)
-from result_file import result_path, utc_stamp, write_result  # noqa: E402
+from result_file import result_path, sha256_of, utc_stamp, write_result  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
+ZOO = ROOT / "zoo"
 BACKENDS = ("torch reference", "torch export", "onnxruntime", "onnxruntime int8")
 OPENVINO_BACKENDS = ("openvino", "openvino int8")
 # The single-graph cards: TDFANet's two, MAFF-Net stage one for both datasets and its edge card, and
@@ -79,9 +85,17 @@ def quantised_time_share(onnx_path: Path, cases: list[dict], threads: int, runs:
     return sum(v for k, v in ops.items() if k in QUANTIZED_OPS) / total if total else 0.0
 
 
+def zoo_weights(name: str) -> Path | None:
+    """The zoo's trained weights of card ``name`` (zoo/<name>/weights.pth, its card.yaml beside
+    them), or None when the zoo does not hold the card."""
+    weights = ZOO / name / "weights.pth"
+    return weights if weights.is_file() else None
+
+
 def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path, openvino: bool) -> dict:
-    card = load_card(name)
-    model = create_model(card)
+    weights = zoo_weights(name)
+    card = load_card(name if weights is None else weights.with_name("card.yaml"))
+    model = create_model(card, weights)
     graph = model_spec(card).graph()
     fp32, int8 = export_both(card, model, export_dir)
     cases = [feeds for _, feeds in graph.make_cases(card, 4, 1)]
@@ -97,6 +111,8 @@ def bench_card(name: str, runs: int, threads: int, peak: float, export_dir: Path
     by = {r["backend"]: r for r in rows}
     out = {
         "model": name,
+        "weights": "seeded" if weights is None else str(weights.relative_to(ROOT)),
+        **({} if weights is None else {"weights_sha256": sha256_of(weights)}),
         "rows": rows,
         "macs_by_op": {k: v / 1e9 for k, v in macs.items()},
         "ort_vs_reference": by["torch reference"]["p50_ms"] / by["onnxruntime"]["p50_ms"],

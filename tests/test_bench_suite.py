@@ -61,6 +61,10 @@ def test_suite_writes_table_json_and_chart(tmp_path, monkeypatch, tiny_export):
     row = data["models"][0]
     assert row["rows"][0]["gmacs"] > 0 and 0 < row["quantised_op_time_share"] < 1
     assert data["gemm_peak_gflops"] > 0
+    # the tiny cards are timed seeded; a card the zoo holds with the zoo's trained weights
+    assert [m["weights"] for m in data["models"]] == ["seeded", "seeded"] and "| tdfanet-tiny | seeded |" in table
+    assert suite.zoo_weights("maffnet-vod-edge") == ROOT / "zoo" / "maffnet-vod-edge" / "weights.pth"
+    assert suite.zoo_weights("tdfanet-tiny") is None
 
 
 def test_every_timed_run_starts_after_the_settle_pause(monkeypatch):
